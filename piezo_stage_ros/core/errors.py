@@ -45,7 +45,8 @@ class ParameterError(PiezoStageError, ValueError):
 
     """
 
-    def __init__(self, name: str, value: Any, allowed: str, reason: str = 'is out of range') -> None:
+    def __init__(self, name: str, value: Any, allowed: str,
+                 reason: str = 'is out of range') -> None:
         self.name = name
         self.value = value
         self.allowed = allowed

@@ -78,5 +78,5 @@ class Controller(Protocol):
         ...
 
     def diagnostics(self) -> Mapping[str, float]:
-        """Internal state worth recording after the last step (e.g. ``theta_hat``)."""
+        """Return internal state worth recording after the last step (e.g. ``theta_hat``)."""
         ...

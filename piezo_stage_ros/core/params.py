@@ -157,7 +157,8 @@ class ParamSpec:
             raise ParameterError(self.name, value, self.allowed(), 'is not finite')
         if self.low is not None and (value < self.low or (self.low_open and value == self.low)):
             raise ParameterError(self.name, value, self.allowed())
-        if self.high is not None and (value > self.high or (self.high_open and value == self.high)):
+        if self.high is not None and (value > self.high
+                                      or (self.high_open and value == self.high)):
             raise ParameterError(self.name, value, self.allowed())
         return value
 

@@ -1,0 +1,584 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The stage: hysteresis + linear plant + signal chain, stepped one sample at a time.
+
+One sample k of the loop (see :mod:`piezo_stage_ros.core.interfaces`)::
+
+    u_k --DAC (16 bit)--> clamp to amplifier range --> v_k --P(.)--> w_k --G (ZOH)--> x(t_k+1)
+    x(t_k+1) --sensor K_PSCM (+ noise)--> ADC (16 bit) --> y_k+1 / K_PSCM = measured position
+
+The signal chain is that of sections II and V of the paper: amplifier input -2 ... 10 V (gain 10
+inside the plant), position sensor module K_PSCM = 10 V / 38 um, 16-bit DAC and ADC over +-10 V
+(dSPACE DS1104), 10 kHz. With the general electromechanical model the hysteresis acts on the
+charge, H(q) of eq. (2), inside the plant (see :class:`Stage`).
+
+:class:`Stage` is the scalar, allocation-free path used by the closed loop and the nodes;
+:class:`StageBatch` steps n independent stages at once with numpy (sweeps, benchmarks). Both use
+the same discretized matrices and the same hysteresis objects.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+from typing import Any, cast
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from piezo_stage_ros.core.errors import ParameterError
+from piezo_stage_ros.core.hysteresis import HysteresisModel, HysteresisParams, make_hysteresis
+from piezo_stage_ros.core.linear import (
+    DiscreteLinearPlant,
+    electromechanical_plant,
+    ElectromechanicalParams,
+    LinearPlant,
+    reduced_plant,
+    ReducedParams,
+    third_order_plant,
+    ThirdOrderParams,
+)
+from piezo_stage_ros.core.params import group, param, Params
+
+__all__ = ['PlantParams', 'SignalChainParams', 'Stage', 'StageBatch', 'StageParams',
+           'linear_plant', 'quantize']
+
+FloatArray = NDArray[np.float64]
+
+#: K_PSCM of eq. (15): 10 V over the 38 um travel, in V/m.
+SENSOR_GAIN_V_PER_M = 10.0 / 38e-6
+
+
+@dataclass(frozen=True)
+class SignalChainParams(Params):
+    """Amplifier, converters and sensor of the paper's set-up (sections II and V)."""
+
+    amplifier_min_v: float = param(-2.0, unit='V', description='Lowest amplifier input voltage.')
+    amplifier_max_v: float = param(10.0, unit='V',
+                                   description='Highest amplifier input voltage.')
+    safe_voltage_v: float = param(0.0, unit='V', description='Voltage applied on a non-finite '
+                                  'command (and by bridges on faults).')
+    sensor_gain_v_per_m: float = param(SENSOR_GAIN_V_PER_M, unit='V/m',
+                                       description='Position sensor module gain K_PSCM, '
+                                       'eq. (15).', low=0.0, low_open=True)
+    sensor_offset_m: float = param(0.0, unit='m', description='Position x_0 at which the sensor '
+                                   'reads 0 V, eq. (15).')
+    sensor_noise_std_m: float = param(0.0, unit='m', description='Standard deviation of white '
+                                      'sensor noise, in position units.', low=0.0)
+    quantize: bool = param(True, unit='-', description='Model DAC and ADC quantization.')
+    dac_bits: int = param(16, unit='bit', description='DAC resolution.', low=1, high=32)
+    dac_min_v: float = param(-10.0, unit='V', description='DAC output range, low end.')
+    dac_max_v: float = param(10.0, unit='V', description='DAC output range, high end.')
+    adc_bits: int = param(16, unit='bit', description='ADC resolution.', low=1, high=32)
+    adc_min_v: float = param(-10.0, unit='V', description='ADC input range, low end.')
+    adc_max_v: float = param(10.0, unit='V', description='ADC input range, high end.')
+
+    def _check(self) -> None:
+        for lo, hi in (('amplifier_min_v', 'amplifier_max_v'), ('dac_min_v', 'dac_max_v'),
+                       ('adc_min_v', 'adc_max_v')):
+            if not getattr(self, lo) < getattr(self, hi):
+                raise ParameterError(hi, getattr(self, hi), f'> {lo} = {getattr(self, lo):g}',
+                                     'is not above the low end of its range')
+        if not self.amplifier_min_v <= self.safe_voltage_v <= self.amplifier_max_v:
+            raise ParameterError('safe_voltage_v', self.safe_voltage_v,
+                                 f'[{self.amplifier_min_v:g}, {self.amplifier_max_v:g}]',
+                                 'is outside the amplifier range')
+
+    @property
+    def dac_lsb_v(self) -> float:
+        """Return one DAC step [V]."""
+        return (self.dac_max_v - self.dac_min_v) / 2.0 ** self.dac_bits
+
+    @property
+    def adc_lsb_m(self) -> float:
+        """Return one ADC step in position units [m] (1.16 nm for the defaults)."""
+        return (self.adc_max_v - self.adc_min_v) / 2.0 ** self.adc_bits / self.sensor_gain_v_per_m
+
+
+@dataclass(frozen=True)
+class PlantParams(Params):
+    """Choice of linear model and the parameters of each."""
+
+    model: str = param('third_order', unit='-', description='Linear model of the stage: general '
+                       'eqs. (11)-(12), third-order eq. (17) or reduced eq. (25).',
+                       choices=('electromechanical', 'third_order', 'reduced'), read_only=True)
+    electromechanical: ElectromechanicalParams = group(ElectromechanicalParams, 'eqs. (11)-(12)')
+    third_order: ThirdOrderParams = group(ThirdOrderParams, 'eq. (17), values eq. (20)')
+    reduced: ReducedParams = group(ReducedParams, 'eq. (25)')
+    substeps: int = param(8, unit='-', description='Sub-steps per sample for the hysteresis '
+                          'H(q) inside the general model (electromechanical only).', low=1,
+                          high=1000)
+
+
+@dataclass(frozen=True)
+class StageParams(Params):
+    """Everything that defines a simulated stage; defaults are the paper's P-753.31C."""
+
+    sample_rate_hz: float = param(10000.0, unit='Hz', description='Sample rate of the loop.',
+                                  low=1.0, high=1e6, read_only=True)
+    initial_position_m: float = param(3.8e-6, unit='m', description='Stage at rest here at the '
+                                      'start (the paper starts at 3.8 um).', low=0.0, high=38e-6)
+    seed: int = param(0, unit='-', description='Seed of the sensor noise generator.', low=0)
+    plant: PlantParams = group(PlantParams, 'linear dynamics')
+    hysteresis: HysteresisParams = group(HysteresisParams, 'input hysteresis')
+    chain: SignalChainParams = group(SignalChainParams, 'amplifier, sensor, converters')
+
+    @property
+    def sample_time_s(self) -> float:
+        """Return the sample period [s]."""
+        return 1.0 / self.sample_rate_hz
+
+
+def linear_plant(params: PlantParams) -> LinearPlant:
+    """
+    Return the linear model ``params.model`` names.
+
+    Parameters
+    ----------
+    params : PlantParams
+        Model choice and the parameters of each model.
+
+    Returns
+    -------
+    LinearPlant
+        For ``'electromechanical'`` the inputs are (v_in, H); otherwise the single input w.
+
+    """
+    if params.model == 'electromechanical':
+        return electromechanical_plant(params.electromechanical)
+    if params.model == 'third_order':
+        return third_order_plant(params.third_order)
+    return reduced_plant(params.reduced)
+
+
+@dataclass(frozen=True)
+class _Converter:
+    """
+    An ideal converter from a physical input to a quantized physical output.
+
+    code = clip(floor(value * scale + offset), 0, top); output = code * out_scale + out_offset.
+    The DAC maps volts to volts; the ADC path maps position through the sensor gain to a code
+    and back to metres. The scalar and the batch stage use the very same constants, so they
+    round identically.
+    """
+
+    scale: float
+    offset: float
+    top: float
+    out_scale: float
+    out_offset: float
+
+    @classmethod
+    def for_range(cls, bits: int, low: float, high: float, gain: float = 1.0,
+                  zero: float = 0.0) -> _Converter:
+        """Return the converter for ``gain * (value - zero)`` V over [low, high], ``bits``."""
+        lsb = (high - low) / 2 ** bits
+        return cls(scale=gain / lsb, offset=(-gain * zero - low) / lsb + 0.5,
+                   top=float(2 ** bits - 1), out_scale=lsb / gain,
+                   out_offset=low / gain + zero)
+
+    def scalar(self, value: float) -> float:
+        """Quantize one float."""
+        code = float(math.floor(value * self.scale + self.offset))
+        return min(max(code, 0.0), self.top) * self.out_scale + self.out_offset
+
+    def array(self, value: FloatArray) -> FloatArray:
+        """Quantize an array (same arithmetic as :meth:`scalar`)."""
+        code = np.floor(value * self.scale + self.offset)
+        # in place: several times faster than np.clip on small arrays
+        np.minimum(np.maximum(code, 0.0, out=code), self.top, out=code)
+        return np.asarray(code * self.out_scale + self.out_offset, dtype=np.float64)
+
+
+def quantize(value: Any, bits: int, low: float, high: float) -> Any:
+    """
+    Round to the nearest converter code and clip to the converter range.
+
+    Parameters
+    ----------
+    value : float or ndarray
+        Voltage [V].
+    bits : int
+        Resolution.
+    low, high : float
+        Range [V]; codes 0 ... 2**bits - 1 map to low + code * (high - low) / 2**bits.
+
+    Returns
+    -------
+    float or ndarray
+        The quantized voltage.
+
+    """
+    conv = _Converter.for_range(bits, low, high)
+    if isinstance(value, float):
+        return conv.scalar(value)
+    return conv.array(np.asarray(value, dtype=np.float64))
+
+
+class _StageCore:
+    """Parts shared by the scalar and the batch stage: models, matrices, rest state."""
+
+    def __init__(self, params: StageParams) -> None:
+        self.params = params
+        self.chain = params.chain
+        self.sample_time_s = params.sample_time_s
+        self.hysteresis: HysteresisModel = make_hysteresis(params.hysteresis)
+        self.plant = linear_plant(params.plant)
+        self.charge_hysteresis = params.plant.model == 'electromechanical'
+        self.substeps = params.plant.substeps if self.charge_hysteresis else 1
+        self.discrete: DiscreteLinearPlant = self.plant.discretize(
+            self.sample_time_s / self.substeps)
+        self.dc_gain_m_per_v = self.plant.dc_gain_m_per_v
+        chain = params.chain
+        self.dac = _Converter.for_range(chain.dac_bits, chain.dac_min_v, chain.dac_max_v) \
+            if chain.quantize else None
+        self.adc = _Converter.for_range(chain.adc_bits, chain.adc_min_v, chain.adc_max_v,
+                                        chain.sensor_gain_v_per_m, chain.sensor_offset_m) \
+            if chain.quantize else None
+        if self.charge_hysteresis:
+            em = params.plant.electromechanical
+            # u = q / q_ref is the charge in "volts of w": q_ref = C_A k_amp kbar_s / k_s is
+            # the charge per volt of w at rest. H(q) = k_amp (u - P(u)), so that at rest the
+            # general model behaves like P ahead of G (exactly so when P is linear).
+            self.amplifier_gain = em.amplifier_gain
+            # scaled state 0 is q / (C_A k_amp), see linear.electromechanical_plant
+            self.charge_to_u = em.stiffness_n_per_m / em.stiffness_bar_n_per_m
+
+    def rest(self, position_m: Any) -> tuple[Any, Any, Any]:
+        """Return (linear state columns, hysteresis state, held input v) at rest."""
+        u0 = np.asarray(position_m, dtype=np.float64) / self.dc_gain_m_per_v
+        slope = self.hysteresis.slope
+        if self.charge_hysteresis:
+            # at rest u = v - H/k_amp = v - (1 - slope) u, so v = (2 - slope) u
+            v0 = (2.0 - slope) * u0
+            h_state = self.hysteresis.rest_state(u0 if u0.ndim else float(u0))
+            h_volt = self.amplifier_gain * (1.0 - slope) * u0
+            rhs = np.multiply.outer(self.plant.b[:, 0], v0) + \
+                np.multiply.outer(self.plant.b[:, 1], h_volt)
+        else:
+            v0 = u0 / slope
+            h_state = self.hysteresis.rest_state(v0 if v0.ndim else float(v0))
+            rhs = np.multiply.outer(self.plant.b[:, 0], slope * v0)
+        x = -np.linalg.solve(self.plant.a, rhs)
+        return x, h_state, v0
+
+
+def _linear_step_function(ad: tuple[tuple[float, ...], ...], bd: tuple[float, ...]) -> Any:
+    """
+    Return ``f(x, w) -> Ad x + Bd w`` on lists of floats, unrolled for orders 1 and 3.
+
+    The per-sample path of :class:`Stage` runs in plain Python floats: numpy's per-call overhead
+    on 3-vectors is larger than the arithmetic. The matrices are the ZOH ones of
+    :meth:`LinearPlant.discretize`; only the evaluation is specialised here.
+    """
+    if len(bd) == 1:
+        a, b = ad[0][0], bd[0]
+
+        def step1(x: list[float], w: float) -> list[float]:
+            return [a * x[0] + b * w]
+        return step1
+    if len(bd) == 3:
+        (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = ad
+        b0, b1, b2 = bd
+
+        def step3(x: list[float], w: float) -> list[float]:
+            x0, x1, x2 = x
+            return [a00 * x0 + a01 * x1 + a02 * x2 + b0 * w,
+                    a10 * x0 + a11 * x1 + a12 * x2 + b1 * w,
+                    a20 * x0 + a21 * x1 + a22 * x2 + b2 * w]
+        return step3
+
+    def step_n(x: list[float], w: float) -> list[float]:
+        return [sum(a * xj for a, xj in zip(row, x)) + b * w for row, b in zip(ad, bd)]
+    return step_n
+
+
+class Stage:
+    """
+    One simulated stage, stepped one sample at a time (scalar fast path).
+
+    Parameters
+    ----------
+    params : StageParams
+        Models and signal chain.
+    rng : numpy.random.Generator, optional
+        Source of sensor noise; default ``np.random.default_rng(params.seed)``.
+
+    Notes
+    -----
+    Non-finite commands are replaced by ``chain.safe_voltage_v`` and counted in
+    :attr:`faults`. With the general model, H(q) is updated ``plant.substeps`` times per sample
+    (the linear part is exact over each sub-step, the hysteresis follows the charge at the
+    sub-step ends): a first-order splitting whose error falls with the number of sub-steps.
+
+    """
+
+    def __init__(self, params: StageParams, rng: np.random.Generator | None = None) -> None:
+        self._core = _StageCore(params)
+        self.params = params
+        self.rng = rng if rng is not None else np.random.default_rng(params.seed)
+        d = self._core.discrete
+        self._ad = tuple(tuple(float(a) for a in row) for row in d.ad)
+        self._bd = tuple(tuple(float(b) for b in row) for row in d.bd)
+        self._c = tuple(float(c) for c in d.c)
+        chain = params.chain
+        self._vmin = chain.amplifier_min_v
+        self._vmax = chain.amplifier_max_v
+        self._noise = chain.sensor_noise_std_m
+        self._dac = self._core.dac.scalar if self._core.dac else None
+        self._adc = self._core.adc.scalar if self._core.adc else None
+        self._hyst_step = self._core.hysteresis.step
+        # Every model here measures one state (x itself): read it without a dot product.
+        nonzero = [i for i, c in enumerate(self._c) if c != 0.0]
+        self._pos_index = nonzero[0] if len(nonzero) == 1 else -1
+        self._pos_gain = self._c[self._pos_index] if len(nonzero) == 1 else 0.0
+        self._linear_step = _linear_step_function(self._ad, tuple(b[0] for b in self._bd))
+        self.faults = 0
+        self.reset()
+
+    @property
+    def sample_time_s(self) -> float:
+        """Return the sample period [s]."""
+        return self._core.sample_time_s
+
+    @property
+    def position_m(self) -> float:
+        """Return the true position x [m] (no noise, no quantization)."""
+        if self._pos_index >= 0:
+            return self._pos_gain * self._x[self._pos_index]
+        return sum(c * xi for c, xi in zip(self._c, self._x))
+
+    @property
+    def applied_voltage_v(self) -> float:
+        """Return the amplifier input voltage held over the last sample [V]."""
+        return self._v
+
+    @property
+    def hysteresis_output_v(self) -> float:
+        """Return the hysteresis output w [V] (the charge variable u for the general model)."""
+        return self._w
+
+    def reset(self, position_m: float | None = None) -> float:
+        """
+        Put the stage at rest at ``position_m`` and return the measured position there.
+
+        Parameters
+        ----------
+        position_m : float, optional
+            Rest position [m]; default ``params.initial_position_m``.
+
+        Returns
+        -------
+        float
+            Measured position y_0 [m].
+
+        """
+        pos = self.params.initial_position_m if position_m is None else float(position_m)
+        x, h_state, v0 = self._core.rest(pos)
+        self._x = [float(v) for v in x]
+        self._h = h_state
+        self._v = float(v0)
+        self._w = pos / self._core.dc_gain_m_per_v
+        self.time_s = 0.0
+        self.steps = 0
+        return self.measure()
+
+    def apply_command(self, command_v: float) -> float:
+        """Return the voltage the amplifier sees for a commanded ``command_v`` [V]."""
+        if not math.isfinite(command_v):
+            self.faults += 1
+            return self.params.chain.safe_voltage_v
+        v = float(command_v)
+        if self._dac is not None:
+            v = self._dac(v)
+        return min(max(v, self._vmin), self._vmax)
+
+    def measure(self) -> float:
+        """Return the measured position [m] now (sensor, noise, ADC)."""
+        # noise is added in position units: the same as sensor-volt noise / K_PSCM
+        pos = self.position_m
+        if self._noise > 0.0:
+            pos += self._noise * float(self.rng.standard_normal())
+        return self._adc(pos) if self._adc is not None else pos
+
+    def step(self, command_v: float) -> float:
+        """
+        Hold ``command_v`` over one sample and return the measured position at its end.
+
+        Parameters
+        ----------
+        command_v : float
+            Commanded amplifier input [V] (quantized by the DAC, clamped to the amplifier range).
+
+        Returns
+        -------
+        float
+            Measured position y_k+1 [m].
+
+        """
+        v = self.apply_command(command_v)
+        self._v = v
+        x = self._x
+        if self._core.charge_hysteresis:
+            core = self._core
+            ad, bd = self._ad, self._bd
+            for _ in range(core.substeps):
+                u = x[0] * core.charge_to_u
+                self._h, pu = core.hysteresis.step(self._h, u)
+                h_volt = core.amplifier_gain * (u - float(pu))
+                x = [sum(a * xj for a, xj in zip(row, x)) + b[0] * v + b[1] * h_volt
+                     for row, b in zip(ad, bd)]
+            self._w = x[0] * core.charge_to_u
+        else:
+            self._h, w = self._hyst_step(self._h, v)
+            self._w = w = cast(float, w)  # a float in, a float out: the scalar path
+            x = self._linear_step(x, w)
+        self._x = x
+        self.steps += 1
+        self.time_s = self.steps * self._core.sample_time_s
+        return self.measure()
+
+    def run_open_loop(self, commands_v: ArrayLike) -> FloatArray:
+        """
+        Apply a sequence of commands, one per sample, and return the measured positions.
+
+        Parameters
+        ----------
+        commands_v : array_like
+            u_0 ... u_N-1 [V].
+
+        Returns
+        -------
+        ndarray
+            y_1 ... y_N [m] (the measurement at the end of each sample).
+
+        """
+        cmds = np.asarray(commands_v, dtype=np.float64).ravel()
+        out = np.empty(cmds.size)
+        step = self.step
+        for k, u in enumerate(cmds.tolist()):
+            out[k] = step(u)
+        return out
+
+
+class StageBatch:
+    """
+    ``n`` independent stages stepped together with numpy (same parameters, own noise).
+
+    Parameters
+    ----------
+    params : StageParams
+        Models and signal chain (shared by every stage).
+    n : int
+        Number of stages.
+    rng : numpy.random.Generator, optional
+        Source of sensor noise; default ``np.random.default_rng(params.seed)``.
+
+    """
+
+    def __init__(self, params: StageParams, n: int, rng: np.random.Generator | None = None
+                 ) -> None:
+        if n < 1:
+            raise ParameterError('n', n, '[1, inf)')
+        self._core = _StageCore(params)
+        self.params = params
+        self.n = n
+        self.rng = rng if rng is not None else np.random.default_rng(params.seed)
+        self.faults = 0
+        self.reset()
+
+    @property
+    def sample_time_s(self) -> float:
+        """Return the sample period [s]."""
+        return self._core.sample_time_s
+
+    @property
+    def position_m(self) -> FloatArray:
+        """Return the true positions [m], shape (n,)."""
+        c = self._core.discrete.c
+        nonzero = np.flatnonzero(c)
+        if nonzero.size == 1:  # every model here measures one state directly
+            return np.asarray(c[nonzero[0]] * self._x[nonzero[0]], dtype=np.float64)
+        return np.asarray(c @ self._x, dtype=np.float64)
+
+    def reset(self, position_m: ArrayLike | None = None) -> FloatArray:
+        """
+        Put every stage at rest (one position or one per stage) and return the measurements.
+
+        Parameters
+        ----------
+        position_m : array_like, optional
+            Rest position(s) [m]; default ``params.initial_position_m``.
+
+        Returns
+        -------
+        ndarray
+            Measured positions [m], shape (n,).
+
+        """
+        pos = self.params.initial_position_m if position_m is None else position_m
+        pos_a = np.broadcast_to(np.asarray(pos, dtype=np.float64), (self.n,)).copy()
+        self._x, self._h, v0 = self._core.rest(pos_a)
+        self._v = np.asarray(v0, dtype=np.float64)
+        return self.measure()
+
+    def measure(self) -> FloatArray:
+        """Return the measured positions [m] now."""
+        noise = self.params.chain.sensor_noise_std_m
+        pos = self.position_m
+        if noise > 0.0:
+            pos = pos + noise * self.rng.standard_normal(self.n)
+        return self._core.adc.array(pos) if self._core.adc is not None else pos
+
+    def step(self, command_v: ArrayLike) -> FloatArray:
+        """
+        Hold one command per stage over one sample and return the measured positions.
+
+        Parameters
+        ----------
+        command_v : array_like
+            Commands [V], shape (n,) or scalar.
+
+        Returns
+        -------
+        ndarray
+            Measured positions [m], shape (n,).
+
+        """
+        chain = self.params.chain
+        u = np.asarray(command_v, dtype=np.float64)
+        if u.shape != (self.n,):
+            # np.broadcast_to costs more than the whole step for scalars; np.full does not
+            u = np.full(self.n, float(u)) if u.ndim == 0 else np.broadcast_to(u, (self.n,))
+        if not np.isfinite(u).all():
+            bad = ~np.isfinite(u)
+            self.faults += int(bad.sum())
+            u = np.where(bad, chain.safe_voltage_v, u)
+        if self._core.dac is not None:
+            u = self._core.dac.array(u)
+        v = np.minimum(np.maximum(u, chain.amplifier_min_v), chain.amplifier_max_v)
+        self._v = v
+        core = self._core
+        d = core.discrete
+        if core.charge_hysteresis:
+            for _ in range(core.substeps):
+                uq = self._x[0] * core.charge_to_u
+                self._h, pu = core.hysteresis.step(self._h, uq)
+                h_volt = core.amplifier_gain * (uq - pu)
+                self._x = d.ad @ self._x + d.bd[:, :1] * v + d.bd[:, 1:2] * h_volt
+        else:
+            self._h, w = core.hysteresis.step(self._h, v)
+            self._x = d.ad @ self._x + d.bd[:, :1] * w
+        return self.measure()
