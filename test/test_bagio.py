@@ -1,0 +1,446 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""Bags written with rosbags in tmp_path and read back: round trips, alignment, bad bags."""
+
+from pathlib import Path
+import shutil
+
+import numpy as np
+from piezo_stage_ros.analysis import bagio
+from piezo_stage_ros.analysis.bagio import read_run, read_topics, RunBagWriter, write_run
+from piezo_stage_ros.core.errors import BagError
+from piezo_stage_ros.core.record import RunRecord
+import pytest
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
+from rosbags.typesys import get_typestore, Stores
+
+SHARED = Path(__file__).resolve().parents[1].parent / 'shared' / 'bags'
+if not SHARED.is_dir():
+    SHARED = Path('/work/shared/bags')
+STORE = get_typestore(Stores.ROS2_JAZZY)
+JS = 'sensor_msgs/msg/JointState'
+F64 = 'std_msgs/msg/Float64'
+
+
+def make_record(n=2000, start_s=0.0, diagnostics=True):
+    k = np.arange(n)
+    t = start_s + k * 1e-4
+    rng = np.random.default_rng(7)
+    diag = {}
+    if diagnostics:
+        diag = {'theta_hat': 1.29 + 1e-3 * np.sin(k / 50.0),
+                'phi_hat': 3.2e-4 + 1e-6 * k,
+                'saturated': (k % 7 == 0).astype(float)}
+    return RunRecord(
+        time_s=t,
+        position_m=10e-6 + 5e-6 * np.sin(2 * np.pi * 5 * t) + rng.normal(0, 1e-9, n),
+        reference_m=10e-6 + 5e-6 * np.sin(2 * np.pi * 5 * t),
+        reference_velocity_mps=5e-6 * 2 * np.pi * 5 * np.cos(2 * np.pi * 5 * t),
+        command_v=2.0 + 1.5 * np.sin(2 * np.pi * 5 * t) + rng.normal(0, 1e-3, n),
+        diagnostics=diag,
+        meta={'controller': 'rac', 'seed': 3, 'gains': {'k': 1.5}},
+    )
+
+
+def assert_same_run(a, b):
+    np.testing.assert_allclose(a.time_s, b.time_s, rtol=0, atol=1e-12)
+    for name in ('position_m', 'reference_m', 'reference_velocity_mps', 'command_v'):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert sorted(a.diagnostics) == sorted(b.diagnostics)
+    for key in a.diagnostics:
+        np.testing.assert_array_equal(a.diagnostics[key], b.diagnostics[key], err_msg=key)
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+def test_round_trip_every_field(tmp_path, storage):
+    rec = make_record()
+    bag = tmp_path / 'run'
+    write_run(rec, bag, storage=storage)
+    back = read_run(bag)
+    assert_same_run(rec, back)
+    # The run description survives (as JSON) and the reader adds where it came from.
+    assert back.meta['controller'] == 'rac' and back.meta['gains'] == {'k': 1.5}
+    assert back.meta['storage'] == storage and back.meta['namespace'] == '/stage'
+    assert back.meta['alignment']['samples'] == len(rec)
+    assert back.meta['alignment']['dropped_command'] == 0
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+def test_stamps_and_log_times_exactly_100us_apart(tmp_path, storage):
+    bag = tmp_path / 'run'
+    write_run(make_record(n=5000), bag, storage=storage)
+    _, _, topics, _ = read_topics(bag)
+    for key in ('position', 'reference', 'command', 'diagnostics'):
+        log_ns, stamp_ns, _ = topics[key]
+        assert log_ns.size == 5000
+        assert np.all(np.diff(log_ns) == 100_000), key
+        if stamp_ns is not None:
+            np.testing.assert_array_equal(stamp_ns, log_ns)
+    assert topics['position'][0][0] == 0
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+def test_messages_decode_with_the_generic_rosbags_deserializer(tmp_path, storage):
+    # Independent check of the byte templates: rosbags' own deserializer reads what we wrote.
+    rec = make_record(n=30)
+    bag = tmp_path / 'run'
+    write_run(rec, bag, storage=storage)
+    seen = {'position': [], 'reference': [], 'command': [], 'diagnostics': []}
+    with Reader(bag) as reader:
+        types = {c.topic: c.msgtype for c in reader.connections}
+        assert types == {'/stage/position': JS, '/stage/reference': JS,
+                         '/stage/command': F64, '/stage/diagnostics': JS}
+        for conn, log_ns, raw in reader.messages():
+            seen[conn.topic.rsplit('/', 1)[1]].append((log_ns, STORE.deserialize_cdr(raw,
+                                                                                  conn.msgtype)))
+    for k in range(30):
+        log_ns, msg = seen['position'][k]
+        assert log_ns == k * 100_000
+        assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (0, k * 100_000)
+        assert list(msg.name) == ['stage'] and msg.position[0] == rec.position_m[k]
+        msg = seen['reference'][k][1]
+        assert msg.position[0] == rec.reference_m[k]
+        assert msg.velocity[0] == rec.reference_velocity_mps[k]
+        assert seen['command'][k][1].data == rec.command_v[k]
+        msg = seen['diagnostics'][k][1]
+        assert list(msg.name) == ['phi_hat', 'saturated', 'theta_hat']
+        assert msg.position[2] == rec.diagnostics['theta_hat'][k]
+
+
+def test_streaming_writer_equals_write_run(tmp_path):
+    rec = make_record(n=3000)
+    with RunBagWriter(tmp_path / 'streamed', meta={'controller': 'pi'}) as writer:
+        for lo in range(0, 3000, 700):
+            sl = slice(lo, lo + 700)
+            writer.write_samples(rec.time_s[sl], rec.position_m[sl], rec.reference_m[sl],
+                                 rec.reference_velocity_mps[sl], rec.command_v[sl],
+                                 diagnostics={k: v[sl] for k, v in rec.diagnostics.items()})
+    back = read_run(tmp_path / 'streamed')
+    assert_same_run(rec, back)
+    assert back.meta['controller'] == 'pi'
+
+
+def test_streaming_writer_refuses_time_going_back(tmp_path):
+    rec = make_record(n=100)
+    with pytest.raises(BagError, match='strictly increasing'):
+        with RunBagWriter(tmp_path / 'b') as writer:
+            writer.write_chunk(rec)
+            writer.write_chunk(rec)
+    # The incomplete bag is removed, so a bag that exists is always complete.
+    assert not (tmp_path / 'b').exists()
+
+
+def test_streaming_writer_refuses_changed_diagnostic_keys(tmp_path):
+    rec = make_record(n=100)
+    later = make_record(n=100, start_s=1.0, diagnostics=False)
+    with pytest.raises(BagError, match='diagnostic keys changed'):
+        with RunBagWriter(tmp_path / 'b') as writer:
+            writer.write_chunk(rec)
+            writer.write_chunk(later)
+
+
+def test_refuses_to_overwrite_unless_asked(tmp_path):
+    bag = tmp_path / 'run'
+    write_run(make_record(n=10), bag)
+    with pytest.raises(BagError, match=r'run exists already; refusing to overwrite'):
+        write_run(make_record(n=20), bag)
+    assert len(read_run(bag)) == 10
+    write_run(make_record(n=20), bag, overwrite=True)
+    assert len(read_run(bag)) == 20
+
+
+def test_overwrite_never_deletes_something_that_is_not_a_bag(tmp_path):
+    precious = tmp_path / 'home'
+    precious.mkdir()
+    (precious / 'thesis.tex').write_text('x')
+    with pytest.raises(BagError, match='is not a rosbag2 bag directory; refusing to delete'):
+        write_run(make_record(n=10), precious, overwrite=True)
+    assert (precious / 'thesis.tex').exists()
+
+
+@pytest.mark.parametrize('kwargs, match', [
+    ({'storage': 'hdf5'}, r"storage 'hdf5' is not supported; allowed: 'mcap', 'sqlite3'"),
+    ({'namespace': 'bad ns'}, r"namespace 'bad ns' is not a valid ROS namespace"),
+])
+def test_bad_writer_options(tmp_path, kwargs, match):
+    with pytest.raises(BagError, match=match):
+        write_run(make_record(n=10), tmp_path / 'b', **kwargs)
+
+
+def test_bad_sample_values(tmp_path):
+    rec = make_record(n=10)
+    rec.time_s[0] = -1.0
+    with pytest.raises(BagError, match='finite and >= 0'):
+        write_run(rec, tmp_path / 'b')
+
+
+def test_namespace_is_found_or_chosen(tmp_path):
+    bag = tmp_path / 'ns'
+    write_run(make_record(n=50), bag, namespace='/lab/stage2')
+    assert read_run(bag).meta['namespace'] == '/lab/stage2'
+    assert len(read_run(bag, namespace='lab/stage2/')) == 50
+    with pytest.raises(BagError, match='ns: topic /stage/position is missing'):
+        read_run(bag, namespace='/stage')
+
+
+def test_two_stages_in_one_bag_need_a_namespace(tmp_path):
+    bag = tmp_path / 'two'
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        for ns in ('/a', '/b'):
+            for key in ('position', 'reference', 'command'):
+                writer.add_connection(f'{ns}/{key}', bagio.TOPIC_TYPES[key], typestore=STORE)
+    with pytest.raises(BagError, match=r'several stages recorded \(/a, /b\)'):
+        read_run(bag)
+
+
+@pytest.mark.parametrize('name', ['stage_sine5hz_mcap', 'stage_sine5hz_sqlite3'])
+def test_shared_jazzy_bags(name):
+    # Recorded by the real Jazzy recorder: log times are receive times, stamps are in 2020.
+    bag = SHARED / name
+    if not bag.is_dir():
+        pytest.skip(f'{bag} not present')
+    rec = read_run(bag)
+    assert len(rec) == 3000
+    t = rec.time_s - 1_600_000_000
+    np.testing.assert_allclose(t, np.arange(3000) * 1e-3, atol=1e-6)
+    err = rec.position_m - rec.reference_m
+    # The README's numbers: e_rms = 35.355 nm, e_max = 50.000 nm (to the printed digits).
+    assert abs(np.sqrt(np.mean(err ** 2)) - 35.355e-9) < 0.0005e-9
+    assert abs(np.max(np.abs(err)) - 50.000e-9) < 0.0005e-9
+    k = np.arange(3000)
+    np.testing.assert_allclose(rec.command_v, 2.0 + 1.5 * np.sin(2 * np.pi * 5 * k * 1e-3),
+                               atol=1e-12)
+    np.testing.assert_allclose(rec.reference_velocity_mps,
+                               5e-6 * 2 * np.pi * 5 * np.cos(2 * np.pi * 5 * k * 1e-3),
+                               rtol=1e-9, atol=1e-15)
+    assert rec.diagnostics == {}
+
+
+def _js(stamp_ns, position, velocity=(), frame_id='', names=('stage',)):
+    msg = STORE.types[JS](
+        header=STORE.types['std_msgs/msg/Header'](
+            stamp=STORE.types['builtin_interfaces/msg/Time'](sec=stamp_ns // 10**9,
+                                                             nanosec=stamp_ns % 10**9),
+            frame_id=frame_id),
+        name=list(names), position=np.array(position, dtype=float),
+        velocity=np.array(velocity, dtype=float), effort=np.array([], dtype=float))
+    return STORE.serialize_cdr(msg, JS)
+
+
+def _f64(value):
+    return STORE.serialize_cdr(STORE.types[F64](data=float(value)), F64)
+
+
+def _write_graph_bag(bag, n=400, *, skip_cmd_start=0, extra_cmd_end=0, jitter_ns=3_000_000,
+                     frame_ids=('',), compression=None):
+    """A bag as the ROS graph gives it: receive times jitter, ends a little ragged."""
+    rng = np.random.default_rng(1)
+    period = 1_000_000
+    t0 = 1_700_000_000 * 10**9
+    log0 = 1_800_000_000 * 10**9
+    writer = Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP)
+    if compression:
+        writer.set_compression(compression, CompressionFormat.ZSTD)
+    with writer:
+        conns = {key: writer.add_connection(f'/stage/{key}', bagio.TOPIC_TYPES[key],
+                                            typestore=STORE)
+                 for key in ('position', 'reference', 'command')}
+        # Bursty delivery: a receive time may lag by several periods, never reorders a topic.
+        lag = np.maximum.accumulate(rng.uniform(0, jitter_ns, n + extra_cmd_end)
+                                    + np.arange(n + extra_cmd_end) * period) - np.arange(
+                                        n + extra_cmd_end) * period
+        logs = log0 + np.arange(n + extra_cmd_end) * period + lag.astype(np.int64)
+        # The command arrives on its own subscription: up to 0.2 ms either side of the position,
+        # but a topic is never reordered.
+        cmd_logs = np.maximum.accumulate(logs + rng.integers(-200_000, 200_000, logs.size))
+        for k in range(n + extra_cmd_end):
+            log = int(logs[k])
+            if k < n:
+                frame = frame_ids[k % len(frame_ids)]
+                writer.write(conns['position'], log, _js(t0 + k * period, [k * 1e-9],
+                                                          frame_id=frame))
+                writer.write(conns['reference'], log + 1000,
+                             _js(t0 + k * period, [k * 1e-9 + 1e-8], [2.0], frame_id=frame))
+            if k >= skip_cmd_start:
+                writer.write(conns['command'], int(cmd_logs[k]), _f64(k * 0.001))
+
+
+def test_graph_bag_with_jitter_and_ragged_ends(tmp_path):
+    bag = tmp_path / 'graph'
+    _write_graph_bag(bag, skip_cmd_start=3, extra_cmd_end=2)
+    rec = read_run(bag)
+    # Samples 0..2 have no command (recorder started late on that topic): dropped.
+    assert len(rec) == 397
+    k = np.round((rec.time_s - 1.7e9) * 1e3).astype(int)
+    np.testing.assert_array_equal(k, np.arange(3, 400))
+    np.testing.assert_allclose(rec.command_v, k * 0.001, atol=1e-15)
+    np.testing.assert_allclose(rec.position_m - rec.reference_m, -1e-8, atol=1e-20)
+    assert rec.meta['alignment']['command_offset'] == -3
+    assert rec.meta['alignment']['dropped_command'] == 2
+
+
+def test_mixed_layouts_use_the_generic_decoder_where_needed(tmp_path):
+    bag = tmp_path / 'mixed'
+    _write_graph_bag(bag, n=200, frame_ids=('', 'stage_link', ''))
+    rec = read_run(bag)
+    assert len(rec) == 200
+    np.testing.assert_allclose(rec.position_m, np.arange(200) * 1e-9, atol=1e-21)
+    np.testing.assert_allclose(rec.reference_velocity_mps, 2.0)
+
+
+def test_compressed_bag_goes_through_rosbags(tmp_path):
+    bag = tmp_path / 'zstd'
+    _write_graph_bag(bag, n=100, compression=CompressionMode.MESSAGE)
+    rec = read_run(bag)
+    assert len(rec) == 100
+    np.testing.assert_allclose(rec.command_v, np.arange(100) * 0.001, atol=1e-15)
+
+
+def test_progress_is_reported(tmp_path):
+    bag = tmp_path / 'run'
+    write_run(make_record(n=1000), bag)
+    calls = []
+    read_run(bag, progress=lambda done, total: calls.append((done, total)))
+    assert calls[-1] == (4000, 4000)
+    assert all(a[0] <= b[0] for a, b in zip(calls, calls[1:]))
+
+
+# --- bad bags: every failure is a BagError naming the bag and the problem ---------------------
+
+def _copy(tmp_path, storage='mcap', n=3000):
+    bag = tmp_path / f'bag_{storage}'
+    write_run(make_record(n=n), bag, storage=storage)
+    return bag
+
+
+def _storage_file(bag):
+    return next(p for p in bag.iterdir() if p.suffix in ('.mcap', '.db3'))
+
+
+def test_missing_topic(tmp_path):
+    bag = tmp_path / 'nocmd'
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        c = writer.add_connection('/stage/position', JS, typestore=STORE)
+        r = writer.add_connection('/stage/reference', JS, typestore=STORE)
+        c2 = writer.add_connection('/other/command', F64, typestore=STORE)
+        writer.write(c, 0, _js(0, [0.0]))
+        writer.write(r, 0, _js(0, [0.0], [0.0]))
+        writer.write(c2, 0, _f64(1.0))
+    with pytest.raises(BagError, match=r'nocmd: no stage topics found'):
+        read_run(bag)
+    with pytest.raises(BagError, match=r'nocmd: topic /stage/command is missing'):
+        read_run(bag, namespace='/stage')
+
+
+def test_empty_bag(tmp_path):
+    bag = tmp_path / 'empty'
+    write_run(make_record(n=0), bag)
+    with pytest.raises(BagError, match=r'empty: bag is empty \(no messages\)'):
+        read_run(bag)
+
+
+def test_required_topic_without_messages(tmp_path):
+    bag = tmp_path / 'silent'
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conns = [writer.add_connection(f'/stage/{k}', bagio.TOPIC_TYPES[k], typestore=STORE)
+                 for k in ('position', 'reference', 'command')]
+        writer.write(conns[0], 0, _js(0, [0.0]))
+        writer.write(conns[1], 0, _js(0, [0.0], [0.0]))
+    with pytest.raises(BagError, match=r'silent: topic /stage/command has no messages'):
+        read_run(bag)
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+def test_truncated_file(tmp_path, storage):
+    bag = _copy(tmp_path, storage)
+    file = _storage_file(bag)
+    data = file.read_bytes()
+    file.write_bytes(data[:len(data) // 2])
+    with pytest.raises(BagError, match=f'bag_{storage}: '):
+        read_run(bag)
+
+
+def test_corrupt_mcap_chunk(tmp_path):
+    bag = _copy(tmp_path)
+    file = _storage_file(bag)
+    data = bytearray(file.read_bytes())
+    # Overwrite record headers in the middle of the first chunk with garbage lengths.
+    middle = 300_000
+    data[middle:middle + 4096] = b'\xff' * 4096
+    file.write_bytes(bytes(data))
+    with pytest.raises(BagError, match=r'bag_mcap: (corrupt|cannot)'):
+        read_run(bag)
+
+
+def test_corrupt_sqlite_file(tmp_path):
+    bag = _copy(tmp_path, 'sqlite3')
+    file = _storage_file(bag)
+    file.write_bytes(b'this is not a database' * 1000)
+    with pytest.raises(BagError, match=r'bag_sqlite3: cannot open it'):
+        read_run(bag)
+
+
+def test_unknown_storage_format(tmp_path):
+    bag = _copy(tmp_path, n=10)
+    meta = bag / 'metadata.yaml'
+    meta.write_text(meta.read_text().replace('storage_identifier: mcap',
+                                             'storage_identifier: hdf5'))
+    with pytest.raises(BagError, match=r"bag_mcap: cannot open it: Storage plugin 'hdf5' not"):
+        read_run(bag)
+
+
+def test_wrong_type_on_known_topic(tmp_path):
+    bag = tmp_path / 'wrongtype'
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        c = writer.add_connection('/stage/position', F64, typestore=STORE)
+        r = writer.add_connection('/stage/reference', JS, typestore=STORE)
+        k = writer.add_connection('/stage/command', F64, typestore=STORE)
+        for conn, raw in ((c, _f64(1.0)), (r, _js(0, [0.0], [0.0])), (k, _f64(1.0))):
+            writer.write(conn, 0, raw)
+    match = (r'wrongtype: topic /stage/position has type std_msgs/msg/Float64, '
+             r'expected sensor_msgs/msg/JointState')
+    with pytest.raises(BagError, match=match):
+        read_run(bag)
+
+
+@pytest.mark.parametrize('make, match', [
+    (lambda p: p, 'does not exist'),
+    (lambda p: (p.mkdir(), p)[1], r'not a rosbag2 bag \(no metadata.yaml\)'),
+    (lambda p: (p.write_text('hello'), p)[1], 'cannot open it'),
+])
+def test_not_a_bag(tmp_path, make, match):
+    path = make(tmp_path / 'thing')
+    with pytest.raises(BagError, match=f'bag {tmp_path / "thing"}: {match}'):
+        read_run(path)
+
+
+def test_metadata_garbage(tmp_path):
+    bag = _copy(tmp_path, n=10)
+    (bag / 'metadata.yaml').write_text('rosbag2_bagfile_information: [1, 2\n')
+    with pytest.raises(BagError, match='bag_mcap: cannot open it'):
+        read_run(bag)
+
+
+def test_missing_storage_file(tmp_path):
+    bag = _copy(tmp_path, n=10)
+    shutil.move(_storage_file(bag), tmp_path / 'elsewhere.mcap')
+    with pytest.raises(BagError, match='bag_mcap: cannot open it: Some database files are'):
+        read_run(bag)
+
+
+def test_single_storage_file_is_accepted(tmp_path):
+    bag = _copy(tmp_path, n=10)
+    rec = read_run(_storage_file(bag))
+    assert len(rec) == 10
