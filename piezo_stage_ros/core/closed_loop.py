@@ -1,0 +1,258 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The offline closed loop: stage, controller and trajectory stepped at the sample rate, no ROS.
+
+One sample k, in the order of :mod:`piezo_stage_ros.core.interfaces` (the nodes' lockstep mode
+follows the same order, so both give the same samples)::
+
+    t_k = k T
+    x_d, x_d' = trajectory(t_k)                    (precomputed per chunk, vectorized)
+    u_k = controller.step(y_k, x_d, x_d')
+    record (t_k, y_k, x_d, x_d', u_k)
+    y_k+1 = stage.step(u_k)
+
+y_0 comes from ``stage.reset()``, and ``controller.reset(y_0, x_d(0))`` is called before the first
+step. The loop runs in chunks (default one second): the reference of a chunk is evaluated at
+once, outputs go into preallocated arrays, and a ``chunk_callback`` receives each chunk as a
+:class:`RunRecord` (streamed to a bag, or reduced to per-minute statistics by the soak) so that
+memory stays flat however long the run.
+
+Controller diagnostics: a controller may offer the cheap pair ``diagnostic_names`` (a tuple of
+str) and ``diagnostic_values()`` (a tuple of floats in that order); otherwise its
+``diagnostics()`` mapping is read. Either way they are sampled every ``diagnostics_every``
+samples and held in between (zero-order), which keeps the per-sample cost of the loop low.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable, Mapping, Protocol, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
+from piezo_stage_ros.core.interfaces import Controller, Trajectory
+from piezo_stage_ros.core.record import RunRecord
+
+__all__ = ['ChunkCallback', 'Plant', 'concatenate', 'run']
+
+FloatArray = NDArray[np.float64]
+
+#: Receives every chunk of a run as it is produced.
+ChunkCallback = Callable[[RunRecord], None]
+
+
+class Plant(Protocol):
+    """What the loop needs of a stage (:class:`~piezo_stage_ros.core.stage.Stage` has it)."""
+
+    @property
+    def sample_time_s(self) -> float:
+        """The sample period [s]."""
+        ...
+
+    def reset(self, position_m: float | None = None) -> float:
+        """Put the stage at rest and return the measured position y_0 [m]."""
+        ...
+
+    def step(self, command_v: float) -> float:
+        """Hold the command over one sample and return the measured position [m]."""
+        ...
+
+
+def _diagnostic_reader(controller: Controller
+                       ) -> tuple[tuple[str, ...], Callable[[], Sequence[float]]]:
+    """Return the diagnostic names and a function returning their values in that order."""
+    names = getattr(controller, 'diagnostic_names', None)
+    values = getattr(controller, 'diagnostic_values', None)
+    if isinstance(names, tuple) and callable(values):
+        return tuple(str(n) for n in names), values
+    first: Mapping[str, float] = controller.diagnostics()
+    keys = tuple(sorted(first))
+    diagnostics = controller.diagnostics
+
+    def read() -> Sequence[float]:
+        d = diagnostics()
+        return [float(d.get(k, math.nan)) for k in keys]
+    return keys, read
+
+
+def run(stage: Plant, controller: Controller, trajectory: Trajectory, *, duration_s: float,
+        initial_position_m: float | None = None, record_diagnostics: bool = True,
+        diagnostics_every: int = 10, chunk_s: float = 1.0,
+        chunk_callback: ChunkCallback | None = None, keep: bool = True,
+        meta: Mapping[str, Any] | None = None) -> RunRecord:
+    """
+    Run the closed loop for ``duration_s`` and return the record of every sample.
+
+    Parameters
+    ----------
+    stage : Plant
+        The stage (reset here to ``initial_position_m``).
+    controller : Controller
+        The controller (reset here from y_0 and x_d(0)); its ``sample_time_s`` must equal the
+        stage's.
+    trajectory : Trajectory
+        The reference; t = 0 is the first sample.
+    duration_s : float
+        Simulated time [s]; the run has ``round(duration_s / T)`` samples, at least one.
+    initial_position_m : float, optional
+        Rest position of the stage at the start [m]; default the stage's own default.
+    record_diagnostics : bool
+        Record the controller's diagnostics.
+    diagnostics_every : int
+        Read the diagnostics every this many samples (held in between), >= 1.
+    chunk_s : float
+        Length of one chunk [s] (reference evaluation and callback granularity), > 0.
+    chunk_callback : callable, optional
+        Called with each chunk (a :class:`RunRecord` whose ``time_s`` continues across chunks
+        and whose ``meta`` is the run's meta) as soon as it is complete.
+    keep : bool
+        Keep every chunk and return the whole run; with ``False`` only the last chunk is returned
+        (for long runs streamed through ``chunk_callback``).
+    meta : Mapping, optional
+        Description of the run, copied into the record's ``meta`` (``sample_time_s``,
+        ``duration_s`` and, when the trajectory has ``period_s``, ``trajectory_period_s`` are
+        added).
+
+    Returns
+    -------
+    RunRecord
+        The samples (see :mod:`piezo_stage_ros.core.record`).
+
+    Raises
+    ------
+    ParameterError
+        If ``duration_s``, ``chunk_s`` or ``diagnostics_every`` is out of range, or the
+        controller's sample time differs from the stage's.
+
+    """
+    dt = float(stage.sample_time_s)
+    if not (duration_s > 0.0 and math.isfinite(duration_s)):
+        raise ParameterError('duration_s', duration_s, '(0, inf)')
+    if not (chunk_s > 0.0 and math.isfinite(chunk_s)):
+        raise ParameterError('chunk_s', chunk_s, '(0, inf)')
+    if diagnostics_every < 1:
+        raise ParameterError('diagnostics_every', diagnostics_every, '[1, inf)')
+    ctrl_dt = float(controller.sample_time_s)
+    if abs(ctrl_dt - dt) > 1e-12 * dt:
+        raise ParameterError('controller.sample_time_s', ctrl_dt,
+                             f'the stage sample time {dt:g} s',
+                             'differs from the stage sample time')
+    total = max(int(round(duration_s / dt)), 1)
+    per_chunk = max(int(round(chunk_s / dt)), 1)
+    run_meta: dict[str, Any] = dict(meta or {})
+    run_meta.setdefault('sample_time_s', dt)
+    run_meta['duration_s'] = total * dt
+    period = getattr(trajectory, 'period_s', None)
+    if isinstance(period, float) and period > 0.0:
+        run_meta.setdefault('trajectory_period_s', period)
+
+    y = float(stage.reset(initial_position_m))
+    xd0, _ = trajectory.evaluate(np.zeros(1))
+    controller.reset(y, float(xd0[0]))
+    names: tuple[str, ...] = ()
+    read_diag: Callable[[], Sequence[float]] | None = None
+    if record_diagnostics:
+        names, read_diag = _diagnostic_reader(controller)
+
+    chunks: list[RunRecord] = []
+    last: RunRecord | None = None
+    ctrl_step = controller.step
+    plant_step = stage.step
+    k0 = 0
+    while k0 < total:
+        n = min(per_chunk, total - k0)
+        time_s = (np.arange(k0, k0 + n, dtype=np.float64)) * dt
+        ref, vel = trajectory.evaluate(time_s)
+        ref = np.asarray(ref, dtype=np.float64)
+        vel = np.asarray(vel, dtype=np.float64)
+        if ref.shape != time_s.shape or vel.shape != time_s.shape:
+            raise PiezoStageError('trajectory.evaluate returned arrays of shape '
+                                  f'{ref.shape} and {vel.shape}, expected {time_s.shape}')
+        pos_out = [0.0] * n
+        cmd_out = [0.0] * n
+        diag_rows: list[Sequence[float]] = []
+        if read_diag is None:
+            # the hot loop: plain floats, bound methods in locals, no allocation per sample
+            for i, (xd, vd) in enumerate(zip(ref.tolist(), vel.tolist())):
+                u = ctrl_step(y, xd, vd)
+                pos_out[i] = y
+                cmd_out[i] = u
+                y = plant_step(u)
+        else:
+            every = diagnostics_every
+            countdown = 0
+            for i, (xd, vd) in enumerate(zip(ref.tolist(), vel.tolist())):
+                u = ctrl_step(y, xd, vd)
+                pos_out[i] = y
+                cmd_out[i] = u
+                if countdown == 0:
+                    diag_rows.append(read_diag())
+                    countdown = every
+                countdown -= 1
+                y = plant_step(u)
+        diagnostics: dict[str, FloatArray] = {}
+        if names:
+            table = np.asarray(diag_rows, dtype=np.float64).reshape(len(diag_rows), len(names))
+            held = np.repeat(table, diagnostics_every, axis=0)[:n]
+            diagnostics = {name: np.ascontiguousarray(held[:, j])
+                           for j, name in enumerate(names)}
+        chunk = RunRecord(time_s=time_s, position_m=np.asarray(pos_out, dtype=np.float64),
+                          reference_m=ref, reference_velocity_mps=vel,
+                          command_v=np.asarray(cmd_out, dtype=np.float64),
+                          diagnostics=diagnostics, meta=run_meta)
+        if chunk_callback is not None:
+            chunk_callback(chunk)
+        if keep:
+            chunks.append(chunk)
+        last = chunk
+        k0 += n
+    assert last is not None
+    return concatenate(chunks, meta=run_meta) if keep else last
+
+
+def concatenate(records: Sequence[RunRecord], *, meta: Mapping[str, Any] | None = None
+                ) -> RunRecord:
+    """
+    Join consecutive records of one run into one.
+
+    Parameters
+    ----------
+    records : sequence of RunRecord
+        Chunks in time order with the same diagnostic names.
+    meta : Mapping, optional
+        Meta of the result; default the first record's.
+
+    Returns
+    -------
+    RunRecord
+
+    """
+    if not records:
+        raise PiezoStageError('concatenate: no records')
+    if len(records) == 1:
+        only = records[0]
+        return RunRecord(only.time_s, only.position_m, only.reference_m,
+                         only.reference_velocity_mps, only.command_v, dict(only.diagnostics),
+                         dict(meta if meta is not None else only.meta))
+
+    def cat(name: str) -> FloatArray:
+        return np.concatenate([getattr(r, name) for r in records])
+    names = list(records[0].diagnostics)
+    diagnostics = {k: np.concatenate([r.diagnostics[k] for r in records]) for k in names}
+    return RunRecord(cat('time_s'), cat('position_m'), cat('reference_m'),
+                     cat('reference_velocity_mps'), cat('command_v'), diagnostics,
+                     dict(meta if meta is not None else records[0].meta))

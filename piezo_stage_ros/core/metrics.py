@@ -1,0 +1,408 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Performance metrics of a run: the paper's e_m and e_rms, loop width, step-response figures.
+
+Definitions (section V of the paper and this package's choices, stated once here):
+
+- (D1) e_m = max |x - x_d| and (D2) e_rms = sqrt(mean (x - x_d)^2), over the samples of a
+  window; x is the *measured* position y_k (what the paper's dSPACE saw), x_d = x_d(t_k).
+- **Steady-state window** (:func:`steady_state_start`): for a periodic reference of period P,
+  the first ``TRANSIENT_PERIODS`` periods or ``TRANSIENT_S`` seconds, whichever is longer,
+  rounded *up* to a whole number of periods, are skipped, and the window is the whole periods
+  that follow (a trailing partial period is dropped, so a sine's error is averaged over whole
+  cycles). If the run holds no whole period after the transient, the window is the last whole
+  period of the run (or the whole run when it is shorter than one period). A reference without a
+  period (step, staircase, table) uses the whole run unless the caller gives a start.
+- **Loop width** (:func:`loop_width`): the largest vertical distance between the ascending and
+  the descending branch of y plotted against x, in % of the range of y. Each monotone piece of x
+  is interpolated onto one grid of x levels; the branches are the mean over the ascending and
+  the descending pieces at each level (so cycle-to-cycle jitter and quantization average out).
+- **Step response** (:func:`step_response`): rise time 10-90 % of the step, overshoot in % of
+  the step, settling time into a band of ``max(2 % of the step, settle_band_m)`` that the
+  response never leaves again, steady-state e_m and e_rms over the last ``plateau_fraction`` of
+  the plateau.
+
+Every function takes arrays and returns plain floats: the same numbers come from an offline run
+(:func:`summarize` of the :class:`~piezo_stage_ros.core.record.RunRecord`) and from its bag read
+back by ``analyze``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from piezo_stage_ros.core.errors import PiezoStageError
+from piezo_stage_ros.core.record import RunRecord
+
+__all__ = ['TRANSIENT_PERIODS', 'TRANSIENT_S', 'error_metrics', 'loop_width',
+           'square_wave_metrics', 'steady_state_start', 'step_response', 'summarize']
+
+FloatArray = NDArray[np.float64]
+
+#: Whole periods of a periodic reference skipped before the steady-state window.
+TRANSIENT_PERIODS = 2
+#: Minimum time skipped before the steady-state window of a periodic reference [s].
+TRANSIENT_S = 0.1
+#: Meta key holding the reference period [s] (written by the closed loop, read from bags).
+PERIOD_KEY = 'trajectory_period_s'
+
+
+def _f64(values: ArrayLike) -> FloatArray:
+    return np.asarray(values, dtype=np.float64).ravel()
+
+
+def error_metrics(error_m: ArrayLike) -> tuple[float, float]:
+    """
+    Return (e_m, e_rms) of a sequence of tracking errors, (D1) and (D2).
+
+    Parameters
+    ----------
+    error_m : array_like
+        x - x_d per sample [m].
+
+    Returns
+    -------
+    e_max_m, e_rms_m : float
+        Largest absolute error and root mean square error [m]; NaN for an empty input.
+
+    """
+    e = _f64(error_m)
+    if e.size == 0:
+        return math.nan, math.nan
+    return float(np.max(np.abs(e))), float(np.sqrt(np.mean(e * e)))
+
+
+def steady_state_start(time_s: ArrayLike, period_s: float | None) -> float:
+    """
+    Return the start of the steady-state window [s] (see the module docstring).
+
+    Parameters
+    ----------
+    time_s : array_like
+        Sample times [s]; only the first and last are used.
+    period_s : float or None
+        Period of the reference [s]; ``None`` or non-positive for an aperiodic reference.
+
+    Returns
+    -------
+    float
+        Start time of the window [s], in the time base of ``time_s``.
+
+    """
+    t = _f64(time_s)
+    if t.size == 0:
+        return 0.0
+    t0, t1 = float(t[0]), float(t[-1])
+    if period_s is None or not period_s > 0.0 or not math.isfinite(period_s):
+        return t0
+    skip = max(TRANSIENT_PERIODS * period_s, TRANSIENT_S)
+    skip = math.ceil(skip / period_s - 1e-9) * period_s
+    # the samples span [t0, t1 + T); whole periods are counted on (t1 - t0) plus one sample
+    span = (t1 - t0) + (t1 - t0) / max(t.size - 1, 1)
+    if span - skip >= period_s * (1 - 1e-9):
+        return t0 + skip
+    whole = math.floor(span / period_s + 1e-9)
+    return t0 + max(whole - 1, 0) * period_s
+
+
+def _window(time_s: FloatArray, start_s: float, period_s: float | None) -> slice:
+    """Return the slice of samples in [start, end of the last whole period)."""
+    n = time_s.size
+    dt = (time_s[-1] - time_s[0]) / (n - 1) if n > 1 else 0.0
+    # half a sample of tolerance: epoch stamps of a bag carry rounding far above 1e-9 s
+    i0 = int(np.searchsorted(time_s, start_s - 0.5 * dt))
+    i1 = n
+    if period_s is not None and period_s > 0.0 and n > 1:
+        whole = math.floor(((time_s[-1] - start_s) + dt) / period_s + 1e-9)
+        if whole >= 1:
+            end = start_s + whole * period_s
+            i1 = int(np.searchsorted(time_s, end - 0.5 * dt))
+    return slice(i0, max(i1, i0))
+
+
+def loop_width(x: ArrayLike, y: ArrayLike, *, levels: int = 201) -> float:
+    """
+    Return the loop width of the curve y(x) in % of the range of y.
+
+    Parameters
+    ----------
+    x : array_like
+        Input of the loop (x_d in closed loop, v_in in open loop); its sign of change splits the
+        curve into ascending and descending pieces.
+    y : array_like
+        Output (the measured position), same length as ``x``.
+    levels : int
+        Number of x levels of the common grid (the end points are left out).
+
+    Returns
+    -------
+    float
+        ``100 * max_x |y_desc(x) - y_asc(x)| / (max y - min y)`` [%]; 0 when there is no
+        level with both branches, NaN when y is constant.
+
+    Notes
+    -----
+    For x = sin t, y = sin(t - phi) the width is 2 sin(phi) over a range of 2: sin(phi) * 100 %.
+
+    """
+    xa, ya = _f64(x), _f64(y)
+    if xa.size != ya.size:
+        raise PiezoStageError(f'loop_width: x has {xa.size} samples, y has {ya.size}')
+    if xa.size < 3:
+        return math.nan
+    y_range = float(np.max(ya) - np.min(ya))
+    if not y_range > 0.0:
+        return math.nan
+    grid = np.linspace(float(np.min(xa)), float(np.max(xa)), levels + 2)[1:-1]
+    sums = np.zeros((2, grid.size))
+    counts = np.zeros((2, grid.size))
+    dx = np.diff(xa)
+    sign = np.sign(dx)
+    # a flat step keeps the direction of the one before it
+    nz = np.flatnonzero(sign)
+    if nz.size == 0:
+        return 0.0
+    fill = np.maximum.accumulate(np.where(sign != 0, np.arange(sign.size), nz[0]))
+    sign = sign[fill]
+    breaks = np.flatnonzero(np.diff(sign)) + 1
+    starts = np.concatenate(([0], breaks))
+    ends = np.concatenate((breaks, [sign.size]))
+    for s, e in zip(starts.tolist(), ends.tolist()):
+        up = sign[s] > 0
+        xs = xa[s:e + 1]
+        ys = ya[s:e + 1]
+        if not up:
+            xs, ys = xs[::-1], ys[::-1]
+        lo, hi = xs[0], xs[-1]
+        i0 = int(np.searchsorted(grid, lo, side='left'))
+        i1 = int(np.searchsorted(grid, hi, side='right'))
+        if i1 <= i0:
+            continue
+        row = 0 if up else 1
+        sums[row, i0:i1] += np.interp(grid[i0:i1], xs, ys)
+        counts[row, i0:i1] += 1.0
+    both = (counts[0] > 0) & (counts[1] > 0)
+    if not both.any():
+        return 0.0
+    gap = sums[1, both] / counts[1, both] - sums[0, both] / counts[0, both]
+    return float(100.0 * np.max(np.abs(gap)) / y_range)
+
+
+def step_response(time_s: ArrayLike, position_m: ArrayLike, *, step_time_s: float,
+                  initial_m: float, final_m: float, settle_band_m: float = 0.0,
+                  settle_fraction: float = 0.02, plateau_fraction: float = 0.5
+                  ) -> dict[str, float]:
+    """
+    Return rise time, overshoot, settling time and steady-state error of one step.
+
+    Parameters
+    ----------
+    time_s : array_like
+        Sample times [s] from the step to the end of the plateau (earlier samples are ignored).
+    position_m : array_like
+        Measured position [m] at those times.
+    step_time_s : float
+        Time of the reference step [s].
+    initial_m, final_m : float
+        Reference before and after the step [m]; they must differ.
+    settle_band_m : float
+        Absolute half-width of the settling band [m]; the band is the larger of this and
+        ``settle_fraction`` of the step.
+    settle_fraction : float
+        Relative half-width of the settling band (0.02: the 2 % band).
+    plateau_fraction : float
+        Last fraction of the plateau over which the steady-state error is taken, in (0, 1].
+
+    Returns
+    -------
+    dict
+        ``rise_time_s`` (10 % to 90 % of the step), ``overshoot_pct`` (largest excursion past
+        the final value in % of the step, 0 if none), ``settling_time_s`` (from the step to the
+        last entry into the band; NaN if it never settles), ``settle_band_m``, ``ss_e_max_m``
+        and ``ss_e_rms_m`` (error to ``final_m`` over the end of the plateau).
+
+    """
+    t, y = _f64(time_s), _f64(position_m)
+    step = final_m - initial_m
+    if step == 0.0:
+        raise PiezoStageError('step_response: initial_m equals final_m; no step to measure')
+    keep = t >= step_time_s - 1e-12
+    t, y = t[keep] - step_time_s, y[keep]
+    if t.size < 2:
+        raise PiezoStageError('step_response: fewer than 2 samples after the step')
+    frac = (y - initial_m) / step  # 0 before, 1 at the target, whatever the step's sign
+    above10 = np.flatnonzero(frac >= 0.1)
+    above90 = np.flatnonzero(frac >= 0.9)
+    rise = math.nan
+    if above10.size and above90.size:
+        rise = _crossing(t, frac, int(above90[0]), 0.9) - _crossing(t, frac, int(above10[0]), 0.1)
+    overshoot = max(float(np.max(frac)) - 1.0, 0.0) * 100.0
+    band = max(settle_fraction * abs(step), settle_band_m)
+    outside = np.flatnonzero(np.abs(y - final_m) > band)
+    if outside.size == 0:
+        settling = 0.0
+    elif outside[-1] == t.size - 1:
+        settling = math.nan
+    else:
+        settling = float(t[outside[-1] + 1])
+    n_tail = max(int(round(plateau_fraction * t.size)), 1)
+    e_max, e_rms = error_metrics(y[-n_tail:] - final_m)
+    return {'rise_time_s': rise, 'overshoot_pct': overshoot, 'settling_time_s': settling,
+            'settle_band_m': band, 'ss_e_max_m': e_max, 'ss_e_rms_m': e_rms}
+
+
+def _crossing(t: FloatArray, frac: FloatArray, i: int, level: float) -> float:
+    """Return the time frac crosses ``level`` between samples i-1 and i (linear)."""
+    if i == 0:
+        return float(t[0])
+    f0, f1 = frac[i - 1], frac[i]
+    if f1 == f0:
+        return float(t[i])
+    return float(t[i - 1] + (level - f0) / (f1 - f0) * (t[i] - t[i - 1]))
+
+
+def square_wave_metrics(time_s: ArrayLike, position_m: ArrayLike, reference_m: ArrayLike, *,
+                        period_s: float, settle_band_m: float = 0.0,
+                        plateau_fraction: float = 0.5, skip_edges: int = 0
+                        ) -> dict[str, float]:
+    """
+    Return step-response figures of a square-wave run, over its edges.
+
+    Parameters
+    ----------
+    time_s, position_m, reference_m : array_like
+        Samples of the run [s], [m], [m].
+    period_s : float
+        Square-wave period [s]; each half period is one plateau.
+    settle_band_m : float
+        Absolute settling band [m] (see :func:`step_response`).
+    plateau_fraction : float
+        Last fraction of each plateau taken as steady state.
+    skip_edges : int
+        Edges left out at the start (e.g. while an adaptive controller is still learning).
+
+    Returns
+    -------
+    dict
+        Medians over the edges of ``rise_time_s``, ``overshoot_pct``, ``settling_time_s``
+        (max over edges as ``settling_time_max_s``), steady-state ``ss_e_max_m`` (max over
+        plateaus) and ``ss_e_rms_m`` (rms over all plateau tails), and ``edges``.
+
+    """
+    t, y, r = _f64(time_s), _f64(position_m), _f64(reference_m)
+    edges = np.flatnonzero(np.diff(r) != 0.0) + 1
+    rows: list[dict[str, float]] = []
+    tail_errors: list[FloatArray] = []
+    bounds = np.concatenate((edges, [t.size]))
+    for j, (i0, i1) in enumerate(zip(bounds[:-1].tolist(), bounds[1:].tolist())):
+        if j < skip_edges or i1 - i0 < 4:
+            continue
+        row = step_response(t[i0:i1], y[i0:i1], step_time_s=float(t[i0]),
+                            initial_m=float(r[i0 - 1]), final_m=float(r[i0]),
+                            settle_band_m=settle_band_m, plateau_fraction=plateau_fraction)
+        rows.append(row)
+        n_tail = max(int(round(plateau_fraction * (i1 - i0))), 1)
+        tail_errors.append(y[i1 - n_tail:i1] - r[i1 - n_tail:i1])
+    if not rows:
+        raise PiezoStageError('square_wave_metrics: no complete edge in the run; '
+                              f'run longer than {period_s:g} s')
+    e_max, e_rms = error_metrics(np.concatenate(tail_errors))
+
+    def med(key: str) -> float:
+        return float(np.nanmedian([row[key] for row in rows]))
+    settle = [row['settling_time_s'] for row in rows]
+    return {'rise_time_s': med('rise_time_s'), 'overshoot_pct': med('overshoot_pct'),
+            'settling_time_s': med('settling_time_s'),
+            'settling_time_max_s': float(np.max(settle)) if not np.isnan(settle).any()
+            else math.nan,
+            'settle_band_m': rows[0]['settle_band_m'], 'ss_e_max_m': e_max,
+            'ss_e_rms_m': e_rms, 'edges': float(len(rows))}
+
+
+def summarize(record: RunRecord, *, steady_state_start_s: float | None = None,
+              period_s: float | None = None) -> dict[str, float]:
+    """
+    Return the standard metrics of one run (what ``simulate --json`` and ``analyze`` print).
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run (offline or read from a bag).
+    steady_state_start_s : float, optional
+        Start of the steady-state window, in seconds *since the first sample*; default from the
+        reference period (``period_s`` or ``record.meta['trajectory_period_s']``) by
+        :func:`steady_state_start`.
+    period_s : float, optional
+        Reference period [s]; overrides the record's meta.
+
+    Returns
+    -------
+    dict of str to float
+        ``e_max_m``, ``e_rms_m`` (steady-state window), ``e_max_all_m``, ``e_rms_all_m`` (whole
+        run), ``command_min_v``, ``command_max_v`` (whole run), ``samples``, ``duration_s``,
+        ``steady_state_start_s`` (since the first sample), ``steady_state_samples``,
+        ``loop_width_pct`` (x vs x_d over the window; NaN when x_d is constant), and for each
+        diagnostic ``<name>_min`` / ``<name>_max``.
+
+    """
+    t = _f64(record.time_s)
+    n = t.size
+    period = period_s if period_s is not None else _meta_period(record.meta)
+    out: dict[str, float] = {'samples': float(n)}
+    if n == 0:
+        nan = math.nan
+        out.update({'e_max_m': nan, 'e_rms_m': nan, 'e_max_all_m': nan, 'e_rms_all_m': nan,
+                    'command_min_v': nan, 'command_max_v': nan, 'duration_s': 0.0,
+                    'steady_state_start_s': 0.0, 'steady_state_samples': 0.0,
+                    'loop_width_pct': nan})
+        return out
+    dt = (t[-1] - t[0]) / (n - 1) if n > 1 else 0.0
+    if steady_state_start_s is None:
+        start_abs = steady_state_start(t, period)
+    else:
+        start_abs = float(t[0]) + float(steady_state_start_s)
+    window = _window(t, start_abs, period)
+    err = _f64(record.position_m) - _f64(record.reference_m)
+    e_max, e_rms = error_metrics(err[window])
+    e_max_all, e_rms_all = error_metrics(err)
+    cmd = _f64(record.command_v)
+    ref = _f64(record.reference_m)[window]
+    pos = _f64(record.position_m)[window]
+    width = loop_width(ref, pos) if ref.size > 2 and np.ptp(ref) > 0.0 else math.nan
+    out.update({'e_max_m': e_max, 'e_rms_m': e_rms, 'e_max_all_m': e_max_all,
+                'e_rms_all_m': e_rms_all, 'command_min_v': float(np.min(cmd)),
+                'command_max_v': float(np.max(cmd)), 'duration_s': float(n * dt),
+                'steady_state_start_s': start_abs - float(t[0]),
+                'steady_state_samples': float(window.stop - window.start),
+                'loop_width_pct': width})
+    for name, values in sorted(record.diagnostics.items()):
+        v = _f64(values)
+        finite = v[np.isfinite(v)]
+        out[f'{name}_min'] = float(np.min(finite)) if finite.size else math.nan
+        out[f'{name}_max'] = float(np.max(finite)) if finite.size else math.nan
+    return out
+
+
+def _meta_period(meta: Mapping[str, Any]) -> float | None:
+    value = meta.get(PERIOD_KEY)
+    try:
+        period = float(value) if value is not None else None
+    except (TypeError, ValueError):
+        return None
+    return period if period is not None and period > 0.0 and math.isfinite(period) else None
