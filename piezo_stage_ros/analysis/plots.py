@@ -1,0 +1,419 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+PNG figures of a run in the style of the paper's Figs. 4, 10 and 11.
+
+- ``tracking.png``: x and x_d versus t (Fig. 11(a));
+- ``error.png``: tracking error x - x_d versus t (Fig. 11(b), Fig. 10(c));
+- ``io_curves.png``: x versus x_d and x versus v_in (Fig. 11(c), Fig. 6);
+- ``step_zoom.png``: zoom on the largest reference step (Fig. 10(b)), when there is a step;
+- ``bode.png``: frequency response estimated from v_in to x (Fig. 4), for noise or sweep runs;
+- ``comparison_error.png``: the tracking errors of several runs over each other.
+
+matplotlib is imported here only, with the non-interactive Agg backend, so nothing needs a display.
+Long runs are reduced before drawing (min/max per pixel column for time plots, an even stride for
+curves), so a 36 M-sample run draws as fast as a short one and looks the same.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use('Agg')
+
+from matplotlib.axes import Axes  # noqa: E402 - the backend must be chosen first
+from matplotlib.figure import Figure  # noqa: E402
+import numpy as np  # noqa: E402
+from numpy.typing import NDArray  # noqa: E402
+from piezo_stage_ros.analysis.spectral import BodeEstimate  # noqa: E402
+from piezo_stage_ros.core.record import RunRecord  # noqa: E402
+
+__all__ = [
+    'error_trace',
+    'find_step',
+    'plot_bode',
+    'plot_comparison',
+    'plot_error',
+    'plot_io_curves',
+    'plot_run',
+    'plot_step_zoom',
+    'plot_tracking',
+]
+
+FloatArray = NDArray[np.float64]
+
+_DPI = 110
+_SIZE = (8.0, 4.5)
+# Columns of the min/max envelope of a time plot: more than the figure has pixels.
+_ENVELOPE_COLUMNS = 2000
+_CURVE_POINTS = 40000
+
+
+def _envelope(t: FloatArray, y: FloatArray,
+              columns: int = _ENVELOPE_COLUMNS) -> tuple[FloatArray, FloatArray]:
+    # Min and max of every column, drawn in turn: the plot keeps every peak a full plot has.
+    n = t.size
+    if n <= 4 * columns:
+        return t, y
+    per = n // columns
+    m = per * columns
+    ty = t[:m].reshape(columns, per)
+    yy = y[:m].reshape(columns, per)
+    lo, hi = np.nanmin(yy, axis=1), np.nanmax(yy, axis=1)
+    tt = np.repeat(ty[:, 0], 2)
+    out = np.empty(2 * columns)
+    out[0::2], out[1::2] = lo, hi
+    return np.concatenate([tt, t[m:]]), np.concatenate([out, y[m:]])
+
+
+def _stride(*arrays: FloatArray, points: int = _CURVE_POINTS) -> list[FloatArray]:
+    n = arrays[0].size
+    step = max(1, n // points)
+    return [a[::step] for a in arrays]
+
+
+def _new(nrows: int = 1, height: float = _SIZE[1]) -> tuple[Figure, list[Axes]]:
+    fig = Figure(figsize=(_SIZE[0], height), dpi=_DPI, layout='constrained')
+    axes = [fig.add_subplot(nrows, 1, i + 1) for i in range(nrows)]
+    return fig, axes
+
+
+def _save(fig: Figure, path: Path) -> Path:
+    fig.savefig(path)
+    return path
+
+
+def _relative_time(record: RunRecord) -> FloatArray:
+    t = np.asarray(record.time_s, dtype=np.float64)
+    return t - t[0] if t.size else t
+
+
+def plot_tracking(record: RunRecord, path: Path, title: str = '') -> Path:
+    """
+    Draw x and x_d versus time (paper Fig. 11(a)).
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run.
+    path : Path
+        PNG file to write.
+    title : str
+        Figure title (e.g. the bag name).
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    """
+    fig, (ax,) = _new()
+    t = _relative_time(record)
+    ax.plot(*_envelope(t, record.reference_m * 1e6), color='tab:blue', lw=1.2,
+            label='desired $x_d$')
+    ax.plot(*_envelope(t, record.position_m * 1e6), color='tab:red', lw=0.8,
+            label='measured $x$')
+    ax.set_xlabel('time [s]')
+    ax.set_ylabel('position [µm]')
+    ax.set_title(title or 'Trajectory tracking')
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc='upper right')
+    return _save(fig, path)
+
+
+def plot_error(record: RunRecord, path: Path, title: str = '',
+               steady_state_start_s: float | None = None) -> Path:
+    """
+    Draw the tracking error x - x_d versus time in nanometres (paper Fig. 11(b)).
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run.
+    path : Path
+        PNG file to write.
+    title : str
+        Figure title.
+    steady_state_start_s : float, optional
+        Start of the window the metrics use, relative to the first sample [s]; shaded.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    """
+    fig, (ax,) = _new()
+    t = _relative_time(record)
+    ax.plot(*_envelope(t, record.error_m * 1e9), color='tab:red', lw=0.8)
+    if steady_state_start_s is not None and t.size:
+        ax.axvspan(steady_state_start_s, t[-1], color='0.9', zorder=0,
+                   label='metrics window')
+        ax.legend(loc='upper right')
+    ax.set_xlabel('time [s]')
+    ax.set_ylabel('error $x - x_d$ [nm]')
+    ax.set_title(title or 'Tracking error')
+    ax.grid(True, alpha=0.3)
+    return _save(fig, path)
+
+
+def plot_io_curves(record: RunRecord, path: Path, title: str = '') -> Path:
+    """
+    Draw x versus x_d and x versus v_in side by side (paper Fig. 11(c) and Fig. 6).
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run.
+    path : Path
+        PNG file to write.
+    title : str
+        Figure title.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    """
+    fig = Figure(figsize=(_SIZE[0], 4.0), dpi=_DPI, layout='constrained')
+    left, right = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
+    x, xd, v = _stride(record.position_m * 1e6, record.reference_m * 1e6, record.command_v)
+    left.plot(xd, x, color='tab:red', lw=0.7)
+    lo, hi = float(np.nanmin(xd)), float(np.nanmax(xd))
+    left.plot([lo, hi], [lo, hi], color='0.5', lw=0.8, ls='--', label='$x = x_d$')
+    left.set_xlabel('desired position $x_d$ [µm]')
+    left.set_ylabel('measured position $x$ [µm]')
+    left.set_title('closed loop: $x$ vs $x_d$')
+    left.legend(loc='upper left')
+    right.plot(v, x, color='tab:blue', lw=0.7)
+    right.set_xlabel('amplifier input $v_{in}$ [V]')
+    right.set_ylabel('measured position $x$ [µm]')
+    right.set_title('plant: $x$ vs $v_{in}$')
+    for ax in (left, right):
+        ax.grid(True, alpha=0.3)
+    if title:
+        fig.suptitle(title)
+    return _save(fig, path)
+
+
+def find_step(record: RunRecord) -> int | None:
+    """
+    Find the largest step of the reference, if the reference has steps.
+
+    A step is a jump of x_d between two samples that is larger than 1 % of the reference's
+    range and more than 20 times the median sample-to-sample change (a sine at 100 Hz sampled
+    at 10 kHz changes by at most 6 % of its range per sample, but evenly, so the median rule
+    keeps it out).
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run.
+
+    Returns
+    -------
+    int or None
+        Index of the first sample after the largest jump, or None.
+
+    """
+    xd = np.asarray(record.reference_m, dtype=np.float64)
+    if xd.size < 3:
+        return None
+    jumps = np.abs(np.diff(xd))
+    span = float(np.nanmax(xd) - np.nanmin(xd))
+    if span <= 0.0:
+        return None
+    k = int(np.nanargmax(jumps))
+    if jumps[k] < 0.01 * span or jumps[k] <= 20.0 * float(np.nanmedian(jumps)):
+        return None
+    return k + 1
+
+
+def plot_step_zoom(record: RunRecord, path: Path, title: str = '',
+                   window_s: float = 0.03) -> Path | None:
+    """
+    Zoom on the largest reference step (paper Fig. 10(b)); nothing when there is no step.
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run.
+    path : Path
+        PNG file to write.
+    title : str
+        Figure title.
+    window_s : float
+        Time shown after the step [s] (10 % of it is shown before).
+
+    Returns
+    -------
+    Path or None
+        ``path``, or None when the reference has no step.
+
+    """
+    k = find_step(record)
+    if k is None:
+        return None
+    t = _relative_time(record)
+    t0 = t[k]
+    sel = (t >= t0 - 0.1 * window_s) & (t <= t0 + window_s)
+    fig, (ax, ax_v) = _new(2, height=5.5)
+    tm = (t[sel] - t0) * 1e3
+    ax.plot(tm, record.reference_m[sel] * 1e6, color='tab:blue', lw=1.2, label='desired $x_d$')
+    ax.plot(tm, record.position_m[sel] * 1e6, color='tab:red', lw=0.9, label='measured $x$')
+    ax.set_ylabel('position [µm]')
+    ax.set_title(title or f'Step at t = {t0:.4f} s')
+    ax.legend(loc='lower right')
+    ax_v.plot(tm, record.command_v[sel], color='tab:green', lw=0.9)
+    ax_v.set_ylabel('$v_{in}$ [V]')
+    ax_v.set_xlabel('time after the step [ms]')
+    for a in (ax, ax_v):
+        a.grid(True, alpha=0.3)
+    return _save(fig, path)
+
+
+def plot_bode(estimate: BodeEstimate, path: Path, title: str = '') -> Path:
+    """
+    Draw an estimated frequency response, magnitude and phase (paper Fig. 4).
+
+    Parameters
+    ----------
+    estimate : BodeEstimate
+        Estimate from :func:`piezo_stage_ros.analysis.spectral.estimate_bode`.
+    path : Path
+        PNG file to write.
+    title : str
+        Figure title.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    """
+    fig, (ax_m, ax_p) = _new(2, height=6.0)
+    f = estimate.frequency_hz
+    good = estimate.coherence >= 0.8
+    mag_db = 20.0 * np.log10(np.maximum(np.abs(estimate.response), 1e-30) * estimate.scale)
+    phase = np.degrees(np.unwrap(np.angle(estimate.response)))
+    ax_m.semilogx(f, mag_db, color='0.7', lw=0.8, label='coherence < 0.8')
+    ax_m.semilogx(f[good], mag_db[good], '.', color='tab:blue', ms=2.5, label='coherence >= 0.8')
+    ax_m.set_ylabel(f'magnitude [dB re 1 {estimate.unit}]')
+    ax_m.legend(loc='lower left')
+    ax_p.semilogx(f, phase, color='0.7', lw=0.8)
+    ax_p.semilogx(f[good], phase[good], '.', color='tab:blue', ms=2.5)
+    ax_p.set_ylabel('phase [deg]')
+    ax_p.set_xlabel('frequency [Hz]')
+    ax_m.set_title(title or f'Frequency response estimate: {estimate.label}')
+    for a in (ax_m, ax_p):
+        a.grid(True, which='both', alpha=0.3)
+    return _save(fig, path)
+
+
+def error_trace(record: RunRecord) -> tuple[FloatArray, FloatArray]:
+    """
+    Return the tracking error reduced for drawing: time from the first sample [s], error [m].
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run.
+
+    Returns
+    -------
+    (ndarray, ndarray)
+        Min/max envelope of x - x_d, small enough to keep for a comparison of many runs.
+
+    """
+    return _envelope(_relative_time(record), record.error_m)
+
+
+def plot_comparison(traces: Sequence[tuple[FloatArray, FloatArray]], labels: Sequence[str],
+                    path: Path) -> Path:
+    """
+    Draw the tracking errors of several runs over each other.
+
+    Parameters
+    ----------
+    traces : sequence of (ndarray, ndarray)
+        Per run, time [s] and error [m] from :func:`error_trace`.
+    labels : sequence of str
+        One legend label per run.
+    path : Path
+        PNG file to write.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    """
+    fig, (ax,) = _new()
+    for (t, err), label in zip(traces, labels):
+        ax.plot(t, err * 1e9, lw=0.8, label=label)
+    ax.set_xlabel('time [s]')
+    ax.set_ylabel('error $x - x_d$ [nm]')
+    ax.set_title('Tracking error, run by run')
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc='upper right')
+    return _save(fig, path)
+
+
+def plot_run(record: RunRecord, outdir: Path, *, title: str = '',
+             steady_state_start_s: float | None = None,
+             bode: BodeEstimate | None = None) -> dict[str, Path]:
+    """
+    Draw every figure of one run into a directory.
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run, times relative to its start [s].
+    outdir : Path
+        Directory for the PNGs (created if needed).
+    title : str
+        Prefix of the figure titles (e.g. the bag name).
+    steady_state_start_s : float, optional
+        Start of the metrics window [s], shaded on the error plot.
+    bode : BodeEstimate, optional
+        Frequency-response estimate to draw.
+
+    Returns
+    -------
+    dict of str to Path
+        Figure name (``tracking``, ``error``, ``io_curves``, ``step_zoom``, ``bode``) -> file;
+        ``step_zoom`` only when the reference has a step, ``bode`` only with an estimate.
+
+    """
+    outdir.mkdir(parents=True, exist_ok=True)
+    prefix = f'{title}: ' if title else ''
+    files = {
+        'tracking': plot_tracking(record, outdir / 'tracking.png', prefix + 'trajectory tracking'),
+        'error': plot_error(record, outdir / 'error.png', prefix + 'tracking error',
+                            steady_state_start_s),
+        'io_curves': plot_io_curves(record, outdir / 'io_curves.png',
+                                    prefix + 'input-output curves'),
+    }
+    zoom = plot_step_zoom(record, outdir / 'step_zoom.png')
+    if zoom is not None:
+        files['step_zoom'] = zoom
+    if bode is not None:
+        files['bode'] = plot_bode(bode, outdir / 'bode.png', prefix + f'frequency response '
+                                  f'estimate ({bode.label})')
+    return files

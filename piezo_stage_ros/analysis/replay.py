@@ -1,0 +1,303 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Replay of one bag: read it, compute the metrics of the control issue, summarise.
+
+The metrics are those of :func:`piezo_stage_ros.core.metrics.summarize`, the function the
+offline runner uses, with the same field names, so ``analyze --json`` of a bag and
+``simulate --json`` of the run that wrote it compare one to one. Times are taken relative to
+the first aligned sample (the offline runner starts at t = 0, so its bags are unchanged; a
+recording from the ROS graph has wall-clock or sim-time stamps).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from piezo_stage_ros.analysis.bagio import ProgressCallback, read_run
+from piezo_stage_ros.analysis.spectral import BodeEstimate, estimate_bode, is_excitation_run
+from piezo_stage_ros.core.errors import PiezoStageError
+from piezo_stage_ros.core.record import RunRecord
+
+__all__ = ['BagAnalysis', 'analyze_bag', 'compute_metrics', 'format_metric', 'format_summary',
+           'summary_json']
+
+#: Key in ``RunRecord.meta`` where a runner may store the start of its metrics window [s].
+STEADY_STATE_META_KEY = 'steady_state_start_s'
+
+
+@dataclass
+class BagAnalysis:
+    """
+    The result of replaying one bag.
+
+    Attributes
+    ----------
+    path : Path
+        The bag.
+    record : RunRecord
+        The aligned run, ``time_s`` relative to the first sample.
+    time_origin_s : float
+        Header stamp of the first sample [s] (0 for bags of the offline runner).
+    metrics : dict of str to float
+        :func:`~piezo_stage_ros.core.metrics.summarize` of the run.
+    steady_state_start_s : float or None
+        Start of the metrics window used [s] (None: summarize's default).
+    bode : BodeEstimate or None
+        Frequency-response estimate, for noise or sweep runs.
+    notes : list of str
+        Things the reader of a report should know (dropped samples, a skipped plot).
+    samples : int
+        Aligned samples (kept when the record is released).
+    duration_s : float
+        Time from the first to the last sample [s].
+
+    """
+
+    path: Path
+    record: RunRecord
+    time_origin_s: float
+    metrics: dict[str, float]
+    steady_state_start_s: float | None
+    bode: BodeEstimate | None = None
+    notes: list[str] = field(default_factory=list)
+    samples: int = 0
+    duration_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        if len(self.record):
+            self.samples = len(self.record)
+            self.duration_s = float(self.record.time_s[-1] - self.record.time_s[0])
+
+    def release(self) -> None:
+        """Drop the per-sample arrays (keep metrics and meta) once figures are drawn."""
+        empty = np.zeros(0)
+        self.record = RunRecord(empty, empty, empty, empty, empty, {}, self.record.meta)
+
+    @property
+    def name(self) -> str:
+        """Short name of the bag (its directory or file name)."""
+        return self.path.name or str(self.path)
+
+
+def compute_metrics(record: RunRecord,
+                    steady_state_start_s: float | None = None) -> dict[str, float]:
+    """
+    Compute the run's metrics with the offline runner's own function.
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run, times relative to its start [s].
+    steady_state_start_s : float, optional
+        Start of the metrics window [s]; None uses summarize's default (as ``simulate`` does).
+
+    Returns
+    -------
+    dict of str to float
+        ``e_max_m``, ``e_rms_m``, ... as :func:`piezo_stage_ros.core.metrics.summarize` names
+        them; when the reference is piecewise constant (steps, square wave) also the step
+        figures of :func:`~piezo_stage_ros.core.metrics.square_wave_metrics` (``rise_time_s``,
+        ``overshoot_pct``, ``settling_time_s``, ``ss_e_max_m``, ``ss_e_rms_m``, ...).
+
+    """
+    from piezo_stage_ros.core.metrics import square_wave_metrics, summarize
+    out = {str(k): float(v) for k, v in
+           summarize(record, steady_state_start_s=steady_state_start_s).items()}
+    if _is_piecewise_constant(record.reference_m):
+        period = record.meta.get('trajectory_period_s')
+        try:
+            steps = square_wave_metrics(
+                record.time_s, record.position_m, record.reference_m,
+                period_s=float(period) if isinstance(period, (int, float)) else float(
+                    record.time_s[-1] - record.time_s[0]))
+        except PiezoStageError:
+            steps = {}
+        out.update({k: float(v) for k, v in steps.items() if k not in out})
+    return out
+
+
+def _is_piecewise_constant(reference_m: Any) -> bool:
+    # Steps, a staircase or a square wave: the reference changes on at most 1 % of the samples
+    # (a sine changes on every one), so the step figures mean something.
+    changes = np.count_nonzero(np.diff(np.asarray(reference_m, dtype=np.float64)))
+    return bool(0 < changes <= 0.01 * len(reference_m))
+
+
+def analyze_bag(path: str | Path, *, namespace: str | None = None,
+                steady_state_start_s: float | None = None, bode: bool | None = None,
+                progress: ProgressCallback | None = None) -> BagAnalysis:
+    """
+    Read a bag, align it, and compute its metrics (and a Bode estimate when it makes sense).
+
+    Parameters
+    ----------
+    path : path-like
+        The bag.
+    namespace : str, optional
+        Topic namespace; found from the bag when there is one stage in it.
+    steady_state_start_s : float, optional
+        Start of the metrics window relative to the first sample [s]. Default: the value the
+        runner stored in the bag's meta (``steady_state_start_s``), else summarize's default.
+    bode : bool, optional
+        Estimate the frequency response: True always, False never, None (default) when the
+        run's description says the reference was noise or a sweep.
+    progress : callable, optional
+        ``progress(messages_read, messages_total)`` while reading.
+
+    Returns
+    -------
+    BagAnalysis
+        Aligned run, metrics and notes.
+
+    Raises
+    ------
+    BagError
+        The bag cannot be read (see :func:`~piezo_stage_ros.analysis.bagio.read_run`).
+    PiezoStageError
+        The metrics or the Bode estimate cannot be computed.
+
+    """
+    record = read_run(path, namespace=namespace, progress=progress)
+    origin = float(record.time_s[0])
+    rebased = replace(record, time_s=record.time_s - origin, meta=dict(record.meta))
+    window = steady_state_start_s
+    if window is None:
+        stored = record.meta.get(STEADY_STATE_META_KEY)
+        if isinstance(stored, (int, float)) and math.isfinite(stored):
+            window = float(stored)
+    metrics = compute_metrics(rebased, window)
+    notes = []
+    align: dict[str, Any] = record.meta.get('alignment', {})
+    dropped = {k: v for k, v in align.items() if k.startswith('dropped_') and v}
+    if dropped:
+        notes.append('messages that could not be aligned were dropped: '
+                     + ', '.join(f'{k[8:]} {v}' for k, v in dropped.items()))
+    estimate = None
+    if bode or (bode is None and is_excitation_run(record.meta)):
+        try:
+            estimate = estimate_bode(rebased)
+        except PiezoStageError as err:
+            if bode:
+                raise
+            notes.append(f'no Bode estimate: {err}')
+    return BagAnalysis(Path(path), rebased, origin, metrics, window, estimate, notes)
+
+
+def format_metric(key: str, value: float) -> str:
+    """
+    Format one metric with a unit a person reads easily (nm, ms, V).
+
+    Parameters
+    ----------
+    key : str
+        Metric name; its suffix gives the SI unit (``_m``, ``_s``, ``_v``, ``_mps``).
+    value : float
+        Value in SI units.
+
+    Returns
+    -------
+    str
+        E.g. ``'39.4 nm'``.
+
+    """
+    if not math.isfinite(value):
+        return 'n/a'
+    if key == 'samples' or key.endswith('_count'):
+        return f'{value:.0f}'
+    if key.endswith('_m'):
+        return f'{value * 1e9:.3f} nm'
+    if key.endswith('_s'):
+        return f'{value * 1e3:.3f} ms'
+    if key.endswith('_v'):
+        return f'{value:.4f} V'
+    if key.endswith('_mps'):
+        return f'{value * 1e6:.3f} µm/s'
+    if key.endswith(('_pct', '_percent')):
+        return f'{value:.3f} %'
+    return f'{value:.6g}'
+
+
+def summary_json(analysis: BagAnalysis) -> dict[str, Any]:
+    """
+    Return the JSON object ``analyze --json`` prints for a bag.
+
+    Parameters
+    ----------
+    analysis : BagAnalysis
+        The replayed bag.
+
+    Returns
+    -------
+    dict
+        ``bag`` and ``time_origin_s`` (stamp of the first sample [s]) plus every metric under
+        summarize's own name (SI units); non-finite values become null so the line is strict
+        JSON.
+
+    """
+    out: dict[str, Any] = {'bag': str(analysis.path)}
+    for key, value in analysis.metrics.items():
+        out[key] = value if math.isfinite(value) else None
+    out['time_origin_s'] = analysis.time_origin_s
+    return out
+
+
+def format_summary(analysis: BagAnalysis) -> str:
+    """
+    Return a short human-readable summary of a replayed bag.
+
+    Parameters
+    ----------
+    analysis : BagAnalysis
+        The replayed bag.
+
+    Returns
+    -------
+    str
+        Several lines: the bag, its duration and samples, then one metric per line.
+
+    """
+    rec = analysis.record
+    rate = (f' ({(analysis.samples - 1) / analysis.duration_s:.0f} Hz)'
+            if analysis.duration_s > 0 else '')
+    lines = [f'{analysis.path}: {analysis.samples} samples over {analysis.duration_s:.4f} s'
+             f'{rate}, storage {rec.meta.get("storage")}, namespace {rec.meta.get("namespace")}']
+    for key in ('controller', 'trajectory', 'experiment'):
+        if key in rec.meta:
+            lines.append(f'  {key}: {_short(rec.meta[key])}')
+    window = ('default' if analysis.steady_state_start_s is None
+              else f'from {analysis.steady_state_start_s:g} s')
+    lines.append(f'  metrics window: {window}')
+    width = max((len(k) for k in analysis.metrics), default=0)
+    for key, value in analysis.metrics.items():
+        lines.append(f'  {key:<{width}}  {format_metric(key, value)}')
+    if analysis.bode is not None:
+        lines.append(f'  Bode estimate ({analysis.bode.label}): low-frequency gain '
+                     f'{analysis.bode.dc_gain() * 1e6:.4g} µm/V')
+    lines.extend(f'  note: {n}' for n in analysis.notes)
+    return '\n'.join(lines)
+
+
+def _short(value: Any) -> str:
+    if isinstance(value, dict):
+        kind = value.get('type', value.get('kind'))
+        if kind is not None:
+            return str(kind)
+    text = str(value)
+    return text if len(text) <= 80 else text[:77] + '...'

@@ -1,0 +1,173 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Frequency-response estimate of a recorded run (the paper's Fig. 4 from band-limited noise).
+
+The estimate is the H1 estimator G(f) = S_uy(f) / S_uu(f) (Welch averages, Hann windows, half
+overlap) with the magnitude-squared coherence to say where it can be trusted. For a run with
+noise or sweep excitation the plant estimate is from the amplifier input v_in to the measured
+position x. In closed loop the measurement noise fed back makes H1 biased where the coherence
+is low; the plot marks those frequencies.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+import re
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from piezo_stage_ros.core.errors import PiezoStageError
+from piezo_stage_ros.core.record import RunRecord
+from scipy import signal
+
+__all__ = ['BodeEstimate', 'estimate_bode', 'is_excitation_run']
+
+FloatArray = NDArray[np.float64]
+
+_EXCITATION = re.compile(r'chirp|sweep|noise|prbs|multisine|random', re.IGNORECASE)
+
+
+@dataclass(frozen=True)
+class BodeEstimate:
+    """
+    An estimated frequency response.
+
+    Attributes
+    ----------
+    frequency_hz : ndarray
+        Frequencies [Hz], without 0 Hz.
+    response : ndarray of complex
+        G(f) in SI units of output per input (e.g. m/V).
+    coherence : ndarray
+        Magnitude-squared coherence, 0 ... 1.
+    unit : str
+        Unit of ``response * scale`` (e.g. ``'µm/V'``).
+    scale : float
+        Factor from SI to ``unit`` (e.g. 1e6 for m -> µm).
+    label : str
+        What is estimated, e.g. ``'v_in -> x'``.
+
+    """
+
+    frequency_hz: FloatArray
+    response: NDArray[np.complex128]
+    coherence: FloatArray
+    unit: str
+    scale: float
+    label: str
+
+    def dc_gain(self, band_hz: tuple[float, float] = (0.0, 50.0)) -> float:
+        """
+        Return the mean magnitude in a low-frequency band, in SI units.
+
+        Parameters
+        ----------
+        band_hz : (float, float)
+            Frequency band [Hz].
+
+        Returns
+        -------
+        float
+            Mean of |G| over the band (NaN if the band holds no frequency).
+
+        """
+        sel = (self.frequency_hz > band_hz[0]) & (self.frequency_hz <= band_hz[1])
+        return float(np.mean(np.abs(self.response[sel]))) if sel.any() else float('nan')
+
+
+def _strings(value: Any) -> list[str]:
+    if isinstance(value, str):
+        return [value]
+    if isinstance(value, Mapping):
+        return [s for k, v in value.items() for s in _strings(k) + _strings(v)]
+    if isinstance(value, (list, tuple)):
+        return [s for v in value for s in _strings(v)]
+    return []
+
+
+def is_excitation_run(meta: Mapping[str, Any]) -> bool:
+    """
+    Tell from a run's description whether its reference was noise or a sweep.
+
+    Parameters
+    ----------
+    meta : dict
+        ``RunRecord.meta``; the trajectory entry (``meta['trajectory']``, its ``kind``) is
+        searched for chirp, sweep, noise, PRBS or multisine.
+
+    Returns
+    -------
+    bool
+        True when a Bode estimate makes sense.
+
+    """
+    trajectory = {k: v for k, v in meta.items() if 'trajectory' in str(k).lower()
+                  or str(k).lower() in ('kind', 'experiment', 'excitation')}
+    return any(_EXCITATION.search(s) for s in _strings(trajectory))
+
+
+def estimate_bode(record: RunRecord, *, segment_s: float = 0.05) -> BodeEstimate:
+    """
+    Estimate the frequency response from v_in to x of a recorded run.
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run, uniformly sampled.
+    segment_s : float
+        Welch segment length [s]; sets the frequency resolution 1/segment_s (20 Hz by default)
+        and, with the run length, the number of averages.
+
+    Returns
+    -------
+    BodeEstimate
+        G(f) = S_uy / S_uu in m/V (plotted in µm/V) with its coherence.
+
+    Raises
+    ------
+    PiezoStageError
+        Fewer than two segments of samples, or a sampling that is not uniform.
+
+    """
+    t = np.asarray(record.time_s, dtype=np.float64)
+    if t.size < 4:
+        raise PiezoStageError(f'Bode estimate: the run has {t.size} samples; need a few segments')
+    dt = np.diff(t)
+    period = float(np.median(dt))
+    if period <= 0.0 or np.max(np.abs(dt - period)) > 0.01 * period:
+        raise PiezoStageError('Bode estimate: samples are not uniformly spaced (a gap in the '
+                              'bag?); allowed: spacing within 1 % of the median')
+    fs = 1.0 / period
+    nperseg = int(round(segment_s * fs))
+    if t.size < 2 * nperseg or nperseg < 8:
+        raise PiezoStageError(f'Bode estimate: {t.size} samples is shorter than two segments '
+                              f'of {segment_s} s; allowed: runs of at least {2 * segment_s} s')
+    u = np.asarray(record.command_v, dtype=np.float64)
+    y = np.asarray(record.position_m, dtype=np.float64)
+    f, s_uu = signal.welch(u, fs=fs, nperseg=nperseg, detrend='constant')
+    _, s_uy = signal.csd(u, y, fs=fs, nperseg=nperseg, detrend='constant')
+    _, coh = signal.coherence(u, y, fs=fs, nperseg=nperseg, detrend='constant')
+    keep = (f > 0) & (s_uu > 0)
+    return BodeEstimate(
+        frequency_hz=np.asarray(f[keep], dtype=np.float64),
+        response=np.asarray(s_uy[keep] / s_uu[keep], dtype=np.complex128),
+        coherence=np.asarray(coh[keep], dtype=np.float64),
+        unit='µm/V',
+        scale=1e6,
+        label='v_in -> x',
+    )

@@ -1,0 +1,210 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Replay bags: metrics, plots and a report (``analyze BAG...``, ``python3 -m ...analyze``).
+
+Examples
+--------
+``analyze run.bag``
+    Human summary of one bag.
+``analyze --json rac.bag pi.bag``
+    One JSON object per bag and line, the field names of ``simulate --json``.
+``analyze --report report/ rac.bag pi.bag``
+    ``report/report.md`` comparing the bags, with their figures.
+
+Exit status: 0 when every bag was analysed, 1 when any bag failed (one line on stderr per bad
+bag, naming it and the problem; the other bags are still analysed), 2 for bad options.
+
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable, Sequence
+import json
+import math
+from pathlib import Path
+import sys
+from typing import NoReturn, TextIO
+
+__all__ = ['main']
+
+PROG = 'analyze'
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> NoReturn:
+        # One clear line instead of usage + message, as every program of the package does.
+        self.exit(2, f'{self.prog}: error: {message} (see --help)\n')
+
+
+def _non_negative(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
+    if not math.isfinite(value) or value < 0.0:
+        raise argparse.ArgumentTypeError(f'{text!r} is out of range; allowed: [0, inf) s')
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """
+    Build the command-line parser.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        The parser of ``analyze``.
+
+    """
+    parser = _Parser(
+        prog=PROG,
+        description='Replay rosbag2 bags of piezo stage runs (written by simulate --bag or '
+                    'recorded from the nodes): align position, reference and command, compute '
+                    'the metrics, draw the paper-style figures, write a report.')
+    parser.add_argument('bags', nargs='+', metavar='BAG', type=Path,
+                        help='bag directory (MCAP or sqlite3), or a single .mcap/.db3 file')
+    parser.add_argument('--json', action='store_true',
+                        help='print one JSON object per bag (same field names as simulate '
+                             '--json, SI units) instead of the human summary')
+    parser.add_argument('--plots', type=Path, metavar='DIR',
+                        help='write PNG figures into DIR (DIR/<bag>/ for several bags)')
+    parser.add_argument('--report', type=Path, metavar='DIR',
+                        help='write DIR/report.md with the figures; several bags are compared '
+                             'in one table')
+    parser.add_argument('--namespace', metavar='NS',
+                        help="topic namespace, e.g. '/stage' (default: found from the bag)")
+    parser.add_argument('--steady-state-start', type=_non_negative, metavar='S',
+                        dest='steady_state_start_s',
+                        help='start of the metrics window, seconds after the first sample '
+                             '(default: the one stored by simulate, else the same default as '
+                             'simulate)')
+    bode = parser.add_mutually_exclusive_group()
+    bode.add_argument('--bode', dest='bode', action='store_true', default=None,
+                      help='always estimate the frequency response v_in -> x')
+    bode.add_argument('--no-bode', dest='bode', action='store_false',
+                      help='never estimate it (default: only for noise or sweep runs)')
+    parser.add_argument('-q', '--quiet', action='store_true',
+                        help='no progress line and no notes on stderr')
+    return parser
+
+
+def _progress(stream: TextIO, index: int, count: int,
+              name: str) -> Callable[[int, int], None]:
+    def show(done: int, total: int) -> None:
+        percent = 100.0 * done / total if total else 100.0
+        stream.write(f'\r{PROG}: [{index}/{count}] {name} {percent:5.1f}% '
+                     f'({done}/{total} messages)')
+        stream.flush()
+    return show
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """
+    Run ``analyze``.
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        Arguments without the program name (default: ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        Exit status: 0 all bags analysed, 1 some bag failed, 2 bad options.
+
+    """
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exit_:
+        return int(exit_.code or 0)
+    # Imported here so that --help works (and is fast) without the analysis dependencies.
+    try:
+        from piezo_stage_ros.analysis.plots import error_trace, plot_comparison, plot_run
+        from piezo_stage_ros.analysis.replay import analyze_bag, format_summary, summary_json
+        from piezo_stage_ros.analysis.report import ReportEntry, unique_names, write_report
+        from piezo_stage_ros.core.errors import PiezoStageError
+    except ImportError as err:
+        print(f'{PROG}: error: a dependency is missing: {err}', file=sys.stderr)
+        return 1
+
+    show_progress = not args.quiet and sys.stderr.isatty()
+    names = unique_names(args.bags)
+    figure_root: Path | None = args.plots if args.plots is not None else args.report
+    entries = []
+    traces = []
+    failed = 0
+    for index, (bag, name) in enumerate(zip(args.bags, names), start=1):
+        progress = _progress(sys.stderr, index, len(args.bags), name) if show_progress else None
+        try:
+            analysis = analyze_bag(bag, namespace=args.namespace,
+                                   steady_state_start_s=args.steady_state_start_s,
+                                   bode=args.bode, progress=progress)
+        except PiezoStageError as err:
+            _end_progress(show_progress)
+            print(f'{PROG}: error: {err}', file=sys.stderr)
+            failed += 1
+            continue
+        except MemoryError:
+            _end_progress(show_progress)
+            print(f'{PROG}: error: bag {bag}: not enough memory to hold its samples',
+                  file=sys.stderr)
+            failed += 1
+            continue
+        _end_progress(show_progress)
+        if args.json:
+            print(json.dumps(summary_json(analysis), sort_keys=False), flush=True)
+        else:
+            print(format_summary(analysis), flush=True)
+        if figure_root is not None:
+            outdir = figure_root if len(args.bags) == 1 else figure_root / name
+            try:
+                figures = plot_run(analysis.record, outdir, title=name,
+                                   steady_state_start_s=analysis.steady_state_start_s,
+                                   bode=analysis.bode)
+            except OSError as err:
+                print(f'{PROG}: error: cannot write figures into {outdir}: {err.strerror}',
+                      file=sys.stderr)
+                return 1
+            entries.append(ReportEntry(analysis, figures, name))
+            traces.append(error_trace(analysis.record))
+        # The metrics and figures are made; a long bag's samples need not stay in memory.
+        analysis.release()
+    if args.report is not None and entries:
+        try:
+            comparison = None
+            if len(entries) > 1:
+                comparison = plot_comparison(traces, [e.label for e in entries],
+                                             args.report / 'comparison_error.png')
+            path = write_report(entries, args.report, comparison)
+        except OSError as err:
+            print(f'{PROG}: error: cannot write the report into {args.report}: {err.strerror}',
+                  file=sys.stderr)
+            return 1
+        if not args.quiet:
+            print(f'{PROG}: report written to {path}', file=sys.stderr)
+    return 1 if failed else 0
+
+
+def _end_progress(shown: bool) -> None:
+    if shown:
+        sys.stderr.write('\r\033[K')
+        sys.stderr.flush()
+
+
+if __name__ == '__main__':
+    sys.exit(main())
