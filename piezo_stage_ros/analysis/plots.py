@@ -410,7 +410,10 @@ def plot_run(record: RunRecord, outdir: Path, *, title: str = '',
         'io_curves': plot_io_curves(record, outdir / 'io_curves.png',
                                     prefix + 'input-output curves'),
     }
-    zoom = plot_step_zoom(record, outdir / 'step_zoom.png')
+    step = find_step(record)
+    zoom_title = '' if step is None else (
+        f'{prefix}step at t = {float(_relative_time(record)[step]):.4f} s')
+    zoom = plot_step_zoom(record, outdir / 'step_zoom.png', zoom_title)
     if zoom is not None:
         files['step_zoom'] = zoom
     if bode is not None:
