@@ -1,0 +1,260 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+A real-time I/O target emulator on loopback: the stage model behind the UDP protocol.
+
+It speaks the protocol of :mod:`piezo_stage_ros.hardware.udp`, simulating the stage with the core
+model.
+
+It steps one :class:`~piezo_stage_ros.core.stage.Stage` per COMMAND request (so a lockstep run
+through it gives the samples of the model itself), binds to 127.0.0.1 only, and stops by itself:
+on STOP, after ``idle_timeout_s`` without a request, or after ``max_requests``. Run it as
+``stage_emulator --port 50000`` (console script) or in a thread from a test.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import socket
+import sys
+import threading
+from typing import Sequence
+
+from piezo_stage_ros.core.config import find_config, load_config
+from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
+from piezo_stage_ros.core.stage import Stage, StageParams
+from piezo_stage_ros.hardware.udp import (
+    COMMAND,
+    HELLO,
+    pack_reply,
+    STATUS_CLAMPED,
+    STATUS_NOT_FINITE,
+    STATUS_REFUSED,
+    STOP,
+    unpack_request,
+)
+
+__all__ = ['TargetEmulator', 'main']
+
+LOOPBACK = '127.0.0.1'
+_HALF = 2 ** 31
+
+
+class TargetEmulator:
+    """
+    The target side of the protocol, simulating the stage.
+
+    Parameters
+    ----------
+    params : StageParams
+        The simulated stage.
+    port : int
+        UDP port on 127.0.0.1; 0 picks a free one (see :attr:`port`).
+    host : str
+        Must be ``'127.0.0.1'``: the emulator never listens beyond loopback.
+    idle_timeout_s : float
+        Stop after this long without a request [s].
+    max_requests : int
+        Stop after this many requests (0: no limit).
+    drop_reply_every : int
+        Swallow every n-th COMMAND reply (0: none), to exercise the loss counting.
+
+    """
+
+    def __init__(self, params: StageParams, *, port: int = 0, host: str = LOOPBACK,
+                 idle_timeout_s: float = 5.0, max_requests: int = 0,
+                 drop_reply_every: int = 0) -> None:
+        if host != LOOPBACK:
+            raise ParameterError('host', host, f'{LOOPBACK!r}',
+                                 'is not loopback (the emulator binds to loopback only)')
+        if not (idle_timeout_s > 0.0 and math.isfinite(idle_timeout_s)):
+            raise ParameterError('idle_timeout_s', idle_timeout_s, '(0, inf)')
+        if max_requests < 0:
+            raise ParameterError('max_requests', max_requests, '[0, inf)')
+        if drop_reply_every < 0:
+            raise ParameterError('drop_reply_every', drop_reply_every, '[0, inf)')
+        self.params = params
+        self.stage = Stage(params)
+        chain = params.chain
+        self._low, self._high = chain.amplifier_min_v, chain.amplifier_max_v
+        self.idle_timeout_s = idle_timeout_s
+        self.max_requests = max_requests
+        self.drop_reply_every = drop_reply_every
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            self._sock.bind((LOOPBACK, port))
+        except OSError as exc:
+            self._sock.close()
+            raise PiezoStageError(f'stage_emulator: cannot bind {LOOPBACK}:{port} '
+                                  f'({exc.strerror})') from None
+        self.port: int = self._sock.getsockname()[1]
+        self.requests = 0
+        self.commands = 0
+        self.missing = 0
+        self.dropped = 0
+        self.stop_reason = ''
+        self._expected: int | None = None
+        self._voltage_v = chain.safe_voltage_v
+        self._position_m = self.stage.reset()
+        self._thread: threading.Thread | None = None
+        self._halt = threading.Event()
+
+    def _handle(self, data: bytes) -> tuple[bytes | None, bool]:
+        """Return the reply to one datagram (None: no reply) and whether the session ends."""
+        request = unpack_request(data)
+        if request is None:
+            return None, False
+        kind, seq, value = request
+        status = 0
+        if self._expected is not None and kind != HELLO:
+            gap = (seq - self._expected) % 2 ** 32
+            if gap >= _HALF:
+                # older than the last one: a duplicate or reordered request; never step twice
+                return None, False
+            self.missing += gap
+        self._expected = (seq + 1) % 2 ** 32
+        if not math.isfinite(value):
+            status |= STATUS_NOT_FINITE
+        elif not self._low <= value <= self._high:
+            status |= STATUS_CLAMPED
+        if kind == HELLO:
+            self._position_m = self.stage.reset()
+            self._voltage_v = value
+            self.missing = 0
+        elif kind == COMMAND:
+            self.commands += 1
+            self._voltage_v = value
+            self._position_m = self.stage.step(value)
+            if self.drop_reply_every and self.commands % self.drop_reply_every == 0:
+                self.dropped += 1
+                return None, False
+        elif kind == STOP:
+            # the stage is left holding the safe voltage; no more samples are taken
+            self._voltage_v = value
+            return pack_reply(kind, seq, self._position_m, status, self.missing), True
+        else:
+            status |= STATUS_REFUSED
+        return pack_reply(kind, seq, self._position_m, status, self.missing), False
+
+    def serve(self) -> str:
+        """
+        Answer requests until STOP, idleness, the request limit or :meth:`close`.
+
+        Returns
+        -------
+        str
+            Why it stopped: ``'stop'``, ``'idle'``, ``'limit'`` or ``'closed'``.
+
+        """
+        sock = self._sock
+        sock.settimeout(min(self.idle_timeout_s, 0.1))
+        idle = 0.0
+        while not self._halt.is_set():
+            try:
+                data, peer = sock.recvfrom(64)
+            except TimeoutError:
+                idle += sock.gettimeout() or 0.0
+                if idle >= self.idle_timeout_s:
+                    self.stop_reason = 'idle'
+                    break
+                continue
+            except OSError:
+                self.stop_reason = 'closed'
+                break
+            idle = 0.0
+            self.requests += 1
+            reply, done = self._handle(data)
+            if reply is not None:
+                sock.sendto(reply, peer)
+            if done:
+                self.stop_reason = 'stop'
+                break
+            if self.max_requests and self.requests >= self.max_requests:
+                self.stop_reason = 'limit'
+                break
+        else:
+            self.stop_reason = 'closed'
+        sock.close()
+        return self.stop_reason
+
+    def start_thread(self) -> TargetEmulator:
+        """Serve in a daemon thread; return self."""
+        self._thread = threading.Thread(target=self.serve, name='stage_emulator', daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Stop serving and wait for the thread (if any) up to ``timeout_s`` [s]."""
+        self._halt.set()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+        else:
+            self._sock.close()
+
+    def __enter__(self) -> TargetEmulator:
+        return self.start_thread()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """
+    Run the emulator from the command line (console script ``stage_emulator``).
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        Arguments (default ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        0 when it stopped normally, 2 on bad arguments or parameters.
+
+    """
+    parser = argparse.ArgumentParser(
+        prog='stage_emulator',
+        description='Real-time I/O target emulator on 127.0.0.1: the stage model behind the '
+                    'UDP protocol of piezo_stage_ros.hardware.udp (docs/nodes.md).')
+    parser.add_argument('--config', default='default.yaml',
+                        help='ROS parameter file; its plant_node section is the stage')
+    parser.add_argument('--port', type=int, default=50000, help='UDP port (0: any free one)')
+    parser.add_argument('--idle-timeout-s', type=float, default=10.0,
+                        help='stop after this long without a request [s]')
+    parser.add_argument('--max-requests', type=int, default=0,
+                        help='stop after this many requests (0: no limit)')
+    args = parser.parse_args(argv)
+    try:
+        config = load_config([find_config(args.config)])
+        params = StageParams.from_flat(config.node('plant_node'))
+        emulator = TargetEmulator(params, port=args.port, idle_timeout_s=args.idle_timeout_s,
+                                  max_requests=args.max_requests)
+    except PiezoStageError as exc:
+        print(f'stage_emulator: {exc}', file=sys.stderr)
+        return 2
+    print(f'stage_emulator: listening on {LOOPBACK}:{emulator.port}', flush=True)
+    try:
+        reason = emulator.serve()
+    except KeyboardInterrupt:
+        reason = 'interrupted'
+    print(f'stage_emulator: stopped ({reason}) after {emulator.requests} requests, '
+          f'{emulator.missing} missing', flush=True)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

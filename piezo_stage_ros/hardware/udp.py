@@ -1,0 +1,266 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+A binary protocol over UDP to an external real-time I/O target, and its host-side bridge.
+
+The target (an FPGA, a microcontroller or a rapid-control-prototyping box) owns the DAC, the
+amplifier input and the position ADC. The host sends one request per sample and the target
+answers with the position measured at the end of that sample. Every datagram is one packet,
+little-endian, packed without padding (``struct`` formats below):
+
+Request, host -> target, 16 bytes, ``'<2sBBId'``:
+
+======  =====  ======  ===============================================================
+offset  bytes  type    field
+======  =====  ======  ===============================================================
+0       2      char    magic ``b'PZ'``
+2       1      uint8   version, :data:`VERSION` (1)
+3       1      uint8   kind: 1 HELLO (reset, drive ``value`` = safe voltage),
+                       2 COMMAND (hold ``value`` over one sample), 3 STOP (drive
+                       ``value`` = safe voltage and end the session)
+4       4      uint32  sequence number, +1 per request, wraps at 2**32
+8       8      double  value [V]: the amplifier input voltage
+======  =====  ======  ===============================================================
+
+Reply, target -> host, 24 bytes, ``'<2sBBIdII'``:
+
+======  =====  ======  ===============================================================
+offset  bytes  type    field
+======  =====  ======  ===============================================================
+0       2      char    magic ``b'PZ'``
+2       1      uint8   version (1)
+3       1      uint8   kind of the request | 0x80
+4       4      uint32  sequence number of the request answered
+8       8      double  measured position [m] at the end of the sample
+16      4      uint32  status bits: 1 command clamped, 2 command not finite (safe voltage
+                       applied), 4 request refused (bad kind)
+20      4      uint32  requests the target found missing so far (gaps in sequence numbers)
+======  =====  ======  ===============================================================
+
+Timing and losses: the host waits for the reply with its own sequence number for at most
+``timeout_s``; a reply with an older number is stale (counted, dropped); no reply in time is a
+lost sample (counted; the last position is held). More than ``max_consecutive_losses`` lost
+samples in a row raise :class:`~piezo_stage_ros.hardware.bridge.BridgeError`, upon which the
+plant drives the safe voltage and stops. Nothing is retransmitted except HELLO: a sample that
+is late is worthless.
+"""
+
+from __future__ import annotations
+
+import math
+import socket
+import struct
+import time
+from typing import Final, Mapping
+
+from piezo_stage_ros.core.errors import ParameterError
+from piezo_stage_ros.hardware.bridge import BridgeError
+
+__all__ = ['HELLO', 'COMMAND', 'STOP', 'REPLY', 'REQUEST', 'VERSION', 'MAGIC', 'UdpBridge',
+           'pack_reply', 'pack_request', 'unpack_reply', 'unpack_request']
+
+MAGIC: Final = b'PZ'
+VERSION: Final = 1
+HELLO: Final = 1
+COMMAND: Final = 2
+STOP: Final = 3
+REPLY_FLAG: Final = 0x80
+STATUS_CLAMPED: Final = 1
+STATUS_NOT_FINITE: Final = 2
+STATUS_REFUSED: Final = 4
+REQUEST: Final = struct.Struct('<2sBBId')
+REPLY: Final = struct.Struct('<2sBBIdII')
+_SEQ_MOD: Final = 2 ** 32
+
+
+def pack_request(kind: int, seq: int, value_v: float) -> bytes:
+    """Return the request datagram (``kind``, sequence number, voltage [V])."""
+    return REQUEST.pack(MAGIC, VERSION, kind, seq % _SEQ_MOD, value_v)
+
+
+def unpack_request(data: bytes) -> tuple[int, int, float] | None:
+    """Return ``(kind, seq, value_v)`` of a request datagram, or None if it is not one."""
+    if len(data) != REQUEST.size:
+        return None
+    magic, version, kind, seq, value = REQUEST.unpack(data)
+    if magic != MAGIC or version != VERSION or kind & REPLY_FLAG:
+        return None
+    return kind, seq, value
+
+
+def pack_reply(kind: int, seq: int, position_m: float, status: int, missing: int) -> bytes:
+    """Return the reply datagram to request ``kind`` / ``seq``."""
+    return REPLY.pack(MAGIC, VERSION, kind | REPLY_FLAG, seq % _SEQ_MOD, position_m,
+                      status, missing % _SEQ_MOD)
+
+
+def unpack_reply(data: bytes) -> tuple[int, int, float, int, int] | None:
+    """Return ``(kind, seq, position_m, status, missing)`` of a reply, or None if not one."""
+    if len(data) != REPLY.size:
+        return None
+    magic, version, kind, seq, position, status, missing = REPLY.unpack(data)
+    if magic != MAGIC or version != VERSION or not kind & REPLY_FLAG:
+        return None
+    return kind & ~REPLY_FLAG, seq, position, status, missing
+
+
+class UdpBridge:
+    """
+    The host side of the UDP protocol: a :class:`~piezo_stage_ros.hardware.bridge.Bridge`.
+
+    Parameters
+    ----------
+    host : str
+        Address of the target.
+    port : int
+        UDP port of the target.
+    timeout_s : float
+        Longest wait for one reply [s].
+    max_consecutive_losses : int
+        Lost samples in a row tolerated before :class:`BridgeError`.
+    hello_attempts : int
+        HELLO requests sent before giving up on a silent target.
+
+    """
+
+    def __init__(self, host: str, port: int, *, timeout_s: float = 0.002,
+                 max_consecutive_losses: int = 10, hello_attempts: int = 5) -> None:
+        if not 0 < port < 65536:
+            raise ParameterError('bridge.port', port, '[1, 65535]')
+        if not (timeout_s > 0.0 and math.isfinite(timeout_s)):
+            raise ParameterError('bridge.timeout_s', timeout_s, '(0, inf)')
+        if max_consecutive_losses < 0:
+            raise ParameterError('bridge.max_consecutive_losses', max_consecutive_losses,
+                                 '[0, inf)')
+        self.address = (host, port)
+        self.timeout_s = timeout_s
+        self.max_consecutive_losses = max_consecutive_losses
+        self.hello_attempts = max(1, hello_attempts)
+        self._sock: socket.socket | None = None
+        self._seq = 0
+        self._voltage_v = 0.0
+        self._position_m = math.nan
+        self._consecutive = 0
+        self.lost = 0
+        self.stale = 0
+        self.malformed = 0
+        self.target_missing = 0
+        self.target_clamped = 0
+        self.exchanges = 0
+
+    def open(self) -> None:
+        """Create the socket, connected to the target so that only its datagrams arrive."""
+        if self._sock is not None:
+            return
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.connect(self.address)
+        except OSError as exc:
+            sock.close()
+            raise BridgeError(f'UDP bridge: cannot reach {self.address[0]}:{self.address[1]} '
+                              f'({exc.strerror})') from None
+        self._sock = sock
+
+    def _exchange(self, kind: int, value_v: float) -> float | None:
+        """Send one request and return the position of its reply, or None on timeout."""
+        sock = self._sock
+        if sock is None:
+            raise BridgeError('UDP bridge: not open')
+        self._seq = (self._seq + 1) % _SEQ_MOD
+        seq = self._seq
+        try:
+            sock.send(pack_request(kind, seq, value_v))
+        except OSError as exc:
+            raise BridgeError(f'UDP bridge: send to {self.address[0]}:{self.address[1]} '
+                              f'failed ({exc.strerror})') from None
+        deadline = time.monotonic() + self.timeout_s
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0.0:
+                return None
+            sock.settimeout(remaining)
+            try:
+                data = sock.recv(64)
+            except TimeoutError:
+                return None
+            except ConnectionRefusedError:
+                # ICMP port unreachable from an earlier datagram: nobody listens (yet)
+                return None
+            reply = unpack_reply(data)
+            if reply is None or reply[0] != kind:
+                self.malformed += 1
+                continue
+            _, rseq, position, status, missing = reply
+            if rseq != seq:
+                self.stale += 1
+                continue
+            self.exchanges += 1
+            self.target_missing = missing
+            if status & (STATUS_CLAMPED | STATUS_NOT_FINITE):
+                self.target_clamped += 1
+            if status & STATUS_REFUSED:
+                raise BridgeError(f'UDP bridge: target refused request kind {kind}')
+            return position
+
+    def safe_start(self, safe_voltage_v: float) -> float:
+        """Send HELLO (retried) with the safe voltage and return the first position [m]."""
+        self.open()
+        for _ in range(self.hello_attempts):
+            position = self._exchange(HELLO, safe_voltage_v)
+            if position is not None:
+                self._voltage_v = safe_voltage_v
+                self._position_m = position
+                self._consecutive = 0
+                return position
+        raise BridgeError(f'UDP bridge: no answer from the target at {self.address[0]}:'
+                          f'{self.address[1]} after {self.hello_attempts} HELLO requests of '
+                          f'{self.timeout_s:g} s')
+
+    def write_voltage(self, voltage_v: float) -> None:
+        """Set the voltage [V] the next :meth:`read_position` sends."""
+        self._voltage_v = voltage_v
+
+    def read_position(self) -> float:
+        """Send the held voltage for one sample and return the position at its end [m]."""
+        position = self._exchange(COMMAND, self._voltage_v)
+        if position is None:
+            self.lost += 1
+            self._consecutive += 1
+            if self._consecutive > self.max_consecutive_losses:
+                raise BridgeError(f'UDP bridge: {self._consecutive} samples in a row lost '
+                                  f'(no reply within {self.timeout_s:g} s from '
+                                  f'{self.address[0]}:{self.address[1]})')
+            return self._position_m
+        self._consecutive = 0
+        self._position_m = position
+        return position
+
+    def safe_stop(self, safe_voltage_v: float) -> None:
+        """Send STOP with the safe voltage (one attempt) and close the socket."""
+        if self._sock is None:
+            return
+        try:
+            self._exchange(STOP, safe_voltage_v)
+        except BridgeError:
+            pass  # the target may be gone already; the socket is closed either way
+        finally:
+            self._sock.close()
+            self._sock = None
+
+    def stats(self) -> Mapping[str, int]:
+        """Return the loss and error counters."""
+        return {'exchanges': self.exchanges, 'lost': self.lost, 'stale': self.stale,
+                'malformed': self.malformed, 'target_missing': self.target_missing,
+                'target_clamped': self.target_clamped}

@@ -1,0 +1,535 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+What the nodes do, without rclpy: lockstep sequencing, real-time sampling, pairing, watchdogs.
+
+Each class here is the whole behaviour of one node in plain values (nanosecond stamps, floats);
+the rclpy node only turns messages into calls and return values into messages. The loop order
+is the one of :mod:`piezo_stage_ros.core.interfaces`, as in
+:func:`piezo_stage_ros.core.closed_loop.run`:
+
+1. :class:`PlantLogic` publishes y_k stamped t_k (and ``/clock`` = t_k in lockstep);
+2. :class:`TrajectoryLogic` answers x_d(t_k), x_d'(t_k) with the same stamp;
+3. :class:`ControllerLogic`, holding y_k and x_d for the same stamp, steps the controller once
+   and publishes u_k;
+4. the plant holds u_k over one sample: in lockstep it steps on receiving u_k, in real time it
+   samples on its own clock with the last command received.
+
+Lockstep start-up. The plant publishes sample 0 only once enough subscribers matched, and
+publishes the current sample again after ``resend_s`` without its command (a message sent while
+the graph was still matching can be lost). Duplicates are harmless: the trajectory's answer
+depends on the stamp only, and the controller steps at most once per stamp and never publishes
+twice for one stamp, so the plant receives exactly one command per sample.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
+from piezo_stage_ros.core.interfaces import Controller, Trajectory
+from piezo_stage_ros.hardware.safety import GuardedPlant, Watchdog
+
+__all__ = ['ControllerLogic', 'PlantLogic', 'Sample', 'TrajectoryLogic', 'ns_to_stamp',
+           'stamp_to_ns', 'sample_count']
+
+NS_PER_S = 1_000_000_000
+
+
+def ns_to_stamp(stamp_ns: int) -> tuple[int, int]:
+    """Return ``(sec, nanosec)`` of a ``builtin_interfaces/Time`` for ``stamp_ns`` [ns] >= 0."""
+    return divmod(int(stamp_ns), NS_PER_S)
+
+
+def stamp_to_ns(sec: int, nanosec: int) -> int:
+    """Return the nanoseconds of a ``builtin_interfaces/Time`` (``sec`` [s], ``nanosec`` [ns])."""
+    return int(sec) * NS_PER_S + int(nanosec)
+
+
+def sample_count(duration_s: float, sample_rate_hz: float) -> int:
+    """Return the samples of a run of ``duration_s`` [s] at ``sample_rate_hz`` [Hz], 0: endless."""
+    if duration_s <= 0.0:
+        return 0
+    # the offline runner's rule: round(duration / T), at least one
+    return max(int(round(duration_s / (1.0 / sample_rate_hz))), 1)
+
+
+@dataclass(frozen=True)
+class Sample:
+    """
+    One measured sample, ready to publish.
+
+    Attributes
+    ----------
+    index : int
+        k, from 0.
+    stamp_ns : int
+        t_k [ns] (simulation time in lockstep, ROS time in real time).
+    position_m : float
+        y_k [m].
+
+    """
+
+    index: int
+    stamp_ns: int
+    position_m: float
+
+
+class PlantLogic:
+    """
+    The plant node's behaviour: owns time in lockstep, samples on its clock in real time.
+
+    Parameters
+    ----------
+    plant : GuardedPlant
+        The backend behind the safety rules.
+    mode : str
+        ``'lockstep'`` or ``'realtime'``.
+    sample_rate_hz : float
+        Sample rate [Hz].
+    duration_s : float
+        Stop after ``round(duration_s * rate)`` samples; 0 runs on.
+    resend_s : float
+        Lockstep: publish the waiting sample again after this long without its command [s].
+    max_catch_up : int
+        Real time: at most this many overdue samples are taken at once; beyond that the
+        schedule restarts from now (counted in ``skipped``).
+
+    """
+
+    def __init__(self, plant: GuardedPlant, *, mode: str, sample_rate_hz: float,
+                 duration_s: float = 0.0, resend_s: float = 0.5,
+                 max_catch_up: int = 100) -> None:
+        if mode not in ('lockstep', 'realtime'):
+            raise ParameterError('mode', mode, "one of 'lockstep', 'realtime'")
+        self.plant = plant
+        self.mode = mode
+        self.lockstep = mode == 'lockstep'
+        self.rate_hz = float(sample_rate_hz)
+        self.period_s = 1.0 / self.rate_hz
+        self.total = sample_count(duration_s, self.rate_hz)
+        self.resend_s = resend_s
+        self.max_catch_up = max(1, max_catch_up)
+        self.start_ns = 0
+        self.index = -1
+        self.done = False
+        self.waiting = False
+        self._last: Sample | None = None
+        self._last_publish_s = 0.0
+        self._t0_s = 0.0
+        self.resends = 0
+        self.unexpected = 0
+        self.skipped = 0
+        self.catch_up = 0
+
+    def stamp_ns(self, index: int) -> int:
+        """Return t_k [ns] of sample ``index`` (rounded to whole nanoseconds)."""
+        return self.start_ns + round(index * NS_PER_S / self.rate_hz)
+
+    def _sample(self, position_m: float) -> Sample:
+        self.index += 1
+        sample = Sample(self.index, self.stamp_ns(self.index), position_m)
+        self._last = sample
+        return sample
+
+    def start(self, now_s: float, start_ns: int = 0) -> Sample:
+        """
+        Start the backend and return sample 0.
+
+        Parameters
+        ----------
+        now_s : float
+            Monotonic wall time [s] (watchdog, resend and real-time schedule).
+        start_ns : int
+            t_0 [ns]: 0 in lockstep (simulation time starts at zero, as offline), the ROS time
+            of the start in real time.
+
+        """
+        self.start_ns = int(start_ns)
+        y0 = self.plant.start(now_s)
+        self._t0_s = now_s
+        self._last_publish_s = now_s
+        self.waiting = self.lockstep
+        sample = self._sample(y0)
+        if self.total == 1:
+            self.done = True
+            self.waiting = False
+        return sample
+
+    def on_command(self, command_v: float, now_s: float) -> Sample | None:
+        """
+        Take the command for the current sample.
+
+        Parameters
+        ----------
+        command_v : float
+            u_k [V].
+        now_s : float
+            Monotonic wall time of arrival [s].
+
+        Returns
+        -------
+        Sample or None
+            Lockstep: the next sample to publish (None once the run is complete, or for a
+            command nobody waits for, counted in ``unexpected``). Real time: always None (the
+            command is held from the next sample on).
+
+        """
+        if not self.lockstep:
+            if not self.done and self.index >= 0:
+                self.plant.command(command_v, now_s)
+            else:
+                self.unexpected += 1
+            return None
+        if not self.waiting:
+            self.unexpected += 1
+            return None
+        position = self.plant.step(command_v)
+        self._last_publish_s = now_s
+        if self.total and self.index + 1 >= self.total:
+            # the command of the last sample is applied (as offline) but y_N is not a sample
+            self.waiting = False
+            self.done = True
+            return None
+        return self._sample(position)
+
+    def resend_due(self, now_s: float) -> Sample | None:
+        """Lockstep: return the waiting sample again if its command is overdue, else None."""
+        if not (self.lockstep and self.waiting and self._last is not None):
+            return None
+        if now_s - self._last_publish_s < self.resend_s:
+            return None
+        self._last_publish_s = now_s
+        self.resends += 1
+        return self._last
+
+    def on_tick(self, now_s: float) -> list[Sample]:
+        """
+        Real time: take every sample whose time has come and return them (usually one).
+
+        Parameters
+        ----------
+        now_s : float
+            Monotonic wall time [s]; sample k is due at start + k / rate.
+
+        Returns
+        -------
+        list of Sample
+            The samples to publish, oldest first.
+
+        """
+        if self.lockstep or self.done or self.index < 0:
+            return []
+        due = int((now_s - self._t0_s) * self.rate_hz)
+        behind = due - self.index
+        if behind > self.max_catch_up:
+            # a long stall (suspend, debugger): do not burst; restart the schedule from here
+            self.skipped += behind - 1
+            self._t0_s = now_s - self.index * self.period_s
+            self.start_ns += round((behind - 1) * NS_PER_S / self.rate_hz)
+            behind = 1
+        out: list[Sample] = []
+        for _ in range(max(behind, 0)):
+            if behind > 1:
+                self.catch_up += 1
+            position = self.plant.sample(now_s)
+            out.append(self._sample(position))
+            if self.total and self.index + 1 >= self.total:
+                self.done = True
+                break
+        return out
+
+    def next_due_s(self) -> float:
+        """Real time: return the monotonic time [s] the next sample is due."""
+        return self._t0_s + (self.index + 1) * self.period_s
+
+    def stop(self) -> None:
+        """Drive the safe voltage and release the backend."""
+        self.done = True
+        self.waiting = False
+        self.plant.stop()
+
+    def stats(self) -> dict[str, Any]:
+        """Return the counters: samples, late, resends, watchdog trips, bridge losses."""
+        out = self.plant.stats()
+        out.update({'index': self.index, 'resends': self.resends,
+                    'unexpected_commands': self.unexpected, 'skipped': self.skipped,
+                    'catch_up': self.catch_up})
+        return out
+
+
+class TrajectoryLogic:
+    """
+    The trajectory node's behaviour: x_d(t_k) and x_d'(t_k) for each sample stamp.
+
+    Parameters
+    ----------
+    trajectory : Trajectory
+        The trajectory to stream; its t = 0 is the first sample after a start.
+    sample_rate_hz : float
+        Sample rate [Hz]: stamps are turned into sample indices, and times into k / rate
+        exactly as the offline runner computes them.
+    chunk_s : float
+        Evaluate this much at a time [s], chunks aligned at the start as offline.
+    active : bool
+        Stream from the first sample (else hold x_d(0) with zero velocity until started).
+
+    Notes
+    -----
+    Inactive, the reference is held with zero velocity: x_d(0) of the trajectory before its
+    first start, the last reference after a stop. A start, or a new trajectory, takes effect at
+    the next sample and begins at its t = 0 there.
+
+    """
+
+    def __init__(self, trajectory: Trajectory, *, sample_rate_hz: float, chunk_s: float = 1.0,
+                 active: bool = True) -> None:
+        self.rate_hz = float(sample_rate_hz)
+        self.period_s = 1.0 / self.rate_hz
+        self.chunk = max(int(round(chunk_s / self.period_s)), 1)
+        self.trajectory = trajectory
+        self.active = active
+        self._start_ns: int | None = None
+        self._pending: Trajectory | None = None
+        self._chunk_index = -1
+        self._ref: list[float] = []
+        self._vel: list[float] = []
+        first, _ = trajectory.evaluate(np.zeros(1))
+        self.hold_m = float(first[0])
+        self.answered = 0
+
+    def start(self) -> None:
+        """Stream from the next sample on, from t = 0."""
+        self.active = True
+        self._start_ns = None
+
+    def stop(self) -> None:
+        """Hold the last reference with zero velocity from the next sample on."""
+        self.active = False
+
+    def switch(self, trajectory: Trajectory) -> None:
+        """Replace the trajectory at the next sample (it starts at its t = 0 there)."""
+        self._pending = trajectory
+
+    def _evaluate(self, index: int) -> tuple[float, float]:
+        chunk = index // self.chunk
+        if chunk != self._chunk_index:
+            k0 = chunk * self.chunk
+            time_s = np.arange(k0, k0 + self.chunk, dtype=np.float64) * self.period_s
+            ref, vel = self.trajectory.evaluate(time_s)
+            self._ref = np.asarray(ref, dtype=np.float64).tolist()
+            self._vel = np.asarray(vel, dtype=np.float64).tolist()
+            self._chunk_index = chunk
+        i = index - chunk * self.chunk
+        return self._ref[i], self._vel[i]
+
+    def on_position(self, stamp_ns: int) -> tuple[float, float]:
+        """
+        Return the reference for the sample stamped ``stamp_ns`` [ns].
+
+        Returns
+        -------
+        position_m, velocity_mps : float
+            x_d [m] and x_d' [m/s].
+
+        """
+        if self._pending is not None:
+            self.trajectory = self._pending
+            self._pending = None
+            self._start_ns = None
+            self._chunk_index = -1
+        self.answered += 1
+        if not self.active:
+            return self.hold_m, 0.0
+        if self._start_ns is None:
+            self._start_ns = stamp_ns
+            self._chunk_index = -1
+        index = round((stamp_ns - self._start_ns) * self.rate_hz / NS_PER_S)
+        if index < 0:
+            # a sample older than the start (reordered): the start value
+            index = 0
+        ref, vel = self._evaluate(index)
+        self.hold_m = ref
+        return ref, vel
+
+
+def diagnostic_reader(controller: Controller
+                      ) -> tuple[tuple[str, ...], Callable[[], Sequence[float]]]:
+    """
+    Return the controller's diagnostic names and a function returning their values.
+
+    Uses the cheap pair ``diagnostic_names`` / ``diagnostic_values()`` when the controller has
+    it, else its ``diagnostics()`` mapping (names sorted), as the offline runner does.
+    """
+    names = getattr(controller, 'diagnostic_names', None)
+    values = getattr(controller, 'diagnostic_values', None)
+    if isinstance(names, tuple) and callable(values):
+        return tuple(str(n) for n in names), values
+    keys = tuple(sorted(controller.diagnostics()))
+    diagnostics = controller.diagnostics
+
+    def read() -> Sequence[float]:
+        d: Mapping[str, float] = diagnostics()
+        return [float(d.get(k, math.nan)) for k in keys]
+    return keys, read
+
+
+@dataclass(frozen=True)
+class Command:
+    """
+    A command to publish.
+
+    Attributes
+    ----------
+    stamp_ns : int
+        Stamp of the sample it answers [ns] (-1 for a watchdog command).
+    voltage_v : float
+        u_k [V].
+    diagnostics : tuple of float or None
+        Controller internals to publish with it (every ``diagnostics_every`` samples).
+
+    """
+
+    stamp_ns: int
+    voltage_v: float
+    diagnostics: Sequence[float] | None = None
+
+
+class ControllerLogic:
+    """
+    The controller node's behaviour: pair position and reference by stamp, step once per stamp.
+
+    Parameters
+    ----------
+    controller : Controller
+        The controller.
+    mode : str
+        ``'lockstep'`` or ``'realtime'`` (the position watchdog runs in real time only: in
+        lockstep positions stop only when the plant has stopped time).
+    safe_voltage_v : float
+        Command published while positions have stopped [V].
+    position_timeout_s : float
+        Silence of the position topic after which the safe command goes out [s].
+    diagnostics_every : int
+        Return the diagnostics with every this-many-th command.
+    rebuild : callable, optional
+        ``rebuild(params) -> Controller`` for :meth:`request_change` of a controller without
+        ``update_params``.
+
+    """
+
+    def __init__(self, controller: Controller, *, mode: str = 'lockstep',
+                 safe_voltage_v: float = 0.0, position_timeout_s: float = 0.01,
+                 diagnostics_every: int = 10,
+                 rebuild: Callable[[Any], Controller] | None = None) -> None:
+        self.controller = controller
+        self.lockstep = mode == 'lockstep'
+        self.safe_voltage_v = safe_voltage_v
+        self.watchdog = Watchdog(position_timeout_s)
+        self.diagnostics_every = max(1, diagnostics_every)
+        self._rebuild = rebuild
+        self.names, self._read = diagnostic_reader(controller)
+        self._pos: tuple[int, float] | None = None
+        self._ref: tuple[int, float, float] | None = None
+        self._last_stamp: int | None = None
+        self._pending: Any = None
+        self._needs_reset = True
+        self._safe = False
+        self.steps = 0
+        self.duplicates = 0
+        self.safe_commands = 0
+        self.changes = 0
+
+    def request_change(self, params: Any) -> None:
+        """Apply validated new controller parameters at the next sample boundary."""
+        self._pending = params
+
+    def _apply_pending(self, position_m: float, reference_m: float) -> None:
+        params, self._pending = self._pending, None
+        update = getattr(self.controller, 'update_params', None)
+        if callable(update):
+            # keeps the controller's state (integrator, adapted estimates)
+            update(params)
+        elif self._rebuild is not None:
+            self.controller = self._rebuild(params)
+            self.names, self._read = diagnostic_reader(self.controller)
+            self.controller.reset(position_m, reference_m)
+        else:
+            raise PiezoStageError('controller: a parameter change needs update_params() or a '
+                                  'rebuild function')
+        self.changes += 1
+
+    def on_position(self, stamp_ns: int, position_m: float, now_s: float) -> Command | None:
+        """Take y_k stamped ``stamp_ns`` [ns] (``now_s``: monotonic arrival time [s])."""
+        self.watchdog.feed(now_s)
+        if self._safe:
+            self._safe = False
+            self._needs_reset = True
+        self._pos = (stamp_ns, position_m)
+        return self._try()
+
+    def on_reference(self, stamp_ns: int, reference_m: float,
+                     reference_velocity_mps: float) -> Command | None:
+        """Take x_d and x_d' [m, m/s] for the sample stamped ``stamp_ns`` [ns]."""
+        self._ref = (stamp_ns, reference_m, reference_velocity_mps)
+        return self._try()
+
+    def _try(self) -> Command | None:
+        pos, ref = self._pos, self._ref
+        if pos is None or ref is None or pos[0] != ref[0]:
+            return None
+        stamp = pos[0]
+        if stamp == self._last_stamp:
+            # a sample published again (lockstep resend): its command is already out
+            self.duplicates += 1
+            return None
+        if self._last_stamp is not None and stamp < self._last_stamp:
+            self.duplicates += 1
+            return None
+        y, xd, vd = pos[1], ref[1], ref[2]
+        if self._pending is not None:
+            self._apply_pending(y, xd)
+        if self._needs_reset:
+            self.controller.reset(y, xd)
+            self._needs_reset = False
+        u = self.controller.step(y, xd, vd)
+        self._last_stamp = stamp
+        diagnostics = None
+        if self.steps % self.diagnostics_every == 0 and self.names:
+            diagnostics = self._read()
+        self.steps += 1
+        return Command(stamp, u, diagnostics)
+
+    def on_check(self, now_s: float) -> Command | None:
+        """
+        Real time: return the safe command while positions have stopped, else None.
+
+        After the silence the controller is reset from the first new sample (its history
+        belongs to a loop that was interrupted).
+        """
+        if self.lockstep or not self.watchdog.expired(now_s):
+            return None
+        self._safe = True
+        self.safe_commands += 1
+        return Command(-1, self.safe_voltage_v, None)
+
+    def stats(self) -> dict[str, int]:
+        """Return the counters."""
+        return {'steps': self.steps, 'duplicates': self.duplicates,
+                'safe_commands': self.safe_commands, 'watchdog_trips': self.watchdog.trips,
+                'changes': self.changes}
