@@ -1,13 +1,19 @@
 # Two commands on a fresh machine without ROS:
-#   make demo   set up .venv and run the main job (a closed-loop run of the paper's stage)
-#   make test   set up .venv if missing and run lint, type checks and the whole test suite
+#   make demo   set up .venv and run the main job (the paper's Table III in the offline closed loop)
+#   make test   set up the environments if missing and run lint, type checks and the whole suite,
+#               on this Python with current numpy/scipy and on Python 3.12 with the versions ROS 2
+#               Jazzy ships (numpy 1.26, scipy 1.11)
 
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+# Python 3.12 for the Jazzy-version environment: python3.12 on PATH, else a pyenv install
+JAZZY_PYTHON ?= $(shell for p in python3.12 $$(ls -d $${PYENV_ROOT:-$$HOME/.pyenv}/versions/3.12*/bin/python3.12 2>/dev/null); do $$p -c 'import sys; assert sys.version_info[:2] == (3, 12)' 2>/dev/null && { echo $$p; break; }; done)
+JAZZY_VENV ?= .venv-jazzy
+JAZZY_STAMP := $(JAZZY_VENV)/.installed
 
-.PHONY: venv demo test lint typecheck pytest bench soak clean
+.PHONY: venv demo test check lint typecheck pytest test-jazzy bench soak clean
 
 venv: $(STAMP)
 
@@ -17,6 +23,14 @@ $(STAMP): requirements.txt requirements-dev.txt setup.py package.xml
 	$(BIN)/python -m pip install --quiet -r requirements-dev.txt
 	$(BIN)/python -m pip install --quiet --no-deps --no-build-isolation -e .
 	touch $(STAMP)
+
+$(JAZZY_STAMP): requirements-jazzy.txt setup.py package.xml
+	@test -n "$(JAZZY_PYTHON)" || { echo 'make: no Python 3.12 found (set JAZZY_PYTHON=...)'; exit 1; }
+	$(JAZZY_PYTHON) -m venv $(JAZZY_VENV)
+	$(JAZZY_VENV)/bin/python -m pip install --quiet --upgrade pip setuptools wheel
+	$(JAZZY_VENV)/bin/python -m pip install --quiet -r requirements-jazzy.txt
+	$(JAZZY_VENV)/bin/python -m pip install --quiet --no-deps --no-build-isolation -e .
+	touch $(JAZZY_STAMP)
 
 demo: $(STAMP)
 	$(BIN)/simulate --experiment table3
@@ -30,7 +44,13 @@ typecheck: $(STAMP)
 pytest: $(STAMP)
 	$(BIN)/python -m pytest -q
 
-test: lint typecheck pytest
+test-jazzy: $(JAZZY_STAMP)
+	$(JAZZY_VENV)/bin/python -m pytest -q -p no:warnings
+
+# the quick loop while developing: one environment
+check: lint typecheck pytest
+
+test: check test-jazzy
 
 bench: $(STAMP)
 	$(BIN)/benchmark
@@ -39,4 +59,4 @@ soak: $(STAMP)
 	$(BIN)/soak
 
 clean:
-	rm -rf $(VENV) build install log *.egg-info
+	rm -rf $(VENV) $(JAZZY_VENV) build install log *.egg-info
