@@ -325,7 +325,9 @@ def square_wave_metrics(time_s: ArrayLike, position_m: ArrayLike, reference_m: A
     e_max, e_rms = error_metrics(np.concatenate(tail_errors))
 
     def med(key: str) -> float:
-        return float(np.nanmedian([row[key] for row in rows]))
+        values = np.asarray([row[key] for row in rows], dtype=np.float64)
+        values = values[np.isfinite(values)]
+        return float(np.median(values)) if values.size else math.nan
     settle = [row['settling_time_s'] for row in rows]
     return {'rise_time_s': med('rise_time_s'), 'overshoot_pct': med('overshoot_pct'),
             'settling_time_s': med('settling_time_s'),
