@@ -1,0 +1,879 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Controllers of section IV: the robust adaptive controller (RAC), a PI baseline, open loop.
+
+Units. Every controller takes SI values at its interface (position and reference in metres,
+reference velocity in m/s) and returns the amplifier input voltage [V]. Inside, the paper's
+controllers run on *sensor volts*, y = K_PSCM x (``sensor_gain_v_per_m``); this is the one place
+where that conversion happens, and the only units in which the paper's gains and bounds mean
+what the paper says (design brief, "Units").
+
+RAC, eqs. (33)-(40), in sensor volts (e = y - y_d is the paper's x tilde)::
+
+    s     = e + lambda * I,            I = integral of e            (33)
+    s_eps = s - eps * sat(s / eps)                                  (34)-(35)
+    v     = -k_d s + phi_hat u_fd + theta_hat y - k* sat(s / eps)   (36)
+    u_fd  = dy_d/dt - lambda e                                      (37)
+    dphi_hat/dt   = proj(phi_hat,   -eta   u_fd s_eps)              (38)
+    dtheta_hat/dt = proj(theta_hat, -gamma y    s_eps)              (39)
+
+Discretization at the sample period T (step k sees y_k and returns v_k, held over one sample):
+
+- the integral by the backward rectangle I_k = I_k-1 + T e_k (the current error is in s_k,
+  so the discrete PI part has no extra delay; it is the velocity form of a textbook PI);
+- the adaptation by forward Euler from the values of step k, then the projection (40) applied
+  to the *updated* estimate, i.e. clipping to [min, max]: for a step that would cross a bound
+  this is the exact discrete counterpart of (40) (the continuous law stops at the bound), and
+  it guarantees (P1)-(P2) for every sample, whatever the inputs;
+- anti-windup by conditional integration: when the command is clipped to the output limits
+  and the new error would drive it further out, the integral keeps its last value, and the
+  adaptation is frozen for that sample (the law (36) was not applied, so its gradient is not
+  informative).
+
+Edge-case contract (all controllers, tested in ``test/test_controllers.py``):
+
+- the output is always finite and inside ``[output_min_v, output_max_v]``;
+- a non-finite measurement, reference or reference velocity leaves the state untouched and
+  returns the last output (the safe, bumpless choice); it is counted in ``nonfinite_inputs``;
+- ``step(..., dt_s=...)`` with dt_s <= 0 or non-finite does the same and counts ``bad_dt``;
+  without ``dt_s`` the configured sample time is used;
+- ``reset(position_m, reference_m)`` returns to the initial estimates and a zero integral;
+  with ``output_v`` given it starts bumpless from that held voltage (PI: integral preset).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+from typing import Mapping
+
+import numpy as np
+from piezo_stage_ros.core.errors import ParameterError
+from piezo_stage_ros.core.linear import LinearPlant
+from piezo_stage_ros.core.params import group, param, Params
+
+__all__ = [
+    'ControllerParams', 'NotchFilter', 'NotchParams', 'NotchedController', 'OpenLoopController',
+    'OpenLoopParams', 'PIController', 'PIParams', 'RACController', 'RACParams',
+    'build_controller', 'notch_coefficients', 'plant_resonance', 'proj', 'sat',
+]
+
+#: K_PSCM of eq. (15), 10 V over 38 um [V/m] (same value as the stage's sensor).
+SENSOR_GAIN_V_PER_M = 10.0 / 38e-6
+
+
+def sat(z: float) -> float:
+    """
+    Return the standard saturation function of eq. (35).
+
+    Parameters
+    ----------
+    z : float
+        Argument (dimensionless).
+
+    Returns
+    -------
+    float
+        1 for z >= 1, -1 for z <= -1, z otherwise.
+
+    """
+    return 1.0 if z >= 1.0 else (-1.0 if z <= -1.0 else z)
+
+
+def proj(estimate: float, step: float, low: float, high: float) -> float:
+    """
+    Apply one Euler step of an adaptation law with the projection of eq. (40).
+
+    Parameters
+    ----------
+    estimate : float
+        Current estimate, inside ``[low, high]``.
+    step : float
+        The unprojected increment ``T * (-y)`` of the law ``d/dt estimate = proj(estimate, -y)``.
+    low, high : float
+        Bounds of the estimate (Omega of eqs. (29)-(30)).
+
+    Returns
+    -------
+    float
+        The updated estimate clipped to ``[low, high]``: at a bound, a step pointing outward is
+        dropped (eq. (40)); a step that would cross a bound stops on it.
+
+    """
+    z = estimate + step
+    return high if z > high else (low if z < low else z)
+
+
+# --------------------------------------------------------------------------------------------
+# Parameters
+
+
+@dataclass(frozen=True)
+class RACParams(Params):
+    """
+    Gains and bounds of the RAC, eqs. (33)-(40), in the paper's units (sensor volts in).
+
+    Defaults are the discrete-time tuning found by ``python3 -m piezo_stage_ros.tune`` (see
+    docs/controllers.md); the paper's values are quoted in each description.
+    """
+
+    k_d: float = param(1.0, unit='V/V', description='Feedback gain k_d on s, eq. (36) (paper '
+                       '1.5).', low=0.0, low_open=True)
+    lambda_per_s: float = param(3000.0, unit='1/s', description='Integral weight lambda of '
+                                's = e + lambda * int(e), eq. (33) (paper 1500).', low=0.0,
+                                low_open=True)
+    epsilon_v: float = param(0.2, unit='V (sensor)', description='Boundary-layer width epsilon '
+                             'of eq. (34); the feedback gain inside it is k_d + k_star/epsilon '
+                             '(paper 0.005, which chatters at 10 kHz).', low=0.0, low_open=True)
+    k_star_v: float = param(0.2, unit='V', description='Robust gain k* of eq. (36); must be '
+                            '>= rho/c_min (paper 0.2).', low=0.0)
+    gamma: float = param(3000.0, unit='1/(V^2 s)', description='Adaptation rate gamma of '
+                         'theta_hat, eq. (39) (paper 3000).', low=0.0)
+    eta: float = param(0.01, unit='s/V^2', description='Adaptation rate eta of phi_hat, '
+                       'eq. (38) (paper 0.01).', low=0.0)
+    theta_min: float = param(0.9, unit='V/V', description='Lower bound of theta = a/(b c), '
+                             'eq. (29) (paper 0.5).')
+    theta_max: float = param(1.7, unit='V/V', description='Upper bound of theta, eq. (29) '
+                             '(paper 4).')
+    theta_init: float = param(1.29, unit='V/V', description='Initial estimate theta_hat(0) '
+                              '(paper 1).')
+    phi_min: float = param(2.2e-4, unit='s', description='Lower bound of phi = 1/(b c), '
+                           'eq. (30) (paper 1e-4).')
+    phi_max: float = param(4.2e-4, unit='s', description='Upper bound of phi, eq. (30) '
+                           '(paper 5e-3).')
+    phi_init: float = param(3.16e-4, unit='s', description='Initial estimate phi_hat(0) '
+                            '(paper 7.5e-4).')
+    rho_v: float = param(0.18, unit='V', description='Bound rho on the hysteresis term |d|, '
+                         'eq. (31) (paper 0.18; (c - B1)/alpha = 0.1785 for the default stage).',
+                         low=0.0)
+    c_min: float = param(1.0, unit='-', description='Lower bound c_min of the hysteresis slope '
+                         'used in k* >= rho/c_min (paper 1).', low=0.0, low_open=True)
+
+    def _check(self) -> None:
+        for name, lo, hi, init in (('theta', self.theta_min, self.theta_max, self.theta_init),
+                                   ('phi', self.phi_min, self.phi_max, self.phi_init)):
+            if not lo < hi:
+                raise ParameterError(f'{name}_max', hi, f'> {name}_min = {lo:g}',
+                                     'is not above the lower bound')
+            if not lo <= init <= hi:
+                raise ParameterError(f'{name}_init', init, f'[{lo:g}, {hi:g}]',
+                                     'is outside its bounds (eqs. (29)-(30))')
+        k_min = self.rho_v / self.c_min
+        if self.k_star_v < k_min:
+            raise ParameterError('k_star_v', self.k_star_v,
+                                 f'[rho/c_min, inf) = [{k_min:g}, inf)',
+                                 f'is below the minimum rho/c_min = {k_min:g} of Theorem 1')
+
+
+@dataclass(frozen=True)
+class PIParams(Params):
+    """The paper's PI baseline (PIC of Table III) in sensor volts: v = k_p e + k_i int(e)."""
+
+    k_p: float = param(1.5, unit='V/V', description='Proportional gain (paper PIC 1.5).',
+                       low=0.0)
+    k_i: float = param(1500.0, unit='1/s', description='Integral gain (paper PIC 1500).',
+                       low=0.0)
+    anti_windup: str = param('conditional', unit='-', description='What the integral does while '
+                             'the output saturates: conditional = stop integrating when the '
+                             'error drives further into saturation; none = integrate anyway.',
+                             choices=('conditional', 'none'))
+
+
+@dataclass(frozen=True)
+class OpenLoopParams(Params):
+    """Open-loop command v = gain * x_d + offset (ignores the measurement)."""
+
+    gain_v_per_m: float = param(1.0 / (2.843e-6 * 1.0341), unit='V/m', description='Static '
+                                'inverse of the plant, 1/(g c) for the default stage.')
+    offset_v: float = param(0.0, unit='V', description='Voltage added to the command.')
+
+
+@dataclass(frozen=True)
+class NotchParams(Params):
+    """
+    Notch filter on the command against a lightly damped resonance.
+
+    N(s) = (s^2 + 2 zeta_z w0 s + w0^2) / (s^2 + 2 zeta_p w0 s + w0^2), discretized by the
+    bilinear transform pre-warped at w0 (so the notch sits exactly at w0 in discrete time).
+    """
+
+    mode: str = param('manual', unit='-', description="off; manual (frequency_hz, zero_damping); "
+                      "model (w0 and zero damping from the plant model's lightest-damped "
+                      'complex pole pair).', choices=('off', 'manual', 'model'))
+    frequency_hz: float = param(3166.0, unit='Hz', description='Notch frequency in manual mode.',
+                                low=0.0, low_open=True)
+    zero_damping: float = param(0.084, unit='-', description='Damping of the notch zeros in '
+                                'manual mode (depth: 0 = infinitely deep).', low=0.0, high=1.0)
+    pole_damping: float = param(0.7, unit='-', description='Damping of the notch poles '
+                                '(width), both modes.', low=0.0, low_open=True, high=2.0)
+
+
+@dataclass(frozen=True)
+class ControllerParams(Params):
+    """Everything that defines a controller; SI at the interface."""
+
+    type: str = param('rac', unit='-', description='Controller: robust adaptive (eqs. (33)-(40)),'
+                      ' PI baseline or open loop.', choices=('rac', 'pi', 'open_loop'),
+                      read_only=True)
+    sensor_gain_v_per_m: float = param(SENSOR_GAIN_V_PER_M, unit='V/m', description='K_PSCM '
+                                       'the controller uses to convert metres to sensor volts.',
+                                       low=0.0, low_open=True)
+    output_min_v: float = param(-2.0, unit='V', description='Lowest command (amplifier input '
+                                'range).')
+    output_max_v: float = param(10.0, unit='V', description='Highest command (amplifier input '
+                                'range).')
+    rac: RACParams = group(RACParams, 'robust adaptive controller, eqs. (33)-(40)')
+    pi: PIParams = group(PIParams, 'PI baseline')
+    open_loop: OpenLoopParams = group(OpenLoopParams, 'open-loop command')
+    notch: NotchParams = group(NotchParams, 'notch filter on the command')
+
+    def _check(self) -> None:
+        if not self.output_min_v < self.output_max_v:
+            raise ParameterError('output_max_v', self.output_max_v,
+                                 f'> output_min_v = {self.output_min_v:g}',
+                                 'is not above the lowest command')
+
+
+# --------------------------------------------------------------------------------------------
+# Controllers
+
+
+class RACController:
+    """
+    The robust adaptive controller of eqs. (33)-(40), one step per sample.
+
+    Parameters
+    ----------
+    params : RACParams
+        Gains and bounds (sensor volts).
+    sample_time_s : float
+        Sample period T [s], > 0.
+    sensor_gain_v_per_m : float
+        K_PSCM [V/m] converting positions to sensor volts.
+    output_min_v, output_max_v : float
+        Command limits [V].
+
+    Notes
+    -----
+    See the module docstring for the discretization, anti-windup and edge cases. The step
+    works on plain floats (no numpy): it runs 10 000 times per simulated second.
+
+    """
+
+    def __init__(self, params: RACParams, sample_time_s: float, *,
+                 sensor_gain_v_per_m: float = SENSOR_GAIN_V_PER_M, output_min_v: float = -2.0,
+                 output_max_v: float = 10.0) -> None:
+        _check_sample_time(sample_time_s)
+        self.params = params
+        self._t = float(sample_time_s)
+        self._k = float(sensor_gain_v_per_m)
+        self._vmin = float(output_min_v)
+        self._vmax = float(output_max_v)
+        p = params
+        self._kd = p.k_d
+        self._lam = p.lambda_per_s
+        self._eps = p.epsilon_v
+        self._inv_eps = 1.0 / p.epsilon_v
+        self._kstar = p.k_star_v
+        self._gamma = p.gamma
+        self._eta = p.eta
+        self.nonfinite_inputs = 0
+        self.bad_dt = 0
+        self.reset(0.0, 0.0)
+
+    @property
+    def sample_time_s(self) -> float:
+        """Return the sample period T [s]."""
+        return self._t
+
+    def reset(self, position_m: float, reference_m: float,
+              output_v: float | None = None) -> None:
+        """
+        Return to the initial estimates, a zero integral and the given starting point.
+
+        Parameters
+        ----------
+        position_m : float
+            Measured position at the start [m] (used for the diagnostics only).
+        reference_m : float
+            Reference at the start [m] (used for the diagnostics only).
+        output_v : float, optional
+            Voltage held before the start [V]; it is the "last output" returned on a
+            non-finite first sample. The integral starts at zero as in eq. (33) whatever it is.
+
+        """
+        p = self.params
+        self._theta = p.theta_init
+        self._phi = p.phi_init
+        self._i = 0.0
+        self._s = 0.0
+        self._saturated = 0.0
+        out = 0.0 if output_v is None or not math.isfinite(output_v) else float(output_v)
+        self._u = min(max(out, self._vmin), self._vmax)
+        e = (position_m - reference_m) * self._k
+        self._e = e if math.isfinite(e) else 0.0
+
+    def step(self, position_m: float, reference_m: float, reference_velocity_mps: float,
+             dt_s: float | None = None) -> float:
+        """
+        Compute the command for one sample.
+
+        Parameters
+        ----------
+        position_m : float
+            Measured position y_k [m].
+        reference_m : float
+            Desired position x_d(t_k) [m].
+        reference_velocity_mps : float
+            Desired velocity dx_d/dt(t_k) [m/s].
+        dt_s : float, optional
+            Time since the last step [s] (real-time mode); default the sample time.
+
+        Returns
+        -------
+        float
+            Amplifier input voltage v_k [V], finite, inside the output limits.
+
+        """
+        if dt_s is None:
+            dt = self._t
+        else:
+            dt = dt_s
+            if not dt > 0.0 or dt - dt != 0.0:
+                self.bad_dt += 1
+                return self._u
+        k = self._k
+        y = position_m * k
+        yd = reference_m * k
+        ydd = reference_velocity_mps * k
+        total = y + yd + ydd
+        if total - total != 0.0:  # NaN or +-inf somewhere (or an overflow to inf)
+            self.nonfinite_inputs += 1
+            return self._u
+        lam = self._lam
+        e = y - yd
+        i_new = self._i + dt * e
+        s = e + lam * i_new
+        z = s * self._inv_eps
+        sz = 1.0 if z >= 1.0 else (-1.0 if z <= -1.0 else z)
+        u_fd = ydd - lam * e
+        theta = self._theta
+        phi = self._phi
+        v = -self._kd * s + phi * u_fd + theta * y - self._kstar * sz
+        vmax = self._vmax
+        vmin = self._vmin
+        if v > vmax or v < vmin:
+            # conditional integration: keep the old integral if the new error pushes further out
+            if (v > vmax) == (e < 0.0):
+                i_new = self._i
+                s = e + lam * i_new
+                z = s * self._inv_eps
+                sz = 1.0 if z >= 1.0 else (-1.0 if z <= -1.0 else z)
+                v = -self._kd * s + phi * u_fd + theta * y - self._kstar * sz
+            self._saturated = 1.0
+            v = vmax if v > vmax else (vmin if v < vmin else v)
+        else:
+            self._saturated = 0.0
+            s_eps = s - self._eps * sz
+            if s_eps != 0.0:
+                # Euler step of (38)-(39), then the projection (40) on the updated estimate
+                p = self.params
+                ph = phi - dt * self._eta * u_fd * s_eps
+                self._phi = p.phi_max if ph > p.phi_max else (p.phi_min if ph < p.phi_min
+                                                              else ph)
+                th = theta - dt * self._gamma * y * s_eps
+                self._theta = p.theta_max if th > p.theta_max else (
+                    p.theta_min if th < p.theta_min else th)
+        if v != v:  # unreachable with finite inputs and bounded estimates; belt and braces
+            return self._u
+        self._i = i_new
+        self._s = s
+        self._e = e
+        self._u = v
+        return v
+
+    def diagnostics(self) -> Mapping[str, float]:
+        """Return theta_hat, phi_hat, s [V], the integral [V s], saturation flag and counters."""
+        return {'theta_hat': self._theta, 'phi_hat': self._phi, 's_v': self._s,
+                'integral_v_s': self._i, 'error_v': self._e, 'saturated': self._saturated,
+                'nonfinite_inputs': float(self.nonfinite_inputs), 'bad_dt': float(self.bad_dt)}
+
+
+class PIController:
+    """
+    PI baseline v = k_p e + k_i int(e), e = y_d - y in sensor volts, with output limits.
+
+    Parameters
+    ----------
+    params : PIParams
+        Gains and anti-windup choice.
+    sample_time_s : float
+        Sample period T [s], > 0.
+    sensor_gain_v_per_m : float
+        K_PSCM [V/m].
+    output_min_v, output_max_v : float
+        Command limits [V].
+
+    Notes
+    -----
+    The integral is the backward rectangle I_k = I_k-1 + T e_k, as in the RAC. With
+    ``anti_windup='conditional'`` the integral keeps its value while the output is clipped and
+    the error drives it further out.
+
+    """
+
+    def __init__(self, params: PIParams, sample_time_s: float, *,
+                 sensor_gain_v_per_m: float = SENSOR_GAIN_V_PER_M, output_min_v: float = -2.0,
+                 output_max_v: float = 10.0) -> None:
+        _check_sample_time(sample_time_s)
+        self.params = params
+        self._t = float(sample_time_s)
+        self._k = float(sensor_gain_v_per_m)
+        self._vmin = float(output_min_v)
+        self._vmax = float(output_max_v)
+        self._kp = params.k_p
+        self._ki = params.k_i
+        self._conditional = params.anti_windup == 'conditional'
+        self.nonfinite_inputs = 0
+        self.bad_dt = 0
+        self.reset(0.0, 0.0)
+
+    @property
+    def sample_time_s(self) -> float:
+        """Return the sample period T [s]."""
+        return self._t
+
+    def reset(self, position_m: float, reference_m: float,
+              output_v: float | None = None) -> None:
+        """
+        Forget the history; optionally start bumpless from a held voltage.
+
+        Parameters
+        ----------
+        position_m : float
+            Measured position at the start [m].
+        reference_m : float
+            Reference at the start [m].
+        output_v : float, optional
+            Voltage held before the start [V]. When given, the integral is preset so that the
+            first output for this position and reference equals it (bumpless transfer);
+            otherwise the integral starts at zero.
+
+        """
+        e = (reference_m - position_m) * self._k
+        e = e if math.isfinite(e) else 0.0
+        self._i = 0.0
+        self._u = 0.0
+        self._saturated = 0.0
+        self._e = e
+        if output_v is not None and math.isfinite(output_v):
+            u0 = min(max(float(output_v), self._vmin), self._vmax)
+            self._u = u0
+            if self._ki > 0.0:
+                # first step: v = k_p e + k_i (I + T e) = u0
+                self._i = (u0 - self._kp * e) / self._ki - self._t * e
+
+    def step(self, position_m: float, reference_m: float, reference_velocity_mps: float,
+             dt_s: float | None = None) -> float:
+        """
+        Compute the command for one sample.
+
+        Parameters
+        ----------
+        position_m : float
+            Measured position y_k [m].
+        reference_m : float
+            Desired position x_d(t_k) [m].
+        reference_velocity_mps : float
+            Desired velocity [m/s]; a PI does not use it, but a non-finite value is still
+            refused, as for every controller.
+        dt_s : float, optional
+            Time since the last step [s]; default the sample time.
+
+        Returns
+        -------
+        float
+            Amplifier input voltage [V], finite, inside the output limits.
+
+        """
+        if dt_s is None:
+            dt = self._t
+        else:
+            dt = dt_s
+            if not dt > 0.0 or dt - dt != 0.0:
+                self.bad_dt += 1
+                return self._u
+        total = position_m + reference_m + reference_velocity_mps
+        if total - total != 0.0:
+            self.nonfinite_inputs += 1
+            return self._u
+        e = (reference_m - position_m) * self._k
+        i_new = self._i + dt * e
+        v = self._kp * e + self._ki * i_new
+        vmax = self._vmax
+        vmin = self._vmin
+        if v > vmax or v < vmin:
+            if self._conditional and (v > vmax) == (e > 0.0):
+                i_new = self._i
+                v = self._kp * e + self._ki * i_new
+            self._saturated = 1.0
+            v = vmax if v > vmax else (vmin if v < vmin else v)
+        else:
+            self._saturated = 0.0
+        if v != v:
+            return self._u
+        self._i = i_new
+        self._e = e
+        self._u = v
+        return v
+
+    def diagnostics(self) -> Mapping[str, float]:
+        """Return the error [V], the integral [V s], the saturation flag and the counters."""
+        return {'error_v': self._e, 'integral_v_s': self._i, 'saturated': self._saturated,
+                'nonfinite_inputs': float(self.nonfinite_inputs), 'bad_dt': float(self.bad_dt)}
+
+
+class OpenLoopController:
+    """
+    Open loop: v = gain * x_d + offset, clipped to the output limits.
+
+    Parameters
+    ----------
+    params : OpenLoopParams
+        Gain [V/m] and offset [V].
+    sample_time_s : float
+        Sample period T [s], > 0.
+    output_min_v, output_max_v : float
+        Command limits [V].
+
+    """
+
+    def __init__(self, params: OpenLoopParams, sample_time_s: float, *,
+                 output_min_v: float = -2.0, output_max_v: float = 10.0) -> None:
+        _check_sample_time(sample_time_s)
+        self.params = params
+        self._t = float(sample_time_s)
+        self._vmin = float(output_min_v)
+        self._vmax = float(output_max_v)
+        self.nonfinite_inputs = 0
+        self.bad_dt = 0
+        self._u = 0.0
+
+    @property
+    def sample_time_s(self) -> float:
+        """Return the sample period T [s]."""
+        return self._t
+
+    def reset(self, position_m: float, reference_m: float,
+              output_v: float | None = None) -> None:
+        """
+        Forget the last output (open loop has no other state).
+
+        Parameters
+        ----------
+        position_m : float
+            Measured position at the start [m] (unused).
+        reference_m : float
+            Reference at the start [m] (unused).
+        output_v : float, optional
+            Voltage held before the start [V], returned on a non-finite first sample.
+
+        """
+        out = 0.0 if output_v is None or not math.isfinite(output_v) else float(output_v)
+        self._u = min(max(out, self._vmin), self._vmax)
+
+    def step(self, position_m: float, reference_m: float, reference_velocity_mps: float,
+             dt_s: float | None = None) -> float:
+        """
+        Compute the command for one sample.
+
+        Parameters
+        ----------
+        position_m : float
+            Measured position [m] (unused).
+        reference_m : float
+            Desired position [m].
+        reference_velocity_mps : float
+            Desired velocity [m/s] (unused).
+        dt_s : float, optional
+            Time since the last step [s]; dt_s <= 0 holds the last output.
+
+        Returns
+        -------
+        float
+            Amplifier input voltage [V].
+
+        """
+        if dt_s is not None and (not dt_s > 0.0 or dt_s - dt_s != 0.0):
+            self.bad_dt += 1
+            return self._u
+        if reference_m - reference_m != 0.0:
+            self.nonfinite_inputs += 1
+            return self._u
+        v = self.params.gain_v_per_m * reference_m + self.params.offset_v
+        v = self._vmax if v > self._vmax else (self._vmin if v < self._vmin else v)
+        if v != v:
+            return self._u
+        self._u = v
+        return v
+
+    def diagnostics(self) -> Mapping[str, float]:
+        """Return the counters."""
+        return {'nonfinite_inputs': float(self.nonfinite_inputs), 'bad_dt': float(self.bad_dt)}
+
+
+# --------------------------------------------------------------------------------------------
+# Notch filter
+
+
+def plant_resonance(plant: LinearPlant) -> tuple[float, float]:
+    """
+    Return the natural frequency and damping of the plant's lightest-damped complex pole pair.
+
+    Parameters
+    ----------
+    plant : LinearPlant
+        Continuous-time model.
+
+    Returns
+    -------
+    omega_rad_s, zeta : float
+        |p| [rad/s] and -Re(p)/|p| of that pair.
+
+    Raises
+    ------
+    ParameterError
+        If the model has no complex pole pair (e.g. the reduced first-order model).
+
+    """
+    poles = plant.poles()
+    pairs = [p for p in poles if p.imag > 1e-9 * abs(p)]
+    if not pairs:
+        raise ParameterError('notch.mode', 'model', "'off' or 'manual' for this plant",
+                             f'needs a resonance, but the {plant.name} model has none')
+    zetas = [-p.real / abs(p) for p in pairs]
+    best = int(np.argmin(zetas))
+    return float(abs(pairs[best])), float(zetas[best])
+
+
+def notch_coefficients(omega_rad_s: float, zero_damping: float, pole_damping: float,
+                       sample_time_s: float) -> tuple[tuple[float, float, float],
+                                                      tuple[float, float, float]]:
+    """
+    Discretize the notch N(s) by the bilinear transform pre-warped at its centre.
+
+    Parameters
+    ----------
+    omega_rad_s : float
+        Centre w0 [rad/s], below the Nyquist frequency pi/T.
+    zero_damping : float
+        Damping of the zeros (0 = infinitely deep notch).
+    pole_damping : float
+        Damping of the poles (sets the width).
+    sample_time_s : float
+        Sample period T [s].
+
+    Returns
+    -------
+    (b0, b1, b2), (1, a1, a2) : tuple of float
+        N(z) = (b0 + b1 z^-1 + b2 z^-2) / (1 + a1 z^-1 + a2 z^-2); N(1) = 1.
+
+    Raises
+    ------
+    ParameterError
+        If w0 is not below the Nyquist frequency.
+
+    """
+    nyquist = math.pi / sample_time_s
+    if not 0.0 < omega_rad_s < nyquist:
+        raise ParameterError('notch.frequency_hz', omega_rad_s / (2.0 * math.pi),
+                             f'(0, {nyquist / (2.0 * math.pi):g}) (below Nyquist)')
+    w0 = omega_rad_s
+    c = w0 / math.tan(w0 * sample_time_s / 2.0)  # pre-warping: N(e^{j w0 T}) = N(j w0)
+
+    def quad(zeta: float) -> tuple[float, float, float]:
+        return (c * c + 2.0 * zeta * w0 * c + w0 * w0, 2.0 * (w0 * w0 - c * c),
+                c * c - 2.0 * zeta * w0 * c + w0 * w0)
+
+    num = quad(zero_damping)
+    den = quad(pole_damping)
+    return ((num[0] / den[0], num[1] / den[0], num[2] / den[0]),
+            (1.0, den[1] / den[0], den[2] / den[0]))
+
+
+class NotchFilter:
+    """
+    Second-order section (transposed direct form II) on plain floats.
+
+    Parameters
+    ----------
+    num : tuple of float
+        (b0, b1, b2).
+    den : tuple of float
+        (1, a1, a2).
+
+    """
+
+    def __init__(self, num: tuple[float, float, float],
+                 den: tuple[float, float, float]) -> None:
+        self.num = num
+        self.den = den
+        self.reset(0.0)
+
+    def reset(self, value: float) -> None:
+        """Put the filter at rest with input and output ``value`` (N(1) = 1)."""
+        b0, b1, b2 = self.num
+        _, a1, a2 = self.den
+        # steady state of the transposed form for a constant input u: y = u
+        self._z2 = (b2 - a2) * value
+        self._z1 = (b1 - a1) * value + self._z2
+
+    def step(self, u: float) -> float:
+        """Filter one sample ``u`` and return the output."""
+        b0, b1, b2 = self.num
+        _, a1, a2 = self.den
+        y = b0 * u + self._z1
+        self._z1 = b1 * u - a1 * y + self._z2
+        self._z2 = b2 * u - a2 * y
+        return y
+
+
+class NotchedController:
+    """
+    A controller followed by a notch filter on its command, clipped again to the limits.
+
+    Parameters
+    ----------
+    inner : RACController or PIController or OpenLoopController
+        The controller whose command is filtered.
+    notch : NotchFilter
+        The filter (unity DC gain).
+    output_min_v, output_max_v : float
+        Command limits [V].
+
+    """
+
+    def __init__(self, inner: RACController | PIController | OpenLoopController,
+                 notch: NotchFilter, *, output_min_v: float, output_max_v: float) -> None:
+        self.inner = inner
+        self.notch = notch
+        self._vmin = output_min_v
+        self._vmax = output_max_v
+
+    @property
+    def sample_time_s(self) -> float:
+        """Return the sample period [s]."""
+        return self.inner.sample_time_s
+
+    def reset(self, position_m: float, reference_m: float,
+              output_v: float | None = None) -> None:
+        """Reset the controller and put the notch at rest at its held output (see inner)."""
+        self.inner.reset(position_m, reference_m, output_v)
+        self.notch.reset(self.inner._u)
+
+    def step(self, position_m: float, reference_m: float, reference_velocity_mps: float,
+             dt_s: float | None = None) -> float:
+        """Return the filtered, clipped command [V] (arguments as the inner controller)."""
+        inner = self.inner
+        calls = inner.nonfinite_inputs + inner.bad_dt
+        v = inner.step(position_m, reference_m, reference_velocity_mps, dt_s)
+        if inner.nonfinite_inputs + inner.bad_dt != calls:
+            return v  # a refused sample holds the output: the filter does not advance
+        f = self.notch.step(v)
+        return self._vmax if f > self._vmax else (self._vmin if f < self._vmin else f)
+
+    def diagnostics(self) -> Mapping[str, float]:
+        """Return the inner controller's diagnostics."""
+        return self.inner.diagnostics()
+
+
+def _check_sample_time(sample_time_s: float) -> None:
+    if not (sample_time_s > 0.0 and math.isfinite(sample_time_s)):
+        raise ParameterError('sample_time_s', sample_time_s, '(0, inf)')
+
+
+def build_controller(params: ControllerParams, sample_time_s: float,
+                     plant: LinearPlant | None = None
+                     ) -> RACController | PIController | OpenLoopController | NotchedController:
+    """
+    Build the controller ``params.type`` names, with its notch filter if enabled.
+
+    Parameters
+    ----------
+    params : ControllerParams
+        Controller configuration.
+    sample_time_s : float
+        Sample period T [s], > 0.
+    plant : LinearPlant, optional
+        Model the notch is designed from when ``notch.mode == 'model'``.
+
+    Returns
+    -------
+    Controller
+        An object implementing :class:`piezo_stage_ros.core.interfaces.Controller`.
+
+    Raises
+    ------
+    ParameterError
+        On a bad sample time, or a notch in ``model`` mode without a plant with a resonance.
+
+    """
+    limits = {'output_min_v': params.output_min_v, 'output_max_v': params.output_max_v}
+    inner: RACController | PIController | OpenLoopController
+    if params.type == 'rac':
+        inner = RACController(params.rac, sample_time_s,
+                              sensor_gain_v_per_m=params.sensor_gain_v_per_m, **limits)
+    elif params.type == 'pi':
+        inner = PIController(params.pi, sample_time_s,
+                             sensor_gain_v_per_m=params.sensor_gain_v_per_m, **limits)
+    else:
+        inner = OpenLoopController(params.open_loop, sample_time_s, **limits)
+    coeffs = notch_design(params.notch, sample_time_s, plant)
+    if coeffs is None:
+        return inner
+    return NotchedController(inner, NotchFilter(*coeffs), **limits)
+
+
+def notch_design(params: NotchParams, sample_time_s: float, plant: LinearPlant | None = None
+                 ) -> tuple[tuple[float, float, float], tuple[float, float, float]] | None:
+    """
+    Return the notch coefficients the parameters ask for, or None when it is off.
+
+    Parameters
+    ----------
+    params : NotchParams
+        Mode, frequency and dampings.
+    sample_time_s : float
+        Sample period T [s].
+    plant : LinearPlant, optional
+        Required in ``model`` mode.
+
+    Returns
+    -------
+    tuple or None
+        ``(num, den)`` as :func:`notch_coefficients` returns them.
+
+    """
+    if params.mode == 'off':
+        return None
+    if params.mode == 'model':
+        if plant is None:
+            raise ParameterError('notch.mode', 'model', "'off' or 'manual' without a plant model",
+                                 'needs the plant model the notch is designed from')
+        omega, zeta = plant_resonance(plant)
+    else:
+        omega, zeta = 2.0 * math.pi * params.frequency_hz, params.zero_damping
+    return notch_coefficients(omega, zeta, params.pole_damping, sample_time_s)

@@ -1,0 +1,243 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The discrete-time tuning study of the RAC: ``python3 -m piezo_stage_ros.tune``.
+
+It reproduces the table of docs/controllers.md: the Table III sines x_d = 3.8 + 3.8 sin(2 pi f t)
+um at 1, 10, 50 and 100 Hz, on the default stage (10 kHz, 16-bit converters, backlash-like
+hysteresis) with the reduced plant (25) and the third-order plant (20), for
+
+1. the stability verdict of the paper's gains and of the default tuning (every linearized loop of
+   :mod:`piezo_stage_ros.core.stability`);
+2. a sweep of the boundary layer epsilon with the other default gains (no notch, reduced plant);
+3. a small (k_d, lambda) grid with the notch;
+4. Table III: e_rms and e_max of the paper's PI, the paper's RAC and the default RAC on both
+   plants, with and without the notch.
+
+Errors are those of :func:`piezo_stage_ros.core.metrics.summarize` (measured position, steady-state
+window after max(2 periods, 0.1 s)). The default run takes about a minute.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from typing import Sequence
+
+from piezo_stage_ros.core.closed_loop import run
+from piezo_stage_ros.core.controllers import (
+    build_controller,
+    ControllerParams,
+    NotchParams,
+    PIParams,
+    RACParams,
+)
+from piezo_stage_ros.core.metrics import summarize
+from piezo_stage_ros.core.stability import check_stability, stability_plant
+from piezo_stage_ros.core.stage import PlantParams, Stage, StageParams
+from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+
+FREQUENCIES_HZ = (1.0, 10.0, 50.0, 100.0)
+
+#: Table III of the paper, e_rms [nm].
+PAPER_RAC_NM = {1.0: 4.4, 10.0: 5.6, 50.0: 17.6, 100.0: 39.4}
+PAPER_PIC_NM = {1.0: 13.8, 10.0: 131.4, 50.0: 614.4, 100.0: 1004.6}
+
+#: The paper's RAC, section V (its epsilon chatters at 10 kHz).
+PAPER_RAC = RACParams(k_d=1.5, lambda_per_s=1500.0, epsilon_v=0.005, k_star_v=0.2, gamma=3000.0,
+                      eta=0.01, theta_min=0.5, theta_max=4.0, theta_init=1.0, phi_min=1e-4,
+                      phi_max=5e-3, phi_init=7.5e-4, rho_v=0.18, c_min=1.0)
+NOTCH_OFF = NotchParams(mode='off')
+
+
+def controller(kind: str, *, rac: RACParams | None = None, pi: PIParams | None = None,
+               notch: bool = True) -> ControllerParams:
+    """
+    Return controller parameters for the study.
+
+    Parameters
+    ----------
+    kind : str
+        ``'rac'`` or ``'pi'``.
+    rac : RACParams, optional
+        RAC gains; default the package default.
+    pi : PIParams, optional
+        PI gains; default the paper's PIC.
+    notch : bool
+        Keep the default notch (True) or switch it off.
+
+    Returns
+    -------
+    ControllerParams
+
+    """
+    base = ControllerParams(type=kind)
+    changes: dict[str, object] = {}
+    if rac is not None:
+        changes['rac'] = rac
+    if pi is not None:
+        changes['pi'] = pi
+    if not notch:
+        changes['notch'] = NOTCH_OFF
+    return base.replace(**changes) if changes else base
+
+
+def track(params: ControllerParams, model: str, frequency_hz: float,
+          sample_rate_hz: float = 10000.0) -> tuple[float, float]:
+    """
+    Run one Table III sine and return the steady-state errors.
+
+    Parameters
+    ----------
+    params : ControllerParams
+        Controller.
+    model : str
+        Plant model, ``'reduced'`` or ``'third_order'`` (or ``'electromechanical'``).
+    frequency_hz : float
+        Sine frequency [Hz].
+    sample_rate_hz : float
+        Loop rate [Hz].
+
+    Returns
+    -------
+    e_rms_m, e_max_m : float
+        Over the steady-state window of :func:`piezo_stage_ros.core.metrics.summarize` [m].
+
+    """
+    stage_params = StageParams.from_flat({'plant.model': model, 'sample_rate_hz': sample_rate_hz})
+    stage = Stage(stage_params)
+    plant = stability_plant(stage_params.plant)
+    ctrl = build_controller(params, stage.sample_time_s,
+                            plant if plant.name != 'reduced' else None)
+    traj = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine',
+                                                       'sine.frequency_hz': frequency_hz}))
+    period = 1.0 / frequency_hz
+    skip = max(2.0 * period, 0.1)
+    duration = skip + max(period, 0.1) + 0.5 / sample_rate_hz
+    record = run(stage, ctrl, traj, duration_s=duration, record_diagnostics=False)
+    m = summarize(record, period_s=period)
+    return m['e_rms_m'], m['e_max_m']
+
+
+def verdict(params: ControllerParams, model: str, sample_time_s: float = 1e-4) -> str:
+    """Return 'stable (GM x dB, PM y deg)' or 'UNSTABLE (radius r)' over every loop case."""
+    rep = check_stability(params, PlantParams(model=model), sample_time_s)
+    if rep.stable:
+        return f'stable (GM {rep.gain_margin_db:.1f} dB, PM {rep.phase_margin_deg:.0f} deg)'
+    return f'UNSTABLE (radius {rep.spectral_radius:.3f})'
+
+
+def _row(cells: Sequence[str]) -> str:
+    return '| ' + ' | '.join(cells) + ' |'
+
+
+def errors_row(params: ControllerParams, model: str, *, with_max: bool = False) -> list[str]:
+    """Return the e_rms (and e_max) cells [nm] over :data:`FREQUENCIES_HZ`."""
+    cells = []
+    for f in FREQUENCIES_HZ:
+        e_rms, e_max = track(params, model, f)
+        cells.append(f'{e_rms * 1e9:.1f} / {e_max * 1e9:.1f}' if with_max
+                     else f'{e_rms * 1e9:.1f}')
+    return cells
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """
+    Run the study and print its Markdown tables.
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        Command-line arguments (default ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        Exit status.
+
+    """
+    parser = argparse.ArgumentParser(prog='python3 -m piezo_stage_ros.tune',
+                                     description=__doc__.split('\n\n')[0].strip())
+    parser.add_argument('--skip-sweeps', action='store_true',
+                        help='print only the stability verdicts and Table III')
+    args = parser.parse_args(argv)
+    start = time.monotonic()
+    default = ControllerParams()
+    d = default.rac
+    freqs = ' | '.join(f'{f:g} Hz' for f in FREQUENCIES_HZ)
+
+    print('## 1. Stability of the linearized discrete-time loop (10 kHz)\n')
+    print(_row(['controller', 'reduced (25)', 'third-order (20)']))
+    print(_row(['---'] * 3))
+    cases = [
+        ('paper PIC (k_p 1.5, k_i 1500)', controller('pi', notch=False)),
+        ('paper RAC (epsilon 0.005, paper bounds)', controller('rac', rac=PAPER_RAC,
+                                                               notch=False)),
+        ('default RAC, no notch', controller('rac', notch=False)),
+        ('default RAC + notch (default)', default),
+        ('paper PIC + notch', controller('pi')),
+    ]
+    for name, params in cases:
+        print(_row([name, verdict(params, 'reduced'), verdict(params, 'third_order')]))
+
+    if not args.skip_sweeps:
+        print('\n## 2. Boundary layer epsilon, other gains default, no notch, reduced plant '
+              '(e_rms nm)\n')
+        print(_row(['epsilon [V]', 'k_d + k*/epsilon', freqs, 'reduced', 'third-order + notch']))
+        print(_row(['---'] * (4 + len(FREQUENCIES_HZ))))
+        for eps in (0.005, 0.02, 0.05, 0.1, 0.2, 0.5):
+            rac = d.replace(epsilon_v=eps)
+            p_off = controller('rac', rac=rac, notch=False)
+            print(_row([f'{eps:g}', f'{d.k_d + d.k_star_v / eps:.3g}',
+                        *errors_row(p_off, 'reduced'), verdict(p_off, 'reduced'),
+                        verdict(controller('rac', rac=rac), 'third_order')]), flush=True)
+
+        print('\n## 3. k_d and lambda at the default epsilon, with the notch (100 Hz e_rms)\n')
+        print(_row(['k_d', 'lambda [1/s]', 'reduced 100 Hz [nm]', 'reduced',
+                    'third-order + notch']))
+        print(_row(['---'] * 5))
+        for k_d in (0.5, 1.0, 1.5):
+            for lam in (1500.0, 3000.0, 4500.0):
+                p = controller('rac', rac=d.replace(k_d=k_d, lambda_per_s=lam))
+                e_rms, _ = track(p, 'reduced', 100.0)
+                print(_row([f'{k_d:g}', f'{lam:g}', f'{e_rms * 1e9:.1f}', verdict(p, 'reduced'),
+                            verdict(p, 'third_order')]), flush=True)
+
+    print('\n## 4. Table III on the default stage: e_rms / e_max [nm]\n')
+    print(_row(['controller', 'plant', freqs]))
+    print(_row(['---'] * (2 + len(FREQUENCIES_HZ))))
+    print(_row(['paper PIC (experiment)', 'real stage',
+                *(f'{PAPER_PIC_NM[f]:g}' for f in FREQUENCIES_HZ)]))
+    print(_row(['paper RAC (experiment)', 'real stage',
+                *(f'{PAPER_RAC_NM[f]:g}' for f in FREQUENCIES_HZ)]))
+    rows = [
+        ('paper PIC', controller('pi', notch=False), 'reduced'),
+        ('paper RAC (epsilon 0.005)', controller('rac', rac=PAPER_RAC, notch=False), 'reduced'),
+        ('default RAC, no notch', controller('rac', notch=False), 'reduced'),
+        ('default RAC + notch', default, 'reduced'),
+        ('paper PIC', controller('pi', notch=False), 'third_order'),
+        ('paper PIC + notch', controller('pi'), 'third_order'),
+        ('default RAC, no notch', controller('rac', notch=False), 'third_order'),
+        ('default RAC + notch', default, 'third_order'),
+    ]
+    for name, params, model in rows:
+        print(_row([name, model, *errors_row(params, model, with_max=True)]), flush=True)
+    print(f'\n(study took {time.monotonic() - start:.0f} s)')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
