@@ -1,0 +1,120 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""The layers go one way: core/ never needs rclpy, rosbags or matplotlib; analysis/ never rclpy."""
+
+import ast
+from pathlib import Path
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / 'piezo_stage_ros'
+CORE_FORBIDDEN = ('rclpy', 'rosbags', 'matplotlib')
+ANALYSIS_FORBIDDEN = ('rclpy',)
+
+
+def _modules(folder):
+    return sorted(p for p in (PACKAGE / folder).glob('*.py'))
+
+
+def _imported_roots(path):
+    """Top-level names of every import in a file, wherever it is (functions included)."""
+    tree = ast.parse(path.read_text(encoding='utf8'), filename=str(path))
+    roots = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            roots.update(alias.name.split('.')[0] for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            roots.add(node.module.split('.')[0])
+        elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+              and node.func.attr == 'import_module' and node.args
+              and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
+            roots.add(node.args[0].value.split('.')[0])
+    return roots
+
+
+def test_there_is_a_core_to_check():
+    names = {p.stem for p in _modules('core')}
+    assert {'errors', 'params', 'record'} <= names
+
+
+@pytest.mark.parametrize('path', _modules('core'), ids=lambda p: p.name)
+def test_core_source_never_imports_ros_bags_or_plots(path):
+    assert not _imported_roots(path) & set(CORE_FORBIDDEN)
+
+
+@pytest.mark.parametrize('path', _modules('analysis'), ids=lambda p: p.name)
+def test_analysis_source_never_imports_rclpy(path):
+    assert not _imported_roots(path) & set(ANALYSIS_FORBIDDEN)
+
+
+def test_the_static_check_can_fail(tmp_path):
+    # The checker must see imports hidden in functions and importlib calls.
+    bad = tmp_path / 'bad.py'
+    bad.write_text(textwrap.dedent("""
+        import importlib
+        def later():
+            from rosbags.rosbag2 import Reader
+            return importlib.import_module('matplotlib.pyplot'), Reader
+    """))
+    assert _imported_roots(bad) >= {'rosbags', 'matplotlib'}
+
+
+_BLOCKER = textwrap.dedent("""
+    import importlib, importlib.abc, pkgutil, sys
+
+    FORBIDDEN = {forbidden!r}
+
+    class Blocker(importlib.abc.MetaPathFinder):
+        def find_spec(self, name, path=None, target=None):
+            if name.split('.')[0] in FORBIDDEN:
+                raise ImportError(f'{{name}} is blocked: core/ must not need it')
+            return None
+
+    for name in list(sys.modules):
+        if name.split('.')[0] in FORBIDDEN:
+            del sys.modules[name]
+    sys.meta_path.insert(0, Blocker())
+
+    import piezo_stage_ros.core as core
+    loaded = []
+    for info in pkgutil.iter_modules(core.__path__):
+        importlib.import_module('piezo_stage_ros.core.' + info.name)
+        loaded.append(info.name)
+    leaked = sorted(n for n in sys.modules if n.split('.')[0] in FORBIDDEN)
+    assert not leaked, leaked
+    print(' '.join(sorted(loaded)))
+""")
+
+
+def test_core_imports_with_ros_bags_and_plots_unimportable():
+    code = _BLOCKER.format(forbidden=set(CORE_FORBIDDEN))
+    proc = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                          timeout=120, cwd=PACKAGE.parent)
+    assert proc.returncode == 0, proc.stderr
+    loaded = set(proc.stdout.split())
+    assert loaded == {p.stem for p in _modules('core') if p.stem != '__init__'}
+
+
+def test_the_blocker_really_blocks():
+    # Same harness, one forbidden import on purpose: it must fail, or the test above proves
+    # nothing.
+    code = _BLOCKER.format(forbidden=set(CORE_FORBIDDEN)) + '\nimport rosbags.rosbag2\n'
+    proc = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                          timeout=120, cwd=PACKAGE.parent)
+    assert proc.returncode != 0
+    assert 'rosbags.rosbag2 is blocked' in proc.stderr or 'rosbags is blocked' in proc.stderr
