@@ -1,0 +1,136 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Start the closed loop: plant, controller and trajectory nodes from one parameter file.
+
+Arguments (``ros2 launch piezo_stage_ros closed_loop.launch.py --show-args``):
+
+- ``config``: parameter file (a name in the package's ``config/`` or a path), default
+  ``default.yaml``; ``scenario``: a second file applied on top (``table3_rac.yaml`` ...);
+  ``overrides``: a third file applied last (empty: none);
+- ``mode``: ``lockstep`` | ``realtime``; ``controller``: ``rac`` | ``pi`` | ``open_loop`` (empty:
+  as configured); ``duration_s``: stop the run after this much loop time (0: run on);
+- ``composed``: ``true`` runs the three nodes in one process (``stage_servo``, one
+  EventsExecutor), ``false`` one process each;
+- ``record``: ``true`` records the stage topics with ``ros2 bag record`` into ``bag``;
+- ``namespace``: puts the stage's topics and nodes under it (several stages side by side).
+
+The controller's stability check needs the plant model: the launch file copies the
+``plant.*`` values of the plant_node section into the controller's ``stability.plant.*``
+unless the controller section sets them itself. When the plant ends its run the launch ends.
+"""
+
+# ruff takes `launch` for this repository's launch/ folder; for ament (flake8) it is the
+# third-party package it is, sorted as below.
+from __future__ import annotations  # noqa: I001
+
+import os
+
+from launch import LaunchContext, LaunchDescription
+from launch.actions import (
+    DeclareLaunchArgument,
+    EmitEvent,
+    ExecuteProcess,
+    OpaqueFunction,
+    RegisterEventHandler,
+)
+from launch.event_handlers import OnProcessExit
+from launch.events import Shutdown
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+from piezo_stage_ros.core.config import find_config, load_config
+
+ARGUMENTS = {
+    'config': ('default.yaml', 'parameter file: a name in config/ or a path'),
+    'scenario': ('', 'second parameter file applied on top of config (empty: none)'),
+    'overrides': ('', 'third parameter file applied last (empty: none)'),
+    'mode': ('lockstep', 'lockstep | realtime'),
+    'controller': ('', 'rac | pi | open_loop (empty: as configured)'),
+    'duration_s': ('0.0', 'run length in loop time [s]; 0 runs until shut down'),
+    'composed': ('true', 'true: one process (stage_servo); false: one process per node'),
+    'record': ('false', 'record the stage topics with ros2 bag record'),
+    'bag': ('', 'bag directory for record:=true (empty: piezo_<time> in the working dir)'),
+    'namespace': ('', 'namespace of the stage'),
+    'executor': ('events', 'events (EventsExecutor) | single (SingleThreadedExecutor)'),
+}
+TOPICS = ('stage/position', 'stage/reference', 'stage/command', 'stage/diagnostics',
+          'stage/status')
+
+
+def _launch(context: LaunchContext) -> list:
+    arg = {name: LaunchConfiguration(name).perform(context) for name in ARGUMENTS}
+    files = [str(find_config(arg['config']))]
+    files += [str(find_config(arg[k])) for k in ('scenario', 'overrides') if arg[k]]
+    mode = arg['mode']
+    if mode not in ('lockstep', 'realtime'):
+        raise ValueError(f"launch argument mode:={mode!r}: allowed: 'lockstep', 'realtime'")
+    lockstep = mode == 'lockstep'
+    config = load_config(files)
+    common = {'mode': mode, 'use_sim_time': lockstep}
+    plant = dict(common, duration_s=float(arg['duration_s']))
+    controller = dict(common)
+    if arg['controller']:
+        controller['type'] = arg['controller']
+    ctrl_section = config.node('controller_node')
+    for name, value in config.node('plant_node').items():
+        if name.startswith('plant.') and 'stability.' + name not in ctrl_section:
+            controller['stability.' + name] = value
+    trajectory = dict(common)
+    ns = arg['namespace']
+    extra = ['--executor', arg['executor']]
+    actions: list = []
+    if arg['composed'].lower() == 'true':
+        # one process: parameter dicts go to every node under /**; each node declares its own
+        # names only, so the plant ignores the controller's and so on
+        main = Node(package='piezo_stage_ros', executable='stage_servo', namespace=ns,
+                    output='screen', arguments=extra,
+                    parameters=[*files, plant, controller, trajectory])
+        actions.append(main)
+    else:
+        main = Node(package='piezo_stage_ros', executable='plant_node', name='plant_node',
+                    namespace=ns, output='screen', arguments=extra,
+                    parameters=[*files, plant])
+        actions += [
+            main,
+            Node(package='piezo_stage_ros', executable='controller_node',
+                 name='controller_node', namespace=ns, output='screen', arguments=extra,
+                 parameters=[*files, controller]),
+            Node(package='piezo_stage_ros', executable='trajectory_node',
+                 name='trajectory_node', namespace=ns, output='screen', arguments=extra,
+                 parameters=[*files, trajectory]),
+        ]
+    if arg['record'].lower() == 'true':
+        prefix = '/' + ns.strip('/') + '/' if ns.strip('/') else '/'
+        cmd = ['ros2', 'bag', 'record', '--storage', 'mcap']
+        if arg['bag']:
+            cmd += ['--output', arg['bag']]
+        if lockstep:
+            cmd += ['--use-sim-time']
+        qos_file = os.path.join(os.path.dirname(files[0]), 'record_qos.yaml')
+        if os.path.isfile(qos_file):
+            cmd += ['--qos-profile-overrides-path', qos_file]
+        cmd += [prefix + t for t in TOPICS]
+        actions.append(ExecuteProcess(cmd=cmd, output='screen'))
+    # the plant's run is complete (or failed): end the whole launch, the recorder included
+    actions.append(RegisterEventHandler(OnProcessExit(
+        target_action=main, on_exit=[EmitEvent(event=Shutdown(reason='plant finished'))])))
+    return actions
+
+
+def generate_launch_description() -> LaunchDescription:
+    return LaunchDescription(
+        [DeclareLaunchArgument(name, default_value=default, description=doc)
+         for name, (default, doc) in ARGUMENTS.items()]
+        + [OpaqueFunction(function=_launch)])

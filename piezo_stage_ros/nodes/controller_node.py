@@ -1,0 +1,166 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The controller node: RAC or PI from parameters, position and reference in, command out.
+
+Parameters: :func:`piezo_stage_ros.nodes.tables.controller_table` (the controller of the core,
+the stability check under ``stability.``, and the node group). At start-up the loop is checked
+against the plant model ``stability.plant`` names and the verdict logged; an unstable verdict
+with ``stability.action: refuse`` stops the node. Gains changed at run time are validated
+(ranges, then the stability check again) and applied at the next sample; a refused value leaves
+everything as it was. Topics: subscribes to ``stage/position`` and ``stage/reference``,
+publishes ``stage/command`` and ``stage/diagnostics`` (controller internals: theta_hat,
+phi_hat, s, saturation ...).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Sequence
+
+from piezo_stage_ros.core.controllers import build_controller, ControllerParams
+from piezo_stage_ros.core.errors import StabilityError
+from piezo_stage_ros.core.interfaces import Controller
+from piezo_stage_ros.core.stability import check_stability, stability_plant, StabilityParams
+from piezo_stage_ros.nodes import qos, topics
+from piezo_stage_ros.nodes.logic import Command, ControllerLogic, ns_to_stamp, stamp_to_ns
+from piezo_stage_ros.nodes.parameters import ParameterBinding
+from piezo_stage_ros.nodes.runner import run
+from piezo_stage_ros.nodes.tables import controller_table, ControllerNodeParams
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64
+
+__all__ = ['ControllerNode', 'main']
+
+
+class ControllerNode(Node):
+    """
+    The controller as a ROS node.
+
+    Parameters
+    ----------
+    **kwargs
+        Passed to :class:`rclpy.node.Node`.
+
+    Raises
+    ------
+    StabilityError
+        If the configured loop is unstable on the configured model and
+        ``stability.action`` is ``'refuse'``.
+
+    """
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('controller_node', **kwargs)
+        self.binding = ParameterBinding(self, controller_table(), self._on_change)
+        params, stability, opts = self.binding.objects
+        self.opts: ControllerNodeParams = opts
+        self.sample_time_s = 1.0 / opts.sample_rate_hz
+        self.verdict = self._check(params, stability)
+        self.logic = ControllerLogic(self._build(params, stability), mode=opts.mode,
+                                     safe_voltage_v=opts.safe_voltage_v,
+                                     position_timeout_s=opts.position_timeout_s,
+                                     diagnostics_every=opts.diagnostics_every,
+                                     rebuild=self._rebuild)
+        self._stability = stability
+        self._cmd = Float64()
+        self._diag = JointState(name=list(self.logic.names),
+                                position=[0.0] * len(self.logic.names))
+        self._cmd_pub = self.create_publisher(Float64, topics.COMMAND, qos.LOOP)
+        self._diag_pub = self.create_publisher(JointState, topics.DIAGNOSTICS, qos.LOOP)
+        self.create_subscription(JointState, topics.POSITION, self._on_position, qos.LOOP)
+        self.create_subscription(JointState, topics.REFERENCE, self._on_reference, qos.LOOP)
+        self._lockstep = opts.mode == 'lockstep'
+        self._watch = None
+        if not self._lockstep:
+            self._watch = self.create_timer(opts.position_timeout_s / 2.0, self._check_watchdog,
+                                            clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def _check(self, params: ControllerParams, stability: StabilityParams) -> str:
+        report = check_stability(params, stability.plant, self.sample_time_s, options=stability)
+        text = report.text()
+        if report.stable:
+            self.get_logger().info('stability check: ' + text)
+        elif stability.action == 'refuse':
+            raise StabilityError(text)
+        else:
+            self.get_logger().warning('stability check: ' + text)
+        return text
+
+    def _build(self, params: ControllerParams, stability: StabilityParams) -> Controller:
+        return build_controller(params, self.sample_time_s, stability_plant(stability.plant))
+
+    def _rebuild(self, params: ControllerParams) -> Controller:
+        return self._build(params, self._stability)
+
+    def _on_change(self, old: Sequence[Any], new: Sequence[Any]) -> None:
+        params, stability, opts = new
+        if params is not old[0] or stability is not old[1]:
+            # raises StabilityError for a refused verdict: the change is refused with its text
+            self.verdict = self._check(params, stability)
+            self._stability = stability
+            if params is not old[0]:
+                self.logic.request_change(params)
+        self.logic.safe_voltage_v = opts.safe_voltage_v
+        self.logic.watchdog.timeout_s = opts.position_timeout_s
+        self.logic.diagnostics_every = opts.diagnostics_every
+        self.opts = opts
+
+    def _publish(self, out: Command | None) -> None:
+        if out is None:
+            return
+        self._cmd.data = out.voltage_v
+        self._cmd_pub.publish(self._cmd)
+        if out.diagnostics is not None:
+            names = list(self.logic.names)
+            diag = self._diag
+            if list(diag.name) != names:
+                diag.name = names
+            diag.position = [float(v) for v in out.diagnostics]
+            sec, nanosec = ns_to_stamp(out.stamp_ns)
+            diag.header.stamp.sec = sec
+            diag.header.stamp.nanosec = nanosec
+            self._diag_pub.publish(diag)
+
+    def _on_position(self, msg: JointState) -> None:
+        if self._lockstep and self._cmd_pub.get_subscription_count() == 0:
+            # the command would reach nobody yet; the plant publishes this sample again
+            return
+        stamp = msg.header.stamp
+        self._publish(self.logic.on_position(stamp_to_ns(stamp.sec, stamp.nanosec),
+                                             msg.position[0], time.monotonic()))
+
+    def _on_reference(self, msg: JointState) -> None:
+        stamp = msg.header.stamp
+        self._publish(self.logic.on_reference(stamp_to_ns(stamp.sec, stamp.nanosec),
+                                              msg.position[0], msg.velocity[0]))
+
+    def _check_watchdog(self) -> None:
+        out = self.logic.on_check(time.monotonic())
+        if out is not None:
+            self._cmd.data = out.voltage_v
+            self._cmd_pub.publish(self._cmd)
+            if self.logic.safe_commands == 1 or self.logic.safe_commands % 1000 == 0:
+                self.get_logger().warning(
+                    f'no position for {self.logic.watchdog.timeout_s:g} s: safe command '
+                    f'{out.voltage_v:g} V published ({self.logic.safe_commands} so far)')
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Run the controller node (console script ``controller_node``)."""
+    return run('controller_node', [('controller', ControllerNode)], args,
+               'The RAC or PI controller of piezo_stage_ros.')

@@ -1,0 +1,111 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Declaring a node's parameter table with descriptors, and validating run-time changes (rclpy).
+
+Everything decidable without rclpy is in :mod:`piezo_stage_ros.nodes.tables`; this module only
+builds ``ParameterDescriptor`` messages from it and turns a refused change into a
+``SetParametersResult`` with the reason.
+"""
+
+from __future__ import annotations
+
+import array
+from typing import Any, Callable, Sequence
+
+from piezo_stage_ros.core.errors import PiezoStageError
+from piezo_stage_ros.nodes.tables import Declaration, NodeTable
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+__all__ = ['ParameterBinding', 'descriptor']
+
+
+def descriptor(decl: Declaration) -> ParameterDescriptor:
+    """
+    Return the descriptor of one parameter.
+
+    Dynamic typing is on: an integer in a YAML file for a double parameter is accepted, and
+    the types are checked by the table's own validation, which names parameter, value and range.
+    """
+    desc = ParameterDescriptor(name=decl.name, description=decl.description,
+                               additional_constraints=decl.additional_constraints,
+                               read_only=decl.read_only, dynamic_typing=True)
+    if decl.float_range is not None:
+        desc.floating_point_range = [FloatingPointRange(
+            from_value=decl.float_range[0], to_value=decl.float_range[1], step=0.0)]
+    if decl.int_range is not None:
+        desc.integer_range = [IntegerRange(from_value=decl.int_range[0],
+                                           to_value=decl.int_range[1], step=0)]
+    return desc
+
+
+def _plain(value: Any) -> Any:
+    """Return ROS parameter values as plain Python (arrays become lists)."""
+    if isinstance(value, (array.array, tuple)):
+        return list(value)
+    return value
+
+
+class ParameterBinding:
+    """
+    A node's parameter table, declared on the node and kept validated.
+
+    Parameters
+    ----------
+    node : Node
+        The node to declare on.
+    table : NodeTable
+        Its parameter table.
+    on_change : callable
+        ``on_change(old, new)`` with the tuples of group objects, called for a change that
+        validated; it may raise :class:`~piezo_stage_ros.core.errors.PiezoStageError` to refuse
+        it (the reason goes back to the caller and nothing changes).
+
+    Raises
+    ------
+    ParameterError
+        If a start-up value is bad (the node cannot be built).
+
+    """
+
+    def __init__(self, node: Node, table: NodeTable,
+                 on_change: Callable[[Sequence[Any], Sequence[Any]], None] | None = None
+                 ) -> None:
+        self.table = table
+        self._on_change = on_change
+        values: dict[str, Any] = {}
+        for decl in table.declarations():
+            param = node.declare_parameter(decl.name, decl.default, descriptor(decl))
+            values[decl.name] = _plain(param.value)
+        self.objects: tuple[Any, ...] = table.build(values)
+        node.add_on_set_parameters_callback(self._on_set)
+
+    def _on_set(self, params: list[Parameter]) -> SetParametersResult:
+        changes = {p.name: _plain(p.value) for p in params}
+        try:
+            new = self.table.change(self.objects, changes)
+            if self._on_change is not None:
+                self._on_change(self.objects, new)
+        except PiezoStageError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        self.objects = new
+        return SetParametersResult(successful=True)

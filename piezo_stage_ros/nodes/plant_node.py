@@ -1,0 +1,228 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The plant node: the stage model or a hardware bridge, publishing the measured position.
+
+Parameters: :func:`piezo_stage_ros.nodes.tables.plant_table` (the stage of the core, start-up
+only, and the node group: mode, backend, duration, timeouts, bridge). Topics: publishes
+``stage/position`` (and ``/clock`` in lockstep) and ``stage/status``, subscribes to
+``stage/command``. The behaviour is :class:`piezo_stage_ros.nodes.logic.PlantLogic`; this class
+only moves messages and owns the timers.
+
+Run: ``ros2 run piezo_stage_ros plant_node --ros-args --params-file default.yaml``.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Sequence
+
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from piezo_stage_ros.core.errors import PiezoStageError
+from piezo_stage_ros.core.stage import StageParams
+from piezo_stage_ros.hardware.bridge import Bridge, ModelBridge
+from piezo_stage_ros.hardware.safety import GuardedPlant
+from piezo_stage_ros.hardware.udp import UdpBridge
+from piezo_stage_ros.nodes import qos, topics
+from piezo_stage_ros.nodes.logic import ns_to_stamp, PlantLogic, Sample
+from piezo_stage_ros.nodes.parameters import ParameterBinding
+from piezo_stage_ros.nodes.runner import run
+from piezo_stage_ros.nodes.tables import plant_table, PlantNodeParams
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rclpy.task import Future
+from rosgraph_msgs.msg import Clock as ClockMsg
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64
+
+__all__ = ['PlantNode', 'main']
+
+
+def make_bridge(stage: StageParams, opts: PlantNodeParams) -> Bridge:
+    """Return the backend the node parameters name."""
+    if opts.backend == 'udp':
+        return UdpBridge(opts.bridge.host, opts.bridge.port, timeout_s=opts.bridge.timeout_s,
+                         max_consecutive_losses=opts.bridge.max_consecutive_losses)
+    return ModelBridge(stage)
+
+
+class PlantNode(Node):
+    """
+    The stage (model or bridge) as a ROS node.
+
+    Parameters
+    ----------
+    **kwargs
+        Passed to :class:`rclpy.node.Node` (``context``, ``namespace``,
+        ``parameter_overrides`` ...).
+
+    Attributes
+    ----------
+    finished : rclpy.task.Future
+        Done when a run of ``duration_s`` is complete, or failed with the error of a fault.
+
+    """
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('plant_node', **kwargs)
+        self.binding = ParameterBinding(self, plant_table(), self._on_change)
+        stage, opts = self.binding.objects
+        self.opts: PlantNodeParams = opts
+        self.guard = GuardedPlant(make_bridge(stage, opts), stage.chain, opts.command_timeout_s)
+        self.logic = PlantLogic(self.guard, mode=opts.mode, sample_rate_hz=stage.sample_rate_hz,
+                                duration_s=opts.duration_s, resend_s=opts.lockstep.resend_s)
+        self.finished = Future()
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._msg = JointState(name=[topics.JOINT_NAME], position=[0.0])
+        self._clock_msg = ClockMsg()
+        self._pub = self.create_publisher(JointState, topics.POSITION, qos.LOOP)
+        self._clock_pub = self.create_publisher(ClockMsg, topics.CLOCK, qos.CLOCK) \
+            if self.logic.lockstep else None
+        self._status_pub = self.create_publisher(DiagnosticStatus, topics.STATUS, qos.STATUS)
+        self.create_subscription(Float64, topics.COMMAND, self._on_command, qos.LOOP)
+        if self.logic.lockstep:
+            # wall (steady) time: simulation time stands still while the plant waits
+            self._timer = self.create_timer(0.005, self._lockstep_tick, clock=self._steady)
+        else:
+            self._timer = self.create_timer(self.logic.period_s, self._realtime_tick,
+                                            clock=self._steady)
+        self._status_timer = self.create_timer(opts.status_period_s, self.publish_status,
+                                               clock=self._steady)
+        self._t_start = 0.0
+        self.get_logger().info(
+            f'{opts.mode} at {stage.sample_rate_hz:g} Hz, backend {opts.backend}, plant '
+            f'{stage.plant.model} + {stage.hysteresis.model}'
+            + (f', {self.logic.total} samples' if self.logic.total else ''))
+
+    def _on_change(self, old: Sequence[Any], new: Sequence[Any]) -> None:
+        opts: PlantNodeParams = new[1]
+        # applied between two samples: every callback of this node runs on one executor thread
+        self.guard.watchdog.timeout_s = opts.command_timeout_s
+        self.logic.resend_s = opts.lockstep.resend_s
+        if opts.status_period_s != self.opts.status_period_s:
+            self._status_timer.cancel()
+            self._status_timer = self.create_timer(opts.status_period_s, self.publish_status,
+                                                   clock=self._steady)
+        self.opts = opts
+
+    def _publish(self, sample: Sample) -> None:
+        sec, nanosec = ns_to_stamp(sample.stamp_ns)
+        if self._clock_pub is not None:
+            self._clock_msg.clock = Time(sec=sec, nanosec=nanosec)
+            self._clock_pub.publish(self._clock_msg)
+        msg = self._msg
+        msg.header.stamp.sec = sec
+        msg.header.stamp.nanosec = nanosec
+        msg.position[0] = sample.position_m
+        self._pub.publish(msg)
+
+    def _start(self) -> None:
+        now = time.monotonic()
+        start_ns = 0 if self.logic.lockstep else self.get_clock().now().nanoseconds
+        self._t_start = now
+        self._publish(self.logic.start(now, start_ns))
+        if self.logic.done:
+            self._finish()
+
+    def _lockstep_tick(self) -> None:
+        try:
+            if self.logic.index < 0:
+                if self._pub.get_subscription_count() >= self.opts.lockstep.subscribers:
+                    self._start()
+                return
+            again = self.logic.resend_due(time.monotonic())
+            if again is not None:
+                self._publish(again)
+        except Exception as exc:  # noqa: BLE001 -- any fault: safe voltage, then report
+            self._fault(exc)
+
+    def _realtime_tick(self) -> None:
+        try:
+            if self.logic.index < 0:
+                self._start()
+                return
+            for sample in self.logic.on_tick(time.monotonic()):
+                self._publish(sample)
+            if self.logic.done:
+                self._finish()
+        except Exception as exc:  # noqa: BLE001
+            self._fault(exc)
+
+    def _on_command(self, msg: Float64) -> None:
+        try:
+            sample = self.logic.on_command(msg.data, time.monotonic())
+            if sample is not None:
+                self._publish(sample)
+            elif self.logic.done and self.logic.lockstep:
+                self._finish()
+        except Exception as exc:  # noqa: BLE001
+            self._fault(exc)
+
+    def stats(self) -> dict[str, Any]:
+        """Return the counters, with the loop rate reached so far."""
+        out = self.logic.stats()
+        elapsed = time.monotonic() - self._t_start if self._t_start else 0.0
+        samples = max(self.logic.index + 1, 0)
+        out['wall_s'] = round(elapsed, 6)
+        out['samples_per_s'] = round(samples / elapsed, 1) if elapsed > 0 else 0.0
+        out['real_time_factor'] = round(samples * self.logic.period_s / elapsed, 4) \
+            if elapsed > 0 else 0.0
+        return out
+
+    def publish_status(self) -> None:
+        """Publish the counters on ``stage/status``."""
+        stats = self.stats()
+        late = stats.get('late', 0)
+        level = DiagnosticStatus.OK if not (late or stats.get('watchdog_trips')) \
+            else DiagnosticStatus.WARN
+        self._status_pub.publish(DiagnosticStatus(
+            level=level, name=self.get_fully_qualified_name(),
+            message=f'{self.opts.mode}: {stats["index"] + 1} samples',
+            hardware_id=self.opts.backend,
+            values=[KeyValue(key=k, value=str(v)) for k, v in stats.items()]))
+
+    def _finish(self) -> None:
+        if self.finished.done():
+            return
+        self._timer.cancel()
+        self.logic.stop()
+        self.publish_status()
+        stats = self.stats()
+        self.get_logger().info('run complete: ' + ', '.join(f'{k}={v}' for k, v in
+                                                              stats.items()))
+        self.finished.set_result(stats)
+
+    def _fault(self, exc: BaseException) -> None:
+        self.guard.fault(exc)
+        self.logic.done = True
+        self._timer.cancel()
+        self.get_logger().error(f'fault, safe voltage driven: {exc}')
+        if not self.finished.done():
+            err = exc if isinstance(exc, PiezoStageError) else PiezoStageError(repr(exc))
+            self.finished.set_exception(err)
+
+    def destroy_node(self) -> None:
+        """Drive the safe voltage, release the backend, then destroy the node."""
+        try:
+            self.logic.stop()
+        finally:
+            super().destroy_node()
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Run the plant node (console script ``plant_node``)."""
+    return run('plant_node', [('plant', PlantNode)], args,
+               'The stage model or hardware bridge of piezo_stage_ros.')

@@ -1,0 +1,42 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The QoS profiles of every topic, chosen once here (imports rclpy).
+
+- :data:`LOOP` (position, reference, command, diagnostics): reliable, volatile, keep last 100.
+  Reliable because in lockstep a lost message would stall the loop until the plant's resend,
+  and because a recorder should keep every sample; volatile because a late joiner has no use for
+  old samples; a depth of 100 absorbs a burst (a real-time catch-up, a slow recorder) without
+  blocking the publisher for long. In real time nothing ever waits for a message: the plant
+  holds the last command it has.
+- :data:`CLOCK` (``/clock``, lockstep): reliable, keep last 1: only the newest time matters, and
+  a reliable writer serves the best-effort subscription of every node's time source.
+- :data:`STATUS` (``stage/status``): reliable, transient local, keep last 1, so that a tool
+  started late still gets the plant's latest counters.
+"""
+
+from __future__ import annotations
+
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+__all__ = ['CLOCK', 'LOOP', 'STATUS']
+
+LOOP = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                  reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+CLOCK = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                   reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+STATUS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                    reliability=ReliabilityPolicy.RELIABLE,
+                    durability=DurabilityPolicy.TRANSIENT_LOCAL)

@@ -1,0 +1,134 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Running one or several node classes in one process, on one executor (imports rclpy).
+
+Every executable of the package goes through :func:`run`: it initialises rclpy with the ROS
+arguments, builds the nodes (a bad parameter prints one line and exits 2), spins them on one
+``rclpy.experimental.EventsExecutor`` (or the single-threaded executor on request) until
+Ctrl-C, an external shutdown, or the plant's run is complete, and always destroys the nodes (the
+plant drives its safe voltage there) and shuts rclpy down.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Callable, Sequence
+
+from piezo_stage_ros.core.errors import PiezoStageError
+import rclpy
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.task import Future
+from rclpy.utilities import remove_ros_args
+
+__all__ = ['make_executor', 'run']
+
+NodeFactory = Callable[[], Node]
+
+
+def make_executor(kind: str = 'events', context: rclpy.context.Context | None = None
+                  ) -> rclpy.executors.Executor:
+    """
+    Return the executor ``kind`` names.
+
+    Parameters
+    ----------
+    kind : str
+        ``'events'`` (``rclpy.experimental.EventsExecutor``, the fastest in Jazzy) or
+        ``'single'`` (``SingleThreadedExecutor``).
+    context : rclpy.context.Context, optional
+        Context of the executor; default the global one.
+
+    """
+    if kind == 'events':
+        from rclpy.experimental import EventsExecutor
+        return EventsExecutor(context=context)
+    return SingleThreadedExecutor(context=context)
+
+
+def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
+        argv: Sequence[str] | None = None, description: str = '') -> int:
+    """
+    Run node classes in this process until shutdown or the end of the plant's run.
+
+    Parameters
+    ----------
+    prog : str
+        Executable name (for messages).
+    factories : sequence of (str, callable)
+        ``(short name, factory)``; ``--nodes`` picks some of them by short name.
+    argv : sequence of str, optional
+        Command line including ROS arguments (default ``sys.argv``).
+    description : str
+        Help text.
+
+    Returns
+    -------
+    int
+        0 on a normal end, 1 after a fault in a callback, 2 on bad parameters.
+
+    """
+    args = list(sys.argv if argv is None else argv)
+    parser = argparse.ArgumentParser(prog=prog, description=description)
+    names = [name for name, _ in factories]
+    parser.add_argument('--nodes', default=','.join(names),
+                        help=f'comma-separated subset of {",".join(names)} to run here')
+    parser.add_argument('--executor', choices=('events', 'single'), default='events',
+                        help='EventsExecutor (default) or SingleThreadedExecutor')
+    opts = parser.parse_args(remove_ros_args(args)[1:])
+    chosen = [n.strip() for n in opts.nodes.split(',') if n.strip()]
+    unknown = [n for n in chosen if n not in names]
+    if unknown or not chosen:
+        print(f'{prog}: --nodes {opts.nodes!r}: choose among {", ".join(names)}',
+              file=sys.stderr)
+        return 2
+    rclpy.init(args=args)
+    nodes: list[Node] = []
+    try:
+        for name, factory in factories:
+            if name in chosen:
+                nodes.append(factory())
+    except (PiezoStageError, ParameterException) as exc:
+        print(f'{prog}: {exc}', file=sys.stderr)
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown()
+        return 2
+    executor = make_executor(opts.executor)
+    for node in nodes:
+        executor.add_node(node)
+    finished: Future | None = next((getattr(n, 'finished', None) for n in nodes
+                                    if getattr(n, 'finished', None) is not None), None)
+    code = 0
+    try:
+        if finished is not None:
+            executor.spin_until_future_complete(finished)
+            if finished.done() and finished.exception() is not None:
+                print(f'{prog}: {finished.exception()}', file=sys.stderr)
+                code = 1
+        else:
+            executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        for node in nodes:
+            executor.remove_node(node)
+            node.destroy_node()
+        executor.shutdown()
+        rclpy.try_shutdown()
+    return code

@@ -1,0 +1,47 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The three nodes in one process on one ``rclpy.experimental.EventsExecutor``.
+
+Across processes one message hop costs about 100 us on loopback, which caps a lockstep loop
+near real time at 10 kHz; within one process it costs about 12 us. ``stage_servo`` runs the
+plant, controller and trajectory node classes together (each keeps its own name, parameters and
+topics, so the same parameter file and the same graph result). ``--nodes`` runs a subset, e.g.
+``--nodes controller,trajectory`` beside a plant in another process.
+
+Run: ``ros2 run piezo_stage_ros stage_servo --ros-args --params-file default.yaml``.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+from piezo_stage_ros.nodes.controller_node import ControllerNode
+from piezo_stage_ros.nodes.plant_node import PlantNode
+from piezo_stage_ros.nodes.runner import run
+from piezo_stage_ros.nodes.trajectory_node import TrajectoryNode
+
+__all__ = ['main']
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Run the composed nodes (console script ``stage_servo``)."""
+    return run('stage_servo', [('plant', PlantNode), ('controller', ControllerNode),
+                               ('trajectory', TrajectoryNode)], args,
+               'Plant, controller and trajectory nodes of piezo_stage_ros in one process.')
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

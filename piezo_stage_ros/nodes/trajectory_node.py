@@ -1,0 +1,111 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The trajectory node: x_d and x_d' for every position sample, from any trajectory of the core.
+
+Parameters: :func:`piezo_stage_ros.nodes.tables.trajectory_table` (the trajectory of the core and
+the node group). For each ``stage/position`` sample it publishes ``stage/reference`` with the
+same stamp: x_d(t) and x_d'(t) at the trajectory's own time t (0 at the sample where it started).
+Start and stop: the ``active`` parameter, or the services ``~/start`` and ``~/stop``
+(``std_srvs/srv/Trigger``). Switch: set any trajectory parameter (``kind``, ``sine.frequency_hz``
+...); the new trajectory is validated, refused with the reason if bad, and starts at its t = 0
+at the next sample.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+from piezo_stage_ros.core.trajectories import make_trajectory
+from piezo_stage_ros.nodes import qos, topics
+from piezo_stage_ros.nodes.logic import stamp_to_ns, TrajectoryLogic
+from piezo_stage_ros.nodes.parameters import ParameterBinding
+from piezo_stage_ros.nodes.runner import run
+from piezo_stage_ros.nodes.tables import trajectory_table, TrajectoryNodeParams
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
+
+__all__ = ['TrajectoryNode', 'main']
+
+
+class TrajectoryNode(Node):
+    """
+    The trajectory as a ROS node.
+
+    Parameters
+    ----------
+    **kwargs
+        Passed to :class:`rclpy.node.Node`.
+
+    """
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('trajectory_node', **kwargs)
+        self.binding = ParameterBinding(self, trajectory_table(), self._on_change)
+        params, opts = self.binding.objects
+        self.opts: TrajectoryNodeParams = opts
+        self.logic = TrajectoryLogic(make_trajectory(params), sample_rate_hz=opts.sample_rate_hz,
+                                     chunk_s=opts.chunk_s, active=opts.active)
+        self._msg = JointState(name=[topics.JOINT_NAME], position=[0.0], velocity=[0.0])
+        self._pub = self.create_publisher(JointState, topics.REFERENCE, qos.LOOP)
+        self.create_subscription(JointState, topics.POSITION, self._on_position, qos.LOOP)
+        self.create_service(Trigger, '~/start', self._start)
+        self.create_service(Trigger, '~/stop', self._stop)
+        self.get_logger().info(f'trajectory {params.kind}, '
+                               f'{"active" if opts.active else "inactive"}')
+
+    def _on_change(self, old: Sequence[Any], new: Sequence[Any]) -> None:
+        params, opts = new
+        if params is not old[0]:
+            # builds (and so checks) the new trajectory before accepting the change
+            self.logic.switch(make_trajectory(params))
+            self.get_logger().info(f'trajectory switched to {params.kind} at the next sample')
+        if opts.active != self.opts.active:
+            if opts.active:
+                self.logic.start()
+            else:
+                self.logic.stop()
+        self.opts = opts
+
+    def _set_active(self, active: bool, response: Trigger.Response) -> Trigger.Response:
+        result = self.set_parameters([Parameter('active', value=active)])[0]
+        response.success = result.successful
+        response.message = ('started' if active else 'stopped') if result.successful \
+            else result.reason
+        return response
+
+    def _start(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        return self._set_active(True, response)
+
+    def _stop(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        return self._set_active(False, response)
+
+    def _on_position(self, msg: JointState) -> None:
+        stamp = msg.header.stamp
+        ref, vel = self.logic.on_position(stamp_to_ns(stamp.sec, stamp.nanosec))
+        out = self._msg
+        out.header.stamp = stamp
+        out.position[0] = ref
+        out.velocity[0] = vel
+        self._pub.publish(out)
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Run the trajectory node (console script ``trajectory_node``)."""
+    return run('trajectory_node', [('trajectory', TrajectoryNode)], args,
+               'The trajectory streamer of piezo_stage_ros.')
+

@@ -1,0 +1,339 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""The UDP bridge against its target emulator on loopback, and the safety rules around it."""
+
+from __future__ import annotations
+
+import math
+import socket
+import subprocess
+import sys
+import threading
+
+import numpy as np
+from piezo_stage_ros.core.closed_loop import run
+from piezo_stage_ros.core.controllers import build_controller, ControllerParams
+from piezo_stage_ros.core.errors import ParameterError
+from piezo_stage_ros.core.stage import Stage, StageParams
+from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.hardware import udp
+from piezo_stage_ros.hardware.bridge import BridgeError, ModelBridge
+from piezo_stage_ros.hardware.emulator import main as emulator_main
+from piezo_stage_ros.hardware.emulator import TargetEmulator
+from piezo_stage_ros.hardware.safety import clamp_command, GuardedPlant, Watchdog
+from piezo_stage_ros.nodes.logic import ControllerLogic, PlantLogic, TrajectoryLogic
+import pytest
+
+PARAMS = StageParams.from_flat({'plant.model': 'reduced'})
+
+
+@pytest.fixture
+def emulator():
+    emu = TargetEmulator(PARAMS, idle_timeout_s=5.0).start_thread()
+    yield emu
+    emu.close()
+
+
+def connected(emu: TargetEmulator, **kwargs) -> udp.UdpBridge:
+    bridge = udp.UdpBridge('127.0.0.1', emu.port, timeout_s=kwargs.pop('timeout_s', 1.0),
+                           **kwargs)
+    bridge.open()
+    return bridge
+
+
+def test_packets_round_trip_and_malformed_ones_are_refused():
+    assert udp.REQUEST.size == 16 and udp.REPLY.size == 24
+    assert udp.unpack_request(udp.pack_request(udp.COMMAND, 7, 1.25)) == (udp.COMMAND, 7, 1.25)
+    assert udp.unpack_request(udp.pack_request(udp.HELLO, 2 ** 32 + 3, 0.0))[1] == 3
+    reply = udp.pack_reply(udp.COMMAND, 9, 3.8e-6, udp.STATUS_CLAMPED, 2)
+    assert udp.unpack_reply(reply) == (udp.COMMAND, 9, 3.8e-6, udp.STATUS_CLAMPED, 2)
+    # little-endian, magic first
+    assert reply[:4] == b'PZ\x01\x82' and reply[4:8] == (9).to_bytes(4, 'little')
+    assert udp.unpack_reply(reply[:-1]) is None
+    assert udp.unpack_reply(b'XX' + reply[2:]) is None
+    assert udp.unpack_reply(reply[:2] + b'\x02' + reply[3:]) is None
+    assert udp.unpack_request(reply) is None
+    assert udp.unpack_reply(udp.pack_request(udp.COMMAND, 1, 0.0) + bytes(8)) is None
+
+
+def test_bridge_through_emulator_equals_the_model(emulator):
+    bridge = connected(emulator)
+    stage = Stage(PARAMS)
+    assert bridge.safe_start(0.0) == stage.reset()
+    commands = np.linspace(0.0, 6.0, 200) + 0.3 * np.sin(np.arange(200))
+    got = []
+    for u in commands:
+        bridge.write_voltage(float(u))
+        got.append(bridge.read_position())
+    np.testing.assert_array_equal(got, stage.run_open_loop(commands))
+    assert bridge.stats()['lost'] == 0 and bridge.stats()['target_missing'] == 0
+    bridge.safe_stop(0.0)
+    assert emulator._thread is not None
+    emulator._thread.join(5.0)
+    assert emulator.stop_reason == 'stop'
+    assert emulator._voltage_v == 0.0
+
+
+def test_lost_replies_are_counted_and_the_last_position_held():
+    with TargetEmulator(PARAMS, drop_reply_every=4) as emu:
+        bridge = connected(emu, timeout_s=0.05)
+        bridge.safe_start(0.0)
+        positions = []
+        for k in range(12):
+            bridge.write_voltage(0.5 * k)
+            positions.append(bridge.read_position())
+        stats = bridge.stats()
+        assert stats['lost'] == 3 and emu.dropped == 3
+        # every 4th sample repeats the one before it
+        assert positions[3] == positions[2] and positions[7] == positions[6]
+        bridge.safe_stop(0.0)
+
+
+def test_consecutive_losses_raise_and_a_silent_target_fails_start():
+    silent = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    silent.bind(('127.0.0.1', 0))
+    try:
+        bridge = udp.UdpBridge('127.0.0.1', silent.getsockname()[1], timeout_s=0.01,
+                               hello_attempts=2)
+        with pytest.raises(BridgeError, match='no answer from the target .* 2 HELLO'):
+            bridge.safe_start(0.0)
+    finally:
+        silent.close()
+    with TargetEmulator(PARAMS, drop_reply_every=1) as emu:
+        bridge = connected(emu, timeout_s=0.01, max_consecutive_losses=2)
+        bridge.safe_start(0.0)
+        bridge.read_position()
+        bridge.read_position()
+        with pytest.raises(BridgeError, match='3 samples in a row lost'):
+            bridge.read_position()
+        bridge.safe_stop(0.0)
+
+
+def test_target_counts_missing_and_ignores_old_requests():
+    with TargetEmulator(PARAMS) as emu:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.settimeout(2.0)
+        sock.connect(('127.0.0.1', emu.port))
+        sock.send(udp.pack_request(udp.HELLO, 1, 0.0))
+        assert udp.unpack_reply(sock.recv(64))[4] == 0
+        sock.send(udp.pack_request(udp.COMMAND, 2, 1.0))
+        assert udp.unpack_reply(sock.recv(64))[4] == 0
+        sock.send(udp.pack_request(udp.COMMAND, 5, 1.0))  # 3 and 4 never arrived
+        kind, seq, _, status, missing = udp.unpack_reply(sock.recv(64))
+        assert (kind, seq, status, missing) == (udp.COMMAND, 5, 0, 2)
+        steps = emu.stage.steps
+        sock.send(udp.pack_request(udp.COMMAND, 4, 1.0))  # late: never stepped twice
+        sock.send(udp.pack_request(udp.COMMAND, 6, 50.0))
+        kind, seq, _, status, missing = udp.unpack_reply(sock.recv(64))
+        assert seq == 6 and status == udp.STATUS_CLAMPED and missing == 2
+        assert emu.stage.steps == steps + 1
+        sock.send(udp.pack_request(9, 7, 0.0))
+        assert udp.unpack_reply(sock.recv(64))[3] == udp.STATUS_REFUSED
+        sock.send(b'garbage')
+        sock.send(udp.pack_request(udp.STOP, 8, 0.0))
+        assert udp.unpack_reply(sock.recv(64))[0] == udp.STOP
+        sock.close()
+
+
+def test_bridge_skips_stale_and_malformed_replies():
+    target = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    target.bind(('127.0.0.1', 0))
+    target.settimeout(5.0)
+
+    def serve() -> None:
+        for _ in range(2):
+            data, peer = target.recvfrom(64)
+            _, seq, _ = udp.unpack_request(data)
+            kind = udp.unpack_request(data)[0]
+            target.sendto(udp.pack_reply(kind, seq - 1, -1.0, 0, 0), peer)  # stale
+            target.sendto(b'nonsense', peer)
+            target.sendto(udp.pack_reply(kind, seq, 1e-6 * seq, 0, 0), peer)
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    bridge = udp.UdpBridge('127.0.0.1', target.getsockname()[1], timeout_s=2.0)
+    assert bridge.safe_start(0.0) == 1e-6
+    assert bridge.read_position() == 2e-6
+    thread.join(5.0)
+    assert bridge.stale == 2 and bridge.malformed == 2 and bridge.lost == 0
+    target.close()
+
+
+def test_guarded_udp_plant_clamps_before_sending(emulator):
+    guard = GuardedPlant(connected(emulator), PARAMS.chain, command_timeout_s=0.01)
+    guard.start(0.0)
+    guard.step(25.0)
+    guard.step(math.nan)
+    guard.step(-7.0)
+    assert guard.clamped == 3
+    assert guard.bridge.stats()['target_clamped'] == 0  # nothing out of range left the host
+    assert emulator._voltage_v == PARAMS.chain.amplifier_min_v
+    guard.stop()
+    guard.stop()
+    emulator._thread.join(5.0)
+    assert emulator.stop_reason == 'stop'
+
+
+def test_lockstep_through_udp_equals_the_offline_runner(emulator):
+    dt = PARAMS.sample_time_s
+    cp = ControllerParams.from_flat({'type': 'pi'})
+    tp = TrajectoryParams.from_flat({'kind': 'sine', 'sine.frequency_hz': 20.0})
+    rec = run(Stage(PARAMS), build_controller(cp, dt), make_trajectory(tp), duration_s=0.05,
+              record_diagnostics=False)
+    assert rec.command_v.min() > -2.0 and rec.command_v.max() < 10.0  # no clamping involved
+    plant = PlantLogic(GuardedPlant(connected(emulator), PARAMS.chain), mode='lockstep',
+                       sample_rate_hz=1.0 / dt, duration_s=0.05)
+    traj = TrajectoryLogic(make_trajectory(tp), sample_rate_hz=1.0 / dt)
+    ctrl = ControllerLogic(build_controller(cp, dt))
+    positions = []
+    sample = plant.start(0.0)
+    while sample is not None:
+        positions.append(sample.position_m)
+        xd, vd = traj.on_position(sample.stamp_ns)
+        ctrl.on_position(sample.stamp_ns, sample.position_m, 0.0)
+        sample = plant.on_command(ctrl.on_reference(sample.stamp_ns, xd, vd).voltage_v, 0.0)
+    np.testing.assert_array_equal(positions, rec.position_m)
+    plant.stop()
+
+
+def test_emulator_stops_by_itself_and_binds_loopback_only():
+    with pytest.raises(ParameterError, match="'host' = '0.0.0.0' is not loopback"):
+        TargetEmulator(PARAMS, host='0.0.0.0')
+    with pytest.raises(ParameterError, match='idle_timeout_s'):
+        TargetEmulator(PARAMS, idle_timeout_s=0.0)
+    idle = TargetEmulator(PARAMS, idle_timeout_s=0.05)
+    assert idle.serve() == 'idle'
+    limited = TargetEmulator(PARAMS, max_requests=2, idle_timeout_s=5.0)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    for seq in (1, 2):
+        sock.sendto(udp.pack_request(udp.COMMAND, seq, 0.0), ('127.0.0.1', limited.port))
+    assert limited.serve() == 'limit'
+    sock.close()
+
+
+def test_emulator_command_line(tmp_path, capsys):
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text('plant_node:\n  ros__parameters:\n    seed: -1\n')
+    assert emulator_main(['--config', str(bad), '--port', '0']) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "'seed' = -1" in err[0]
+    proc = subprocess.Popen([sys.executable, '-m', 'piezo_stage_ros.hardware.emulator',
+                             '--port', '0', '--idle-timeout-s', '20'],
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+        assert line.startswith('stage_emulator: listening on 127.0.0.1:')
+        port = int(line.rsplit(':', 1)[1])
+        bridge = udp.UdpBridge('127.0.0.1', port, timeout_s=2.0)
+        assert bridge.safe_start(0.0) == Stage(StageParams()).reset()
+        bridge.safe_stop(0.0)
+        assert proc.wait(timeout=20) == 0
+        assert 'stopped (stop)' in proc.stdout.read()
+    finally:
+        proc.kill()
+        proc.stdout.close()
+
+
+def test_clamp_command_and_watchdog():
+    assert clamp_command(1.0, -2.0, 10.0, 0.5) == (1.0, False)
+    assert clamp_command(11.0, -2.0, 10.0, 0.5) == (10.0, True)
+    assert clamp_command(-3.0, -2.0, 10.0, 0.5) == (-2.0, True)
+    assert clamp_command(math.inf, -2.0, 10.0, 0.5) == (0.5, True)
+    dog = Watchdog(0.01)
+    assert not dog.expired(100.0)  # not armed yet
+    dog.arm(0.0)
+    assert not dog.expired(0.01)
+    assert dog.expired(0.0101) and dog.expired(0.5)
+    assert dog.trips == 1
+    dog.feed(0.5)
+    assert not dog.expired(0.505)
+    assert dog.expired(0.52) and dog.trips == 2
+    with pytest.raises(ParameterError, match="'command_timeout_s' = 0.0"):
+        Watchdog(0.0)
+
+
+class RecordingBridge:
+    """A backend that records what it is told to drive."""
+
+    def __init__(self, fail_stop: bool = False) -> None:
+        self.written: list[float] = []
+        self.started_with: float | None = None
+        self.stopped_with: list[float] = []
+        self.fail_stop = fail_stop
+
+    def open(self) -> None:
+        pass
+
+    def safe_start(self, safe_voltage_v: float) -> float:
+        self.started_with = safe_voltage_v
+        return 1e-6
+
+    def write_voltage(self, voltage_v: float) -> None:
+        self.written.append(voltage_v)
+
+    def read_position(self) -> float:
+        return 2e-6
+
+    def safe_stop(self, safe_voltage_v: float) -> None:
+        self.stopped_with.append(safe_voltage_v)
+        if self.fail_stop:
+            raise OSError('device gone')
+
+    def stats(self):
+        return {'n': len(self.written)}
+
+
+def test_guard_drives_safe_voltage_at_start_on_silence_and_at_stop():
+    chain = StageParams.from_flat({'chain.safe_voltage_v': 1.5}).chain
+    bridge = RecordingBridge()
+    guard = GuardedPlant(bridge, chain, command_timeout_s=0.01)
+    assert guard.start(0.0) == 1e-6 and bridge.started_with == 1.5
+    guard.sample(0.0001)
+    guard.command(4.0, 0.0002)
+    guard.sample(0.0002)
+    guard.command(40.0, 0.0003)
+    guard.sample(0.0003)
+    guard.sample(0.0004)       # no new command: held, counted late
+    guard.sample(0.0104)       # silent for > 10 ms: safe voltage
+    guard.sample(0.02)
+    guard.command(3.0, 0.021)  # commands are back
+    guard.sample(0.021)
+    assert bridge.written == [1.5, 4.0, 10.0, 10.0, 1.5, 1.5, 3.0]
+    stats = guard.stats()
+    assert stats['late'] == 3 and stats['safe_samples'] == 2 and stats['watchdog_trips'] == 1
+    assert stats['clamped'] == 1 and stats['bridge_n'] == 7
+    guard.stop()
+    guard.stop()
+    assert bridge.stopped_with == [1.5]
+
+
+def test_guard_fault_drives_safe_voltage_and_never_raises():
+    bridge = RecordingBridge(fail_stop=True)
+    guard = GuardedPlant(bridge, StageParams().chain)
+    guard.start(0.0)
+    guard.fault(RuntimeError('boom'))
+    assert bridge.stopped_with == [0.0]
+    unstarted = RecordingBridge()
+    GuardedPlant(unstarted, StageParams().chain).stop()
+    assert unstarted.stopped_with == []
+
+
+def test_model_bridge_passes_commands_unclamped_to_its_own_chain():
+    guard = GuardedPlant(ModelBridge(PARAMS), PARAMS.chain)
+    reference = Stage(PARAMS)
+    assert guard.start(0.0) == reference.reset()
+    for u in (-2.5, 12.0, math.nan, 3.0):
+        assert guard.step(u) == reference.step(u)
+    assert guard.clamped == 0 and guard.bridge.stats()['faults'] == 1

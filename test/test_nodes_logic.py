@@ -1,0 +1,361 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""The nodes' behaviour without rclpy: tables, sequencing, real-time sampling, watchdogs."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+from piezo_stage_ros.core.config import load_config
+from piezo_stage_ros.core.controllers import build_controller, ControllerParams
+from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
+from piezo_stage_ros.core.params import param, Params
+from piezo_stage_ros.core.stage import StageParams
+from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.hardware.bridge import ModelBridge
+from piezo_stage_ros.hardware.safety import GuardedPlant
+from piezo_stage_ros.nodes import topics
+from piezo_stage_ros.nodes.logic import (
+    ControllerLogic,
+    ns_to_stamp,
+    PlantLogic,
+    sample_count,
+    stamp_to_ns,
+    TrajectoryLogic,
+)
+from piezo_stage_ros.nodes.tables import (
+    controller_table,
+    Group,
+    NodeTable,
+    plant_table,
+    PlantNodeParams,
+    trajectory_table,
+)
+import pytest
+
+CONFIG = Path(__file__).resolve().parents[1] / 'config'
+TABLES = {'plant_node': plant_table, 'controller_node': controller_table,
+          'trajectory_node': trajectory_table}
+RATE = 10000.0
+
+
+# --- topics and tables --------------------------------------------------------------------
+
+def test_topics_agree_with_the_bag_layout():
+    bagio = pytest.importorskip('piezo_stage_ros.analysis.bagio',
+                                reason='rosbags is needed to compare with the bag layout')
+    names = bagio.topic_names('/stage')
+    for key, ours in (('position', topics.POSITION), ('reference', topics.REFERENCE),
+                      ('command', topics.COMMAND), ('diagnostics', topics.DIAGNOSTICS)):
+        # relative names resolve under the root namespace to the bag's default namespace
+        assert '/' + ours == names[key]
+        assert topics.TOPIC_TYPES[ours] == bagio.TOPIC_TYPES[key]
+    assert topics.JOINT_NAME == bagio.JOINT_NAME
+    assert all(not t.startswith('/') for t in topics.TOPIC_TYPES if t != topics.CLOCK)
+
+
+@pytest.mark.parametrize('node', sorted(TABLES))
+def test_every_row_has_unit_description_and_a_valid_default(node):
+    table = TABLES[node]()
+    rows = table.specs()
+    assert len({r.name for r in rows}) == len(rows)
+    for row in rows:
+        assert row.unit and row.description.endswith('.'), row.name
+        assert row.validate(row.default) is not None or row.type_name == 'string'
+    table.build({})
+    for decl in table.declarations():
+        spec = next(r for r in rows if r.name == decl.name)
+        if spec.unit != '-':
+            assert decl.description.endswith(f'[{spec.unit}]')
+        assert decl.additional_constraints == spec.allowed()
+        both = spec.low is not None and spec.high is not None
+        assert (decl.float_range is not None) == (both and spec.type_name == 'double')
+        assert (decl.int_range is not None) == (both and spec.type_name == 'integer')
+
+
+SCENARIOS = sorted(p.name for p in CONFIG.glob('*.yaml') if p.name not in ('default.yaml',
+                                                                           'record_qos.yaml'))
+
+
+@pytest.mark.parametrize('scenario', ['default.yaml', *SCENARIOS])
+def test_every_shipped_parameter_file_builds_every_node(scenario):
+    files = [CONFIG / 'default.yaml'] + ([CONFIG / scenario] if scenario != 'default.yaml'
+                                         else [])
+    config = load_config(files)
+    for node, make in TABLES.items():
+        values = {k: v for k, v in config.node(node).items() if k != 'use_sim_time'}
+        # strict: a key no node declares would be silently ignored by ROS
+        make().build(values)
+
+
+def test_the_plant_stage_is_start_up_only_and_the_node_group_is_not():
+    table = plant_table()
+    rows = {r.name: r for r in table.specs()}
+    assert rows['plant.third_order.gain'].read_only
+    assert rows['chain.safe_voltage_v'].read_only
+    assert not rows['command_timeout_s'].read_only and rows['mode'].read_only
+
+
+def test_run_time_changes_are_validated_naming_parameter_value_and_range():
+    table = controller_table()
+    current = table.build({})
+    new = table.change(current, {'pi.k_p': 2})
+    assert new[0].pi.k_p == 2.0 and new[1] is current[1] and new[2] is current[2]
+    with pytest.raises(ParameterError, match=r"'type' = 'pi' is read-only"):
+        table.change(current, {'type': 'pi'})
+    with pytest.raises(ParameterError, match=r"'position_timeout_s' = -1.0 is out of range; "
+                                             r'allowed: finite number in \(0, 10\]'):
+        table.change(current, {'position_timeout_s': -1.0})
+    with pytest.raises(ParameterError, match="'pi.k_p' = 'fast' is not a number"):
+        table.change(current, {'pi.k_p': 'fast'})
+    with pytest.raises(ParameterError, match="'pi.k_q' = 1 is not a parameter of this node"):
+        table.change(current, {'pi.k_q': 1})
+    with pytest.raises(ParameterError, match="'stability.slope_max'"):
+        table.change(current, {'stability.slope_max': 0.1})
+    traj = trajectory_table()
+    now = traj.build({})
+    with pytest.raises(ParameterError, match='sine'):
+        traj.change(now, {'sine.amplitude_m': 1.0})  # leaves the stage travel
+
+
+def test_duplicate_names_are_refused_and_markdown_lists_every_row():
+    @__import__('dataclasses').dataclass(frozen=True)
+    class Clash(Params):
+        mode: str = param('x', unit='-', description='Clash.')
+
+    with pytest.raises(ValueError, match="'mode' is declared twice"):
+        NodeTable('n', [PlantNodeParams, Group(Clash)])
+    text = plant_table().markdown()
+    for row in plant_table().specs():
+        assert f'| `{row.name}` |' in text
+
+
+# --- plain-value helpers ------------------------------------------------------------------
+
+def test_stamps_and_sample_counts():
+    assert ns_to_stamp(1_500_000_123) == (1, 500_000_123)
+    assert stamp_to_ns(*ns_to_stamp(987_654_321_012)) == 987_654_321_012
+    assert sample_count(0.1, RATE) == 1000 and sample_count(0.0, RATE) == 0
+    assert sample_count(1e-9, RATE) == 1
+
+
+# --- plant ----------------------------------------------------------------------------------
+
+def plant(mode: str, duration_s: float = 0.0, **kwargs) -> PlantLogic:
+    params = StageParams.from_flat({'plant.model': 'reduced'})
+    guard = GuardedPlant(ModelBridge(params), params.chain, command_timeout_s=0.01)
+    return PlantLogic(guard, mode=mode, sample_rate_hz=RATE, duration_s=duration_s, **kwargs)
+
+
+def test_lockstep_plant_waits_resends_and_ignores_unexpected_commands():
+    logic = plant('lockstep', duration_s=0.0003, resend_s=0.5)
+    assert logic.on_command(1.0, 0.0) is None and logic.unexpected == 1  # before start
+    s0 = logic.start(10.0)
+    assert (s0.index, s0.stamp_ns) == (0, 0)
+    assert logic.resend_due(10.49) is None
+    assert logic.resend_due(10.5) == s0 and logic.resend_due(10.6) is None
+    s1 = logic.on_command(1.0, 10.7)
+    assert (s1.index, s1.stamp_ns) == (1, 100_000)
+    assert logic.resend_due(11.1) is None  # the clock restarted with the new sample
+    s2 = logic.on_command(1.0, 11.2)
+    assert s2.index == 2
+    assert logic.on_command(1.0, 11.3) is None and logic.done  # 3 samples: complete
+    assert logic.on_command(1.0, 11.4) is None and logic.unexpected == 2
+    assert logic.resend_due(99.0) is None
+    assert logic.plant.samples == 3 and logic.resends == 1
+
+
+def test_lockstep_run_of_one_sample_is_done_at_start():
+    logic = plant('lockstep', duration_s=1e-6)
+    logic.start(0.0)
+    assert logic.done and logic.on_command(0.0, 0.0) is None
+
+
+def test_realtime_plant_samples_on_its_clock_and_counts_late_commands():
+    logic = plant('realtime', max_catch_up=50)
+    assert logic.on_tick(0.0) == []  # not started
+    s0 = logic.start(100.0, start_ns=5_000_000_000)
+    assert s0.stamp_ns == 5_000_000_000
+    assert logic.on_tick(100.00005) == []           # sample 1 not due yet
+    logic.on_command(1.0, 100.00006)
+    out = logic.on_tick(100.0001)
+    assert [s.index for s in out] == [1] and out[0].stamp_ns == 5_000_100_000
+    assert logic.plant.late == 0
+    out = logic.on_tick(100.00031)                   # two samples overdue, no new command
+    assert [s.index for s in out] == [2, 3]
+    assert logic.plant.late == 2 and logic.catch_up == 2
+    assert logic.on_command(2.0, 100.00032) is None
+    assert math.isclose(logic.next_due_s(), 100.0004)
+    out = logic.on_tick(101.0)                       # a long stall: no burst of 10 000
+    assert len(out) == 1 and logic.skipped > 9000
+    assert out[0].stamp_ns == 5_000_000_000 + out[0].index * 100_000 + logic.skipped * 100_000
+    assert logic.on_tick(101.00005) == []
+
+
+def test_realtime_plant_drives_safe_voltage_when_commands_stop():
+    logic = plant('realtime')
+    logic.start(0.0)
+    logic.on_command(5.0, 0.0)
+    logic.on_tick(0.0001)
+    assert logic.plant.held_v == 5.0
+    logic.on_tick(0.0201)
+    assert logic.plant.safe_samples >= 1 and logic.plant.watchdog.trips == 1
+    stats = logic.stats()
+    assert stats['safe_samples'] >= 1 and stats['bridge_samples'] == logic.plant.samples
+
+
+def test_realtime_plant_stops_after_its_duration():
+    logic = plant('realtime', duration_s=0.0005)
+    logic.start(0.0)
+    out = logic.on_tick(0.00061)
+    assert logic.done and [s.index for s in out] == [1, 2, 3, 4]
+    assert logic.on_tick(2.0) == []
+    with pytest.raises(ParameterError, match="'mode' = 'fast'"):
+        plant('fast')
+
+
+# --- trajectory -----------------------------------------------------------------------------
+
+def sine() -> object:
+    return make_trajectory(TrajectoryParams.from_flat({'kind': 'sine'}))
+
+
+def test_trajectory_answers_each_stamp_with_the_offline_times():
+    traj = sine()
+    logic = TrajectoryLogic(traj, sample_rate_hz=RATE, chunk_s=0.01)
+    start = 7_000_000_000
+    ks = [0, 1, 2, 99, 100, 101, 250, 3]
+    got = [logic.on_position(start + k * 100_000) for k in ks]
+    ref, vel = traj.evaluate(np.array(ks, dtype=float) * (1.0 / RATE))
+    np.testing.assert_allclose([g[0] for g in got], ref, rtol=0, atol=1e-18)
+    np.testing.assert_allclose([g[1] for g in got], vel, rtol=1e-12)
+    assert logic.on_position(start - 100_000)[0] == got[0][0]  # older than the start
+
+
+def test_trajectory_start_stop_and_switch_take_effect_at_the_next_sample():
+    logic = TrajectoryLogic(sine(), sample_rate_hz=RATE, active=False)
+    x0 = sine().evaluate(np.zeros(1))[0][0]
+    assert logic.on_position(0) == (x0, 0.0)          # inactive: hold x_d(0)
+    logic.start()
+    assert logic.on_position(500_000) == (x0, logic.on_position(500_000)[1])
+    moving = logic.on_position(600_000)
+    assert moving[0] != x0
+    logic.stop()
+    assert logic.on_position(700_000) == (moving[0], 0.0)  # holds the last reference
+    logic.start()
+    assert logic.on_position(800_000)[0] == x0         # restarts at t = 0
+    square = make_trajectory(TrajectoryParams.from_flat({'kind': 'square'}))
+    logic.switch(square)
+    assert logic.on_position(900_000)[0] == square.evaluate(np.zeros(1))[0][0]
+
+
+# --- controller -----------------------------------------------------------------------------
+
+def pi_controller(kp: float = 1.5) -> object:
+    return build_controller(ControllerParams.from_flat({'type': 'pi', 'pi.k_p': kp}), 1e-4)
+
+
+def test_controller_steps_once_per_stamp_whatever_the_order():
+    logic = ControllerLogic(pi_controller(), diagnostics_every=2)
+    assert logic.on_reference(0, 4e-6, 0.0) is None
+    first = logic.on_position(0, 3.8e-6, 0.0)
+    assert first is not None and first.stamp_ns == 0 and first.diagnostics is not None
+    assert len(first.diagnostics) == len(logic.names) > 0
+    assert logic.on_position(0, 3.8e-6, 0.0) is None                 # the same sample again
+    assert logic.on_reference(0, 4e-6, 0.0) is None
+    assert logic.on_position(100_000, 3.9e-6, 0.0) is None           # waits for its reference
+    second = logic.on_reference(100_000, 4e-6, 0.0)
+    assert second.stamp_ns == 100_000 and second.diagnostics is None  # every 2nd sample
+    logic.on_position(200_000, 3.9e-6, 0.0)
+    assert logic.on_reference(100_000, 4e-6, 0.0) is None            # old reference: no pair
+    assert logic.on_reference(200_000, 4e-6, 0.0).diagnostics is not None
+    assert logic.steps == 3 and logic.duplicates >= 1
+
+
+def test_controller_matches_a_plain_loop():
+    reference = pi_controller()
+    logic = ControllerLogic(pi_controller())
+    reference.reset(3.8e-6, 4e-6)
+    for k in range(50):
+        y, xd, vd = 3.8e-6 + 1e-9 * k, 4e-6 + 2e-9 * k, 2e-5
+        logic.on_position(k * 100_000, y, 0.0)
+        assert logic.on_reference(k * 100_000, xd, vd).voltage_v == reference.step(y, xd, vd)
+
+
+def test_controller_watchdog_realtime_only_and_reset_after_silence():
+    rt = ControllerLogic(pi_controller(), mode='realtime', safe_voltage_v=0.5,
+                         position_timeout_s=0.01)
+    assert rt.on_check(1.0) is None                   # unarmed before the first position
+    rt.on_position(0, 3.8e-6, 1.0)
+    rt.on_reference(0, 4e-6, 0.0)
+    assert rt.on_check(1.005) is None
+    out = rt.on_check(1.02)
+    assert out.voltage_v == 0.5 and out.stamp_ns == -1 and rt.watchdog.trips == 1
+    rt.on_position(100_000, 3.8e-6, 1.03)
+    fresh = pi_controller()
+    fresh.reset(3.8e-6, 4e-6)
+    assert rt.on_reference(100_000, 4e-6, 0.0).voltage_v == fresh.step(3.8e-6, 4e-6, 0.0)
+    ls = ControllerLogic(pi_controller(), mode='lockstep', position_timeout_s=0.01)
+    ls.on_position(0, 3.8e-6, 0.0)
+    assert ls.on_check(100.0) is None
+
+
+def test_gain_changes_apply_at_the_next_sample():
+    built = []
+
+    def rebuild(params):
+        built.append(params)
+        return build_controller(params, 1e-4)
+
+    logic = ControllerLogic(pi_controller(), rebuild=rebuild)
+    logic.on_position(0, 3.8e-6, 0.0)
+    before = logic.on_reference(0, 4e-6, 0.0).voltage_v
+    new = ControllerParams.from_flat({'type': 'pi', 'pi.k_p': 3.0})
+    logic.request_change(new)
+    assert built == []                                 # nothing changes between samples
+    logic.on_position(100_000, 3.8e-6, 0.0)
+    after = logic.on_reference(100_000, 4e-6, 0.0).voltage_v
+    assert built == [new] and logic.changes == 1
+    check = build_controller(new, 1e-4)
+    check.reset(3.8e-6, 4e-6)
+    assert after == check.step(3.8e-6, 4e-6, 0.0) and after != before
+
+    class Updatable:
+        sample_time_s = 1e-4
+        gain = 1.0
+
+        def reset(self, position_m, reference_m):
+            pass
+
+        def step(self, position_m, reference_m, reference_velocity_mps):
+            return self.gain
+
+        def diagnostics(self):
+            return {}
+
+        def update_params(self, params):
+            self.gain = params
+
+    keep = ControllerLogic(Updatable())
+    keep.request_change(2.0)
+    keep.on_position(0, 0.0, 0.0)
+    assert keep.on_reference(0, 0.0, 0.0).voltage_v == 2.0
+    stuck = ControllerLogic(pi_controller())
+    stuck.request_change(new)
+    stuck.on_position(0, 0.0, 0.0)
+    with pytest.raises(PiezoStageError, match='update_params'):
+        stuck.on_reference(0, 0.0, 0.0)
