@@ -130,9 +130,9 @@ class RACParams(Params):
     docs/controllers.md); the paper's values are quoted in each description.
     """
 
-    k_d: float = param(1.0, unit='V/V', description='Feedback gain k_d on s, eq. (36) (paper '
+    k_d: float = param(0.5, unit='V/V', description='Feedback gain k_d on s, eq. (36) (paper '
                        '1.5).', low=0.0, low_open=True)
-    lambda_per_s: float = param(3000.0, unit='1/s', description='Integral weight lambda of '
+    lambda_per_s: float = param(4500.0, unit='1/s', description='Integral weight lambda of '
                                 's = e + lambda * int(e), eq. (33) (paper 1500).', low=0.0,
                                 low_open=True)
     epsilon_v: float = param(0.2, unit='V (sensor)', description='Boundary-layer width epsilon '
@@ -217,7 +217,7 @@ class NotchParams(Params):
                                 low=0.0, low_open=True)
     zero_damping: float = param(0.084, unit='-', description='Damping of the notch zeros in '
                                 'manual mode (depth: 0 = infinitely deep).', low=0.0, high=1.0)
-    pole_damping: float = param(0.7, unit='-', description='Damping of the notch poles '
+    pole_damping: float = param(1.0, unit='-', description='Damping of the notch poles '
                                 '(width), both modes.', low=0.0, low_open=True, high=2.0)
 
 
