@@ -1,0 +1,349 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+``identify``: stage model parameters from recorded bags, section III-D of the paper.
+
+Reads one or more bags (a small-amplitude noise or chirp run, a small step run, a sine run such
+as 1 + sin(2 pi 100 t) V), decides what each is for from its command signal (or from
+``--noise/--step/--sine``), runs :func:`piezo_stage_ros.core.identification.identify` and writes
+
+- a ROS 2 parameter file (``--output``, default ``identified.yaml``) with a ``plant_node``
+  section (every stage parameter, dotted names as :meth:`StageParams.to_flat` gives them, the
+  loop rate excepted) and the model-dependent ``controller_node`` values; ``simulate --config``,
+  the plant node and the controller node read it directly;
+- a report with the figures (``--report DIR``, default ``identification_report``).
+
+The signal chain of the recordings (DAC, amplifier range) and everything that is not identified
+come from ``config/default.yaml`` and ``--config FILE``. Examples::
+
+    identify noise_bag step_bag sine_bag
+    identify --sine sine_bag --noise noise_bag --step step_bag --output stage.yaml
+    identify --simulate /tmp/idbags --perturb 3     # simulated bags of a perturbed stage,
+                                                    # identified, with a recovered-vs-true table
+
+Exit status: 0 on success, 1 on bad data or parameters (missing bag, no excitation, failed fit),
+2 on bad command-line usage; the error is one line on stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+import sys
+from typing import Any, Mapping, NoReturn, Sequence
+
+from piezo_stage_ros.core.config import find_config, load_config
+from piezo_stage_ros.core.errors import ConfigError, PiezoStageError
+from piezo_stage_ros.core.identification import (
+    IdentificationParams,
+    IdentificationResult,
+    pscm_gain,
+)
+from piezo_stage_ros.core.record import RunRecord
+from piezo_stage_ros.core.stage import StageParams
+import yaml
+
+__all__ = ['build_parser', 'controller_values', 'main', 'parameter_file_text']
+
+PROG = 'identify'
+
+
+class _UsageError(Exception):
+    """Bad command-line usage (argparse would otherwise exit with its own message)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> NoReturn:
+        raise _UsageError(message)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Return the command-line parser of ``identify``."""
+    p = _Parser(prog=PROG, description='Identify the stage model (linear plant and hysteresis) '
+                'from recorded bags, as in section III-D of the paper, and write a parameter '
+                'file and a report.')
+    p.add_argument('bags', nargs='*', metavar='BAG',
+                   help='Bags to use; each is classified by its command (step: few jumps; sine: '
+                   'one frequency; otherwise frequency response).')
+    p.add_argument('--noise', action='append', default=[], metavar='BAG',
+                   help='Bag of a noise or chirp run (frequency response).')
+    p.add_argument('--step', action='append', default=[], metavar='BAG',
+                   help='Bag of a step run (transient response).')
+    p.add_argument('--sine', action='append', default=[], metavar='BAG',
+                   help='Bag of a sine run (hysteresis).')
+    p.add_argument('--config', action='append', default=[], metavar='FILE',
+                   help='Parameter file on top of config/default.yaml: the signal chain of the '
+                   'recordings and the values that are not identified.')
+    p.add_argument('--output', default='identified.yaml', metavar='FILE',
+                   help='Parameter file to write (default: identified.yaml).')
+    p.add_argument('--report', default='identification_report', metavar='DIR',
+                   help="Directory for the figures and report.md; 'none' to skip.")
+    p.add_argument('--model', choices=('backlash_like', 'bouc_wen', 'prandtl_ishlinskii'),
+                   default='backlash_like', help='Hysteresis model to fit on the sine run.')
+    p.add_argument('--hysteresis-slope', type=float, metavar='C',
+                   help='Convention splitting the static gain k_p c: the hysteresis slope (c, '
+                   "d_p or p0 + sum p_i); default the configuration's value of the model.")
+    p.add_argument('--pscm', nargs=2, type=float, metavar=('X0_M', 'X10_M'),
+                   help='Positions [m] where the sensor reads 0 V and 10 V: K_PSCM by eq. (15) '
+                   'for the output file.')
+    p.add_argument('--free-omega', action='store_true',
+                   help='Fit w_n in the step fit too (the paper keeps it from the frequency '
+                   'response).')
+    p.add_argument('--simulate', metavar='DIR',
+                   help='First simulate the three identification runs of a stage (the '
+                   'configured one, or --perturb) as bags in DIR, then identify them.')
+    p.add_argument('--perturb', type=int, metavar='SEED',
+                   help="With --simulate: the true stage is the paper's with every identified "
+                   'parameter changed by up to +-30 %% (drawn from SEED).')
+    p.add_argument('--sensor-noise', type=float, default=2e-9, metavar='M',
+                   help='With --simulate: sensor noise [m rms] (default 2e-9).')
+    p.add_argument('--sample-rate', type=float, default=20000.0, metavar='HZ',
+                   help='With --simulate: rate of the identification runs (default 20000).')
+    p.add_argument('--overwrite', action='store_true',
+                   help='Replace existing bags in the --simulate directory.')
+    return p
+
+
+def _err(message: str) -> None:
+    print(f'{PROG}: error: {message}', file=sys.stderr)
+
+
+def _nested(flat: Mapping[str, Any]) -> dict[str, Any]:
+    """Turn dotted names into nested mappings, as a ROS 2 parameter file holds them."""
+    out: dict[str, Any] = {}
+    for name, value in flat.items():
+        node = out
+        parts = name.split('.')
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+        node[parts[-1]] = value
+    return out
+
+
+def controller_values(stage: StageParams) -> dict[str, Any]:
+    """
+    Return the controller_node parameters that depend on the identified model.
+
+    Parameters
+    ----------
+    stage : StageParams
+        The identified stage.
+
+    Returns
+    -------
+    dict
+        ``open_loop.gain_v_per_m`` = 1/(k_p c); ``sensor_gain_v_per_m`` = K_PSCM; for the
+        backlash-like model ``rac.rho_v`` = (c - B1)/alpha and ``stability.slope_min/max`` =
+        2 B1 - c and c (the range of dw/dv the stability check covers); ``rac.k_star_v`` is
+        raised to rho_v / c_min (c_min = 1) when the default 0.2 V is below it (Theorem 1).
+
+    """
+    third = stage.plant.third_order
+    h = stage.hysteresis
+    out: dict[str, Any] = {'sensor_gain_v_per_m': stage.chain.sensor_gain_v_per_m}
+    if h.model == 'backlash_like':
+        bl = h.backlash_like
+        static = third.gain / third.a2 * bl.c
+        rho = (bl.c - bl.b1) / bl.alpha
+        out['open_loop.gain_v_per_m'] = 1.0 / static
+        out['rac.rho_v'] = rho
+        if rho > 0.2:
+            out['rac.k_star_v'] = rho
+        out['stability.slope_min'] = max(2.0 * bl.b1 - bl.c, 1e-6)
+        out['stability.slope_max'] = bl.c
+    return out
+
+
+def parameter_file_text(stage: StageParams, *, header: Sequence[str] = ()) -> str:
+    """
+    Return a ROS 2 parameter file with the identified stage and controller values.
+
+    Parameters
+    ----------
+    stage : StageParams
+        The identified stage; every parameter but ``sample_rate_hz`` (a property of the loop,
+        not of the stage) goes into ``plant_node``.
+    header : sequence of str
+        Comment lines put at the top.
+
+    Returns
+    -------
+    str
+        YAML text; :func:`piezo_stage_ros.core.config.load_config` reads it and
+        ``StageParams.from_flat(config.node('plant_node'))`` gives ``stage`` back.
+
+    """
+    flat = {k: v for k, v in stage.to_flat().items() if k != 'sample_rate_hz'}
+    doc = {'plant_node': {'ros__parameters': _nested(flat)},
+           'controller_node': {'ros__parameters': _nested(controller_values(stage))}}
+    lines = [f'# {line}' for line in header]
+    return '\n'.join(lines + [yaml.safe_dump(doc, sort_keys=False, default_flow_style=False)])
+
+
+def _read_bags(paths: Sequence[tuple[str, str | None]]) -> list[tuple[RunRecord, str | None]]:
+    from piezo_stage_ros.analysis.bagio import read_run
+    out = []
+    for path, role in paths:
+        if not Path(path).exists():
+            raise ConfigError(f'bag {path!r} does not exist')
+        out.append((read_run(path), role))
+    return out
+
+
+def _simulate(args: argparse.Namespace, base: StageParams) -> tuple[list[str], StageParams]:
+    from piezo_stage_ros.analysis.bagio import write_run
+    from piezo_stage_ros.core.identification_experiments import (
+        ExperimentPlan,
+        perturbed_stage,
+        run_experiments,
+    )
+    true, _ = perturbed_stage(args.perturb, base=base) if args.perturb is not None else (
+        base, None)
+    true = true.replace(chain=true.chain.replace(sensor_noise_std_m=args.sensor_noise))
+    runs = run_experiments(true, ExperimentPlan(sample_rate_hz=args.sample_rate))
+    out = Path(args.simulate)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for name, rec in runs.items():
+        path = out / name
+        write_run(rec, path, overwrite=args.overwrite)
+        paths.append(str(path))
+    return paths, true
+
+
+def _true_stage(records: Sequence[RunRecord]) -> StageParams | None:
+    """Return the true stage that simulated runs carry in their meta, if they all agree."""
+    found = [r.meta.get('true_stage') for r in records]
+    first = found[0] if found else None
+    if not isinstance(first, dict) or any(f != first for f in found[1:]):
+        return None
+    try:
+        return StageParams.from_flat(first)
+    except PiezoStageError:
+        return None
+
+
+def _summary_lines(result: IdentificationResult) -> list[str]:
+    s = result.summary()
+    lines = [f'static gain k_p c = {s["static_gain_m_per_v"]:.6g} m/V',
+             f'k_p = {s["gain_m_per_v"]:.6g} m/V, w_n = {s["omega_n_rad_s"]:.6g} rad/s, '
+             f'zeta = {s["zeta"]:.5g}, tau = {s["tau_s"]:.6g} s',
+             f'K = {s["K"]:.6g}, a0 = {s["a0"]:.6g}, a1 = {s["a1"]:.6g}, a2 = {s["a2"]:.6g}']
+    if 'alpha' in s:
+        lines.append(f'alpha = {s["alpha"]:.5g}, c = {s["c"]:.5g}, B1 = {s["b1"]:.5g}')
+    elif result.hysteresis is not None:
+        lines.append(', '.join(f'{k} = {v:.5g}' for k, v in result.hysteresis.estimates.items()))
+    return lines
+
+
+def _run(args: argparse.Namespace) -> int:
+    from piezo_stage_ros.core.identification import identify
+    config = load_config([find_config('default.yaml'), *args.config])
+    base = StageParams.from_flat(config.node('plant_node'))
+    inputs: list[tuple[str, str | None]] = [(b, None) for b in args.bags]
+    inputs += [(b, 'frequency') for b in args.noise] + [(b, 'step') for b in args.step]
+    inputs += [(b, 'hysteresis') for b in args.sine]
+    true_stage = None
+    if args.simulate is not None:
+        paths, true_stage = _simulate(args, base)
+        inputs += [(p, None) for p in paths]
+    elif args.perturb is not None:
+        raise _UsageError('--perturb needs --simulate DIR')
+    if not inputs:
+        raise _UsageError('no bag given (BAG..., --noise, --step, --sine or --simulate DIR)')
+    loaded = _read_bags(inputs)
+    records = [r for r, _ in loaded]
+    if true_stage is None:
+        true_stage = _true_stage(records)
+    slope = args.hysteresis_slope
+    if slope is None:
+        slope = _model_slope(base, args.model)
+    params = IdentificationParams(hysteresis_model=args.model, hysteresis_slope=slope,
+                                  step_fixes_omega=not args.free_omega)
+    result = identify(records, base, params, roles=[role for _, role in loaded])
+    stage = result.stage
+    if args.pscm is not None:
+        x0, x10 = args.pscm
+        stage = stage.replace(chain=stage.chain.replace(
+            sensor_gain_v_per_m=pscm_gain(x0, x10), sensor_offset_m=x0))
+    header = ['Identified by: identify ' + ' '.join(sys.argv[1:] if args.argv is None
+                                                    else args.argv),
+              f'Hysteresis slope convention: {slope:g} (only k_p times the slope is '
+              'identifiable, see docs/identification.md).']
+    text = parameter_file_text(stage, header=header)
+    Path(args.output).write_text(text, encoding='utf-8')
+    for line in _summary_lines(result):
+        print(line)
+    for note in result.notes:
+        print(f'note: {note}')
+    print(f'parameter file: {args.output}')
+    if args.report.lower() != 'none':
+        from piezo_stage_ros.analysis.identification_report import write_report
+        files = write_report(result, args.report, true_stage=true_stage,
+                             extra={'parameter file': args.output})
+        print(f'report: {files[-1]}')
+    if true_stage is not None:
+        from piezo_stage_ros.analysis.identification_report import comparison_rows, format_table
+        print()
+        print(format_table(comparison_rows(result, true_stage)))
+    return 0
+
+
+def _model_slope(base: StageParams, model: str) -> float:
+    h = base.hysteresis
+    if model == 'backlash_like':
+        return h.backlash_like.c
+    if model == 'bouc_wen':
+        return h.bouc_wen.d_p
+    p = h.prandtl_ishlinskii
+    return p.p0 + sum(p.weights)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """
+    Run ``identify``.
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        Command-line arguments without the program name; default ``sys.argv[1:]``.
+
+    Returns
+    -------
+    int
+        Exit status: 0 success, 1 bad data / parameters / failed fit, 2 bad usage.
+
+    """
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+        args.argv = None if argv is None else list(argv)
+        return _run(args)
+    except _UsageError as exc:
+        _err(f'{exc} (see {PROG} --help)')
+        return 2
+    except PiezoStageError as exc:
+        _err(str(exc))
+        return 1
+    except OSError as exc:
+        _err(f'{exc.filename or ""}: {exc.strerror}')
+        return 1
+    except KeyboardInterrupt:
+        _err('interrupted')
+        return 130
+
+
+if __name__ == '__main__':
+    sys.exit(main())
