@@ -80,12 +80,15 @@ def _diagnostic_reader(controller: Controller
     if isinstance(names, tuple) and callable(values):
         return tuple(str(n) for n in names), values
     first: Mapping[str, float] = controller.diagnostics()
-    keys = tuple(sorted(first))
+    keys = tuple(first)
     diagnostics = controller.diagnostics
 
     def read() -> Sequence[float]:
         d = diagnostics()
-        return [float(d.get(k, math.nan)) for k in keys]
+        try:
+            return [d[k] for k in keys]
+        except KeyError:  # a controller whose diagnostics change shape: NaN for the missing
+            return [d.get(k, math.nan) for k in keys]
     return keys, read
 
 
@@ -182,28 +185,36 @@ def run(stage: Plant, controller: Controller, trajectory: Trajectory, *, duratio
         if ref.shape != time_s.shape or vel.shape != time_s.shape:
             raise PiezoStageError('trajectory.evaluate returned arrays of shape '
                                   f'{ref.shape} and {vel.shape}, expected {time_s.shape}')
-        pos_out = [0.0] * n
-        cmd_out = [0.0] * n
+        pos_out: list[float] = []
+        cmd_out: list[float] = []
+        pos_append = pos_out.append
+        cmd_append = cmd_out.append
         diag_rows: list[Sequence[float]] = []
+        ref_l = ref.tolist()
+        vel_l = vel.tolist()
         if read_diag is None:
             # the hot loop: plain floats, bound methods in locals, no allocation per sample
-            for i, (xd, vd) in enumerate(zip(ref.tolist(), vel.tolist())):
+            for xd, vd in zip(ref_l, vel_l):
                 u = ctrl_step(y, xd, vd)
-                pos_out[i] = y
-                cmd_out[i] = u
+                pos_append(y)
+                cmd_append(u)
                 y = plant_step(u)
         else:
+            # blocks of `every` samples: the diagnostics are read after the first step of each
+            # block (and held over it), the rest of the block runs the plain loop
             every = diagnostics_every
-            countdown = 0
-            for i, (xd, vd) in enumerate(zip(ref.tolist(), vel.tolist())):
-                u = ctrl_step(y, xd, vd)
-                pos_out[i] = y
-                cmd_out[i] = u
-                if countdown == 0:
-                    diag_rows.append(read_diag())
-                    countdown = every
-                countdown -= 1
+            diag_append = diag_rows.append
+            for b0 in range(0, n, every):
+                u = ctrl_step(y, ref_l[b0], vel_l[b0])
+                pos_append(y)
+                cmd_append(u)
+                diag_append(read_diag())
                 y = plant_step(u)
+                for xd, vd in zip(ref_l[b0 + 1:b0 + every], vel_l[b0 + 1:b0 + every]):
+                    u = ctrl_step(y, xd, vd)
+                    pos_append(y)
+                    cmd_append(u)
+                    y = plant_step(u)
         diagnostics: dict[str, FloatArray] = {}
         if names:
             table = np.asarray(diag_rows, dtype=np.float64).reshape(len(diag_rows), len(names))

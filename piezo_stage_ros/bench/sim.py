@@ -1,0 +1,280 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Simulation benchmark: how fast the offline closed loop, the batch stage and a controller run.
+
+Figures (the issue's targets in brackets):
+
+- simulated seconds per wall second of one stage + RAC at 10 kHz through
+  :func:`piezo_stage_ros.core.closed_loop.run`, per plant model (>= 20, aim 100);
+- the same loop split into its parts: stage step, controller step, loop overhead [us/sample],
+  so that a shortfall names what dominates;
+- stage-steps per second of a :class:`~piezo_stage_ros.core.stage.StageBatch` of 1000 stages
+  (>= 1e7);
+- median and 99th percentile of one controller step, timed one by one with
+  ``time.perf_counter_ns`` (the timer's own cost, measured on an empty call, is reported too).
+
+Every figure is the best of ``repeats`` measurements: the machine is shared, and the best run is
+the least disturbed estimate of what the code costs. Timings are noisy; treat them as such.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+import math
+import time
+from typing import Any
+
+import numpy as np
+from piezo_stage_ros.core import closed_loop
+from piezo_stage_ros.core.controllers import build_controller, ControllerParams
+from piezo_stage_ros.core.stage import Stage, StageBatch, StageParams
+from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+
+__all__ = ['batch_speed', 'closed_loop_speed', 'controller_step_times', 'loop_breakdown',
+           'run_sim_benchmark']
+
+
+def _best(func: Callable[[], float], repeats: int) -> float:
+    return min(func() for _ in range(max(repeats, 1)))
+
+
+def closed_loop_speed(plant: str = 'third_order', controller: str = 'rac', *,
+                      duration_s: float = 2.0, repeats: int = 3) -> float:
+    """
+    Return simulated seconds per wall second of one closed loop at the configured rate.
+
+    Parameters
+    ----------
+    plant : str
+        Plant model (``'reduced'``, ``'third_order'``, ``'electromechanical'``).
+    controller : str
+        Controller type.
+    duration_s : float
+        Simulated time per measurement [s].
+    repeats : int
+        Measurements; the fastest counts.
+
+    Returns
+    -------
+    float
+        Simulated s / wall s (a 100 Hz sine, diagnostics recorded every 10 samples).
+
+    """
+    sp = StageParams().with_flat({'plant.model': plant})
+    cp = ControllerParams(type=controller)
+    tp = TrajectoryParams.from_flat({'kind': 'sine', 'sine.frequency_hz': 100.0})
+
+    def once() -> float:
+        stage = Stage(sp)
+        ctrl = build_controller(cp, sp.sample_time_s)
+        traj = make_trajectory(tp)
+        t0 = time.perf_counter()
+        closed_loop.run(stage, ctrl, traj, duration_s=duration_s)
+        return time.perf_counter() - t0
+    return duration_s / _best(once, repeats)
+
+
+def loop_breakdown(plant: str = 'third_order', controller: str = 'rac', *,
+                   steps: int = 100_000, repeats: int = 3) -> dict[str, float]:
+    """
+    Return the cost of the parts of one loop sample [us].
+
+    Parameters
+    ----------
+    plant : str
+        Plant model.
+    controller : str
+        Controller type.
+    steps : int
+        Samples per measurement.
+    repeats : int
+        Measurements; the fastest counts.
+
+    Returns
+    -------
+    dict
+        ``stage_us`` (``Stage.step`` alone), ``controller_us`` (``step`` alone), ``loop_us``
+        (the whole closed loop per sample) and ``overhead_us`` (loop minus both parts:
+        reference, recording, diagnostics).
+
+    """
+    sp = StageParams().with_flat({'plant.model': plant})
+    cp = ControllerParams(type=controller)
+    rng = np.random.default_rng(0)
+    cmds = (1.3 + 0.5 * rng.standard_normal(steps)).tolist()
+    positions = (3.8e-6 + 1e-7 * rng.standard_normal(steps)).tolist()
+
+    def stage_once() -> float:
+        step = Stage(sp).step
+        t0 = time.perf_counter()
+        for u in cmds:
+            step(u)
+        return time.perf_counter() - t0
+
+    def ctrl_once() -> float:
+        ctrl = build_controller(cp, sp.sample_time_s)
+        ctrl.reset(3.8e-6, 3.8e-6)
+        step = ctrl.step
+        t0 = time.perf_counter()
+        for y in positions:
+            step(y, 3.8e-6, 0.0)
+        return time.perf_counter() - t0
+
+    stage_us = _best(stage_once, repeats) / steps * 1e6
+    ctrl_us = _best(ctrl_once, repeats) / steps * 1e6
+    loop_us = 1e6 / (closed_loop_speed(plant, controller, duration_s=steps * sp.sample_time_s,
+                                       repeats=repeats) * sp.sample_rate_hz)
+    return {'stage_us': stage_us, 'controller_us': ctrl_us, 'loop_us': loop_us,
+            'overhead_us': loop_us - stage_us - ctrl_us}
+
+
+def batch_speed(n: int = 1000, steps: int = 2000, *, plant: str = 'third_order',
+                repeats: int = 3) -> float:
+    """
+    Return stage-steps per second of a :class:`StageBatch` of ``n`` stages.
+
+    Parameters
+    ----------
+    n : int
+        Stages in the batch.
+    steps : int
+        Samples per measurement.
+    plant : str
+        Plant model.
+    repeats : int
+        Measurements; the fastest counts.
+
+    Returns
+    -------
+    float
+        n * steps / wall seconds.
+
+    """
+    sp = StageParams().with_flat({'plant.model': plant})
+    rng = np.random.default_rng(0)
+    commands = 1.3 + 0.5 * rng.standard_normal((steps, n))
+
+    def once() -> float:
+        batch = StageBatch(sp, n)
+        step = batch.step
+        t0 = time.perf_counter()
+        for row in commands:
+            step(row)
+        return time.perf_counter() - t0
+    return n * steps / _best(once, repeats)
+
+
+def controller_step_times(controller: str = 'rac', *, steps: int = 200_000
+                          ) -> dict[str, float]:
+    """
+    Return the median and 99th percentile of one controller step [ns].
+
+    Parameters
+    ----------
+    controller : str
+        Controller type.
+    steps : int
+        Steps timed one by one.
+
+    Returns
+    -------
+    dict
+        ``median_ns``, ``p99_ns``, ``max_ns`` of the step, and ``timer_ns``, the median of an
+        empty timed call (already included in the step figures).
+
+    """
+    ctrl = build_controller(ControllerParams(type=controller), 1e-4)
+    ctrl.reset(3.8e-6, 3.8e-6)
+    step = ctrl.step
+    clock = time.perf_counter_ns
+    rng = np.random.default_rng(1)
+    t = np.arange(steps) * 1e-4
+    ref = (3.8e-6 + 3.8e-6 * np.sin(2 * np.pi * 100 * t)).tolist()
+    vel = (3.8e-6 * 2 * np.pi * 100 * np.cos(2 * np.pi * 100 * t)).tolist()
+    pos = (np.asarray(ref) + 2e-8 * rng.standard_normal(steps)).tolist()
+    out = np.empty(steps, dtype=np.int64)
+    for k in range(steps):
+        t0 = clock()
+        step(pos[k], ref[k], vel[k])
+        out[k] = clock() - t0
+    empty = np.empty(10_000, dtype=np.int64)
+    for k in range(empty.size):
+        t0 = clock()
+        empty[k] = clock() - t0
+    return {'median_ns': float(np.median(out)), 'p99_ns': float(np.percentile(out, 99)),
+            'max_ns': float(np.max(out)), 'timer_ns': float(np.median(empty))}
+
+
+def run_sim_benchmark(*, duration_s: float = 2.0, batch: int = 1000, batch_steps: int = 2000,
+                      controller_steps: int = 200_000, repeats: int = 3,
+                      echo: bool = True) -> dict[str, Any]:
+    """
+    Run every simulation figure and print one line each.
+
+    Parameters
+    ----------
+    duration_s : float
+        Simulated time of each closed-loop measurement [s].
+    batch : int
+        Stages in the batch measurement.
+    batch_steps : int
+        Samples of the batch measurement.
+    controller_steps : int
+        Controller steps timed one by one.
+    repeats : int
+        Measurements per figure; the fastest counts.
+    echo : bool
+        Print the figures.
+
+    Returns
+    -------
+    dict
+        ``realtime_<plant>`` (sim s / wall s, RAC), ``breakdown_<plant>`` (dict, us/sample),
+        ``batch_steps_per_s``, ``rac_step`` and ``pi_step`` (dicts, ns), and the targets.
+
+    """
+    def say(text: str) -> None:
+        if echo:
+            print(text, flush=True)
+
+    out: dict[str, Any] = {'targets': {'realtime': 20.0, 'realtime_aim': 100.0,
+                                       'batch_steps_per_s': 1e7}}
+    say('simulation benchmark (best of {} runs; the machine is shared, figures are noisy)'
+        .format(repeats))
+    for plant in ('reduced', 'third_order', 'electromechanical'):
+        rt = closed_loop_speed(plant, 'rac', duration_s=duration_s, repeats=repeats)
+        out[f'realtime_{plant}'] = rt
+        verdict = 'met' if rt >= 20 else 'NOT met'
+        say(f'  closed loop, RAC + {plant:17s} {rt:8.1f} simulated s per wall s '
+            f'({rt * 1e4:,.0f} samples/s; target >= 20: {verdict})')
+    for plant in ('reduced', 'third_order'):
+        b = loop_breakdown(plant, 'rac', repeats=repeats)
+        out[f'breakdown_{plant}'] = b
+        say(f'  per sample, {plant:11s}: stage {b["stage_us"]:.2f} us + RAC '
+            f'{b["controller_us"]:.2f} us + loop {b["overhead_us"]:.2f} us = '
+            f'{b["loop_us"]:.2f} us')
+    bs = batch_speed(batch, batch_steps, repeats=repeats)
+    out['batch_steps_per_s'] = bs
+    say(f'  StageBatch of {batch} (third_order): {bs:.3g} stage-steps/s '
+        f'(target >= 1e7: {"met" if bs >= 1e7 else "NOT met"}; {bs / 1e7:.2f}x)')
+    for ctype in ('rac', 'pi'):
+        st = controller_step_times(ctype, steps=controller_steps)
+        out[f'{ctype}_step'] = st
+        say(f'  {ctype.upper():3s} step: median {st["median_ns"]:.0f} ns, p99 '
+            f'{st["p99_ns"]:.0f} ns, max {st["max_ns"]:.0f} ns (timer alone '
+            f'{st["timer_ns"]:.0f} ns, included)')
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+            for k, v in out.items()}

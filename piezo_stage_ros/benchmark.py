@@ -1,0 +1,130 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+``benchmark``: speed figures of the simulation and of the bag tools (a command, not a test).
+
+``--suite sim`` (default): simulated seconds per wall second of one stage + RAC at 10 kHz per
+plant model, the per-sample cost split into stage / controller / loop, stage-steps per second
+of a batch of 1000 stages, controller step median and p99
+(:mod:`piezo_stage_ros.bench.sim`). ``--suite bags``: bag write / read / analysis throughput
+(:mod:`piezo_stage_ros.bench.bags`, when installed). ``--suite all``: both. ``--json`` prints
+one JSON object on stdout (the readable lines then go to stderr).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import importlib
+import json
+import math
+import sys
+from typing import Any, NoReturn, Sequence
+
+__all__ = ['main']
+
+PROG = 'benchmark'
+
+
+class _UsageError(Exception):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> NoReturn:
+        raise _UsageError(message)
+
+
+def _positive(kind: type) -> Any:
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
+        if not (value > 0 and math.isfinite(value)):
+            raise argparse.ArgumentTypeError(f'{text!r} must be positive')
+        return value
+    return parse
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = _Parser(prog=PROG, description='Print speed figures of the simulation and bag tools.')
+    p.add_argument('--suite', choices=('sim', 'bags', 'all'), default='sim',
+                   help='What to measure (default sim).')
+    p.add_argument('--duration', type=_positive(float), default=2.0, metavar='S',
+                   help='Simulated seconds per closed-loop measurement (default 2).')
+    p.add_argument('--batch', type=_positive(int), default=1000, metavar='N',
+                   help='Stages in the batch measurement (default 1000).')
+    p.add_argument('--repeats', type=_positive(int), default=3, metavar='N',
+                   help='Measurements per figure; the fastest counts (default 3).')
+    p.add_argument('--controller-steps', type=_positive(int), default=200_000, metavar='N',
+                   help='Controller steps timed one by one (default 200000).')
+    p.add_argument('--bag-duration', type=_positive(float), default=60.0, metavar='S',
+                   help='Length of the run of the bag benchmark (default 60 s).')
+    p.add_argument('--json', action='store_true', help='Print one JSON object on stdout.')
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """
+    Run ``benchmark``.
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        Arguments without the program name; default ``sys.argv[1:]``.
+
+    Returns
+    -------
+    int
+        0 on success, 1 when a suite is unavailable or fails, 2 on bad usage.
+
+    """
+    try:
+        args = _parser().parse_args(argv)
+    except _UsageError as exc:
+        print(f'{PROG}: error: {exc} (see {PROG} --help)', file=sys.stderr)
+        return 2
+    result: dict[str, Any] = {}
+    # with --json the readable lines go to stderr so stdout holds only the JSON object
+    lines = sys.stderr if args.json else sys.stdout
+    try:
+        with contextlib.redirect_stdout(lines):
+            if args.suite in ('sim', 'all'):
+                from piezo_stage_ros.bench.sim import run_sim_benchmark
+                result['sim'] = run_sim_benchmark(duration_s=args.duration, batch=args.batch,
+                                                  controller_steps=args.controller_steps,
+                                                  repeats=args.repeats)
+            if args.suite in ('bags', 'all'):
+                try:
+                    bags = importlib.import_module('piezo_stage_ros.bench.bags')
+                except ImportError as exc:
+                    print(f'{PROG}: error: the bag benchmark is not available ({exc})',
+                          file=sys.stderr)
+                    return 1
+                result['bags'] = bags.run_bag_benchmark(args.bag_duration)
+    except KeyboardInterrupt:
+        print(f'{PROG}: error: interrupted', file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - a benchmark reports any failure in one line
+        print(f'{PROG}: error: {type(exc).__name__}: {exc}', file=sys.stderr)
+        return 1
+    if args.json:
+        print(json.dumps(result, sort_keys=True, default=str))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
