@@ -27,9 +27,9 @@ Arguments (``ros2 launch piezo_stage_ros closed_loop.launch.py --show-args``):
 - ``record``: ``true`` records the stage topics with ``ros2 bag record`` into ``bag``;
 - ``namespace``: puts the stage's topics and nodes under it (several stages side by side).
 
-The controller's stability check needs the plant model: the launch file copies the
-``plant.*`` values of the plant_node section into the controller's ``stability.plant.*``
-unless the controller section sets them itself. When the plant ends its run the launch ends.
+The controller's stability check runs against the plant model the plant node runs, as
+``simulate`` does: the launch file copies the ``plant.*`` values of the plant_node section into
+the controller's ``stability.plant.*``. When the plant ends its run the launch ends.
 """
 
 # ruff takes `launch` for this repository's launch/ folder; for ament (flake8) it is the
@@ -83,9 +83,9 @@ def _launch(context: LaunchContext) -> list:
     controller = dict(common)
     if arg['controller']:
         controller['type'] = arg['controller']
-    ctrl_section = config.node('controller_node')
     for name, value in config.node('plant_node').items():
-        if name.startswith('plant.') and 'stability.' + name not in ctrl_section:
+        # the check runs on the plant this launch runs, as simulate does
+        if name.startswith('plant.'):
             controller['stability.' + name] = value
     trajectory = dict(common)
     ns = arg['namespace']

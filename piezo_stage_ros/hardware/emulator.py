@@ -240,7 +240,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         config = load_config([find_config(args.config)])
-        params = StageParams.from_flat(config.node('plant_node'))
+        # the plant node's own settings (mode, backend ...) sit beside the stage: skip them
+        fields = {spec.name.split('.', 1)[0] for spec in StageParams.specs()}
+        params = StageParams.from_flat({k: v for k, v in config.node('plant_node').items()
+                                        if k.split('.', 1)[0] in fields})
         emulator = TargetEmulator(params, port=args.port, idle_timeout_s=args.idle_timeout_s,
                                   max_requests=args.max_requests)
     except PiezoStageError as exc:

@@ -1,0 +1,227 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+ROS benchmarks (not tests): what the nodes reach on this machine's ROS 2 install.
+
+Run ``python3 -m piezo_stage_ros.bench.ros`` in a sourced Jazzy environment. Cases:
+
+- ``composed-lockstep``: plant, controller and trajectory nodes in this process on one
+  ``EventsExecutor``, lockstep, ``--lockstep-s`` of loop time: samples per second and the real-time
+  factor (loop time / wall time); once with ``use_sim_time`` on the controller and trajectory
+  nodes as the launch file sets it (every ``/clock`` message then also reaches their time
+  sources), once without;
+- ``composed-realtime``: the same nodes in real time for ``--realtime-s`` of wall time: the
+  sample rate held and the share of late samples (no new command since the previous sample);
+- ``cross-lockstep``: the plant here, controller and trajectory in a second process
+  (``stage_servo --nodes controller,trajectory``), lockstep.
+
+The runs use a ROS domain of their own (``--domain-id``) and localhost discovery, so that they
+neither see nor disturb other ROS graphs on the machine. Timings are those of a shared machine:
+compare them with each other, not with another day's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from typing import Any, Sequence
+
+__all__ = ['CASES', 'main', 'run_ros_benchmark']
+
+CASES = ('composed-lockstep', 'composed-realtime', 'cross-lockstep')
+STAGE = {'plant.model': 'reduced'}
+CONTROLLER = {'type': 'rac', 'stability.plant.model': 'reduced'}
+
+
+def _params(values: dict[str, Any]) -> list[Any]:
+    from rclpy.parameter import Parameter
+    return [Parameter(k, value=v) for k, v in values.items()]
+
+
+def _composed(mode: str, duration_s: float, sim_time: bool) -> dict[str, Any]:
+    from piezo_stage_ros.nodes.controller_node import ControllerNode
+    from piezo_stage_ros.nodes.plant_node import PlantNode
+    from piezo_stage_ros.nodes.runner import make_executor
+    from piezo_stage_ros.nodes.trajectory_node import TrajectoryNode
+    import rclpy
+    from rclpy.context import Context
+
+    context = Context()
+    rclpy.init(context=context)
+    nodes: list[Any] = []
+    try:
+        plant = PlantNode(context=context, parameter_overrides=_params(
+            {**STAGE, 'mode': mode, 'duration_s': duration_s, 'status_period_s': 3600.0}))
+        common = {'mode': mode, 'use_sim_time': sim_time and mode == 'lockstep'}
+        nodes = [plant,
+                 ControllerNode(context=context,
+                                parameter_overrides=_params({**CONTROLLER, **common})),
+                 TrajectoryNode(context=context, parameter_overrides=_params(common))]
+        executor = make_executor('events', context)
+        for node in nodes:
+            executor.add_node(node)
+        executor.spin_until_future_complete(plant.finished, timeout_sec=duration_s * 50 + 60)
+        if not plant.finished.done():
+            raise RuntimeError(f'{mode} run did not finish')
+        stats = dict(plant.finished.result())
+        for node in nodes:
+            executor.remove_node(node)
+        executor.shutdown()
+        return stats
+    finally:
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+def _cross(duration_s: float, executor: str) -> dict[str, Any]:
+    from piezo_stage_ros.nodes.plant_node import PlantNode
+    from piezo_stage_ros.nodes.runner import make_executor
+    import rclpy
+    from rclpy.context import Context
+
+    args = [sys.executable, '-m', 'piezo_stage_ros.nodes.stage_servo', '--nodes',
+            'controller,trajectory', '--executor', executor, '--ros-args']
+    for k, v in {**CONTROLLER, 'mode': 'lockstep'}.items():
+        args += ['-p', f'{k}:={v}']
+    helper = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                              text=True)
+    context = Context()
+    rclpy.init(context=context)
+    plant = None
+    try:
+        plant = PlantNode(context=context, parameter_overrides=_params(
+            {**STAGE, 'mode': 'lockstep', 'duration_s': duration_s,
+             'status_period_s': 3600.0}))
+        ex = make_executor(executor, context)
+        ex.add_node(plant)
+        ex.spin_until_future_complete(plant.finished, timeout_sec=duration_s * 50 + 60)
+        if not plant.finished.done():
+            raise RuntimeError('cross-process run did not finish: '
+                               + (helper.stderr.read() if helper.poll() is not None else ''))
+        ex.remove_node(plant)
+        ex.shutdown()
+        return dict(plant.finished.result())
+    finally:
+        if plant is not None:
+            plant.destroy_node()
+        rclpy.try_shutdown(context=context)
+        helper.terminate()
+        try:
+            helper.wait(10)
+        except subprocess.TimeoutExpired:
+            helper.kill()
+
+
+def run_ros_benchmark(cases: Sequence[str] = CASES, *, lockstep_s: float = 5.0,
+                      realtime_s: float = 60.0, domain_id: int | None = None
+                      ) -> dict[str, Any]:
+    """
+    Run the ROS benchmark cases and return their figures.
+
+    Parameters
+    ----------
+    cases : sequence of str
+        Among :data:`CASES`.
+    lockstep_s : float
+        Loop time of each lockstep run [s].
+    realtime_s : float
+        Wall time of the real-time run [s].
+    domain_id : int, optional
+        ROS domain of the runs; default 100 + pid % 100.
+
+    Returns
+    -------
+    dict
+        Per case: samples, wall time, samples per second, real-time factor, late and skipped
+        samples (plant counters).
+
+    """
+    os.environ['ROS_DOMAIN_ID'] = str(domain_id if domain_id is not None
+                                      else 100 + os.getpid() % 100)
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    out: dict[str, Any] = {}
+    for case in cases:
+        if case == 'composed-lockstep':
+            out['composed-lockstep (use_sim_time)'] = _composed('lockstep', lockstep_s, True)
+            out['composed-lockstep'] = _composed('lockstep', lockstep_s, False)
+        elif case == 'composed-realtime':
+            out[case] = _composed('realtime', realtime_s, False)
+        elif case == 'cross-lockstep':
+            out[case] = _cross(lockstep_s, 'events')
+        else:
+            raise ValueError(f'unknown case {case!r}; choose among {", ".join(CASES)}')
+    return out
+
+
+def _table(result: dict[str, Any]) -> str:
+    lines = ['| case | samples | wall [s] | samples/s | x real time | late [%] | skipped |',
+             '| --- | ---: | ---: | ---: | ---: | ---: | ---: |']
+    for case, s in result.items():
+        samples = s.get('index', -1) + 1
+        late = 100.0 * s.get('late', 0) / samples if samples else 0.0
+        lines.append(f'| {case} | {samples} | {s["wall_s"]:.2f} | {s["samples_per_s"]:.0f} | '
+                     f'{s["real_time_factor"]:.3f} | {late:.3f} | {s.get("skipped", 0)} |')
+    return '\n'.join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """
+    Run the ROS benchmarks from the command line.
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        Arguments (default ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        0 on success, 1 when a run failed, 2 when rclpy is missing.
+
+    """
+    parser = argparse.ArgumentParser(prog='python3 -m piezo_stage_ros.bench.ros',
+                                     description='Loop rates the ROS nodes reach here.')
+    parser.add_argument('--cases', default=','.join(CASES),
+                        help=f'comma-separated subset of {", ".join(CASES)}')
+    parser.add_argument('--lockstep-s', type=float, default=5.0,
+                        help='loop time of each lockstep run [s] (default 5)')
+    parser.add_argument('--realtime-s', type=float, default=60.0,
+                        help='wall time of the real-time run [s] (default 60)')
+    parser.add_argument('--domain-id', type=int, default=None, help='ROS domain of the runs')
+    parser.add_argument('--json', action='store_true', help='print JSON instead of a table')
+    args = parser.parse_args(argv)
+    try:
+        import rclpy  # noqa: F401
+    except ImportError:
+        print('bench.ros: rclpy is not importable; source a ROS 2 Jazzy install first',
+              file=sys.stderr)
+        return 2
+    cases = [c.strip() for c in args.cases.split(',') if c.strip()]
+    try:
+        result = run_ros_benchmark(cases, lockstep_s=args.lockstep_s,
+                                   realtime_s=args.realtime_s, domain_id=args.domain_id)
+    except Exception as exc:  # noqa: BLE001 -- a benchmark reports any failure in one line
+        print(f'bench.ros: {type(exc).__name__}: {exc}', file=sys.stderr)
+        return 1
+    print(json.dumps(result, indent=2) if args.json else _table(result))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

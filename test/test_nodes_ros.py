@@ -1,0 +1,219 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The nodes under rclpy, in process, each test on its own context.
+
+Skipped where rclpy (ROS 2 Jazzy) cannot be imported; CI has no rclpy, the logic these nodes
+wrap is tested without it in test_nodes_logic.py and test_lockstep.py.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not importable here; '
+                                            'the node logic is tested without it elsewhere')
+
+from piezo_stage_ros.core.closed_loop import run  # noqa: E402
+from piezo_stage_ros.core.controllers import build_controller, ControllerParams  # noqa: E402
+from piezo_stage_ros.core.errors import ParameterError  # noqa: E402
+from piezo_stage_ros.core.stage import Stage, StageParams  # noqa: E402
+from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams  # noqa: E402
+from piezo_stage_ros.hardware.emulator import TargetEmulator  # noqa: E402
+from piezo_stage_ros.nodes import qos, stage_servo, topics  # noqa: E402
+from piezo_stage_ros.nodes.controller_node import ControllerNode  # noqa: E402
+from piezo_stage_ros.nodes.plant_node import PlantNode  # noqa: E402
+from piezo_stage_ros.nodes.runner import make_executor  # noqa: E402
+from piezo_stage_ros.nodes.trajectory_node import TrajectoryNode  # noqa: E402
+from rclpy.context import Context  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+from std_msgs.msg import Float64  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+
+STAGE = {'plant.model': 'reduced', 'chain.sensor_noise_std_m': 1e-9, 'seed': 3}
+CONTROLLER = {'type': 'pi', 'stability.plant.model': 'reduced'}
+TRAJECTORY = {'kind': 'sine', 'sine.frequency_hz': 50.0}
+
+
+@pytest.fixture
+def context():
+    ctx = Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+def overrides(values: dict) -> list[Parameter]:
+    return [Parameter(k, value=v) for k, v in values.items()]
+
+
+class Probe(Node):
+    """Records what goes over the stage topics."""
+
+    def __init__(self, context: Context) -> None:
+        super().__init__('probe', context=context)
+        self.positions: list[tuple[int, float]] = []
+        self.references: list[float] = []
+        self.commands: list[float] = []
+        self.create_subscription(JointState, topics.POSITION, self._pos, qos.LOOP)
+        self.create_subscription(JointState, topics.REFERENCE,
+                                 lambda m: self.references.append(m.position[0]), qos.LOOP)
+        self.create_subscription(Float64, topics.COMMAND,
+                                 lambda m: self.commands.append(m.data), qos.LOOP)
+
+    def _pos(self, msg: JointState) -> None:
+        stamp = msg.header.stamp
+        self.positions.append((stamp.sec * 10 ** 9 + stamp.nanosec, msg.position[0]))
+
+
+def loop(context: Context, mode: str, duration_s: float, plant_extra: dict | None = None,
+         with_controller: bool = True):
+    common = {'mode': mode}
+    plant = PlantNode(context=context, parameter_overrides=overrides(
+        {**STAGE, **common, 'duration_s': duration_s, 'lockstep.subscribers': 3,
+         **(plant_extra or {})}))
+    nodes = [plant, Probe(context),
+             TrajectoryNode(context=context, parameter_overrides=overrides(
+                 {**TRAJECTORY, **common}))]
+    if with_controller:
+        nodes.append(ControllerNode(context=context, parameter_overrides=overrides(
+            {**CONTROLLER, **common})))
+    return plant, nodes
+
+
+def spin(context: Context, nodes: list[Node], future, timeout_s: float = 120.0) -> None:
+    executor = make_executor('events', context)
+    for node in nodes:
+        executor.add_node(node)
+    try:
+        executor.spin_until_future_complete(future, timeout_sec=timeout_s)
+    finally:
+        for node in nodes:
+            executor.remove_node(node)
+            node.destroy_node()
+        executor.shutdown()
+
+
+def offline(duration_s: float):
+    stage = StageParams.from_flat(STAGE)
+    ctrl = build_controller(ControllerParams.from_flat({'type': 'pi'}), stage.sample_time_s)
+    traj = make_trajectory(TrajectoryParams.from_flat(TRAJECTORY))
+    return run(Stage(stage), ctrl, traj, duration_s=duration_s, record_diagnostics=False)
+
+
+def test_composed_lockstep_run_equals_the_offline_runner(context):
+    plant, nodes = loop(context, 'lockstep', 0.1)
+    probe = nodes[1]
+    spin(context, nodes, plant.finished)
+    assert plant.finished.done() and plant.finished.exception() is None
+    rec = offline(0.1)
+    assert len(probe.positions) == 1000
+    stamps = np.array([s for s, _ in probe.positions])
+    np.testing.assert_array_equal(stamps, np.arange(1000) * 100_000)
+    np.testing.assert_array_equal([p for _, p in probe.positions], rec.position_m)
+    np.testing.assert_array_equal(probe.references, rec.reference_m)
+    np.testing.assert_array_equal(probe.commands, rec.command_v)
+    assert plant.finished.result()['resends'] == 0
+
+
+def test_lockstep_through_the_udp_bridge(context):
+    with TargetEmulator(StageParams.from_flat(STAGE)) as emu:
+        plant, nodes = loop(context, 'lockstep', 0.02,
+                            {'backend': 'udp', 'bridge.port': emu.port,
+                             'bridge.timeout_s': 0.5})
+        spin(context, nodes, plant.finished)
+    rec = offline(0.02)
+    np.testing.assert_array_equal([p for _, p in nodes[1].positions], rec.position_m)
+    assert emu.stop_reason == 'stop'
+
+
+def test_realtime_run_counts_late_samples_and_finishes(context):
+    plant, nodes = loop(context, 'realtime', 0.2)
+    spin(context, nodes, plant.finished)
+    stats = plant.finished.result()
+    assert stats['samples'] == 2000 and len(nodes[1].positions) == 2000
+    stamps = np.diff([s for s, _ in nodes[1].positions])
+    assert set(stamps.tolist()) <= {100_000} or stats['skipped'] > 0
+    assert 0 <= stats['late'] <= 2000
+
+
+def test_realtime_plant_without_controller_drives_the_safe_voltage(context):
+    plant, nodes = loop(context, 'realtime', 0.1, with_controller=False)
+    spin(context, nodes, plant.finished)
+    stats = plant.finished.result()
+    assert stats['watchdog_trips'] == 1 and stats['safe_samples'] > 800
+
+
+def test_parameters_are_declared_validated_and_refused_with_a_reason(context):
+    ctrl = ControllerNode(context=context, parameter_overrides=overrides(CONTROLLER))
+    try:
+        desc = ctrl.describe_parameter('pi.k_p')
+        assert 'V/V' in desc.description and desc.dynamic_typing
+        assert ctrl.describe_parameter('type').read_only
+        assert list(ctrl.describe_parameter('position_timeout_s').floating_point_range)
+        bad = ctrl.set_parameters([Parameter('pi.k_p', value=-1.0)])[0]
+        assert not bad.successful and "'pi.k_p' = -1.0 is out of range" in bad.reason
+        wrong = ctrl.set_parameters([Parameter('pi.k_p', value='fast')])[0]
+        assert not wrong.successful and 'is not a number' in wrong.reason
+        ro = ctrl.set_parameters([Parameter('type', value='rac')])[0]
+        assert not ro.successful and 'read-only' in ro.reason
+        ok = ctrl.set_parameters([Parameter('pi.k_p', value=2)])[0]  # an int for a double
+        assert ok.successful and ctrl.logic._pending.pi.k_p == 2.0
+        unstable = ctrl.set_parameters([Parameter('stability.action', value='refuse'),
+                                        Parameter('pi.k_i', value=1e7)])
+        assert not unstable[0].successful and 'UNSTABLE' in unstable[0].reason
+        assert ctrl.get_parameter('pi.k_i').value == 1500.0
+    finally:
+        ctrl.destroy_node()
+    with pytest.raises(ParameterError, match="'seed' = -1"):
+        PlantNode(context=context, parameter_overrides=overrides({'seed': -1}))
+
+
+def test_trajectory_services_start_and_stop(context):
+    traj = TrajectoryNode(context=context, parameter_overrides=overrides(
+        {**TRAJECTORY, 'active': False}))
+    client_node = Node('client', context=context)
+    executor = make_executor('events', context)
+    executor.add_node(traj)
+    executor.add_node(client_node)
+    try:
+        for name, active in (('start', True), ('stop', False)):
+            client = client_node.create_client(Trigger, f'/trajectory_node/{name}')
+            assert client.wait_for_service(timeout_sec=10.0)
+            future = client.call_async(Trigger.Request())
+            executor.spin_until_future_complete(future, timeout_sec=10.0)
+            assert future.result().success
+            assert traj.get_parameter('active').value is active
+            assert traj.logic.active is active
+        switched = traj.set_parameters([Parameter('kind', value='square')])[0]
+        assert switched.successful and traj.logic._pending is not None
+        refused = traj.set_parameters([Parameter('sine.amplitude_m', value=1.0)])[0]
+        assert not refused.successful and 'sine' in refused.reason
+    finally:
+        for node in (traj, client_node):
+            executor.remove_node(node)
+            node.destroy_node()
+        executor.shutdown()
+
+
+def test_executable_prints_one_line_and_exits_2_on_a_bad_parameter(capsys):
+    code = stage_servo.main(['stage_servo', '--ros-args', '-p', 'seed:=-1'])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert err[-1].startswith('stage_servo: ') and "'seed' = -1" in err[-1]
+    assert stage_servo.main(['stage_servo', '--nodes', 'plant,nothing']) == 2
