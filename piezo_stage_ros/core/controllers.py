@@ -772,6 +772,7 @@ class NotchedController:
         self.notch = notch
         self._vmin = output_min_v
         self._vmax = output_max_v
+        self._u = inner._u
 
     @property
     def sample_time_s(self) -> float:
@@ -782,7 +783,8 @@ class NotchedController:
               output_v: float | None = None) -> None:
         """Reset the controller and put the notch at rest at its held output (see inner)."""
         self.inner.reset(position_m, reference_m, output_v)
-        self.notch.reset(self.inner._u)
+        self._u = self.inner._u
+        self.notch.reset(self._u)
 
     def step(self, position_m: float, reference_m: float, reference_velocity_mps: float,
              dt_s: float | None = None) -> float:
@@ -791,9 +793,11 @@ class NotchedController:
         calls = inner.nonfinite_inputs + inner.bad_dt
         v = inner.step(position_m, reference_m, reference_velocity_mps, dt_s)
         if inner.nonfinite_inputs + inner.bad_dt != calls:
-            return v  # a refused sample holds the output: the filter does not advance
+            return self._u  # a refused sample holds the output: the filter does not advance
         f = self.notch.step(v)
-        return self._vmax if f > self._vmax else (self._vmin if f < self._vmin else f)
+        f = self._vmax if f > self._vmax else (self._vmin if f < self._vmin else f)
+        self._u = f
+        return f
 
     def diagnostics(self) -> Mapping[str, float]:
         """Return the inner controller's diagnostics."""

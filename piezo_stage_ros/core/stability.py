@@ -310,12 +310,16 @@ def loop_polynomials(kp: float, ki: float, gain: float, plant_num: FloatArray,
     return np.asarray(num, dtype=np.float64), np.asarray(den, dtype=np.float64)
 
 
-def _margins(num: FloatArray, den: FloatArray, sample_time_s: float) -> tuple[float, float]:
-    """Return the smallest gain margin [dB] and phase margin [deg] of L(z) = num/den."""
-    omega = np.geomspace(1e-3, 1.0, 20001) * math.pi / sample_time_s
+def _unit_circle(sample_time_s: float) -> NDArray[np.complex128]:
+    """Return z = exp(j w T) on a log grid from 1e-4 of Nyquist up to (just below) Nyquist."""
+    omega = np.geomspace(1e-4, 1.0, 10001) * math.pi / sample_time_s
     omega[-1] = math.pi / sample_time_s * (1.0 - 1e-9)
-    z = np.exp(1j * omega * sample_time_s)
-    lz = np.polyval(num, z) / np.polyval(den, z)
+    return np.asarray(np.exp(1j * omega * sample_time_s), dtype=np.complex128)
+
+
+def _margins(lz: NDArray[np.complex128], num: FloatArray, den: FloatArray
+             ) -> tuple[float, float]:
+    """Return the smallest gain margin [dB] and phase margin [deg] of L(z) = num/den."""
     mag = np.abs(lz)
     phase = np.unwrap(np.angle(lz))
     gm = math.inf
@@ -378,6 +382,11 @@ def check_stability(controller_params: ControllerParams, plant_params: PlantPara
     plant = stability_plant(plant_params)
     g_num, g_den = _plant_tf(plant, sample_time_s)
     notch = notch_design(controller_params.notch, sample_time_s, plant)
+    # frequency response of everything but the controller, once: G(z) N(z) z^-delay
+    z = _unit_circle(sample_time_s)
+    rest = np.polyval(g_num, z) / np.polyval(g_den, z) * z ** (-float(opts.delay_samples))
+    if notch is not None:
+        rest = rest * np.polyval(notch[0], z) / np.polyval(notch[1], z)
     cases: list[LoopCase] = []
     for label, kp, ki in _controller_cases(controller_params, opts.estimates):
         for slope in opts.slopes():
@@ -391,7 +400,8 @@ def check_stability(controller_params: ControllerParams, plant_params: PlantPara
             if kp == 0.0 and ki == 0.0:
                 gm, pm = math.inf, math.inf
             else:
-                gm, pm = _margins(num, den, sample_time_s)
+                lz = gain * (kp + ki * sample_time_s * z / (z - 1.0)) * rest
+                gm, pm = _margins(lz, num, den)
             cases.append(LoopCase(label=f'{label}, slope={slope:.4g}', slope=slope,
                                   spectral_radius=radius, gain_margin_db=gm,
                                   phase_margin_deg=pm, poles=poles))
