@@ -40,6 +40,7 @@ Exit status: 0 on success, 1 on bad data or parameters (missing bag, no excitati
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 import sys
 from typing import Any, Mapping, NoReturn, Sequence
@@ -47,6 +48,7 @@ from typing import Any, Mapping, NoReturn, Sequence
 from piezo_stage_ros.core.config import find_config, load_config
 from piezo_stage_ros.core.errors import ConfigError, PiezoStageError
 from piezo_stage_ros.core.identification import (
+    factors_of,
     IdentificationParams,
     IdentificationResult,
     pscm_gain,
@@ -132,7 +134,18 @@ def _nested(flat: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def controller_values(stage: StageParams) -> dict[str, Any]:
+def _theta_phi(stage: StageParams) -> tuple[float, float] | None:
+    """Return theta = a/(b c) [V/V] and phi = 1/(b c) [s] of the reduced model in sensor volts."""
+    if stage.hysteresis.model != 'backlash_like':
+        return None
+    reduced = stage.plant.third_order.reduced()
+    theta = 1.0 / (stage.chain.sensor_gain_v_per_m * reduced.gain_m_per_v
+                   * stage.hysteresis.backlash_like.c)
+    return theta, theta * reduced.tau_s
+
+
+def controller_values(stage: StageParams, reference: Mapping[str, Any] | None = None,
+                      reference_stage: StageParams | None = None) -> dict[str, Any]:
     """
     Return the controller_node parameters that depend on the identified model.
 
@@ -140,33 +153,62 @@ def controller_values(stage: StageParams) -> dict[str, Any]:
     ----------
     stage : StageParams
         The identified stage.
+    reference : Mapping, optional
+        The configured controller_node parameters (flat) whose model-dependent values are
+        re-derived for ``stage``; default none (only the values that need no reference).
+    reference_stage : StageParams, optional
+        The stage ``reference`` was tuned for (the configured plant_node).
 
     Returns
     -------
     dict
-        ``open_loop.gain_v_per_m`` = 1/(k_p c); ``sensor_gain_v_per_m`` = K_PSCM; for the
-        backlash-like model ``rac.rho_v`` = (c - B1)/alpha and ``stability.slope_min/max`` =
-        2 B1 - c and c (the range of dw/dv the stability check covers); ``rac.k_star_v`` is
-        raised to rho_v / c_min (c_min = 1) when the default 0.2 V is below it (Theorem 1).
+        Flat controller_node values:
+
+        - ``open_loop.gain_v_per_m`` = 1/(k_p c) and ``sensor_gain_v_per_m`` = K_PSCM;
+        - ``notch.frequency_hz`` and ``notch.zero_damping`` = w_n/(2 pi) and zeta (the manual
+          notch sits on the identified resonance) and ``stability.plant.*`` = the identified
+          plant (the model of the stability check and of the notch in ``model`` mode);
+        - for the backlash-like model: ``rac.rho_v`` = (c - B1)/alpha, ``rac.k_star_v`` raised
+          to rho_v/c_min if below it (Theorem 1), ``stability.slope_min/max`` = 2 B1 - c and c;
+        - with a reference: the RAC's theta and phi bounds and initial values scaled by the
+          ratio of the identified theta = a/(b c) and phi = 1/(b c) to the reference stage's,
+          so that they sit where the reference tuning put them relative to the model.
 
     """
     third = stage.plant.third_order
     h = stage.hysteresis
-    out: dict[str, Any] = {'sensor_gain_v_per_m': stage.chain.sensor_gain_v_per_m}
+    factors = factors_of(third)
+    out: dict[str, Any] = {
+        'sensor_gain_v_per_m': stage.chain.sensor_gain_v_per_m,
+        'notch.frequency_hz': factors.omega_n_rad_s / (2.0 * math.pi),
+        'notch.zero_damping': min(factors.zeta, 1.0),
+    }
+    out.update(stage.plant.to_flat('stability.plant.'))
     if h.model == 'backlash_like':
         bl = h.backlash_like
-        static = third.gain / third.a2 * bl.c
         rho = (bl.c - bl.b1) / bl.alpha
-        out['open_loop.gain_v_per_m'] = 1.0 / static
+        out['open_loop.gain_v_per_m'] = 1.0 / (third.gain / third.a2 * bl.c)
         out['rac.rho_v'] = rho
-        if rho > 0.2:
-            out['rac.k_star_v'] = rho
+        c_min = float(reference.get('rac.c_min', 1.0)) if reference else 1.0
+        k_star = float(reference.get('rac.k_star_v', 0.2)) if reference else 0.2
+        if k_star < rho / c_min:
+            out['rac.k_star_v'] = rho / c_min
         out['stability.slope_min'] = max(2.0 * bl.b1 - bl.c, 1e-6)
         out['stability.slope_max'] = bl.c
+    new = _theta_phi(stage)
+    old = _theta_phi(reference_stage) if reference_stage is not None else None
+    if reference and new is not None and old is not None:
+        for name, ratio in (('theta', new[0] / old[0]), ('phi', new[1] / old[1])):
+            for suffix in ('_min', '_max', '_init'):
+                key = f'rac.{name}{suffix}'
+                if key in reference:
+                    out[key] = float(reference[key]) * ratio
     return out
 
 
-def parameter_file_text(stage: StageParams, *, header: Sequence[str] = ()) -> str:
+def parameter_file_text(stage: StageParams, *, header: Sequence[str] = (),
+                        reference: Mapping[str, Any] | None = None,
+                        reference_stage: StageParams | None = None) -> str:
     """
     Return a ROS 2 parameter file with the identified stage and controller values.
 
@@ -177,6 +219,9 @@ def parameter_file_text(stage: StageParams, *, header: Sequence[str] = ()) -> st
         not of the stage) goes into ``plant_node``.
     header : sequence of str
         Comment lines put at the top.
+    reference, reference_stage : optional
+        Configured controller_node values and the stage they were tuned for, see
+        :func:`controller_values`.
 
     Returns
     -------
@@ -187,7 +232,8 @@ def parameter_file_text(stage: StageParams, *, header: Sequence[str] = ()) -> st
     """
     flat = {k: v for k, v in stage.to_flat().items() if k != 'sample_rate_hz'}
     doc = {'plant_node': {'ros__parameters': _nested(flat)},
-           'controller_node': {'ros__parameters': _nested(controller_values(stage))}}
+           'controller_node': {'ros__parameters': _nested(
+               controller_values(stage, reference, reference_stage))}}
     lines = [f'# {line}' for line in header]
     return '\n'.join(lines + [yaml.safe_dump(doc, sort_keys=False, default_flow_style=False)])
 
@@ -282,7 +328,8 @@ def _run(args: argparse.Namespace) -> int:
                                                     else args.argv),
               f'Hysteresis slope convention: {slope:g} (only k_p times the slope is '
               'identifiable, see docs/identification.md).']
-    text = parameter_file_text(stage, header=header)
+    text = parameter_file_text(stage, header=header, reference=config.node('controller_node'),
+                               reference_stage=base)
     Path(args.output).write_text(text, encoding='utf-8')
     for line in _summary_lines(result):
         print(line)

@@ -916,8 +916,9 @@ def fit_hysteresis(records: Sequence[RunRecord], chain: SignalChainParams,
         lower, upper = np.array([1e-4, 1e-3, -0.999, -1.0]), np.array([10.0, 50.0, 1.0, 1.0])
 
         def normalized(x: FloatArray, v: FloatArray) -> FloatArray:
+            # min(): beta * 1.0 may round above beta, which the model refuses
             hp = BoucWenParams(d_p=1.0, a=float(x[0]), beta=float(x[1]),
-                               gamma=float(x[1] * x[2]))
+                               gamma=min(float(x[1] * x[2]), float(x[1])))
             h = BoucWen(hp)
             _, h0 = h.rest_state(float(v[0]))
             return _run_model(h.step, (float(v[0]), float(x[3]) * h.bound + h0), v)
@@ -964,7 +965,7 @@ def fit_hysteresis(records: Sequence[RunRecord], chain: SignalChainParams,
         hyst = base.replace(model=model, backlash_like=group)
     else:
         group_bw = BoucWenParams(d_p=slope, a=est['a'], beta=est['beta'],
-                                 gamma=est['beta'] * est['gamma_fraction'])
+                                 gamma=min(est['beta'] * est['gamma_fraction'], est['beta']))
         hyst = base.replace(model=model, bouc_wen=group_bw)
     return HysteresisFit(model=model, params=hyst, static_gain_m_per_v=g0,
                          linear_gain_m_per_v=g0 / slope, estimates=est, std=std,
