@@ -46,7 +46,8 @@ from piezo_stage_ros.core.controllers import (
     RACParams,
 )
 from piezo_stage_ros.core.metrics import summarize
-from piezo_stage_ros.core.stability import check_stability, stability_plant
+from piezo_stage_ros.core.params import ParamSpec
+from piezo_stage_ros.core.stability import check_stability, stability_plant, StabilityParams
 from piezo_stage_ros.core.stage import PlantParams, Stage, StageParams
 from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
 
@@ -140,6 +141,41 @@ def verdict(params: ControllerParams, model: str, sample_time_s: float = 1e-4) -
     return f'UNSTABLE (radius {rep.spectral_radius:.3f})'
 
 
+def params_table(specs: Sequence[ParamSpec]) -> str:
+    """
+    Render parameter specs as a Markdown table (name, type, default, unit, allowed, description).
+
+    Parameters
+    ----------
+    specs : sequence of ParamSpec
+        E.g. ``ControllerParams.specs()``.
+
+    Returns
+    -------
+    str
+        The table, one line per parameter.
+
+    """
+    lines = [_row(['name', 'type', 'default', 'unit', 'allowed', 'description']),
+             _row(['---'] * 6)]
+    for spec in specs:
+        default = spec.default
+        if isinstance(default, float):
+            default = f'{default:.10g}'
+        elif isinstance(default, tuple):
+            default = '[' + ', '.join(f'{v:g}' for v in default) + ']'
+        ro = ' (read-only)' if spec.read_only else ''
+        lines.append(_row([f'`{spec.name}`', spec.type_name, f'`{default}`', spec.unit,
+                           spec.allowed().replace('|', '\\|'),
+                           spec.description.replace('|', '\\|') + ro]))
+    return '\n'.join(lines)
+
+
+def controller_node_specs() -> list[ParamSpec]:
+    """Return the controller and stability-check parameters of ``controller_node``."""
+    return ControllerParams.specs() + StabilityParams.specs('stability.')
+
+
 def _row(cells: Sequence[str]) -> str:
     return '| ' + ' | '.join(cells) + ' |'
 
@@ -173,7 +209,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                                      description=__doc__.split('\n\n')[0].strip())
     parser.add_argument('--skip-sweeps', action='store_true',
                         help='print only the stability verdicts and Table III')
+    parser.add_argument('--params-table', action='store_true',
+                        help='print the Markdown table of the controller_node parameters and exit')
     args = parser.parse_args(argv)
+    if args.params_table:
+        print(params_table(controller_node_specs()))
+        return 0
     start = time.monotonic()
     default = ControllerParams()
     d = default.rac

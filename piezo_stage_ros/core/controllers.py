@@ -145,17 +145,17 @@ class RACParams(Params):
     eta: float = param(0.01, unit='s/V^2', description='Adaptation rate eta of phi_hat, '
                        'eq. (38) (paper 0.01).', low=0.0)
     theta_min: float = param(0.9, unit='V/V', description='Lower bound of theta = a/(b c), '
-                             'eq. (29) (paper 0.5).')
+                             'eq. (29) (paper 0.5).', low=0.0, low_open=True)
     theta_max: float = param(1.7, unit='V/V', description='Upper bound of theta, eq. (29) '
-                             '(paper 4).')
+                             '(paper 4).', low=0.0, low_open=True)
     theta_init: float = param(1.29, unit='V/V', description='Initial estimate theta_hat(0) '
-                              '(paper 1).')
+                              '(paper 1).', low=0.0, low_open=True)
     phi_min: float = param(2.2e-4, unit='s', description='Lower bound of phi = 1/(b c), '
-                           'eq. (30) (paper 1e-4).')
+                           'eq. (30) (paper 1e-4).', low=0.0, low_open=True)
     phi_max: float = param(4.2e-4, unit='s', description='Upper bound of phi, eq. (30) '
-                           '(paper 5e-3).')
+                           '(paper 5e-3).', low=0.0, low_open=True)
     phi_init: float = param(3.16e-4, unit='s', description='Initial estimate phi_hat(0) '
-                            '(paper 7.5e-4).')
+                            '(paper 7.5e-4).', low=0.0, low_open=True)
     rho_v: float = param(0.18, unit='V', description='Bound rho on the hysteresis term |d|, '
                          'eq. (31) (paper 0.18; (c - B1)/alpha = 0.1785 for the default stage).',
                          low=0.0)
@@ -405,11 +405,18 @@ class RACController:
         self._u = v
         return v
 
+    #: Names of :meth:`diagnostic_values`, in order (the closed loop's cheap path).
+    diagnostic_names = ('theta_hat', 'phi_hat', 's_v', 'integral_v_s', 'error_v', 'saturated',
+                        'nonfinite_inputs', 'bad_dt')
+
+    def diagnostic_values(self) -> tuple[float, ...]:
+        """Return the values of :attr:`diagnostic_names` (no dictionary is built)."""
+        return (self._theta, self._phi, self._s, self._i, self._e, self._saturated,
+                float(self.nonfinite_inputs), float(self.bad_dt))
+
     def diagnostics(self) -> Mapping[str, float]:
-        """Return theta_hat, phi_hat, s [V], the integral [V s], saturation flag and counters."""
-        return {'theta_hat': self._theta, 'phi_hat': self._phi, 's_v': self._s,
-                'integral_v_s': self._i, 'error_v': self._e, 'saturated': self._saturated,
-                'nonfinite_inputs': float(self.nonfinite_inputs), 'bad_dt': float(self.bad_dt)}
+        """Return theta_hat, phi_hat, s [V], the integral [V s], error [V], flags, counters."""
+        return dict(zip(self.diagnostic_names, self.diagnostic_values()))
 
 
 class PIController:
@@ -540,10 +547,17 @@ class PIController:
         self._u = v
         return v
 
+    #: Names of :meth:`diagnostic_values`, in order (the closed loop's cheap path).
+    diagnostic_names = ('error_v', 'integral_v_s', 'saturated', 'nonfinite_inputs', 'bad_dt')
+
+    def diagnostic_values(self) -> tuple[float, ...]:
+        """Return the values of :attr:`diagnostic_names` (no dictionary is built)."""
+        return (self._e, self._i, self._saturated, float(self.nonfinite_inputs),
+                float(self.bad_dt))
+
     def diagnostics(self) -> Mapping[str, float]:
         """Return the error [V], the integral [V s], the saturation flag and the counters."""
-        return {'error_v': self._e, 'integral_v_s': self._i, 'saturated': self._saturated,
-                'nonfinite_inputs': float(self.nonfinite_inputs), 'bad_dt': float(self.bad_dt)}
+        return dict(zip(self.diagnostic_names, self.diagnostic_values()))
 
 
 class OpenLoopController:
@@ -630,9 +644,16 @@ class OpenLoopController:
         self._u = v
         return v
 
+    #: Names of :meth:`diagnostic_values`, in order.
+    diagnostic_names = ('nonfinite_inputs', 'bad_dt')
+
+    def diagnostic_values(self) -> tuple[float, ...]:
+        """Return the values of :attr:`diagnostic_names`."""
+        return (float(self.nonfinite_inputs), float(self.bad_dt))
+
     def diagnostics(self) -> Mapping[str, float]:
         """Return the counters."""
-        return {'nonfinite_inputs': float(self.nonfinite_inputs), 'bad_dt': float(self.bad_dt)}
+        return dict(zip(self.diagnostic_names, self.diagnostic_values()))
 
 
 # --------------------------------------------------------------------------------------------
@@ -798,6 +819,15 @@ class NotchedController:
         f = self._vmax if f > self._vmax else (self._vmin if f < self._vmin else f)
         self._u = f
         return f
+
+    @property
+    def diagnostic_names(self) -> tuple[str, ...]:
+        """Return the inner controller's diagnostic names."""
+        return self.inner.diagnostic_names
+
+    def diagnostic_values(self) -> tuple[float, ...]:
+        """Return the inner controller's diagnostic values."""
+        return self.inner.diagnostic_values()
 
     def diagnostics(self) -> Mapping[str, float]:
         """Return the inner controller's diagnostics."""
