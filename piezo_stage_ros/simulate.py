@@ -140,10 +140,19 @@ def _parse_param(text: str) -> tuple[str, str, Any]:
     name, raw = rest.split('=', 1)
     if not node or not name:
         raise ConfigError(f'--param {text!r}: expected NODE:NAME=VALUE')
+    text = raw.strip()
     try:
-        value = yaml.safe_load(raw)
+        value = yaml.safe_load(text)
     except yaml.YAMLError:
-        value = raw
+        value = text
+    # read as ROS 2 (YAML 1.2) does: 'off'/'yes' stay strings, '1e-6' is a float
+    if isinstance(value, bool) and text.lower() not in ('true', 'false'):
+        value = text
+    elif isinstance(value, str):
+        try:
+            value = float(text)
+        except ValueError:
+            pass
     return node.strip(), name.strip(), value
 
 

@@ -158,3 +158,15 @@ def test_bag_is_written_and_reads_back_the_same_metrics(
     capsys.readouterr()
     assert simulate.main(['--duration', '0.01', '--bag', str(bag), '--overwrite',
                           '--storage', 'sqlite3']) == 0
+
+
+def test_param_values_read_as_ros_yaml(capsys: pytest.CaptureFixture[str]) -> None:
+    # YAML 1.2 as ROS 2: 'off' stays a string, '1e-9' is a float (PyYAML alone gives a bool
+    # and a string)
+    d = run_json(capsys, '--plant', 'reduced', '--duration', '0.01',
+                 '--param', 'controller_node:notch.mode=off',
+                 '--param', 'plant_node:chain.sensor_noise_std_m=1e-9')
+    assert d['samples'] == 100
+    assert simulate._parse_param('controller_node:notch.mode=off')[2] == 'off'
+    assert simulate._parse_param('plant_node:chain.sensor_noise_std_m=1e-9')[2] == 1e-9
+    assert simulate._parse_param('plant_node:chain.quantize=false')[2] is False

@@ -261,7 +261,8 @@ def run_sim_benchmark(*, duration_s: float = 2.0, batch: int = 1000, batch_steps
         say(f'  closed loop, RAC + {plant:17s} {rt:8.1f} simulated s per wall s '
             f'({rt * 1e4:,.0f} samples/s; target >= 20: {verdict})')
     for plant in ('reduced', 'third_order'):
-        b = loop_breakdown(plant, 'rac', repeats=repeats)
+        b = loop_breakdown(plant, 'rac', steps=max(int(duration_s * 1e4), 100),
+                           repeats=repeats)
         out[f'breakdown_{plant}'] = b
         say(f'  per sample, {plant:11s}: stage {b["stage_us"]:.2f} us + RAC '
             f'{b["controller_us"]:.2f} us + loop {b["overhead_us"]:.2f} us = '

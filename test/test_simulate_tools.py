@@ -1,0 +1,82 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""soak and benchmark commands in process: they run, report, and refuse bad input (no timing)."""
+
+from __future__ import annotations
+
+import json
+
+from piezo_stage_ros import benchmark, soak
+import pytest
+
+
+def test_short_soak_reports_minutes_and_passes(capsys: pytest.CaptureFixture[str]) -> None:
+    # 0.05 min = 3 s = 30 000 samples: one partial "minute"
+    assert soak.main(['--minutes', '0.05', '--plant', 'reduced', '--json']) == 0
+    d = json.loads(capsys.readouterr().out)
+    s = d['summary']
+    assert s['samples'] == 30000 and len(d['minutes']) == 1
+    assert s['command_in_range'] is True and s['estimates_in_bounds'] is True
+    lo, hi = s['theta_bounds']
+    assert lo <= s['theta_hat_min'] <= s['theta_hat_max'] <= hi
+    assert s['passed'] is True
+    assert d['minutes'][0]['e_rms_m'] < 1e-7
+
+
+def test_soak_minute_rows_split_exactly(capsys: pytest.CaptureFixture[str]) -> None:
+    # at 100 Hz a minute is 6000 samples: 1.5 minutes in 1 s chunks give rows of 6000 and 3000
+    assert soak.main(['--minutes', '1.5', '--plant', 'reduced', '--controller', 'open_loop',
+                      '--trajectory', 'sine', '--param', 'plant_node:sample_rate_hz=100.0',
+                      '--param', 'trajectory_node:sine.frequency_hz=1.0',
+                      '--param', 'controller_node:notch.mode=off', '--json']) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert [r['samples'] for r in d['minutes']] == [6000, 3000]
+    assert [r['minute'] for r in d['minutes']] == [1, 2]
+    assert d['summary']['samples'] == 9000
+    assert 'estimates_in_bounds' not in d['summary']  # no estimates without the RAC
+
+
+@pytest.mark.parametrize('argv, code, match', [
+    (['--minutes', '0'], 1, "'--minutes' = 0.0"),
+    (['--minutes', 'x'], 2, "invalid float value: 'x'"),
+    (['--plant', 'quartic'], 2, 'invalid choice'),
+])
+def test_soak_bad_input(argv: list[str], code: int, match: str,
+                        capsys: pytest.CaptureFixture[str]) -> None:
+    assert soak.main(argv) == code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and match in err[0] and err[0].startswith('soak: error: ')
+
+
+def test_benchmark_sim_suite_json(capsys: pytest.CaptureFixture[str]) -> None:
+    assert benchmark.main(['--suite', 'sim', '--duration', '0.02', '--repeats', '1',
+                           '--batch', '10', '--controller-steps', '200', '--json']) == 0
+    captured = capsys.readouterr()
+    d = json.loads(captured.out)['sim']
+    for key in ('realtime_reduced', 'realtime_third_order', 'batch_steps_per_s'):
+        assert d[key] > 0.0
+    assert d['rac_step']['p99_ns'] >= d['rac_step']['median_ns'] > 0
+    assert 'stage-steps/s' in captured.err  # readable lines on stderr with --json
+
+
+@pytest.mark.parametrize('argv, match', [
+    (['--suite', 'gpu'], 'invalid choice'),
+    (['--duration', '-1'], "'-1' must be positive"),
+])
+def test_benchmark_bad_input(argv: list[str], match: str,
+                             capsys: pytest.CaptureFixture[str]) -> None:
+    assert benchmark.main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and match in err[0]
