@@ -121,3 +121,21 @@ def test_chirp_bad_method_and_kind_mismatch_are_refused() -> None:
         make_excitation('noise', ChirpParams())
     assert isinstance(make_excitation('chirp', ChirpParams()), ChirpExcitation)
     assert isinstance(make_excitation('noise', NoiseParams()), NoiseExcitation)
+
+
+def test_kinds_noise_and_chirp_are_trajectories_of_the_trajectory_node() -> None:
+    from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+    for kind in ('noise', 'chirp'):
+        params = TrajectoryParams.from_flat({'kind': kind})
+        traj = make_trajectory(params)
+        assert isinstance(traj, Trajectory) and traj.kind == kind
+        t = np.arange(100) / FS
+        x, v = traj.evaluate(t)
+        direct = make_excitation(kind, getattr(params, kind)).evaluate(t)
+        np.testing.assert_array_equal(x, direct[0])
+        np.testing.assert_array_equal(v, direct[1])
+    # the travel check covers the excitations too
+    with pytest.raises(ParameterError, match="'noise.amplitude_m' .* below the stage travel"):
+        TrajectoryParams.from_flat({'kind': 'noise', 'noise.offset_m': 0.1e-6})
+    with pytest.raises(ParameterError, match="'chirp.offset_m' .* above the stage travel"):
+        TrajectoryParams.from_flat({'kind': 'chirp', 'chirp.offset_m': 38e-6})

@@ -48,6 +48,12 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from piezo_stage_ros.core.errors import ConfigError, ParameterError
+from piezo_stage_ros.core.excitation import (
+    ChirpExcitation,
+    ChirpParams,
+    NoiseExcitation,
+    NoiseParams,
+)
 from piezo_stage_ros.core.params import group, param, Params
 
 __all__ = ['CsvParams', 'MultisineParams', 'SineParams', 'SquareParams', 'StaircaseParams',
@@ -59,7 +65,7 @@ FloatArray = NDArray[np.float64]
 #: Stage travel of the P-753.31C [m] (sensor 0 ... 10 V over 0 ... 38 um).
 TRAVEL_MAX_M = 38e-6
 
-KINDS = ('sine', 'multisine', 'square', 'staircase', 'step', 'triangle', 'csv')
+KINDS = ('sine', 'multisine', 'square', 'staircase', 'step', 'triangle', 'csv', 'noise', 'chirp')
 
 
 @dataclass(frozen=True)
@@ -156,6 +162,10 @@ class TrajectoryParams(Params):
     step: StepParams = group(StepParams, 'kind step')
     triangle: TriangleParams = group(TriangleParams, 'kind triangle')
     csv: CsvParams = group(CsvParams, 'kind csv')
+    noise: NoiseParams = group(NoiseParams, 'kind noise (band-limited white noise, '
+                               'identification: core/excitation.py)')
+    chirp: ChirpParams = group(ChirpParams, 'kind chirp (sine sweep, identification: '
+                               'core/excitation.py)')
 
     def _check(self) -> None:
         if not self.travel_min_m < self.travel_max_m:
@@ -193,6 +203,13 @@ def _extent(p: TrajectoryParams) -> tuple[float, float, str, str]:
         lo_name = 'staircase.start_m' if c.step_m >= 0 else 'staircase.step_m'
         hi_name = 'staircase.step_m' if c.step_m >= 0 else 'staircase.start_m'
         return min(c.start_m, end), max(c.start_m, end), lo_name, hi_name
+    if p.kind == 'noise':
+        lo, hi = NoiseExcitation(p.noise).extent_m
+        return lo, hi, 'noise.amplitude_m', 'noise.offset_m'
+    if p.kind == 'chirp':
+        ch = p.chirp
+        return (ch.offset_m - ch.amplitude_m, ch.offset_m + ch.amplitude_m, 'chirp.amplitude_m',
+                'chirp.offset_m')
     if p.kind == 'step':
         st = p.step
         lo_name = 'step.initial_m' if st.initial_m <= st.final_m else 'step.final_m'
@@ -362,6 +379,18 @@ class _Triangle(TrajectoryBase):
         return p.offset_m + p.amplitude_m * shape, np.asarray(slope, dtype=np.float64)
 
 
+class _Excitation(TrajectoryBase):
+    """An identification excitation (core/excitation.py) as a trajectory."""
+
+    def __init__(self, inner: NoiseExcitation | ChirpExcitation) -> None:
+        self._inner = inner
+        self.kind = inner.kind
+        self.period_s = inner.period_s
+
+    def evaluate(self, time_s: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        return self._inner.evaluate(time_s)
+
+
 class TableTrajectory(TrajectoryBase):
     """
     A trajectory from a table: piecewise-linear position, piecewise-constant derivative.
@@ -490,6 +519,10 @@ def make_trajectory(params: TrajectoryParams) -> TrajectoryBase:
         return _Step(params.step)
     if kind == 'triangle':
         return _Triangle(params.triangle)
+    if kind == 'noise':
+        return _Excitation(NoiseExcitation(params.noise))
+    if kind == 'chirp':
+        return _Excitation(ChirpExcitation(params.chirp))
     if not params.csv.path:
         raise ParameterError('csv.path', '', 'the path of a CSV file',
                              'is empty but kind is csv')
