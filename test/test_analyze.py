@@ -85,6 +85,34 @@ def test_metrics_of_a_bag_equal_those_of_the_run_that_wrote_it(tmp_path, capsys,
     assert_metrics_equal(from_run, from_bag)
 
 
+@pytest.mark.parametrize('kind', ['sine', 'multisine'])
+def test_graph_recording_without_meta_gets_simulates_window(tmp_path, kind):
+    # A bag recorded from the nodes has no run description: the period is found from x_d.
+    record = closed_loop_run(kind=kind, duration_s=0.5)
+    bag = tmp_path / 'graph'
+    # Stamps from a sim-time origin (float seconds near 1e9 could not hold 100 us steps).
+    write_run(RunRecord(record.time_s + 1000.0, record.position_m, record.reference_m,
+                        record.reference_velocity_mps, record.command_v), bag)
+    analysis = analyze_bag(bag)
+    assert analysis.record.meta['trajectory_period_s'] == pytest.approx(
+        record.meta['trajectory_period_s'], rel=1e-9)
+    expected = summarize(record)
+    for key in ('steady_state_start_s', 'steady_state_samples', 'e_max_m', 'e_rms_m',
+                'loop_width_pct'):
+        assert analysis.metrics[key] == pytest.approx(expected[key], rel=1e-9), key
+    assert any('found from the samples' in note for note in analysis.notes)
+
+
+def test_aperiodic_reference_has_no_period(tmp_path):
+    record = closed_loop_run(kind='step', controller='pi', duration_s=0.05)
+    bag = tmp_path / 'step'
+    write_run(RunRecord(record.time_s, record.position_m, record.reference_m,
+                        record.reference_velocity_mps, record.command_v), bag)
+    analysis = analyze_bag(bag)
+    assert 'trajectory_period_s' not in analysis.record.meta
+    assert analysis.metrics['steady_state_start_s'] == 0.0
+
+
 def test_streamed_bag_equals_the_run(tmp_path):
     # How simulate --bag streams a long run: one chunk at a time, never the whole run in memory.
     bag = tmp_path / 'streamed'
@@ -125,12 +153,17 @@ def test_shared_jazzy_bag_metrics(capsys, name):
         pytest.skip(f'{bag} not present')
     assert analyze.main(['--json', str(bag)]) == 0
     out = json.loads(capsys.readouterr().out)
-    # README of the bags: e_rms over the whole run 35.355 nm, e_max 50.000 nm; the bag has
-    # no period in its meta, so the window is the whole run.
+    # README of the bags: e_rms over the whole run 35.355 nm, e_max 50.000 nm.
     assert out['samples'] == 3000
-    assert out['e_rms_m'] == pytest.approx(35.355e-9, abs=0.0005e-9)
+    assert out['e_rms_all_m'] == pytest.approx(35.355e-9, abs=0.0005e-9)
+    assert out['e_max_all_m'] == pytest.approx(50.000e-9, abs=0.0005e-9)
+    assert out['time_origin_s'] == 1_600_000_000.0
+    # The recorder stores no run description: the 5 Hz period comes from the samples, and
+    # with it simulate's window (2 periods skipped, whole periods kept).
+    assert out['trajectory_period_s'] == pytest.approx(0.2, abs=1e-12)
+    assert out['steady_state_start_s'] == pytest.approx(0.4, abs=1e-12)
+    assert out['steady_state_samples'] == 2600
     assert out['e_max_m'] == pytest.approx(50.000e-9, abs=0.0005e-9)
-    assert out['time_origin_s'] == pytest.approx(1_600_000_000.0)
 
 
 def test_human_summary(tmp_path, capsys):

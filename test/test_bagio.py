@@ -215,6 +215,10 @@ def test_shared_jazzy_bags(name):
     assert len(rec) == 3000
     t = rec.time_s - 1_600_000_000
     np.testing.assert_allclose(t, np.arange(3000) * 1e-3, atol=1e-6)
+    assert rec.meta['time_origin_ns'] == 1_600_000_000 * 10**9
+    # Relative times are computed in integer nanoseconds: exact to the last bit.
+    relative = read_run(bag, relative_time=True).time_s
+    np.testing.assert_array_equal(relative, np.arange(3000) * 1_000_000 / 1e9)
     err = rec.position_m - rec.reference_m
     # The README's numbers: e_rms = 35.355 nm, e_max = 50.000 nm (to the printed digits).
     assert abs(np.sqrt(np.mean(err ** 2)) - 35.355e-9) < 0.0005e-9

@@ -1451,7 +1451,7 @@ def _command_offset(position_log_ns: IntArray, command_log_ns: IntArray,
 
 
 def read_run(path: str | Path, *, namespace: str | None = None,
-             progress: ProgressCallback | None = None) -> RunRecord:
+             progress: ProgressCallback | None = None, relative_time: bool = False) -> RunRecord:
     """
     Read a bag into a run record, aligning its topics by time.
 
@@ -1468,12 +1468,16 @@ def read_run(path: str | Path, *, namespace: str | None = None,
         Topic namespace (``'/stage'``); found from the bag when it holds exactly one stage.
     progress : callable, optional
         Called as ``progress(messages_read, messages_total)`` while reading.
+    relative_time : bool
+        Give ``time_s`` from the first aligned stamp, computed in integer nanoseconds (stamps
+        since the epoch lose 0.2 us to float64 otherwise).
 
     Returns
     -------
     RunRecord
-        ``time_s`` are the header stamps [s]; ``meta`` is the run description stored in the
-        bag plus ``bag``, ``namespace``, ``storage`` and ``alignment``.
+        ``time_s`` are the header stamps [s] (from the first one with ``relative_time``);
+        ``meta`` is the run description stored in the bag plus ``bag``, ``namespace``,
+        ``storage``, ``alignment`` and ``time_origin_ns`` (the first aligned stamp).
 
     Raises
     ------
@@ -1519,8 +1523,10 @@ def read_run(path: str | Path, *, namespace: str | None = None,
                 column[found] = diag_val[di[k[found]], col]
             diagnostics[key] = column
     meta = dict(info.meta)
+    origin_ns = int(common[0])
     meta.update({
         'bag': str(info.path),
+        'time_origin_ns': origin_ns,
         'namespace': ns,
         'storage': info.storage,
         'alignment': {
@@ -1536,7 +1542,7 @@ def read_run(path: str | Path, *, namespace: str | None = None,
         },
     })
     return RunRecord(
-        time_s=common / 1e9,
+        time_s=(common - origin_ns) / 1e9 if relative_time else common / 1e9,
         position_m=pos_val[pi, 0],
         reference_m=ref_val[ri, 0],
         reference_velocity_mps=ref_val[ri, 1],

@@ -24,7 +24,7 @@ recording from the ROS graph has wall-clock or sim-time stamps).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 import math
 from pathlib import Path
 from typing import Any
@@ -35,8 +35,8 @@ from piezo_stage_ros.analysis.spectral import BodeEstimate, estimate_bode, is_ex
 from piezo_stage_ros.core.errors import PiezoStageError
 from piezo_stage_ros.core.record import RunRecord
 
-__all__ = ['BagAnalysis', 'analyze_bag', 'compute_metrics', 'format_metric', 'format_summary',
-           'summary_json']
+__all__ = ['BagAnalysis', 'analyze_bag', 'compute_metrics', 'estimate_period', 'format_metric',
+           'format_summary', 'summary_json']
 
 #: Key in ``RunRecord.meta`` where a runner may store the start of its metrics window [s].
 STEADY_STATE_META_KEY = 'steady_state_start_s'
@@ -140,6 +140,59 @@ def _is_piecewise_constant(reference_m: Any) -> bool:
     return bool(0 < changes <= 0.01 * len(reference_m))
 
 
+#: Meta key of the reference period (written by the closed loop; see core/metrics.py).
+PERIOD_META_KEY = 'trajectory_period_s'
+# Longest period looked for when a bag does not say [samples]: 2 s at 10 kHz.
+_MAX_PERIOD_SAMPLES = 20000
+
+
+def estimate_period(record: RunRecord) -> float | None:
+    """
+    Find the period of the reference from its samples, for bags that do not store it.
+
+    A bag recorded from the ROS graph carries no run description, so the steady-state window
+    ``simulate`` takes from the trajectory's period must come from the samples: the smallest
+    lag L (in samples) with x_d[k + L] = x_d[k] for every k, to 1e-9 of the reference's range,
+    gives the period L * T. Candidates are checked on the first samples, the winner on the
+    whole run.
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run, uniformly sampled.
+
+    Returns
+    -------
+    float or None
+        Period [s]; None for a constant or aperiodic reference, a run shorter than two periods,
+        a period longer than 20000 samples, or a non-uniform sampling.
+
+    """
+    xd = np.asarray(record.reference_m, dtype=np.float64)
+    t = np.asarray(record.time_s, dtype=np.float64)
+    n = xd.size
+    if n < 4 or not np.all(np.isfinite(xd)):
+        return None
+    span = float(np.ptp(xd))
+    if span <= 0.0:
+        return None
+    dt = np.diff(t)
+    period = float(np.median(dt))
+    if period <= 0.0 or float(np.max(np.abs(dt - period))) > 0.01 * period:
+        return None
+    tol = 1e-9 * span
+    probe = min(n // 2, 2000)
+    for lag in range(1, min(n // 2, _MAX_PERIOD_SAMPLES) + 1):
+        if n - lag < probe:
+            break
+        if np.max(np.abs(xd[lag:lag + probe] - xd[:probe])) > tol:
+            continue
+        if np.max(np.abs(xd[lag:] - xd[:-lag])) <= tol:
+            return lag * period
+        return None
+    return None
+
+
 def analyze_bag(path: str | Path, *, namespace: str | None = None,
                 steady_state_start_s: float | None = None, bode: bool | None = None,
                 progress: ProgressCallback | None = None) -> BagAnalysis:
@@ -174,16 +227,23 @@ def analyze_bag(path: str | Path, *, namespace: str | None = None,
         The metrics or the Bode estimate cannot be computed.
 
     """
-    record = read_run(path, namespace=namespace, progress=progress)
-    origin = float(record.time_s[0])
-    rebased = replace(record, time_s=record.time_s - origin, meta=dict(record.meta))
+    rebased = read_run(path, namespace=namespace, progress=progress, relative_time=True)
+    record = rebased
+    origin = int(record.meta['time_origin_ns']) / 1e9
     window = steady_state_start_s
     if window is None:
         stored = record.meta.get(STEADY_STATE_META_KEY)
         if isinstance(stored, (int, float)) and math.isfinite(stored):
             window = float(stored)
-    metrics = compute_metrics(rebased, window)
     notes = []
+    if not isinstance(rebased.meta.get(PERIOD_META_KEY), (int, float)):
+        period = estimate_period(rebased)
+        if period is not None:
+            # What the closed loop would have stored: the same window as simulate.
+            rebased.meta[PERIOD_META_KEY] = period
+            notes.append(f'reference period {period:g} s found from the samples (sets the '
+                         'steady-state window)')
+    metrics = compute_metrics(rebased, window)
     align: dict[str, Any] = record.meta.get('alignment', {})
     dropped = {k: v for k, v in align.items() if k.startswith('dropped_') and v}
     if dropped:
@@ -246,14 +306,16 @@ def summary_json(analysis: BagAnalysis) -> dict[str, Any]:
     Returns
     -------
     dict
-        ``bag`` and ``time_origin_s`` (stamp of the first sample [s]) plus every metric under
-        summarize's own name (SI units); non-finite values become null so the line is strict
-        JSON.
+        ``bag``, ``time_origin_s`` (stamp of the first sample [s]) and
+        ``trajectory_period_s`` (as ``simulate --json``) plus every metric under summarize's
+        own name (SI units); non-finite values become null so the line is strict JSON.
 
     """
     out: dict[str, Any] = {'bag': str(analysis.path)}
     for key, value in analysis.metrics.items():
         out[key] = value if math.isfinite(value) else None
+    period = analysis.record.meta.get(PERIOD_META_KEY)
+    out[PERIOD_META_KEY] = float(period) if isinstance(period, (int, float)) else None
     out['time_origin_s'] = analysis.time_origin_s
     return out
 
