@@ -354,3 +354,14 @@ def test_module_entry_point_has_no_traceback(tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 1
     assert proc.stderr.strip() == f'analyze: error: bag {tmp_path / "no"}: does not exist'
+
+
+def test_progress_line():
+    import io
+    stream = io.StringIO()
+    show = analyze._progress(stream, 2, 3, 'rac')
+    show(450, 1800)
+    show(1800, 1800)
+    text = stream.getvalue()
+    assert text.startswith('\ranalyze: [2/3] rac  25.0% (450/1800 messages)')
+    assert text.endswith('\ranalyze: [2/3] rac 100.0% (1800/1800 messages)')
