@@ -69,7 +69,8 @@ def test_default_rac_is_stable_on_every_model_at_every_corner(plant):
     assert rep.stable, rep.text()
     # 4 corners x 2 regions x 5 slopes
     assert len(rep.cases) == 40
-    assert rep.gain_margin_db > 3.0 and rep.phase_margin_deg > 40.0
+    # the design rule of docs/controllers.md: at least 3 dB and 35 deg on every loop
+    assert rep.gain_margin_db > 3.0 and rep.phase_margin_deg > 35.0
 
 
 def test_the_notch_is_what_makes_the_default_rac_stable_on_the_third_order_model():

@@ -130,9 +130,9 @@ class RACParams(Params):
     docs/controllers.md); the paper's values are quoted in each description.
     """
 
-    k_d: float = param(0.5, unit='V/V', description='Feedback gain k_d on s, eq. (36) (paper '
+    k_d: float = param(1.0, unit='V/V', description='Feedback gain k_d on s, eq. (36) (paper '
                        '1.5).', low=0.0, low_open=True)
-    lambda_per_s: float = param(4500.0, unit='1/s', description='Integral weight lambda of '
+    lambda_per_s: float = param(3000.0, unit='1/s', description='Integral weight lambda of '
                                 's = e + lambda * int(e), eq. (33) (paper 1500).', low=0.0,
                                 low_open=True)
     epsilon_v: float = param(0.2, unit='V (sensor)', description='Boundary-layer width epsilon '
@@ -152,9 +152,9 @@ class RACParams(Params):
                               '(paper 1).', low=0.0, low_open=True)
     phi_min: float = param(2.2e-4, unit='s', description='Lower bound of phi = 1/(b c), '
                            'eq. (30) (paper 1e-4).', low=0.0, low_open=True)
-    phi_max: float = param(4.2e-4, unit='s', description='Upper bound of phi, eq. (30) '
+    phi_max: float = param(5.5e-4, unit='s', description='Upper bound of phi, eq. (30) '
                            '(paper 5e-3).', low=0.0, low_open=True)
-    phi_init: float = param(3.16e-4, unit='s', description='Initial estimate phi_hat(0) '
+    phi_init: float = param(5.0e-4, unit='s', description='Initial estimate phi_hat(0) '
                             '(paper 7.5e-4).', low=0.0, low_open=True)
     rho_v: float = param(0.18, unit='V', description='Bound rho on the hysteresis term |d|, '
                          'eq. (31) (paper 0.18; (c - B1)/alpha = 0.1785 for the default stage).',
@@ -794,6 +794,7 @@ class NotchedController:
         self._vmin = output_min_v
         self._vmax = output_max_v
         self._u = inner._u
+        self._fresh = True
 
     @property
     def sample_time_s(self) -> float:
@@ -802,10 +803,23 @@ class NotchedController:
 
     def reset(self, position_m: float, reference_m: float,
               output_v: float | None = None) -> None:
-        """Reset the controller and put the notch at rest at its held output (see inner)."""
+        """
+        Reset the controller; the notch starts at rest at the first command it filters.
+
+        Parameters
+        ----------
+        position_m, reference_m : float
+            As for the inner controller [m].
+        output_v : float, optional
+            Voltage held before the start [V], returned on a refused first sample.
+
+        """
         self.inner.reset(position_m, reference_m, output_v)
         self._u = self.inner._u
-        self.notch.reset(self._u)
+        # Starting the filter at rest at 0 V (or at a held voltage that differs from the first
+        # command) would put a step through it at t = 0, whose ringing the RAC reads as a
+        # tracking error and adapts to; at rest at its first input the filter adds nothing.
+        self._fresh = True
 
     def step(self, position_m: float, reference_m: float, reference_velocity_mps: float,
              dt_s: float | None = None) -> float:
@@ -815,6 +829,9 @@ class NotchedController:
         v = inner.step(position_m, reference_m, reference_velocity_mps, dt_s)
         if inner.nonfinite_inputs + inner.bad_dt != calls:
             return self._u  # a refused sample holds the output: the filter does not advance
+        if self._fresh:
+            self.notch.reset(v)
+            self._fresh = False
         f = self.notch.step(v)
         f = self._vmax if f > self._vmax else (self._vmin if f < self._vmin else f)
         self._u = f
