@@ -510,3 +510,18 @@ def test_irregular_records_in_chunks(tmp_path):
     np.testing.assert_array_equal(rec.reference_m, k * 2e-9)
     np.testing.assert_array_equal(rec.reference_velocity_mps, k.astype(float))
     np.testing.assert_array_equal(rec.command_v, k * 0.5)
+
+
+def test_unstamped_messages_are_refused(tmp_path):
+    bag = tmp_path / 'nostamp'
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conns = {key: writer.add_connection(f'/stage/{key}', bagio.TOPIC_TYPES[key],
+                                            typestore=STORE)
+                 for key in ('position', 'reference', 'command')}
+        for k in range(100):
+            writer.write(conns['position'], k * 1000, _js(0, [0.0]))
+            writer.write(conns['reference'], k * 1000, _js(k * 1000, [0.0], [0.0]))
+            writer.write(conns['command'], k * 1000, _f64(0.0))
+    with pytest.raises(BagError, match=r'nostamp: topic /stage/position has 100 messages but '
+                                       r'only 1 distinct header stamps'):
+        read_run(bag)

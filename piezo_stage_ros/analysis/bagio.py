@@ -1494,6 +1494,12 @@ def read_run(path: str | Path, *, namespace: str | None = None,
     assert pos_stamp is not None and ref_stamp is not None
     pi = _unique_first(pos_stamp)
     ri = _unique_first(ref_stamp)
+    for key, stamps, unique in (('position', pos_stamp, pi), ('reference', ref_stamp, ri)):
+        # A publisher that does not stamp its messages gives one sample for the whole run.
+        if stamps.size >= 4 and unique.size < stamps.size // 2:
+            raise BagError(f'bag {info.path}: topic {ns}/{key} has {stamps.size} messages but '
+                           f'only {unique.size} distinct header stamps; are the messages '
+                           'stamped with the sample time?')
     # The command of position message i (in stamp order) is command message i + offset (in
     # log-time order); the offset absorbs a recorder that started a few messages late or early.
     order = np.argsort(cmd_log, kind='stable')
