@@ -362,3 +362,23 @@ def test_notch_from_a_model_without_resonance_is_refused():
 def test_notch_above_nyquist_is_refused():
     with pytest.raises(ParameterError, match="'notch.frequency_hz'"):
         build_controller(ControllerParams(notch=NotchParams(frequency_hz=6000.0)), T)
+
+
+def test_the_notch_starts_at_rest_at_the_first_command():
+    # a filter at rest at 0 V would pass a 1.3 V step at t = 0 and ring
+    inner = build_controller(ControllerParams(notch=NO_NOTCH), T)
+    notched = build_controller(ControllerParams(), T)
+    for c in (inner, notched):
+        c.reset(3.8e-6, 3.8e-6)
+    assert notched.step(3.8e-6, 3.8e-6, 0.0) == pytest.approx(inner.step(3.8e-6, 3.8e-6, 0.0))
+
+
+def test_rac_adaptation_is_frozen_while_the_command_saturates():
+    p = RACParams(epsilon_v=0.01, gamma=1e5, eta=1.0)
+    c = RACController(p, T)
+    c.reset(0.0, 0.0)
+    for _ in range(20):
+        assert c.step(0.0, 30e-6, 0.0) == 10.0
+    d = c.diagnostics()
+    assert abs(d['s_v']) > p.epsilon_v
+    assert (d['theta_hat'], d['phi_hat']) == (p.theta_init, p.phi_init)
