@@ -321,3 +321,31 @@ def test_rac_tuned_on_the_identified_model_tracks_like_on_the_true_model(
     assert c_ident.rac.theta_init == pytest.approx(c_true.rac.theta_init, rel=0.01)
     assert c_ident.open_loop.gain_v_per_m == pytest.approx(c_true.open_loop.gain_v_per_m,
                                                            rel=0.01)
+
+
+def test_a_chirp_run_gives_the_frequency_response_too() -> None:
+    from piezo_stage_ros.core.controllers import OpenLoopController, OpenLoopParams
+    from piezo_stage_ros.core.excitation import ChirpExcitation, ChirpParams
+    stage, runs, _ = identified(3, 20000.0)
+    stage = stage.replace(sample_rate_hz=20000.0)
+    g = 2.843e-6 * 1.0341  # trajectory metres per command volt of the open-loop controller
+    chirp = ChirpExcitation(ChirpParams(offset_m=1.3 * g, amplitude_m=0.15 * g, f0_hz=10.0,
+                                        f1_hz=8000.0, sweep_s=0.5))
+    rec = run(Stage(stage), OpenLoopController(OpenLoopParams(gain_v_per_m=1.0 / g), 5e-5),
+              chirp, duration_s=0.5, initial_position_m=1.3 * g, record_diagnostics=False,
+              meta={'name': 'chirp'})
+    res = identify([rec, runs['step'], runs['sine']],
+                   params=IdentificationParams(hysteresis_slope=stage.hysteresis.backlash_like.c))
+    assert res.roles['frequency'] == ['chirp']
+    true = factors_of(stage.plant.third_order)
+    assert res.frequency is not None
+    assert rel(res.frequency.factors.omega_n_rad_s, true.omega_n_rad_s) < 0.02
+    assert rel(res.factors.tau_s, true.tau_s) < 0.02
+    assert rel(res.factors.zeta, true.zeta) < 0.10
+
+
+def test_epoch_stamps_are_uniform_enough() -> None:
+    n = 2000
+    t = 1.7e9 + np.arange(n) * 5e-5  # a recorder's stamps: seconds since the epoch
+    rec = RunRecord(t, np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n))
+    assert sample_time_of(rec) == pytest.approx(5e-5, rel=0.01)
