@@ -132,19 +132,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exit_:
         return int(exit_.code or 0)
-    # Imported here so that --help works (and is fast) without the analysis dependencies.
+    # Imported here so that --help works (and is fast) without the analysis dependencies, and
+    # matplotlib only when figures are asked for.
+    figure_root: Path | None = args.plots if args.plots is not None else args.report
     try:
-        from piezo_stage_ros.analysis.plots import error_trace, plot_comparison, plot_run
         from piezo_stage_ros.analysis.replay import analyze_bag, format_summary, summary_json
         from piezo_stage_ros.analysis.report import ReportEntry, unique_names, write_report
         from piezo_stage_ros.core.errors import PiezoStageError
+        if figure_root is not None:
+            from piezo_stage_ros.analysis.plots import error_trace, plot_comparison, plot_run
     except ImportError as err:
         print(f'{PROG}: error: a dependency is missing: {err}', file=sys.stderr)
         return 1
 
     show_progress = not args.quiet and sys.stderr.isatty()
     names = unique_names(args.bags)
-    figure_root: Path | None = args.plots if args.plots is not None else args.report
     entries = []
     traces = []
     failed = 0

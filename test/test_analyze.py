@@ -181,18 +181,6 @@ def _png_size(path):
     return int.from_bytes(data[16:20], 'big'), int.from_bytes(data[20:24], 'big')
 
 
-def test_plots_of_a_sine_run(tmp_path):
-    bag = tmp_path / 'sine'
-    write_run(closed_loop_run(), bag)
-    assert analyze.main(['-q', '--plots', str(tmp_path / 'png'), str(bag)]) == 0
-    names = sorted(p.name for p in (tmp_path / 'png').iterdir())
-    # A sine has no step to zoom on and is no excitation run: no zoom, no Bode.
-    assert names == ['error.png', 'io_curves.png', 'tracking.png']
-    for name in names:
-        width, height = _png_size(tmp_path / 'png' / name)
-        assert width >= 600 and height >= 300
-
-
 def test_plots_of_a_square_run_and_a_forced_bode(tmp_path):
     bag = tmp_path / 'square'
     write_run(closed_loop_run(kind='square', controller='pi', duration_s=0.4), bag)
@@ -245,13 +233,21 @@ def test_report_compares_several_bags(tmp_path, capsys):
         _png_size(report_dir / rel)
 
 
-def test_report_of_one_bag(tmp_path):
+def test_plots_and_report_of_one_sine_bag(tmp_path):
     bag = tmp_path / 'rac'
     write_run(closed_loop_run(), bag)
-    assert analyze.main(['-q', '--report', str(tmp_path / 'r'), str(bag)]) == 0
-    text = (tmp_path / 'r' / 'report.md').read_text()
+    png, rep = tmp_path / 'png', tmp_path / 'r'
+    assert analyze.main(['-q', '--plots', str(png), '--report', str(rep), str(bag)]) == 0
+    names = sorted(p.name for p in png.iterdir())
+    # A sine has no step to zoom on and is no excitation run: no zoom, no Bode.
+    assert names == ['error.png', 'io_curves.png', 'tracking.png']
+    for name in names:
+        width, height = _png_size(png / name)
+        assert width >= 600 and height >= 300
+    text = (rep / 'report.md').read_text()
     assert text.startswith('# Run report: rac')
-    assert '](tracking.png)' in text and '"trajectory_period_s": 0.01' in text
+    # Figures outside the report directory are linked by relative path.
+    assert '](../png/tracking.png)' in text and '"trajectory_period_s": 0.01' in text
 
 
 # --- bad input: one clear line naming the bag, exit status != 0, no traceback ----------------
