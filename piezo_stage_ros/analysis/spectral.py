@@ -107,7 +107,8 @@ def is_excitation_run(meta: Mapping[str, Any]) -> bool:
     Parameters
     ----------
     meta : dict
-        ``RunRecord.meta``; the trajectory entry (``meta['trajectory']``, its ``kind``) is
+        ``RunRecord.meta``; ``identification_role == 'frequency'`` (the identification runs)
+        decides, else the trajectory entries (``trajectory``, ``kind``, ``experiment``) are
         searched for chirp, sweep, noise, PRBS or multisine.
 
     Returns
@@ -116,6 +117,8 @@ def is_excitation_run(meta: Mapping[str, Any]) -> bool:
         True when a Bode estimate makes sense.
 
     """
+    if meta.get('identification_role') == 'frequency':  # the identification runs say so
+        return True
     trajectory = {k: v for k, v in meta.items() if 'trajectory' in str(k).lower()
                   or str(k).lower() in ('kind', 'experiment', 'excitation')}
     return any(_EXCITATION.search(s) for s in _strings(trajectory))
