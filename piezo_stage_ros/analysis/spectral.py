@@ -39,7 +39,7 @@ __all__ = ['BodeEstimate', 'estimate_bode', 'is_excitation_run']
 
 FloatArray = NDArray[np.float64]
 
-_EXCITATION = re.compile(r'chirp|sweep|noise|prbs|multisine|random', re.IGNORECASE)
+_EXCITATION = re.compile(r'chirp|sweep|noise|prbs', re.IGNORECASE)
 
 
 @dataclass(frozen=True)
@@ -109,7 +109,8 @@ def is_excitation_run(meta: Mapping[str, Any]) -> bool:
     meta : dict
         ``RunRecord.meta``; ``identification_role == 'frequency'`` (the identification runs)
         decides, else the trajectory entries (``trajectory``, ``kind``, ``experiment``) are
-        searched for chirp, sweep, noise, PRBS or multisine.
+        searched for chirp, sweep, noise or PRBS (a multisine of a few tones is a tracking
+        test, not broadband).
 
     Returns
     -------
