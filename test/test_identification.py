@@ -149,13 +149,14 @@ def test_confidence_covers_the_error(seed: int | None, rate: float) -> None:
     stage, _, res = identified(seed, rate)
     true = factors_of(stage.plant.third_order)
     assert res.frequency is not None and res.step is not None and res.hysteresis is not None
-    # honest standard deviations: the errors are within a few sigma, and sigma is small
+    # honest standard deviations: the errors are within a few sigma, and sigma is small (the
+    # noise run's w_n also carries a bias of ~0.05 % from the hysteresis, which sigma omits)
     assert abs(res.frequency.factors.omega_n_rad_s - true.omega_n_rad_s) < \
         6 * res.frequency.std.omega_n_rad_s + 1e-3 * true.omega_n_rad_s
     assert abs(res.step.factors.tau_s - true.tau_s) < 6 * res.step.std.tau_s + 1e-3 * true.tau_s
     h = res.hysteresis
-    assert abs(h.estimates['alpha'] - stage.hysteresis.backlash_like.alpha) < \
-        6 * h.std['alpha'] + 0.01 * stage.hysteresis.backlash_like.alpha
+    assert abs(h.estimates['alpha'] - stage.hysteresis.backlash_like.alpha) < 4 * h.std['alpha']
+    assert h.std['alpha'] < 0.01 * h.estimates['alpha']
     assert 0.0 < h.std['static_gain_m_per_v'] < 1e-3 * h.static_gain_m_per_v
     # the residuals are at the sensor noise: the model explains the data
     assert h.residual_rms_m < 1.5 * NOISE_M

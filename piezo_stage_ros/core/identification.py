@@ -406,11 +406,21 @@ def _filter_columns(num: FloatArray, den: FloatArray, inputs: FloatArray,
 
 
 def _covariance(jac: FloatArray, residual: FloatArray) -> FloatArray:
-    """Return s^2 (J^T J)^-1 (pseudo-inverse), s^2 the residual variance per degree of freedom."""
+    """
+    Return s^2 (J^T J)^-1, s^2 the residual variance per degree of freedom.
+
+    The columns are normalized first: their scales differ by many orders of magnitude (metres
+    per volt against metres per unit of alpha), and the pseudo-inverse of the unscaled J^T J
+    would drop the small singular values, i.e. the largest variances.
+    """
     m, p = jac.shape
     dof = max(m - p, 1)
     s2 = float(residual @ residual) / dof
-    return np.asarray(s2 * np.linalg.pinv(jac.T @ jac), dtype=np.float64)
+    norms = np.linalg.norm(jac, axis=0)
+    norms = np.where(norms > 0.0, norms, 1.0)
+    js = jac / norms
+    inv = np.linalg.pinv(js.T @ js) / np.outer(norms, norms)
+    return np.asarray(s2 * inv, dtype=np.float64)
 
 
 # --------------------------------------------------------------------------------------------
