@@ -350,3 +350,17 @@ def test_epoch_stamps_are_uniform_enough() -> None:
     t = 1.7e9 + np.arange(n) * 5e-5  # a recorder's stamps: seconds since the epoch
     rec = RunRecord(t, np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n))
     assert sample_time_of(rec) == pytest.approx(5e-5, rel=0.01)
+
+
+def test_long_runs_are_cut_to_bound_the_fits() -> None:
+    stage = true_stage(None)
+    runs = run_experiments(stage, ExperimentPlan(step_duration_s=0.3, noise_duration_s=0.1))
+    params = IdentificationParams(step_max_jumps=10, hysteresis_max_s=0.03)
+    res = identify(list(runs.values()), params=params)
+    assert res.step is not None and res.hysteresis is not None
+    assert res.step.jumps_v.size == 10
+    assert len(res.step.records[0]) == len(res.step.models[0]) < len(runs['step'])
+    assert len(res.hysteresis.records[0]) == len(res.hysteresis.models[0]) == 600
+    true = factors_of(stage.plant.third_order)
+    assert rel(res.factors.tau_s, true.tau_s) < 0.02
+    assert rel(res.static_gain_m_per_v, true.gain_m_per_v * 1.0341) < 0.01

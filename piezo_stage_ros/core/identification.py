@@ -124,6 +124,12 @@ class IdentificationParams(Params):
                                  low_open=True)
     step_fixes_omega: bool = param(True, unit='-', description='Keep w_n from the frequency '
                                    'response in the step fit (the paper); false fits w_n too.')
+    step_max_jumps: int = param(40, unit='-', description='Input jumps of a step run used by '
+                                'the fit (the run is cut after the window of the last one).',
+                                low=1, high=10000)
+    hysteresis_max_s: float = param(0.2, unit='s', description='Length of a sine run used by '
+                                    'the hysteresis fit (from its start).', low=0.0,
+                                    low_open=True)
 
 
 @dataclass(frozen=True)
@@ -293,6 +299,15 @@ def applied_voltage(record: RunRecord, chain: SignalChainParams) -> FloatArray:
         u = quantize(u, chain.dac_bits, chain.dac_min_v, chain.dac_max_v)
     return np.asarray(np.clip(u, chain.amplifier_min_v, chain.amplifier_max_v),
                       dtype=np.float64)
+
+
+def _head(record: RunRecord, n: int) -> RunRecord:
+    """Return the first ``n`` samples of a record (the record itself when it is not longer)."""
+    if len(record) <= n:
+        return record
+    return RunRecord(record.time_s[:n], record.position_m[:n], record.reference_m[:n],
+                     record.reference_velocity_mps[:n], record.command_v[:n],
+                     {k: v[:n] for k, v in record.diagnostics.items()}, record.meta)
 
 
 def _name(record: RunRecord) -> str:
@@ -747,6 +762,13 @@ def fit_step_response(records: Sequence[RunRecord], chain: SignalChainParams,
         edges = np.flatnonzero(np.diff(v)) + 1
         if edges.size == 0:
             raise IdentificationError(f'run {_name(rec)}: no input jump; not a step run')
+        if edges.size > params.step_max_jumps:
+            # one linear level per plateau: bound the size of the least-squares problem
+            last = params.step_max_jumps - 1
+            rec = _head(rec, min(int(edges[last]) + max(int(round(params.step_window_s / t)), 4),
+                                 int(edges[last + 1])))
+            v = v[:len(rec)]
+            edges = edges[edges < len(rec)]
         starts = np.concatenate([[0], edges])
         ends = np.concatenate([edges, [v.size]])
         ind = np.zeros((starts.size, v.size))
@@ -903,6 +925,8 @@ def fit_hysteresis(records: Sequence[RunRecord], chain: SignalChainParams,
     runs = []
     for rec in records:
         t = sample_time_of(rec)
+        # one pass of the exact hysteresis stepping per evaluation: bound its length
+        rec = _head(rec, max(int(round(params.hysteresis_max_s / t)), 16))
         num, den = _unit_filter(shape, t)
         v = applied_voltage(rec, chain)
         y = np.asarray(rec.position_m, dtype=np.float64)
