@@ -26,7 +26,8 @@ hysteresis) with the reduced plant (25) and the third-order plant (20), for
 4. a sweep of the initial estimate phi_hat(0) (in steady state the estimates sit still inside
    the boundary layer, so phi_hat(0) is the feedforward gain on dy_d/dt);
 5. Table III: e_rms and e_max of the paper's PI, the paper's RAC and the default RAC on both
-   plants, with and without the notch.
+   plants, with and without the notch;
+6. the same with one sample of computational delay, and a tuning that tolerates it.
 
 Errors are those of :func:`piezo_stage_ros.core.metrics.summarize` (measured position, steady-state
 window after max(2 periods, 0.1 s)). The default run takes about a minute.
@@ -37,7 +38,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from typing import Sequence
+from typing import Mapping, Sequence
 
 from piezo_stage_ros.core.closed_loop import run
 from piezo_stage_ros.core.controllers import (
@@ -47,6 +48,7 @@ from piezo_stage_ros.core.controllers import (
     PIParams,
     RACParams,
 )
+from piezo_stage_ros.core.interfaces import Controller
 from piezo_stage_ros.core.metrics import summarize
 from piezo_stage_ros.core.params import ParamSpec
 from piezo_stage_ros.core.stability import check_stability, stability_plant, StabilityParams
@@ -68,6 +70,48 @@ NOTCH_OFF = NotchParams(mode='off')
 #: The best tuning found that is stable on the third-order model (20) *without* the notch
 #: (every corner, >= 3 dB and >= 35 deg); the default differs in k_d, lambda, epsilon, phi_hat(0).
 WITHOUT_NOTCH = RACParams(k_d=0.4, lambda_per_s=2000.0, epsilon_v=0.6, phi_init=4.2e-4)
+
+#: A tuning that passes every corner with one sample of computational delay in the loop
+#: (``stability.delay_samples: 1``), for set-ups that apply u_k one sample late.
+DELAY_ONE_SAMPLE = RACParams(k_d=1.0, lambda_per_s=2000.0, epsilon_v=0.4)
+
+
+class Delayed:
+    """
+    A controller whose command reaches the plant one sample late (study only).
+
+    Parameters
+    ----------
+    inner : Controller
+        The controller; its first command is applied at once, then each one a sample late.
+
+    """
+
+    def __init__(self, inner: Controller) -> None:
+        self.inner = inner
+        self._last: float | None = None
+
+    @property
+    def sample_time_s(self) -> float:
+        """Return the inner controller's sample time [s]."""
+        return self.inner.sample_time_s
+
+    def reset(self, position_m: float, reference_m: float) -> None:
+        """Reset the inner controller and empty the delay line."""
+        self.inner.reset(position_m, reference_m)
+        self._last = None
+
+    def step(self, position_m: float, reference_m: float,
+             reference_velocity_mps: float) -> float:
+        """Return the command computed one sample earlier [V]."""
+        u = self.inner.step(position_m, reference_m, reference_velocity_mps)
+        out = u if self._last is None else self._last
+        self._last = u
+        return out
+
+    def diagnostics(self) -> Mapping[str, float]:
+        """Return the inner controller's diagnostics."""
+        return self.inner.diagnostics()
 
 
 def controller(kind: str, *, rac: RACParams | None = None, pi: PIParams | None = None,
@@ -103,7 +147,7 @@ def controller(kind: str, *, rac: RACParams | None = None, pi: PIParams | None =
 
 
 def track(params: ControllerParams, model: str, frequency_hz: float,
-          sample_rate_hz: float = 10000.0) -> tuple[float, float]:
+          sample_rate_hz: float = 10000.0, *, delay: bool = False) -> tuple[float, float]:
     """
     Run one Table III sine and return the steady-state errors.
 
@@ -117,6 +161,8 @@ def track(params: ControllerParams, model: str, frequency_hz: float,
         Sine frequency [Hz].
     sample_rate_hz : float
         Loop rate [Hz].
+    delay : bool
+        Apply each command one sample late (:class:`Delayed`).
 
     Returns
     -------
@@ -127,8 +173,10 @@ def track(params: ControllerParams, model: str, frequency_hz: float,
     stage_params = StageParams.from_flat({'plant.model': model, 'sample_rate_hz': sample_rate_hz})
     stage = Stage(stage_params)
     plant = stability_plant(stage_params.plant)
-    ctrl = build_controller(params, stage.sample_time_s,
-                            plant if plant.name != 'reduced' else None)
+    ctrl: Controller = build_controller(params, stage.sample_time_s,
+                                        plant if plant.name != 'reduced' else None)
+    if delay:
+        ctrl = Delayed(ctrl)
     traj = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine',
                                                        'sine.frequency_hz': frequency_hz}))
     period = 1.0 / frequency_hz
@@ -139,9 +187,11 @@ def track(params: ControllerParams, model: str, frequency_hz: float,
     return m['e_rms_m'], m['e_max_m']
 
 
-def verdict(params: ControllerParams, model: str, sample_time_s: float = 1e-4) -> str:
+def verdict(params: ControllerParams, model: str, sample_time_s: float = 1e-4,
+            delay_samples: int = 0) -> str:
     """Return 'stable (GM x dB, PM y deg)' or 'UNSTABLE (radius r)' over every loop case."""
-    rep = check_stability(params, PlantParams(model=model), sample_time_s)
+    rep = check_stability(params, PlantParams(model=model), sample_time_s,
+                          options=StabilityParams(delay_samples=delay_samples))
     if rep.stable:
         return f'stable (GM {rep.gain_margin_db:.1f} dB, PM {rep.phase_margin_deg:.0f} deg)'
     return f'UNSTABLE (radius {rep.spectral_radius:.3f})'
@@ -186,11 +236,12 @@ def _row(cells: Sequence[str]) -> str:
     return '| ' + ' | '.join(cells) + ' |'
 
 
-def errors_row(params: ControllerParams, model: str, *, with_max: bool = False) -> list[str]:
+def errors_row(params: ControllerParams, model: str, *, with_max: bool = False,
+               delay: bool = False) -> list[str]:
     """Return the e_rms (and e_max) cells [nm] over :data:`FREQUENCIES_HZ`."""
     cells = []
     for f in FREQUENCIES_HZ:
-        e_rms, e_max = track(params, model, f)
+        e_rms, e_max = track(params, model, f, delay=delay)
         cells.append(f'{e_rms * 1e9:.1f} / {e_max * 1e9:.1f}' if with_max
                      else f'{e_rms * 1e9:.1f}')
     return cells
@@ -296,6 +347,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     ]
     for name, params, model in rows:
         print(_row([name, model, *errors_row(params, model, with_max=True)]), flush=True)
+
+    print('\n## 6. One sample of computational delay (u_k applied at t_k+1): e_rms / e_max [nm] '
+          'and the verdict with stability.delay_samples = 1\n')
+    print(_row(['controller', 'plant', freqs, 'verdict']))
+    print(_row(['---'] * (3 + len(FREQUENCIES_HZ))))
+    delayed = controller('rac', rac=DELAY_ONE_SAMPLE)
+    for name, params in (('paper PIC', controller('pi', notch=False)),
+                         ('default RAC + notch', default),
+                         ('delay-robust RAC + notch', delayed)):
+        for model in ('reduced', 'third_order'):
+            print(_row([name, model, *errors_row(params, model, with_max=True, delay=True),
+                        verdict(params, model, delay_samples=1)]), flush=True)
     print(f'\n(study took {time.monotonic() - start:.0f} s)')
     return 0
 

@@ -114,9 +114,11 @@ class LoopCase:
     spectral_radius : float
         Largest |closed-loop pole|; < 1 is stable.
     gain_margin_db : float
-        Smallest gain margin over the phase crossovers [dB] (inf when there is none).
+        Over the phase crossovers, the gain margin closest to 0 dB [dB], signed (negative: the
+        loop gain exceeds one there); inf when there is no crossover.
     phase_margin_deg : float
-        Smallest phase margin over the gain crossovers [deg] (inf when there is none).
+        Over the gain crossovers, the phase margin 180 deg + phase (wrapped to (-180, 180])
+        closest to 0 [deg]; inf when there is no crossover.
     poles : ndarray
         Closed-loop poles in z.
 
@@ -175,13 +177,13 @@ class StabilityReport:
 
     @property
     def gain_margin_db(self) -> float:
-        """Return the smallest gain margin over the cases [dB]."""
-        return min(c.gain_margin_db for c in self.cases)
+        """Return the gain margin closest to 0 dB over the cases [dB]."""
+        return min((c.gain_margin_db for c in self.cases), key=abs)
 
     @property
     def phase_margin_deg(self) -> float:
-        """Return the smallest phase margin over the cases [deg]."""
-        return min(c.phase_margin_deg for c in self.cases)
+        """Return the phase margin closest to 0 deg over the cases [deg]."""
+        return min((c.phase_margin_deg for c in self.cases), key=abs)
 
     def text(self) -> str:
         """Return a one-paragraph human-readable report."""
@@ -196,7 +198,7 @@ class StabilityReport:
                  f'margin {_fmt(w.gain_margin_db)} dB, phase margin '
                  f'{_fmt(w.phase_margin_deg)} deg.')
         margins = (f' Over all cases: smallest gain margin {_fmt(self.gain_margin_db)} dB, '
-                   f'smallest phase margin {_fmt(self.phase_margin_deg)} deg.')
+                   f'smallest phase margin {_fmt(self.phase_margin_deg)} deg (closest to 0).')
         if self.stable:
             return head + worst + margins
         pole = w.poles[int(np.argmax(np.abs(w.poles)))]
@@ -319,7 +321,7 @@ def _unit_circle(sample_time_s: float) -> NDArray[np.complex128]:
 
 def _margins(lz: NDArray[np.complex128], num: FloatArray, den: FloatArray
              ) -> tuple[float, float]:
-    """Return the smallest gain margin [dB] and phase margin [deg] of L(z) = num/den."""
+    """Return the gain and phase margins of L(z) = num/den closest to zero [dB], [deg]."""
     mag = np.abs(lz)
     phase = np.unwrap(np.angle(lz))
     gm = math.inf
@@ -329,7 +331,7 @@ def _margins(lz: NDArray[np.complex128], num: FloatArray, den: FloatArray
     for i in cross:
         f = (1.0 - mag[i]) / (mag[i + 1] - mag[i])
         ph = phase[i] + f * (phase[i + 1] - phase[i])
-        pm = min(pm, _wrap_deg(math.degrees(ph) + 180.0))
+        pm = min(pm, _wrap_deg(math.degrees(ph) + 180.0), key=abs)
     # phase crossovers (phase = -180 deg modulo 360): gain margin = -20 log10 |L|
     shifted = (phase + math.pi) / (2.0 * math.pi)
     k = np.floor(shifted)
@@ -338,11 +340,11 @@ def _margins(lz: NDArray[np.complex128], num: FloatArray, den: FloatArray
         target = max(k[i], k[i + 1]) * 2.0 * math.pi - math.pi
         f = (target - phase[i]) / (phase[i + 1] - phase[i])
         m = float(mag[i] + f * (mag[i + 1] - mag[i]))
-        gm = min(gm, -20.0 * math.log10(max(m, 1e-300)))
+        gm = min(gm, -20.0 * math.log10(max(m, 1e-300)), key=abs)
     # at Nyquist L(-1) is real: a negative value is a phase crossover the grid can miss
     l_nyq = float(np.polyval(num, -1.0) / np.polyval(den, -1.0))
     if l_nyq < 0.0:
-        gm = min(gm, -20.0 * math.log10(max(abs(l_nyq), 1e-300)))
+        gm = min(gm, -20.0 * math.log10(max(abs(l_nyq), 1e-300)), key=abs)
     return gm, pm
 
 
