@@ -51,7 +51,12 @@ Edge-case contract (all controllers, tested in ``test/test_controllers.py``):
 - ``step(..., dt_s=...)`` with dt_s <= 0 or non-finite does the same and counts ``bad_dt``;
   without ``dt_s`` the configured sample time is used;
 - ``reset(position_m, reference_m)`` returns to the initial estimates and a zero integral;
-  with ``output_v`` given it starts bumpless from that held voltage (PI: integral preset).
+  with ``output_v`` given it starts bumpless from that held voltage (PI: integral preset);
+- the optional notch filter on the command starts at rest at the first command it filters.
+
+The default RAC gains are the discrete-time tuning of ``python3 -m piezo_stage_ros.tune``
+(docs/controllers.md), not the paper's: its epsilon = 0.005 makes the boundary-layer gain
+k*/epsilon = 40, which is unstable at 10 kHz.
 """
 
 from __future__ import annotations
@@ -68,7 +73,8 @@ from piezo_stage_ros.core.params import group, param, Params
 __all__ = [
     'ControllerParams', 'NotchFilter', 'NotchParams', 'NotchedController', 'OpenLoopController',
     'OpenLoopParams', 'PIController', 'PIParams', 'RACController', 'RACParams',
-    'build_controller', 'notch_coefficients', 'plant_resonance', 'proj', 'sat',
+    'SENSOR_GAIN_V_PER_M', 'build_controller', 'notch_coefficients', 'notch_design',
+    'plant_resonance', 'proj', 'sat',
 ]
 
 #: K_PSCM of eq. (15), 10 V over 38 um [V/m] (same value as the stage's sensor).
