@@ -56,7 +56,7 @@ def identified(bags: tuple[dict[str, Path], StageParams],
     yaml_path, report = out / 'stage.yaml', out / 'report'
     # the bags in any order: each is classified by its command signal
     argv = [str(paths['sine']), str(paths['noise']), str(paths['step']),
-            '--output', str(yaml_path), '--report', str(report)]
+            '--output', str(yaml_path), '--report', str(report), '--pscm', '0', '40e-6']
     import contextlib
     import io
     buf = io.StringIO()
@@ -91,6 +91,9 @@ def test_parameter_file_is_what_the_nodes_and_simulate_read(
                                            if k.startswith('stability.')}, prefix='stability.')
     assert stability.slope_max == pytest.approx(bl.c)
     assert stability.plant.third_order == stage.plant.third_order
+    # eq. (15) from the two points of --pscm, for the plant's sensor and the controller
+    assert stage.chain.sensor_gain_v_per_m == pytest.approx(10.0 / 40e-6)
+    assert ctrl_values['sensor_gain_v_per_m'] == pytest.approx(10.0 / 40e-6)
 
 
 def test_simulate_runs_with_the_identified_file(identified: tuple[Path, Path, str],
@@ -174,3 +177,17 @@ def test_bad_input_gives_one_line_and_a_status(tmp_path: Path,
     _one_line(capsys.readouterr().err)
     assert main(['--model', 'preisach', str(paths['step'])]) == 2
     _one_line(capsys.readouterr().err)
+
+
+def test_report_without_a_sine_run_has_no_fig6(bags: tuple[dict[str, Path], StageParams],
+                                               tmp_path: Path) -> None:
+    from piezo_stage_ros.analysis.bagio import read_run
+    from piezo_stage_ros.analysis.identification_report import write_report
+    from piezo_stage_ros.core.identification import identify
+    paths, _ = bags
+    result = identify([read_run(paths['noise']), read_run(paths['step'])])
+    files = write_report(result, tmp_path / 'rep')
+    assert [f.name for f in files] == ['frequency_response.png', 'step_response.png',
+                                       'report.md']
+    text = files[-1].read_text(encoding='utf-8')
+    assert 'no sine run' in text and 'Recovered vs true' not in text
