@@ -105,3 +105,14 @@ def test_result_json_has_no_nan() -> None:
     assert json.loads(text)['rows'] == [{'a': None}, {'a': 2.0}]
     table = ex.format_result(result)
     assert table.splitlines()[3].strip() == '-' and table.splitlines()[4].strip() == '2.0'
+
+
+def test_table3_summary_matrix() -> None:
+    result = ex.run_table3(StageParams(), {'pi': ControllerParams(type='pi')},
+                           plants=('reduced',), frequencies_hz=(100.0,))
+    lines = result.summary
+    assert lines[2].split()[-1] == '39.4' and lines[3].split()[-1] == '1004.6'
+    assert lines[4].startswith('project PI (reduced, simulation)')
+    assert float(lines[4].split()[-1]) == pytest.approx(result.rows[0]['e_rms_m'] * 1e9,
+                                                        abs=0.05)
+    assert ex.format_result(result).endswith(lines[-1])

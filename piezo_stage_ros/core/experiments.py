@@ -86,6 +86,8 @@ class ExperimentResult:
         One dict per row: plain str / float / bool / None values (JSON-ready).
     notes : list of str
         What the reader must know to compare (windows, definitions, differences).
+    summary : list of str
+        Optional compact table printed after the notes (Table III: e_rms per frequency).
 
     """
 
@@ -94,13 +96,15 @@ class ExperimentResult:
     columns: list[tuple[str, str, float, str]]
     rows: list[dict[str, Any]] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    summary: list[str] = field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
         """Return a JSON-ready dict (NaN becomes None)."""
         def clean(v: Any) -> Any:
             return None if isinstance(v, float) and not math.isfinite(v) else v
         return {'experiment': self.name, 'title': self.title, 'notes': list(self.notes),
-                'rows': [{k: clean(v) for k, v in row.items()} for row in self.rows]}
+                'rows': [{k: clean(v) for k, v in row.items()} for row in self.rows],
+                'summary': list(self.summary)}
 
 
 def default_duration_s(trajectory: TrajectoryBase, params: TrajectoryParams) -> float:
@@ -264,6 +268,7 @@ def run_table3(stage_params: StageParams, controllers: dict[str, ControllerParam
                 _say(progress, f'table3: {plant:11s} {name:4s} {f:6g} Hz: e_rms '
                                f'{s["e_rms_m"] * 1e9:9.1f} nm (paper '
                                f'{row["paper_e_rms_m"] * 1e9:.1f})')
+    result.summary = _table3_matrix(result.rows, list(frequencies_hz))
     result.notes += [
         'e_m, e_rms: measured position (16-bit ADC) minus x_d over the steady-state window: '
         f'after max({metrics.TRANSIENT_PERIODS} periods, {metrics.TRANSIENT_S:g} s), whole '
@@ -272,6 +277,25 @@ def run_table3(stage_params: StageParams, controllers: dict[str, ControllerParam
         'reduced = eq. (25), the model the paper designs on; third_order = eq. (20).',
     ]
     return result
+
+
+def _table3_matrix(rows: list[dict[str, Any]], frequencies: list[float]) -> list[str]:
+    """Return e_rms [nm] per frequency: the paper's two rows, then one row per run series."""
+    head = f'{"e_rms [nm]":38s}' + ''.join(f'{f:>9g} Hz' for f in frequencies)
+    lines = [head, '-' * len(head)]
+    for ctrl, label in (('rac', 'paper RAC (experiment)'), ('pi', 'paper PIC (experiment)')):
+        vals = [PAPER_TABLE3.get(float(f), {}).get(ctrl, (math.nan, math.nan))[1]
+                for f in frequencies]
+        lines.append(f'{label:38s}' + ''.join(f'{v * 1e9:12.1f}' for v in vals))
+    series: dict[tuple[str, str], dict[float, float]] = {}
+    for row in rows:
+        series.setdefault((row['controller'], row['plant']), {})[row['frequency_hz']] = \
+            row['e_rms_m']
+    for (ctrl, plant), values in series.items():
+        label = f'project {ctrl.upper()} ({plant}, simulation)'
+        lines.append(f'{label:38s}' + ''.join(
+            f'{values.get(float(f), math.nan) * 1e9:12.1f}' for f in frequencies))
+    return lines
 
 
 def run_square(stage_params: StageParams, controller_params: ControllerParams, *,
@@ -633,6 +657,8 @@ def format_result(result: ExperimentResult) -> str:
     out.append('  '.join('-' * w for w in widths))
     out += ['  '.join(c.rjust(w) for c, w in zip(cells, widths)) for cells in lines_cells]
     out += [f'* {note}' for note in result.notes]
+    if result.summary:
+        out += [''] + result.summary
     return '\n'.join(out)
 
 
