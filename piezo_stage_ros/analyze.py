@@ -167,6 +167,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                   file=sys.stderr)
             failed += 1
             continue
+        except Exception as err:  # noqa: BLE001 - a bag must never end in a traceback
+            _end_progress(show_progress)
+            print(f'{PROG}: error: bag {bag}: cannot be analysed ({type(err).__name__}: {err}); '
+                  'please report this with the bag', file=sys.stderr)
+            failed += 1
+            continue
         _end_progress(show_progress)
         if args.json:
             print(json.dumps(summary_json(analysis), sort_keys=False), flush=True)

@@ -527,3 +527,33 @@ def test_unstamped_messages_are_refused(tmp_path):
     with pytest.raises(BagError, match=r'nostamp: topic /stage/position has 100 messages but '
                                        r'only 1 distinct header stamps'):
         read_run(bag)
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+def test_random_damage_gives_a_bag_error_or_a_run(tmp_path, storage):
+    # Flipped bytes, overwritten blocks and cut files: read_run either reads a run or raises
+    # BagError, never anything else (rosbags writes no CRCs, so damage inside values can go
+    # unnoticed; that is the format, not the reader).
+    bag = _copy(tmp_path, storage, n=1000)
+    file = _storage_file(bag)
+    original = file.read_bytes()
+    rng = np.random.default_rng(11)
+    outcomes = set()
+    for trial in range(15):
+        data = bytearray(original)
+        if trial % 3 == 0:
+            for _ in range(int(rng.integers(1, 20))):
+                data[int(rng.integers(0, len(data)))] = int(rng.integers(0, 256))
+        elif trial % 3 == 1:
+            at = int(rng.integers(0, len(data)))
+            data[at:at + int(rng.integers(1, 5000))] = b'\x00'
+        else:
+            data = data[:int(rng.integers(0, len(data)))]
+        file.write_bytes(bytes(data))
+        try:
+            read_run(bag)
+            outcomes.add('run')
+        except BagError as err:
+            assert str(err).startswith(f'bag {bag}: ')
+            outcomes.add('error')
+    assert 'error' in outcomes

@@ -910,9 +910,12 @@ def _storage_files(bag: Path) -> tuple[str, list[Path], dict[str, Any]]:
     if not bag.is_dir():
         return ('mcap' if bag.suffix == '.mcap' else 'sqlite3'), [bag], {}
     # rosbags has validated metadata.yaml already; this only picks out what it does not expose.
-    with (bag / 'metadata.yaml').open('r', encoding='utf8') as stream:
-        info = yaml.safe_load(stream)['rosbag2_bagfile_information']
-    files = [bag / PurePath(str(name)).name for name in info['relative_file_paths']]
+    try:
+        with (bag / 'metadata.yaml').open('r', encoding='utf8') as stream:
+            info = yaml.safe_load(stream)['rosbag2_bagfile_information']
+        files = [bag / PurePath(str(name)).name for name in info['relative_file_paths']]
+    except (OSError, yaml.YAMLError, KeyError, TypeError) as err:
+        raise BagError(f'bag {bag}: cannot read metadata.yaml: {_describe(err)}') from None
     meta: dict[str, Any] = {}
     custom = info.get('custom_data')
     if isinstance(custom, dict) and isinstance(custom.get(META_KEY), str):
