@@ -288,9 +288,21 @@ def _summary_lines(result: IdentificationResult) -> list[str]:
              f'zeta = {s["zeta"]:.5g}, tau = {s["tau_s"]:.6g} s',
              f'K = {s["K"]:.6g}, a0 = {s["a0"]:.6g}, a1 = {s["a1"]:.6g}, a2 = {s["a2"]:.6g}']
     if 'alpha' in s:
-        lines.append(f'alpha = {s["alpha"]:.5g}, c = {s["c"]:.5g}, B1 = {s["b1"]:.5g}')
-    elif result.hysteresis is not None:
-        lines.append(', '.join(f'{k} = {v:.5g}' for k, v in result.hysteresis.estimates.items()))
+        lines.append(f'alpha = {s["alpha"]:.5g}, c = {s["c"]:.5g} (convention), '
+                     f'B1 = {s["b1"]:.5g}')
+    if result.hysteresis is not None:
+        h = result.hysteresis
+        lines.append('sine fit (+- 1 sigma): ' + ', '.join(
+            f'{k} = {v:.5g} +- {h.std.get(k, float("nan")):.2g}' for k, v in h.estimates.items()))
+    if result.step is not None:
+        st = result.step
+        lines.append(f'step fit (+- 1 sigma): zeta = {st.factors.zeta:.5g} +- {st.std.zeta:.2g}, '
+                     f'tau = {st.factors.tau_s:.5g} +- {st.std.tau_s:.2g} s')
+    if result.frequency is not None:
+        fr = result.frequency
+        lines.append(f'frequency fit (+- 1 sigma): w_n = {fr.factors.omega_n_rad_s:.6g} +- '
+                     f'{fr.std.omega_n_rad_s:.2g} rad/s, small-signal k_p = '
+                     f'{fr.factors.gain_m_per_v:.5g} m/V')
     return lines
 
 
