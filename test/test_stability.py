@@ -67,8 +67,8 @@ def test_paper_rac_epsilon_chatters_in_discrete_time():
 def test_default_rac_is_stable_on_every_model_at_every_corner(plant):
     rep = check_stability(ControllerParams(), plant, T)
     assert rep.stable, rep.text()
-    # 4 corners x 2 regions x 5 slopes
-    assert len(rep.cases) == 40
+    # (4 corners + the initial estimates) x 2 regions x 5 slopes
+    assert len(rep.cases) == 50
     # the design rule of docs/controllers.md: at least 3 dB and 35 deg on every loop
     assert rep.gain_margin_db > 3.0 and rep.phase_margin_deg > 35.0
 

@@ -36,10 +36,11 @@ outside it (there sat(s/epsilon) = +-1 is a constant); theta_hat and phi_hat are
 
 The verdict covers every combination of: hysteresis slope on a grid over
 ``[slope_min, slope_max]`` (for eq. (21) the incremental slope dw/dv lies in [2 B1 - c, c]),
-the RAC estimates at the four corners of their projection bounds (Theorem 1 only keeps them
-inside the bounds, so every value inside must be safe) or only at their initial values, and
-both RAC regions. The loop is stable when every closed-loop pole (root of
-den_L(z) + num_L(z)) lies strictly inside the unit circle.
+the RAC estimates at the four corners of their projection bounds and at their initial values
+(Theorem 1 only keeps them inside the bounds, so every value inside must be safe; they enter the
+linear loop only through its proportional gain, which is affine in them, so the corners give its
+extremes) or only at their initial values, and both RAC regions. The loop is stable when
+every closed-loop pole (root of den_L(z) + num_L(z)) lies strictly inside the unit circle.
 """
 
 from __future__ import annotations
@@ -74,7 +75,8 @@ class StabilityParams(Params):
     action: str = param('warn', unit='-', description='On an unstable verdict: warn loudly and '
                         'run anyway, or refuse to run.', choices=('warn', 'refuse'))
     estimates: str = param('corners', unit='-', description='RAC estimates checked: the four '
-                           'corners of their projection bounds, or the initial values only.',
+                           'corners of their projection bounds and the initial values, or the '
+                           'initial values only.',
                            choices=('corners', 'initial'))
     slope_min: float = param(0.8843, unit='-', description='Smallest hysteresis slope dw/dv '
                              '(2 B1 - c for the default backlash-like model).', low=0.0,
@@ -245,7 +247,7 @@ def _plant_tf(plant: LinearPlant, sample_time_s: float) -> tuple[FloatArray, Flo
 
 def _controller_cases(params: ControllerParams, estimates: str
                       ) -> list[tuple[str, float, float]]:
-    """Return (label, proportional gain, integral gain times T-free) of each linear controller."""
+    """Return (label, proportional gain [V/V], integral gain [1/s]) of each linear controller."""
     if params.type == 'pi':
         p = params.pi
         return [(f'PI k_p={p.k_p:g}, k_i={p.k_i:g}', p.k_p, p.k_i)]
@@ -253,7 +255,10 @@ def _controller_cases(params: ControllerParams, estimates: str
         return [('open loop', 0.0, 0.0)]
     r = params.rac
     if estimates == 'corners':
+        # the estimates enter only through the proportional gain, affine in them: the corners
+        # give its extremes; the initial pair is checked too (the loop the run starts with)
         pairs = [(t, f) for t in (r.theta_min, r.theta_max) for f in (r.phi_min, r.phi_max)]
+        pairs.append((r.theta_init, r.phi_init))
     else:
         pairs = [(r.theta_init, r.phi_init)]
     out = []
