@@ -13,7 +13,7 @@ JAZZY_PYTHON ?= $(shell for p in python3.12 $$(ls -d $${PYENV_ROOT:-$$HOME/.pyen
 JAZZY_VENV ?= .venv-jazzy
 JAZZY_STAMP := $(JAZZY_VENV)/.installed
 
-.PHONY: venv demo test check lint typecheck pytest test-jazzy bench soak clean
+.PHONY: venv demo test check lint typecheck pytest test-jazzy bench soak tune clean
 
 venv: $(STAMP)
 
@@ -57,6 +57,9 @@ bench: $(STAMP)
 
 soak: $(STAMP)
 	$(BIN)/soak
+
+tune: $(STAMP)
+	$(BIN)/tune
 
 clean:
 	rm -rf $(VENV) $(JAZZY_VENV) build install log *.egg-info
