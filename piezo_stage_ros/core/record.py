@@ -28,7 +28,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-
 from piezo_stage_ros.core.errors import PiezoStageError
 
 __all__ = ['RunRecord']
