@@ -730,7 +730,8 @@ def fit_step_response(records: Sequence[RunRecord], chain: SignalChainParams,
     chain : SignalChainParams
         Signal chain giving the applied voltage.
     params : IdentificationParams
-        ``step_window_s``: samples up to this long after each jump are fitted.
+        ``step_window_s``: samples up to this long after each jump are fitted;
+        ``step_max_jumps``: a run with more jumps is cut after that many.
     initial : LinearFactors
         w_n (kept when fixed) and the start of zeta and tau.
     fix_omega : bool, optional
@@ -898,7 +899,7 @@ def fit_hysteresis(records: Sequence[RunRecord], chain: SignalChainParams,
     chain : SignalChainParams
         Signal chain giving the applied voltage.
     params : IdentificationParams
-        Model choice and the slope convention.
+        Model choice, the slope convention and ``hysteresis_max_s`` (each run is cut to it).
     shape : LinearFactors
         w_n, zeta, tau of the linear part (its gain is not used).
     base : HysteresisParams, optional
