@@ -181,9 +181,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if figure_root is not None:
             outdir = figure_root if len(args.bags) == 1 else figure_root / name
             try:
+                window = analysis.metrics.get('steady_state_start_s')
                 figures = plot_run(analysis.record, outdir, title=name,
-                                   steady_state_start_s=analysis.steady_state_start_s,
-                                   bode=analysis.bode)
+                                   steady_state_start_s=window, bode=analysis.bode)
             except OSError as err:
                 print(f'{PROG}: error: cannot write figures into {outdir}: {err.strerror}',
                       file=sys.stderr)

@@ -35,8 +35,8 @@ from piezo_stage_ros.analysis.spectral import BodeEstimate, estimate_bode, is_ex
 from piezo_stage_ros.core.errors import PiezoStageError
 from piezo_stage_ros.core.record import RunRecord
 
-__all__ = ['BagAnalysis', 'analyze_bag', 'compute_metrics', 'estimate_period', 'format_metric',
-           'format_summary', 'summary_json']
+__all__ = ['BagAnalysis', 'HEADLINE', 'analyze_bag', 'compute_metrics', 'estimate_period',
+           'format_metric', 'format_summary', 'ordered_keys', 'summary_json']
 
 #: Key in ``RunRecord.meta`` where a runner may store the start of its metrics window [s].
 STEADY_STATE_META_KEY = 'steady_state_start_s'
@@ -260,6 +260,32 @@ def analyze_bag(path: str | Path, *, namespace: str | None = None,
     return BagAnalysis(Path(path), rebased, origin, metrics, window, estimate, notes)
 
 
+#: The metrics a reader looks at first, in this order; the others (diagnostics) follow.
+HEADLINE = ('e_max_m', 'e_rms_m', 'e_max_all_m', 'e_rms_all_m', 'loop_width_pct', 'rise_time_s',
+            'overshoot_pct', 'settling_time_s', 'settling_time_max_s', 'ss_e_max_m',
+            'ss_e_rms_m', 'command_min_v', 'command_max_v', 'samples', 'duration_s',
+            'steady_state_start_s', 'steady_state_samples', 'edges', 'settle_band_m')
+
+
+def ordered_keys(keys: list[str]) -> list[str]:
+    """
+    Order metric names for reading: the headline metrics first, then the rest as given.
+
+    Parameters
+    ----------
+    keys : list of str
+        Metric names.
+
+    Returns
+    -------
+    list of str
+        The same names, reordered.
+
+    """
+    first = [k for k in HEADLINE if k in keys]
+    return first + [k for k in keys if k not in HEADLINE]
+
+
 def format_metric(key: str, value: float) -> str:
     """
     Format one metric with a unit a person reads easily (nm, ms, V).
@@ -347,8 +373,8 @@ def format_summary(analysis: BagAnalysis) -> str:
               else f'from {analysis.steady_state_start_s:g} s')
     lines.append(f'  metrics window: {window}')
     width = max((len(k) for k in analysis.metrics), default=0)
-    for key, value in analysis.metrics.items():
-        lines.append(f'  {key:<{width}}  {format_metric(key, value)}')
+    for key in ordered_keys(list(analysis.metrics)):
+        lines.append(f'  {key:<{width}}  {format_metric(key, analysis.metrics[key])}')
     if analysis.bode is not None:
         lines.append(f'  Bode estimate ({analysis.bode.label}): low-frequency gain '
                      f'{analysis.bode.dc_gain() * 1e6:.4g} µm/V')

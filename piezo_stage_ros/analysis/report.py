@@ -24,11 +24,12 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 import json
+import math
 import os
 from pathlib import Path
 import re
 
-from piezo_stage_ros.analysis.replay import BagAnalysis, format_metric
+from piezo_stage_ros.analysis.replay import BagAnalysis, format_metric, ordered_keys
 
 __all__ = ['ReportEntry', 'unique_names', 'write_report']
 
@@ -92,15 +93,24 @@ def _cell(text: str) -> str:
     return text.replace('|', '\\|').replace('\n', ' ')
 
 
+def _is_error(key: str) -> bool:
+    return key.startswith(('e_', 'ss_e_')) and key.endswith('_m')
+
+
 def _metrics_table(entries: Sequence[ReportEntry]) -> list[str]:
     keys: list[str] = []
     for entry in entries:
         keys.extend(k for k in entry.analysis.metrics if k not in keys)
     lines = ['| metric | ' + ' | '.join(_cell(e.label) for e in entries) + ' |',
              '| --- |' + ' ---: |' * len(entries)]
-    for key in keys:
+    for key in ordered_keys(keys):
         values = [e.analysis.metrics.get(key) for e in entries]
         cells = [format_metric(key, v) if v is not None else '' for v in values]
+        finite = [v for v in values if v is not None and math.isfinite(v)]
+        if len(entries) > 1 and _is_error(key) and len(finite) > 1:
+            # The smallest tracking error of a row in bold: the comparison at a glance.
+            best = min(finite)
+            cells = [f'**{c}**' if v == best else c for c, v in zip(cells, values)]
         lines.append(f'| `{key}` | ' + ' | '.join(cells) + ' |')
     return lines
 
@@ -162,7 +172,8 @@ def write_report(entries: Sequence[ReportEntry], outdir: Path,
     else:
         lines = [f'# Comparison of {len(entries)} runs', '',
                  'Metrics of each bag, computed by the same function as `simulate` '
-                 '(SI values converted to nm, ms, V for reading).', '']
+                 '(SI values converted to nm, ms, V for reading); the smallest tracking error '
+                 'of each row in bold.', '']
         lines += _metrics_table(entries) + ['']
         if comparison_figure is not None:
             rel = Path(os.path.relpath(comparison_figure, outdir)).as_posix()
