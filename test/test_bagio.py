@@ -230,6 +230,8 @@ def test_shared_jazzy_bags(name):
                                5e-6 * 2 * np.pi * 5 * np.cos(2 * np.pi * 5 * k * 1e-3),
                                rtol=1e-9, atol=1e-15)
     assert rec.diagnostics == {}
+    # The recorder's messages have the layout the bulk decoder expects: all of them take it.
+    assert all(d['bulk'] == d['messages'] == 3000 for d in rec.meta['decoding'].values())
 
 
 def _js(stamp_ns, position, velocity=(), frame_id='', names=('stage',)):
@@ -297,11 +299,14 @@ def test_graph_bag_with_jitter_and_ragged_ends(tmp_path):
 
 def test_mixed_layouts_use_the_generic_decoder_where_needed(tmp_path):
     bag = tmp_path / 'mixed'
-    _write_graph_bag(bag, n=200, frame_ids=('', 'stage_link', ''))
+    _write_graph_bag(bag, n=200, frame_ids=('', 'ab', 'cd'))
     rec = read_run(bag)
     assert len(rec) == 200
     np.testing.assert_allclose(rec.position_m, np.arange(200) * 1e-9, atol=1e-21)
     np.testing.assert_allclose(rec.reference_velocity_mps, 2.0)
+    # Two layouts of the same size cannot both be bulk-decoded: one goes through rosbags.
+    decoding = rec.meta['decoding']['/stage/position']
+    assert decoding['messages'] == 200 and 0 < decoding['bulk'] < 200
 
 
 def test_compressed_bag_goes_through_rosbags(tmp_path):

@@ -47,7 +47,7 @@ from __future__ import annotations
 
 from collections import defaultdict
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import functools
 from io import BytesIO
 import json
@@ -842,6 +842,8 @@ class BagInfo:
         True when rosbag2 compression is on (then the generic reader is used).
     files : list of Path
         Storage files.
+    decoded : dict of str to (int, int)
+        After reading: topic -> (messages decoded, of which by the bulk path).
 
     """
 
@@ -852,6 +854,7 @@ class BagInfo:
     meta: dict[str, Any]
     compressed: bool
     files: list[Path]
+    decoded: dict[str, tuple[int, int]] = field(default_factory=dict)
 
 
 def bag_info(path: str | Path) -> BagInfo:
@@ -1393,6 +1396,7 @@ def read_topics(path: str | Path, *, namespace: str | None = None,
         if topic in wanted:
             out[key] = wanted[topic].finish()
             names[key] = wanted[topic].names or ()
+            info.decoded[topic] = (wanted[topic].count, wanted[topic].fast)
     for key in REQUIRED_TOPICS:
         if out[key][0].size == 0:
             raise BagError(f'bag {info.path}: topic {topics[key]} has no messages')
@@ -1549,6 +1553,9 @@ def read_run(path: str | Path, *, namespace: str | None = None,
             'command_offset': int(offset),
             'command_log_delay_median_s': float(residual_ns) / 1e9,
         },
+        # How many messages the bulk decoder took (the rest went through rosbags one by one).
+        'decoding': {topic: {'messages': count, 'bulk': fast}
+                     for topic, (count, fast) in info.decoded.items()},
     })
     return RunRecord(
         time_s=(common - origin_ns) / 1e9 if relative_time else common / 1e9,
