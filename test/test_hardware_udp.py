@@ -186,14 +186,17 @@ def test_guarded_udp_plant_clamps_before_sending(emulator):
     assert emulator.stop_reason == 'stop'
 
 
-def test_lockstep_through_udp_equals_the_offline_runner(emulator):
-    dt = PARAMS.sample_time_s
+@pytest.mark.parametrize('noise', [0.0, 2e-9])
+def test_lockstep_through_udp_equals_the_offline_runner(noise):
+    params = PARAMS.with_flat({'chain.sensor_noise_std_m': noise, 'seed': 11})
+    emulator = TargetEmulator(params).start_thread()
+    dt = params.sample_time_s
     cp = ControllerParams.from_flat({'type': 'pi'})
     tp = TrajectoryParams.from_flat({'kind': 'sine', 'sine.frequency_hz': 20.0})
-    rec = run(Stage(PARAMS), build_controller(cp, dt), make_trajectory(tp), duration_s=0.05,
+    rec = run(Stage(params), build_controller(cp, dt), make_trajectory(tp), duration_s=0.05,
               record_diagnostics=False)
     assert rec.command_v.min() > -2.0 and rec.command_v.max() < 10.0  # no clamping involved
-    plant = PlantLogic(GuardedPlant(connected(emulator), PARAMS.chain), mode='lockstep',
+    plant = PlantLogic(GuardedPlant(connected(emulator), params.chain), mode='lockstep',
                        sample_rate_hz=1.0 / dt, duration_s=0.05)
     traj = TrajectoryLogic(make_trajectory(tp), sample_rate_hz=1.0 / dt)
     ctrl = ControllerLogic(build_controller(cp, dt))
@@ -206,6 +209,7 @@ def test_lockstep_through_udp_equals_the_offline_runner(emulator):
         sample = plant.on_command(ctrl.on_reference(sample.stamp_ns, xd, vd).voltage_v, 0.0)
     np.testing.assert_array_equal(positions, rec.position_m)
     plant.stop()
+    emulator.close()
 
 
 def test_emulator_stops_by_itself_and_binds_loopback_only():

@@ -21,6 +21,8 @@ wrap is tested without it in test_nodes_logic.py and test_lockstep.py.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -96,12 +98,17 @@ def loop(context: Context, mode: str, duration_s: float, plant_extra: dict | Non
     return plant, nodes
 
 
-def spin(context: Context, nodes: list[Node], future, timeout_s: float = 120.0) -> None:
+def spin(context: Context, nodes: list[Node], future, timeout_s: float = 120.0,
+         until=None) -> None:
     executor = make_executor('events', context)
     for node in nodes:
         executor.add_node(node)
     try:
         executor.spin_until_future_complete(future, timeout_sec=timeout_s)
+        # the plant is done once it has the last command; the probe may not have it yet
+        deadline = time.monotonic() + 10.0
+        while until is not None and not until() and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
     finally:
         for node in nodes:
             executor.remove_node(node)
@@ -119,7 +126,7 @@ def offline(duration_s: float):
 def test_composed_lockstep_run_equals_the_offline_runner(context):
     plant, nodes = loop(context, 'lockstep', 0.1)
     probe = nodes[1]
-    spin(context, nodes, plant.finished)
+    spin(context, nodes, plant.finished, until=lambda: len(probe.commands) >= 1000)
     assert plant.finished.done() and plant.finished.exception() is None
     rec = offline(0.1)
     assert len(probe.positions) == 1000
@@ -136,7 +143,7 @@ def test_lockstep_through_the_udp_bridge(context):
         plant, nodes = loop(context, 'lockstep', 0.02,
                             {'backend': 'udp', 'bridge.port': emu.port,
                              'bridge.timeout_s': 0.5})
-        spin(context, nodes, plant.finished)
+        spin(context, nodes, plant.finished, until=lambda: len(nodes[1].positions) >= 200)
     rec = offline(0.02)
     np.testing.assert_array_equal([p for _, p in nodes[1].positions], rec.position_m)
     assert emu.stop_reason == 'stop'
@@ -144,12 +151,17 @@ def test_lockstep_through_the_udp_bridge(context):
 
 def test_realtime_run_counts_late_samples_and_finishes(context):
     plant, nodes = loop(context, 'realtime', 0.2)
-    spin(context, nodes, plant.finished)
+    spin(context, nodes, plant.finished, until=lambda: len(nodes[1].positions) >= 2000)
     stats = plant.finished.result()
-    assert stats['samples'] == 2000 and len(nodes[1].positions) == 2000
-    stamps = np.diff([s for s, _ in nodes[1].positions])
-    assert set(stamps.tolist()) <= {100_000} or stats['skipped'] > 0
-    assert 0 <= stats['late'] <= 2000
+    # sample 0 comes from the start, the 1999 others from the real-time clock
+    assert stats['index'] + 1 == 2000 and stats['samples'] == 1999
+    stamps = np.array([st for st, _ in nodes[1].positions])
+    # a loaded machine may overflow the probe's queue in a catch-up burst (no assertion on
+    # timing), but every stamp it got is on the sample grid, in order
+    assert 0 < len(stamps) <= 2000
+    assert np.all(np.diff(stamps) > 0) and np.all((stamps - stamps[0]) % 100_000 == 0)
+    # a sample that is not late used at least one fresh command (the first has none)
+    assert stats['late'] + stats['commands'] >= stats['samples'] - 1
 
 
 def test_realtime_plant_without_controller_drives_the_safe_voltage(context):
@@ -174,9 +186,9 @@ def test_parameters_are_declared_validated_and_refused_with_a_reason(context):
         assert not ro.successful and 'read-only' in ro.reason
         ok = ctrl.set_parameters([Parameter('pi.k_p', value=2)])[0]  # an int for a double
         assert ok.successful and ctrl.logic._pending.pi.k_p == 2.0
-        unstable = ctrl.set_parameters([Parameter('stability.action', value='refuse'),
-                                        Parameter('pi.k_i', value=1e7)])
-        assert not unstable[0].successful and 'UNSTABLE' in unstable[0].reason
+        assert ctrl.set_parameters([Parameter('stability.action', value='refuse')])[0].successful
+        unstable = ctrl.set_parameters([Parameter('pi.k_i', value=1e7)])[0]
+        assert not unstable.successful and 'UNSTABLE' in unstable.reason
         assert ctrl.get_parameter('pi.k_i').value == 1500.0
     finally:
         ctrl.destroy_node()
@@ -202,8 +214,8 @@ def test_trajectory_services_start_and_stop(context):
             assert traj.logic.active is active
         switched = traj.set_parameters([Parameter('kind', value='square')])[0]
         assert switched.successful and traj.logic._pending is not None
-        refused = traj.set_parameters([Parameter('sine.amplitude_m', value=1.0)])[0]
-        assert not refused.successful and 'sine' in refused.reason
+        refused = traj.set_parameters([Parameter('square.peak_to_peak_m', value=1.0)])[0]
+        assert not refused.successful and 'square' in refused.reason
     finally:
         for node in (traj, client_node):
             executor.remove_node(node)

@@ -108,7 +108,9 @@ class TargetEmulator:
         self.stop_reason = ''
         self._expected: int | None = None
         self._voltage_v = chain.safe_voltage_v
-        self._position_m = self.stage.reset()
+        # the stage is at rest already; reading its true position draws no noise, so the
+        # noise sequence after HELLO is the one the offline runner sees
+        self._position_m = self.stage.position_m
         self._thread: threading.Thread | None = None
         self._halt = threading.Event()
 

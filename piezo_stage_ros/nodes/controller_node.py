@@ -35,6 +35,12 @@ from piezo_stage_ros.core.errors import StabilityError
 from piezo_stage_ros.core.interfaces import Controller
 from piezo_stage_ros.core.stability import check_stability, stability_plant, StabilityParams
 from piezo_stage_ros.nodes import qos, topics
+from piezo_stage_ros.nodes.cdr import (
+    CdrError,
+    encode_float64,
+    JointStateDecoder,
+    JointStateEncoder,
+)
 from piezo_stage_ros.nodes.logic import Command, ControllerLogic, ns_to_stamp, stamp_to_ns
 from piezo_stage_ros.nodes.parameters import ParameterBinding
 from piezo_stage_ros.nodes.runner import run
@@ -77,13 +83,19 @@ class ControllerNode(Node):
                                      diagnostics_every=opts.diagnostics_every,
                                      rebuild=self._rebuild)
         self._stability = stability
-        self._cmd = Float64()
-        self._diag = JointState(name=list(self.logic.names),
-                                position=[0.0] * len(self.logic.names))
+        # CDR bytes in and out (nodes/cdr.py): rclpy message objects cost more than a sample
+        self._diag_names = self.logic.names
+        self._diag = JointStateEncoder(self._diag_names)
+        self._positions = JointStateDecoder([topics.JOINT_NAME])
+        self._references = JointStateDecoder([topics.JOINT_NAME], with_velocity=True)
+        self._matched = False
+        self.malformed = 0
         self._cmd_pub = self.create_publisher(Float64, topics.COMMAND, qos.LOOP)
         self._diag_pub = self.create_publisher(JointState, topics.DIAGNOSTICS, qos.LOOP)
-        self.create_subscription(JointState, topics.POSITION, self._on_position, qos.LOOP)
-        self.create_subscription(JointState, topics.REFERENCE, self._on_reference, qos.LOOP)
+        self.create_subscription(JointState, topics.POSITION, self._on_position, qos.LOOP,
+                                 raw=True)
+        self.create_subscription(JointState, topics.REFERENCE, self._on_reference, qos.LOOP,
+                                 raw=True)
         self._lockstep = opts.mode == 'lockstep'
         self._watch = None
         if not self._lockstep:
@@ -123,37 +135,45 @@ class ControllerNode(Node):
     def _publish(self, out: Command | None) -> None:
         if out is None:
             return
-        self._cmd.data = out.voltage_v
-        self._cmd_pub.publish(self._cmd)
+        self._cmd_pub.publish(encode_float64(out.voltage_v))
         if out.diagnostics is not None:
-            names = list(self.logic.names)
-            diag = self._diag
-            if list(diag.name) != names:
-                diag.name = names
-            diag.position = [float(v) for v in out.diagnostics]
+            if self.logic.names != self._diag_names:
+                # a rebuilt controller of another kind reports other internals
+                self._diag_names = self.logic.names
+                self._diag = JointStateEncoder(self._diag_names)
             sec, nanosec = ns_to_stamp(out.stamp_ns)
-            diag.header.stamp.sec = sec
-            diag.header.stamp.nanosec = nanosec
-            self._diag_pub.publish(diag)
+            self._diag_pub.publish(self._diag.encode(sec, nanosec, out.diagnostics))
 
-    def _on_position(self, msg: JointState) -> None:
-        if self._lockstep and self._cmd_pub.get_subscription_count() == 0:
-            # the command would reach nobody yet; the plant publishes this sample again
-            return
-        stamp = msg.header.stamp
-        self._publish(self.logic.on_position(stamp_to_ns(stamp.sec, stamp.nanosec),
-                                             msg.position[0], time.monotonic()))
+    def _decode(self, data: bytes, topic: str) -> tuple[int, int, float, float] | None:
+        try:
+            if topic == topics.POSITION:
+                return self._positions.decode(data)
+            return self._references.decode(data)
+        except CdrError as exc:
+            self.malformed += 1
+            self.get_logger().warning(f'{topic}: {exc}; dropped', throttle_duration_sec=1.0)
+            return None
 
-    def _on_reference(self, msg: JointState) -> None:
-        stamp = msg.header.stamp
-        self._publish(self.logic.on_reference(stamp_to_ns(stamp.sec, stamp.nanosec),
-                                              msg.position[0], msg.velocity[0]))
+    def _on_position(self, data: bytes) -> None:
+        if self._lockstep and not self._matched:
+            if self._cmd_pub.get_subscription_count() == 0:
+                # the command would reach nobody yet; the plant publishes this sample again
+                return
+            self._matched = True
+        msg = self._decode(data, topics.POSITION)
+        if msg is not None:
+            self._publish(self.logic.on_position(stamp_to_ns(msg[0], msg[1]), msg[2],
+                                                 time.monotonic()))
+
+    def _on_reference(self, data: bytes) -> None:
+        msg = self._decode(data, topics.REFERENCE)
+        if msg is not None:
+            self._publish(self.logic.on_reference(stamp_to_ns(msg[0], msg[1]), msg[2], msg[3]))
 
     def _check_watchdog(self) -> None:
         out = self.logic.on_check(time.monotonic())
         if out is not None:
-            self._cmd.data = out.voltage_v
-            self._cmd_pub.publish(self._cmd)
+            self._cmd_pub.publish(encode_float64(out.voltage_v))
             if self.logic.safe_commands == 1 or self.logic.safe_commands % 1000 == 0:
                 self.get_logger().warning(
                     f'no position for {self.logic.watchdog.timeout_s:g} s: safe command '

@@ -29,7 +29,6 @@ from __future__ import annotations
 import time
 from typing import Any, Sequence
 
-from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from piezo_stage_ros.core.errors import PiezoStageError
 from piezo_stage_ros.core.stage import StageParams
@@ -37,6 +36,7 @@ from piezo_stage_ros.hardware.bridge import Bridge, ModelBridge
 from piezo_stage_ros.hardware.safety import GuardedPlant
 from piezo_stage_ros.hardware.udp import UdpBridge
 from piezo_stage_ros.nodes import qos, topics
+from piezo_stage_ros.nodes.cdr import CdrError, decode_float64, encode_clock, JointStateEncoder
 from piezo_stage_ros.nodes.logic import ns_to_stamp, PlantLogic, Sample
 from piezo_stage_ros.nodes.parameters import ParameterBinding
 from piezo_stage_ros.nodes.runner import run
@@ -86,13 +86,15 @@ class PlantNode(Node):
                                 duration_s=opts.duration_s, resend_s=opts.lockstep.resend_s)
         self.finished = Future()
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self._msg = JointState(name=[topics.JOINT_NAME], position=[0.0])
-        self._clock_msg = ClockMsg()
+        # messages go out and come in as CDR bytes (nodes/cdr.py): rclpy message objects
+        # cost more than the whole sample
+        self._encoder = JointStateEncoder([topics.JOINT_NAME])
+        self.malformed = 0
         self._pub = self.create_publisher(JointState, topics.POSITION, qos.LOOP)
         self._clock_pub = self.create_publisher(ClockMsg, topics.CLOCK, qos.CLOCK) \
             if self.logic.lockstep else None
         self._status_pub = self.create_publisher(DiagnosticStatus, topics.STATUS, qos.STATUS)
-        self.create_subscription(Float64, topics.COMMAND, self._on_command, qos.LOOP)
+        self.create_subscription(Float64, topics.COMMAND, self._on_command, qos.LOOP, raw=True)
         if self.logic.lockstep:
             # wall (steady) time: simulation time stands still while the plant waits
             self._timer = self.create_timer(0.005, self._lockstep_tick, clock=self._steady)
@@ -121,13 +123,8 @@ class PlantNode(Node):
     def _publish(self, sample: Sample) -> None:
         sec, nanosec = ns_to_stamp(sample.stamp_ns)
         if self._clock_pub is not None:
-            self._clock_msg.clock = Time(sec=sec, nanosec=nanosec)
-            self._clock_pub.publish(self._clock_msg)
-        msg = self._msg
-        msg.header.stamp.sec = sec
-        msg.header.stamp.nanosec = nanosec
-        msg.position[0] = sample.position_m
-        self._pub.publish(msg)
+            self._clock_pub.publish(encode_clock(sec, nanosec))
+        self._pub.publish(self._encoder.encode(sec, nanosec, (sample.position_m,)))
 
     def _start(self) -> None:
         now = time.monotonic()
@@ -161,9 +158,15 @@ class PlantNode(Node):
         except Exception as exc:  # noqa: BLE001
             self._fault(exc)
 
-    def _on_command(self, msg: Float64) -> None:
+    def _on_command(self, data: bytes) -> None:
         try:
-            sample = self.logic.on_command(msg.data, time.monotonic())
+            command_v = decode_float64(data)
+        except CdrError as exc:
+            self.malformed += 1
+            self.get_logger().warning(f'stage/command: {exc}; dropped', throttle_duration_sec=1.0)
+            return
+        try:
+            sample = self.logic.on_command(command_v, time.monotonic())
             if sample is not None:
                 self._publish(sample)
             elif self.logic.done and self.logic.lockstep:
@@ -174,6 +177,7 @@ class PlantNode(Node):
     def stats(self) -> dict[str, Any]:
         """Return the counters, with the loop rate reached so far."""
         out = self.logic.stats()
+        out['malformed'] = self.malformed
         elapsed = time.monotonic() - self._t_start if self._t_start else 0.0
         samples = max(self.logic.index + 1, 0)
         out['wall_s'] = round(elapsed, 6)

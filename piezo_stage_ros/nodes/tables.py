@@ -137,8 +137,8 @@ class TrajectoryNodeParams(Params):
                          'last reference with zero velocity (false); also set by the start and '
                          'stop services.')
     chunk_s: float = param(1.0, unit='s', description='The reference is evaluated this much at '
-                           'a time, aligned as the offline runner does.', low=1e-4,
-                           high=100.0, read_only=True)
+                           'a time, aligned as the offline runner does (real time: at most '
+                           '5 ms at a time).', low=1e-4, high=100.0, read_only=True)
 
 
 @dataclass(frozen=True)

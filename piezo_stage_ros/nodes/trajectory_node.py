@@ -30,6 +30,7 @@ from typing import Any, Sequence
 
 from piezo_stage_ros.core.trajectories import make_trajectory
 from piezo_stage_ros.nodes import qos, topics
+from piezo_stage_ros.nodes.cdr import CdrError, JointStateDecoder, JointStateEncoder
 from piezo_stage_ros.nodes.logic import stamp_to_ns, TrajectoryLogic
 from piezo_stage_ros.nodes.parameters import ParameterBinding
 from piezo_stage_ros.nodes.runner import run
@@ -58,11 +59,18 @@ class TrajectoryNode(Node):
         self.binding = ParameterBinding(self, trajectory_table(), self._on_change)
         params, opts = self.binding.objects
         self.opts: TrajectoryNodeParams = opts
+        # lockstep evaluates in the offline runner's chunks (same floats); real time in short
+        # ones, so that no single sample pays for a long evaluation and comes late
+        chunk_s = opts.chunk_s if opts.mode == 'lockstep' else min(opts.chunk_s, 0.005)
         self.logic = TrajectoryLogic(make_trajectory(params), sample_rate_hz=opts.sample_rate_hz,
-                                     chunk_s=opts.chunk_s, active=opts.active)
-        self._msg = JointState(name=[topics.JOINT_NAME], position=[0.0], velocity=[0.0])
+                                     chunk_s=chunk_s, active=opts.active)
+        # CDR bytes in and out (nodes/cdr.py): rclpy message objects cost more than a sample
+        self._encoder = JointStateEncoder([topics.JOINT_NAME], with_velocity=True)
+        self._decoder = JointStateDecoder([topics.JOINT_NAME])
+        self.malformed = 0
         self._pub = self.create_publisher(JointState, topics.REFERENCE, qos.LOOP)
-        self.create_subscription(JointState, topics.POSITION, self._on_position, qos.LOOP)
+        self.create_subscription(JointState, topics.POSITION, self._on_position, qos.LOOP,
+                                 raw=True)
         self.create_service(Trigger, '~/start', self._start)
         self.create_service(Trigger, '~/stop', self._stop)
         self.get_logger().info(f'trajectory {params.kind}, '
@@ -94,14 +102,16 @@ class TrajectoryNode(Node):
     def _stop(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         return self._set_active(False, response)
 
-    def _on_position(self, msg: JointState) -> None:
-        stamp = msg.header.stamp
-        ref, vel = self.logic.on_position(stamp_to_ns(stamp.sec, stamp.nanosec))
-        out = self._msg
-        out.header.stamp = stamp
-        out.position[0] = ref
-        out.velocity[0] = vel
-        self._pub.publish(out)
+    def _on_position(self, data: bytes) -> None:
+        try:
+            sec, nanosec, _, _ = self._decoder.decode(data)
+        except CdrError as exc:
+            self.malformed += 1
+            self.get_logger().warning(f'stage/position: {exc}; dropped',
+                                      throttle_duration_sec=1.0)
+            return
+        ref, vel = self.logic.on_position(stamp_to_ns(sec, nanosec))
+        self._pub.publish(self._encoder.encode(sec, nanosec, (ref,), (vel,)))
 
 
 def main(args: Sequence[str] | None = None) -> int:
