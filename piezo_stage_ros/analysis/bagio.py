@@ -153,6 +153,8 @@ _U64 = struct.Struct('<Q')
 # Messages handed to the decoder at once: big enough for numpy to pay off, small enough that the
 # raw bytes of a long bag are never all in memory.
 _BATCH = 65536
+# Byte layouts kept per message size (e.g. two frame_ids of the same length).
+_LAYOUTS_PER_SIZE = 4
 
 
 @functools.cache
@@ -953,7 +955,7 @@ class _TopicData:
         self.bag = bag
         self.topic = topic
         self.msgtype = msgtype
-        self.layouts: dict[int, _Layout] = {}
+        self.layouts: dict[int, list[_Layout]] = {}
         self.names: tuple[str, ...] | None = None
         self.log_ns: list[IntArray] = []
         self.stamp_ns: list[IntArray] = []
@@ -983,21 +985,30 @@ class _TopicData:
         n, size = rows.shape
         if n == 0:
             return
-        layout = self.layouts.get(size)
-        if layout is None:
-            layout = self._layout_for(rows[0].tobytes())
-            self.layouts[size] = layout
-        ok, stamps, arrays = layout.decode(rows)
-        if ok.all():
-            self._append(log_ns, stamps, self._columns(arrays, layout.names))
-            self.fast += n
-        else:
-            if ok.any():
-                self._append(log_ns[ok], stamps, self._columns(arrays, layout.names))
-                self.fast += int(ok.sum())
-            for i in np.flatnonzero(~ok):
-                self._generic(int(log_ns[i]), rows[i].tobytes())
         self.count += n
+        layouts = self.layouts.setdefault(size, [])
+        if not layouts:
+            layouts.append(self._layout_for(rows[0].tobytes()))
+        # Try the known layouts of this size in turn; a message none of them fits starts a new
+        # one (a few per size at most), the rest goes through the generic decoder.
+        index = 0
+        while True:
+            layout = layouts[index]
+            ok, stamps, arrays = layout.decode(rows)
+            if ok.any():
+                good = slice(None) if ok.all() else ok
+                self._append(log_ns[good], stamps, self._columns(arrays, layout.names))
+                self.fast += int(ok.sum())
+                if ok.all():
+                    return
+                rows, log_ns = rows[~ok], log_ns[~ok]
+            index += 1
+            if index == len(layouts):
+                if len(layouts) >= _LAYOUTS_PER_SIZE:
+                    break
+                layouts.append(self._layout_for(rows[0].tobytes()))
+        for i in range(rows.shape[0]):
+            self._generic(int(log_ns[i]), rows[i].tobytes())
 
     def _deserialize(self, data: bytes) -> Any:
         try:
