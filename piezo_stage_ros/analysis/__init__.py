@@ -12,4 +12,12 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Bag writing and reading (rosbags), reports and plots (matplotlib); no rclpy here."""
+"""
+Bag writing and reading (rosbags), reports and plots (matplotlib); no rclpy here.
+
+- :mod:`~piezo_stage_ros.analysis.bagio`: runs as rosbag2 bags, bulk reading, time alignment;
+- :mod:`~piezo_stage_ros.analysis.replay`: metrics of a bag (``analyze``), its summary;
+- :mod:`~piezo_stage_ros.analysis.spectral`: frequency-response estimate of noise/sweep runs;
+- :mod:`~piezo_stage_ros.analysis.plots`: the paper-style figures (imports matplotlib);
+- :mod:`~piezo_stage_ros.analysis.report`: Markdown report and comparison of several bags.
+"""
