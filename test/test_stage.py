@@ -161,3 +161,24 @@ def test_general_model_with_charge_hysteresis_matches_a_stiff_ode_solution():
     reference = np.array(reference)
     # first-order splitting with 32 sub-steps: within 5e-5 of the travel (measured 2.1e-5)
     assert np.max(np.abs(simulated - reference)) < 5e-5 * np.ptp(reference)
+
+
+@pytest.mark.parametrize('flat', [
+    {},
+    {'plant.model': 'reduced'},
+    {'hysteresis.model': 'none', 'chain.quantize': False},
+    {'plant.model': 'reduced', 'chain.sensor_noise_std_m': 3e-9, 'seed': 4},
+    {'chain.sensor_noise_std_m': 1e-9, 'chain.safe_voltage_v': 0.25},
+])
+def test_fused_kernel_computes_exactly_what_the_generic_one_does(flat):
+    p = params(**flat)
+    commands = np.concatenate([1.0 + np.sin(2 * np.pi * 100 * 1e-4 * np.arange(300)),
+                               [math.nan, 20.0, -7.0, 1.0, 1.0, math.inf, 3.3]])
+    fused, generic = Stage(p), Stage(p, fused=False)
+    assert fused._kernel is not generic._kernel
+    np.testing.assert_array_equal(fused.run_open_loop(commands), generic.run_open_loop(commands))
+    assert (fused.faults, fused.steps, fused.applied_voltage_v, fused.hysteresis_output_v) == \
+        (generic.faults, generic.steps, generic.applied_voltage_v, generic.hysteresis_output_v)
+    assert fused.position_m == generic.position_m
+    assert fused.reset(2e-6) == generic.reset(2e-6)
+    assert fused.time_s == 0.0

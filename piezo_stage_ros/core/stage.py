@@ -32,14 +32,21 @@ the same discretized matrices and the same hysteresis objects.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 import math
-from typing import Any, cast
+from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from piezo_stage_ros.core.errors import ParameterError
-from piezo_stage_ros.core.hysteresis import HysteresisModel, HysteresisParams, make_hysteresis
+from piezo_stage_ros.core.hysteresis import (
+    BacklashLike,
+    HysteresisModel,
+    HysteresisParams,
+    make_hysteresis,
+    NoHysteresis,
+)
 from piezo_stage_ros.core.linear import (
     DiscreteLinearPlant,
     electromechanical_plant,
@@ -275,34 +282,183 @@ class _StageCore:
         return x, h_state, v0
 
 
-def _linear_step_function(ad: tuple[tuple[float, ...], ...], bd: tuple[float, ...]) -> Any:
-    """
-    Return ``f(x, w) -> Ad x + Bd w`` on lists of floats, unrolled for orders 1 and 3.
+@dataclass
+class _KernelState:
+    """The state of one scalar stage, as the kernels exchange it with :class:`Stage`."""
 
-    The per-sample path of :class:`Stage` runs in plain Python floats: numpy's per-call overhead
-    on 3-vectors is larger than the arithmetic. The matrices are the ZOH ones of
-    :meth:`LinearPlant.discretize`; only the evaluation is specialised here.
-    """
-    if len(bd) == 1:
-        a, b = ad[0][0], bd[0]
+    x: list[float]
+    h: Any
+    v: float
+    w: float
+    steps: int = 0
+    faults: int = 0
 
-        def step1(x: list[float], w: float) -> list[float]:
-            return [a * x[0] + b * w]
-        return step1
-    if len(bd) == 3:
+
+@dataclass(frozen=True)
+class _Kernel:
+    """A per-sample step function and access to the state it keeps in its closure."""
+
+    step: Callable[[float], float]
+    get: Callable[[], _KernelState]
+    set: Callable[[_KernelState], None]
+
+
+def _generic_kernel(core: _StageCore, rng: np.random.Generator) -> _Kernel:
+    """
+    Return the kernel for any model: hysteresis objects and the general model's sub-steps.
+
+    Uses the same matrices, converters and hysteresis objects as the batch stage, through their
+    own methods.
+    """
+    chain = core.params.chain
+    ad = tuple(tuple(float(a) for a in row) for row in core.discrete.ad)
+    bd = tuple(tuple(float(b) for b in row) for row in core.discrete.bd)
+    c = tuple(float(v) for v in core.discrete.c)
+    hyst = core.hysteresis
+    dac = core.dac.scalar if core.dac is not None else None
+    adc = core.adc.scalar if core.adc is not None else None
+    vmin, vmax, safe = chain.amplifier_min_v, chain.amplifier_max_v, chain.safe_voltage_v
+    noise = chain.sensor_noise_std_m
+    st = _KernelState(x=[0.0] * len(c), h=None, v=0.0, w=0.0)
+
+    def step(command_v: float) -> float:
+        if math.isfinite(command_v):
+            v = float(command_v)
+            if dac is not None:
+                v = dac(v)
+            v = min(max(v, vmin), vmax)
+        else:
+            st.faults += 1
+            v = safe
+        st.v = v
+        x = st.x
+        if core.charge_hysteresis:
+            for _ in range(core.substeps):
+                u = x[0] * core.charge_to_u
+                st.h, pu = hyst.step(st.h, u)
+                h_volt = core.amplifier_gain * (u - float(pu))
+                x = [sum(a * xj for a, xj in zip(row, x)) + b[0] * v + b[1] * h_volt
+                     for row, b in zip(ad, bd)]
+            st.w = x[0] * core.charge_to_u
+        else:
+            st.h, w = hyst.step(st.h, v)
+            st.w = w = float(w)
+            x = [sum(a * xj for a, xj in zip(row, x)) + b[0] * w for row, b in zip(ad, bd)]
+        st.x = x
+        st.steps += 1
+        pos = sum(ci * xi for ci, xi in zip(c, x))
+        if noise > 0.0:
+            pos += noise * float(rng.standard_normal())
+        return adc(pos) if adc is not None else pos
+
+    def get() -> _KernelState:
+        return dataclasses.replace(st, x=list(st.x))
+
+    def set_(new: _KernelState) -> None:
+        for f in dataclasses.fields(st):
+            setattr(st, f.name, getattr(new, f.name))
+        st.x = list(new.x)
+
+    return _Kernel(step, get, set_)
+
+
+def _fused_kernel(core: _StageCore, rng: np.random.Generator) -> _Kernel | None:
+    """
+    Return a fused per-sample kernel for the common case, or None where it does not apply.
+
+    The common case is the default stage: a linear model of order 1 or 3 with the backlash-like
+    hysteresis (or none) ahead of it. DAC, clamp, the exact hysteresis jump, the ZOH update,
+    sensor noise and ADC are written out in one closure over plain floats: in CPython a method
+    call costs as much as the arithmetic of a whole sample, and this is the hot path of the
+    offline runner and of the simulated plant node. It computes exactly what the generic kernel
+    computes, operation for operation (a test compares the two bit for bit).
+    """
+    hyst = core.hysteresis
+    order = core.plant.order
+    if core.charge_hysteresis or order not in (1, 3) or \
+            not isinstance(hyst, (BacklashLike, NoHysteresis)):
+        return None
+    has_h = isinstance(hyst, BacklashLike)
+    alpha = hyst.params.alpha if isinstance(hyst, BacklashLike) else 0.0
+    slope = hyst.slope
+    shift = -hyst.bound
+    chain = core.params.chain
+    vmin, vmax, safe = chain.amplifier_min_v, chain.amplifier_max_v, chain.safe_voltage_v
+    noise = chain.sensor_noise_std_m
+    normal = rng.standard_normal
+    dac, adc = core.dac, core.adc
+    quantize_in, quantize_out = dac is not None, adc is not None
+    ds, do, dtop, dos, doo = ((dac.scale, dac.offset, dac.top, dac.out_scale, dac.out_offset)
+                              if dac is not None else (0.0,) * 5)
+    as_, ao, atop, aos, aoo = ((adc.scale, adc.offset, adc.top, adc.out_scale, adc.out_offset)
+                               if adc is not None else (0.0,) * 5)
+    ad = [[float(a) for a in row] for row in core.discrete.ad]
+    bd = [float(row[0]) for row in core.discrete.bd]
+    cc = [float(v) for v in core.discrete.c] + [0.0, 0.0]
+    c0, c1, c2 = cc[0], cc[1], cc[2]
+    exp, floor, copysign, isfinite = math.exp, math.floor, math.copysign, math.isfinite
+    if order == 3:
         (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = ad
         b0, b1, b2 = bd
+    else:
+        a00, b0 = ad[0][0], bd[0]
+        a01 = a02 = a10 = a11 = a12 = a20 = a21 = a22 = b1 = b2 = 0.0
+    x0 = x1 = x2 = 0.0
+    v_last = e = w = v_held = 0.0
+    steps = faults = 0
 
-        def step3(x: list[float], w: float) -> list[float]:
-            x0, x1, x2 = x
-            return [a00 * x0 + a01 * x1 + a02 * x2 + b0 * w,
-                    a10 * x0 + a11 * x1 + a12 * x2 + b1 * w,
-                    a20 * x0 + a21 * x1 + a22 * x2 + b2 * w]
-        return step3
+    def step(command_v: float) -> float:
+        nonlocal x0, x1, x2, v_last, e, w, v_held, steps, faults
+        if isfinite(command_v):
+            v = float(command_v)
+            if quantize_in:
+                code = floor(v * ds + do)
+                v = min(max(code, 0.0), dtop) * dos + doo
+            if v < vmin:
+                v = vmin
+            elif v > vmax:
+                v = vmax
+        else:
+            faults += 1
+            v = safe
+        v_held = v
+        if has_h:
+            dv = v - v_last
+            decay = exp(-alpha * abs(dv))
+            e = e * decay + shift * copysign(1.0 - decay, dv)
+            v_last = v
+            w = slope * v + e
+        else:
+            w = v
+        if order == 3:
+            x0, x1, x2 = (a00 * x0 + a01 * x1 + a02 * x2 + b0 * w,
+                          a10 * x0 + a11 * x1 + a12 * x2 + b1 * w,
+                          a20 * x0 + a21 * x1 + a22 * x2 + b2 * w)
+            pos = c0 * x0 + c1 * x1 + c2 * x2
+        else:
+            x0 = a00 * x0 + b0 * w
+            pos = c0 * x0
+        steps += 1
+        if noise > 0.0:
+            pos += noise * float(normal())
+        if quantize_out:
+            code = floor(pos * as_ + ao)
+            return min(max(code, 0.0), atop) * aos + aoo
+        return pos
 
-    def step_n(x: list[float], w: float) -> list[float]:
-        return [sum(a * xj for a, xj in zip(row, x)) + b * w for row, b in zip(ad, bd)]
-    return step_n
+    def get() -> _KernelState:
+        x = [x0, x1, x2][:order]
+        return _KernelState(x=x, h=(v_last, e) if has_h else (), v=v_held, w=w, steps=steps,
+                            faults=faults)
+
+    def set_(new: _KernelState) -> None:
+        nonlocal x0, x1, x2, v_last, e, w, v_held, steps, faults
+        x0, x1, x2 = (list(new.x) + [0.0, 0.0])[:3]
+        if has_h:
+            v_last, e = (float(new.h[0]), float(new.h[1]))
+        v_held, w, steps, faults = new.v, new.w, new.steps, new.faults
+
+    return _Kernel(step, get, set_)
 
 
 class Stage:
@@ -316,36 +472,32 @@ class Stage:
     rng : numpy.random.Generator, optional
         Source of sensor noise; default ``np.random.default_rng(params.seed)``.
 
+    Attributes
+    ----------
+    step : callable
+        ``step(command_v) -> float``: hold the commanded amplifier input [V] over one sample
+        (quantized by the DAC, clamped to the amplifier range; a non-finite command applies
+        ``chain.safe_voltage_v`` and counts a fault) and return the measured position at its
+        end [m]. A plain function, not a method, for speed.
+
     Notes
     -----
-    Non-finite commands are replaced by ``chain.safe_voltage_v`` and counted in
-    :attr:`faults`. With the general model, H(q) is updated ``plant.substeps`` times per sample
-    (the linear part is exact over each sub-step, the hysteresis follows the charge at the
-    sub-step ends): a first-order splitting whose error falls with the number of sub-steps.
+    With the general model, H(q) is updated ``plant.substeps`` times per sample (the linear part
+    is exact over each sub-step, the hysteresis follows the charge at the sub-step ends): a
+    first-order splitting whose error falls with the number of sub-steps.
 
     """
 
-    def __init__(self, params: StageParams, rng: np.random.Generator | None = None) -> None:
+    step: Callable[[float], float]
+
+    def __init__(self, params: StageParams, rng: np.random.Generator | None = None,
+                 *, fused: bool = True) -> None:
         self._core = _StageCore(params)
         self.params = params
         self.rng = rng if rng is not None else np.random.default_rng(params.seed)
-        d = self._core.discrete
-        self._ad = tuple(tuple(float(a) for a in row) for row in d.ad)
-        self._bd = tuple(tuple(float(b) for b in row) for row in d.bd)
-        self._c = tuple(float(c) for c in d.c)
-        chain = params.chain
-        self._vmin = chain.amplifier_min_v
-        self._vmax = chain.amplifier_max_v
-        self._noise = chain.sensor_noise_std_m
-        self._dac = self._core.dac.scalar if self._core.dac else None
-        self._adc = self._core.adc.scalar if self._core.adc else None
-        self._hyst_step = self._core.hysteresis.step
-        # Every model here measures one state (x itself): read it without a dot product.
-        nonzero = [i for i, c in enumerate(self._c) if c != 0.0]
-        self._pos_index = nonzero[0] if len(nonzero) == 1 else -1
-        self._pos_gain = self._c[self._pos_index] if len(nonzero) == 1 else 0.0
-        self._linear_step = _linear_step_function(self._ad, tuple(b[0] for b in self._bd))
-        self.faults = 0
+        kernel = _fused_kernel(self._core, self.rng) if fused else None
+        self._kernel = kernel if kernel is not None else _generic_kernel(self._core, self.rng)
+        self.step = self._kernel.step
         self.reset()
 
     @property
@@ -356,19 +508,33 @@ class Stage:
     @property
     def position_m(self) -> float:
         """Return the true position x [m] (no noise, no quantization)."""
-        if self._pos_index >= 0:
-            return self._pos_gain * self._x[self._pos_index]
-        return sum(c * xi for c, xi in zip(self._c, self._x))
+        x = self._kernel.get().x
+        return sum(float(c) * xi for c, xi in zip(self._core.discrete.c, x))
 
     @property
     def applied_voltage_v(self) -> float:
         """Return the amplifier input voltage held over the last sample [V]."""
-        return self._v
+        return self._kernel.get().v
 
     @property
     def hysteresis_output_v(self) -> float:
         """Return the hysteresis output w [V] (the charge variable u for the general model)."""
-        return self._w
+        return self._kernel.get().w
+
+    @property
+    def faults(self) -> int:
+        """Return how many non-finite commands were replaced by the safe voltage."""
+        return self._kernel.get().faults
+
+    @property
+    def steps(self) -> int:
+        """Return the samples stepped since the last reset."""
+        return self._kernel.get().steps
+
+    @property
+    def time_s(self) -> float:
+        """Return the simulated time since the last reset [s]."""
+        return self.steps * self._core.sample_time_s
 
     def reset(self, position_m: float | None = None) -> float:
         """
@@ -387,68 +553,20 @@ class Stage:
         """
         pos = self.params.initial_position_m if position_m is None else float(position_m)
         x, h_state, v0 = self._core.rest(pos)
-        self._x = [float(v) for v in x]
-        self._h = h_state
-        self._v = float(v0)
-        self._w = pos / self._core.dc_gain_m_per_v
-        self.time_s = 0.0
-        self.steps = 0
+        faults = self._kernel.get().faults
+        self._kernel.set(_KernelState(x=[float(v) for v in x], h=h_state, v=float(v0),
+                                      w=pos / self._core.dc_gain_m_per_v, steps=0,
+                                      faults=faults))
         return self.measure()
-
-    def apply_command(self, command_v: float) -> float:
-        """Return the voltage the amplifier sees for a commanded ``command_v`` [V]."""
-        if not math.isfinite(command_v):
-            self.faults += 1
-            return self.params.chain.safe_voltage_v
-        v = float(command_v)
-        if self._dac is not None:
-            v = self._dac(v)
-        return min(max(v, self._vmin), self._vmax)
 
     def measure(self) -> float:
-        """Return the measured position [m] now (sensor, noise, ADC)."""
-        # noise is added in position units: the same as sensor-volt noise / K_PSCM
+        """Return the measured position [m] now (sensor, noise, ADC) without stepping."""
         pos = self.position_m
-        if self._noise > 0.0:
-            pos += self._noise * float(self.rng.standard_normal())
-        return self._adc(pos) if self._adc is not None else pos
-
-    def step(self, command_v: float) -> float:
-        """
-        Hold ``command_v`` over one sample and return the measured position at its end.
-
-        Parameters
-        ----------
-        command_v : float
-            Commanded amplifier input [V] (quantized by the DAC, clamped to the amplifier range).
-
-        Returns
-        -------
-        float
-            Measured position y_k+1 [m].
-
-        """
-        v = self.apply_command(command_v)
-        self._v = v
-        x = self._x
-        if self._core.charge_hysteresis:
-            core = self._core
-            ad, bd = self._ad, self._bd
-            for _ in range(core.substeps):
-                u = x[0] * core.charge_to_u
-                self._h, pu = core.hysteresis.step(self._h, u)
-                h_volt = core.amplifier_gain * (u - float(pu))
-                x = [sum(a * xj for a, xj in zip(row, x)) + b[0] * v + b[1] * h_volt
-                     for row, b in zip(ad, bd)]
-            self._w = x[0] * core.charge_to_u
-        else:
-            self._h, w = self._hyst_step(self._h, v)
-            self._w = w = cast(float, w)  # a float in, a float out: the scalar path
-            x = self._linear_step(x, w)
-        self._x = x
-        self.steps += 1
-        self.time_s = self.steps * self._core.sample_time_s
-        return self.measure()
+        noise = self.params.chain.sensor_noise_std_m
+        if noise > 0.0:
+            pos += noise * float(self.rng.standard_normal())
+        adc = self._core.adc
+        return adc.scalar(pos) if adc is not None else pos
 
     def run_open_loop(self, commands_v: ArrayLike) -> FloatArray:
         """
@@ -466,11 +584,8 @@ class Stage:
 
         """
         cmds = np.asarray(commands_v, dtype=np.float64).ravel()
-        out = np.empty(cmds.size)
         step = self.step
-        for k, u in enumerate(cmds.tolist()):
-            out[k] = step(u)
-        return out
+        return np.fromiter((step(u) for u in cmds.tolist()), dtype=np.float64, count=cmds.size)
 
 
 class StageBatch:
