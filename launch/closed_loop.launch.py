@@ -25,7 +25,9 @@ Arguments (``ros2 launch piezo_stage_ros closed_loop.launch.py --show-args``):
 - ``composed``: ``true`` runs the three nodes in one process (``stage_servo``, one
   EventsExecutor), ``false`` one process each;
 - ``record``: ``true`` records the stage topics with ``ros2 bag record`` into ``bag``;
-- ``namespace``: puts the stage's topics and nodes under it (several stages side by side).
+- ``namespace``: puts the stage's topics and nodes under it (several stages side by side);
+- ``end_with_plant``: ``true`` ends the launch when the plant's process exits (its run of
+  ``duration_s`` is complete, or it failed); ``executor``: ``events`` | ``single``.
 
 The controller's stability check runs against the plant model the plant node runs, as
 ``simulate`` does: the launch file copies the ``plant.*`` values of the plant_node section into
@@ -64,6 +66,7 @@ ARGUMENTS = {
     'bag': ('', 'bag directory for record:=true (empty: piezo_<time> in the working dir)'),
     'namespace': ('', 'namespace of the stage'),
     'executor': ('events', 'events (EventsExecutor) | single (SingleThreadedExecutor)'),
+    'end_with_plant': ('true', 'end the whole launch when the plant process exits'),
 }
 TOPICS = ('stage/position', 'stage/reference', 'stage/command', 'stage/diagnostics',
           'stage/status')
@@ -123,9 +126,10 @@ def _launch(context: LaunchContext) -> list:
             cmd += ['--qos-profile-overrides-path', qos_file]
         cmd += [prefix + t for t in TOPICS]
         actions.append(ExecuteProcess(cmd=cmd, output='screen'))
-    # the plant's run is complete (or failed): end the whole launch, the recorder included
-    actions.append(RegisterEventHandler(OnProcessExit(
-        target_action=main, on_exit=[EmitEvent(event=Shutdown(reason='plant finished'))])))
+    if arg['end_with_plant'].lower() == 'true':
+        # the plant's run is complete (or failed): end the whole launch, the recorder included
+        actions.append(RegisterEventHandler(OnProcessExit(
+            target_action=main, on_exit=[EmitEvent(event=Shutdown(reason='plant finished'))])))
     return actions
 
 

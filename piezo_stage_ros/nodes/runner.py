@@ -109,6 +109,12 @@ def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
             node.destroy_node()
         rclpy.try_shutdown()
         return 2
+    except KeyboardInterrupt:
+        # Ctrl-C (or the launch's SIGINT) while a node was still being built
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown()
+        return 0
     executor = make_executor(opts.executor)
     for node in nodes:
         executor.add_node(node)
