@@ -27,7 +27,10 @@ Arguments (``ros2 launch piezo_stage_ros closed_loop.launch.py --show-args``):
 - ``record``: ``true`` records the stage topics with ``ros2 bag record`` into ``bag``;
 - ``namespace``: puts the stage's topics and nodes under it (several stages side by side);
 - ``end_with_plant``: ``true`` ends the launch when the plant's process exits (its run of
-  ``duration_s`` is complete, or it failed); ``executor``: ``events`` | ``single``.
+  ``duration_s`` is complete, or it failed); ``executor``: ``events`` | ``single``;
+- ``sim_time``: in lockstep, ``use_sim_time`` on the controller and trajectory nodes (their logs
+  and clocks follow ``/clock``); ``false`` saves delivering every ``/clock`` message to them. The
+  plant owns simulation time and keeps its own clock either way.
 
 The controller's stability check runs against the plant model the plant node runs, as
 ``simulate`` does: the launch file copies the ``plant.*`` values of the plant_node section into
@@ -39,6 +42,7 @@ the controller's ``stability.plant.*``. When the plant ends its run the launch e
 from __future__ import annotations  # noqa: I001
 
 import os
+import tempfile
 
 from launch import LaunchContext, LaunchDescription
 from launch.actions import (
@@ -53,6 +57,7 @@ from launch.events import Shutdown
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 from piezo_stage_ros.core.config import find_config, load_config
+import yaml
 
 ARGUMENTS = {
     'config': ('default.yaml', 'parameter file: a name in config/ or a path'),
@@ -67,9 +72,41 @@ ARGUMENTS = {
     'namespace': ('', 'namespace of the stage'),
     'executor': ('events', 'events (EventsExecutor) | single (SingleThreadedExecutor)'),
     'end_with_plant': ('true', 'end the whole launch when the plant process exits'),
+    'sim_time': ('true', 'lockstep: use_sim_time on the controller and trajectory nodes'),
 }
 TOPICS = ('stage/position', 'stage/reference', 'stage/command', 'stage/diagnostics',
           'stage/status')
+
+
+def _unflatten(values: dict) -> dict:
+    """Return ``{'a': {'b': v}}`` for ``{'a.b': v}``."""
+    out: dict = {}
+    for name, value in values.items():
+        *groups, leaf = name.split('.')
+        node = out
+        for part in groups:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return out
+
+
+def _parameter_file(config, per_node: dict) -> str:
+    """
+    Write one parameter file with a section per node and return its path.
+
+    The sections are keyed ``/**/<node>`` so that they apply in any namespace, and they hold
+    the merged values of every file given plus this launch's own settings: one file serves the
+    three processes or the composed one alike.
+    """
+    doc = {}
+    for node, extra in per_node.items():
+        values = dict(config.node(node))
+        values.update(extra)
+        doc[f'/**/{node}'] = {'ros__parameters': _unflatten(values)}
+    handle, path = tempfile.mkstemp(prefix='piezo_stage_', suffix='.yaml')
+    with os.fdopen(handle, 'w', encoding='utf-8') as stream:
+        yaml.safe_dump(doc, stream, default_flow_style=False, sort_keys=False)
+    return path
 
 
 def _launch(context: LaunchContext) -> list:
@@ -81,8 +118,10 @@ def _launch(context: LaunchContext) -> list:
         raise ValueError(f"launch argument mode:={mode!r}: allowed: 'lockstep', 'realtime'")
     lockstep = mode == 'lockstep'
     config = load_config(files)
-    common = {'mode': mode, 'use_sim_time': lockstep}
-    plant = dict(common, duration_s=float(arg['duration_s']))
+    sim_time = lockstep and arg['sim_time'].lower() == 'true'
+    common = {'mode': mode, 'use_sim_time': sim_time}
+    # the plant owns simulation time: its own clock need not follow /clock
+    plant = dict(common, use_sim_time=False, duration_s=float(arg['duration_s']))
     controller = dict(common)
     if arg['controller']:
         controller['type'] = arg['controller']
@@ -91,28 +130,26 @@ def _launch(context: LaunchContext) -> list:
         if name.startswith('plant.'):
             controller['stability.' + name] = value
     trajectory = dict(common)
+    params = _parameter_file(config, {'plant_node': plant, 'controller_node': controller,
+                                      'trajectory_node': trajectory})
     ns = arg['namespace']
     extra = ['--executor', arg['executor']]
     actions: list = []
     if arg['composed'].lower() == 'true':
-        # one process: parameter dicts go to every node under /**; each node declares its own
-        # names only, so the plant ignores the controller's and so on
         main = Node(package='piezo_stage_ros', executable='stage_servo', namespace=ns,
-                    output='screen', arguments=extra,
-                    parameters=[*files, plant, controller, trajectory])
+                    output='screen', arguments=extra, parameters=[params])
         actions.append(main)
     else:
         main = Node(package='piezo_stage_ros', executable='plant_node', name='plant_node',
-                    namespace=ns, output='screen', arguments=extra,
-                    parameters=[*files, plant])
+                    namespace=ns, output='screen', arguments=extra, parameters=[params])
         actions += [
             main,
             Node(package='piezo_stage_ros', executable='controller_node',
                  name='controller_node', namespace=ns, output='screen', arguments=extra,
-                 parameters=[*files, controller]),
+                 parameters=[params]),
             Node(package='piezo_stage_ros', executable='trajectory_node',
                  name='trajectory_node', namespace=ns, output='screen', arguments=extra,
-                 parameters=[*files, trajectory]),
+                 parameters=[params]),
         ]
     if arg['record'].lower() == 'true':
         prefix = '/' + ns.strip('/') + '/' if ns.strip('/') else '/'

@@ -254,19 +254,18 @@ class JointStateDecoder:
         self._size = len(probe)
         self._pos_at = probe.index(struct.pack('<d', 1.0)) if names else -1
         self._vel_at = probe.index(struct.pack('<d', 2.0)) if names and with_velocity else -1
-        # everything but the stamp and the two values must match byte for byte
-        self._segments: list[tuple[int, bytes]] = []
-        cuts = sorted(c for c in (self._pos_at, self._vel_at) if c >= 0)
-        start = 12
-        for cut in cuts:
-            self._segments.append((start, probe[start:cut]))
-            start = cut + 8
-        self._segments.append((start, probe[start:]))
+        # everything but the stamp and the values must match byte for byte
+        last = max(self._pos_at, self._vel_at)
+        self._head = probe[12:self._pos_at] if names else b''
+        self._middle = probe[self._pos_at + 8:self._vel_at] if self._vel_at >= 0 else b''
+        self._tail_at = last + 8
+        self._tail = probe[self._tail_at:]
 
     def decode(self, data: bytes) -> tuple[int, int, float, float]:
         """Return ``(sec, nanosec, position[0], velocity[0])`` (NaN for an empty array)."""
-        if len(data) == self._size and data[:4] == HEADER_LE and self._pos_at >= 0 and all(
-                data[at:at + len(seg)] == seg for at, seg in self._segments):
+        if len(data) == self._size and data[:4] == HEADER_LE and self._pos_at >= 0 and \
+                data[12:self._pos_at] == self._head and data[self._tail_at:] == self._tail and \
+                (self._vel_at < 0 or data[self._pos_at + 8:self._vel_at] == self._middle):
             sec, nanosec = _STAMP['<'].unpack_from(data, 4)
             position = _F64['<'].unpack_from(data, self._pos_at)[0]
             velocity = _F64['<'].unpack_from(data, self._vel_at)[0] \
