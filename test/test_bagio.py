@@ -571,3 +571,16 @@ def test_random_damage_gives_a_bag_error_or_a_run(tmp_path, storage):
             assert str(err).startswith(f'bag {bag}: ')
             outcomes.add('error')
     assert 'error' in outcomes
+
+
+def test_record_qos_file_covers_every_topic():
+    # config/record_qos.yaml is what `ros2 bag record` (and the launch file) use: it must name
+    # every topic a run is stored on, reliably and with at least 0.1 s of queue at 10 kHz.
+    import yaml
+    path = Path(__file__).resolve().parents[1] / 'config' / 'record_qos.yaml'
+    profiles = yaml.safe_load(path.read_text())
+    assert set(profiles) == set(bagio.topic_names('/stage').values())
+    for profile in profiles.values():
+        assert profile['reliability'] == 'reliable'
+        assert profile['history'] == 'keep_last' and profile['depth'] >= 1000
+        assert profile['durability'] == 'volatile'
