@@ -72,7 +72,7 @@ from piezo_stage_ros.core.hysteresis import (
 from piezo_stage_ros.core.linear import third_order_plant, ThirdOrderParams
 from piezo_stage_ros.core.params import param, Params
 from piezo_stage_ros.core.record import RunRecord
-from piezo_stage_ros.core.stage import quantize, SignalChainParams, StageParams
+from piezo_stage_ros.core.stage import amplifier_input, SignalChainParams, StageParams
 from scipy import optimize, signal
 
 __all__ = [
@@ -293,12 +293,7 @@ def applied_voltage(record: RunRecord, chain: SignalChainParams) -> FloatArray:
         non-finite commands replaced by the safe voltage, as :class:`Stage` does [V].
 
     """
-    u = np.asarray(record.command_v, dtype=np.float64)
-    u = np.where(np.isfinite(u), u, chain.safe_voltage_v)
-    if chain.quantize:
-        u = quantize(u, chain.dac_bits, chain.dac_min_v, chain.dac_max_v)
-    return np.asarray(np.clip(u, chain.amplifier_min_v, chain.amplifier_max_v),
-                      dtype=np.float64)
+    return amplifier_input(record.command_v, chain)
 
 
 def _head(record: RunRecord, n: int) -> RunRecord:

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+import functools
 import math
 from typing import Any, Callable
 
@@ -60,7 +61,7 @@ from piezo_stage_ros.core.linear import (
 from piezo_stage_ros.core.params import group, param, Params
 
 __all__ = ['PlantParams', 'SignalChainParams', 'Stage', 'StageBatch', 'StageParams',
-           'linear_plant', 'quantize']
+           'amplifier_input', 'linear_plant', 'quantize']
 
 FloatArray = NDArray[np.float64]
 
@@ -203,7 +204,8 @@ class _Converter:
 
     def array(self, value: FloatArray) -> FloatArray:
         """Quantize an array (same arithmetic as :meth:`scalar`)."""
-        code = np.floor(value * self.scale + self.offset)
+        # np.array: a 0-d input stays an array, which the in-place calls below need
+        code = np.array(np.floor(value * self.scale + self.offset), dtype=np.float64)
         # in place: several times faster than np.clip on small arrays
         np.minimum(np.maximum(code, 0.0, out=code), self.top, out=code)
         return np.asarray(code * self.out_scale + self.out_offset, dtype=np.float64)
@@ -234,6 +236,44 @@ def quantize(value: Any, bits: int, low: float, high: float) -> Any:
     return conv.array(np.asarray(value, dtype=np.float64))
 
 
+def amplifier_input(command_v: ArrayLike, chain: SignalChainParams) -> FloatArray:
+    """
+    Return the voltage the amplifier sees for commanded voltages (vectorized).
+
+    Parameters
+    ----------
+    command_v : array_like
+        Commanded amplifier inputs [V].
+    chain : SignalChainParams
+        DAC resolution and range, amplifier range, safe voltage.
+
+    Returns
+    -------
+    ndarray
+        The commands through the DAC (when ``chain.quantize``) and clamped to the amplifier
+        range; a non-finite command gives ``chain.safe_voltage_v`` [V]. This is what
+        :class:`Stage` and :class:`StageBatch` apply.
+
+    """
+    u = np.asarray(command_v, dtype=np.float64)
+    finite = np.isfinite(u)
+    all_finite = bool(finite.all())
+    if not all_finite:
+        u = np.where(finite, u, 0.0)
+    if chain.quantize:
+        u = _dac_converter(chain).array(u)
+    v = np.minimum(np.maximum(u, chain.amplifier_min_v), chain.amplifier_max_v)
+    if not all_finite:
+        v = np.where(finite, v, chain.safe_voltage_v)
+    return np.asarray(v, dtype=np.float64)
+
+
+@functools.lru_cache(maxsize=8)
+def _dac_converter(chain: SignalChainParams) -> _Converter:
+    """Return the DAC converter of a signal chain (cached: the batch stage asks every step)."""
+    return _Converter.for_range(chain.dac_bits, chain.dac_min_v, chain.dac_max_v)
+
+
 class _StageCore:
     """Parts shared by the scalar and the batch stage: models, matrices, rest state."""
 
@@ -249,8 +289,7 @@ class _StageCore:
             self.sample_time_s / self.substeps)
         self.dc_gain_m_per_v = self.plant.dc_gain_m_per_v
         chain = params.chain
-        self.dac = _Converter.for_range(chain.dac_bits, chain.dac_min_v, chain.dac_max_v) \
-            if chain.quantize else None
+        self.dac = _dac_converter(chain) if chain.quantize else None
         self.adc = _Converter.for_range(chain.adc_bits, chain.adc_min_v, chain.adc_max_v,
                                         chain.sensor_gain_v_per_m, chain.sensor_offset_m) \
             if chain.quantize else None
@@ -559,6 +598,10 @@ class Stage:
                                       faults=faults))
         return self.measure()
 
+    def apply_command(self, command_v: float) -> float:
+        """Return the voltage the amplifier would see for ``command_v`` [V] (no stepping)."""
+        return float(amplifier_input(command_v, self.params.chain))
+
     def measure(self) -> float:
         """Return the measured position [m] now (sensor, noise, ADC) without stepping."""
         pos = self.position_m
@@ -672,18 +715,13 @@ class StageBatch:
             Measured positions [m], shape (n,).
 
         """
-        chain = self.params.chain
         u = np.asarray(command_v, dtype=np.float64)
         if u.shape != (self.n,):
             # np.broadcast_to costs more than the whole step for scalars; np.full does not
             u = np.full(self.n, float(u)) if u.ndim == 0 else np.broadcast_to(u, (self.n,))
         if not np.isfinite(u).all():
-            bad = ~np.isfinite(u)
-            self.faults += int(bad.sum())
-            u = np.where(bad, chain.safe_voltage_v, u)
-        if self._core.dac is not None:
-            u = self._core.dac.array(u)
-        v = np.minimum(np.maximum(u, chain.amplifier_min_v), chain.amplifier_max_v)
+            self.faults += int(np.count_nonzero(~np.isfinite(u)))
+        v = amplifier_input(u, self.params.chain)
         self._v = v
         core = self._core
         d = core.discrete
