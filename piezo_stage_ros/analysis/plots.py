@@ -315,8 +315,14 @@ def plot_bode(estimate: BodeEstimate, path: Path, title: str = '') -> Path:
     fig, (ax_m, ax_p) = _new(2, height=6.0)
     f = estimate.frequency_hz
     good = estimate.coherence >= 0.8
-    mag_db = 20.0 * np.log10(np.maximum(np.abs(estimate.response), 1e-30) * estimate.scale)
-    phase = np.degrees(np.unwrap(np.angle(estimate.response)))
+    if good.any():
+        # Above a band-limited excitation the estimate is noise: show a little of it, no more.
+        keep = f <= 1.25 * float(f[good].max())
+        f, response, good = f[keep], estimate.response[keep], good[keep]
+    else:
+        response = estimate.response
+    mag_db = 20.0 * np.log10(np.maximum(np.abs(response), 1e-30) * estimate.scale)
+    phase = np.degrees(np.unwrap(np.angle(response)))
     ax_m.semilogx(f, mag_db, color='0.7', lw=0.8, label='coherence < 0.8')
     ax_m.semilogx(f[good], mag_db[good], '.', color='tab:blue', ms=2.5, label='coherence >= 0.8')
     ax_m.set_ylabel(f'magnitude [dB re 1 {estimate.unit}]')
@@ -325,6 +331,11 @@ def plot_bode(estimate: BodeEstimate, path: Path, title: str = '') -> Path:
     ax_p.semilogx(f[good], phase[good], '.', color='tab:blue', ms=2.5)
     ax_p.set_ylabel('phase [deg]')
     ax_p.set_xlabel('frequency [Hz]')
+    if good.any():
+        for ax, values in ((ax_m, mag_db), (ax_p, phase)):
+            lo, hi = float(values[good].min()), float(values[good].max())
+            pad = 0.15 * max(hi - lo, 10.0)
+            ax.set_ylim(lo - pad, hi + pad)
     ax_m.set_title(title or f'Frequency response estimate: {estimate.label}')
     for a in (ax_m, ax_p):
         a.grid(True, which='both', alpha=0.3)
