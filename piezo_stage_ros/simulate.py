@@ -49,6 +49,7 @@ import warnings
 from piezo_stage_ros.core.config import Config, find_config, load_config
 from piezo_stage_ros.core.errors import ConfigError, ParameterError, PiezoStageError
 from piezo_stage_ros.core.params import Params
+from piezo_stage_ros.core.trajectories import KINDS
 import yaml
 
 __all__ = ['build_parser', 'load_parameters', 'main']
@@ -82,8 +83,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='Hysteresis model (plant_node hysteresis.model).')
     p.add_argument('--controller', choices=('rac', 'pi', 'open_loop'),
                    help='Controller (controller_node type).')
-    p.add_argument('--trajectory', choices=('sine', 'multisine', 'square', 'staircase', 'step',
-                                            'triangle', 'csv'),
+    p.add_argument('--trajectory', choices=KINDS,
                    help='Desired trajectory (trajectory_node kind).')
     p.add_argument('--frequency', action='append', type=float, metavar='HZ',
                    help='Frequency of sine/triangle; repeat for the multisine components.')
@@ -206,12 +206,15 @@ def _flag_overrides(args: argparse.Namespace, config: Config) -> Config:
                                  f'does not apply to trajectory {kind!r}')
         names = {'square': ('square.peak_to_peak_m', 'square.low_m'),
                  'staircase': ('staircase.step_m', 'staircase.start_m'),
-                 'step': ('step.final_m', 'step.initial_m'), 'csv': (None, None)}[kind]
+                 'step': ('step.final_m', 'step.initial_m'),
+                 'noise': ('noise.amplitude_m', 'noise.offset_m'),
+                 'chirp': ('chirp.amplitude_m', 'chirp.offset_m')}.get(kind, (None, None))
         for flag, name in ((args.amplitude, names[0]), (args.offset, names[1])):
             if flag is not None:
                 if name is None:
-                    raise ParameterError('--amplitude/--offset', flag, 'not with csv',
-                                         'does not apply to a csv table')
+                    raise ParameterError('--amplitude/--offset', flag,
+                                         'not with trajectory ' + repr(kind),
+                                         f'does not apply to trajectory {kind!r}')
                 traj[name] = flag
     if args.csv is not None:
         traj['csv.path'] = args.csv

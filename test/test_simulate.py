@@ -105,6 +105,8 @@ def test_multisine_frequencies_and_amplitude(capsys: pytest.CaptureFixture[str])
     (['--trajectory', 'square', '--frequency', '3'], 1, 'does not apply'),
     (['--trajectory', 'csv'], 1, "'csv.path'"),
     (['--experiment', 'table3', '--bag', 'x'], 1, '--bag records one run'),
+    (['--trajectory', 'csv', '--csv', 'x.csv', '--amplitude', '1e-6'], 1,
+     "does not apply to trajectory 'csv'"),
 ])
 def test_bad_input_is_one_line_and_nonzero(argv: list[str], code: int, match: str,
                                            capsys: pytest.CaptureFixture[str]) -> None:
@@ -115,6 +117,25 @@ def test_bad_input_is_one_line_and_nonzero(argv: list[str], code: int, match: st
     assert lines[0].startswith('simulate: error: ')
     assert match in lines[0]
     assert 'Traceback' not in captured.err and captured.out == ''
+
+
+def test_identification_excitations_run_with_their_amplitude(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    errors = []
+    for amplitude in ('2e-8', '4e-8'):
+        assert simulate.main(['--trajectory', 'noise', '--amplitude', amplitude, '--duration',
+                              '0.05', '--json']) == 0
+        out = json.loads(capsys.readouterr().out)
+        assert out['samples'] == 500
+        errors.append(out['e_rms_m'])
+    # the noise reaches 5 kHz, beyond the loop bandwidth, so the error is of the order of the
+    # excitation; at these small amplitudes the loop is nearly linear: twice the amplitude,
+    # about twice the error (the --amplitude flag reaches the excitation)
+    assert errors[1] / errors[0] == pytest.approx(2.0, rel=0.15)
+    # the logarithmic chirp starts at 10 Hz: its first 50 ms are tracked to the ADC step
+    assert simulate.main(['--trajectory', 'chirp', '--amplitude', '1e-6', '--duration', '0.05',
+                          '--json']) == 0
+    assert json.loads(capsys.readouterr().out)['e_rms_m'] < 2e-9
 
 
 def test_unstable_configuration_warns_or_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
