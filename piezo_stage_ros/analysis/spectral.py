@@ -32,8 +32,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from piezo_stage_ros.core.errors import PiezoStageError
+from piezo_stage_ros.core.identification import estimate_frequency_response, IdentificationError
 from piezo_stage_ros.core.record import RunRecord
-from scipy import signal
+from piezo_stage_ros.core.stage import StageParams
 
 __all__ = ['BodeEstimate', 'estimate_bode', 'is_excitation_run']
 
@@ -148,29 +149,16 @@ def estimate_bode(record: RunRecord, *, segment_s: float = 0.05) -> BodeEstimate
         Fewer than two segments of samples, or a sampling that is not uniform.
 
     """
-    t = np.asarray(record.time_s, dtype=np.float64)
-    if t.size < 4:
-        raise PiezoStageError(f'Bode estimate: the run has {t.size} samples; need a few segments')
-    dt = np.diff(t)
-    period = float(np.median(dt))
-    if period <= 0.0 or np.max(np.abs(dt - period)) > 0.01 * period:
-        raise PiezoStageError('Bode estimate: samples are not uniformly spaced (a gap in the '
-                              'bag?); allowed: spacing within 1 % of the median')
-    fs = 1.0 / period
-    nperseg = int(round(segment_s * fs))
-    if t.size < 2 * nperseg or nperseg < 8:
-        raise PiezoStageError(f'Bode estimate: {t.size} samples is shorter than two segments '
-                              f'of {segment_s} s; allowed: runs of at least {2 * segment_s} s')
-    u = np.asarray(record.command_v, dtype=np.float64)
-    y = np.asarray(record.position_m, dtype=np.float64)
-    f, s_uu = signal.welch(u, fs=fs, nperseg=nperseg, detrend='constant')
-    _, s_uy = signal.csd(u, y, fs=fs, nperseg=nperseg, detrend='constant')
-    _, coh = signal.coherence(u, y, fs=fs, nperseg=nperseg, detrend='constant')
-    keep = (f > 0) & (s_uu > 0)
+    # One H1 estimator for the package: the identification's, on the voltage the amplifier
+    # applied (DAC and clamp of the default signal chain), with its checks of the sampling.
+    try:
+        fr = estimate_frequency_response([record], StageParams().chain, segment_s=segment_s)
+    except IdentificationError as exc:
+        raise PiezoStageError(f'Bode estimate: {exc}') from None
     return BodeEstimate(
-        frequency_hz=np.asarray(f[keep], dtype=np.float64),
-        response=np.asarray(s_uy[keep] / s_uu[keep], dtype=np.complex128),
-        coherence=np.asarray(coh[keep], dtype=np.float64),
+        frequency_hz=fr.frequency_hz,
+        response=fr.response,
+        coherence=fr.coherence,
         unit='µm/V',
         scale=1e6,
         label='v_in -> x',
