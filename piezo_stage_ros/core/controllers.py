@@ -56,7 +56,12 @@ Edge-case contract (all controllers, tested in ``test/test_controllers.py``):
 
 The default RAC gains are the discrete-time tuning of ``python3 -m piezo_stage_ros.tune``
 (docs/controllers.md), not the paper's: its epsilon = 0.005 makes the boundary-layer gain
-k*/epsilon = 40, which is unstable at 10 kHz.
+k*/epsilon = 40, which is unstable at 10 kHz, and its adaptation rates gamma = 3000,
+eta = 0.01 close a discrete loop through v (the update is an integrator whose per-sample gain is
+T (gamma y^2 + eta u_fd^2) times the response of s to v) that limit-cycles on a plateau of a few
+volts; :func:`piezo_stage_ros.core.stability.adaptation_bound` derives the largest stable
+per-sample gain from the plant model, and the defaults keep T (gamma y_max^2 + eta (lambda
+y_max)^2) below half of it over the whole reachable range.
 """
 
 from __future__ import annotations
@@ -146,10 +151,12 @@ class RACParams(Params):
                              '(paper 0.005, which chatters at 10 kHz).', low=0.0, low_open=True)
     k_star_v: float = param(0.2, unit='V', description='Robust gain k* of eq. (36); must be '
                             '>= rho/c_min (paper 0.2).', low=0.0)
-    gamma: float = param(3000.0, unit='1/(V^2 s)', description='Adaptation rate gamma of '
-                         'theta_hat, eq. (39) (paper 3000).', low=0.0)
-    eta: float = param(0.01, unit='s/V^2', description='Adaptation rate eta of phi_hat, '
-                       'eq. (38) (paper 0.01).', low=0.0)
+    gamma: float = param(10.0, unit='1/(V^2 s)', description='Adaptation rate gamma of '
+                         'theta_hat, eq. (39) (paper 3000, which limit-cycles at 10 kHz: '
+                         'T (gamma y_max^2 + eta (lambda y_max)^2) must stay below the '
+                         'discrete bound of the stability check).', low=0.0)
+    eta: float = param(1e-6, unit='s/V^2', description='Adaptation rate eta of phi_hat, '
+                       'eq. (38) (paper 0.01; same discrete bound as gamma).', low=0.0)
     theta_min: float = param(0.9, unit='V/V', description='Lower bound of theta = a/(b c), '
                              'eq. (29) (paper 0.5).', low=0.0, low_open=True)
     theta_max: float = param(1.7, unit='V/V', description='Upper bound of theta, eq. (29) '

@@ -41,6 +41,18 @@ the RAC estimates at the four corners of their projection bounds and at their in
 linear loop only through its proportional gain, which is affine in them, so the corners give its
 extremes) or only at their initial values, and both RAC regions. The loop is stable when
 every closed-loop pole (root of den_L(z) + num_L(z)) lies strictly inside the unit circle.
+
+The RAC's adaptation is a second, discrete loop (:func:`adaptation_bound`): outside the boundary
+layer the Euler updates theta_hat += -T gamma y s_eps and phi_hat += -T eta u_fd s_eps move the
+command by q = y d(theta_hat) + u_fd d(phi_hat), and with the regressors y, u_fd frozen::
+
+    (z - 1) q = -g H(z) q,    g = T (gamma y^2 + eta u_fd^2)
+
+where H(z) is the response of s to an additive command disturbance in the loop above (k = k_d,
+H(1) = 1/k_d). Every root must lie inside the unit circle: g < g_crit, the smallest critical
+gain over the cases. The report says whether the configured rates keep g at the largest
+regressors the stage can produce (y_max: the largest output the command range can hold on the
+model; u_fd: lambda y_max, a reference step across that range) below g_crit / 2.
 """
 
 from __future__ import annotations
@@ -58,10 +70,15 @@ from piezo_stage_ros.core.linear import LinearPlant, third_order_plant
 from piezo_stage_ros.core.params import group, param, Params
 from piezo_stage_ros.core.stage import linear_plant, PlantParams
 
-__all__ = ['LoopCase', 'StabilityParams', 'StabilityReport', 'StabilityWarning',
-           'check_stability', 'enforce', 'loop_polynomials', 'stability_plant']
+__all__ = ['ADAPTATION_MARGIN', 'AdaptationBound', 'LoopCase', 'StabilityParams',
+           'StabilityReport', 'StabilityWarning', 'adaptation_bound', 'check_stability',
+           'enforce', 'loop_polynomials', 'stability_plant']
 
 FloatArray = NDArray[np.float64]
+
+
+#: Required ratio g_crit / g of the adaptation loop (a gain margin of 6 dB).
+ADAPTATION_MARGIN = 2.0
 
 
 class StabilityWarning(UserWarning):
@@ -140,6 +157,85 @@ class LoopCase:
 
 
 @dataclass(frozen=True)
+class AdaptationBound:
+    """
+    The discrete adaptation loop of the RAC at its largest regressors (module docstring).
+
+    Attributes
+    ----------
+    gamma : float
+        Configured adaptation rate of theta_hat [1/(V^2 s)].
+    eta : float
+        Configured adaptation rate of phi_hat [s/V^2].
+    sample_time_s : float
+        Sample period T [s].
+    y_max_v : float
+        Largest sensor output the command range can hold on the model,
+        K_PSCM |G(1)| (slope_max max(|u_min|, |u_max|) + rho) [V].
+    u_fd_max_v_per_s : float
+        Largest regressor of phi_hat taken, lambda y_max (a reference step across the whole
+        reachable range, seen at once by the error) [V/s].
+    critical_gain : float
+        g_crit: smallest per-sample gain T (gamma y^2 + eta u_fd^2) that puts a root of
+        (z - 1) + g H(z) on the unit circle, over the cases [-]; 0 when a frozen loop is
+        already unstable, inf when no gain up to 1e4 does.
+    worst_label : str
+        The case that sets ``critical_gain``.
+
+    """
+
+    gamma: float
+    eta: float
+    sample_time_s: float
+    y_max_v: float
+    u_fd_max_v_per_s: float
+    critical_gain: float
+    worst_label: str
+
+    @property
+    def gain(self) -> float:
+        """Return g = T (gamma y_max^2 + eta u_fd_max^2), the per-sample gain [-]."""
+        return self.sample_time_s * (self.gamma * self.y_max_v ** 2
+                                     + self.eta * self.u_fd_max_v_per_s ** 2)
+
+    @property
+    def ok(self) -> bool:
+        """Return whether g <= g_crit / ADAPTATION_MARGIN."""
+        return self.gain * ADAPTATION_MARGIN <= self.critical_gain
+
+    def max_gamma(self, eta: float | None = None) -> float:
+        """
+        Return the largest gamma that keeps the bound with the given eta [1/(V^2 s)].
+
+        Parameters
+        ----------
+        eta : float, optional
+            Adaptation rate of phi_hat [s/V^2]; default the configured one.
+
+        Returns
+        -------
+        float
+            (g_crit / ADAPTATION_MARGIN / T - eta u_fd_max^2) / y_max^2, at least 0.
+
+        """
+        e = self.eta if eta is None else eta
+        budget = self.critical_gain / ADAPTATION_MARGIN / self.sample_time_s
+        return max((budget - e * self.u_fd_max_v_per_s ** 2) / self.y_max_v ** 2, 0.0)
+
+    def text(self) -> str:
+        """Return one sentence: the per-sample gain against the bound."""
+        head = (f'Adaptation: T (gamma y_max^2 + eta u_fd_max^2) = {self.gain:.3g} at y_max = '
+                f'{self.y_max_v:.2f} V, u_fd_max = lambda y_max = '
+                f'{self.u_fd_max_v_per_s:.3g} V/s; discrete bound g_crit = '
+                f'{self.critical_gain:.3g} ({self.worst_label})')
+        if self.ok:
+            return head + f', within g_crit/{ADAPTATION_MARGIN:g}.'
+        return (head + f': ABOVE g_crit/{ADAPTATION_MARGIN:g}, the estimates can limit-cycle '
+                'between their bounds on a plateau or after a step; lower gamma (at most '
+                f'{self.max_gamma():.3g} with this eta) or eta.')
+
+
+@dataclass(frozen=True)
 class StabilityReport:
     """
     Verdict over every case of one controller configuration on one plant model.
@@ -154,6 +250,9 @@ class StabilityReport:
         Sample period [s].
     cases : tuple of LoopCase
         Every loop checked.
+    adaptation : AdaptationBound or None
+        The discrete adaptation loop of a RAC (None for the other controllers); it does not
+        enter the verdict :attr:`stable` (see :func:`enforce`).
 
     """
 
@@ -161,6 +260,7 @@ class StabilityReport:
     plant: str
     sample_time_s: float
     cases: tuple[LoopCase, ...]
+    adaptation: AdaptationBound | None = None
 
     @property
     def stable(self) -> bool:
@@ -201,15 +301,16 @@ class StabilityReport:
                  f'{_fmt(w.phase_margin_deg)} deg.')
         margins = (f' Over all cases: smallest gain margin {_fmt(self.gain_margin_db)} dB, '
                    f'smallest phase margin {_fmt(self.phase_margin_deg)} deg (closest to 0).')
+        extra = '' if self.adaptation is None else ' ' + self.adaptation.text()
         if self.stable:
-            return head + worst + margins
+            return head + worst + margins + extra
         pole = w.poles[int(np.argmax(np.abs(w.poles)))]
         freq = abs(math.atan2(pole.imag, pole.real)) / (2.0 * math.pi * self.sample_time_s)
         advice = (f' The dominant closed-loop pole z = {pole.real:.4f}{pole.imag:+.4f}j lies '
                   f'outside the unit circle (oscillation near {freq:.0f} Hz): lower the '
                   'feedback gain (RAC: raise epsilon or lower k_d; PI: lower k_p/k_i), tighten '
                   'the projection bounds, or add a notch filter against a resonance.')
-        return head + worst + advice
+        return head + worst + advice + extra
 
 
 def _fmt(value: float) -> str:
@@ -415,8 +516,85 @@ def check_stability(controller_params: ControllerParams, plant_params: PlantPara
     desc = {'rac': 'RAC', 'pi': 'PI', 'open_loop': 'open loop'}[controller_params.type]
     if controller_params.notch.mode != 'off':
         desc += f' + notch ({controller_params.notch.mode})'
+    adaptation = None
+    if controller_params.type == 'rac':
+        adaptation = _adaptation(controller_params, plant, g_num, g_den, sample_time_s, notch,
+                                 opts)
     return StabilityReport(controller=desc, plant=plant.name, sample_time_s=sample_time_s,
-                           cases=tuple(cases))
+                           cases=tuple(cases), adaptation=adaptation)
+
+
+def adaptation_bound(controller_params: ControllerParams, plant_params: PlantParams,
+                     sample_time_s: float, *, options: StabilityParams | None = None
+                     ) -> AdaptationBound:
+    """
+    Return the discrete bound on the RAC's adaptation rates for a plant model.
+
+    Parameters
+    ----------
+    controller_params : ControllerParams
+        Controller configuration; its ``rac`` group and notch are used whatever its type.
+    plant_params : PlantParams
+        Plant model (its ``model`` field chooses it).
+    sample_time_s : float
+        Sample period T [s], > 0.
+    options : StabilityParams, optional
+        Slopes, estimates and delay of the cases; default :class:`StabilityParams`.
+
+    Returns
+    -------
+    AdaptationBound
+        y_max, u_fd_max, g_crit over the cases (estimates, slopes; outside the boundary layer,
+        where the adaptation acts) and the configured rates.
+
+    """
+    if not (sample_time_s > 0.0 and math.isfinite(sample_time_s)):
+        raise ParameterError('sample_time_s', sample_time_s, '(0, inf)')
+    opts = options if options is not None else StabilityParams()
+    plant = stability_plant(plant_params)
+    g_num, g_den = _plant_tf(plant, sample_time_s)
+    notch = notch_design(controller_params.notch, sample_time_s, plant)
+    return _adaptation(controller_params, plant, g_num, g_den, sample_time_s, notch, opts)
+
+
+def _adaptation(params: ControllerParams, plant: LinearPlant, g_num: FloatArray,
+                g_den: FloatArray, sample_time_s: float,
+                notch: tuple[Sequence[float], Sequence[float]] | None,
+                opts: StabilityParams) -> AdaptationBound:
+    """Return the :class:`AdaptationBound` of the RAC of ``params`` (see adaptation_bound)."""
+    r = params.rac
+    k_sensor = params.sensor_gain_v_per_m
+    u_abs = max(abs(params.output_min_v), abs(params.output_max_v))
+    y_max = k_sensor * abs(plant.dc_gain_m_per_v) * (opts.slope_max * u_abs + r.rho_v)
+    if opts.estimates == 'corners':
+        pairs = [(t, f) for t in (r.theta_min, r.theta_max) for f in (r.phi_min, r.phi_max)]
+        pairs.append((r.theta_init, r.phi_init))
+    else:
+        pairs = [(r.theta_init, r.phi_init)]
+    # s = ((1 + lambda T) z - 1)/(z - 1) e for a constant reference (backward rectangle)
+    s_num = np.array([1.0 + r.lambda_per_s * sample_time_s, -1.0])
+    best = (math.inf, 'no case')
+    for theta, phi in pairs:
+        # outside the boundary layer (where s_eps != 0): k = k_d
+        kp = r.k_d + phi * r.lambda_per_s - theta
+        ki = r.k_d * r.lambda_per_s
+        for slope in opts.slopes():
+            gain = k_sensor * slope
+            l_num, l_den = loop_polynomials(kp, ki, gain, g_num, g_den, sample_time_s, notch,
+                                            opts.delay_samples)
+            # y/d = P N z^-delay / (1 + L) = gain g_num n_num (z - 1) / (l_den + l_num) for a
+            # disturbance d added to the command, and s = y ((1 + lambda T) z - 1)/(z - 1):
+            # H(z) = h_num / char_l, and the adaptation loop is (z - 1) char_l + g h_num = 0
+            h_num = np.convolve(g_num * gain, s_num)
+            if notch is not None:
+                h_num = np.convolve(h_num, np.asarray(notch[0], dtype=np.float64))
+            base = np.convolve(_padd(l_den, l_num), [1.0, -1.0])
+            crit = _critical_gain(base, h_num)
+            if crit < best[0]:
+                best = (crit, f'theta_hat={theta:g}, phi_hat={phi:g}, slope={slope:.4g}')
+    return AdaptationBound(gamma=r.gamma, eta=r.eta, sample_time_s=sample_time_s,
+                           y_max_v=y_max, u_fd_max_v_per_s=r.lambda_per_s * y_max,
+                           critical_gain=best[0], worst_label=best[1])
 
 
 def enforce(report: StabilityReport, action: str) -> str:
@@ -448,8 +626,67 @@ def enforce(report: StabilityReport, action: str) -> str:
                              'is not a valid choice')
     text = report.text()
     if report.stable:
+        if report.adaptation is not None and not report.adaptation.ok:
+            # a warning in both actions: the frozen loops are stable and the projection keeps
+            # the estimates bounded, so the risk is a bounded limit cycle, not divergence, and
+            # the bound is a frozen-regressor linearization (with a 2x margin), not a proof
+            warnings.warn(text, StabilityWarning, stacklevel=2)
         return text
     if action == 'refuse':
         raise StabilityError(text)
     warnings.warn(text, StabilityWarning, stacklevel=2)
     return text
+
+
+def _padd(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Return the sum of two polynomials (powers of z, highest first)."""
+    n = max(len(a), len(b))
+    return np.asarray(np.pad(a, (n - len(a), 0)) + np.pad(b, (n - len(b), 0)), dtype=np.float64)
+
+
+def _radius(base: FloatArray, h_num: FloatArray, g: float) -> float:
+    """Return the largest |root| of base + g h_num (same lengths, leading base[0] != 0)."""
+    return float(np.max(np.abs(np.roots(base + g * h_num))))
+
+
+def _critical_gain(base: FloatArray, h_num: FloatArray, *, g_max: float = 1e4) -> float:
+    """
+    Return the smallest g > 0 for which base + g h_num has a root on the unit circle.
+
+    Parameters
+    ----------
+    base : ndarray
+        (z - 1) times the characteristic polynomial of the loop with frozen estimates.
+    h_num : ndarray
+        Numerator of H(z) over that characteristic polynomial.
+    g_max : float
+        Largest gain searched; ``inf`` is returned when every gain up to it is stable.
+
+    Returns
+    -------
+    float
+        g_crit [-], to a relative 1e-3 (from below); 0 when small gains are already
+        unstable.
+
+    """
+    n = max(len(base), len(h_num))
+    base = np.pad(base, (n - len(base), 0))
+    h_num = np.pad(h_num, (n - len(h_num), 0))
+    grid = np.geomspace(1e-4, g_max, 33)
+    lo = 0.0
+    for g in grid:
+        if _radius(base, h_num, float(g)) >= 1.0:
+            hi = float(g)
+            break
+        lo = float(g)
+    else:
+        return math.inf
+    if lo == 0.0:
+        return 0.0
+    while hi - lo > 1e-3 * hi:
+        mid = 0.5 * (lo + hi)
+        if _radius(base, h_num, mid) < 1.0:
+            lo = mid
+        else:
+            hi = mid
+    return lo
