@@ -135,7 +135,12 @@ class ControllerNode(Node):
     def _publish(self, out: Command | None) -> None:
         if out is None:
             return
-        self._cmd_pub.publish(encode_float64(out.voltage_v))
+        try:
+            self._cmd_pub.publish(encode_float64(out.voltage_v))
+        except Exception:
+            if self.context.ok():
+                raise
+            return  # Ctrl-C shut the context down while this callback ran: nothing to send
         if out.diagnostics is not None:
             if self.logic.names != self._diag_names:
                 # a rebuilt controller of another kind reports other internals
@@ -155,6 +160,21 @@ class ControllerNode(Node):
             return None
 
     def _on_position(self, data: bytes) -> None:
+        try:
+            self._position(data)
+        except KeyboardInterrupt:
+            return  # Ctrl-C inside a callback: rclpy shuts down, the runner stops cleanly
+
+    def _on_reference(self, data: bytes) -> None:
+        try:
+            msg = self._decode(data, topics.REFERENCE)
+            if msg is not None:
+                self._publish(self.logic.on_reference(stamp_to_ns(msg[0], msg[1]), msg[2],
+                                                      msg[3]))
+        except KeyboardInterrupt:
+            return
+
+    def _position(self, data: bytes) -> None:
         if self._lockstep and not self._matched:
             if self._cmd_pub.get_subscription_count() == 0:
                 # the command would reach nobody yet; the plant publishes this sample again
@@ -164,11 +184,6 @@ class ControllerNode(Node):
         if msg is not None:
             self._publish(self.logic.on_position(stamp_to_ns(msg[0], msg[1]), msg[2],
                                                  time.monotonic()))
-
-    def _on_reference(self, data: bytes) -> None:
-        msg = self._decode(data, topics.REFERENCE)
-        if msg is not None:
-            self._publish(self.logic.on_reference(stamp_to_ns(msg[0], msg[1]), msg[2], msg[3]))
 
     def _check_watchdog(self) -> None:
         out = self.logic.on_check(time.monotonic())

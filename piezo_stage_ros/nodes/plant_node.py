@@ -149,6 +149,8 @@ class PlantNode(Node):
             again = self.logic.resend_due(time.monotonic())
             if again is not None:
                 self._publish(again)
+        except KeyboardInterrupt:
+            return  # Ctrl-C inside a callback: rclpy shuts down, the runner stops cleanly
         except Exception as exc:  # noqa: BLE001 -- any fault: safe voltage, then report
             self._fault(exc)
 
@@ -161,6 +163,8 @@ class PlantNode(Node):
                 self._publish(sample)
             if self.logic.done:
                 self._finish()
+        except KeyboardInterrupt:
+            return
         except Exception as exc:  # noqa: BLE001
             self._fault(exc)
 
@@ -177,6 +181,8 @@ class PlantNode(Node):
                 self._publish(sample)
             elif self.logic.done and self.logic.lockstep:
                 self._finish()
+        except KeyboardInterrupt:
+            return
         except Exception as exc:  # noqa: BLE001
             self._fault(exc)
 
@@ -218,6 +224,11 @@ class PlantNode(Node):
     def _fault(self, exc: BaseException) -> None:
         self.guard.fault(exc)
         self.logic.done = True
+        if not self.context.ok():
+            # Ctrl-C shut the context down under a running callback: a stop, not a fault
+            if not self.finished.done():
+                self.finished.set_result(self.logic.stats())
+            return
         self._timer.cancel()
         self.get_logger().error(f'fault, safe voltage driven: {exc}')
         if not self.finished.done():

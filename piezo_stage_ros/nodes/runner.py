@@ -131,10 +131,17 @@ def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
             executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:
+        if rclpy.ok():
+            raise
+        # a signal shut the context down while a callback ran: an ordinary stop
     finally:
         for node in nodes:
-            executor.remove_node(node)
-            node.destroy_node()
-        executor.shutdown()
+            # destroy_node drives the plant's safe voltage: it must run for every node
+            try:
+                executor.remove_node(node)
+            finally:
+                node.destroy_node()
+        executor.shutdown(timeout_sec=1.0)
         rclpy.try_shutdown()
     return code

@@ -104,6 +104,12 @@ class TrajectoryNode(Node):
 
     def _on_position(self, data: bytes) -> None:
         try:
+            self._answer(data)
+        except KeyboardInterrupt:
+            return  # Ctrl-C inside a callback: rclpy shuts down, the runner stops cleanly
+
+    def _answer(self, data: bytes) -> None:
+        try:
             sec, nanosec, _, _ = self._decoder.decode(data)
         except CdrError as exc:
             self.malformed += 1
@@ -111,7 +117,11 @@ class TrajectoryNode(Node):
                                       throttle_duration_sec=1.0)
             return
         ref, vel = self.logic.on_position(stamp_to_ns(sec, nanosec))
-        self._pub.publish(self._encoder.encode(sec, nanosec, (ref,), (vel,)))
+        try:
+            self._pub.publish(self._encoder.encode(sec, nanosec, (ref,), (vel,)))
+        except Exception:
+            if self.context.ok():
+                raise  # Ctrl-C shuts the context down under a running callback: not an error
 
 
 def main(args: Sequence[str] | None = None) -> int:
