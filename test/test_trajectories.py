@@ -25,6 +25,7 @@ from piezo_stage_ros.core.interfaces import Trajectory
 from piezo_stage_ros.core.trajectories import (
     load_table,
     make_trajectory,
+    s_curve,
     TableTrajectory,
     TrajectoryParams,
 )
@@ -187,3 +188,94 @@ def test_csv_outside_travel_and_missing_file(tmp_path: Path) -> None:
         build({'kind': 'csv', 'csv.path': str(path)})
     with pytest.raises(ConfigError, match='cannot read'):
         load_table(tmp_path / 'missing.csv')
+
+
+# --- shaped transitions (transition_s) ---------------------------------------------------
+
+def test_s_curve_values_and_exact_derivative() -> None:
+    u = np.array([-0.5, 0.0, 0.25, 0.5, 0.75, 1.0, 2.0])
+    q, dq = s_curve(u)
+    np.testing.assert_allclose(q, [0.0, 0.0, 0.103515625, 0.5, 0.896484375, 1.0, 1.0],
+                               atol=1e-15)
+    # q'(u) = 30 u^2 (1 - u)^2: peak 1.875 at the middle, 0 at both ends and outside
+    np.testing.assert_allclose(dq, [0.0, 0.0, 1.0546875, 1.875, 1.0546875, 0.0, 0.0],
+                               atol=1e-15)
+    # q'' = 60 u (1 - u)(1 - 2u) vanishes at the ends: acceleration is continuous too
+    h = 1e-6
+    assert abs(s_curve(h)[1] - s_curve(0.0)[1]) / h < 1e-4
+    assert abs(s_curve(1.0)[1] - s_curve(1.0 - h)[1]) / h < 1e-4
+
+
+SHAPED = [
+    {'kind': 'square', 'square.transition_s': 2e-3},
+    {'kind': 'square', 'square.transition_s': 1e-3, 'square.duty': 0.3},
+    {'kind': 'staircase', 'staircase.transition_s': 5e-3, 'staircase.steps': 4},
+    {'kind': 'staircase', 'staircase.transition_s': 0.05, 'staircase.step_m': -19e-9},
+    {'kind': 'step', 'step.transition_s': 1e-3},
+    {'kind': 'step', 'step.transition_s': 3e-3, 'step.initial_m': 30e-6,
+     'step.final_m': 4e-6},
+]
+
+
+@pytest.mark.parametrize('flat', SHAPED)
+def test_shaped_jumps_are_continuous_with_exact_derivative(flat: dict[str, object]) -> None:
+    traj = build(flat)
+    t = np.arange(1e-5, 1.2, 1e-5)    # times of a run are >= 0: keep t - h inside
+    pos, vel = traj.evaluate(t)  # type: ignore[attr-defined]
+    kind = str(flat['kind'])
+    tr = float(flat[f'{kind}.transition_s'])  # type: ignore[arg-type]
+    jump = {'square': 7.8e-6, 'step': abs(float(flat.get('step.final_m', 11.6e-6))  # type: ignore
+                                           - float(flat.get('step.initial_m', 3.8e-6))),  # type: ignore
+            'staircase': 19e-9}[kind]
+    peak = 1.875 * jump / tr
+    assert np.max(np.abs(vel)) == pytest.approx(peak, rel=1e-3)
+    # continuity: no sample-to-sample change larger than the peak velocity allows
+    assert np.max(np.abs(np.diff(pos))) <= peak * 1e-5 * (1 + 1e-9)
+    # the derivative is exact: central differences, O(h^2)
+    h = 1e-8
+    fd = (traj.evaluate(t + h)[0] - traj.evaluate(t - h)[0]) / (2 * h)  # type: ignore
+    np.testing.assert_allclose(vel, fd, atol=1e-4 * peak)
+    # the S-curve is monotone: the levels still bound x_d (the travel check stays valid)
+    lo, hi = np.min(build({**flat, f'{kind}.transition_s': 0.0}).evaluate(t)[0]), \
+        np.max(build({**flat, f'{kind}.transition_s': 0.0}).evaluate(t)[0])  # type: ignore
+    assert lo - 1e-18 <= np.min(pos) and np.max(pos) <= hi + 1e-18
+
+
+def test_shaped_square_starts_where_the_ideal_jump_is_and_reaches_the_level() -> None:
+    ideal = build({'kind': 'square'})
+    shaped = build({'kind': 'square', 'square.transition_s': 2e-3})
+    k = np.arange(0, 10001)
+    p0, _ = ideal.evaluate(k * T)  # type: ignore[attr-defined]
+    p1, v1 = shaped.evaluate(k * T)  # type: ignore[attr-defined]
+    # identical outside [edge, edge + 2 ms); at the edge sample the shaped one has not moved
+    moving = np.zeros(k.size, dtype=bool)
+    for edge in (2500, 5000, 7500, 10000):
+        moving[edge:edge + 20] = True
+        assert p1[edge] == pytest.approx(p0[edge - 1], abs=1e-18)
+        assert abs(v1[edge]) < 1e-20
+    np.testing.assert_array_equal(p1[~moving], p0[~moving])
+    assert p1[2510] == pytest.approx(7.7e-6, abs=1e-15)   # half way at the middle
+    assert p1[0] == 3.8e-6 and v1[0] == 0.0               # the run starts at rest, low
+
+
+def test_transition_zero_is_the_ideal_jump() -> None:
+    for kind in ('square', 'staircase', 'step'):
+        a = build({'kind': kind})
+        b = build({'kind': kind, f'{kind}.transition_s': 0.0})
+        t = np.arange(0, 5000) * T
+        np.testing.assert_array_equal(a.evaluate(t)[0], b.evaluate(t)[0])  # type: ignore
+        assert np.all(b.evaluate(t)[1] == 0.0)  # type: ignore[attr-defined]
+
+
+def test_bad_transitions_are_refused() -> None:
+    with pytest.raises(ParameterError, match=r"'square.transition_s' = 0.3 is longer than the "
+                                             r'shortest level.*\[0, 0.25\] s'):
+        TrajectoryParams.from_flat({'kind': 'square', 'square.transition_s': 0.3})
+    with pytest.raises(ParameterError, match=r"'staircase.transition_s' = 0.06 is longer"):
+        TrajectoryParams.from_flat({'kind': 'staircase', 'staircase.transition_s': 0.06})
+    with pytest.raises(ParameterError, match=r"'step.transition_s' = -0.001"):
+        TrajectoryParams.from_flat({'kind': 'step', 'step.transition_s': -1e-3})
+    # the travel check applies with a transition as without
+    with pytest.raises(ParameterError, match=r"'square.peak_to_peak_m'.*stage travel"):
+        TrajectoryParams.from_flat({'kind': 'square', 'square.transition_s': 1e-3,
+                                    'square.peak_to_peak_m': 40e-6})

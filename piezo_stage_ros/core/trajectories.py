@@ -24,6 +24,14 @@ The kinds are those of the paper's experiments (section V) and a few for users:
 - ``staircase``: ``steps`` steps of ``step_m`` every ``dwell_s`` from ``start_m``, then held
   (Fig. 9, 19 nm resolution); derivative 0;
 - ``step``: ``initial_m`` until ``time_s``, then ``final_m``; derivative 0;
+
+  each of these three takes ``transition_s``: 0 (the default) is the ideal discontinuous jump
+  of the paper; T_r > 0 replaces every jump of height D at t_0 by the quintic (minimum-jerk)
+  S-curve x = x_0 + D q((t - t_0)/T_r), q(u) = 10 u^3 - 15 u^4 + 6 u^5 on [t_0, t_0 + T_r],
+  with its exact derivative D q'(u)/T_r, q'(u) = 30 u^2 (1 - u)^2 (position, velocity and
+  acceleration continuous; peak velocity 1.875 D/T_r at the middle), as instrument makers
+  shape point-to-point moves. The transition starts where the ideal jump is and must fit in
+  the level it leads to (refused otherwise);
 - ``triangle``: offset + A tri(f t), with the phase of the sine (rising through the offset at
   t = 0) and the exact piecewise derivative +-4 A f (at a corner, the slope of the piece that
   starts there);
@@ -58,7 +66,7 @@ from piezo_stage_ros.core.params import group, param, Params
 
 __all__ = ['CsvParams', 'MultisineParams', 'SineParams', 'SquareParams', 'StaircaseParams',
            'StepParams', 'TableTrajectory', 'TrajectoryBase', 'TrajectoryParams',
-           'TriangleParams', 'load_table', 'make_trajectory']
+           'TriangleParams', 'load_table', 'make_trajectory', 's_curve']
 
 FloatArray = NDArray[np.float64]
 
@@ -106,6 +114,9 @@ class SquareParams(Params):
     period_s: float = param(0.5, unit='s', description='Period.', low=0.0, low_open=True)
     duty: float = param(0.5, unit='-', description='Fraction of the period at the high level.',
                         low=0.0, high=1.0, low_open=True, high_open=True)
+    transition_s: float = param(0.0, unit='s', description='Duration of the quintic S-curve '
+                                'that replaces each jump (0: ideal jump, as in the paper).',
+                                low=0.0)
 
 
 @dataclass(frozen=True)
@@ -117,6 +128,9 @@ class StaircaseParams(Params):
     steps: int = param(10, unit='-', description='Number of steps.', low=1, high=100000)
     dwell_s: float = param(0.05, unit='s', description='Time on each level.', low=0.0,
                            low_open=True)
+    transition_s: float = param(0.0, unit='s', description='Duration of the quintic S-curve '
+                                'that replaces each jump (0: ideal jump, as in the paper).',
+                                low=0.0)
 
 
 @dataclass(frozen=True)
@@ -126,6 +140,9 @@ class StepParams(Params):
     initial_m: float = param(3.8e-6, unit='m', description='Level before the step.')
     final_m: float = param(11.6e-6, unit='m', description='Level after the step.')
     time_s: float = param(0.01, unit='s', description='Time of the step.', low=0.0)
+    transition_s: float = param(0.0, unit='s', description='Duration of the quintic S-curve '
+                                'that replaces each jump (0: ideal jump, as in the paper).',
+                                low=0.0)
 
 
 @dataclass(frozen=True)
@@ -168,6 +185,13 @@ class TrajectoryParams(Params):
                                'core/excitation.py)')
 
     def _check(self) -> None:
+        for name, fits, room in (
+                ('square.transition_s', self.square.transition_s,
+                 min(self.square.duty, 1.0 - self.square.duty) * self.square.period_s),
+                ('staircase.transition_s', self.staircase.transition_s, self.staircase.dwell_s)):
+            if fits > room * (1.0 + 1e-9):
+                raise ParameterError(name, fits, f'[0, {room:g}] s',
+                                     'is longer than the shortest level it leads to')
         if not self.travel_min_m < self.travel_max_m:
             raise ParameterError('travel_max_m', self.travel_max_m,
                                  f'> travel_min_m = {self.travel_min_m:g}',
@@ -235,6 +259,27 @@ def _get(p: Params, dotted: str) -> object:
     for part in dotted.split('.'):
         obj = getattr(obj, part)
     return list(obj) if isinstance(obj, tuple) else obj
+
+
+def s_curve(u: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """
+    Return the quintic S-curve q(u) = 10 u^3 - 15 u^4 + 6 u^5 and q'(u), u clipped to [0, 1].
+
+    Parameters
+    ----------
+    u : array_like
+        Normalized time (t - t_0)/T_r of a transition [-].
+
+    Returns
+    -------
+    q, dq_du : ndarray
+        Fraction of the jump done (0 ... 1) and its derivative with respect to u (0 outside
+        (0, 1); 30 u^2 (1 - u)^2 inside).
+
+    """
+    v = np.clip(np.asarray(u, dtype=np.float64), 0.0, 1.0)
+    v2 = v * v
+    return v2 * v * (10.0 + v * (6.0 * v - 15.0)), 30.0 * v2 * (1.0 - v) ** 2
 
 
 def _common_period(frequencies_hz: tuple[float, ...]) -> float | None:
@@ -331,8 +376,21 @@ class _Square(TrajectoryBase):
         # low for the first (1 - duty) of each period; a tiny guard makes k T land on the
         # level that starts exactly there despite rounding in k * T / period
         frac = np.mod(t / p.period_s + 1e-9, 1.0)
-        pos = np.where(frac < 1.0 - p.duty, p.low_m, p.low_m + p.peak_to_peak_m)
-        return np.asarray(pos, dtype=np.float64), np.zeros(t.shape)
+        if p.transition_s == 0.0:
+            pos = np.where(frac < 1.0 - p.duty, p.low_m, p.low_m + p.peak_to_peak_m)
+            return np.asarray(pos, dtype=np.float64), np.zeros(t.shape)
+        tau = (frac - 1e-9) * p.period_s           # time since the start of the period
+        rise_at = (1.0 - p.duty) * p.period_s
+        # rising S-curve from rise_at; falling one from the start of every period but the
+        # first (the run starts at rest on the low level)
+        up, dup = s_curve((tau - rise_at) / p.transition_s)
+        down, ddown = s_curve(tau / p.transition_s)
+        first = t / p.period_s + 1e-9 < 1.0
+        falling = (tau < rise_at) & ~first
+        q = np.where(tau >= rise_at, up, np.where(falling, 1.0 - down, 0.0))
+        dq = np.where(tau >= rise_at, dup, np.where(falling, -ddown, 0.0))
+        return (np.asarray(p.low_m + p.peak_to_peak_m * q, dtype=np.float64),
+                np.asarray(p.peak_to_peak_m * dq / p.transition_s, dtype=np.float64))
 
 
 class _Staircase(TrajectoryBase):
@@ -345,7 +403,14 @@ class _Staircase(TrajectoryBase):
         t = np.asarray(time_s, dtype=np.float64)
         p = self._p
         level = np.clip(np.floor(t / p.dwell_s + 1e-9), 0, p.steps)
-        return p.start_m + level * p.step_m, np.zeros(t.shape)
+        if p.transition_s == 0.0:
+            return p.start_m + level * p.step_m, np.zeros(t.shape)
+        # level j >= 1 starts at j dwell with an S-curve up from level j - 1
+        q, dq = s_curve((t - level * p.dwell_s) / p.transition_s)
+        moving = level >= 1
+        pos = p.start_m + np.where(moving, level - 1.0 + q, 0.0) * p.step_m
+        vel = np.where(moving, dq, 0.0) * p.step_m / p.transition_s
+        return np.asarray(pos, dtype=np.float64), np.asarray(vel, dtype=np.float64)
 
 
 class _Step(TrajectoryBase):
@@ -357,8 +422,13 @@ class _Step(TrajectoryBase):
     def evaluate(self, time_s: ArrayLike) -> tuple[FloatArray, FloatArray]:
         t = np.asarray(time_s, dtype=np.float64)
         p = self._p
-        pos = np.where(t >= p.time_s - 1e-12, p.final_m, p.initial_m)
-        return np.asarray(pos, dtype=np.float64), np.zeros(t.shape)
+        if p.transition_s == 0.0:
+            pos = np.where(t >= p.time_s - 1e-12, p.final_m, p.initial_m)
+            return np.asarray(pos, dtype=np.float64), np.zeros(t.shape)
+        q, dq = s_curve((t - p.time_s) / p.transition_s)
+        jump = p.final_m - p.initial_m
+        return (np.asarray(p.initial_m + jump * q, dtype=np.float64),
+                np.asarray(jump * dq / p.transition_s, dtype=np.float64))
 
 
 class _Triangle(TrajectoryBase):
