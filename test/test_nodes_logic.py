@@ -359,3 +359,49 @@ def test_gain_changes_apply_at_the_next_sample():
     stuck.on_position(0, 0.0, 0.0)
     with pytest.raises(PiezoStageError, match='update_params'):
         stuck.on_reference(0, 0.0, 0.0)
+
+
+# --- layers ---------------------------------------------------------------------------------
+
+ROS_ROOTS = {'rclpy', 'rcl_interfaces', 'sensor_msgs', 'std_msgs', 'rosgraph_msgs',
+             'builtin_interfaces', 'diagnostic_msgs', 'std_srvs', 'launch', 'launch_ros'}
+PACKAGE = Path(__file__).resolve().parents[1] / 'piezo_stage_ros'
+RCLPY_FREE = sorted([PACKAGE / 'nodes' / f'{m}.py' for m in ('logic', 'tables', 'topics', 'cdr')]
+                    + list((PACKAGE / 'hardware').glob('*.py')))
+
+
+def imported_roots(path: Path) -> set[str]:
+    import ast
+    roots = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding='utf8'))):
+        if isinstance(node, ast.Import):
+            roots.update(alias.name.split('.')[0] for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            roots.add(node.module.split('.')[0])
+    return roots
+
+
+@pytest.mark.parametrize('path', RCLPY_FREE, ids=lambda p: f'{p.parent.name}/{p.name}')
+def test_the_testable_node_modules_never_import_ros(path):
+    assert not imported_roots(path) & ROS_ROOTS
+
+
+def test_the_testable_node_modules_import_with_ros_blocked():
+    import subprocess
+    import sys
+    code = (
+        'import sys\n'
+        'class Block:\n'
+        '    def find_spec(self, name, path=None, target=None):\n'
+        f'        if name.split(".")[0] in {sorted(ROS_ROOTS)!r}:\n'
+        '            raise ImportError("blocked: " + name)\n'
+        'sys.meta_path.insert(0, Block())\n'
+        'import piezo_stage_ros.nodes.logic, piezo_stage_ros.nodes.tables\n'
+        'import piezo_stage_ros.nodes.topics, piezo_stage_ros.nodes.cdr\n'
+        'import piezo_stage_ros.hardware.emulator, piezo_stage_ros.hardware.udp\n'
+        'import piezo_stage_ros.bench.ros\n'
+        'print("ok")\n')
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                         cwd=PACKAGE.parent, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == 'ok'

@@ -25,7 +25,9 @@ Run ``python3 -m piezo_stage_ros.bench.ros`` in a sourced Jazzy environment. Cas
 - ``composed-realtime``: the same nodes in real time for ``--realtime-s`` of wall time: the
   sample rate held and the share of late samples (no new command since the previous sample);
 - ``cross-lockstep``: the plant here, controller and trajectory in a second process
-  (``stage_servo --nodes controller,trajectory``), lockstep.
+  (``stage_servo --nodes controller,trajectory``), lockstep;
+- ``pingpong``: the yardstick of the machine's state: two nodes in this process bounce a
+  ``Float64`` (serialized) on one EventsExecutor; the median round trip in microseconds.
 
 The runs use a ROS domain of their own (``--domain-id``) and localhost discovery, so that they
 neither see nor disturb other ROS graphs on the machine. Timings are those of a shared machine:
@@ -43,7 +45,7 @@ from typing import Any, Sequence
 
 __all__ = ['CASES', 'main', 'run_ros_benchmark']
 
-CASES = ('composed-lockstep', 'composed-realtime', 'cross-lockstep')
+CASES = ('pingpong', 'composed-lockstep', 'composed-realtime', 'cross-lockstep')
 STAGE = {'plant.model': 'reduced'}
 CONTROLLER = {'type': 'rac', 'stability.plant.model': 'reduced'}
 
@@ -128,6 +130,54 @@ def _cross(duration_s: float, executor: str) -> dict[str, Any]:
             helper.kill()
 
 
+def _pingpong(round_trips: int = 20000) -> dict[str, Any]:
+    import time
+
+    from piezo_stage_ros.nodes import qos
+    from piezo_stage_ros.nodes.cdr import encode_float64
+    from piezo_stage_ros.nodes.runner import make_executor
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.task import Future
+    from std_msgs.msg import Float64
+
+    context = Context()
+    rclpy.init(context=context)
+    try:
+        ping = rclpy.create_node('bench_ping', context=context)
+        pong = rclpy.create_node('bench_pong', context=context)
+        ping_pub = ping.create_publisher(Float64, 'bench/ping', qos.LOOP)
+        pong_pub = pong.create_publisher(Float64, 'bench/pong', qos.LOOP)
+        pong.create_subscription(Float64, 'bench/ping', pong_pub.publish, qos.LOOP, raw=True)
+        done = Future()
+        times: list[float] = []
+
+        def back(data: bytes) -> None:
+            times.append(time.perf_counter())
+            if len(times) > round_trips:
+                done.set_result(True)
+            else:
+                ping_pub.publish(data)
+
+        ping.create_subscription(Float64, 'bench/pong', back, qos.LOOP, raw=True)
+        executor = make_executor('events', context)
+        executor.add_node(ping)
+        executor.add_node(pong)
+        while pong_pub.get_subscription_count() == 0 or ping_pub.get_subscription_count() == 0:
+            executor.spin_once(timeout_sec=0.01)
+        start = time.perf_counter()
+        ping_pub.publish(encode_float64(0.0))
+        executor.spin_until_future_complete(done, timeout_sec=120.0)
+        gaps = sorted(b - a for a, b in zip([start] + times, times))
+        executor.shutdown()
+        ping.destroy_node()
+        pong.destroy_node()
+        return {'round_trips': len(times), 'median_us': round(gaps[len(gaps) // 2] * 1e6, 1),
+                'p99_us': round(gaps[int(len(gaps) * 0.99)] * 1e6, 1)}
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
 def run_ros_benchmark(cases: Sequence[str] = CASES, *, lockstep_s: float = 5.0,
                       realtime_s: float = 60.0, domain_id: int | None = None
                       ) -> dict[str, Any]:
@@ -157,7 +207,9 @@ def run_ros_benchmark(cases: Sequence[str] = CASES, *, lockstep_s: float = 5.0,
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     out: dict[str, Any] = {}
     for case in cases:
-        if case == 'composed-lockstep':
+        if case == 'pingpong':
+            out[case] = _pingpong()
+        elif case == 'composed-lockstep':
             out['composed-lockstep (use_sim_time)'] = _composed('lockstep', lockstep_s, True)
             out['composed-lockstep'] = _composed('lockstep', lockstep_s, False)
         elif case == 'composed-realtime':
@@ -172,12 +224,17 @@ def run_ros_benchmark(cases: Sequence[str] = CASES, *, lockstep_s: float = 5.0,
 def _table(result: dict[str, Any]) -> str:
     lines = ['| case | samples | wall [s] | samples/s | x real time | late [%] | skipped |',
              '| --- | ---: | ---: | ---: | ---: | ---: | ---: |']
+    notes = []
     for case, s in result.items():
+        if case == 'pingpong':
+            notes.append(f'ping-pong in one process (EventsExecutor): median {s["median_us"]} us, '
+                         f'p99 {s["p99_us"]} us per round trip ({s["round_trips"]} round trips)')
+            continue
         samples = s.get('index', -1) + 1
         late = 100.0 * s.get('late', 0) / samples if samples else 0.0
         lines.append(f'| {case} | {samples} | {s["wall_s"]:.2f} | {s["samples_per_s"]:.0f} | '
                      f'{s["real_time_factor"]:.3f} | {late:.3f} | {s.get("skipped", 0)} |')
-    return '\n'.join(lines)
+    return '\n'.join(lines + [''] + notes)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

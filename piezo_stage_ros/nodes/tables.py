@@ -367,3 +367,14 @@ def controller_table() -> NodeTable:
 def trajectory_table() -> NodeTable:
     """Return the table of ``trajectory_node``: the trajectory and the node group."""
     return NodeTable('trajectory_node', [Group(TrajectoryParams), Group(TrajectoryNodeParams)])
+
+
+def main() -> int:
+    """Print the three tables as Markdown (``python3 -m piezo_stage_ros.nodes.tables``)."""
+    for table in (plant_table(), controller_table(), trajectory_table()):
+        print(table.markdown())
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
