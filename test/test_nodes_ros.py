@@ -32,7 +32,7 @@ rclpy = pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not importab
 from piezo_stage_ros.core.closed_loop import run  # noqa: E402
 from piezo_stage_ros.core.controllers import build_controller, ControllerParams  # noqa: E402
 from piezo_stage_ros.core.errors import ParameterError  # noqa: E402
-from piezo_stage_ros.core.stage import Stage, StageParams  # noqa: E402
+from piezo_stage_ros.core.stage import linear_plant, Stage, StageParams  # noqa: E402
 from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams  # noqa: E402
 from piezo_stage_ros.hardware.emulator import TargetEmulator  # noqa: E402
 from piezo_stage_ros.nodes import qos, stage_servo, topics  # noqa: E402
@@ -84,17 +84,17 @@ class Probe(Node):
 
 
 def loop(context: Context, mode: str, duration_s: float, plant_extra: dict | None = None,
-         with_controller: bool = True):
+         with_controller: bool = True, stage: dict = STAGE, controller: dict = CONTROLLER):
     common = {'mode': mode}
     plant = PlantNode(context=context, parameter_overrides=overrides(
-        {**STAGE, **common, 'duration_s': duration_s, 'lockstep.subscribers': 3,
+        {**stage, **common, 'duration_s': duration_s, 'lockstep.subscribers': 3,
          **(plant_extra or {})}))
     nodes = [plant, Probe(context),
              TrajectoryNode(context=context, parameter_overrides=overrides(
                  {**TRAJECTORY, **common}))]
     if with_controller:
         nodes.append(ControllerNode(context=context, parameter_overrides=overrides(
-            {**CONTROLLER, **common})))
+            {**controller, **common})))
     return plant, nodes
 
 
@@ -116,19 +116,26 @@ def spin(context: Context, nodes: list[Node], future, timeout_s: float = 120.0,
         executor.shutdown()
 
 
-def offline(duration_s: float):
-    stage = StageParams.from_flat(STAGE)
-    ctrl = build_controller(ControllerParams.from_flat({'type': 'pi'}), stage.sample_time_s)
+def offline(duration_s: float, stage: dict = STAGE, controller: dict = CONTROLLER):
+    params = StageParams.from_flat(stage)
+    cp = ControllerParams.from_flat({k: v for k, v in controller.items()
+                                     if not k.startswith('stability.')})
+    ctrl = build_controller(cp, params.sample_time_s, linear_plant(params.plant))
     traj = make_trajectory(TrajectoryParams.from_flat(TRAJECTORY))
-    return run(Stage(stage), ctrl, traj, duration_s=duration_s, record_diagnostics=False)
+    return run(Stage(params), ctrl, traj, duration_s=duration_s, record_diagnostics=False)
 
 
-def test_composed_lockstep_run_equals_the_offline_runner(context):
-    plant, nodes = loop(context, 'lockstep', 0.1)
+@pytest.mark.parametrize('stage, controller', [
+    (STAGE, CONTROLLER),
+    ({'plant.model': 'third_order', 'chain.sensor_noise_std_m': 2e-9, 'seed': 5},
+     {'type': 'rac', 'stability.plant.model': 'third_order'}),
+], ids=['pi-reduced', 'rac-third-order-noise'])
+def test_composed_lockstep_run_equals_the_offline_runner(context, stage, controller):
+    plant, nodes = loop(context, 'lockstep', 0.1, stage=stage, controller=controller)
     probe = nodes[1]
     spin(context, nodes, plant.finished, until=lambda: len(probe.commands) >= 1000)
     assert plant.finished.done() and plant.finished.exception() is None
-    rec = offline(0.1)
+    rec = offline(0.1, stage, controller)
     assert len(probe.positions) == 1000
     stamps = np.array([s for s, _ in probe.positions])
     np.testing.assert_array_equal(stamps, np.arange(1000) * 100_000)

@@ -33,7 +33,8 @@ from typing import Any, Sequence
 from piezo_stage_ros.core.controllers import build_controller, ControllerParams
 from piezo_stage_ros.core.errors import StabilityError
 from piezo_stage_ros.core.interfaces import Controller
-from piezo_stage_ros.core.stability import check_stability, stability_plant, StabilityParams
+from piezo_stage_ros.core.stability import check_stability, StabilityParams
+from piezo_stage_ros.core.stage import linear_plant
 from piezo_stage_ros.nodes import qos, topics
 from piezo_stage_ros.nodes.cdr import (
     CdrError,
@@ -114,7 +115,8 @@ class ControllerNode(Node):
         return text
 
     def _build(self, params: ControllerParams, stability: StabilityParams) -> Controller:
-        return build_controller(params, self.sample_time_s, stability_plant(stability.plant))
+        # the plant a 'model' notch is designed from, built as the offline runner builds it
+        return build_controller(params, self.sample_time_s, linear_plant(stability.plant))
 
     def _rebuild(self, params: ControllerParams) -> Controller:
         return self._build(params, self._stability)
