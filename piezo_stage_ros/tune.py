@@ -28,7 +28,10 @@ hysteresis) with the reduced plant (25) and the third-order plant (20), for
 5. what the adaptation buys when the plant gain differs from the model's;
 6. Table III: e_rms and e_max of the paper's PI, the paper's RAC and the default RAC on both
    plants, with and without the notch;
-7. the same with one sample of computational delay, and a tuning that tolerates it.
+7. the same with one sample of computational delay, and a tuning that tolerates it;
+8. the discrete adaptation loop: the bound of :func:`piezo_stage_ros.core.stability.
+   adaptation_bound` per model, and the square-wave steady state (Fig. 10, and a 3.8 -> 28 um
+   square wave near the top of the reachable range) against the adaptation rates gamma, eta.
 
 Errors are those of :func:`piezo_stage_ros.core.metrics.summarize` (measured position, steady-state
 window after max(2 periods, 0.1 s)). The default run takes about a minute.
@@ -41,6 +44,7 @@ import sys
 import time
 from typing import Mapping, Sequence
 
+import numpy as np
 from piezo_stage_ros.core.closed_loop import run
 from piezo_stage_ros.core.controllers import (
     build_controller,
@@ -49,11 +53,17 @@ from piezo_stage_ros.core.controllers import (
     PIParams,
     RACParams,
 )
+from piezo_stage_ros.core.experiments import run_one, square_edge_metrics
 from piezo_stage_ros.core.interfaces import Controller
 from piezo_stage_ros.core.linear import ReducedParams
 from piezo_stage_ros.core.metrics import summarize
 from piezo_stage_ros.core.params import ParamSpec
-from piezo_stage_ros.core.stability import check_stability, stability_plant, StabilityParams
+from piezo_stage_ros.core.stability import (
+    adaptation_bound,
+    check_stability,
+    stability_plant,
+    StabilityParams,
+)
 from piezo_stage_ros.core.stage import PlantParams, Stage, StageParams
 from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
 
@@ -197,6 +207,42 @@ def track(params: ControllerParams, model: str, frequency_hz: float,
     record = run(stage, ctrl, traj, duration_s=duration, record_diagnostics=False)
     m = summarize(record, period_s=period)
     return m['e_rms_m'], m['e_max_m']
+
+
+def square_steady_state(params: ControllerParams, model: str, *, high_m: float = 11.6e-6,
+                        period_s: float = 0.5, periods: int = 2
+                        ) -> tuple[float, float, float, float]:
+    """
+    Run an ideal square wave from 3.8 um and return its steady state and the theta_hat range.
+
+    Parameters
+    ----------
+    params : ControllerParams
+        Controller.
+    model : str
+        Plant model.
+    high_m : float
+        High level [m] (Fig. 10: 11.6 um).
+    period_s : float
+        Period [s] (Fig. 10: 0.5 s).
+    periods : int
+        Periods run.
+
+    Returns
+    -------
+    ss_e_rms_m, ss_e_max_m : float
+        Measured minus reference over the last half of every plateau [m].
+    theta_min, theta_max : float
+        Range of theta_hat over the run [V/V].
+
+    """
+    tp = TrajectoryParams.from_flat({'kind': 'square', 'square.peak_to_peak_m': high_m - 3.8e-6,
+                                     'square.period_s': period_s})
+    rec = run_one(StageParams.from_flat({'plant.model': model}), params, tp,
+                  duration_s=periods * period_s)
+    m = square_edge_metrics(rec.time_s, rec.position_m, rec.reference_m, tp.square)
+    theta = np.asarray(rec.diagnostics['theta_hat'])
+    return m['ss_e_rms_m'], m['ss_e_max_m'], float(np.min(theta)), float(np.max(theta))
 
 
 def verdict(params: ControllerParams, model: str, sample_time_s: float = 1e-4,
@@ -382,6 +428,42 @@ def main(argv: Sequence[str] | None = None) -> int:
         for model in ('reduced', 'third_order'):
             print(_row([name, model, *errors_row(params, model, with_max=True, delay=True),
                         verdict(params, model, delay_samples=1)]), flush=True)
+    if not args.skip_sweeps:
+        print('\n## 8. The discrete adaptation loop\n')
+        print(_row(['plant', 'y_max [V]', 'u_fd_max = lambda y_max [V/s]', 'g_crit (corners)',
+                    'g_crit (initial estimates)', 'g of the default',
+                    'max gamma (eta 0 / default eta)']))
+        print(_row(['---'] * 7))
+        for model in ('reduced', 'third_order', 'electromechanical'):
+            b = adaptation_bound(default, PlantParams(model=model), 1e-4)
+            b0 = adaptation_bound(default, PlantParams(model=model), 1e-4,
+                                  options=StabilityParams(estimates='initial'))
+            print(_row([model, f'{b.y_max_v:.2f}', f'{b.u_fd_max_v_per_s:.3g}',
+                        f'{b.critical_gain:.3f}', f'{b0.critical_gain:.3f}', f'{b.gain:.3f}',
+                        f'{b.max_gamma(0.0):.1f} / {b.max_gamma():.1f}']))
+        print('\nSquare waves from 3.8 um with the default RAC and the rates below (ideal jumps, '
+              '2 periods): steady-state e_rms / e_max [nm] over the last half of every '
+              'plateau, and the theta_hat range; g / g_crit at y_max on the reduced model.\n')
+        print(_row(['gamma', 'eta', 'g / g_crit', 'Fig. 10 reduced', 'Fig. 10 third-order',
+                    '28 um reduced', '28 um third-order', 'theta_hat range (Fig. 10 reduced)']))
+        print(_row(['---'] * 8))
+        crit = adaptation_bound(default, PlantParams(model='reduced'), 1e-4)
+        for gamma, eta in ((3000.0, 0.01), (3000.0, d.eta), (1000.0, d.eta), (300.0, d.eta),
+                           (100.0, d.eta), (30.0, d.eta), (10.0, 0.01), (d.gamma, d.eta)):
+            p = controller('rac', rac=d.replace(gamma=gamma, eta=eta))
+            ratio = crit.sample_time_s * (gamma * crit.y_max_v ** 2
+                                          + eta * crit.u_fd_max_v_per_s ** 2)
+            cells = []
+            rng = ''
+            for high, period in ((11.6e-6, 0.5), (28e-6, 0.1)):
+                for model in ('reduced', 'third_order'):
+                    e_rms, e_max, t0, t1 = square_steady_state(p, model, high_m=high,
+                                                               period_s=period)
+                    cells.append(f'{e_rms * 1e9:.1f} / {e_max * 1e9:.1f}')
+                    if high == 11.6e-6 and model == 'reduced':
+                        rng = f'{t0:.3f} ... {t1:.3f}'
+            print(_row([f'{gamma:g}', f'{eta:g}', f'{ratio / crit.critical_gain:.3g}', *cells,
+                        rng]), flush=True)
     print(f'\n(study took {time.monotonic() - start:.0f} s)')
     return 0
 
