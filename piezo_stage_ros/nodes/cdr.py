@@ -254,21 +254,25 @@ class JointStateDecoder:
         self._size = len(probe)
         self._pos_at = probe.index(struct.pack('<d', 1.0)) if names else -1
         self._vel_at = probe.index(struct.pack('<d', 2.0)) if names and with_velocity else -1
-        # everything but the stamp and the values must match byte for byte
-        last = max(self._pos_at, self._vel_at)
+        # the bytes between the stamp and the first value (frame, names, counts) must match;
+        # with the length fixed that pins the layout down (any other array count changes it)
         self._head = probe[12:self._pos_at] if names else b''
         self._middle = probe[self._pos_at + 8:self._vel_at] if self._vel_at >= 0 else b''
-        self._tail_at = last + 8
-        self._tail = probe[self._tail_at:]
+        # one unpack for stamp and values, the bytes between them skipped
+        fmt = f'<4xiI{self._pos_at - 12}xd' if names else '<4xiI'
+        if self._vel_at >= 0:
+            fmt += f'{self._vel_at - self._pos_at - 8}xd'
+        self._fast = struct.Struct(fmt)
 
     def decode(self, data: bytes) -> tuple[int, int, float, float]:
         """Return ``(sec, nanosec, position[0], velocity[0])`` (NaN for an empty array)."""
-        if len(data) == self._size and data[:4] == HEADER_LE and self._pos_at >= 0 and \
-                data[12:self._pos_at] == self._head and data[self._tail_at:] == self._tail and \
-                (self._vel_at < 0 or data[self._pos_at + 8:self._vel_at] == self._middle):
-            sec, nanosec = _STAMP['<'].unpack_from(data, 4)
-            position = _F64['<'].unpack_from(data, self._pos_at)[0]
-            velocity = _F64['<'].unpack_from(data, self._vel_at)[0] \
-                if self._vel_at >= 0 else math.nan
-            return sec, nanosec, position, velocity
+        pos_at = self._pos_at
+        if len(data) == self._size and pos_at >= 0 and data[:4] == HEADER_LE and \
+                data[12:pos_at] == self._head:
+            if self._vel_at < 0:
+                sec, nanosec, position = self._fast.unpack_from(data)
+                return sec, nanosec, position, math.nan
+            if data[pos_at + 8:self._vel_at] == self._middle:
+                sec, nanosec, position, velocity = self._fast.unpack_from(data)
+                return sec, nanosec, position, velocity
         return decode_joint_state(data)
