@@ -200,10 +200,13 @@ def test_realtime_plant_samples_on_its_clock_and_counts_late_commands():
     assert logic.plant.late == 2 and logic.catch_up == 2
     assert logic.on_command(2.0, 100.00032) is None
     assert math.isclose(logic.next_due_s(), 100.0004)
-    out = logic.on_tick(101.0)                       # a long stall: no burst of 10 000
-    assert len(out) == 1 and logic.skipped > 9000
-    assert out[0].stamp_ns == 5_000_000_000 + out[0].index * 100_000 + logic.skipped * 100_000
-    assert logic.on_tick(101.00005) == []
+    out = logic.on_tick(101.00002)                   # a long stall: no burst of 10 000
+    assert len(out) == 1 and logic.skipped == 10_000 - 4
+    assert out[0].index == 4
+    # the stamp says when the sample was taken: sample 10 000 of the original schedule
+    assert out[0].stamp_ns == 5_000_000_000 + 10_000 * 100_000
+    assert logic.on_tick(101.00009) == []
+    assert [s.index for s in logic.on_tick(101.0001)] == [5]
 
 
 def test_realtime_plant_drives_safe_voltage_when_commands_stop():

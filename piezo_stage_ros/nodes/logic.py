@@ -238,10 +238,12 @@ class PlantLogic:
         due = int((now_s - self._t0_s) * self.rate_hz)
         behind = due - self.index
         if behind > self.max_catch_up:
-            # a long stall (suspend, debugger): do not burst; restart the schedule from here
-            self.skipped += behind - 1
-            self._t0_s = now_s - self.index * self.period_s
-            self.start_ns += round((behind - 1) * NS_PER_S / self.rate_hz)
+            # a long stall (suspend, debugger): no burst; the samples missed are skipped, the
+            # schedule and the stamps move on by as many periods, so the next one is due now
+            skip = behind - 1
+            self.skipped += skip
+            self._t0_s += skip * self.period_s
+            self.start_ns += round(skip * NS_PER_S / self.rate_hz)
             behind = 1
         out: list[Sample] = []
         for _ in range(max(behind, 0)):
