@@ -293,6 +293,10 @@ def _enforce(report: Any, action: str) -> None:
         text = enforce(report, action)
     if not report.stable:
         print(f'{PROG}: WARNING: UNSTABLE CONFIGURATION: {text}', file=sys.stderr)
+    adaptation = getattr(report, 'adaptation', None)
+    if adaptation is not None and not adaptation.ok:
+        print(f'{PROG}: WARNING: ADAPTATION GAIN ABOVE THE DISCRETE BOUND: {adaptation.text()}',
+              file=sys.stderr)
 
 
 def _run_single(args: argparse.Namespace, params: dict[str, Any]) -> int:

@@ -138,6 +138,15 @@ def test_identification_excitations_run_with_their_amplitude(
     assert json.loads(capsys.readouterr().out)['e_rms_m'] < 2e-9
 
 
+def test_paper_adaptation_rates_are_warned_about(capsys: pytest.CaptureFixture[str]) -> None:
+    assert simulate.main(['--param', 'controller_node:rac.gamma=3000', '--param',
+                          'controller_node:rac.eta=0.01', '--duration', '0.05', '--json']) == 0
+    err = capsys.readouterr().err
+    assert 'WARNING: ADAPTATION GAIN ABOVE THE DISCRETE BOUND' in err
+    assert simulate.main(['--duration', '0.05', '--json']) == 0
+    assert 'ADAPTATION' not in capsys.readouterr().err
+
+
 def test_unstable_configuration_warns_or_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
     # the paper's epsilon = 0.005 gives a boundary-layer gain k*/epsilon = 40: unstable at 10 kHz
     unstable = ['--plant', 'reduced', '--param', 'controller_node:rac.epsilon_v=0.005',
