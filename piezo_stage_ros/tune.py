@@ -57,7 +57,6 @@ from piezo_stage_ros.core.experiments import run_one, square_edge_metrics
 from piezo_stage_ros.core.interfaces import Controller
 from piezo_stage_ros.core.linear import ReducedParams
 from piezo_stage_ros.core.metrics import summarize
-from piezo_stage_ros.core.params import ParamSpec
 from piezo_stage_ros.core.stability import (
     adaptation_bound,
     check_stability,
@@ -255,41 +254,6 @@ def verdict(params: ControllerParams, model: str, sample_time_s: float = 1e-4,
     return f'UNSTABLE (radius {rep.spectral_radius:.3f})'
 
 
-def params_table(specs: Sequence[ParamSpec]) -> str:
-    """
-    Render parameter specs as a Markdown table (name, type, default, unit, allowed, description).
-
-    Parameters
-    ----------
-    specs : sequence of ParamSpec
-        E.g. ``ControllerParams.specs()``.
-
-    Returns
-    -------
-    str
-        The table, one line per parameter.
-
-    """
-    lines = [_row(['name', 'type', 'default', 'unit', 'allowed', 'description']),
-             _row(['---'] * 6)]
-    for spec in specs:
-        default = spec.default
-        if isinstance(default, float):
-            default = f'{default:.10g}'
-        elif isinstance(default, tuple):
-            default = '[' + ', '.join(f'{v:g}' for v in default) + ']'
-        ro = ' (read-only)' if spec.read_only else ''
-        lines.append(_row([f'`{spec.name}`', spec.type_name, f'`{default}`', spec.unit,
-                           spec.allowed().replace('|', '\\|'),
-                           spec.description.replace('|', '\\|') + ro]))
-    return '\n'.join(lines)
-
-
-def controller_node_specs() -> list[ParamSpec]:
-    """Return the controller and stability-check parameters of ``controller_node``."""
-    return ControllerParams.specs() + StabilityParams.specs('stability.')
-
-
 def _row(cells: Sequence[str]) -> str:
     return '| ' + ' | '.join(cells) + ' |'
 
@@ -328,7 +292,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help='print the Markdown table of the controller_node parameters and exit')
     args = parser.parse_args(argv)
     if args.params_table:
-        print(params_table(controller_node_specs()))
+        # the node's own table (the README's is generated from the same declarations)
+        from piezo_stage_ros.nodes.tables import controller_table
+        print(controller_table().markdown())
         return 0
     start = time.monotonic()
     default = ControllerParams()
