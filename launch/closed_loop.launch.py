@@ -122,6 +122,10 @@ def _launch(context: LaunchContext) -> list:
     common = {'mode': mode, 'use_sim_time': sim_time}
     # the plant owns simulation time: its own clock need not follow /clock
     plant = dict(common, use_sim_time=False, duration_s=float(arg['duration_s']))
+    if arg['record'].lower() == 'true':
+        # lockstep waits for the recorder too, and gives it time to subscribe to every topic
+        subscribers = config.node('plant_node').get('lockstep.subscribers', 2)
+        plant.update({'lockstep.subscribers': subscribers + 1, 'lockstep.settle_s': 1.0})
     controller = dict(common)
     if arg['controller']:
         controller['type'] = arg['controller']
@@ -156,12 +160,13 @@ def _launch(context: LaunchContext) -> list:
         cmd = ['ros2', 'bag', 'record', '--storage', 'mcap']
         if arg['bag']:
             cmd += ['--output', arg['bag']]
-        if lockstep:
-            cmd += ['--use-sim-time']
+        # no --use-sim-time: that recorder waits for a non-zero /clock, and lockstep time starts
+        # at 0 (as offline); the header stamps carry the sample times, and the analysis aligns
+        # by them (docs/bags.md)
         qos_file = os.path.join(os.path.dirname(files[0]), 'record_qos.yaml')
         if os.path.isfile(qos_file):
             cmd += ['--qos-profile-overrides-path', qos_file]
-        cmd += [prefix + t for t in TOPICS]
+        cmd += ['--topics'] + [prefix + t for t in TOPICS]
         actions.append(ExecuteProcess(cmd=cmd, output='screen'))
     if arg['end_with_plant'].lower() == 'true':
         # the plant's run is complete (or failed): end the whole launch, the recorder included

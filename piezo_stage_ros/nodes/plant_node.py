@@ -105,6 +105,7 @@ class PlantNode(Node):
         self._status_timer = self.create_timer(opts.status_period_s, self.publish_status,
                                                clock=self._steady)
         self._t_start = 0.0
+        self._matched_at: float | None = None
         self.get_logger().info(
             f'{opts.mode} at {stage.sample_rate_hz:g} Hz, backend {opts.backend}, plant '
             f'{stage.plant.model} + {stage.hysteresis.model}'
@@ -143,7 +144,12 @@ class PlantNode(Node):
     def _lockstep_tick(self) -> None:
         try:
             if self.logic.index < 0:
-                if self._pub.get_subscription_count() >= self.opts.lockstep.subscribers:
+                now = time.monotonic()
+                if self._matched_at is None:
+                    if self._pub.get_subscription_count() >= self.opts.lockstep.subscribers:
+                        self._matched_at = now
+                if self._matched_at is not None and \
+                        now - self._matched_at >= self.opts.lockstep.settle_s:
                     self._start()
                 return
             again = self.logic.resend_due(time.monotonic())

@@ -62,6 +62,9 @@ class LockstepParams(Params):
     subscribers: int = param(2, unit='-', description='Position subscribers (controller and '
                              'trajectory) to wait for before sample 0 is published.', low=0,
                              high=100, read_only=True)
+    settle_s: float = param(0.0, unit='s', description='Wait this long (wall time) after the '
+                            'subscribers matched before sample 0, so that a recorder is '
+                            'subscribed to every topic.', low=0.0, high=60.0, read_only=True)
     resend_s: float = param(0.5, unit='s', description='Publish the current sample again when '
                             'its command has not come after this long (wall time; covers a '
                             'command lost while the graph was still matching).', low=0.001,
