@@ -28,6 +28,9 @@ Arguments (``ros2 launch piezo_stage_ros closed_loop.launch.py --show-args``):
 - ``namespace``: puts the stage's topics and nodes under it (several stages side by side);
 - ``end_with_plant``: ``true`` ends the launch when the plant's process exits (its run of
   ``duration_s`` is complete, or it failed); ``executor``: ``events`` | ``single``;
+- ``direct``: with ``composed:=true``, the three nodes hand each sample to each other by call
+  (``stage_servo --direct``, as rclcpp's intra-process communication) and publish the topics
+  for outside subscribers only;
 - ``sim_time``: in lockstep, ``use_sim_time`` on the controller and trajectory nodes (their logs
   and clocks follow ``/clock``); ``false`` saves delivering every ``/clock`` message to them. The
   plant owns simulation time and keeps its own clock either way.
@@ -73,6 +76,7 @@ ARGUMENTS = {
     'executor': ('events', 'events (EventsExecutor) | single (SingleThreadedExecutor)'),
     'end_with_plant': ('true', 'end the whole launch when the plant process exits'),
     'sim_time': ('true', 'lockstep: use_sim_time on the controller and trajectory nodes'),
+    'direct': ('false', 'composed only: hand samples from node to node by call (intra-process)'),
 }
 TOPICS = ('stage/position', 'stage/reference', 'stage/command', 'stage/diagnostics',
           'stage/status')
@@ -140,6 +144,8 @@ def _launch(context: LaunchContext) -> list:
     extra = ['--executor', arg['executor']]
     actions: list = []
     if arg['composed'].lower() == 'true':
+        if arg['direct'].lower() == 'true':
+            extra.append('--direct')
         main = Node(package='piezo_stage_ros', executable='stage_servo', namespace=ns,
                     output='screen', arguments=extra, parameters=[params])
         actions.append(main)

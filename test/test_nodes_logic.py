@@ -209,6 +209,24 @@ def test_realtime_plant_samples_on_its_clock_and_counts_late_commands():
     assert [s.index for s in logic.on_tick(101.0001)] == [5]
 
 
+def test_realtime_plant_with_an_in_process_controller_is_never_late():
+    logic = plant('realtime', duration_s=0.001)
+    seen = []
+
+    def command_for(sample):
+        seen.append(sample.index)
+        return 1.0 + sample.index
+
+    logic.start(0.0)
+    logic.on_command(1.0, 0.0)
+    out = logic.on_tick(0.00035, command_for)   # a catch-up of three samples
+    assert [s.index for s in out] == [1, 2, 3] and seen == [1, 2, 3]
+    assert logic.plant.late == 0 and logic.plant.held_v == 4.0
+    out = logic.on_tick(0.0011, command_for)
+    assert logic.done and out[-1].index == 9 and seen[-1] == 8  # no command after the last
+    assert logic.plant.late == 0
+
+
 def test_realtime_plant_drives_safe_voltage_when_commands_stop():
     logic = plant('realtime')
     logic.start(0.0)
@@ -408,3 +426,17 @@ def test_the_testable_node_modules_import_with_ros_blocked():
                          cwd=PACKAGE.parent, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == 'ok'
+
+
+def test_gate_looks_every_n_calls():
+    from piezo_stage_ros.nodes.logic import Gate
+    counts = iter([0, 2, 0])
+    looked = []
+
+    def count():
+        looked.append(True)
+        return next(counts)
+
+    gate = Gate(count, every=3)
+    assert [gate() for _ in range(9)] == [False] * 3 + [True] * 3 + [False] * 3
+    assert len(looked) == 3

@@ -24,6 +24,8 @@ Run ``python3 -m piezo_stage_ros.bench.ros`` in a sourced Jazzy environment. Cas
   sources), once without;
 - ``composed-realtime``: the same nodes in real time for ``--realtime-s`` of wall time: the
   sample rate held and the share of late samples (no new command since the previous sample);
+- ``direct-lockstep``, ``direct-realtime``: the same with the nodes handing each sample to each
+  other by call (``stage_servo --direct``), nothing published (nobody outside listens);
 - ``cross-lockstep``: the plant here, controller and trajectory in a second process
   (``stage_servo --nodes controller,trajectory``), lockstep;
 - ``pingpong``: the yardstick of the machine's state: two nodes in this process bounce a
@@ -45,7 +47,8 @@ from typing import Any, Sequence
 
 __all__ = ['CASES', 'main', 'run_ros_benchmark']
 
-CASES = ('pingpong', 'composed-lockstep', 'composed-realtime', 'cross-lockstep')
+CASES = ('pingpong', 'composed-lockstep', 'composed-realtime', 'direct-lockstep',
+         'direct-realtime', 'cross-lockstep')
 STAGE = {'plant.model': 'reduced'}
 CONTROLLER = {'type': 'rac', 'stability.plant.model': 'reduced'}
 
@@ -55,7 +58,8 @@ def _params(values: dict[str, Any]) -> list[Any]:
     return [Parameter(k, value=v) for k, v in values.items()]
 
 
-def _composed(mode: str, duration_s: float, sim_time: bool) -> dict[str, Any]:
+def _composed(mode: str, duration_s: float, sim_time: bool, direct: bool = False
+              ) -> dict[str, Any]:
     from piezo_stage_ros.nodes.controller_node import ControllerNode
     from piezo_stage_ros.nodes.plant_node import PlantNode
     from piezo_stage_ros.nodes.runner import make_executor
@@ -74,6 +78,9 @@ def _composed(mode: str, duration_s: float, sim_time: bool) -> dict[str, Any]:
                  ControllerNode(context=context,
                                 parameter_overrides=_params({**CONTROLLER, **common})),
                  TrajectoryNode(context=context, parameter_overrides=_params(common))]
+        if direct:
+            from piezo_stage_ros.nodes.stage_servo import connect_direct
+            connect_direct(nodes[0], nodes[1], nodes[2])
         executor = make_executor('events', context)
         for node in nodes:
             executor.add_node(node)
@@ -214,6 +221,10 @@ def run_ros_benchmark(cases: Sequence[str] = CASES, *, lockstep_s: float = 5.0,
             out['composed-lockstep'] = _composed('lockstep', lockstep_s, False)
         elif case == 'composed-realtime':
             out[case] = _composed('realtime', realtime_s, False)
+        elif case == 'direct-lockstep':
+            out[case] = _composed('lockstep', lockstep_s, False, direct=True)
+        elif case == 'direct-realtime':
+            out[case] = _composed('realtime', realtime_s, False, direct=True)
         elif case == 'cross-lockstep':
             out[case] = _cross(lockstep_s, 'events')
         else:

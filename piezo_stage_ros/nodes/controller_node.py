@@ -28,7 +28,7 @@ phi_hat, s, saturation ...).
 from __future__ import annotations
 
 import time
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 from piezo_stage_ros.core.controllers import build_controller, ControllerParams
 from piezo_stage_ros.core.errors import StabilityError
@@ -42,7 +42,13 @@ from piezo_stage_ros.nodes.cdr import (
     JointStateDecoder,
     JointStateEncoder,
 )
-from piezo_stage_ros.nodes.logic import Command, ControllerLogic, ns_to_stamp, stamp_to_ns
+from piezo_stage_ros.nodes.logic import (
+    Command,
+    ControllerLogic,
+    Gate,
+    ns_to_stamp,
+    stamp_to_ns,
+)
 from piezo_stage_ros.nodes.parameters import ParameterBinding
 from piezo_stage_ros.nodes.runner import run
 from piezo_stage_ros.nodes.tables import controller_table, ControllerNodeParams
@@ -93,10 +99,14 @@ class ControllerNode(Node):
         self.malformed = 0
         self._cmd_pub = self.create_publisher(Float64, topics.COMMAND, qos.LOOP)
         self._diag_pub = self.create_publisher(JointState, topics.DIAGNOSTICS, qos.LOOP)
-        self.create_subscription(JointState, topics.POSITION, self._on_position, qos.LOOP,
-                                 raw=True)
-        self.create_subscription(JointState, topics.REFERENCE, self._on_reference, qos.LOOP,
-                                 raw=True)
+        self._subs = [
+            self.create_subscription(JointState, topics.POSITION, self._on_position, qos.LOOP,
+                                     raw=True),
+            self.create_subscription(JointState, topics.REFERENCE, self._on_reference,
+                                     qos.LOOP, raw=True)]
+        self._cmd_gate: Callable[[], bool] = lambda: True
+        self._diag_gate: Callable[[], bool] = lambda: True
+        self._last_u = opts.safe_voltage_v
         self._lockstep = opts.mode == 'lockstep'
         self._watch = None
         if not self._lockstep:
@@ -134,16 +144,40 @@ class ControllerNode(Node):
         self.logic.diagnostics_every = opts.diagnostics_every
         self.opts = opts
 
+    def attach_direct(self) -> None:
+        """
+        Take position and reference by call (:meth:`answer`) instead of from the topics.
+
+        For ``stage_servo --direct``: the subscriptions go, and the command and diagnostics are
+        published for outside subscribers (a recorder) only.
+        """
+        for sub in self._subs:
+            self.destroy_subscription(sub)
+        self._subs = []
+        self._matched = True
+        self._cmd_gate = Gate(self._cmd_pub.get_subscription_count)
+        self._diag_gate = Gate(self._diag_pub.get_subscription_count, every=100)
+
+    def answer(self, stamp_ns: int, position_m: float, reference_m: float,
+               reference_velocity_mps: float) -> float:
+        """Return u_k for y_k and x_d(t_k) given by call (``stage_servo --direct``)."""
+        self.logic.on_position(stamp_ns, position_m, time.monotonic())
+        out = self.logic.on_reference(stamp_ns, reference_m, reference_velocity_mps)
+        self._publish(out)
+        return self._last_u
+
     def _publish(self, out: Command | None) -> None:
         if out is None:
             return
+        self._last_u = out.voltage_v
         try:
-            self._cmd_pub.publish(encode_float64(out.voltage_v))
+            if self._cmd_gate():
+                self._cmd_pub.publish(encode_float64(out.voltage_v))
         except Exception:
             if self.context.ok():
                 raise
             return  # Ctrl-C shut the context down while this callback ran: nothing to send
-        if out.diagnostics is not None:
+        if out.diagnostics is not None and self._diag_gate():
             if self.logic.names != self._diag_names:
                 # a rebuilt controller of another kind reports other internals
                 self._diag_names = self.logic.names

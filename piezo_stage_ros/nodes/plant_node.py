@@ -27,7 +27,7 @@ Run: ``ros2 run piezo_stage_ros plant_node --ros-args --params-file default.yaml
 from __future__ import annotations
 
 import time
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from piezo_stage_ros.core.errors import PiezoStageError
@@ -37,7 +37,7 @@ from piezo_stage_ros.hardware.safety import GuardedPlant
 from piezo_stage_ros.hardware.udp import UdpBridge
 from piezo_stage_ros.nodes import qos, topics
 from piezo_stage_ros.nodes.cdr import CdrError, decode_float64, encode_clock, JointStateEncoder
-from piezo_stage_ros.nodes.logic import ns_to_stamp, PlantLogic, Sample
+from piezo_stage_ros.nodes.logic import Gate, ns_to_stamp, PlantLogic, Sample
 from piezo_stage_ros.nodes.parameters import ParameterBinding
 from piezo_stage_ros.nodes.runner import run
 from piezo_stage_ros.nodes.tables import plant_table, PlantNodeParams
@@ -89,13 +89,18 @@ class PlantNode(Node):
         # messages go out and come in as CDR bytes (nodes/cdr.py): rclpy message objects
         # cost more than the whole sample
         self._encoder = JointStateEncoder([topics.JOINT_NAME])
-        self._clock_listened = True
         self.malformed = 0
         self._pub = self.create_publisher(JointState, topics.POSITION, qos.LOOP)
         self._clock_pub = self.create_publisher(ClockMsg, topics.CLOCK, qos.CLOCK) \
             if self.logic.lockstep else None
+        # /clock goes out only while someone listens (looked at every 1000 samples)
+        self._clock_gate = Gate(self._clock_pub.get_subscription_count) \
+            if self._clock_pub is not None else (lambda: False)
         self._status_pub = self.create_publisher(DiagnosticStatus, topics.STATUS, qos.STATUS)
-        self.create_subscription(Float64, topics.COMMAND, self._on_command, qos.LOOP, raw=True)
+        self._cmd_sub = self.create_subscription(Float64, topics.COMMAND, self._on_command,
+                                                 qos.LOOP, raw=True)
+        self._direct: Callable[[Sample], float] | None = None
+        self._position_gate: Callable[[], bool] = lambda: True
         if self.logic.lockstep:
             # wall (steady) time: simulation time stands still while the plant waits
             self._timer = self.create_timer(0.005, self._lockstep_tick, clock=self._steady)
@@ -106,6 +111,7 @@ class PlantNode(Node):
                                                clock=self._steady)
         self._t_start = 0.0
         self._matched_at: float | None = None
+        self._sample: Sample | None = None
         self.get_logger().info(
             f'{opts.mode} at {stage.sample_rate_hz:g} Hz, backend {opts.backend}, plant '
             f'{stage.plant.model} + {stage.hysteresis.model}'
@@ -124,14 +130,26 @@ class PlantNode(Node):
 
     def _publish(self, sample: Sample) -> None:
         sec, nanosec = ns_to_stamp(sample.stamp_ns)
-        if self._clock_pub is not None:
-            if sample.index % 1000 == 0:
-                # serializing /clock for nobody costs a noticeable part of a sample; who listens
-                # is looked at every 1000 samples (0.1 s at 10 kHz)
-                self._clock_listened = self._clock_pub.get_subscription_count() > 0
-            if self._clock_listened:
-                self._clock_pub.publish(encode_clock(sec, nanosec))
-        self._pub.publish(self._encoder.encode(sec, nanosec, (sample.position_m,)))
+        if self._clock_pub is not None and self._clock_gate():
+            self._clock_pub.publish(encode_clock(sec, nanosec))
+        if self._position_gate():
+            self._pub.publish(self._encoder.encode(sec, nanosec, (sample.position_m,)))
+
+    def attach_direct(self, step: Callable[[Sample], float]) -> None:
+        """
+        Take each command from ``step(sample)`` by call instead of from ``stage/command``.
+
+        For the nodes composed in one process (``stage_servo --direct``): the sample goes from
+        node to node by call, as rclcpp's intra-process communication does, and the topics are
+        published for outside subscribers (a recorder) only. ``step`` returns u_k for y_k.
+        """
+        self._direct = step
+        self.destroy_subscription(self._cmd_sub)
+        self._position_gate = Gate(self._pub.get_subscription_count)
+        if self.logic.lockstep:
+            self._timer.cancel()
+            self._timer = self.create_timer(0.001, self._direct_lockstep_tick,
+                                            clock=self._steady)
 
     def _start(self) -> None:
         now = time.monotonic()
@@ -160,12 +178,50 @@ class PlantNode(Node):
         except Exception as exc:  # noqa: BLE001 -- any fault: safe voltage, then report
             self._fault(exc)
 
+    def _direct_lockstep_tick(self) -> None:
+        # a batch of samples per tick (about 2 ms), so that parameter and service requests
+        # are served between batches
+        try:
+            logic, step = self.logic, self._direct
+            assert step is not None
+            now = time.monotonic()
+            if logic.index < 0:
+                # the controller and trajectory are called directly: wait only for outsiders
+                outside = max(self.opts.lockstep.subscribers - 2, 0)
+                if self._matched_at is None and self._pub.get_subscription_count() >= outside:
+                    self._matched_at = now
+                if self._matched_at is None or now - self._matched_at < \
+                        self.opts.lockstep.settle_s:
+                    return
+                self._start()
+                self._sample = logic.last_sample
+            deadline = now + 0.002
+            sample = self._sample
+            while sample is not None and not logic.done:
+                sample = logic.on_command(step(sample), now)
+                if sample is not None:
+                    self._publish(sample)
+                now = time.monotonic()
+                if now > deadline:
+                    break
+            self._sample = sample
+            if logic.done:
+                self._finish()
+        except KeyboardInterrupt:
+            return
+        except Exception as exc:  # noqa: BLE001
+            self._fault(exc)
+
     def _realtime_tick(self) -> None:
         try:
             if self.logic.index < 0:
                 self._start()
+                first = self.logic.last_sample
+                if self._direct is not None and first is not None:
+                    self.logic.on_command(self._direct(first), time.monotonic())
                 return
-            for sample in self.logic.on_tick(time.monotonic()):
+            # in process (--direct) each sample's command is computed right after it
+            for sample in self.logic.on_tick(time.monotonic(), self._direct):
                 self._publish(sample)
             if self.logic.done:
                 self._finish()

@@ -62,7 +62,8 @@ def make_executor(kind: str = 'events', context: rclpy.context.Context | None = 
 
 
 def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
-        argv: Sequence[str] | None = None, description: str = '') -> int:
+        argv: Sequence[str] | None = None, description: str = '',
+        connect: Callable[..., None] | None = None) -> int:
     """
     Run node classes in this process until shutdown or the end of the plant's run.
 
@@ -76,6 +77,9 @@ def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
         Command line including ROS arguments (default ``sys.argv``).
     description : str
         Help text.
+    connect : callable, optional
+        ``connect(*nodes)`` for ``--direct``: wires the nodes to call each other (needs every
+        node of ``factories`` in this process).
 
     Returns
     -------
@@ -90,9 +94,18 @@ def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
                         help=f'comma-separated subset of {",".join(names)} to run here')
     parser.add_argument('--executor', choices=('events', 'single'), default='events',
                         help='EventsExecutor (default) or SingleThreadedExecutor')
+    if connect is not None:
+        parser.add_argument('--direct', action='store_true',
+                            help='hand each sample from node to node by call (intra-process); '
+                                 'the topics are published for outside subscribers only')
     opts = parser.parse_args(remove_ros_args(args)[1:])
     chosen = [n.strip() for n in opts.nodes.split(',') if n.strip()]
     unknown = [n for n in chosen if n not in names]
+    direct = bool(getattr(opts, 'direct', False))
+    if direct and sorted(chosen) != sorted(names):
+        print(f'{prog}: --direct needs every node in this process ({", ".join(names)})',
+              file=sys.stderr)
+        return 2
     if unknown or not chosen:
         print(f'{prog}: --nodes {opts.nodes!r}: choose among {", ".join(names)}',
               file=sys.stderr)
@@ -115,6 +128,8 @@ def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
             node.destroy_node()
         rclpy.try_shutdown()
         return 0
+    if direct and connect is not None:
+        connect(*nodes)
     executor = make_executor(opts.executor)
     for node in nodes:
         executor.add_node(node)

@@ -29,6 +29,7 @@ from __future__ import annotations
 from typing import Sequence
 
 from piezo_stage_ros.nodes.controller_node import ControllerNode
+from piezo_stage_ros.nodes.logic import Sample
 from piezo_stage_ros.nodes.plant_node import PlantNode
 from piezo_stage_ros.nodes.runner import run
 from piezo_stage_ros.nodes.trajectory_node import TrajectoryNode
@@ -36,11 +37,33 @@ from piezo_stage_ros.nodes.trajectory_node import TrajectoryNode
 __all__ = ['main']
 
 
+def connect_direct(plant: PlantNode, controller: ControllerNode,
+                   trajectory: TrajectoryNode) -> None:
+    """
+    Hand each sample from node to node by call (``--direct``), in the order of one sample.
+
+    y_k goes to the trajectory node, (y_k, x_d, x_d') to the controller node, u_k back to the
+    plant: the loop of :mod:`piezo_stage_ros.core.interfaces`, without serializing anything the
+    three nodes exchange among themselves. The topics are still published for any outside
+    subscriber (a recorder, ``ros2 topic echo``); parameters and services work as ever, served
+    between batches of samples.
+    """
+    controller.attach_direct()
+    trajectory.attach_direct()
+
+    def step(sample: Sample) -> float:
+        ref, vel = trajectory.answer(sample.stamp_ns)
+        return controller.answer(sample.stamp_ns, sample.position_m, ref, vel)
+
+    plant.attach_direct(step)
+
+
 def main(args: Sequence[str] | None = None) -> int:
     """Run the composed nodes (console script ``stage_servo``)."""
     return run('stage_servo', [('plant', PlantNode), ('controller', ControllerNode),
                                ('trajectory', TrajectoryNode)], args,
-               'Plant, controller and trajectory nodes of piezo_stage_ros in one process.')
+               'Plant, controller and trajectory nodes of piezo_stage_ros in one process.',
+               connect=connect_direct)
 
 
 if __name__ == '__main__':

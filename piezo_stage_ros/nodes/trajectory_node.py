@@ -26,12 +26,12 @@ at the next sample.
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 from piezo_stage_ros.core.trajectories import make_trajectory
 from piezo_stage_ros.nodes import qos, topics
 from piezo_stage_ros.nodes.cdr import CdrError, JointStateDecoder, JointStateEncoder
-from piezo_stage_ros.nodes.logic import stamp_to_ns, TrajectoryLogic
+from piezo_stage_ros.nodes.logic import Gate, stamp_to_ns, TrajectoryLogic
 from piezo_stage_ros.nodes.parameters import ParameterBinding
 from piezo_stage_ros.nodes.runner import run
 from piezo_stage_ros.nodes.tables import trajectory_table, TrajectoryNodeParams
@@ -69,8 +69,9 @@ class TrajectoryNode(Node):
         self._decoder = JointStateDecoder([topics.JOINT_NAME])
         self.malformed = 0
         self._pub = self.create_publisher(JointState, topics.REFERENCE, qos.LOOP)
-        self.create_subscription(JointState, topics.POSITION, self._on_position, qos.LOOP,
-                                 raw=True)
+        self._sub = self.create_subscription(JointState, topics.POSITION, self._on_position,
+                                             qos.LOOP, raw=True)
+        self._gate: Callable[[], bool] = lambda: True
         self.create_service(Trigger, '~/start', self._start)
         self.create_service(Trigger, '~/stop', self._stop)
         self.get_logger().info(f'trajectory {params.kind}, '
@@ -101,6 +102,24 @@ class TrajectoryNode(Node):
 
     def _stop(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         return self._set_active(False, response)
+
+    def attach_direct(self) -> None:
+        """
+        Answer by call (:meth:`answer`) instead of from ``stage/position``.
+
+        For ``stage_servo --direct``: the subscription goes, and the reference is published for
+        outside subscribers (a recorder) only.
+        """
+        self.destroy_subscription(self._sub)
+        self._gate = Gate(self._pub.get_subscription_count)
+
+    def answer(self, stamp_ns: int) -> tuple[float, float]:
+        """Return x_d [m] and x_d' [m/s] for the sample stamped ``stamp_ns`` [ns]."""
+        ref, vel = self.logic.on_position(stamp_ns)
+        if self._gate():
+            sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+            self._pub.publish(self._encoder.encode(sec, nanosec, (ref,), (vel,)))
+        return ref, vel
 
     def _on_position(self, data: bytes) -> None:
         try:
