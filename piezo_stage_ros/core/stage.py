@@ -255,13 +255,19 @@ def amplifier_input(command_v: ArrayLike, chain: SignalChainParams) -> FloatArra
         :class:`Stage` and :class:`StageBatch` apply.
 
     """
-    u = np.asarray(command_v, dtype=np.float64)
+    dac = _dac_converter(chain) if chain.quantize else None
+    return _amplifier_input(np.asarray(command_v, dtype=np.float64), chain, dac)
+
+
+def _amplifier_input(u: FloatArray, chain: SignalChainParams, dac: _Converter | None
+                     ) -> FloatArray:
+    """Return :func:`amplifier_input` with the DAC converter given (the batch stage has it)."""
     finite = np.isfinite(u)
     all_finite = bool(finite.all())
     if not all_finite:
         u = np.where(finite, u, 0.0)
-    if chain.quantize:
-        u = _dac_converter(chain).array(u)
+    if dac is not None:
+        u = dac.array(u)
     v = np.minimum(np.maximum(u, chain.amplifier_min_v), chain.amplifier_max_v)
     if not all_finite:
         v = np.where(finite, v, chain.safe_voltage_v)
@@ -721,7 +727,7 @@ class StageBatch:
             u = np.full(self.n, float(u)) if u.ndim == 0 else np.broadcast_to(u, (self.n,))
         if not np.isfinite(u).all():
             self.faults += int(np.count_nonzero(~np.isfinite(u)))
-        v = amplifier_input(u, self.params.chain)
+        v = _amplifier_input(u, self.params.chain, self._core.dac)
         self._v = v
         core = self._core
         d = core.discrete
