@@ -52,8 +52,9 @@ check: lint typecheck pytest
 
 test: check test-jazzy
 
+# one BLAS thread: idle BLAS threads spinning after a matrix call would count as CPU time
 bench: $(STAMP)
-	$(BIN)/benchmark
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/benchmark --suite all
 
 soak: $(STAMP)
 	$(BIN)/soak
