@@ -584,3 +584,19 @@ def test_record_qos_file_covers_every_topic():
         assert profile['reliability'] == 'reliable'
         assert profile['history'] == 'keep_last' and profile['depth'] >= 1000
         assert profile['durability'] == 'volatile'
+
+
+@pytest.mark.parametrize('command_delay_us, next_position_us, expected', [
+    (95, 100, 0),     # lockstep: sample k+1 follows command k by 5 us, closer than sample k
+    (33, 1000, 0),    # the Jazzy recorder bags: command published just after the position
+    (0, 100, 0),      # bags the package writes: log time = stamp on every topic
+])
+def test_commands_pair_with_the_position_they_answer(command_delay_us, next_position_us,
+                                                     expected):
+    k = np.arange(2000, dtype=np.int64)
+    rng = np.random.default_rng(0)
+    position_ns = k * next_position_us * 1000
+    command_ns = position_ns + command_delay_us * 1000 + rng.integers(0, 3000, k.size)
+    offset, median_ns = bagio._command_offset(position_ns, np.sort(command_ns))
+    assert offset == expected
+    assert median_ns >= 0.0

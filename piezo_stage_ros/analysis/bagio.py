@@ -1431,8 +1431,14 @@ def _command_offset(position_log_ns: IntArray, command_log_ns: IntArray,
     Receive times jitter by more than a sample period in a real recording (bursts of several
     milliseconds were seen at 1 kHz), so nearest-log-time matching mispairs; both topics are
     published in sample order over reliable QoS, so pairing by index is right once the offset
-    at the start is known. The offset chosen minimises the median absolute log-time
-    difference; ties go to the smallest offset.
+    at the start is known. The command of sample k is computed from the position of sample k,
+    so it is received after it: among the offsets whose median log-time difference
+    command - position is not negative, the one with the smallest median is chosen (causal
+    pairing). Nearest-in-time would be wrong for a lockstep recording, where the plant publishes
+    sample k+1 right after command k arrives, closer to it than sample k. Only when no offset
+    is causal (clock trouble) does the smallest median absolute difference decide. A command
+    that comes back later than one sample period cannot be told apart from the next one by log
+    times; the command message has no stamp (design section 6).
 
     Parameters
     ----------
@@ -1452,7 +1458,8 @@ def _command_offset(position_log_ns: IntArray, command_log_ns: IntArray,
 
     """
     n, m = position_log_ns.size, command_log_ns.size
-    best: tuple[float, int, float] | None = None
+    causal: tuple[float, int, float] | None = None
+    nearest: tuple[float, int, float] | None = None
     for offset in sorted(range(-search, search + 1), key=abs):
         lo, hi = max(0, -offset), min(n, m - offset)
         if hi - lo < min(n, m) // 2 or hi <= lo:
@@ -1460,9 +1467,13 @@ def _command_offset(position_log_ns: IntArray, command_log_ns: IntArray,
         # A few thousand pairs spread over the run decide the median as well as all of them.
         pick = np.linspace(lo, hi - 1, min(hi - lo, 4096)).astype(np.int64)
         delta = command_log_ns[pick + offset] - position_log_ns[pick]
+        median = float(np.median(delta))
         cost = float(np.median(np.abs(delta)))
-        if best is None or cost < best[0]:
-            best = (cost, offset, float(np.median(delta)))
+        if median >= 0.0 and (causal is None or median < causal[0]):
+            causal = (median, offset, median)
+        if nearest is None or cost < nearest[0]:
+            nearest = (cost, offset, median)
+    best = causal if causal is not None else nearest
     if best is None:
         return 0, 0.0
     return best[1], best[2]
