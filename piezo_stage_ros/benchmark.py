@@ -19,7 +19,8 @@
 plant model, the per-sample cost split into stage / controller / loop, stage-steps per second
 of a batch of 1000 stages, controller step median and p99
 (:mod:`piezo_stage_ros.bench.sim`). ``--suite bags``: bag write / read / analysis throughput
-(:mod:`piezo_stage_ros.bench.bags`, when installed). ``--suite all``: both. ``--json`` prints
+(:mod:`piezo_stage_ros.bench.bags`, when installed). ``--suite ros``: the nodes on a ROS 2 install
+(:mod:`piezo_stage_ros.bench.ros`). ``--suite all``: every one available. ``--json`` prints
 one JSON object on stdout (the readable lines then go to stderr).
 """
 
@@ -28,6 +29,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib
+import importlib.util
 import json
 import math
 import sys
@@ -61,7 +63,7 @@ def _positive(kind: type) -> Any:
 
 def _parser() -> argparse.ArgumentParser:
     p = _Parser(prog=PROG, description='Print speed figures of the simulation and bag tools.')
-    p.add_argument('--suite', choices=('sim', 'bags', 'all'), default='sim',
+    p.add_argument('--suite', choices=('sim', 'bags', 'ros', 'all'), default='sim',
                    help='What to measure (default sim).')
     p.add_argument('--duration', type=_positive(float), default=2.0, metavar='S',
                    help='Simulated seconds per closed-loop measurement (default 2).')
@@ -115,6 +117,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                           file=sys.stderr)
                     return 1
                 result['bags'] = bags.run_bag_benchmark(args.bag_duration)
+            if args.suite == 'ros' or (args.suite == 'all' and _rclpy_available()):
+                if not _rclpy_available():
+                    print(f'{PROG}: error: the ROS benchmark needs rclpy (a sourced ROS 2 Jazzy '
+                          'install)', file=sys.stderr)
+                    return 1
+                from piezo_stage_ros.bench.ros import format_table, run_ros_benchmark
+                result['ros'] = run_ros_benchmark()
+                print(format_table(result['ros']))
     except KeyboardInterrupt:
         print(f'{PROG}: error: interrupted', file=sys.stderr)
         return 130
@@ -124,6 +134,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.json:
         print(json.dumps(result, sort_keys=True, default=str))
     return 0
+
+
+def _rclpy_available() -> bool:
+    """Return whether rclpy can be imported (ROS 2 sourced)."""
+    return importlib.util.find_spec('rclpy') is not None
 
 
 if __name__ == '__main__':

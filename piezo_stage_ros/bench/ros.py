@@ -232,7 +232,8 @@ def run_ros_benchmark(cases: Sequence[str] = CASES, *, lockstep_s: float = 5.0,
     return out
 
 
-def _table(result: dict[str, Any]) -> str:
+def format_table(result: dict[str, Any]) -> str:
+    """Return the figures of :func:`run_ros_benchmark` as a Markdown table and notes."""
     lines = ['| case | samples | wall [s] | samples/s | x real time | late [%] | skipped |',
              '| --- | ---: | ---: | ---: | ---: | ---: | ---: |']
     notes = []
@@ -287,7 +288,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Exception as exc:  # noqa: BLE001 -- a benchmark reports any failure in one line
         print(f'bench.ros: {type(exc).__name__}: {exc}', file=sys.stderr)
         return 1
-    print(json.dumps(result, indent=2) if args.json else _table(result))
+    print(json.dumps(result, indent=2) if args.json else format_table(result))
     return 0
 
 
