@@ -116,7 +116,11 @@ class ControllerNode(Node):
     def _check(self, params: ControllerParams, stability: StabilityParams) -> str:
         report = check_stability(params, stability.plant, self.sample_time_s, options=stability)
         text = report.text()
-        if report.stable:
+        adaptation = report.adaptation
+        if report.stable and adaptation is not None and not adaptation.ok:
+            # stable loops, but adaptation rates that can limit-cycle between the bounds
+            self.get_logger().warning('stability check: ' + text)
+        elif report.stable:
             self.get_logger().info('stability check: ' + text)
         elif stability.action == 'refuse':
             raise StabilityError(text)
