@@ -35,7 +35,6 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from piezo_stage_ros.core import closed_loop, metrics
 from piezo_stage_ros.core.controllers import build_controller, ControllerParams
-from piezo_stage_ros.core.errors import PiezoStageError
 from piezo_stage_ros.core.hysteresis import make_hysteresis
 from piezo_stage_ros.core.record import RunRecord
 from piezo_stage_ros.core.stage import linear_plant, Stage, StageParams
@@ -350,34 +349,12 @@ def square_edge_metrics(time_s: np.ndarray, position_m: np.ndarray, reference_m:
         if fall <= t[-1]:
             edges.append((fall, high, low))
         n += 1
-    starts = [int(np.searchsorted(t, te - 0.5 * dt)) for te, _, _ in edges] + [t.size]
-    rows: list[dict[str, float]] = []
-    tails: list[np.ndarray] = []
-    for (_, initial, final), i0, i1 in zip(edges, starts[:-1], starts[1:]):
-        if i1 - i0 < 4:
-            continue
-        rows.append(metrics.step_response(t[i0:i1], y[i0:i1], step_time_s=float(t[i0]),
-                                          initial_m=initial, final_m=final,
-                                          settle_band_m=settle_band_m,
-                                          plateau_fraction=plateau_fraction))
-        n_tail = max(int(round(plateau_fraction * (i1 - i0))), 1)
-        tails.append(y[i1 - n_tail:i1] - r[i1 - n_tail:i1])
-    if not rows:
-        raise PiezoStageError(f'square_edge_metrics: no complete edge; run longer than '
-                              f'{period:g} s')
-    e_max, e_rms = metrics.error_metrics(np.concatenate(tails))
-
-    def med(key: str) -> float:
-        values = np.asarray([row[key] for row in rows], dtype=np.float64)
-        values = values[np.isfinite(values)]
-        return float(np.median(values)) if values.size else math.nan
-    settle = [row['settling_time_s'] for row in rows]
-    return {'rise_time_s': med('rise_time_s'), 'overshoot_pct': med('overshoot_pct'),
-            'settling_time_s': med('settling_time_s'),
-            'settling_time_max_s': float(np.max(settle)) if not np.isnan(settle).any()
-            else math.nan,
-            'settle_band_m': rows[0]['settle_band_m'], 'ss_e_max_m': e_max, 'ss_e_rms_m': e_rms,
-            'edges': float(len(rows))}
+    indexed = [(int(np.searchsorted(t, te - 0.5 * dt)), initial, final)
+               for te, initial, final in edges]
+    return metrics.edge_metrics(t, y, r, indexed, settle_band_m=settle_band_m,
+                                plateau_fraction=plateau_fraction,
+                                what=f'square_edge_metrics: no complete edge; run longer than '
+                                f'{period:g} s')
 
 
 def run_square(stage_params: StageParams, controller_params: ControllerParams, *,

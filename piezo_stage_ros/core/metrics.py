@@ -43,14 +43,14 @@ back by ``analyze``.
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from piezo_stage_ros.core.errors import PiezoStageError
 from piezo_stage_ros.core.record import RunRecord
 
-__all__ = ['TRANSIENT_PERIODS', 'TRANSIENT_S', 'error_metrics', 'loop_width',
+__all__ = ['TRANSIENT_PERIODS', 'TRANSIENT_S', 'edge_metrics', 'error_metrics', 'loop_width',
            'square_wave_metrics', 'steady_state_start', 'step_response', 'summarize']
 
 FloatArray = NDArray[np.float64]
@@ -306,22 +306,60 @@ def square_wave_metrics(time_s: ArrayLike, position_m: ArrayLike, reference_m: A
 
     """
     t, y, r = _f64(time_s), _f64(position_m), _f64(reference_m)
-    edges = np.flatnonzero(np.diff(r) != 0.0) + 1
+    jumps = (np.flatnonzero(np.diff(r) != 0.0) + 1).tolist()[skip_edges:]
+    edges = [(i, float(r[i - 1]), float(r[i])) for i in jumps]
+    return edge_metrics(t, y, r, edges, settle_band_m=settle_band_m,
+                        plateau_fraction=plateau_fraction,
+                        what=f'square_wave_metrics: no complete edge in the run; run longer '
+                        f'than {period_s:g} s')
+
+
+def edge_metrics(time_s: FloatArray, position_m: FloatArray, reference_m: FloatArray,
+                 edges: Sequence[tuple[int, float, float]], *, settle_band_m: float = 0.0,
+                 plateau_fraction: float = 0.5, what: str = 'no complete edge in the run'
+                 ) -> dict[str, float]:
+    """
+    Return step-response figures over given edges, each lasting until the next one.
+
+    Parameters
+    ----------
+    time_s, position_m, reference_m : ndarray
+        Samples of the run [s], [m], [m].
+    edges : sequence of (int, float, float)
+        Sample index where each edge starts, with the level before and after it [m].
+    settle_band_m : float
+        Absolute settling band [m] (see :func:`step_response`).
+    plateau_fraction : float
+        Last fraction of each plateau taken as steady state, in (0, 1].
+    what : str
+        Message of the error raised when no edge is long enough.
+
+    Returns
+    -------
+    dict
+        The keys of :func:`square_wave_metrics`.
+
+    Raises
+    ------
+    PiezoStageError
+        If no edge has at least 4 samples.
+
+    """
+    t, y, r = time_s, position_m, reference_m
     rows: list[dict[str, float]] = []
     tail_errors: list[FloatArray] = []
-    bounds = np.concatenate((edges, [t.size]))
-    for j, (i0, i1) in enumerate(zip(bounds[:-1].tolist(), bounds[1:].tolist())):
-        if j < skip_edges or i1 - i0 < 4:
+    bounds = [i for i, _, _ in edges] + [t.size]
+    for (i0, initial, final), i1 in zip(edges, bounds[1:]):
+        if i1 - i0 < 4:
             continue
-        row = step_response(t[i0:i1], y[i0:i1], step_time_s=float(t[i0]),
-                            initial_m=float(r[i0 - 1]), final_m=float(r[i0]),
-                            settle_band_m=settle_band_m, plateau_fraction=plateau_fraction)
-        rows.append(row)
+        rows.append(step_response(t[i0:i1], y[i0:i1], step_time_s=float(t[i0]),
+                                  initial_m=initial, final_m=final,
+                                  settle_band_m=settle_band_m,
+                                  plateau_fraction=plateau_fraction))
         n_tail = max(int(round(plateau_fraction * (i1 - i0))), 1)
         tail_errors.append(y[i1 - n_tail:i1] - r[i1 - n_tail:i1])
     if not rows:
-        raise PiezoStageError('square_wave_metrics: no complete edge in the run; '
-                              f'run longer than {period_s:g} s')
+        raise PiezoStageError(what)
     e_max, e_rms = error_metrics(np.concatenate(tail_errors))
 
     def med(key: str) -> float:
