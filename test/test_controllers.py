@@ -382,3 +382,44 @@ def test_rac_adaptation_is_frozen_while_the_command_saturates():
     d = c.diagnostics()
     assert abs(d['s_v']) > p.epsilon_v
     assert (d['theta_hat'], d['phi_hat']) == (p.theta_init, p.phi_init)
+
+
+def test_rac_gain_change_keeps_its_state_and_bounds():
+    from piezo_stage_ros.core.controllers import build_controller, ControllerParams
+    base = ControllerParams.from_flat({'type': 'rac', 'notch.mode': 'off',
+                                       'rac.gamma': 1e6})
+    ctrl = build_controller(base, 1e-4)
+    ctrl.reset(3.8e-6, 3.8e-6)
+    for _ in range(50):                        # a large error: adaptation moves theta_hat
+        ctrl.step(3.8e-6, 6e-6, 0.0)
+    moved = ctrl.diagnostics()
+    assert moved['theta_hat'] != base.rac.theta_init
+    tighter = base.with_flat({'rac.k_d': 0.5, 'rac.theta_max': 1.3, 'rac.theta_min': 1.28})
+    assert ctrl.update_params(tighter)
+    kept = ctrl.diagnostics()
+    assert kept['integral_v_s'] == moved['integral_v_s']
+    assert 1.28 <= kept['theta_hat'] <= 1.3            # clipped into the new box, (P1)
+    assert kept['phi_hat'] == moved['phi_hat']
+    # structural changes are refused, so the caller builds a new controller
+    assert not ctrl.update_params(tighter.with_flat({'type': 'pi'}))
+    assert not ctrl.update_params(tighter.with_flat({'output_max_v': 9.0}))
+
+
+def test_pi_gain_change_is_bumpless_in_its_integral():
+    from piezo_stage_ros.core.controllers import build_controller, ControllerParams
+    base = ControllerParams.from_flat({'type': 'pi', 'notch.mode': 'off'})
+    ctrl = build_controller(base, 1e-4)
+    ctrl.reset(3.8e-6, 3.8e-6, output_v=1.3)        # holding the stage at rest
+    held = ctrl.step(3.8e-6, 3.8e-6, 0.0)            # zero error: the integral holds 1.3 V
+    assert held == pytest.approx(1.3, rel=1e-12)
+    assert ctrl.update_params(base.with_flat({'pi.k_i': 500.0, 'pi.k_p': 4.0}))
+    # the same zero error after the change: the command does not move
+    assert ctrl.step(3.8e-6, 3.8e-6, 0.0) == pytest.approx(1.3, rel=1e-12)
+
+
+def test_notched_controller_rebuilds_when_the_notch_changes():
+    from piezo_stage_ros.core.controllers import build_controller, ControllerParams
+    base = ControllerParams.from_flat({'type': 'rac'})
+    ctrl = build_controller(base, 1e-4)
+    assert ctrl.update_params(base.with_flat({'rac.k_d': 0.8}))
+    assert not ctrl.update_params(base.with_flat({'notch.frequency_hz': 3000.0}))

@@ -342,18 +342,31 @@ def test_gain_changes_apply_at_the_next_sample():
         built.append(params)
         return build_controller(params, 1e-4)
 
-    logic = ControllerLogic(pi_controller(), rebuild=rebuild)
+    # a gain change is applied in place at the next sample, keeping the integral (no notch
+    # here, so the command is the PI law itself)
+    plain = {'type': 'pi', 'notch.mode': 'off'}
+    logic = ControllerLogic(build_controller(ControllerParams.from_flat(plain), 1e-4),
+                            rebuild=rebuild)
     logic.on_position(0, 3.8e-6, 0.0)
     before = logic.on_reference(0, 4e-6, 0.0).voltage_v
-    new = ControllerParams.from_flat({'type': 'pi', 'pi.k_p': 3.0})
+    new = ControllerParams.from_flat({**plain, 'pi.k_p': 3.0})
     logic.request_change(new)
-    assert built == []                                 # nothing changes between samples
     logic.on_position(100_000, 3.8e-6, 0.0)
     after = logic.on_reference(100_000, 4e-6, 0.0).voltage_v
-    assert built == [new] and logic.changes == 1
-    check = build_controller(new, 1e-4)
+    assert built == [] and logic.changes == 1
+    e = (4e-6 - 3.8e-6) * (10 / 38e-6)
+    integral = 2 * 1e-4 * e                    # two samples of the same error
+    assert after == pytest.approx(3.0 * e + 1500.0 * integral, rel=1e-12)
+    assert after != before
+    # a structural change (PI -> RAC) builds a new controller, started afresh
+    rac = ControllerParams.from_flat({'type': 'rac'})
+    logic.request_change(rac)
+    logic.on_position(200_000, 3.8e-6, 0.0)
+    got = logic.on_reference(200_000, 4e-6, 0.0).voltage_v
+    assert built == [rac] and logic.changes == 2
+    check = build_controller(rac, 1e-4)
     check.reset(3.8e-6, 4e-6)
-    assert after == check.step(3.8e-6, 4e-6, 0.0) and after != before
+    assert got == check.step(3.8e-6, 4e-6, 0.0)
 
     class Updatable:
         sample_time_s = 1e-4
@@ -370,13 +383,14 @@ def test_gain_changes_apply_at_the_next_sample():
 
         def update_params(self, params):
             self.gain = params
+            return True                                # applied in place
 
     keep = ControllerLogic(Updatable())
     keep.request_change(2.0)
     keep.on_position(0, 0.0, 0.0)
     assert keep.on_reference(0, 0.0, 0.0).voltage_v == 2.0
     stuck = ControllerLogic(pi_controller())
-    stuck.request_change(new)
+    stuck.request_change(ControllerParams.from_flat({'type': 'rac'}))
     stuck.on_position(0, 0.0, 0.0)
     with pytest.raises(PiezoStageError, match='update_params'):
         stuck.on_reference(0, 0.0, 0.0)

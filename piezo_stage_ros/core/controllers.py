@@ -286,6 +286,9 @@ class RACController:
 
     """
 
+    #: The configuration :func:`build_controller` made it from (None when built directly).
+    _built: ControllerParams | None = None
+
     def __init__(self, params: RACParams, sample_time_s: float, *,
                  sensor_gain_v_per_m: float = SENSOR_GAIN_V_PER_M, output_min_v: float = -2.0,
                  output_max_v: float = 10.0) -> None:
@@ -427,6 +430,38 @@ class RACController:
         return (self._theta, self._phi, self._s, self._i, self._e, self._saturated,
                 float(self.nonfinite_inputs), float(self.bad_dt))
 
+    def update_params(self, params: ControllerParams) -> bool:
+        """
+        Take new RAC gains between two samples, keeping the state (integral, estimates).
+
+        Parameters
+        ----------
+        params : ControllerParams
+            The whole new controller configuration.
+
+        Returns
+        -------
+        bool
+            True when applied in place; False when the change is structural (another type,
+            sensor gain or output limits) and the caller must build a new controller.
+
+        Notes
+        -----
+        The estimates are clipped into the new projection bounds, so (P1)-(P2) keep holding.
+
+        """
+        if not _same_structure(self._built, params, 'rac'):
+            return False
+        p = params.rac
+        self.params = p
+        self._kd, self._lam, self._eps = p.k_d, p.lambda_per_s, p.epsilon_v
+        self._inv_eps = 1.0 / p.epsilon_v
+        self._kstar, self._gamma, self._eta = p.k_star_v, p.gamma, p.eta
+        self._theta = min(max(self._theta, p.theta_min), p.theta_max)
+        self._phi = min(max(self._phi, p.phi_min), p.phi_max)
+        self._built = params
+        return True
+
     def diagnostics(self) -> Mapping[str, float]:
         """Return theta_hat, phi_hat, s [V], the integral [V s], error [V], flags, counters."""
         return dict(zip(self.diagnostic_names, self.diagnostic_values()))
@@ -454,6 +489,9 @@ class PIController:
     the error drives it further out.
 
     """
+
+    #: The configuration :func:`build_controller` made it from (None when built directly).
+    _built: ControllerParams | None = None
 
     def __init__(self, params: PIParams, sample_time_s: float, *,
                  sensor_gain_v_per_m: float = SENSOR_GAIN_V_PER_M, output_min_v: float = -2.0,
@@ -568,6 +606,39 @@ class PIController:
         return (self._e, self._i, self._saturated, float(self.nonfinite_inputs),
                 float(self.bad_dt))
 
+    def update_params(self, params: ControllerParams) -> bool:
+        """
+        Take new PI gains between two samples without a bump in the command.
+
+        Parameters
+        ----------
+        params : ControllerParams
+            The whole new controller configuration.
+
+        Returns
+        -------
+        bool
+            True when applied in place; False when the change is structural (another type,
+            sensor gain or output limits) and the caller must build a new controller.
+
+        Notes
+        -----
+        The integral is rescaled so that k_i I, the part of the command it holds, is the same
+        before and after (bumpless gain change); the proportional part changes with k_p at
+        once, by k_p e, which is small while tracking.
+
+        """
+        if not _same_structure(self._built, params, 'pi'):
+            return False
+        p = params.pi
+        if p.k_i > 0.0:
+            self._i = self._i * self._ki / p.k_i
+        self.params = p
+        self._kp, self._ki = p.k_p, p.k_i
+        self._conditional = p.anti_windup == 'conditional'
+        self._built = params
+        return True
+
     def diagnostics(self) -> Mapping[str, float]:
         """Return the error [V], the integral [V s], the saturation flag and the counters."""
         return dict(zip(self.diagnostic_names, self.diagnostic_values()))
@@ -587,6 +658,9 @@ class OpenLoopController:
         Command limits [V].
 
     """
+
+    #: The configuration :func:`build_controller` made it from (None when built directly).
+    _built: ControllerParams | None = None
 
     def __init__(self, params: OpenLoopParams, sample_time_s: float, *,
                  output_min_v: float = -2.0, output_max_v: float = 10.0) -> None:
@@ -663,6 +737,10 @@ class OpenLoopController:
     def diagnostic_values(self) -> tuple[float, ...]:
         """Return the values of :attr:`diagnostic_names`."""
         return (float(self.nonfinite_inputs), float(self.bad_dt))
+
+    def update_params(self, params: ControllerParams) -> bool:
+        """Return False: an open-loop gain change rebuilds the controller (it has no state)."""
+        return False
 
     def diagnostics(self) -> Mapping[str, float]:
         """Return the counters."""
@@ -859,9 +937,38 @@ class NotchedController:
         """Return the inner controller's diagnostic values."""
         return self.inner.diagnostic_values()
 
+    def update_params(self, params: ControllerParams) -> bool:
+        """
+        Pass new gains to the inner controller when the notch stays as it is.
+
+        Parameters
+        ----------
+        params : ControllerParams
+            The whole new controller configuration.
+
+        Returns
+        -------
+        bool
+            True when applied in place (the filter keeps its state); False when the notch or
+            the structure changes and the caller must build a new controller.
+
+        """
+        built = self.inner._built
+        if built is None or params.notch != built.notch:
+            return False
+        return self.inner.update_params(params)
+
     def diagnostics(self) -> Mapping[str, float]:
         """Return the inner controller's diagnostics."""
         return self.inner.diagnostics()
+
+
+def _same_structure(built: ControllerParams | None, new: ControllerParams, kind: str) -> bool:
+    """Return whether ``new`` only changes gains of a ``kind`` controller built from ``built``."""
+    return (built is not None and new.type == kind and built.type == kind
+            and new.sensor_gain_v_per_m == built.sensor_gain_v_per_m
+            and new.output_min_v == built.output_min_v
+            and new.output_max_v == built.output_max_v)
 
 
 def _check_sample_time(sample_time_s: float) -> None:
@@ -905,6 +1012,8 @@ def build_controller(params: ControllerParams, sample_time_s: float,
                              sensor_gain_v_per_m=params.sensor_gain_v_per_m, **limits)
     else:
         inner = OpenLoopController(params.open_loop, sample_time_s, **limits)
+    # what update_params compares a run-time change with
+    inner._built = params
     coeffs = notch_design(params.notch, sample_time_s, plant)
     if coeffs is None:
         return inner

@@ -443,8 +443,9 @@ class ControllerLogic:
     diagnostics_every : int
         Return the diagnostics with every this-many-th command.
     rebuild : callable, optional
-        ``rebuild(params) -> Controller`` for :meth:`request_change` of a controller without
-        ``update_params``.
+        ``rebuild(params) -> Controller`` for :meth:`request_change` when the controller has
+        no ``update_params(params) -> bool`` or it returns False (a structural change: another
+        type, notch, sensor gain or output limits).
 
     """
 
@@ -477,10 +478,10 @@ class ControllerLogic:
     def _apply_pending(self, position_m: float, reference_m: float) -> None:
         params, self._pending = self._pending, None
         update = getattr(self.controller, 'update_params', None)
-        if callable(update):
-            # keeps the controller's state (integrator, adapted estimates)
-            update(params)
+        if callable(update) and update(params):
+            pass  # applied in place: the integral and the adapted estimates are kept
         elif self._rebuild is not None:
+            # a structural change (type, notch, limits): a new controller, started afresh
             self.controller = self._rebuild(params)
             self.names, self._read = diagnostic_reader(self.controller)
             self.controller.reset(position_m, reference_m)
