@@ -36,7 +36,7 @@ import dataclasses
 from dataclasses import dataclass
 import functools
 import math
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -348,6 +348,19 @@ class _Kernel:
     set: Callable[[_KernelState], None]
 
 
+def _dot(coefficients: Sequence[float], values: Sequence[float]) -> float:
+    """
+    Return sum(c * v) added left to right, as the fused kernel writes it out.
+
+    Not ``sum()``: from Python 3.12 it adds floats with compensation, which rounds differently
+    from the plain additions of :func:`_fused_kernel`.
+    """
+    acc = 0.0
+    for c, v in zip(coefficients, values):
+        acc += c * v
+    return acc
+
+
 def _generic_kernel(core: _StageCore, rng: np.random.Generator) -> _Kernel:
     """
     Return the kernel for any model: hysteresis objects and the general model's sub-steps.
@@ -382,16 +395,15 @@ def _generic_kernel(core: _StageCore, rng: np.random.Generator) -> _Kernel:
                 u = x[0] * core.charge_to_u
                 st.h, pu = hyst.step(st.h, u)
                 h_volt = core.amplifier_gain * (u - float(pu))
-                x = [sum(a * xj for a, xj in zip(row, x)) + b[0] * v + b[1] * h_volt
-                     for row, b in zip(ad, bd)]
+                x = [_dot(row, x) + b[0] * v + b[1] * h_volt for row, b in zip(ad, bd)]
             st.w = x[0] * core.charge_to_u
         else:
             st.h, w = hyst.step(st.h, v)
             st.w = w = float(w)
-            x = [sum(a * xj for a, xj in zip(row, x)) + b[0] * w for row, b in zip(ad, bd)]
+            x = [_dot(row, x) + b[0] * w for row, b in zip(ad, bd)]
         st.x = x
         st.steps += 1
-        pos = sum(ci * xi for ci, xi in zip(c, x))
+        pos = _dot(c, x)
         if noise > 0.0:
             pos += noise * float(rng.standard_normal())
         return adc(pos) if adc is not None else pos
@@ -553,8 +565,7 @@ class Stage:
     @property
     def position_m(self) -> float:
         """Return the true position x [m] (no noise, no quantization)."""
-        x = self._kernel.get().x
-        return sum(float(c) * xi for c, xi in zip(self._core.discrete.c, x))
+        return _dot([float(c) for c in self._core.discrete.c], self._kernel.get().x)
 
     @property
     def applied_voltage_v(self) -> float:
