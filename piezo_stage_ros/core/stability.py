@@ -460,6 +460,19 @@ def _wrap_deg(angle: float) -> float:
     return 180.0 if a == -180.0 else a
 
 
+def _loop_parts(controller_params: ControllerParams, plant_params: PlantParams,
+                sample_time_s: float, options: StabilityParams | None
+                ) -> tuple[StabilityParams, LinearPlant, FloatArray, FloatArray,
+                           tuple[tuple[float, float, float], tuple[float, float, float]] | None]:
+    """Return the options, the plant model, G(z) (num, den) and the notch design of a check."""
+    if not (sample_time_s > 0.0 and math.isfinite(sample_time_s)):
+        raise ParameterError('sample_time_s', sample_time_s, '(0, inf)')
+    opts = options if options is not None else StabilityParams()
+    plant = stability_plant(plant_params)
+    g_num, g_den = _plant_tf(plant, sample_time_s)
+    return opts, plant, g_num, g_den, notch_design(controller_params.notch, sample_time_s, plant)
+
+
 def check_stability(controller_params: ControllerParams, plant_params: PlantParams,
                     sample_time_s: float, *, options: StabilityParams | None = None
                     ) -> StabilityReport:
@@ -484,12 +497,8 @@ def check_stability(controller_params: ControllerParams, plant_params: PlantPara
         Closed-loop poles, spectral radius and margins of every case, and the verdict.
 
     """
-    if not (sample_time_s > 0.0 and math.isfinite(sample_time_s)):
-        raise ParameterError('sample_time_s', sample_time_s, '(0, inf)')
-    opts = options if options is not None else StabilityParams()
-    plant = stability_plant(plant_params)
-    g_num, g_den = _plant_tf(plant, sample_time_s)
-    notch = notch_design(controller_params.notch, sample_time_s, plant)
+    opts, plant, g_num, g_den, notch = _loop_parts(controller_params, plant_params,
+                                                   sample_time_s, options)
     # frequency response of everything but the controller, once: G(z) N(z) z^-delay
     z = _unit_circle(sample_time_s)
     rest = np.polyval(g_num, z) / np.polyval(g_den, z) * z ** (-float(opts.delay_samples))
@@ -548,12 +557,8 @@ def adaptation_bound(controller_params: ControllerParams, plant_params: PlantPar
         where the adaptation acts) and the configured rates.
 
     """
-    if not (sample_time_s > 0.0 and math.isfinite(sample_time_s)):
-        raise ParameterError('sample_time_s', sample_time_s, '(0, inf)')
-    opts = options if options is not None else StabilityParams()
-    plant = stability_plant(plant_params)
-    g_num, g_den = _plant_tf(plant, sample_time_s)
-    notch = notch_design(controller_params.notch, sample_time_s, plant)
+    opts, plant, g_num, g_den, notch = _loop_parts(controller_params, plant_params,
+                                                   sample_time_s, options)
     return _adaptation(controller_params, plant, g_num, g_den, sample_time_s, notch, opts)
 
 
