@@ -35,9 +35,12 @@ Arguments (``ros2 launch piezo_stage_ros closed_loop.launch.py --show-args``):
   and clocks follow ``/clock``); ``false`` saves delivering every ``/clock`` message to them. The
   plant owns simulation time and keeps its own clock either way.
 
-The controller's stability check runs against the plant model the plant node runs, as
-``simulate`` does: the launch file copies the ``plant.*`` values of the plant_node section into
-the controller's ``stability.plant.*``. When the plant ends its run the launch ends.
+The files are read and validated once here by the loader every command uses
+(:class:`piezo_stage_ros.core.loop_config.LoopConfig`): a bad value stops the launch before any
+process starts. The controller's stability check runs against the plant model the plant node
+runs, as ``simulate`` does: all three nodes get one merged parameter file, and the controller
+takes the design model from its plant_node section (``stability.design_model: plant``, the
+default; docs/nodes.md). When the plant ends its run the launch ends.
 """
 
 # ruff takes `launch` for this repository's launch/ folder; for ament (flake8) it is the
@@ -59,15 +62,18 @@ from launch.event_handlers import OnProcessExit
 from launch.events import Shutdown
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
+from piezo_stage_ros.cli import choices
 from piezo_stage_ros.core.config import find_config, load_config
+from piezo_stage_ros.core.controllers import ControllerParams
+from piezo_stage_ros.core.loop_config import LoopConfig, MODES
 import yaml
 
 ARGUMENTS = {
     'config': ('default.yaml', 'parameter file: a name in config/ or a path'),
     'scenario': ('', 'second parameter file applied on top of config (empty: none)'),
     'overrides': ('', 'third parameter file applied last (empty: none)'),
-    'mode': ('lockstep', 'lockstep | realtime'),
-    'controller': ('', 'rac | pi | open_loop (empty: as configured)'),
+    'mode': ('lockstep', ' | '.join(MODES)),
+    'controller': ('', ' | '.join(choices(ControllerParams, 'type')) + ' (empty: as configured)'),
     'duration_s': ('0.0', 'run length in loop time [s]; 0 runs until shut down'),
     'composed': ('true', 'true: one process (stage_servo); false: one process per node'),
     'record': ('false', 'record the stage topics with ros2 bag record'),
@@ -118,8 +124,9 @@ def _launch(context: LaunchContext) -> list:
     files = [str(find_config(arg['config']))]
     files += [str(find_config(arg[k])) for k in ('scenario', 'overrides') if arg[k]]
     mode = arg['mode']
-    if mode not in ('lockstep', 'realtime'):
-        raise ValueError(f"launch argument mode:={mode!r}: allowed: 'lockstep', 'realtime'")
+    if mode not in MODES:
+        raise ValueError(f'launch argument mode:={mode!r}: allowed: '
+                         + ', '.join(repr(m) for m in MODES))
     lockstep = mode == 'lockstep'
     config = load_config(files)
     sim_time = lockstep and arg['sim_time'].lower() == 'true'
@@ -128,16 +135,16 @@ def _launch(context: LaunchContext) -> list:
     plant = dict(common, use_sim_time=False, duration_s=float(arg['duration_s']))
     if arg['record'].lower() == 'true':
         # lockstep waits for the recorder too, and gives it time to subscribe to every topic
-        subscribers = config.node('plant_node').get('lockstep.subscribers', 2)
+        subscribers = LoopConfig.from_config(config).plant_node.lockstep.subscribers
         plant.update({'lockstep.subscribers': subscribers + 1, 'lockstep.settle_s': 1.0})
     controller = dict(common)
     if arg['controller']:
         controller['type'] = arg['controller']
-    for name, value in config.node('plant_node').items():
-        # the check runs on the plant this launch runs, as simulate does
-        if name.startswith('plant.'):
-            controller['stability.' + name] = value
     trajectory = dict(common)
+    # validate every value the nodes will get, as every command does, before any process starts
+    LoopConfig.from_config(config.with_overrides('plant_node', plant)
+                           .with_overrides('controller_node', controller)
+                           .with_overrides('trajectory_node', trajectory))
     params = _parameter_file(config, {'plant_node': plant, 'controller_node': controller,
                                       'trajectory_node': trajectory})
     ns = arg['namespace']

@@ -32,22 +32,17 @@ bag, naming it and the problem; the other bags are still analysed), 2 for bad op
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 import json
 import math
 from pathlib import Path
 import sys
-from typing import NoReturn, TextIO
+
+from piezo_stage_ros import cli
 
 __all__ = ['main']
 
 PROG = 'analyze'
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> NoReturn:
-        # One clear line instead of usage + message, as every program of the package does.
-        self.exit(2, f'{self.prog}: error: {message} (see --help)\n')
 
 
 def _non_negative(text: str) -> float:
@@ -70,7 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
         The parser of ``analyze``.
 
     """
-    parser = _Parser(
+    parser = cli.Parser(
         prog=PROG,
         description='Replay rosbag2 bags of piezo stage runs (written by simulate --bag or '
                     'recorded from the nodes): align position, reference and command, compute '
@@ -102,16 +97,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _progress(stream: TextIO, index: int, count: int,
-              name: str) -> Callable[[int, int], None]:
-    def show(done: int, total: int) -> None:
-        percent = 100.0 * done / total if total else 100.0
-        stream.write(f'\r{PROG}: [{index}/{count}] {name} {percent:5.1f}% '
-                     f'({done}/{total} messages)')
-        stream.flush()
-    return show
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """
     Run ``analyze``.
@@ -127,11 +112,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         Exit status: 0 all bags analysed, 1 some bag failed, 2 bad options.
 
     """
-    parser = build_parser()
-    try:
-        args = parser.parse_args(argv)
-    except SystemExit as exit_:
-        return int(exit_.code or 0)
+    return cli.run_command(PROG, build_parser(), _analyze, argv)
+
+
+def _analyze(args: argparse.Namespace) -> int:
     # Imported here so that --help works (and is fast) without the analysis dependencies, and
     # matplotlib only when figures are asked for.
     figure_root: Path | None = args.plots if args.plots is not None else args.report
@@ -145,35 +129,39 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f'{PROG}: error: a dependency is missing: {err}', file=sys.stderr)
         return 1
 
-    show_progress = not args.quiet and sys.stderr.isatty()
+    shown = cli.Progress(PROG, enabled=not args.quiet and sys.stderr.isatty())
     names = unique_names(args.bags)
     entries = []
     traces = []
     failed = 0
     for index, (bag, name) in enumerate(zip(args.bags, names), start=1):
-        progress = _progress(sys.stderr, index, len(args.bags), name) if show_progress else None
+        label = f'[{index}/{len(args.bags)}] {name}'
+
+        def progress(done: int, total: int, label: str = label) -> None:
+            shown.fraction(label, done, total)
         try:
             analysis = analyze_bag(bag, namespace=args.namespace,
                                    steady_state_start_s=args.steady_state_start_s,
-                                   bode=args.bode, progress=progress)
+                                   bode=args.bode,
+                                   progress=progress if shown.enabled else None)
         except PiezoStageError as err:
-            _end_progress(show_progress)
+            shown.end()
             print(f'{PROG}: error: {err}', file=sys.stderr)
             failed += 1
             continue
         except MemoryError:
-            _end_progress(show_progress)
+            shown.end()
             print(f'{PROG}: error: bag {bag}: not enough memory to hold its samples',
                   file=sys.stderr)
             failed += 1
             continue
         except Exception as err:  # noqa: BLE001 - a bag must never end in a traceback
-            _end_progress(show_progress)
+            shown.end()
             print(f'{PROG}: error: bag {bag}: cannot be analysed ({type(err).__name__}: {err}); '
                   'please report this with the bag', file=sys.stderr)
             failed += 1
             continue
-        _end_progress(show_progress)
+        shown.end()
         if args.json:
             print(json.dumps(summary_json(analysis), sort_keys=False), flush=True)
         else:
@@ -206,12 +194,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not args.quiet:
             print(f'{PROG}: report written to {path}', file=sys.stderr)
     return 1 if failed else 0
-
-
-def _end_progress(shown: bool) -> None:
-    if shown:
-        sys.stderr.write('\r\033[K')
-        sys.stderr.flush()
 
 
 if __name__ == '__main__':

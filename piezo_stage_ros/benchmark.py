@@ -33,20 +33,13 @@ import importlib.util
 import json
 import math
 import sys
-from typing import Any, NoReturn, Sequence
+from typing import Any, Sequence
+
+from piezo_stage_ros import cli
 
 __all__ = ['main']
 
 PROG = 'benchmark'
-
-
-class _UsageError(Exception):
-    pass
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> NoReturn:
-        raise _UsageError(message)
 
 
 def _positive(kind: type) -> Any:
@@ -62,7 +55,7 @@ def _positive(kind: type) -> Any:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = _Parser(prog=PROG, description='Print speed figures of the simulation and bag tools.')
+    p = cli.Parser(prog=PROG, description='Print speed figures of the simulation and bag tools.')
     p.add_argument('--suite', choices=('sim', 'bags', 'ros', 'all'), default='sim',
                    help='What to measure (default sim).')
     p.add_argument('--duration', type=_positive(float), default=2.0, metavar='S',
@@ -94,11 +87,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         0 on success, 1 when a suite is unavailable or fails, 2 on bad usage.
 
     """
-    try:
-        args = _parser().parse_args(argv)
-    except _UsageError as exc:
-        print(f'{PROG}: error: {exc} (see {PROG} --help)', file=sys.stderr)
-        return 2
+    return cli.run_command(PROG, _parser(), _bench, argv)
+
+
+def _bench(args: argparse.Namespace) -> int:
     result: dict[str, Any] = {}
     # with --json the readable lines go to stderr so stdout holds only the JSON object
     lines = sys.stderr if args.json else sys.stdout

@@ -43,9 +43,9 @@ import argparse
 import math
 from pathlib import Path
 import sys
-from typing import Any, Mapping, NoReturn, Sequence
+from typing import Any, Mapping, Sequence
 
-from piezo_stage_ros.core.config import find_config, load_config
+from piezo_stage_ros import cli
 from piezo_stage_ros.core.errors import ConfigError, PiezoStageError
 from piezo_stage_ros.core.identification import (
     factors_of,
@@ -61,19 +61,9 @@ __all__ = ['build_parser', 'controller_values', 'main', 'parameter_file_text']
 
 PROG = 'identify'
 
-
-class _UsageError(Exception):
-    """Bad command-line usage (argparse would otherwise exit with its own message)."""
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> NoReturn:
-        raise _UsageError(message)
-
-
 def build_parser() -> argparse.ArgumentParser:
     """Return the command-line parser of ``identify``."""
-    p = _Parser(prog=PROG, description='Identify the stage model (linear plant and hysteresis) '
+    p = cli.Parser(prog=PROG, description='Identify the stage model (linear plant and hysteresis) '
                 'from recorded bags, as in section III-D of the paper, and write a parameter '
                 'file and a report.')
     p.add_argument('bags', nargs='*', metavar='BAG',
@@ -92,7 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='Parameter file to write (default: identified.yaml).')
     p.add_argument('--report', default='identification_report', metavar='DIR',
                    help="Directory for the figures and report.md; 'none' to skip.")
-    p.add_argument('--model', choices=('backlash_like', 'bouc_wen', 'prandtl_ishlinskii'),
+    p.add_argument('--model', choices=cli.choices(IdentificationParams, 'hysteresis_model'),
                    default='backlash_like', help='Hysteresis model to fit on the sine run.')
     p.add_argument('--hysteresis-slope', type=float, metavar='C',
                    help='Convention splitting the static gain k_p c: the hysteresis slope (c, '
@@ -116,10 +106,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--overwrite', action='store_true',
                    help='Replace existing bags in the --simulate directory.')
     return p
-
-
-def _err(message: str) -> None:
-    print(f'{PROG}: error: {message}', file=sys.stderr)
 
 
 def _nested(flat: Mapping[str, Any]) -> dict[str, Any]:
@@ -166,8 +152,9 @@ def controller_values(stage: StageParams, reference: Mapping[str, Any] | None = 
 
         - ``open_loop.gain_v_per_m`` = 1/(k_p c) and ``sensor_gain_v_per_m`` = K_PSCM;
         - ``notch.frequency_hz`` and ``notch.zero_damping`` = w_n/(2 pi) and zeta (the manual
-          notch sits on the identified resonance) and ``stability.plant.*`` = the identified
-          plant (the model of the stability check and of the notch in ``model`` mode);
+          notch sits on the identified resonance); the identified plant itself is stated once,
+          in the plant_node section, and the controller's design model follows it
+          (``stability.design_model: plant``);
         - for the backlash-like model: ``rac.rho_v`` = (c - B1)/alpha, ``rac.k_star_v`` raised
           to rho_v/c_min if below it (Theorem 1), ``stability.slope_min/max`` = 2 B1 - c and c;
         - with a reference: the RAC's theta and phi bounds and initial values scaled by the
@@ -183,7 +170,6 @@ def controller_values(stage: StageParams, reference: Mapping[str, Any] | None = 
         'notch.frequency_hz': factors.omega_n_rad_s / (2.0 * math.pi),
         'notch.zero_damping': min(factors.zeta, 1.0),
     }
-    out.update(stage.plant.to_flat('stability.plant.'))
     if h.model == 'backlash_like':
         bl = h.backlash_like
         rho = (bl.c - bl.b1) / bl.alpha
@@ -226,8 +212,8 @@ def parameter_file_text(stage: StageParams, *, header: Sequence[str] = (),
     Returns
     -------
     str
-        YAML text; :func:`piezo_stage_ros.core.config.load_config` reads it and
-        ``StageParams.from_flat(config.node('plant_node'))`` gives ``stage`` back.
+        YAML text; :func:`piezo_stage_ros.core.loop_config.load_loop_config` reads it and its
+        ``stage`` is ``stage`` (the loop rate aside).
 
     """
     flat = {k: v for k, v in stage.to_flat().items() if k != 'sample_rate_hz'}
@@ -313,8 +299,9 @@ def _summary_lines(result: IdentificationResult) -> list[str]:
 
 def _run(args: argparse.Namespace) -> int:
     from piezo_stage_ros.core.identification import identify
-    config = load_config([find_config('default.yaml'), *args.config])
-    base = StageParams.from_flat(config.node('plant_node'))
+    config = cli.read_config(args.config)
+    loop = cli.offline_loop(PROG, config)
+    base = loop.stage
     inputs: list[tuple[str, str | None]] = [(b, None) for b in args.bags]
     inputs += [(b, 'frequency') for b in args.noise] + [(b, 'step') for b in args.step]
     inputs += [(b, 'hysteresis') for b in args.sine]
@@ -323,9 +310,9 @@ def _run(args: argparse.Namespace) -> int:
         paths, true_stage = _simulate(args, base)
         inputs += [(p, None) for p in paths]
     elif args.perturb is not None:
-        raise _UsageError('--perturb needs --simulate DIR')
+        raise cli.UsageError('--perturb needs --simulate DIR')
     if not inputs:
-        raise _UsageError('no bag given (BAG..., --noise, --step, --sine or --simulate DIR)')
+        raise cli.UsageError('no bag given (BAG..., --noise, --step, --sine or --simulate DIR)')
     loaded = _read_bags(inputs)
     records = [r for r, _ in loaded]
     if true_stage is None:
@@ -345,7 +332,7 @@ def _run(args: argparse.Namespace) -> int:
                                                     else args.argv),
               f'Hysteresis slope convention: {slope:g} (only k_p times the slope is '
               'identifiable, see docs/identification.md).']
-    text = parameter_file_text(stage, header=header, reference=config.node('controller_node'),
+    text = parameter_file_text(stage, header=header, reference=loop.controller.to_flat(),
                                reference_stage=base)
     Path(args.output).write_text(text, encoding='utf-8')
     for line in _summary_lines(result):
@@ -390,23 +377,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         Exit status: 0 success, 1 bad data / parameters / failed fit, 2 bad usage.
 
     """
-    parser = build_parser()
-    try:
-        args = parser.parse_args(argv)
+    def body(args: argparse.Namespace) -> int:
         args.argv = None if argv is None else list(argv)
         return _run(args)
-    except _UsageError as exc:
-        _err(f'{exc} (see {PROG} --help)')
-        return 2
-    except PiezoStageError as exc:
-        _err(str(exc))
-        return 1
-    except OSError as exc:
-        _err(f'{exc.filename or ""}: {exc.strerror}')
-        return 1
-    except KeyboardInterrupt:
-        _err('interrupted')
-        return 130
+    return cli.run_command(PROG, build_parser(), body, argv)
 
 
 if __name__ == '__main__':

@@ -43,47 +43,37 @@ import json
 import math
 import sys
 import time
-from typing import Any, Mapping, NoReturn, Sequence
+from typing import Any, Sequence
 import warnings
 
-from piezo_stage_ros.core.config import Config, find_config, load_config
-from piezo_stage_ros.core.errors import ConfigError, ParameterError, PiezoStageError
-from piezo_stage_ros.core.params import Params
-from piezo_stage_ros.core.trajectories import KINDS
-import yaml
+from piezo_stage_ros import cli
+from piezo_stage_ros.core.controllers import ControllerParams
+from piezo_stage_ros.core.errors import ConfigError, ParameterError
+from piezo_stage_ros.core.experiments import EXPERIMENTS
+from piezo_stage_ros.core.hysteresis import HysteresisParams
+from piezo_stage_ros.core.loop_config import LoopConfig
+from piezo_stage_ros.core.stage import PlantParams
+from piezo_stage_ros.core.trajectories import TrajectoryParams
 
-__all__ = ['build_parser', 'load_parameters', 'main']
+__all__ = ['build_parser', 'load_loop', 'main']
 
 PROG = 'simulate'
-
-
-class _UsageError(Exception):
-    """Bad command-line usage (argparse would otherwise exit with its own message)."""
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> NoReturn:
-        raise _UsageError(message)
+#: Bag storage plugins (rosbag2 names); the bag writer refuses any other.
+STORAGES = ('mcap', 'sqlite3')
 
 
 def build_parser() -> argparse.ArgumentParser:
     """Return the command-line parser of ``simulate``."""
-    p = _Parser(prog=PROG, description='Run the piezo stage closed loop offline (no ROS) and '
-                "print its tracking metrics, or run one of the paper's experiments.")
-    p.add_argument('--config', action='append', default=[], metavar='FILE',
-                   help='ROS 2 parameter file applied on top of config/default.yaml '
-                   '(repeatable; later files win).')
-    p.add_argument('--param', action='append', default=[], metavar='NODE:NAME=VALUE',
-                   help='Set one parameter, e.g. controller_node:rac.epsilon_v=0.05 '
-                   '(VALUE is YAML; repeatable).')
-    p.add_argument('--plant', choices=('electromechanical', 'third_order', 'reduced'),
+    p = cli.Parser(prog=PROG, description='Run the piezo stage closed loop offline (no ROS) '
+                   "and print its tracking metrics, or run one of the paper's experiments.")
+    cli.add_config_options(p)
+    p.add_argument('--plant', choices=cli.choices(PlantParams, 'model'),
                    help='Linear plant model (plant_node plant.model).')
-    p.add_argument('--hysteresis', choices=('backlash_like', 'bouc_wen', 'prandtl_ishlinskii',
-                                            'none'),
+    p.add_argument('--hysteresis', choices=cli.choices(HysteresisParams, 'model'),
                    help='Hysteresis model (plant_node hysteresis.model).')
-    p.add_argument('--controller', choices=('rac', 'pi', 'open_loop'),
+    p.add_argument('--controller', choices=cli.choices(ControllerParams, 'type'),
                    help='Controller (controller_node type).')
-    p.add_argument('--trajectory', choices=KINDS,
+    p.add_argument('--trajectory', choices=cli.choices(TrajectoryParams, 'kind'),
                    help='Desired trajectory (trajectory_node kind).')
     p.add_argument('--frequency', action='append', type=float, metavar='HZ',
                    help='Frequency of sine/triangle; repeat for the multisine components.')
@@ -101,8 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--noise', type=float, metavar='M',
                    help='Sensor noise standard deviation [m] (plant_node '
                    'chain.sensor_noise_std_m).')
-    p.add_argument('--experiment', choices=('table3', 'square', 'staircase', 'multisine',
-                                            'fig6', 'all'),
+    p.add_argument('--experiment', choices=(*EXPERIMENTS, 'all'),
                    help="Run one of the paper's experiments and print project vs paper.")
     p.add_argument('--refuse-unstable', action='store_true',
                    help='Refuse to run a controller the stability check finds unstable on the '
@@ -110,178 +99,42 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--json', action='store_true',
                    help='Print one JSON object on stdout instead of the readable summary.')
     p.add_argument('--bag', metavar='DIR', help='Write the run as a rosbag2 bag.')
-    p.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap',
+    p.add_argument('--storage', choices=STORAGES, default='mcap',
                    help='Bag storage plugin (default mcap).')
     p.add_argument('--overwrite', action='store_true', help='Replace an existing bag.')
     return p
 
 
-def _node_params(config: Config, node: str, cls: type[Params],
-                 skip_prefixes: Sequence[str] = ()) -> dict[str, Any]:
+def load_loop(args: argparse.Namespace) -> LoopConfig:
     """
-    Return the values of ``node`` that belong to ``cls``.
-
-    A key belongs when its first dotted part is a field of ``cls``; the group then validates
-    it strictly (a misspelt ``rac.epsilon`` is refused). Other keys (wildcard ``/**`` values
-    such as ``use_sim_time``, settings of the ROS node itself) are left to the node.
-    """
-    fields = {s.name.split('.', 1)[0] for s in cls.specs()}
-    return {key: value for key, value in config.node(node).items()
-            if key.split('.', 1)[0] in fields
-            and not any(key.startswith(p) for p in skip_prefixes)}
-
-
-def _parse_param(text: str) -> tuple[str, str, Any]:
-    """Split ``NODE:NAME=VALUE`` (VALUE parsed as YAML)."""
-    if ':' not in text or '=' not in text:
-        raise ConfigError(f'--param {text!r}: expected NODE:NAME=VALUE, e.g. '
-                          'controller_node:rac.epsilon_v=0.05')
-    node, rest = text.split(':', 1)
-    name, raw = rest.split('=', 1)
-    if not node or not name:
-        raise ConfigError(f'--param {text!r}: expected NODE:NAME=VALUE')
-    text = raw.strip()
-    try:
-        value = yaml.safe_load(text)
-    except yaml.YAMLError:
-        value = text
-    # read as ROS 2 (YAML 1.2) does: 'off'/'yes' stay strings, '1e-6' is a float
-    if isinstance(value, bool) and text.lower() not in ('true', 'false'):
-        value = text
-    elif isinstance(value, str):
-        try:
-            value = float(text)
-        except ValueError:
-            pass
-    return node.strip(), name.strip(), value
-
-
-def _flag_overrides(args: argparse.Namespace, config: Config) -> Config:
-    """Apply the short flags on top of the configuration."""
-    plant: dict[str, Any] = {}
-    if args.plant is not None:
-        plant['plant.model'] = args.plant
-    if args.hysteresis is not None:
-        plant['hysteresis.model'] = args.hysteresis
-    if args.seed is not None:
-        plant['seed'] = args.seed
-    if args.noise is not None:
-        plant['chain.sensor_noise_std_m'] = args.noise
-    if plant:
-        config = config.with_overrides('plant_node', plant)
-    if args.controller is not None:
-        config = config.with_overrides('controller_node', {'type': args.controller})
-    traj: dict[str, Any] = {}
-    if args.trajectory is not None:
-        traj['kind'] = args.trajectory
-    kind = traj.get('kind', config.node('trajectory_node').get('kind', 'sine'))
-    freqs = args.frequency
-    if kind in ('sine', 'triangle'):
-        if freqs:
-            if len(freqs) > 1:
-                raise ParameterError('--frequency', freqs, f'one value for {kind}',
-                                     'is repeated; only multisine takes several')
-            traj[f'{kind}.frequency_hz'] = freqs[0]
-        if args.amplitude is not None:
-            traj[f'{kind}.amplitude_m'] = args.amplitude
-        if args.offset is not None:
-            traj[f'{kind}.offset_m'] = args.offset
-    elif kind == 'multisine':
-        current = config.node('trajectory_node')
-        n = len(freqs) if freqs else len(current.get('multisine.frequencies_hz', [10.0, 100.0]))
-        if freqs:
-            traj['multisine.frequencies_hz'] = list(freqs)
-        if args.amplitude is not None:
-            traj['multisine.amplitudes_m'] = [args.amplitude] * n
-        elif freqs:
-            amps = list(current.get('multisine.amplitudes_m', [1.9e-6, 1.9e-6]))
-            if len(amps) != n:
-                # keep the total excursion of the configured multisine, shared equally
-                traj['multisine.amplitudes_m'] = [sum(amps) / n] * n
-        if args.offset is not None:
-            traj['multisine.offset_m'] = args.offset
-    else:
-        if freqs:
-            raise ParameterError('--frequency', freqs[0], 'sine, triangle or multisine',
-                                 f'does not apply to trajectory {kind!r}')
-        names = {'square': ('square.peak_to_peak_m', 'square.low_m'),
-                 'staircase': ('staircase.step_m', 'staircase.start_m'),
-                 'step': ('step.final_m', 'step.initial_m'),
-                 'noise': ('noise.amplitude_m', 'noise.offset_m'),
-                 'chirp': ('chirp.amplitude_m', 'chirp.offset_m')}.get(kind, (None, None))
-        for flag, name in ((args.amplitude, names[0]), (args.offset, names[1])):
-            if flag is not None:
-                if name is None:
-                    raise ParameterError('--amplitude/--offset', flag,
-                                         'not with trajectory ' + repr(kind),
-                                         f'does not apply to trajectory {kind!r}')
-                traj[name] = flag
-    if args.csv is not None:
-        traj['csv.path'] = args.csv
-    if traj:
-        config = config.with_overrides('trajectory_node', traj)
-    return config
-
-
-def load_parameters(args: argparse.Namespace) -> dict[str, Any]:
-    """
-    Build the validated parameter objects from files, ``--param`` and flags.
+    Build the loop configuration from files, ``--param`` and the short flags.
 
     Parameters
     ----------
     args : argparse.Namespace
-        Parsed command line.
+        Parsed command line of ``simulate``.
 
     Returns
     -------
-    dict
-        ``stage`` (StageParams), ``controller`` (ControllerParams), ``trajectory``
-        (TrajectoryParams), ``stability`` (StabilityParams).
+    LoopConfig
+        With ``stability.action`` set to ``'refuse'`` by ``--refuse-unstable``.
 
     """
-    from piezo_stage_ros.core.controllers import ControllerParams
-    from piezo_stage_ros.core.stability import StabilityParams
-    from piezo_stage_ros.core.stage import StageParams
-    from piezo_stage_ros.core.trajectories import TrajectoryParams
-
-    config = load_config([find_config('default.yaml'), *args.config])
-    for text in args.param:
-        node, name, value = _parse_param(text)
-        config = config.with_overrides(node, {name: value})
-    config = _flag_overrides(args, config)
-    stage = StageParams.from_flat(_node_params(config, 'plant_node', StageParams),
-                                  prefix='')
-    controller = ControllerParams.from_flat(
-        _node_params(config, 'controller_node', ControllerParams, ('stability.',)))
-    ctrl_values = config.node('controller_node')
-    stability = StabilityParams.from_flat(
-        {k: v for k, v in ctrl_values.items() if k.startswith('stability.')},
-        prefix='stability.')
+    config = cli.loop_overrides(
+        cli.read_config(args.config, args.param), plant=args.plant, hysteresis=args.hysteresis,
+        controller=args.controller, trajectory=args.trajectory, frequencies=args.frequency,
+        amplitude=args.amplitude, offset=args.offset, csv=args.csv, seed=args.seed,
+        noise=args.noise)
+    loop = cli.offline_loop(PROG, config)
     if args.refuse_unstable:
-        stability = stability.replace(action='refuse')
-    trajectory = TrajectoryParams.from_flat(
-        _node_params(config, 'trajectory_node', TrajectoryParams))
-    return {'stage': stage, 'controller': controller, 'trajectory': trajectory,
-            'stability': stability, 'config': config}
-
-
-def _err(message: str) -> None:
-    print(f'{PROG}: error: {message}', file=sys.stderr)
+        loop = loop.replace(stability=loop.stability.replace(action='refuse'))
+    return loop
 
 
 def _clean(value: Any) -> Any:
     if isinstance(value, float) and not math.isfinite(value):
         return None
     return value
-
-
-def _stability(params: Mapping[str, Any]) -> tuple[Any, str]:
-    """Run the stability check of the configured controller on the configured plant."""
-    from piezo_stage_ros.core.stability import check_stability
-    stage = params['stage']
-    report = check_stability(params['controller'], stage.plant, stage.sample_time_s,
-                             options=params['stability'])
-    return report, report.text()
 
 
 def _enforce(report: Any, action: str) -> None:
@@ -299,21 +152,24 @@ def _enforce(report: Any, action: str) -> None:
               file=sys.stderr)
 
 
-def _run_single(args: argparse.Namespace, params: dict[str, Any]) -> int:
+def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
     from piezo_stage_ros.core import metrics
     from piezo_stage_ros.core.experiments import default_duration_s, run_one
+    from piezo_stage_ros.core.stability import check_stability
     from piezo_stage_ros.core.trajectories import make_trajectory
 
-    stage, ctrl, traj = params['stage'], params['controller'], params['trajectory']
-    report, text = _stability(params)
-    _enforce(report, params['stability'].action)
+    stage, ctrl, traj = loop.stage, loop.controller, loop.trajectory
+    report = check_stability(ctrl, loop.design_plant, stage.sample_time_s,
+                             options=loop.stability)
+    text = report.text()
+    _enforce(report, loop.stability.action)
     trajectory = make_trajectory(traj)
     duration = args.duration if args.duration is not None else default_duration_s(trajectory,
                                                                                   traj)
     if not (duration > 0.0 and math.isfinite(duration)):
         raise ParameterError('--duration', duration, '(0, inf) s')
     meta = {'stable': bool(report.stable), 'stability': text,
-            'config_files': [str(p) for p in params['config'].sources]}
+            'config_files': [str(p) for p in loop.sources]}
     start = time.perf_counter()
     if args.bag is not None:
         from piezo_stage_ros.analysis.bagio import RunBagWriter
@@ -322,9 +178,10 @@ def _run_single(args: argparse.Namespace, params: dict[str, Any]) -> int:
                 writer.set_meta(chunk.meta)
                 writer.write_chunk(chunk)
             record = run_one(stage, ctrl, traj, duration_s=duration, chunk_callback=stream,
-                             meta=meta)
+                             meta=meta, design_plant=loop.design_plant)
     else:
-        record = run_one(stage, ctrl, traj, duration_s=duration, meta=meta)
+        record = run_one(stage, ctrl, traj, duration_s=duration, meta=meta,
+                         design_plant=loop.design_plant)
     wall = time.perf_counter() - start
     summary = metrics.summarize(record)
     sim = float(record.meta['duration_s'])
@@ -363,21 +220,21 @@ def _run_single(args: argparse.Namespace, params: dict[str, Any]) -> int:
     return 0
 
 
-def _run_experiments(args: argparse.Namespace, params: dict[str, Any]) -> int:
+def _run_experiments(args: argparse.Namespace, loop: LoopConfig) -> int:
     from piezo_stage_ros.core import experiments as ex
+    from piezo_stage_ros.core.loop_config import design_plant
     from piezo_stage_ros.core.stability import check_stability
 
-    stage, ctrl, opts = params['stage'], params['controller'], params['stability']
+    stage, ctrl, opts = loop.stage, loop.controller, loop.stability
     plants: tuple[str, ...] = (args.plant,) if args.plant else ('reduced', 'third_order')
-    t0 = time.perf_counter()
-
-    def progress(line: str) -> None:
-        print(f'[{time.perf_counter() - t0:6.1f} s] {line}', file=sys.stderr, flush=True)
+    shown = cli.Progress(PROG)
+    progress = shown.line
 
     warned: set[tuple[str, str]] = set()
 
     def stability(sp: Any, cp: Any) -> tuple[bool | None, str]:
-        report = check_stability(cp, sp.plant, sp.sample_time_s, options=opts)
+        report = check_stability(cp, design_plant(opts, sp.plant), sp.sample_time_s,
+                                 options=opts)
         key = (sp.plant.model, cp.type)
         if not report.stable and key not in warned:
             warned.add(key)
@@ -396,7 +253,8 @@ def _run_experiments(args: argparse.Namespace, params: dict[str, Any]) -> int:
             sp = stage.with_flat({'plant.model': plant})
             for cp in ({rac.type: rac} | controllers).values():
                 if names != ('fig6',):
-                    report = check_stability(cp, sp.plant, sp.sample_time_s, options=opts)
+                    report = check_stability(cp, design_plant(opts, sp.plant),
+                                             sp.sample_time_s, options=opts)
                     _enforce(report, 'refuse')
     results = []
     for name in names:
@@ -417,13 +275,22 @@ def _run_experiments(args: argparse.Namespace, params: dict[str, Any]) -> int:
         else:
             sp = stage.with_flat({'plant.model': args.plant}) if args.plant else stage
             results.append(ex.run_fig6(sp, progress=progress))
-    progress(f'done in {time.perf_counter() - t0:.1f} s')
+    progress(f'done in {shown.elapsed():.1f} s')
     if args.json:
         print(json.dumps({'experiments': [r.to_json() for r in results],
-                          'wall_seconds': time.perf_counter() - t0}, sort_keys=True))
+                          'wall_seconds': shown.elapsed()}, sort_keys=True))
     else:
         print('\n\n'.join(ex.format_result(r) for r in results))
     return 0
+
+
+def _main(args: argparse.Namespace) -> int:
+    loop = load_loop(args)
+    if args.experiment is not None:
+        if args.bag is not None:
+            raise ConfigError('--bag records one run; it cannot be used with --experiment')
+        return _run_experiments(args, loop)
+    return _run_single(args, loop)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -441,25 +308,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         Exit status: 0 success, 1 bad parameter / configuration / refused run, 2 bad usage.
 
     """
-    parser = build_parser()
-    try:
-        args = parser.parse_args(argv)
-    except _UsageError as exc:
-        _err(f'{exc} (see {PROG} --help)')
-        return 2
-    try:
-        params = load_parameters(args)
-        if args.experiment is not None:
-            if args.bag is not None:
-                raise ConfigError('--bag records one run; it cannot be used with --experiment')
-            return _run_experiments(args, params)
-        return _run_single(args, params)
-    except PiezoStageError as exc:
-        _err(str(exc))
-        return 1
-    except KeyboardInterrupt:
-        _err('interrupted')
-        return 130
+    return cli.run_command(PROG, build_parser(), _main, argv)
 
 
 if __name__ == '__main__':

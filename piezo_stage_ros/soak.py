@@ -36,23 +36,18 @@ import json
 import math
 import resource
 import sys
-import time
-from typing import Any, NoReturn, Sequence
+from typing import Any, Sequence
 
 import numpy as np
+from piezo_stage_ros import cli
+from piezo_stage_ros.core.controllers import ControllerParams
+from piezo_stage_ros.core.stage import PlantParams
+from piezo_stage_ros.core.trajectories import TrajectoryParams
+from piezo_stage_ros.simulate import STORAGES
 
 __all__ = ['main', 'rss_mb']
 
 PROG = 'soak'
-
-
-class _UsageError(Exception):
-    pass
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> NoReturn:
-        raise _UsageError(message)
 
 
 def rss_mb() -> float:
@@ -103,37 +98,24 @@ class _Minute:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = _Parser(prog=PROG, description='Soak test: a long closed-loop run with per-minute '
-                'statistics (error, estimates, command range, memory).')
+    p = cli.Parser(prog=PROG, description='Soak test: a long closed-loop run with per-minute '
+                   'statistics (error, estimates, command range, memory).')
     p.add_argument('--minutes', type=float, default=60.0, metavar='N',
                    help='Simulated minutes (default 60: one hour, 36 M samples at 10 kHz).')
-    p.add_argument('--config', action='append', default=[], metavar='FILE',
-                   help='ROS 2 parameter file on top of config/default.yaml (repeatable).')
-    p.add_argument('--param', action='append', default=[], metavar='NODE:NAME=VALUE',
-                   help='Set one parameter (as simulate --param).')
-    p.add_argument('--plant', choices=('electromechanical', 'third_order', 'reduced'),
+    cli.add_config_options(p)
+    p.add_argument('--plant', choices=cli.choices(PlantParams, 'model'),
                    help='Plant model (default: the configured one).')
-    p.add_argument('--controller', choices=('rac', 'pi', 'open_loop'), default='rac',
+    p.add_argument('--controller', choices=cli.choices(ControllerParams, 'type'), default='rac',
                    help='Controller (default rac).')
-    p.add_argument('--trajectory', choices=('sine', 'multisine', 'triangle', 'square'),
+    p.add_argument('--trajectory', choices=cli.choices(TrajectoryParams, 'kind'),
                    default='multisine', help='Trajectory (default multisine).')
     p.add_argument('--seed', type=int, metavar='N', help='Seed of the sensor noise.')
     p.add_argument('--noise', type=float, metavar='M', help='Sensor noise std [m].')
     p.add_argument('--bag', metavar='DIR', help='Stream the whole run into a rosbag2 bag.')
-    p.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
+    p.add_argument('--storage', choices=STORAGES, default='mcap')
     p.add_argument('--overwrite', action='store_true', help='Replace an existing bag.')
     p.add_argument('--json', action='store_true', help='Print one JSON object on stdout.')
     return p
-
-
-def _load(args: argparse.Namespace) -> dict[str, Any]:
-    from piezo_stage_ros.simulate import load_parameters
-    ns = argparse.Namespace(config=args.config, param=args.param, plant=args.plant,
-                            hysteresis=None, controller=args.controller,
-                            trajectory=args.trajectory, frequency=None, amplitude=None,
-                            offset=None, csv=None, seed=args.seed, noise=args.noise,
-                            refuse_unstable=False)
-    return load_parameters(ns)
 
 
 def _soak(args: argparse.Namespace) -> int:
@@ -144,16 +126,19 @@ def _soak(args: argparse.Namespace) -> int:
     if not (args.minutes > 0 and math.isfinite(args.minutes)):
         from piezo_stage_ros.core.errors import ParameterError
         raise ParameterError('--minutes', args.minutes, '(0, inf)')
-    params = _load(args)
-    stage, ctrl, traj = params['stage'], params['controller'], params['trajectory']
-    report = check_stability(ctrl, stage.plant, stage.sample_time_s, options=params['stability'])
+    loop = cli.offline_loop(PROG, cli.loop_overrides(
+        cli.read_config(args.config, args.param), plant=args.plant, controller=args.controller,
+        trajectory=args.trajectory, seed=args.seed, noise=args.noise))
+    stage, ctrl, traj = loop.stage, loop.controller, loop.trajectory
+    report = check_stability(ctrl, loop.design_plant, stage.sample_time_s,
+                             options=loop.stability)
     if not report.stable:
         print(f'{PROG}: WARNING: UNSTABLE CONFIGURATION: {report.text()}', file=sys.stderr)
     duration = args.minutes * 60.0
     per_minute = int(round(60.0 * stage.sample_rate_hz))
     rows: list[dict[str, Any]] = []
     state = {'minute': _Minute(), 'done': 0}
-    t0 = time.perf_counter()
+    shown = cli.Progress(PROG)
     rss0 = rss_mb()
     writer: Any = None
 
@@ -170,13 +155,13 @@ def _soak(args: argparse.Namespace) -> int:
                        {k: v[i:i + take] for k, v in chunk.diagnostics.items()})
             i += take
             if minute.samples == per_minute:
-                row = minute.row(len(rows) + 1, rss_mb(), time.perf_counter() - t0)
+                row = minute.row(len(rows) + 1, rss_mb(), shown.elapsed())
                 rows.append(row)
-                print(f'[{row["wall_s"]:7.1f} s] minute {row["minute"]:3d}: e_rms '
-                      f'{row["e_rms_m"] * 1e9:7.2f} nm, e_m {row["e_max_m"] * 1e9:7.2f} nm, '
-                      f'u {row["command_min_v"]:.3f} ... {row["command_max_v"]:.3f} V, '
-                      f'theta_hat {row["theta_hat_min"]} ... {row["theta_hat_max"]}, '
-                      f'RSS {row["rss_mb"]:.1f} MB', file=sys.stderr, flush=True)
+                shown.line(f'minute {row["minute"]:3d}: e_rms '
+                           f'{row["e_rms_m"] * 1e9:7.2f} nm, e_m {row["e_max_m"] * 1e9:7.2f} '
+                           f'nm, u {row["command_min_v"]:.3f} ... {row["command_max_v"]:.3f} '
+                           f'V, theta_hat {row["theta_hat_min"]} ... '
+                           f'{row["theta_hat_max"]}, RSS {row["rss_mb"]:.1f} MB')
                 state['minute'] = _Minute()
 
     meta = {'soak_minutes': args.minutes, 'stable': bool(report.stable)}
@@ -190,8 +175,8 @@ def _soak(args: argparse.Namespace) -> int:
                 meta=meta)
     last: _Minute = state['minute']  # type: ignore[assignment]
     if last.samples:
-        rows.append(last.row(len(rows) + 1, rss_mb(), time.perf_counter() - t0))
-    wall = time.perf_counter() - t0
+        rows.append(last.row(len(rows) + 1, rss_mb(), shown.elapsed()))
+    wall = shown.elapsed()
     bounds = ctrl.rac
     summary = _verdict(rows, ctrl.type, bounds, stage.chain.amplifier_min_v,
                        stage.chain.amplifier_max_v)
@@ -287,20 +272,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         0 passed, 1 bad parameter or configuration, 2 bad usage, 3 the soak failed a criterion.
 
     """
-    from piezo_stage_ros.core.errors import PiezoStageError
-    try:
-        args = _parser().parse_args(argv)
-    except _UsageError as exc:
-        print(f'{PROG}: error: {exc} (see {PROG} --help)', file=sys.stderr)
-        return 2
-    try:
-        return _soak(args)
-    except PiezoStageError as exc:
-        print(f'{PROG}: error: {exc}', file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(f'{PROG}: error: interrupted', file=sys.stderr)
-        return 130
+    return cli.run_command(PROG, _parser(), _soak, argv)
 
 
 if __name__ == '__main__':

@@ -45,6 +45,7 @@ import time
 from typing import Mapping, Sequence
 
 import numpy as np
+from piezo_stage_ros import cli
 from piezo_stage_ros.core.closed_loop import run
 from piezo_stage_ros.core.controllers import (
     build_controller,
@@ -66,6 +67,7 @@ from piezo_stage_ros.core.stability import (
 from piezo_stage_ros.core.stage import PlantParams, Stage, StageParams
 from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
 
+PROG = 'tune'
 FREQUENCIES_HZ = (1.0, 10.0, 50.0, 100.0)
 
 #: Table III of the paper, e_rms [nm].
@@ -284,16 +286,24 @@ def main(argv: Sequence[str] | None = None) -> int:
         Exit status.
 
     """
-    parser = argparse.ArgumentParser(prog='python3 -m piezo_stage_ros.tune',
-                                     description=__doc__.split('\n\n')[0].strip())
+    return cli.run_command(PROG, build_parser(), _study, argv)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Return the command-line parser of ``tune``."""
+    parser = cli.Parser(prog=PROG, description=__doc__.split('\n\n')[0].strip())
     parser.add_argument('--skip-sweeps', action='store_true',
                         help='print only the stability verdicts and Table III')
     parser.add_argument('--params-table', action='store_true',
                         help='print the Markdown table of the controller_node parameters and exit')
-    args = parser.parse_args(argv)
+    return parser
+
+
+def _study(args: argparse.Namespace) -> int:
+    """Print the study's tables (or the parameter table)."""
     if args.params_table:
         # the node's own table (the README's is generated from the same declarations)
-        from piezo_stage_ros.nodes.tables import controller_table
+        from piezo_stage_ros.core.loop_config import controller_table
         print(controller_table().markdown())
         return 0
     start = time.monotonic()

@@ -354,10 +354,14 @@ def test_module_entry_point_has_no_traceback(tmp_path):
 
 def test_progress_line():
     import io
+
+    from piezo_stage_ros.cli import Progress
     stream = io.StringIO()
-    show = analyze._progress(stream, 2, 3, 'rac')
-    show(450, 1800)
-    show(1800, 1800)
+    show = Progress('analyze', stream)
+    show.fraction('[2/3] rac', 450, 1800)
+    show.fraction('[2/3] rac', 1800, 1800)
     text = stream.getvalue()
     assert text.startswith('\ranalyze: [2/3] rac  25.0% (450/1800 messages)')
     assert text.endswith('\ranalyze: [2/3] rac 100.0% (1800/1800 messages)')
+    show.end()
+    assert stream.getvalue().endswith('\r\033[K')

@@ -22,11 +22,10 @@ import re
 import numpy as np
 from piezo_stage_ros.analysis.bagio import write_run
 from piezo_stage_ros.core.config import load_config
-from piezo_stage_ros.core.controllers import ControllerParams
 from piezo_stage_ros.core.identification import factors_of
 from piezo_stage_ros.core.identification_experiments import perturbed_stage, run_experiments
+from piezo_stage_ros.core.loop_config import LoopConfig
 from piezo_stage_ros.core.record import RunRecord
-from piezo_stage_ros.core.stability import StabilityParams
 from piezo_stage_ros.core.stage import StageParams
 from piezo_stage_ros.identify import main, parameter_file_text
 from piezo_stage_ros.simulate import main as simulate_main
@@ -70,7 +69,8 @@ def test_parameter_file_is_what_the_nodes_and_simulate_read(
     _, true = bags
     yaml_path, _, _ = identified
     config = load_config([yaml_path])
-    stage = StageParams.from_flat(config.node('plant_node'))
+    loop = LoopConfig.from_config(config)
+    stage = loop.stage
     f, t = factors_of(stage.plant.third_order), factors_of(true.plant.third_order)
     assert stage.plant.model == 'third_order'
     assert f.omega_n_rad_s == pytest.approx(t.omega_n_rad_s, rel=0.02)
@@ -85,12 +85,10 @@ def test_parameter_file_is_what_the_nodes_and_simulate_read(
     # the loop rate is not a property of the stage: the file leaves it to the loop's config
     assert 'sample_rate_hz' not in config.node('plant_node')
     ctrl_values = config.node('controller_node')
-    ControllerParams.from_flat({k: v for k, v in ctrl_values.items()
-                                if not k.startswith('stability.')})
-    stability = StabilityParams.from_flat({k: v for k, v in ctrl_values.items()
-                                           if k.startswith('stability.')}, prefix='stability.')
-    assert stability.slope_max == pytest.approx(bl.c)
-    assert stability.plant.third_order == stage.plant.third_order
+    assert loop.stability.slope_max == pytest.approx(bl.c)
+    # the plant model is stated once, in plant_node: the controller designs on it
+    assert not any(k.startswith('stability.plant.') for k in ctrl_values)
+    assert loop.design_plant == stage.plant
     # eq. (15) from the two points of --pscm, for the plant's sensor and the controller
     assert stage.chain.sensor_gain_v_per_m == pytest.approx(10.0 / 40e-6)
     assert ctrl_values['sensor_gain_v_per_m'] == pytest.approx(10.0 / 40e-6)

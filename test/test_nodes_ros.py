@@ -48,7 +48,9 @@ from std_msgs.msg import Float64  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 STAGE = {'plant.model': 'reduced', 'chain.sensor_noise_std_m': 1e-9, 'seed': 3}
-CONTROLLER = {'type': 'pi', 'stability.plant.model': 'reduced'}
+# in-process nodes get no parameter files: the controller is told the plant's model itself
+CONTROLLER = {'type': 'pi', 'stability.design_model': 'own',
+              'stability.plant.model': 'reduced'}
 TRAJECTORY = {'kind': 'sine', 'sine.frequency_hz': 50.0}
 
 

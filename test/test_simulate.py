@@ -20,7 +20,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from piezo_stage_ros import simulate
+from piezo_stage_ros import cli, simulate
 from piezo_stage_ros.core import experiments as ex
 from piezo_stage_ros.core import metrics
 from piezo_stage_ros.core.controllers import ControllerParams
@@ -197,6 +197,6 @@ def test_param_values_read_as_ros_yaml(capsys: pytest.CaptureFixture[str]) -> No
                  '--param', 'controller_node:notch.mode=off',
                  '--param', 'plant_node:chain.sensor_noise_std_m=1e-9')
     assert d['samples'] == 100
-    assert simulate._parse_param('controller_node:notch.mode=off')[2] == 'off'
-    assert simulate._parse_param('plant_node:chain.sensor_noise_std_m=1e-9')[2] == 1e-9
-    assert simulate._parse_param('plant_node:chain.quantize=false')[2] is False
+    assert cli.parse_param('controller_node:notch.mode=off')[2] == 'off'
+    assert cli.parse_param('plant_node:chain.sensor_noise_std_m=1e-9')[2] == 1e-9
+    assert cli.parse_param('plant_node:chain.quantize=false')[2] is False

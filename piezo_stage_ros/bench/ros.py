@@ -50,7 +50,9 @@ __all__ = ['CASES', 'main', 'run_ros_benchmark']
 CASES = ('pingpong', 'composed-lockstep', 'composed-realtime', 'direct-lockstep',
          'direct-realtime', 'cross-lockstep')
 STAGE = {'plant.model': 'reduced'}
-CONTROLLER = {'type': 'rac', 'stability.plant.model': 'reduced'}
+# in-process nodes get no parameter files: the controller is told the plant's model itself
+CONTROLLER = {'type': 'rac', 'stability.design_model': 'own',
+              'stability.plant.model': 'reduced'}
 
 
 def _params(values: dict[str, Any]) -> list[Any]:

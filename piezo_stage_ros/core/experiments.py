@@ -37,7 +37,7 @@ from piezo_stage_ros.core import closed_loop, metrics
 from piezo_stage_ros.core.controllers import build_controller, ControllerParams
 from piezo_stage_ros.core.hysteresis import make_hysteresis
 from piezo_stage_ros.core.record import RunRecord
-from piezo_stage_ros.core.stage import linear_plant, Stage, StageParams
+from piezo_stage_ros.core.stage import linear_plant, PlantParams, Stage, StageParams
 from piezo_stage_ros.core.trajectories import (
     make_trajectory,
     SquareParams,
@@ -150,7 +150,8 @@ def default_duration_s(trajectory: TrajectoryBase, params: TrajectoryParams) -> 
 def run_one(stage_params: StageParams, controller_params: ControllerParams,
             trajectory_params: TrajectoryParams, *, duration_s: float | None = None,
             chunk_callback: closed_loop.ChunkCallback | None = None, keep: bool = True,
-            meta: dict[str, Any] | None = None) -> RunRecord:
+            meta: dict[str, Any] | None = None, design_plant: PlantParams | None = None
+            ) -> RunRecord:
     """
     Build a stage, a controller and a trajectory and run one closed loop.
 
@@ -170,6 +171,9 @@ def run_one(stage_params: StageParams, controller_params: ControllerParams,
         Passed to :func:`piezo_stage_ros.core.closed_loop.run`.
     meta : dict, optional
         Extra description stored in the record.
+    design_plant : PlantParams, optional
+        The model a ``model`` notch is designed on; default the stage's plant
+        (:attr:`piezo_stage_ros.core.loop_config.LoopConfig.design_plant`).
 
     Returns
     -------
@@ -178,7 +182,7 @@ def run_one(stage_params: StageParams, controller_params: ControllerParams,
 
     """
     stage = Stage(stage_params)
-    plant = linear_plant(stage_params.plant)
+    plant = linear_plant(stage_params.plant if design_plant is None else design_plant)
     controller = build_controller(controller_params, stage_params.sample_time_s, plant)
     trajectory = make_trajectory(trajectory_params)
     if duration_s is None:

@@ -104,7 +104,12 @@ class StabilityParams(Params):
                               '[slope_min, slope_max].', low=1, high=101)
     delay_samples: int = param(0, unit='-', description='Extra computational delay of the loop '
                                '(0: u_k is applied at t_k).', low=0, high=10)
-    plant: PlantParams = group(PlantParams, 'plant model the check uses')
+    design_model: str = param('plant', unit='-', description='Model the check and a notch in '
+                              'model mode use: plant takes plant.* of the plant_node section of '
+                              'the same parameter files, own takes stability.plant.* (a real '
+                              'stage: the identified model).', choices=('plant', 'own'),
+                              read_only=True)
+    plant: PlantParams = group(PlantParams, 'own design model (design_model: own)')
 
     def _check(self) -> None:
         if self.slope_max < self.slope_min:

@@ -33,7 +33,7 @@ import sys
 import threading
 from typing import Sequence
 
-from piezo_stage_ros.core.config import find_config, load_config
+from piezo_stage_ros import cli
 from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
 from piezo_stage_ros.core.stage import Stage, StageParams
 from piezo_stage_ros.hardware.udp import (
@@ -232,8 +232,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         prog='stage_emulator',
         description='Real-time I/O target emulator on 127.0.0.1: the stage model behind the '
                     'UDP protocol of piezo_stage_ros.hardware.udp (docs/nodes.md).')
-    parser.add_argument('--config', default='default.yaml',
-                        help='ROS parameter file; its plant_node section is the stage')
+    parser.add_argument('--config', action='append', default=[], metavar='FILE',
+                        help='ROS parameter file on top of config/default.yaml (repeatable); '
+                        'the plant_node section is the stage')
     parser.add_argument('--port', type=int, default=50000, help='UDP port (0: any free one)')
     parser.add_argument('--idle-timeout-s', type=float, default=10.0,
                         help='stop after this long without a request [s]')
@@ -241,11 +242,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help='stop after this many requests (0: no limit)')
     args = parser.parse_args(argv)
     try:
-        config = load_config([find_config(args.config)])
-        # the plant node's own settings (mode, backend ...) sit beside the stage: skip them
-        fields = {spec.name.split('.', 1)[0] for spec in StageParams.specs()}
-        params = StageParams.from_flat({k: v for k, v in config.node('plant_node').items()
-                                        if k.split('.', 1)[0] in fields})
+        # the same loader as every command: the plant node's own settings (mode, backend ...)
+        # are validated beside the stage, and noted when the emulator cannot honour them
+        params = cli.offline_loop('stage_emulator', cli.read_config(args.config)).stage
         emulator = TargetEmulator(params, port=args.port, idle_timeout_s=args.idle_timeout_s,
                                   max_requests=args.max_requests)
     except PiezoStageError as exc:

@@ -17,8 +17,10 @@ The controller node: RAC or PI from parameters, position and reference in, comma
 
 Parameters: :func:`piezo_stage_ros.nodes.tables.controller_table` (the controller of the core,
 the stability check under ``stability.``, and the node group). At start-up the loop is checked
-against the plant model ``stability.plant`` names and the verdict logged; an unstable verdict
-with ``stability.action: refuse`` stops the node. Gains changed at run time are validated
+against the design model (:func:`piezo_stage_ros.nodes.tables.design_model`: the plant node's
+``plant.*`` from the same parameter files, or with ``stability.design_model: own`` the node's
+``stability.plant.*``), and the log says which model and the verdict; an unstable verdict with
+``stability.action: refuse`` stops the node. Gains changed at run time are validated
 (ranges, then the stability check again) and applied at the next sample; a refused value leaves
 everything as it was. Topics: subscribes to ``stage/position`` and ``stage/reference``,
 publishes ``stage/command`` and ``stage/diagnostics`` (controller internals: theta_hat,
@@ -27,6 +29,8 @@ phi_hat, s, saturation ...).
 
 from __future__ import annotations
 
+import functools
+import sys
 import time
 from typing import Any, Callable, Sequence
 
@@ -34,7 +38,7 @@ from piezo_stage_ros.core.controllers import build_controller, ControllerParams
 from piezo_stage_ros.core.errors import StabilityError
 from piezo_stage_ros.core.interfaces import Controller
 from piezo_stage_ros.core.stability import check_stability, StabilityParams
-from piezo_stage_ros.core.stage import linear_plant
+from piezo_stage_ros.core.stage import linear_plant, PlantParams
 from piezo_stage_ros.nodes import qos, topics
 from piezo_stage_ros.nodes.cdr import (
     CdrError,
@@ -51,7 +55,12 @@ from piezo_stage_ros.nodes.logic import (
 )
 from piezo_stage_ros.nodes.parameters import ParameterBinding
 from piezo_stage_ros.nodes.runner import run
-from piezo_stage_ros.nodes.tables import controller_table, ControllerNodeParams
+from piezo_stage_ros.nodes.tables import (
+    controller_table,
+    ControllerNodeParams,
+    design_model,
+    params_files,
+)
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
@@ -66,23 +75,30 @@ class ControllerNode(Node):
 
     Parameters
     ----------
+    params_files : sequence of str
+        The ``--params-file`` files of the process's command line: the design model is the
+        plant_node section's ``plant.*`` in them (``stability.design_model: plant``); the
+        node's own ``cli_args`` files are added.
     **kwargs
         Passed to :class:`rclpy.node.Node`.
 
     Raises
     ------
     StabilityError
-        If the configured loop is unstable on the configured model and
+        If the configured loop is unstable on the design model and
         ``stability.action`` is ``'refuse'``.
 
     """
 
-    def __init__(self, **kwargs: Any) -> None:
+    def __init__(self, *, params_files: Sequence[str] = (), **kwargs: Any) -> None:
         super().__init__('controller_node', **kwargs)
+        self._files = [*params_files, *_files_of(kwargs.get('cli_args'))]
         self.binding = ParameterBinding(self, controller_table(), self._on_change)
         params, stability, opts = self.binding.objects
         self.opts: ControllerNodeParams = opts
         self.sample_time_s = 1.0 / opts.sample_rate_hz
+        self.design_plant, source = self._design(stability)
+        self.get_logger().info(f'design model: {source}')
         self.verdict = self._check(params, stability)
         self.logic = ControllerLogic(self._build(params, stability), mode=opts.mode,
                                      safe_voltage_v=opts.safe_voltage_v,
@@ -113,8 +129,12 @@ class ControllerNode(Node):
             self._watch = self.create_timer(opts.position_timeout_s / 2.0, self._check_watchdog,
                                             clock=Clock(clock_type=ClockType.STEADY_TIME))
 
+    def _design(self, stability: StabilityParams) -> tuple[PlantParams, str]:
+        return design_model(stability, self._files)
+
     def _check(self, params: ControllerParams, stability: StabilityParams) -> str:
-        report = check_stability(params, stability.plant, self.sample_time_s, options=stability)
+        report = check_stability(params, self.design_plant, self.sample_time_s,
+                                 options=stability)
         text = report.text()
         adaptation = report.adaptation
         if report.stable and adaptation is not None and not adaptation.ok:
@@ -130,7 +150,7 @@ class ControllerNode(Node):
 
     def _build(self, params: ControllerParams, stability: StabilityParams) -> Controller:
         # the plant a 'model' notch is designed from, built as the offline runner builds it
-        return build_controller(params, self.sample_time_s, linear_plant(stability.plant))
+        return build_controller(params, self.sample_time_s, linear_plant(self.design_plant))
 
     def _rebuild(self, params: ControllerParams) -> Controller:
         return self._build(params, self._stability)
@@ -139,6 +159,7 @@ class ControllerNode(Node):
         params, stability, opts = new
         if params is not old[0] or stability is not old[1]:
             # raises StabilityError for a refused verdict: the change is refused with its text
+            # (the design model is read-only: it stays what start-up chose)
             self.verdict = self._check(params, stability)
             self._stability = stability
             if params is not old[0]:
@@ -235,7 +256,17 @@ class ControllerNode(Node):
                     f'{out.voltage_v:g} V published ({self.logic.safe_commands} so far)')
 
 
+def _files_of(cli_args: Sequence[str] | None) -> list[str]:
+    return params_files(cli_args) if cli_args else []
+
+
+def factory(args: Sequence[str] | None) -> Callable[[], ControllerNode]:
+    """Return a factory of the node that knows the parameter files of the command line."""
+    return functools.partial(ControllerNode,
+                             params_files=params_files(sys.argv if args is None else args))
+
+
 def main(args: Sequence[str] | None = None) -> int:
     """Run the controller node (console script ``controller_node``)."""
-    return run('controller_node', [('controller', ControllerNode)], args,
+    return run('controller_node', [('controller', factory(args))], args,
                'The RAC or PI controller of piezo_stage_ros.')

@@ -29,6 +29,7 @@ from __future__ import annotations
 from typing import Sequence
 
 from piezo_stage_ros.nodes.controller_node import ControllerNode
+from piezo_stage_ros.nodes.controller_node import factory as controller_factory
 from piezo_stage_ros.nodes.logic import Sample
 from piezo_stage_ros.nodes.plant_node import PlantNode
 from piezo_stage_ros.nodes.runner import run
@@ -60,7 +61,7 @@ def connect_direct(plant: PlantNode, controller: ControllerNode,
 
 def main(args: Sequence[str] | None = None) -> int:
     """Run the composed nodes (console script ``stage_servo``)."""
-    return run('stage_servo', [('plant', PlantNode), ('controller', ControllerNode),
+    return run('stage_servo', [('plant', PlantNode), ('controller', controller_factory(args)),
                                ('trajectory', TrajectoryNode)], args,
                'Plant, controller and trajectory nodes of piezo_stage_ros in one process.',
                connect=connect_direct)

@@ -1,0 +1,580 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The loop configuration: every parameter of the three nodes, turned into typed objects one way.
+
+The parameter files in ``config/`` configure three ROS nodes; the offline commands (``simulate``,
+``soak``, ``identify``, ``tune``), the emulator, the nodes and the launch file all turn them into
+objects here, so a file means the same thing everywhere:
+
+- a node's *table* (:class:`NodeTable`) is the core parameter group it configures (the stage, the
+  controller with its stability check, the trajectory) plus a node group (mode, timeouts,
+  bridge), all declared with :func:`~piezo_stage_ros.core.params.param`; from it come the ROS
+  parameter declarations (:meth:`NodeTable.declarations`), the validated objects
+  (:meth:`NodeTable.build`) and the validation of a run-time change (:meth:`NodeTable.change`);
+- :class:`LoopConfig` holds the objects of all three tables, built from a
+  :class:`~piezo_stage_ros.core.config.Config` by :meth:`LoopConfig.from_config` (or from files by
+  :func:`load_loop_config`).
+
+Which names of a node section belong to the node (:meth:`NodeTable.select`): a name whose first
+dotted part is a parameter or group of the node's table; it is validated strictly (a misspelt
+``rac.epsilon`` is refused). Other names (``use_sim_time`` in a ``/**`` wildcard section,
+``qos_overrides.*``) are left to ROS, which ignores what a node does not declare.
+
+Node settings without meaning offline (rule, the same for every offline command): ``mode``,
+``backend``, ``duration_s``, the timeouts, ``lockstep.*`` and ``bridge.*`` are validated like
+any other value (a bad one is refused everywhere), and an offline command runs the stage model
+in its own loop whatever they say; :meth:`LoopConfig.offline_notes` names the ones set to
+something an offline run cannot honour (``mode: realtime``, ``backend: udp``), and the commands
+print that note once.
+
+The design model (the plant the controller's stability check and a ``model`` notch use) is the
+plant node's ``plant.*`` unless ``controller_node stability.design_model: own`` selects the
+controller's own ``stability.plant.*`` (:attr:`LoopConfig.design_plant`, docs/nodes.md).
+
+Every parameter is declared with dynamic typing in the nodes and validated here, because ROS
+would otherwise refuse an integer written in YAML for a double parameter (``0`` instead of
+``0.0``); the core validation accepts integers where floats are expected and refuses everything
+else with a reason.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+import math
+import os
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+from piezo_stage_ros.core.config import Config, load_config
+from piezo_stage_ros.core.controllers import ControllerParams
+from piezo_stage_ros.core.errors import ParameterError
+from piezo_stage_ros.core.params import group, param, Params, ParamSpec
+from piezo_stage_ros.core.stability import StabilityParams
+from piezo_stage_ros.core.stage import PlantParams, StageParams
+from piezo_stage_ros.core.trajectories import TrajectoryParams
+
+__all__ = ['BridgeParams', 'ControllerNodeParams', 'Declaration', 'Group', 'LockstepParams',
+           'LoopConfig', 'MODES', 'NodeTable', 'PlantNodeParams', 'TrajectoryNodeParams',
+           'TABLES', 'controller_table', 'design_plant', 'load_loop_config', 'plant_table',
+           'trajectory_table']
+
+MODES = ('lockstep', 'realtime')
+_MODE_DOC = ('Time: lockstep (the plant owns simulation time and waits for each command) or '
+             'realtime (the plant samples on its own clock and holds the last command).')
+
+
+@dataclass(frozen=True)
+class LockstepParams(Params):
+    """How the plant starts and keeps a lockstep loop going."""
+
+    subscribers: int = param(2, unit='-', description='Position subscribers (controller and '
+                             'trajectory) to wait for before sample 0 is published.', low=0,
+                             high=100, read_only=True)
+    settle_s: float = param(0.0, unit='s', description='Wait this long (wall time) after the '
+                            'subscribers matched before sample 0, so that a recorder is '
+                            'subscribed to every topic.', low=0.0, high=60.0, read_only=True)
+    resend_s: float = param(0.5, unit='s', description='Publish the current sample again when '
+                            'its command has not come after this long (wall time; covers a '
+                            'command lost while the graph was still matching).', low=0.001,
+                            high=60.0)
+
+
+@dataclass(frozen=True)
+class BridgeParams(Params):
+    """The UDP hardware bridge (backend 'udp'); protocol in docs/nodes.md."""
+
+    host: str = param('127.0.0.1', unit='-', description='Address of the real-time I/O target.',
+                      read_only=True)
+    port: int = param(50000, unit='-', description='UDP port of the target.', low=1,
+                      high=65535, read_only=True)
+    timeout_s: float = param(0.002, unit='s', description='Longest wait for the reply to one '
+                             'sample before it counts as lost.', low=1e-5, high=1.0,
+                             read_only=True)
+    max_consecutive_losses: int = param(10, unit='-', description='Lost samples in a row '
+                                        'before the plant gives up and drives the safe '
+                                        'voltage.', low=0, high=100000, read_only=True)
+
+
+@dataclass(frozen=True)
+class PlantNodeParams(Params):
+    """Plant node parameters beyond the stage itself."""
+
+    mode: str = param('lockstep', unit='-', description=_MODE_DOC, choices=MODES,
+                      read_only=True)
+    backend: str = param('model', unit='-', description='The stage model of the core, or the '
+                         'UDP bridge to a real-time I/O target.', choices=('model', 'udp'),
+                         read_only=True)
+    duration_s: float = param(0.0, unit='s', description='Stop after this much loop time '
+                              '(round(duration_s * rate) samples); 0 runs until shut down.',
+                              low=0.0, read_only=True)
+    command_timeout_s: float = param(0.01, unit='s', description='Drive the safe voltage when '
+                                     'commands stop for longer than this (realtime).',
+                                     low=0.0, low_open=True, high=10.0)
+    status_period_s: float = param(1.0, unit='s', description='Period of the stage/status '
+                                   'counters (wall time).', low=0.01, high=3600.0)
+    lockstep: LockstepParams = group(LockstepParams, 'lockstep start-up')
+    bridge: BridgeParams = group(BridgeParams, 'UDP bridge')
+
+
+@dataclass(frozen=True)
+class _PeerNodeParams(Params):
+    """What the controller and trajectory nodes share: the loop's rate and their mode."""
+
+    sample_rate_hz: float = param(10000.0, unit='Hz', description='Sample rate of the loop '
+                                  '(set once for every node under /**).', low=1.0, high=1e6,
+                                  read_only=True)
+    mode: str = param('lockstep', unit='-', description=_MODE_DOC, choices=MODES,
+                      read_only=True)
+
+
+@dataclass(frozen=True)
+class ControllerNodeParams(_PeerNodeParams):
+    """Controller node parameters beyond the controller itself."""
+
+    position_timeout_s: float = param(0.01, unit='s', description='Publish the safe voltage '
+                                      'when positions stop for longer than this (realtime).',
+                                      low=0.0, low_open=True, high=10.0)
+    safe_voltage_v: float = param(0.0, unit='V', description='Command published by the '
+                                  "position watchdog (keep equal to the plant's "
+                                  'chain.safe_voltage_v).', low=-10.0, high=10.0)
+    diagnostics_every: int = param(10, unit='-', description='Publish stage/diagnostics every '
+                                   'this many samples.', low=1, high=1000000)
+
+
+@dataclass(frozen=True)
+class TrajectoryNodeParams(_PeerNodeParams):
+    """Trajectory node parameters beyond the trajectory itself."""
+
+    active: bool = param(True, unit='-', description='Stream the trajectory (true) or hold the '
+                         'last reference with zero velocity (false); also set by the start and '
+                         'stop services.')
+    chunk_s: float = param(1.0, unit='s', description='The reference is evaluated this much at '
+                           'a time, aligned as the offline runner does (real time: at most '
+                           '5 ms at a time).', low=1e-4, high=100.0, read_only=True)
+
+
+@dataclass(frozen=True)
+class Declaration:
+    """
+    One ROS parameter as a node declares it (plain values; the node builds the descriptor).
+
+    Attributes
+    ----------
+    name : str
+        Dotted parameter name.
+    default : Any
+        Default value (lists for arrays).
+    type_name : str
+        ROS type name of the default (``'double'``, ``'integer'``, ...).
+    description : str
+        Description with unit and allowed values.
+    read_only : bool
+        Settable at start-up only.
+    float_range : tuple of float or None
+        ``(from, to)`` for a double bounded on both sides.
+    int_range : tuple of int or None
+        ``(from, to)`` for an integer bounded on both sides.
+    additional_constraints : str
+        The allowed values in words.
+
+    """
+
+    name: str
+    default: Any
+    type_name: str
+    description: str
+    read_only: bool
+    float_range: tuple[float, float] | None
+    int_range: tuple[int, int] | None
+    additional_constraints: str
+
+
+def declaration(spec: ParamSpec) -> Declaration:
+    """
+    Return how a node declares the parameter ``spec`` describes.
+
+    Parameters
+    ----------
+    spec : ParamSpec
+        One row of a parameter table.
+
+    Returns
+    -------
+    Declaration
+
+    """
+    unit = '' if spec.unit == '-' else f' [{spec.unit}]'
+    default = list(spec.default) if isinstance(spec.default, tuple) else spec.default
+    float_range: tuple[float, float] | None = None
+    int_range: tuple[int, int] | None = None
+    if spec.low is not None and spec.high is not None:
+        if spec.type_name == 'double':
+            float_range = (float(spec.low), float(spec.high))
+        elif spec.type_name == 'integer':
+            int_range = (int(spec.low), int(spec.high))
+    return Declaration(name=spec.name, default=default, type_name=spec.type_name,
+                       description=f'{spec.description}{unit}', read_only=spec.read_only,
+                       float_range=float_range, int_range=int_range,
+                       additional_constraints=spec.allowed())
+
+
+@dataclass(frozen=True)
+class Group:
+    """
+    One parameter group of a node table.
+
+    Attributes
+    ----------
+    cls : type
+        The :class:`~piezo_stage_ros.core.params.Params` subclass.
+    prefix : str
+        Prepended to its names (``'stability.'``), empty at the top level.
+    frozen : bool
+        Every parameter of the group is read-only in this node, whatever the group says (the
+        stage of the plant node: a stage is not rebuilt under a running loop).
+
+    """
+
+    cls: type[Params]
+    prefix: str = ''
+    frozen: bool = False
+
+
+class NodeTable:
+    """
+    The parameter table of one node: several parameter groups with disjoint names.
+
+    Parameters
+    ----------
+    node_name : str
+        Node name (for messages and the Markdown title).
+    groups : sequence of Group or type
+        The groups; a bare class is a top-level group.
+
+    Raises
+    ------
+    ValueError
+        If two groups declare the same name.
+
+    """
+
+    def __init__(self, node_name: str, groups: Sequence[Group | type[Params]]) -> None:
+        self.node_name = node_name
+        self.groups = tuple(g if isinstance(g, Group) else Group(g) for g in groups)
+        self._owner: dict[str, int] = {}
+        self._specs: dict[str, ParamSpec] = {}
+        for index, grp in enumerate(self.groups):
+            for spec in grp.cls.specs(grp.prefix):
+                if spec.name in self._owner:
+                    raise ValueError(f'{node_name}: parameter {spec.name!r} is declared twice')
+                if grp.frozen and not spec.read_only:
+                    spec = dataclasses.replace(spec, read_only=True)
+                self._owner[spec.name] = index
+                self._specs[spec.name] = spec
+
+    def specs(self) -> list[ParamSpec]:
+        """Return every row of the table, group by group, in declaration order."""
+        return list(self._specs.values())
+
+    def select(self, values: Mapping[str, Any]) -> dict[str, Any]:
+        """
+        Return the values of a node section that belong to this node (module docstring).
+
+        Parameters
+        ----------
+        values : Mapping[str, Any]
+            A node's section of parameter files, wildcard values included
+            (:meth:`piezo_stage_ros.core.config.Config.node`).
+
+        Returns
+        -------
+        dict
+            The values whose first dotted part names a parameter or group of the table; names
+            under it that the table does not know stay in, for :meth:`build` to refuse.
+
+        """
+        heads = {name.split('.', 1)[0] for name in self._specs}
+        return {name: value for name, value in values.items()
+                if name.split('.', 1)[0] in heads}
+
+    def declarations(self) -> list[Declaration]:
+        """Return what the node declares, one entry per parameter."""
+        return [declaration(spec) for spec in self._specs.values()]
+
+    def _split(self, values: Mapping[str, Any]) -> list[dict[str, Any]]:
+        parts: list[dict[str, Any]] = [{} for _ in self.groups]
+        for name, value in values.items():
+            owner = self._owner.get(name)
+            if owner is None:
+                raise ParameterError(name, value, 'a parameter of ' + self.node_name +
+                                     ' (see docs/nodes.md)', 'is not a parameter of this node')
+            parts[owner][name] = value
+        return parts
+
+    def build(self, values: Mapping[str, Any]) -> tuple[Any, ...]:
+        """
+        Validate start-up values and return one object per group.
+
+        Parameters
+        ----------
+        values : Mapping[str, Any]
+            Dotted names to values; missing names keep their defaults.
+
+        Returns
+        -------
+        tuple of Params
+            In the order of ``groups``.
+
+        Raises
+        ------
+        ParameterError
+            On the first unknown or bad value.
+
+        """
+        return tuple(grp.cls.from_flat(part, prefix=grp.prefix)
+                     for grp, part in zip(self.groups, self._split(values)))
+
+    def change(self, current: Sequence[Params], values: Mapping[str, Any]) -> tuple[Any, ...]:
+        """
+        Validate a run-time change and return the objects with it applied.
+
+        Parameters
+        ----------
+        current : sequence of Params
+            The objects in force, in the order of ``groups``.
+        values : Mapping[str, Any]
+            The parameters to change.
+
+        Returns
+        -------
+        tuple of Params
+            New objects (unchanged groups are the same objects).
+
+        Raises
+        ------
+        ParameterError
+            For a read-only, unknown or bad value, or a combination a group refuses.
+
+        """
+        parts = self._split(values)
+        for name, value in values.items():
+            if self._specs[name].read_only:
+                grp = self.groups[self._owner[name]]
+                now = current[self._owner[name]].to_flat(grp.prefix)[name]
+                raise ParameterError(name, value, f'its start-up value {now!r}',
+                                     'is read-only (set it in the parameter file)')
+        return tuple(obj.with_flat(part, prefix=grp.prefix) if part else obj
+                     for obj, grp, part in zip(current, self.groups, parts))
+
+    def markdown(self) -> str:
+        """Return the table as Markdown (name, type, default, unit, allowed, description)."""
+        lines = [f'#### `{self.node_name}`', '',
+                 '| name | type | default | unit | allowed | read-only | description |',
+                 '| --- | --- | --- | --- | --- | --- | --- |']
+        for spec in self._specs.values():
+            default = spec.default
+            if isinstance(default, float):
+                text = repr(default) if math.isfinite(default) else str(default)
+            elif isinstance(default, bool):
+                text = 'true' if default else 'false'
+            elif isinstance(default, tuple):
+                text = '[' + ', '.join(repr(v) for v in default) + ']'
+            else:
+                text = str(default)
+            lines.append(f'| `{spec.name}` | {spec.type_name} | `{text}` | {spec.unit} | '
+                         f'{spec.allowed()} | {"yes" if spec.read_only else "no"} | '
+                         f'{spec.description} |')
+        return '\n'.join(lines) + '\n'
+
+
+def plant_table() -> NodeTable:
+    """Return the table of ``plant_node``: the stage (start-up only) and the node group."""
+    return NodeTable('plant_node', [Group(StageParams, frozen=True), Group(PlantNodeParams)])
+
+
+def controller_table() -> NodeTable:
+    """Return the table of ``controller_node``: controller, stability check, node group."""
+    return NodeTable('controller_node', [Group(ControllerParams),
+                                         Group(StabilityParams, prefix='stability.'),
+                                         Group(ControllerNodeParams)])
+
+
+def trajectory_table() -> NodeTable:
+    """Return the table of ``trajectory_node``: the trajectory and the node group."""
+    return NodeTable('trajectory_node', [Group(TrajectoryParams), Group(TrajectoryNodeParams)])
+
+
+#: The three nodes of the loop, by their node names.
+TABLES = {'plant_node': plant_table, 'controller_node': controller_table,
+          'trajectory_node': trajectory_table}
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """
+    Every parameter of the loop, validated: the objects of the three node tables.
+
+    Attributes
+    ----------
+    stage : StageParams
+        The stage (plant node).
+    plant_node : PlantNodeParams
+        The plant node's own settings.
+    controller : ControllerParams
+        The controller.
+    stability : StabilityParams
+        The controller's stability check (and its own design model, ``stability.plant``).
+    controller_node : ControllerNodeParams
+        The controller node's own settings.
+    trajectory : TrajectoryParams
+        The reference.
+    trajectory_node : TrajectoryNodeParams
+        The trajectory node's own settings.
+    sources : tuple of Path
+        The parameter files read, in order.
+
+    """
+
+    stage: StageParams = dataclasses.field(default_factory=StageParams)
+    plant_node: PlantNodeParams = dataclasses.field(default_factory=PlantNodeParams)
+    controller: ControllerParams = dataclasses.field(default_factory=ControllerParams)
+    stability: StabilityParams = dataclasses.field(default_factory=StabilityParams)
+    controller_node: ControllerNodeParams = dataclasses.field(
+        default_factory=ControllerNodeParams)
+    trajectory: TrajectoryParams = dataclasses.field(default_factory=TrajectoryParams)
+    trajectory_node: TrajectoryNodeParams = dataclasses.field(
+        default_factory=TrajectoryNodeParams)
+    sources: tuple[Path, ...] = ()
+
+    @classmethod
+    def from_config(cls, config: Config) -> LoopConfig:
+        """
+        Build every object of the loop from parameter files already read.
+
+        Parameters
+        ----------
+        config : Config
+            The files' sections (and any overrides applied to them).
+
+        Returns
+        -------
+        LoopConfig
+
+        Raises
+        ------
+        ParameterError
+            On the first bad value, or an unknown name under a known group, of any node.
+
+        """
+        stage, plant_node = plant_table().build(plant_table().select(config.node('plant_node')))
+        table = controller_table()
+        controller, stability, controller_node = table.build(
+            table.select(config.node('controller_node')))
+        table = trajectory_table()
+        trajectory, trajectory_node = table.build(table.select(config.node('trajectory_node')))
+        return cls(stage=stage, plant_node=plant_node, controller=controller,
+                   stability=stability, controller_node=controller_node,
+                   trajectory=trajectory, trajectory_node=trajectory_node,
+                   sources=config.sources)
+
+    def replace(self, **changes: Any) -> LoopConfig:
+        """Return a copy with some objects changed (like ``dataclasses.replace``)."""
+        return dataclasses.replace(self, **changes)
+
+    @property
+    def design_plant(self) -> PlantParams:
+        """
+        Return the model the controller is checked (and a ``model`` notch designed) against.
+
+        The plant node's ``plant.*``, unless ``stability.design_model`` is ``'own'``: then the
+        controller's own ``stability.plant.*`` (a real stage: the identified model).
+        """
+        return design_plant(self.stability, self.stage.plant)
+
+    def offline_notes(self) -> list[str]:
+        """
+        Return what an offline run does not honour of the node settings (module docstring).
+
+        Returns
+        -------
+        list of str
+            One sentence per setting; empty when the files describe a lockstep model run.
+
+        """
+        notes = []
+        modes = [(name, obj.mode) for name, obj in (('plant_node', self.plant_node),
+                                                    ('controller_node', self.controller_node),
+                                                    ('trajectory_node', self.trajectory_node))
+                 if obj.mode != 'lockstep']
+        if modes:
+            said = ', '.join(f'{name} mode: {mode}' for name, mode in modes)
+            notes.append(f'{said} applies to the ROS nodes; an offline run steps the loop in '
+                         'its own time (as lockstep does)')
+        if self.plant_node.backend != 'model':
+            notes.append(f'plant_node backend: {self.plant_node.backend} applies to the ROS '
+                         'plant node; an offline run simulates the stage model')
+        return notes
+
+
+def design_plant(stability: StabilityParams, plant: PlantParams) -> PlantParams:
+    """
+    Return the controller's design model: ``plant`` or, on request, its own.
+
+    Parameters
+    ----------
+    stability : StabilityParams
+        The controller's stability options (``design_model``, ``plant``).
+    plant : PlantParams
+        The plant node's model.
+
+    Returns
+    -------
+    PlantParams
+        ``plant`` when ``stability.design_model`` is ``'plant'``, else ``stability.plant``.
+
+    """
+    return plant if stability.design_model == 'plant' else stability.plant
+
+
+def load_loop_config(paths: Iterable[str | os.PathLike[str]],
+                     overrides: Mapping[str, Mapping[str, Any]] | None = None) -> LoopConfig:
+    """
+    Read parameter files and build the loop configuration.
+
+    Parameters
+    ----------
+    paths : iterable of path-like
+        Parameter files, in order (later files win).
+    overrides : mapping, optional
+        ``{node name: {dotted name: value}}`` applied on top of the files.
+
+    Returns
+    -------
+    LoopConfig
+
+    Raises
+    ------
+    ConfigError
+        If a file cannot be read or is not a parameter file.
+    ParameterError
+        On a bad value.
+
+    """
+    config = load_config(paths)
+    for node, values in (overrides or {}).items():
+        config = config.with_overrides(node, values)
+    return LoopConfig.from_config(config)
