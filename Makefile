@@ -39,7 +39,7 @@ lint: $(STAMP)
 	$(BIN)/ruff check piezo_stage_ros test launch setup.py
 
 typecheck: $(STAMP)
-	$(BIN)/mypy piezo_stage_ros/core piezo_stage_ros/analysis
+	$(BIN)/mypy piezo_stage_ros
 
 pytest: $(STAMP)
 	$(BIN)/python -m pytest -q

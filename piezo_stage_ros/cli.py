@@ -306,13 +306,13 @@ def loop_overrides(config: Config, *, plant: str | None = None, hysteresis: str 
                  'step': ('step.final_m', 'step.initial_m'),
                  'noise': ('noise.amplitude_m', 'noise.offset_m'),
                  'chirp': ('chirp.amplitude_m', 'chirp.offset_m')}.get(kind, (None, None))
-        for flag, name in ((amplitude, names[0]), (offset, names[1])):
+        for flag, target in ((amplitude, names[0]), (offset, names[1])):
             if flag is not None:
-                if name is None:
+                if target is None:
                     raise ParameterError('--amplitude/--offset', flag,
                                          'not with trajectory ' + repr(kind),
                                          f'does not apply to trajectory {kind!r}')
-                traj[name] = flag
+                traj[target] = flag
     if csv is not None:
         traj['csv.path'] = csv
     if traj:

@@ -38,7 +38,6 @@ matplotlib.use('Agg')  # files only; never a window
 
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from numpy.typing import NDArray  # noqa: E402
 from piezo_stage_ros.core.identification import (  # noqa: E402
     discrete_frequency_response,
     factors_of,
@@ -51,7 +50,6 @@ from piezo_stage_ros.core.stage import StageParams  # noqa: E402
 __all__ = ['comparison_rows', 'format_table', 'plot_frequency_response', 'plot_hysteresis',
            'plot_step_response', 'write_report']
 
-FloatArray = NDArray[np.float64]
 
 _MODEL_STYLE: dict[str, Any] = {'color': 'tab:red', 'linestyle': '--', 'linewidth': 1.4}
 _DATA_STYLE: dict[str, Any] = {'color': 'tab:blue', 'linewidth': 1.2}

@@ -39,9 +39,9 @@ matplotlib.use('Agg')
 from matplotlib.axes import Axes  # noqa: E402 - the backend must be chosen first
 from matplotlib.figure import Figure  # noqa: E402
 import numpy as np  # noqa: E402
-from numpy.typing import NDArray  # noqa: E402
 from piezo_stage_ros.analysis.spectral import BodeEstimate  # noqa: E402
 from piezo_stage_ros.core.record import RunRecord  # noqa: E402
+from piezo_stage_ros.core.types import FloatArray
 
 __all__ = [
     'error_trace',
@@ -55,7 +55,6 @@ __all__ = [
     'plot_tracking',
 ]
 
-FloatArray = NDArray[np.float64]
 
 _DPI = 110
 _SIZE = (8.0, 4.5)

@@ -35,10 +35,10 @@ from piezo_stage_ros.core.errors import PiezoStageError
 from piezo_stage_ros.core.identification import estimate_frequency_response, IdentificationError
 from piezo_stage_ros.core.record import RunRecord
 from piezo_stage_ros.core.stage import StageParams
+from piezo_stage_ros.core.types import FloatArray
 
 __all__ = ['BodeEstimate', 'estimate_bode', 'is_excitation_run']
 
-FloatArray = NDArray[np.float64]
 
 _EXCITATION = re.compile(r'chirp|sweep|noise|prbs', re.IGNORECASE)
 

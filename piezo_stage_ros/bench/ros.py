@@ -124,7 +124,8 @@ def _cross(duration_s: float, executor: str) -> dict[str, Any]:
         ex.spin_until_future_complete(plant.finished, timeout_sec=duration_s * 50 + 60)
         if not plant.finished.done():
             raise RuntimeError('cross-process run did not finish: '
-                               + (helper.stderr.read() if helper.poll() is not None else ''))
+                               + (helper.stderr.read() if helper.stderr is not None
+                                  and helper.poll() is not None else ''))
         ex.remove_node(plant)
         ex.shutdown()
         return dict(plant.finished.result())

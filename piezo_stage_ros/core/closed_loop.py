@@ -42,14 +42,13 @@ import math
 from typing import Any, Callable, Mapping, Protocol, Sequence
 
 import numpy as np
-from numpy.typing import NDArray
 from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
 from piezo_stage_ros.core.interfaces import Controller, Trajectory
 from piezo_stage_ros.core.record import RunRecord
+from piezo_stage_ros.core.types import FloatArray
 
 __all__ = ['ChunkCallback', 'Plant', 'concatenate', 'run']
 
-FloatArray = NDArray[np.float64]
 
 #: Receives every chunk of a run as it is produced.
 ChunkCallback = Callable[[RunRecord], None]

@@ -40,14 +40,13 @@ from dataclasses import dataclass
 import math
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 from piezo_stage_ros.core.errors import ParameterError
 from piezo_stage_ros.core.params import param, Params
+from piezo_stage_ros.core.types import FloatArray
 
 __all__ = ['ChirpExcitation', 'ChirpParams', 'NoiseExcitation', 'NoiseParams',
            'make_excitation']
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

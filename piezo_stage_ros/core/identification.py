@@ -73,6 +73,7 @@ from piezo_stage_ros.core.linear import third_order_plant, ThirdOrderParams
 from piezo_stage_ros.core.params import param, Params
 from piezo_stage_ros.core.record import RunRecord
 from piezo_stage_ros.core.stage import amplifier_input, SignalChainParams, StageParams
+from piezo_stage_ros.core.types import FloatArray
 from scipy import optimize, signal
 
 __all__ = [
@@ -83,7 +84,6 @@ __all__ = [
     'fit_step_response', 'identify', 'pscm_gain', 'sample_time_of', 'third_order_of',
 ]
 
-FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]
 
 #: Residuals of the time-domain fits are in nanometres (optimizer tolerances are absolute).

@@ -46,14 +46,14 @@ import math
 from typing import Any, Mapping, Sequence
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 from piezo_stage_ros.core.errors import PiezoStageError
 from piezo_stage_ros.core.record import RunRecord
+from piezo_stage_ros.core.types import FloatArray
 
 __all__ = ['TRANSIENT_PERIODS', 'TRANSIENT_S', 'edge_metrics', 'error_metrics', 'loop_width',
            'square_wave_metrics', 'steady_state_start', 'step_response', 'summarize']
 
-FloatArray = NDArray[np.float64]
 
 #: Whole periods of a periodic reference skipped before the steady-state window.
 TRANSIENT_PERIODS = 2

@@ -27,12 +27,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 from piezo_stage_ros.core.errors import PiezoStageError
+from piezo_stage_ros.core.types import FloatArray
 
 __all__ = ['RunRecord']
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclass

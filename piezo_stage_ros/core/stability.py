@@ -69,12 +69,11 @@ from piezo_stage_ros.core.errors import ParameterError, StabilityError
 from piezo_stage_ros.core.linear import LinearPlant, third_order_plant
 from piezo_stage_ros.core.params import group, param, Params
 from piezo_stage_ros.core.stage import linear_plant, PlantParams
+from piezo_stage_ros.core.types import FloatArray
 
 __all__ = ['ADAPTATION_MARGIN', 'AdaptationBound', 'LoopCase', 'StabilityParams',
            'StabilityReport', 'StabilityWarning', 'adaptation_bound', 'check_stability',
            'enforce', 'loop_polynomials', 'stability_plant']
-
-FloatArray = NDArray[np.float64]
 
 
 #: Required ratio g_crit / g of the adaptation loop (a gain margin of 6 dB).

@@ -122,7 +122,7 @@ class ControllerNode(Node):
                                      qos.LOOP, raw=True)]
         self._cmd_gate: Callable[[], bool] = lambda: True
         self._diag_gate: Callable[[], bool] = lambda: True
-        self._last_u = opts.safe_voltage_v
+        self._last_u: float = opts.safe_voltage_v
         self._lockstep = opts.mode == 'lockstep'
         self._watch = None
         if not self._lockstep:

@@ -94,7 +94,7 @@ class PlantNode(Node):
         self._clock_pub = self.create_publisher(ClockMsg, topics.CLOCK, qos.CLOCK) \
             if self.logic.lockstep else None
         # /clock goes out only while someone listens (looked at every 1000 samples)
-        self._clock_gate = Gate(self._clock_pub.get_subscription_count) \
+        self._clock_gate: Callable[[], bool] = Gate(self._clock_pub.get_subscription_count) \
             if self._clock_pub is not None else (lambda: False)
         self._status_pub = self.create_publisher(DiagnosticStatus, topics.STATUS, qos.STATUS)
         self._cmd_sub = self.create_subscription(Float64, topics.COMMAND, self._on_command,
