@@ -107,7 +107,8 @@ def run_command(prog: str, parser: argparse.ArgumentParser,
         error(prog, str(exc))
         return 1
     except OSError as exc:
-        error(prog, f'{exc.filename or ""}: {exc.strerror}' if exc.strerror else str(exc))
+        where = f'{exc.filename}: ' if exc.filename else ''
+        error(prog, where + (exc.strerror or str(exc)))
         return 1
     except KeyboardInterrupt:
         error(prog, 'interrupted')

@@ -153,6 +153,7 @@ def test_command_line_choices_come_from_the_declarations() -> None:
     (ParameterError('x', 3, '[0, 1]'), 1, "prog: error: parameter 'x' = 3"),
     (FileNotFoundError(2, 'No such file or directory', 'f.txt'), 1,
      'prog: error: f.txt: No such file or directory'),
+    (BrokenPipeError(32, 'Broken pipe'), 1, 'prog: error: Broken pipe\n'),
     (KeyboardInterrupt(), 130, 'prog: error: interrupted'),
 ])
 def test_one_mapping_of_errors_to_exit_status(capsys: pytest.CaptureFixture[str],
