@@ -52,7 +52,6 @@ import functools
 from io import BytesIO
 import json
 from pathlib import Path, PurePath
-import re
 import shutil
 import sqlite3
 import struct
@@ -61,8 +60,30 @@ from typing import Any, BinaryIO, Final, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from piezo_stage_ros.core.cdr import (
+    CdrError,
+    decode_float64,
+    decode_joint_state_message,
+    float64_layout,
+    joint_state_layout,
+    JointStateMessage,
+    Layout,
+)
 from piezo_stage_ros.core.errors import BagError
 from piezo_stage_ros.core.record import RunRecord
+from piezo_stage_ros.core.wire import (
+    BAG_TOPICS,
+    COMMAND_TYPE,
+    DEFAULT_NAMESPACE,
+    JOINT_NAME,
+    JOINT_STATE_TYPE,
+    META_KEY,
+    normalize_namespace,
+    NS_PER_S,
+    REQUIRED_TOPICS,
+    stamp_to_ns,
+    topic_names,
+)
 from rosbags.interfaces import (
     Connection,
     Qos,
@@ -88,20 +109,13 @@ from rosbags.typesys.store import Typestore
 import yaml
 
 __all__ = [
-    'COMMAND_TYPE',
-    'DEFAULT_NAMESPACE',
-    'JOINT_NAME',
-    'JOINT_STATE_TYPE',
-    'META_KEY',
     'STORAGES',
-    'TOPIC_TYPES',
     'BagInfo',
     'ProgressCallback',
     'RunBagWriter',
     'bag_info',
     'read_run',
     'read_topics',
-    'topic_names',
     'write_run',
 ]
 
@@ -112,19 +126,6 @@ ByteMatrix = NDArray[np.uint8]
 #: Called as ``progress(messages_read, messages_total)`` while a bag is read.
 ProgressCallback = Callable[[int, int], None]
 
-JOINT_STATE_TYPE: Final = 'sensor_msgs/msg/JointState'
-COMMAND_TYPE: Final = 'std_msgs/msg/Float64'
-#: Relative topic name -> message type; ``diagnostics`` is optional, the others are required.
-TOPIC_TYPES: Final[Mapping[str, str]] = {
-    'position': JOINT_STATE_TYPE,
-    'reference': JOINT_STATE_TYPE,
-    'command': COMMAND_TYPE,
-    'diagnostics': JOINT_STATE_TYPE,
-}
-REQUIRED_TOPICS: Final = ('position', 'reference', 'command')
-DEFAULT_NAMESPACE: Final = '/stage'
-JOINT_NAME: Final = 'stage'
-META_KEY: Final = 'piezo_stage_ros.meta'
 STORAGES: Final[Mapping[str, StoragePlugin]] = {
     'mcap': StoragePlugin.MCAP,
     'sqlite3': StoragePlugin.SQLITE3,
@@ -146,8 +147,6 @@ OFFERED_QOS: Final = Qos(
     avoid_ros_namespace_conventions=False,
 )
 
-_NAMESPACE_RE = re.compile(r'^(/[A-Za-z][A-Za-z0-9_]*)*$')
-_NS_PER_S = 1_000_000_000
 _MCAP_MAGIC = b'\x89MCAP0\r\n'
 _U64 = struct.Struct('<Q')
 # Messages handed to the decoder at once: big enough for numpy to pay off, small enough that the
@@ -160,195 +159,6 @@ _LAYOUTS_PER_SIZE = 4
 @functools.cache
 def _typestore() -> Typestore:
     return get_typestore(Stores.ROS2_JAZZY)
-
-
-def _normalize_namespace(namespace: str) -> str:
-    ns = namespace.rstrip('/')
-    if ns and not ns.startswith('/'):
-        ns = '/' + ns
-    if not _NAMESPACE_RE.match(ns):
-        raise BagError(
-            f'namespace {namespace!r} is not a valid ROS namespace; allowed: '
-            "'/name[/name...]' of letters, digits and '_' (each part starting with a letter)")
-    return ns
-
-
-def topic_names(namespace: str = DEFAULT_NAMESPACE) -> dict[str, str]:
-    """
-    Return the absolute topic names of a run under a namespace.
-
-    Parameters
-    ----------
-    namespace : str
-        ROS namespace, e.g. ``'/stage'`` (``''`` or ``'/'`` for the root).
-
-    Returns
-    -------
-    dict of str to str
-        ``{'position': '/stage/position', 'reference': ..., 'command': ..., 'diagnostics': ...}``.
-
-    """
-    ns = _normalize_namespace(namespace)
-    return {key: f'{ns}/{key}' for key in TOPIC_TYPES}
-
-
-# --------------------------------------------------------------------------------------------
-# CDR layouts
-
-
-@dataclass(frozen=True)
-class _Layout:
-    """
-    Byte layout of one serialized message whose variable parts sit at fixed offsets.
-
-    Attributes
-    ----------
-    template : ndarray of uint8
-        A serialized message (rosbags' own serializer) with sentinel values.
-    fixed : ndarray of bool
-        True for bytes every message of this layout must share with ``template``.
-    stamp_offset : int or None
-        Offset of ``header.stamp.sec`` (int32, then uint32 nanosec), None for unstamped types.
-    arrays : dict of str to (int, int)
-        Float64 fields: name -> (byte offset, element count).
-    names : tuple of str
-        JointState ``name`` list (empty for other types).
-
-    """
-
-    template: ByteMatrix
-    fixed: NDArray[np.bool_]
-    stamp_offset: int | None
-    arrays: dict[str, tuple[int, int]]
-    names: tuple[str, ...]
-
-    @property
-    def size(self) -> int:
-        return int(self.template.size)
-
-    def encode(self, stamp_ns: IntArray | None, arrays: Mapping[str, FloatArray],
-               n: int) -> ByteMatrix:
-        """
-        Serialize ``n`` messages at once.
-
-        Parameters
-        ----------
-        stamp_ns : ndarray of int64 or None
-            Header stamps [ns] (None for unstamped types).
-        arrays : dict of str to ndarray
-            Per field, a ``(n, count)`` float64 array.
-        n : int
-            Number of messages.
-
-        Returns
-        -------
-        ndarray of uint8
-            ``(n, size)`` matrix, one serialized message per row.
-
-        """
-        out = np.empty((n, self.size), dtype=np.uint8)
-        out[:] = self.template
-        if self.stamp_offset is not None:
-            assert stamp_ns is not None
-            off = self.stamp_offset
-            stamps = np.empty((n, 2), dtype='<u4')
-            stamps[:, 0] = stamp_ns // _NS_PER_S
-            stamps[:, 1] = stamp_ns % _NS_PER_S
-            out[:, off:off + 8] = stamps.view(np.uint8)
-        for name, (off, count) in self.arrays.items():
-            values = np.ascontiguousarray(arrays[name], dtype='<f8').reshape(n, count)
-            out[:, off:off + 8 * count] = values.view(np.uint8)
-        return out
-
-    def decode(self, rows: ByteMatrix) -> tuple[NDArray[np.bool_], IntArray | None,
-                                                dict[str, FloatArray]]:
-        """
-        Decode the rows that match this layout.
-
-        Parameters
-        ----------
-        rows : ndarray of uint8
-            ``(n, size)`` serialized messages.
-
-        Returns
-        -------
-        ok : ndarray of bool
-            Rows whose constant bytes match the template; the other outputs hold only these.
-        stamp_ns : ndarray of int64 or None
-            Header stamps [ns].
-        arrays : dict of str to ndarray
-            Per field, a ``(n_ok, count)`` float64 array.
-
-        """
-        ok = np.all(rows[:, self.fixed] == self.template[self.fixed], axis=1)
-        good = rows[ok] if not ok.all() else rows
-        stamp_ns: IntArray | None = None
-        if self.stamp_offset is not None:
-            off = self.stamp_offset
-            sec = np.ascontiguousarray(good[:, off:off + 4]).view('<i4')[:, 0].astype(np.int64)
-            nsec = np.ascontiguousarray(good[:, off + 4:off + 8]).view('<u4')[:, 0]
-            stamp_ns = sec * _NS_PER_S + nsec.astype(np.int64)
-        arrays = {
-            name: np.ascontiguousarray(good[:, off:off + 8 * count]).view('<f8').astype(
-                np.float64)
-            for name, (off, count) in self.arrays.items()
-        }
-        return ok, stamp_ns, arrays
-
-
-# Sentinels that cannot be confused with anything else in a small message.
-_SENTINEL_SEC = 0x1A2B3C4D
-_SENTINEL_NSEC = 0x1E2F3A4B
-
-
-def _sentinel(field_index: int, element: int) -> float:
-    return float(struct.unpack('<d', bytes([0x5A, 0xA5, 0x3C, 0xC3, element & 0xFF,
-                                            field_index, 0x13, 0x91]))[0])
-
-
-def _find_unique(raw: bytes, needle: bytes, what: str) -> int:
-    offset = raw.find(needle)
-    if offset < 0 or raw.find(needle, offset + 1) >= 0:
-        raise BagError(f'internal error: cannot locate {what} in the serialized template')
-    return offset
-
-
-def _build_layout(msgtype: str, *, frame_id: str = '', names: Sequence[str] = (),
-                  n_position: int = 0, n_velocity: int = 0, n_effort: int = 0) -> _Layout:
-    store = _typestore()
-    if msgtype == COMMAND_TYPE:
-        value = _sentinel(0, 0)
-        raw = bytes(store.serialize_cdr(store.types[COMMAND_TYPE](data=value), COMMAND_TYPE))
-        offsets: dict[str, tuple[int, int]] = {
-            'data': (_find_unique(raw, struct.pack('<d', value), 'data'), 1)}
-        stamp_offset: int | None = None
-    elif msgtype == JOINT_STATE_TYPE:
-        counts = {'position': n_position, 'velocity': n_velocity, 'effort': n_effort}
-        values = {name: np.array([_sentinel(i + 1, j) for j in range(count)], dtype=np.float64)
-                  for i, (name, count) in enumerate(counts.items())}
-        msg = store.types[JOINT_STATE_TYPE](
-            header=store.types['std_msgs/msg/Header'](
-                stamp=store.types['builtin_interfaces/msg/Time'](
-                    sec=_SENTINEL_SEC, nanosec=_SENTINEL_NSEC),
-                frame_id=frame_id),
-            name=list(names), **values)
-        raw = bytes(store.serialize_cdr(msg, JOINT_STATE_TYPE))
-        stamp_offset = _find_unique(raw, struct.pack('<iI', _SENTINEL_SEC, _SENTINEL_NSEC),
-                                    'header.stamp')
-        offsets = {}
-        for name, vals in values.items():
-            if len(vals):
-                offsets[name] = (_find_unique(raw, vals.astype('<f8').tobytes(), name),
-                                 len(vals))
-    else:
-        raise BagError(f'internal error: no layout for {msgtype}')
-    template = np.frombuffer(raw, dtype=np.uint8).copy()
-    fixed = np.ones(template.size, dtype=bool)
-    if stamp_offset is not None:
-        fixed[stamp_offset:stamp_offset + 8] = False
-    for off, count in offsets.values():
-        fixed[off:off + 8 * count] = False
-    return _Layout(template, fixed, stamp_offset, offsets, tuple(names))
 
 
 # --------------------------------------------------------------------------------------------
@@ -416,7 +226,7 @@ class RunBagWriter:
         self._writer: Writer | None = None
         self._connections: dict[str, Connection] = {}
         self._diagnostic_keys: tuple[str, ...] | None = None
-        self._layouts: dict[str, _Layout] = {}
+        self._layouts: dict[str, Layout] = {}
         self._last_ns = -1
         self.samples_written = 0
         self._bulk: _BulkWriter | None = None
@@ -453,13 +263,12 @@ class RunBagWriter:
         store = _typestore()
         for key in REQUIRED_TOPICS:
             self._connections[key] = writer.add_connection(
-                self.topics[key], TOPIC_TYPES[key], typestore=store,
+                self.topics[key], BAG_TOPICS[key], typestore=store,
                 offered_qos_profiles=[OFFERED_QOS])
-        self._layouts['position'] = _build_layout(JOINT_STATE_TYPE, names=[JOINT_NAME],
-                                                  n_position=1)
-        self._layouts['reference'] = _build_layout(JOINT_STATE_TYPE, names=[JOINT_NAME],
-                                                   n_position=1, n_velocity=1)
-        self._layouts['command'] = _build_layout(COMMAND_TYPE)
+        self._layouts['position'] = joint_state_layout(names=[JOINT_NAME], n_position=1)
+        self._layouts['reference'] = joint_state_layout(names=[JOINT_NAME], n_position=1,
+                                                        n_velocity=1)
+        self._layouts['command'] = float64_layout()
 
     def _add_diagnostics(self, keys: tuple[str, ...]) -> None:
         assert self._writer is not None
@@ -468,8 +277,7 @@ class RunBagWriter:
             self._connections['diagnostics'] = self._writer.add_connection(
                 self.topics['diagnostics'], JOINT_STATE_TYPE, typestore=_typestore(),
                 offered_qos_profiles=[OFFERED_QOS])
-            self._layouts['diagnostics'] = _build_layout(JOINT_STATE_TYPE, names=keys,
-                                                         n_position=len(keys))
+            self._layouts['diagnostics'] = joint_state_layout(names=keys, n_position=len(keys))
 
     def set_meta(self, meta: Mapping[str, Any]) -> None:
         """
@@ -531,7 +339,7 @@ class RunBagWriter:
         n = times.size
         if not np.all(np.isfinite(times)) or (n and times.min() < 0.0):
             raise BagError(f'bag {self.path}: sample times must be finite and >= 0 s')
-        stamp_ns = np.rint(times * _NS_PER_S).astype(np.int64)
+        stamp_ns = np.rint(times * NS_PER_S).astype(np.int64)
         if n and (stamp_ns[0] <= self._last_ns or np.any(np.diff(stamp_ns) <= 0)):
             raise BagError(f'bag {self.path}: sample times must be strictly increasing '
                            '(at nanosecond resolution)')
@@ -555,7 +363,7 @@ class RunBagWriter:
             columns['diagnostics'] = {'position': values}
         if n == 0:
             return
-        order = [key for key in TOPIC_TYPES if key in columns]
+        order = [key for key in BAG_TOPICS if key in columns]
         messages = []
         for key in order:
             layout = self._layouts[key]
@@ -935,7 +743,7 @@ def _storage_files(bag: Path) -> tuple[str, list[Path], dict[str, Any]]:
 
 def _find_namespace(info: BagInfo, namespace: str | None) -> str:
     if namespace is not None:
-        return _normalize_namespace(namespace)
+        return normalize_namespace(namespace)
     candidates = sorted({topic[:-len('/position')] for topic in info.topics
                          if topic.endswith('/position')
                          and f'{topic[:-len("/position")]}/command' in info.topics})
@@ -955,7 +763,7 @@ class _TopicData:
         self.bag = bag
         self.topic = topic
         self.msgtype = msgtype
-        self.layouts: dict[int, list[_Layout]] = {}
+        self.layouts: dict[int, list[Layout]] = {}
         self.names: tuple[str, ...] | None = None
         self.log_ns: list[IntArray] = []
         self.stamp_ns: list[IntArray] = []
@@ -1010,40 +818,49 @@ class _TopicData:
         for i in range(rows.shape[0]):
             self._generic(int(log_ns[i]), rows[i].tobytes())
 
-    def _deserialize(self, data: bytes) -> Any:
-        try:
-            return _typestore().deserialize_cdr(data, self.msgtype)
-        except Exception as err:  # noqa: BLE001 - the CDR decoder raises many error types
-            raise BagError(f'bag {self.bag}: a message on {self.topic} cannot be decoded as '
-                           f'{self.msgtype} (corrupt data?): {_describe(err)}') from None
-
-    def _layout_for(self, data: bytes) -> _Layout:
-        msg = self._deserialize(data)
+    def _layout_for(self, data: bytes) -> Layout:
         if self.msgtype == COMMAND_TYPE:
-            layout = _build_layout(COMMAND_TYPE)
+            self._decode_command(data)
+            layout = float64_layout()
         else:
-            layout = _build_layout(JOINT_STATE_TYPE, frame_id=msg.header.frame_id,
-                                   names=list(msg.name), n_position=len(msg.position),
-                                   n_velocity=len(msg.velocity), n_effort=len(msg.effort))
-        # A layout whose template does not reproduce a real message would decode garbage:
-        # such a message type simply goes through the generic decoder (size never matches).
+            msg = self._decode_joint_state(data)
+            layout = joint_state_layout(frame_id=msg.frame_id, names=msg.names,
+                                        n_position=msg.position.size,
+                                        n_velocity=msg.velocity.size, n_effort=msg.effort.size)
+        # A layout whose template does not reproduce a real message (big-endian, other
+        # padding) would decode garbage: such messages go through the generic decoder (the
+        # layout's size never matches).
         if layout.size != len(data):
-            return _Layout(np.zeros(len(data), np.uint8), np.ones(len(data), bool), None, {},
-                           ())
+            return Layout(np.zeros(len(data), np.uint8), np.ones(len(data), bool), None, {}, ())
         return layout
 
+    def _corrupt(self, err: CdrError) -> BagError:
+        return BagError(f'bag {self.bag}: a message on {self.topic} cannot be decoded as '
+                        f'{self.msgtype} (corrupt data?): {_describe(err)}')
+
+    def _decode_command(self, data: bytes) -> float:
+        try:
+            return decode_float64(data)
+        except CdrError as err:
+            raise self._corrupt(err) from None
+
+    def _decode_joint_state(self, data: bytes) -> JointStateMessage:
+        try:
+            return decode_joint_state_message(data)
+        except CdrError as err:
+            raise self._corrupt(err) from None
+
     def _generic(self, log_ns: int, data: bytes) -> None:
-        msg = self._deserialize(data)
         stamps: IntArray | None = None
         if self.msgtype == COMMAND_TYPE:
-            arrays = {'data': np.array([[float(msg.data)]])}
+            arrays = {'data': np.array([[self._decode_command(data)]])}
             names: tuple[str, ...] = ()
         else:
-            stamps = np.array([int(msg.header.stamp.sec) * _NS_PER_S
-                               + int(msg.header.stamp.nanosec)], dtype=np.int64)
-            names = tuple(msg.name)
-            arrays = {'position': np.asarray(msg.position, dtype=np.float64).reshape(1, -1),
-                      'velocity': np.asarray(msg.velocity, dtype=np.float64).reshape(1, -1)}
+            msg = self._decode_joint_state(data)
+            stamps = np.array([stamp_to_ns(msg.sec, msg.nanosec)], dtype=np.int64)
+            names = msg.names
+            arrays = {'position': msg.position.reshape(1, -1),
+                      'velocity': msg.velocity.reshape(1, -1)}
         self._append(np.array([log_ns], dtype=np.int64), stamps, self._columns(arrays, names))
 
     def _columns(self, arrays: Mapping[str, FloatArray], names: tuple[str, ...]) -> FloatArray:
@@ -1386,10 +1203,10 @@ def read_topics(path: str | Path, *, namespace: str | None = None,
         if topics[key] not in info.topics:
             raise BagError(f'bag {info.path}: topic {topics[key]} is missing')
     for key, topic in topics.items():
-        if topic in info.topics and info.topics[topic][0] != TOPIC_TYPES[key]:
+        if topic in info.topics and info.topics[topic][0] != BAG_TOPICS[key]:
             raise BagError(f'bag {info.path}: topic {topic} has type {info.topics[topic][0]}, '
-                           f'expected {TOPIC_TYPES[key]}')
-    wanted = {topic: _TopicData(info.path, topic, TOPIC_TYPES[key])
+                           f'expected {BAG_TOPICS[key]}')
+    wanted = {topic: _TopicData(info.path, topic, BAG_TOPICS[key])
               for key, topic in topics.items() if topic in info.topics}
     total = sum(info.topics[t][1] for t in wanted)
     tick = _progress_ticker(progress, total)

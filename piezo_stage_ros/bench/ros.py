@@ -121,8 +121,8 @@ def _cross(duration_s: float, executor: str) -> dict[str, Any]:
         ex.add_node(plant)
         ex.spin_until_future_complete(plant.finished, timeout_sec=duration_s * 50 + 60)
         if not plant.finished.done():
-            raise RuntimeError('cross-process run did not finish: '
-                               + (helper.stderr.read() if helper.poll() is not None else ''))
+            stderr = helper.stderr.read() if helper.poll() is not None and helper.stderr else ''
+            raise RuntimeError('cross-process run did not finish: ' + stderr)
         ex.remove_node(plant)
         ex.shutdown()
         return dict(plant.finished.result())
@@ -140,8 +140,8 @@ def _cross(duration_s: float, executor: str) -> dict[str, Any]:
 def _pingpong(round_trips: int = 20000) -> dict[str, Any]:
     import time
 
+    from piezo_stage_ros.core.cdr import encode_float64
     from piezo_stage_ros.nodes import qos
-    from piezo_stage_ros.nodes.cdr import encode_float64
     from piezo_stage_ros.nodes.runner import make_executor
     import rclpy
     from rclpy.context import Context
