@@ -163,8 +163,10 @@ def test_offline_loop_node_and_bag_carry_the_same_columns(kind, tmp_path):
                  diagnostics_every=1)
     logic = ControllerLogic(build_controller(ControllerParams(type=kind), 1e-4))
     assert tuple(record.diagnostics) == logic.names == tuple(sorted(logic.names))
-    bagio = pytest.importorskip('piezo_stage_ros.analysis.bagio', reason='rosbags writes bags')
-    bagio.write_run(record, tmp_path / 'run')
-    _, _, _, names = bagio.read_topics(tmp_path / 'run')
+    bagwrite = pytest.importorskip('piezo_stage_ros.analysis.bagwrite',
+                                   reason='rosbags writes bags')
+    from piezo_stage_ros.analysis.bagread import read_topics
+    bagwrite.write_run(record, tmp_path / 'run')
+    _, _, _, names = read_topics(tmp_path / 'run')
     assert names['diagnostics'] == logic.names
     assert np.isfinite(record.diagnostics[logic.names[0]]).all()

@@ -18,8 +18,9 @@ from pathlib import Path
 import shutil
 
 import numpy as np
-from piezo_stage_ros.analysis import bagio
-from piezo_stage_ros.analysis.bagio import read_run, read_topics, RunBagWriter, write_run
+from piezo_stage_ros.analysis import bagread
+from piezo_stage_ros.analysis.bagread import read_run, read_topics
+from piezo_stage_ros.analysis.bagwrite import RunBagWriter, write_run
 from piezo_stage_ros.core import wire
 from piezo_stage_ros.core.errors import BagError
 from piezo_stage_ros.core.record import RunRecord
@@ -598,6 +599,6 @@ def test_commands_pair_with_the_position_they_answer(command_delay_us, next_posi
     rng = np.random.default_rng(0)
     position_ns = k * next_position_us * 1000
     command_ns = position_ns + command_delay_us * 1000 + rng.integers(0, 3000, k.size)
-    offset, median_ns = bagio._command_offset(position_ns, np.sort(command_ns))
+    offset, median_ns = bagread._command_offset(position_ns, np.sort(command_ns))
     assert offset == expected
     assert median_ns >= 0.0
