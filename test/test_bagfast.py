@@ -31,6 +31,25 @@ from rosbags.rosbag2.storage_mcap import McapWriter, PendingChunk
 from rosbags.rosbag2.storage_sqlite3 import Sqlite3Writer
 
 
+def test_installed_rosbags_is_verified():
+    from importlib.metadata import version
+    assert bagfast.rosbags_verified(), (
+        f'rosbags {version("rosbags")} is outside VERIFIED_ROSBAGS {bagfast.VERIFIED_ROSBAGS}: '
+        'the bulk writer is off; check the internals listed in analysis/bagfast.py, then widen '
+        'the range')
+
+
+def test_version_gate_turns_the_bulk_path_off(tmp_path, monkeypatch):
+    monkeypatch.setattr(bagfast, 'VERIFIED_ROSBAGS', ((0, 0, 0), (0, 0, 1)))
+    bagfast.rosbags_verified.cache_clear()
+    try:
+        with RunBagWriter(tmp_path / 'run') as writer:
+            writer.write_samples([0.0], [1e-6], [1e-6], [0.0], [0.5])
+            assert writer._bulk is None
+    finally:
+        bagfast.rosbags_verified.cache_clear()
+
+
 @pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
 def test_bulk_path_is_taken(tmp_path, storage):
     with RunBagWriter(tmp_path / 'run', storage=storage) as writer:

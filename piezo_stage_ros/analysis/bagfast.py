@@ -35,8 +35,11 @@ changes them; the writing test compares every byte with what ``Writer.write`` gi
 - ``rosbags.rosbag2.storage_sqlite3.Sqlite3Writer.cursor`` and its ``messages`` table;
 - ``rosbags.rosbag2.storage_mcap.decompress(data, compression, size, crc)`` for reading.
 
-Without one of the writer attributes the writer falls back to the public ``Writer.write`` (the
-same bytes, slower); the test makes that a CI failure instead of a silent slow-down.
+The bulk writer is used only with a rosbags version in :data:`VERIFIED_ROSBAGS` (the range the
+internals were checked against) that has every attribute above; otherwise it falls back to the
+public ``Writer.write`` (the same bytes, slower). A newer rosbags, which ``python3-rosbags-pip``
+may install regardless of ``requirements.txt``, thus never gets records written on a guess;
+``test/test_bagfast.py`` turns the fallback into a CI failure instead of a silent slow-down.
 
 Reading (:class:`McapScanner`): an MCAP file is scanned chunk by chunk; each chunk's message
 records are found in bulk and handed to a :class:`MessageSink` as ``(messages, bytes)`` uint8
@@ -47,10 +50,13 @@ from __future__ import annotations
 
 from collections import defaultdict
 from collections.abc import Callable, Mapping, Sequence
+import functools
+from importlib.metadata import PackageNotFoundError, version
 from io import BytesIO
 from pathlib import Path
+import re
 import struct
-from typing import BinaryIO, Protocol
+from typing import BinaryIO, Final, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -61,13 +67,31 @@ from rosbags.rosbag2.storage_mcap import decompress as mcap_decompress
 from rosbags.rosbag2.storage_mcap import McapWriter, PendingChunk
 from rosbags.rosbag2.storage_sqlite3 import Sqlite3Writer
 
-__all__ = ['WRITE_BATCH', 'BulkWriter', 'McapScanner', 'MessageSink', 'describe']
+__all__ = ['VERIFIED_ROSBAGS', 'WRITE_BATCH', 'BulkWriter', 'McapScanner', 'MessageSink',
+           'describe', 'rosbags_verified']
+
+#: rosbags versions ``[low, high)`` whose internals the bulk writer was checked against (the
+#: bytes compared with ``Writer.write``); widen it only after ``test/test_bags.py`` and
+#: ``test/test_bagfast.py`` pass with the new version.
+VERIFIED_ROSBAGS: Final = ((0, 11, 9), (0, 12, 0))
 
 IntArray = NDArray[np.int64]
 ByteMatrix = NDArray[np.uint8]
 
 _MCAP_MAGIC = b'\x89MCAP0\r\n'
 _U64 = struct.Struct('<Q')
+
+
+@functools.cache
+def rosbags_verified() -> bool:
+    """Return whether the installed rosbags is in :data:`VERIFIED_ROSBAGS`."""
+    try:
+        installed = version('rosbags')
+    except PackageNotFoundError:
+        return False
+    parts = tuple(int(p) for p in re.findall(r'\d+', installed)[:3])
+    low, high = VERIFIED_ROSBAGS
+    return low <= parts < high
 
 
 class MessageSink(Protocol):
@@ -134,6 +158,8 @@ class BulkWriter:
     def supported(self) -> bool:
         """Whether this rosbags writer can be written in bulk."""
         writer, storage = self.writer, self.storage
+        if not rosbags_verified():
+            return False
         if not all(hasattr(writer, name) for name in _WRITER_STATE):
             return False
         if writer.compression_mode != CompressionMode.NONE:
