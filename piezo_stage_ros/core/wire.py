@@ -45,9 +45,10 @@ from collections.abc import Callable, Mapping, Sequence
 import math
 import operator
 import re
-from typing import Final, Protocol
+from typing import Final
 
 from piezo_stage_ros.core.errors import BagError
+from piezo_stage_ros.core.interfaces import Controller
 
 __all__ = [
     'BAG_TOPICS', 'CLOCK', 'CLOCK_TYPE', 'COMMAND', 'COMMAND_TYPE', 'DEFAULT_NAMESPACE',
@@ -157,11 +158,7 @@ def topic_names(namespace: str = DEFAULT_NAMESPACE) -> dict[str, str]:
     return {key: f'{ns}/{key}' for key in BAG_TOPICS}
 
 
-class _Diagnosable(Protocol):
-    def diagnostics(self) -> Mapping[str, float]: ...
-
-
-def diagnostic_reader(controller: _Diagnosable
+def diagnostic_reader(controller: Controller
                       ) -> tuple[tuple[str, ...], Callable[[], Sequence[float]]]:
     """
     Return a controller's diagnostic names in wire order and a function reading their values.
@@ -175,8 +172,8 @@ def diagnostic_reader(controller: _Diagnosable
 
     Parameters
     ----------
-    controller : object
-        A controller (:class:`~piezo_stage_ros.core.interfaces.Controller`).
+    controller : Controller
+        The controller whose internals are read.
 
     Returns
     -------

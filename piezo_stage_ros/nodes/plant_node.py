@@ -236,7 +236,7 @@ class PlantNode(Node):
             command_v = decode_float64(data)
         except CdrError as exc:
             self.malformed += 1
-            self.get_logger().warning(f'stage/command: {exc}; dropped', throttle_duration_sec=1.0)
+            self.get_logger().warning(f'{wire.COMMAND}: {exc}; dropped', throttle_duration_sec=1.0)
             return
         try:
             sample = self.logic.on_command(command_v, time.monotonic())

@@ -133,7 +133,7 @@ class TrajectoryNode(Node):
             sec, nanosec, _, _ = self._decoder.decode(data)
         except CdrError as exc:
             self.malformed += 1
-            self.get_logger().warning(f'stage/position: {exc}; dropped',
+            self.get_logger().warning(f'{wire.POSITION}: {exc}; dropped',
                                       throttle_duration_sec=1.0)
             return
         ref, vel = self.logic.on_position(wire.stamp_to_ns(sec, nanosec))
