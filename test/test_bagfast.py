@@ -20,8 +20,10 @@ right, but writing becomes ~10x slower without a word. These tests turn such a r
 into a failure that names what changed (test_bags.py compares the bytes of both paths).
 """
 
+import ast
 import inspect
 from io import BytesIO
+from pathlib import Path
 
 from piezo_stage_ros.analysis import bagfast
 from piezo_stage_ros.analysis.bagwrite import RunBagWriter
@@ -95,3 +97,21 @@ def test_decompress_signature():
     params = list(inspect.signature(bagfast.mcap_decompress).parameters)
     assert len(params) == 4, params  # (data, compression, size, crc)
     assert bagfast.mcap_decompress(b'abc', '', 3, 0) == b'abc'
+
+
+def test_no_other_module_touches_rosbags_internals():
+    # rosbags' public API is rosbags.rosbag2 (Reader, Writer, ...), rosbags.typesys and
+    # rosbags.interfaces; the storage plugins' modules are its internals.
+    package = Path(__file__).resolve().parents[1] / 'piezo_stage_ros'
+    users = set()
+    for path in package.rglob('*.py'):
+        for node in ast.walk(ast.parse(path.read_text(encoding='utf8'))):
+            names = []
+            if isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module] + [f'{node.module}.{a.name}' for a in node.names]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            if any(n.startswith(('rosbags.rosbag2.storage_', 'rosbags.rosbag2.writer',
+                                 'rosbags.rosbag2.reader')) for n in names):
+                users.add(path.relative_to(package).as_posix())
+    assert users == {'analysis/bagfast.py'}
