@@ -61,6 +61,7 @@ from typing import BinaryIO, Final, Protocol
 import numpy as np
 from numpy.typing import NDArray
 from piezo_stage_ros.core.errors import BagError
+from piezo_stage_ros.core.types import ByteMatrix, IntArray
 from rosbags.interfaces import Connection
 from rosbags.rosbag2 import CompressionMode, ReaderError, Writer
 from rosbags.rosbag2.storage_mcap import decompress as mcap_decompress
@@ -75,8 +76,6 @@ __all__ = ['VERIFIED_ROSBAGS', 'WRITE_BATCH', 'BulkWriter', 'McapScanner', 'Mess
 #: ``test/test_bagfast.py`` pass with the new version.
 VERIFIED_ROSBAGS: Final = ((0, 11, 9), (0, 12, 0))
 
-IntArray = NDArray[np.int64]
-ByteMatrix = NDArray[np.uint8]
 
 _MCAP_MAGIC = b'\x89MCAP0\r\n'
 _U64 = struct.Struct('<Q')
@@ -114,8 +113,6 @@ def describe(err: BaseException) -> str:
     """Return an exception as one line for an error message."""
     text = str(err).strip() or type(err).__name__
     return text.rstrip('.')
-
-
 
 
 # The storage writers of rosbags 0.11 keep these; without them the bulk path is not taken.
@@ -293,8 +290,6 @@ class BulkWriter:
         storage.chunks.append(summary)
         storage.chunk = PendingChunk(2**63 - 1, 0, BytesIO(), defaultdict(list))
         self.index = {}
-
-
 
 
 def _read_exact(stream: BinaryIO, size: int, bag: Path, what: str) -> bytes:

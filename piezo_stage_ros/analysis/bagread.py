@@ -60,6 +60,7 @@ from piezo_stage_ros.core.cdr import (
 )
 from piezo_stage_ros.core.errors import BagError
 from piezo_stage_ros.core.record import RunRecord
+from piezo_stage_ros.core.types import ByteMatrix, FloatArray, IntArray
 from piezo_stage_ros.core.wire import (
     BAG_TOPICS,
     COMMAND_TYPE,
@@ -74,9 +75,6 @@ import yaml
 
 __all__ = ['BagInfo', 'ProgressCallback', 'bag_info', 'read_run', 'read_topics']
 
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
-ByteMatrix = NDArray[np.uint8]
 
 #: Called as ``progress(messages_read, messages_total)`` while a bag is read.
 ProgressCallback = Callable[[int, int], None]
@@ -86,8 +84,6 @@ ProgressCallback = Callable[[int, int], None]
 _BATCH = 65536
 # Byte layouts kept per message size (e.g. two frame_ids of the same length).
 _LAYOUTS_PER_SIZE = 4
-
-
 
 
 @dataclass
@@ -361,7 +357,6 @@ class _TopicData:
             log_ns, values = log_ns[order], values[order]
             stamps = None if stamps is None else stamps[order]
         return log_ns, stamps, values
-
 
 
 def _scan_sqlite(bag: Path, file: Path, wanted: Mapping[str, _TopicData],

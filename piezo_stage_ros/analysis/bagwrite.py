@@ -42,11 +42,12 @@ from types import TracebackType
 from typing import Any, Final, Literal
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 from piezo_stage_ros.analysis.bagfast import BulkWriter, WRITE_BATCH
 from piezo_stage_ros.core.cdr import float64_layout, joint_state_layout, Layout
 from piezo_stage_ros.core.errors import BagError
 from piezo_stage_ros.core.record import RunRecord
+from piezo_stage_ros.core.types import ByteMatrix, FloatArray, IntArray
 from piezo_stage_ros.core.wire import (
     BAG_TOPICS,
     DEFAULT_NAMESPACE,
@@ -72,9 +73,6 @@ from rosbags.typesys.store import Typestore
 
 __all__ = ['OFFERED_QOS', 'STORAGES', 'RunBagWriter', 'write_run']
 
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
-ByteMatrix = NDArray[np.uint8]
 
 STORAGES: Final[Mapping[str, StoragePlugin]] = {
     'mcap': StoragePlugin.MCAP,
@@ -98,12 +96,9 @@ OFFERED_QOS: Final = Qos(
 )
 
 
-
 @functools.cache
 def _typestore() -> Typestore:
     return get_typestore(Stores.ROS2_JAZZY)
-
-
 
 
 def _check_storage(storage: str) -> StoragePlugin:

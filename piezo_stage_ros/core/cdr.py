@@ -56,6 +56,7 @@ from typing import Final
 
 import numpy as np
 from numpy.typing import NDArray
+from piezo_stage_ros.core.types import ByteMatrix, FloatArray, IntArray
 from piezo_stage_ros.core.wire import NS_PER_S
 
 __all__ = ['HEADER_LE', 'CdrError', 'JointStateDecoder', 'JointStateEncoder',
@@ -63,9 +64,6 @@ __all__ = ['HEADER_LE', 'CdrError', 'JointStateDecoder', 'JointStateEncoder',
            'decode_joint_state_message', 'encode_clock', 'encode_float64', 'encode_joint_state',
            'float64_layout', 'joint_state_layout']
 
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
-ByteMatrix = NDArray[np.uint8]
 
 HEADER_LE: Final = b'\x00\x01\x00\x00'
 _U32 = {'<': struct.Struct('<I'), '>': struct.Struct('>I')}

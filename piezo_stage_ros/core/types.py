@@ -22,7 +22,11 @@ from typing import TypeAlias
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ['FloatArray']
+__all__ = ['ByteMatrix', 'FloatArray', 'IntArray']
 
 #: A float64 array: samples, coefficients, frequencies (units in each signature's docstring).
 FloatArray: TypeAlias = NDArray[np.float64]
+#: An int64 array: nanosecond stamps, counts, indices.
+IntArray: TypeAlias = NDArray[np.int64]
+#: Rows of raw bytes: one serialized message per row.
+ByteMatrix: TypeAlias = NDArray[np.uint8]
