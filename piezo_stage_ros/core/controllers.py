@@ -82,12 +82,13 @@ Edge-case contract (all controllers, tested in ``test/test_controllers.py``):
 
 The default RAC gains are the discrete-time tuning of ``python3 -m piezo_stage_ros.tune``
 (docs/controllers.md), not the paper's: its epsilon = 0.005 makes the boundary-layer gain
-k*/epsilon = 40, which is unstable at 10 kHz, and its adaptation rates gamma = 3000,
+k*/epsilon = 40, which is unstable at 10 kHz, and its unnormalised adaptation rates gamma = 3000,
 eta = 0.01 close a discrete loop through v (the update is an integrator whose per-sample gain is
-T (gamma y^2 + eta u_fd^2) times the response of s to v) that limit-cycles on a plateau of a few
-volts; :func:`piezo_stage_ros.core.stability.adaptation_bound` derives the largest stable
-per-sample gain from the plant model, and the defaults keep T (gamma y_max^2 + eta (lambda
-y_max)^2) below half of it over the whole reachable range.
+g = T (gamma y^2 + eta u_fd^2) times the response of s to v) that limit-cycles on a plateau of a
+few volts; :func:`piezo_stage_ros.core.stability.adaptation_bound` derives the largest stable
+per-sample gain g_crit from the plant model, and the default normalisation kappa = 20 >=
+2/g_crit keeps g/(1 + kappa g) below half of it for every regressor. The rates, the dead zone,
+the regressors and the box were chosen on a family of stages unlike the model (tune section 9).
 """
 
 from __future__ import annotations
