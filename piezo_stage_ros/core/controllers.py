@@ -30,6 +30,32 @@ RAC, eqs. (33)-(40), in sensor volts (e = y - y_d is the paper's x tilde)::
     dphi_hat/dt   = proj(phi_hat,   -eta   u_fd s_eps)              (38)
     dtheta_hat/dt = proj(theta_hat, -gamma y    s_eps)              (39)
 
+The package's discrete adaptive law generalises (38)-(39) in two ways, each of which reduces to
+the paper's law with its parameter at the neutral value (docs/controllers.md derives them)::
+
+    s_a   = s - eps_a * sat(s / eps_a)       (eps_a = 0: s_a = s)   dead zone of its own
+    (r_theta, r_phi) = (y, u_fd) measured, or (y_d, dy_d/dt) desired  regressors
+    n     = 1 + kappa T (gamma r_theta^2 + eta r_phi^2)             normalisation
+    phi_hat   <- clip(phi_hat   - (T/n) eta   r_phi   s_a, phi_min,   phi_max)
+    theta_hat <- clip(theta_hat - (T/n) gamma r_theta s_a, theta_min, theta_max)
+
+- the adaptation dead zone eps_a (``adaptation_dead_zone_v``) is separate from the robust
+  term's boundary layer eps (``epsilon_v``, which still shapes -k* sat(s/eps) in (36)): the
+  boundary layer must be wide for the discrete loop's gain k_d + k*/eps, but as the dead zone
+  of the adaptation the same width (hundreds of nanometres) means the estimates never move
+  while tracking. eps_a = eps is the paper's s_eps;
+- the normalisation kappa (``normalisation``) divides each update by n: the adaptation loop's
+  per-sample gain g = T (gamma y^2 + eta u_fd^2) becomes g/(1 + kappa g) < 1/kappa whatever the
+  regressors, so kappa >= ADAPTATION_MARGIN/g_crit certifies the adaptation loop for every
+  y and u_fd, not only up to y_max (:mod:`piezo_stage_ros.core.stability`). kappa = 0 is the
+  unnormalised law;
+- the regressors (``adaptation_regressor``): the paper's measured y and u_fd = dy_d/dt -
+  lambda e, or the desired y_d and dy_d/dt (desired compensation, Sadegh and Horowitz 1990).
+  With the measured ones the update holds -gamma e s_a and +eta lambda e s_a, and e s_a > 0 on
+  every transient (square-wave edges, sensor noise): the estimates are pumped towards a larger
+  proportional gain k + lambda phi_hat - theta_hat, which drives the high-gain stages unstable.
+  The desired regressors carry neither the error nor the noise.
+
 Discretization at the sample period T (step k sees y_k and returns v_k, held over one sample):
 
 - the integral by the backward rectangle I_k = I_k-1 + T e_k (the current error is in s_k,
@@ -56,12 +82,13 @@ Edge-case contract (all controllers, tested in ``test/test_controllers.py``):
 
 The default RAC gains are the discrete-time tuning of ``python3 -m piezo_stage_ros.tune``
 (docs/controllers.md), not the paper's: its epsilon = 0.005 makes the boundary-layer gain
-k*/epsilon = 40, which is unstable at 10 kHz, and its adaptation rates gamma = 3000,
+k*/epsilon = 40, which is unstable at 10 kHz, and its unnormalised adaptation rates gamma = 3000,
 eta = 0.01 close a discrete loop through v (the update is an integrator whose per-sample gain is
-T (gamma y^2 + eta u_fd^2) times the response of s to v) that limit-cycles on a plateau of a few
-volts; :func:`piezo_stage_ros.core.stability.adaptation_bound` derives the largest stable
-per-sample gain from the plant model, and the defaults keep T (gamma y_max^2 + eta (lambda
-y_max)^2) below half of it over the whole reachable range.
+g = T (gamma y^2 + eta u_fd^2) times the response of s to v) that limit-cycles on a plateau of a
+few volts; :func:`piezo_stage_ros.core.stability.adaptation_bound` derives the largest stable
+per-sample gain g_crit from the plant model, and the default normalisation kappa = 20 >=
+2/g_crit keeps g/(1 + kappa g) below half of it for every regressor. The rates, the dead zone,
+the regressors and the box were chosen on a family of stages unlike the model (tune section 9).
 """
 
 from __future__ import annotations
@@ -151,24 +178,57 @@ class RACParams(Params):
                              '(paper 0.005, which chatters at 10 kHz).', low=0.0, low_open=True)
     k_star_v: float = param(0.2, unit='V', description='Robust gain k* of eq. (36); must be '
                             '>= rho/c_min (paper 0.2).', low=0.0)
-    gamma: float = param(10.0, unit='1/(V^2 s)', description='Adaptation rate gamma of '
-                         'theta_hat, eq. (39) (paper 3000, which limit-cycles at 10 kHz: '
-                         'T (gamma y_max^2 + eta (lambda y_max)^2) must stay below the '
-                         'discrete bound of the stability check).', low=0.0)
-    eta: float = param(1e-6, unit='s/V^2', description='Adaptation rate eta of phi_hat, '
-                       'eq. (38) (paper 0.01; same discrete bound as gamma).', low=0.0)
-    theta_min: float = param(0.9, unit='V/V', description='Lower bound of theta = a/(b c), '
-                             'eq. (29) (paper 0.5).', low=0.0, low_open=True)
-    theta_max: float = param(1.7, unit='V/V', description='Upper bound of theta, eq. (29) '
-                             '(paper 4).', low=0.0, low_open=True)
+    gamma: float = param(100.0, unit='1/(V^2 s)', description='Adaptation rate gamma of '
+                         'theta_hat, eq. (39) (paper 3000). With the normalisation the '
+                         'discrete adaptation loop is stable for any rate; 100 is what the '
+                         'stage-family study of tune (section 9) found best: faster rates add '
+                         'estimate jitter to the tracking error.', low=0.0)
+    eta: float = param(3e-4, unit='s/V^2', description='Adaptation rate eta of phi_hat, '
+                       'eq. (38) (paper 0.01; phi_hat is excited only by dy_d/dt, and 1e-3 '
+                       'is already slightly worse on the noisy stages of tune section 9).',
+                       low=0.0)
+    adaptation_dead_zone_v: float = param(0.002, unit='V (sensor)', description='Dead zone '
+                                          'epsilon_a of the adaptation: (38)-(39) are driven by '
+                                          's_a = s - epsilon_a sat(s/epsilon_a) instead of '
+                                          's_eps (0: no dead zone; equal to epsilon_v: the '
+                                          "paper's law). 2 mV = 7.6 nm: above the 16-bit "
+                                          'ADC step (0.3 mV) and 2.5 times the s of 3 nm rms '
+                                          'sensor noise, far below the 0.2 V boundary layer '
+                                          'that kept the old default from adapting at all.',
+                                          low=0.0)
+    adaptation_regressor: str = param('desired', unit='-', description='Regressors of '
+                                      "(38)-(39): measured = the paper's y and u_fd = dy_d/dt "
+                                      '- lambda e; desired = y_d and dy_d/dt (desired '
+                                      'compensation: no error or sensor noise in the update, '
+                                      'so no drift towards a larger loop gain).',
+                                      choices=('measured', 'desired'))
+    normalisation: float = param(20.0, unit='-', description='Normalisation kappa of the '
+                                 'adaptation: each update is divided by n = 1 + kappa T '
+                                 '(gamma r_theta^2 + eta r_phi^2), which caps the per-sample '
+                                 "loop gain below 1/kappa (0: the paper's unnormalised law). "
+                                 '20 >= 2/g_crit = 14.4 on model (20): the stability check '
+                                 'certifies the adaptation loop for every regressor size.',
+                                 low=0.0)
+    theta_min: float = param(1.05, unit='V/V', description='Lower bound of theta = a/(b c), '
+                             'eq. (29) (paper 0.5). Above the true 0.92 of a 1.4x-gain stage on '
+                             'purpose: a smaller theta_hat raises the proportional gain '
+                             'k + lambda phi_hat - theta_hat towards instability there.',
+                             low=0.0, low_open=True)
+    theta_max: float = param(2.0, unit='V/V', description='Upper bound of theta, eq. (29) '
+                             '(paper 4; theta = 1.85 for a 0.7x-gain stage).', low=0.0,
+                             low_open=True)
     theta_init: float = param(1.29, unit='V/V', description='Initial estimate theta_hat(0) '
-                              '(paper 1).', low=0.0, low_open=True)
-    phi_min: float = param(2.2e-4, unit='s', description='Lower bound of phi = 1/(b c), '
+                              '(paper 1; the model value).', low=0.0, low_open=True)
+    phi_min: float = param(2e-4, unit='s', description='Lower bound of phi = 1/(b c), '
                            'eq. (30) (paper 1e-4).', low=0.0, low_open=True)
-    phi_max: float = param(5.5e-4, unit='s', description='Upper bound of phi, eq. (30) '
-                           '(paper 5e-3).', low=0.0, low_open=True)
-    phi_init: float = param(5.0e-4, unit='s', description='Initial estimate phi_hat(0) '
-                            '(paper 7.5e-4).', low=0.0, low_open=True)
+    phi_max: float = param(9e-4, unit='s', description='Upper bound of phi, eq. (30) '
+                           '(paper 5e-3); the feedforward gain a slow, 0.7x-gain stage needs '
+                           'at 100 Hz is about 8e-4 (1.5 times its phi: ZOH delay and '
+                           'hysteresis lag).', low=0.0, low_open=True)
+    phi_init: float = param(2.5e-4, unit='s', description='Initial estimate phi_hat(0) '
+                            '(paper 7.5e-4); below the model 3.16e-4 so that a high-gain stage '
+                            'starts with margin; it adapts up where dy_d/dt excites it.',
+                            low=0.0, low_open=True)
     rho_v: float = param(0.18, unit='V', description='Bound rho on the hysteresis term |d|, '
                          'eq. (31) (paper 0.18; (c - B1)/alpha = 0.1785 for the default stage).',
                          low=0.0)
@@ -230,7 +290,7 @@ class NotchParams(Params):
                                 low=0.0, low_open=True)
     zero_damping: float = param(0.084, unit='-', description='Damping of the notch zeros in '
                                 'manual mode (depth: 0 = infinitely deep).', low=0.0, high=1.0)
-    pole_damping: float = param(1.0, unit='-', description='Damping of the notch poles '
+    pole_damping: float = param(1.5, unit='-', description='Damping of the notch poles '
                                 '(width), both modes.', low=0.0, low_open=True, high=2.0)
 
 
@@ -306,6 +366,7 @@ class RACController:
         self._kstar = p.k_star_v
         self._gamma = p.gamma
         self._eta = p.eta
+        self._set_adaptation(p)
         self.nonfinite_inputs = 0
         self.bad_dt = 0
         self.reset(0.0, 0.0)
@@ -403,14 +464,27 @@ class RACController:
             v = vmax if v > vmax else (vmin if v < vmin else v)
         else:
             self._saturated = 0.0
-            s_eps = s - self._eps * sz
-            if s_eps != 0.0:
-                # Euler step of (38)-(39), then the projection (40) on the updated estimate
+            eps_a = self._eps_a
+            if eps_a > 0.0:
+                za = s * self._inv_eps_a
+                s_a = s - eps_a * (1.0 if za >= 1.0 else (-1.0 if za <= -1.0 else za))
+            else:
+                s_a = s
+            if s_a != 0.0:
+                # Euler step of (38)-(39) with the normalised step g = T/n, then the
+                # projection (40) on the updated estimate; kappa = 0 keeps g = T exactly
+                if self._desired:
+                    r_t, r_f = yd, ydd
+                else:
+                    r_t, r_f = y, u_fd
+                kappa = self._kappa
+                g = dt / (1.0 + kappa * dt * (self._gamma * r_t * r_t + self._eta * r_f * r_f)
+                          ) if kappa > 0.0 else dt
                 p = self.params
-                ph = phi - dt * self._eta * u_fd * s_eps
+                ph = phi - g * self._eta * r_f * s_a
                 self._phi = p.phi_max if ph > p.phi_max else (p.phi_min if ph < p.phi_min
                                                               else ph)
-                th = theta - dt * self._gamma * y * s_eps
+                th = theta - g * self._gamma * r_t * s_a
                 self._theta = p.theta_max if th > p.theta_max else (
                     p.theta_min if th < p.theta_min else th)
         if v != v:  # unreachable with finite inputs and bounded estimates; belt and braces
@@ -457,10 +531,22 @@ class RACController:
         self._kd, self._lam, self._eps = p.k_d, p.lambda_per_s, p.epsilon_v
         self._inv_eps = 1.0 / p.epsilon_v
         self._kstar, self._gamma, self._eta = p.k_star_v, p.gamma, p.eta
+        self._set_adaptation(p)
         self._theta = min(max(self._theta, p.theta_min), p.theta_max)
         self._phi = min(max(self._phi, p.phi_min), p.phi_max)
         self._built = params
         return True
+
+    def _set_adaptation(self, p: RACParams) -> None:
+        """Cache the adaptation's dead zone (and its inverse) and normalisation."""
+        eps_a = p.adaptation_dead_zone_v
+        inv = 1.0 / eps_a if eps_a > 0.0 else math.inf
+        # a dead zone so narrow that its inverse overflows (subnormal) is no dead zone: s * inf
+        # would be NaN at s = 0
+        self._eps_a = eps_a if math.isfinite(inv) else 0.0
+        self._inv_eps_a = inv if math.isfinite(inv) else 0.0
+        self._kappa = p.normalisation
+        self._desired = p.adaptation_regressor == 'desired'
 
     def diagnostics(self) -> Mapping[str, float]:
         """Return theta_hat, phi_hat, s [V], the integral [V s], error [V], flags, counters."""

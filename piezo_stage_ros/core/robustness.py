@@ -1,0 +1,385 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The robustness study: one controller configuration, unchanged, on every stage of a family.
+
+For each stage of :mod:`piezo_stage_ros.core.family` and each case of :data:`CASES` (the
+Table III sines, the Fig. 12 multi-sine, the Fig. 10 square wave with ideal jumps and with a
+2 ms S-curve, the Fig. 9 staircase) the closed loop runs for ``duration_s`` and is measured in
+steady state, after ``settle_s`` (1 s by default):
+
+- sines and multi-sine: e_m and e_rms of :func:`piezo_stage_ros.core.metrics.summarize` over
+  the whole periods after ``settle_s``;
+- square wave: e_m and e_rms over the last half of every plateau after ``settle_s`` (the plateau
+  error of :func:`piezo_stage_ros.core.experiments.square_edge_metrics`), with overshoot and
+  settling time of the edges there;
+- staircase (19 nm steps, 50 ms each, continued for the whole run): e_m and e_rms over the last
+  half of every level that starts after ``settle_s``;
+
+and, for every case, the command range over the whole run and the RAC's estimates theta_hat and
+phi_hat (final value, smallest and largest) beside the stage's true theta and phi
+(:func:`piezo_stage_ros.core.family.true_estimates`).
+
+The controller is built from the configuration once per run, with a notch in ``model`` mode
+designed on the *configured* plant, never on the member's: nothing is retuned per stage.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import math
+from typing import Any, Callable, Sequence
+
+import numpy as np
+from piezo_stage_ros.core import closed_loop, metrics
+from piezo_stage_ros.core.controllers import build_controller, ControllerParams
+from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
+from piezo_stage_ros.core.experiments import square_edge_metrics
+from piezo_stage_ros.core.family import member_params, StageVariation, true_estimates
+from piezo_stage_ros.core.record import RunRecord
+from piezo_stage_ros.core.stage import linear_plant, Stage, StageParams
+from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+
+__all__ = ['CASES', 'COLUMNS', 'RobustnessResult', 'case_metrics', 'case_trajectory',
+           'format_result', 'run_study', 'worst']
+
+#: The cases of the study: name -> (trajectory_node values, what is measured).
+CASES: dict[str, tuple[dict[str, Any], str]] = {
+    'sine_1': ({'kind': 'sine', 'sine.frequency_hz': 1.0}, 'periodic'),
+    'sine_10': ({'kind': 'sine', 'sine.frequency_hz': 10.0}, 'periodic'),
+    'sine_50': ({'kind': 'sine', 'sine.frequency_hz': 50.0}, 'periodic'),
+    'sine_100': ({'kind': 'sine', 'sine.frequency_hz': 100.0}, 'periodic'),
+    'multisine': ({'kind': 'multisine'}, 'periodic'),
+    'square': ({'kind': 'square', 'square.transition_s': 0.0}, 'square'),
+    'square_2ms': ({'kind': 'square', 'square.transition_s': 2e-3}, 'square'),
+    'staircase': ({'kind': 'staircase', 'staircase.transition_s': 0.0}, 'staircase'),
+}
+
+#: Columns of the per-case table: (key, header, scale, format, how the worst is chosen).
+COLUMNS: tuple[tuple[str, str, float, str, str], ...] = (
+    ('e_rms_m', 'e_rms [nm]', 1e9, '.2f', 'max'),
+    ('e_max_m', 'e_m [nm]', 1e9, '.1f', 'max'),
+    ('command_min_v', 'u min [V]', 1.0, '.2f', 'min'),
+    ('command_max_v', 'u max [V]', 1.0, '.2f', 'max'),
+    ('theta_error_pct', 'theta_hat end/true-1 [%]', 1.0, '+.1f', 'abs'),
+    ('phi_error_pct', 'phi_hat end/true-1 [%]', 1.0, '+.1f', 'abs'),
+)
+
+#: Receives one line of progress.
+ProgressFn = Callable[[str], None]
+
+
+def case_trajectory(case: str, base: TrajectoryParams, duration_s: float) -> TrajectoryParams:
+    """
+    Return the reference of one case on top of the configured trajectory parameters.
+
+    Parameters
+    ----------
+    case : str
+        A key of :data:`CASES`.
+    base : TrajectoryParams
+        The configured trajectory parameters (levels, amplitudes, periods of each kind).
+    duration_s : float
+        Length of the run [s]; the staircase gets enough steps to climb for all of it.
+
+    Returns
+    -------
+    TrajectoryParams
+
+    """
+    if case not in CASES:
+        raise ParameterError('--cases', case, ', '.join(CASES))
+    values = dict(CASES[case][0])
+    if values['kind'] == 'staircase':
+        dwell = base.staircase.dwell_s
+        values['staircase.steps'] = max(base.staircase.steps,
+                                        int(math.ceil(duration_s / dwell - 1e-9)) - 1)
+    return base.with_flat(values)
+
+
+def _nan_metrics() -> dict[str, float]:
+    return {'e_max_m': math.nan, 'e_rms_m': math.nan}
+
+
+def case_metrics(case: str, record: RunRecord, trajectory: TrajectoryParams, *,
+                 settle_s: float) -> dict[str, float]:
+    """
+    Return the steady-state figures of one run of one case (see the module docstring).
+
+    Parameters
+    ----------
+    case : str
+        A key of :data:`CASES`.
+    record : RunRecord
+        The run, from t = 0, with ``theta_hat`` / ``phi_hat`` diagnostics when the controller
+        has them.
+    trajectory : TrajectoryParams
+        Its reference (square and staircase geometry).
+    settle_s : float
+        Start of the steady state [s].
+
+    Returns
+    -------
+    dict
+        ``e_max_m``, ``e_rms_m`` (NaN when the run holds no steady state), ``command_min_v``,
+        ``command_max_v``, and when present ``theta_hat_end``/``_min``/``_max``,
+        ``phi_hat_end``/``_min``/``_max``; square: also ``overshoot_pct``, ``settling_time_s``.
+
+    """
+    how = CASES[case][1]
+    t = record.time_s
+    out: dict[str, float] = {}
+    if how == 'periodic':
+        period = make_trajectory(trajectory).period_s
+        s = metrics.summarize(record, steady_state_start_s=settle_s, period_s=period)
+        late = t[-1] + (t[1] - t[0] if t.size > 1 else 0.0) > settle_s + (period or 0.0) - 1e-9
+        out.update({'e_max_m': s['e_max_m'], 'e_rms_m': s['e_rms_m']} if late
+                   else _nan_metrics())
+    elif how == 'square':
+        sq = trajectory.square
+        start = math.ceil(settle_s / sq.period_s - 1e-9) * sq.period_s
+        i0 = int(np.searchsorted(t, start - 0.5 * (t[1] - t[0]))) if t.size > 1 else t.size
+        try:
+            m = square_edge_metrics(t[i0:] - start, record.position_m[i0:],
+                                    record.reference_m[i0:], sq)
+            out.update({'e_max_m': m['ss_e_max_m'], 'e_rms_m': m['ss_e_rms_m'],
+                        'overshoot_pct': m['overshoot_pct'],
+                        'settling_time_s': m['settling_time_s']})
+        except PiezoStageError:
+            out.update(_nan_metrics())
+    else:
+        dt = float(t[1] - t[0]) if t.size > 1 else 1.0
+        n_dwell = max(int(round(trajectory.staircase.dwell_s / dt)), 1)
+        err = record.position_m - record.reference_m
+        tails = [err[(j + 1) * n_dwell - n_dwell // 2:(j + 1) * n_dwell]
+                 for j in range(t.size // n_dwell) if j * n_dwell * dt >= settle_s - 0.5 * dt]
+        tails = [x for x in tails if x.size]
+        e_max, e_rms = metrics.error_metrics(np.concatenate(tails)) if tails else (math.nan,
+                                                                                  math.nan)
+        out.update({'e_max_m': e_max, 'e_rms_m': e_rms})
+    out['command_min_v'] = float(np.min(record.command_v))
+    out['command_max_v'] = float(np.max(record.command_v))
+    for name in ('theta_hat', 'phi_hat'):
+        values = record.diagnostics.get(name)
+        if values is not None and len(values):
+            out[f'{name}_end'] = float(values[-1])
+            out[f'{name}_min'] = float(np.min(values))
+            out[f'{name}_max'] = float(np.max(values))
+    return out
+
+
+@dataclass
+class RobustnessResult:
+    """
+    Every (stage, case) of a study.
+
+    Attributes
+    ----------
+    stages : list of dict
+        Per stage: ``name``, ``description``, ``changes`` (factors), ``theta_true``,
+        ``phi_true``.
+    cases : list of str
+        The cases run, in order.
+    rows : list of dict
+        One per (stage, case): ``stage``, ``case`` and the keys of :func:`case_metrics`, plus
+        ``theta_error_pct`` and ``phi_error_pct`` (final estimate against the truth).
+    traces : dict
+        ``(case, stage) -> (time_s, theta_hat, phi_hat)``, the estimates every
+        ``trace_every`` samples, for plots (not in the JSON).
+    meta : dict
+        Controller, duration, steady-state start, the path taken (single runs or batch).
+
+    """
+
+    stages: list[dict[str, Any]] = field(default_factory=list)
+    cases: list[str] = field(default_factory=list)
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    traces: dict[tuple[str, str], tuple[np.ndarray, np.ndarray, np.ndarray]] = \
+        field(default_factory=dict)
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        """Return a JSON-ready dict (NaN becomes None), with the worst case per case."""
+        def clean(v: Any) -> Any:
+            if isinstance(v, float) and not math.isfinite(v):
+                return None
+            if isinstance(v, dict):
+                return {k: clean(x) for k, x in v.items()}
+            return v
+        return {'meta': clean(self.meta), 'stages': [clean(s) for s in self.stages],
+                'cases': list(self.cases), 'rows': [clean(r) for r in self.rows],
+                'worst': {case: clean(worst(self, case)) for case in self.cases}}
+
+
+def _stage_rows(name: str, case: str, m: dict[str, float], truth: tuple[float, float]
+                ) -> dict[str, Any]:
+    row: dict[str, Any] = {'stage': name, 'case': case, **m}
+    for key, true in zip(('theta', 'phi'), truth):
+        end = m.get(f'{key}_hat_end', math.nan)
+        row[f'{key}_error_pct'] = 100.0 * (end / true - 1.0)
+    return row
+
+
+def run_study(stage: StageParams, controller: ControllerParams, trajectory: TrajectoryParams, *,
+              family: Sequence[StageVariation], cases: Sequence[str], duration_s: float = 2.0,
+              settle_s: float = 1.0, trace_every: int = 10,
+              progress: ProgressFn | None = None) -> RobustnessResult:
+    """
+    Run one controller configuration on every member of a family, for every case.
+
+    Parameters
+    ----------
+    stage : StageParams
+        The configured (nominal) stage; each member is derived from it.
+    controller : ControllerParams
+        The controller, the same for every stage.
+    trajectory : TrajectoryParams
+        The configured trajectory parameters (levels and shapes of each kind); each case sets
+        its kind on top.
+    family : sequence of StageVariation
+        The stages (names unique).
+    cases : sequence of str
+        Keys of :data:`CASES`.
+    duration_s : float
+        Simulated time per run [s], > ``settle_s``.
+    settle_s : float
+        Start of the steady state [s], >= 0.
+    trace_every : int
+        Keep the estimates every this many samples for the plots (>= 1).
+    progress : callable, optional
+        Receives one line per stage and case.
+
+    Returns
+    -------
+    RobustnessResult
+
+    """
+    if not (duration_s > settle_s >= 0.0 and math.isfinite(duration_s)):
+        raise ParameterError('duration_s', duration_s, f'({settle_s:g}, inf) s',
+                             f'leaves no steady state after {settle_s:g} s')
+    names = [m.name for m in family]
+    if len(set(names)) != len(names) or not names:
+        raise ParameterError('stages', names, 'at least one, names unique')
+    for case in cases:
+        case_trajectory(case, trajectory, duration_s)  # refuse an unknown case up front
+    result = RobustnessResult(cases=list(cases), meta={
+        'controller': controller.type, 'duration_s': duration_s, 'settle_s': settle_s,
+        'path': 'single', 'sample_rate_hz': stage.sample_rate_hz})
+    members = [(m, member_params(stage, m)) for m in family]
+    for m, sp in members:
+        theta, phi = true_estimates(sp)
+        result.stages.append({'name': m.name, 'description': m.describe(),
+                              'changes': m.changes(), 'theta_true': theta, 'phi_true': phi})
+    nominal_plant = linear_plant(stage.plant)
+    dt = stage.sample_time_s
+    for case in cases:
+        tp = case_trajectory(case, trajectory, duration_s)
+        for (m, sp), info in zip(members, result.stages):
+            ctrl = build_controller(controller, dt, nominal_plant)
+            rec = closed_loop.run(Stage(sp), ctrl, make_trajectory(tp), duration_s=duration_s,
+                                  diagnostics_every=1)
+            mets = case_metrics(case, rec, tp, settle_s=settle_s)
+            row = _stage_rows(m.name, case, mets, (info['theta_true'], info['phi_true']))
+            result.rows.append(row)
+            if 'theta_hat' in rec.diagnostics:
+                sl = slice(None, None, max(int(trace_every), 1))
+                result.traces[(case, m.name)] = (rec.time_s[sl], rec.diagnostics['theta_hat'][sl],
+                                                 rec.diagnostics['phi_hat'][sl])
+            if progress is not None:
+                progress(f'{case:10s} {m.name:22s} e_rms {row["e_rms_m"] * 1e9:8.2f} nm, '
+                         f'e_m {row["e_max_m"] * 1e9:8.1f} nm')
+    return result
+
+
+def worst(result: RobustnessResult, case: str) -> dict[str, Any]:
+    """
+    Return the worst stage per column of one case.
+
+    Parameters
+    ----------
+    result : RobustnessResult
+        The study.
+    case : str
+        One of its cases.
+
+    Returns
+    -------
+    dict
+        ``column -> {'value': ..., 'stage': ...}`` for every column of :data:`COLUMNS` with a
+        finite value: largest (``max``), smallest (``min``) or largest in magnitude (``abs``).
+
+    """
+    rows = [r for r in result.rows if r['case'] == case]
+    out: dict[str, Any] = {}
+    for key, _, _, _, how in COLUMNS:
+        vals = [(float(r.get(key, math.nan)), r['stage']) for r in rows]
+        vals = [(v, s) for v, s in vals if math.isfinite(v)]
+        if not vals:
+            continue
+        if how == 'max':
+            v, s = max(vals)
+        elif how == 'min':
+            v, s = min(vals)
+        else:
+            v, s = max(vals, key=lambda x: abs(x[0]))
+        out[key] = {'value': v, 'stage': s}
+    return out
+
+
+def format_result(result: RobustnessResult) -> str:
+    """
+    Return one plain-text table per case, each with its worst-case line.
+
+    Parameters
+    ----------
+    result : RobustnessResult
+        The study.
+
+    Returns
+    -------
+    str
+        Per case: a header, one line per stage (e_rms, e_m, command range, theta_hat and
+        phi_hat at the end and their range against the true values), the worst per column.
+
+    """
+    truth = {s['name']: (s['theta_true'], s['phi_true']) for s in result.stages}
+    width = max(len(s['name']) for s in result.stages) if result.stages else 5
+    lines: list[str] = []
+    meta = result.meta
+    lines.append(f'robustness: {meta.get("controller")} on {len(result.stages)} stages, '
+                 f'{meta.get("duration_s"):g} s per run, steady state after '
+                 f'{meta.get("settle_s"):g} s ({meta.get("path")} runs)')
+    head = (f'{"stage":{width}s} {"e_rms[nm]":>9s} {"e_m[nm]":>8s} {"u min":>6s} {"u max":>6s}'
+            f' {"theta end":>9s} {"true":>6s} {"range":>13s} {"phi end":>8s} {"true":>8s} '
+            f'{"range":>17s}')
+    for case in result.cases:
+        lines += ['', f'case {case}', head, '-' * len(head)]
+        for r in (r for r in result.rows if r['case'] == case):
+            th, ph = truth[r['stage']]
+            lines.append(
+                f'{r["stage"]:{width}s} {r["e_rms_m"] * 1e9:9.2f} {r["e_max_m"] * 1e9:8.1f} '
+                f'{r["command_min_v"]:6.2f} {r["command_max_v"]:6.2f} '
+                f'{r.get("theta_hat_end", math.nan):9.3f} {th:6.3f} '
+                f'{r.get("theta_hat_min", math.nan):6.3f}-{r.get("theta_hat_max", math.nan):6.3f}'
+                f' {r.get("phi_hat_end", math.nan):8.2e} {ph:8.2e} '
+                f'{r.get("phi_hat_min", math.nan):8.2e}-{r.get("phi_hat_max", math.nan):8.2e}')
+        w = worst(result, case)
+        parts = []
+        for key, header, scale, fmt, _ in COLUMNS:
+            if key in w:
+                parts.append(f'{header} {format(w[key]["value"] * scale, fmt)} '
+                             f'({w[key]["stage"]})')
+        lines.append('worst: ' + '; '.join(parts))
+    return '\n'.join(lines)

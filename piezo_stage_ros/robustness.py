@@ -1,0 +1,177 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+``robustness``: one controller configuration, unchanged, on a family of stages unlike the model.
+
+The family (:mod:`piezo_stage_ros.core.family`) varies the configured third-order stage: gain
+0.7-1.4x, omega_n +-10 %, zeta 0.7-1.5x, tau +-30 %, alpha +-30 %, B1 +-3 %, sensor noise
+0-3 nm, one at a time and in corner combinations. The cases and what is measured:
+:mod:`piezo_stage_ros.core.robustness`. Parameters come from files and ``--param`` exactly as
+for ``simulate`` (its loader).
+
+Examples::
+
+    robustness                                   # every stage, every case, 2 s runs
+    robustness --cases sine_100,square --stages nominal,gain_lo,gain_hi --out runs/rob
+    robustness --param controller_node:rac.gamma=300 --json
+
+Exit status: 0 on success, 1 on a bad parameter or configuration, 2 on bad command-line usage.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+import sys
+import time
+from typing import Any, NoReturn, Sequence
+
+__all__ = ['main']
+
+PROG = 'robustness'
+
+
+class _UsageError(Exception):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> NoReturn:
+        raise _UsageError(message)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = _Parser(prog=PROG, description='Run one controller configuration on a family of stages '
+                'and print e_rms, e_m, command range and the adapted estimates per stage.')
+    p.add_argument('--config', action='append', default=[], metavar='FILE',
+                   help='ROS 2 parameter file on top of config/default.yaml (repeatable).')
+    p.add_argument('--param', action='append', default=[], metavar='NODE:NAME=VALUE',
+                   help='Set one parameter (as simulate --param).')
+    p.add_argument('--controller', choices=('rac', 'pi', 'open_loop'),
+                   help='Controller (default: the configured one).')
+    p.add_argument('--cases', metavar='A,B,...',
+                   help='Cases to run (default all): sine_1, sine_10, sine_50, sine_100, '
+                   'multisine, square, square_2ms, staircase.')
+    p.add_argument('--stages', metavar='A,B,...',
+                   help='Members of the family to run (default all; names as listed by '
+                   '--list-stages).')
+    p.add_argument('--list-stages', action='store_true', help='Print the family and exit.')
+    p.add_argument('--duration', type=float, default=2.0, metavar='S',
+                   help='Simulated time per run [s] (default 2).')
+    p.add_argument('--settle', type=float, default=1.0, metavar='S',
+                   help='Start of the steady state [s] (default 1).')
+    p.add_argument('--out', metavar='DIR', help='Write robustness.json, robustness.txt and '
+                   'the plots there.')
+    p.add_argument('--json', action='store_true', help='Print the JSON on stdout instead of '
+                   'the tables.')
+    p.add_argument('--quiet', action='store_true', help='No progress lines on stderr.')
+    return p
+
+
+def _load(args: argparse.Namespace) -> dict[str, Any]:
+    from piezo_stage_ros.simulate import load_parameters
+    ns = argparse.Namespace(config=args.config, param=args.param, plant=None, hysteresis=None,
+                            controller=args.controller, trajectory=None, frequency=None,
+                            amplitude=None, offset=None, csv=None, seed=None, noise=None,
+                            refuse_unstable=False)
+    return load_parameters(ns)
+
+
+def _pick(text: str | None, known: Sequence[str], what: str) -> list[str]:
+    from piezo_stage_ros.core.errors import ParameterError
+    if text is None:
+        return list(known)
+    names = [n.strip() for n in text.split(',') if n.strip()]
+    for n in names:
+        if n not in known:
+            raise ParameterError(what, n, ', '.join(known))
+    return names
+
+
+def _run(args: argparse.Namespace) -> int:
+    from piezo_stage_ros.core.family import default_family
+    from piezo_stage_ros.core.robustness import CASES, format_result, run_study
+
+    family = default_family()
+    if args.list_stages:
+        for m in family:
+            print(f'{m.name:24s} {m.describe()}')
+        return 0
+    params = _load(args)
+    by_name = {m.name: m for m in family}
+    stages = [by_name[n] for n in _pick(args.stages, list(by_name), '--stages')]
+    cases = _pick(args.cases, list(CASES), '--cases')
+    t0 = time.perf_counter()
+
+    def progress(line: str) -> None:
+        if not args.quiet:
+            print(f'[{time.perf_counter() - t0:6.1f} s] {line}', file=sys.stderr, flush=True)
+
+    result = run_study(params['stage'], params['controller'], params['trajectory'],
+                       family=stages, cases=cases, duration_s=args.duration,
+                       settle_s=args.settle, progress=progress)
+    result.meta['wall_seconds'] = time.perf_counter() - t0
+    result.meta['config_files'] = [str(p) for p in params['config'].sources]
+    result.meta['params'] = list(args.param)
+    text = format_result(result)
+    payload = result.to_json()
+    if args.out is not None:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / 'robustness.json').write_text(json.dumps(payload, indent=1, sort_keys=True)
+                                             + '\n', encoding='utf8')
+        (out / 'robustness.txt').write_text(text + '\n', encoding='utf8')
+        from piezo_stage_ros.analysis.robustness_plots import save_plots
+        written = save_plots(result, out)
+        progress(f'wrote {out / "robustness.json"}, {out / "robustness.txt"} and '
+                 f'{len(written)} plots')
+    print(json.dumps(payload, sort_keys=True) if args.json else text)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """
+    Run ``robustness``.
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        Arguments without the program name; default ``sys.argv[1:]``.
+
+    Returns
+    -------
+    int
+        0 on success, 1 on a bad parameter or configuration, 2 on bad usage.
+
+    """
+    from piezo_stage_ros.core.errors import PiezoStageError
+    try:
+        args = _parser().parse_args(argv)
+    except _UsageError as exc:
+        print(f'{PROG}: error: {exc} (see {PROG} --help)', file=sys.stderr)
+        return 2
+    try:
+        return _run(args)
+    except PiezoStageError as exc:
+        print(f'{PROG}: error: {exc}', file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f'{PROG}: error: interrupted', file=sys.stderr)
+        return 130
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,207 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""The stage family is what its names say; the robustness command runs and writes its outputs."""
+
+from __future__ import annotations
+
+import json
+import math
+
+from piezo_stage_ros import robustness
+from piezo_stage_ros.core import metrics
+from piezo_stage_ros.core.controllers import ControllerParams, plant_resonance
+from piezo_stage_ros.core.errors import ParameterError
+from piezo_stage_ros.core.experiments import run_one
+from piezo_stage_ros.core.family import (
+    default_family,
+    member_params,
+    RANGES,
+    StageVariation,
+    true_estimates,
+)
+from piezo_stage_ros.core.identification import factors_of
+from piezo_stage_ros.core.stage import linear_plant, StageParams
+from piezo_stage_ros.core.trajectories import TrajectoryParams
+import pytest
+
+BASE = StageParams()
+FAMILY = {m.name: m for m in default_family()}
+
+
+def _plant(member: str):
+    return linear_plant(member_params(BASE, FAMILY[member]).plant)
+
+
+def _real_pole(member: str) -> float:
+    poles = _plant(member).poles()
+    return float(min(-p.real for p in poles if abs(p.imag) < 1e-6 * abs(p)))
+
+
+def test_the_family_has_both_ends_of_every_range_and_unique_names():
+    names = list(FAMILY)
+    assert len(names) == len(default_family())
+    assert 'nominal' in names
+    for var, (lo, hi, _) in RANGES.items():
+        if var == 'noise_m':
+            assert FAMILY['noise_hi'].noise_m == hi
+            continue
+        assert getattr(FAMILY[f'{var}_lo'], var) == lo
+        assert getattr(FAMILY[f'{var}_hi'], var) == hi
+        assert FAMILY[f'{var}_lo'].changes() == {var: lo}
+
+
+def test_the_nominal_member_is_the_configured_stage_itself():
+    assert member_params(BASE, FAMILY['nominal']) is BASE
+
+
+@pytest.mark.parametrize('member,factor', [('gain_lo', 0.7), ('gain_hi', 1.4)])
+def test_a_gain_member_scales_the_dc_gain_and_nothing_else(member, factor):
+    nominal = linear_plant(BASE.plant)
+    varied = _plant(member)
+    assert varied.dc_gain_m_per_v == pytest.approx(factor * nominal.dc_gain_m_per_v, rel=1e-12)
+    assert sorted(varied.poles().real) == pytest.approx(sorted(nominal.poles().real), rel=1e-9)
+
+
+@pytest.mark.parametrize('member,factor', [('omega_n_lo', 0.9), ('omega_n_hi', 1.1)])
+def test_an_omega_n_member_moves_the_resonance_by_its_factor(member, factor):
+    w0, z0 = plant_resonance(linear_plant(BASE.plant))
+    w, z = plant_resonance(_plant(member))
+    assert w == pytest.approx(factor * w0, rel=1e-9)
+    assert z == pytest.approx(z0, rel=1e-9)
+    assert _real_pole(member) == pytest.approx(_real_pole('nominal'), rel=1e-9)
+    assert _plant(member).dc_gain_m_per_v == pytest.approx(
+        linear_plant(BASE.plant).dc_gain_m_per_v, rel=1e-12)
+
+
+@pytest.mark.parametrize('member,factor', [('zeta_lo', 0.7), ('zeta_hi', 1.5)])
+def test_a_zeta_member_scales_the_damping_of_the_resonance(member, factor):
+    w0, z0 = plant_resonance(linear_plant(BASE.plant))
+    w, z = plant_resonance(_plant(member))
+    assert z == pytest.approx(factor * z0, rel=1e-9)
+    assert w == pytest.approx(w0, rel=1e-9)
+
+
+@pytest.mark.parametrize('member,factor', [('tau_lo', 0.7), ('tau_hi', 1.3)])
+def test_a_tau_member_scales_the_time_constant_of_the_real_pole(member, factor):
+    assert 1.0 / _real_pole(member) == pytest.approx(factor / _real_pole('nominal'), rel=1e-9)
+    assert plant_resonance(_plant(member)) == pytest.approx(
+        plant_resonance(linear_plant(BASE.plant)), rel=1e-9)
+
+
+def test_hysteresis_and_noise_members_change_only_their_parameter():
+    bl = BASE.hysteresis.backlash_like
+    lo = member_params(BASE, FAMILY['alpha_lo']).hysteresis.backlash_like
+    assert (lo.alpha, lo.b1, lo.c) == (bl.alpha * 0.7, bl.b1, bl.c)
+    hi = member_params(BASE, FAMILY['b1_hi']).hysteresis.backlash_like
+    assert (hi.alpha, hi.b1, hi.c) == (bl.alpha, bl.b1 * 1.03, bl.c)
+    noisy = member_params(BASE, FAMILY['noise_hi'])
+    assert noisy.chain.sensor_noise_std_m == 3e-9
+    assert noisy.plant == BASE.plant
+
+
+def test_a_corner_combines_its_factors():
+    corner = member_params(BASE, FAMILY['gain_hi_zeta_lo'])
+    w0, z0 = plant_resonance(linear_plant(BASE.plant))
+    w, z = plant_resonance(linear_plant(corner.plant))
+    assert z == pytest.approx(0.7 * z0, rel=1e-9)
+    assert linear_plant(corner.plant).dc_gain_m_per_v == pytest.approx(
+        1.4 * linear_plant(BASE.plant).dc_gain_m_per_v, rel=1e-12)
+
+
+def test_true_estimates_of_the_nominal_stage_are_those_of_the_docs():
+    theta, phi = true_estimates(BASE)
+    # docs/controllers.md: theta = a/(b c) = 1.29, phi = 1/(b c) = 3.16e-4 s, from the reduced
+    # model (25), whose tau is a1/a2 of (20) to four digits
+    assert theta == pytest.approx(1.2927, abs=1e-4)
+    assert phi == pytest.approx(3.1605e-4, rel=1e-4)
+    reduced = BASE.with_flat({'plant.model': 'reduced'})
+    assert true_estimates(reduced)[1] == pytest.approx(phi, rel=2e-3)
+
+
+def test_true_theta_scales_with_the_inverse_gain_and_phi_with_the_time_constant():
+    theta0, phi0 = true_estimates(BASE)
+    theta, phi = true_estimates(member_params(BASE, FAMILY['gain_hi']))
+    assert theta == pytest.approx(theta0 / 1.4, rel=1e-12)
+    assert phi / theta == pytest.approx(phi0 / theta0, rel=1e-12)
+    third = member_params(BASE, FAMILY['tau_hi']).plant.third_order
+    f = factors_of(third)
+    theta_t, phi_t = true_estimates(member_params(BASE, FAMILY['tau_hi']))
+    assert phi_t / theta_t == pytest.approx(f.tau_s + 2.0 * f.zeta / f.omega_n_rad_s, rel=1e-9)
+
+
+def test_members_refuse_what_they_cannot_vary():
+    with pytest.raises(ParameterError, match='plant.model'):
+        member_params(BASE.with_flat({'plant.model': 'reduced'}), FAMILY['gain_hi'])
+    with pytest.raises(ParameterError, match='hysteresis.model'):
+        member_params(BASE.with_flat({'hysteresis.model': 'none'}), FAMILY['alpha_hi'])
+    with pytest.raises(ParameterError, match='zeta'):
+        StageVariation('bad', zeta=0.0)
+
+
+ARGS = ['--stages', 'nominal,gain_hi', '--cases', 'sine_100,square,staircase',
+        '--duration', '1.05', '--settle', '0.5', '--quiet']
+
+
+def test_the_command_runs_a_tiny_family_and_writes_its_outputs(tmp_path, capsys):
+    assert robustness.main([*ARGS, '--out', str(tmp_path), '--json']) == 0
+    printed = json.loads(capsys.readouterr().out)
+    written = json.loads((tmp_path / 'robustness.json').read_text(encoding='utf8'))
+    assert printed == written
+    assert [s['name'] for s in written['stages']] == ['nominal', 'gain_hi']
+    assert {(r['stage'], r['case']) for r in written['rows']} == {
+        (s, c) for s in ('nominal', 'gain_hi') for c in ('sine_100', 'square', 'staircase')}
+    for row in written['rows']:
+        assert row['e_rms_m'] is not None and 0.0 < row['e_rms_m'] < 1e-6
+        assert row['e_max_m'] >= row['e_rms_m']
+        assert row['command_min_v'] <= row['command_max_v']
+        assert row['theta_hat_min'] <= row['theta_hat_end'] <= row['theta_hat_max']
+    nominal = next(s for s in written['stages'] if s['name'] == 'nominal')
+    assert nominal['theta_true'] == pytest.approx(true_estimates(BASE)[0])
+    worst = written['worst']['sine_100']['e_rms_m']
+    assert worst['value'] == max(r['e_rms_m'] for r in written['rows']
+                                 if r['case'] == 'sine_100')
+    text = (tmp_path / 'robustness.txt').read_text(encoding='utf8')
+    assert 'case square' in text and 'worst:' in text
+    for png in ('robustness_errors.png', 'estimates_sine_100.png', 'estimates_square.png'):
+        assert (tmp_path / png).stat().st_size > 1000
+
+
+def test_the_command_matches_a_simulate_run_of_the_same_stage(capsys):
+    # a row is the error of the plain closed loop on that stage after the same settle time
+    assert robustness.main(['--stages', 'gain_hi', '--cases', 'sine_100', '--duration', '0.3',
+                            '--settle', '0.1', '--quiet', '--json']) == 0
+    row = json.loads(capsys.readouterr().out)['rows'][0]
+    rec = run_one(member_params(BASE, FAMILY['gain_hi']), ControllerParams(),
+                  TrajectoryParams(), duration_s=0.3)
+    s = metrics.summarize(rec, steady_state_start_s=0.1)
+    assert row['e_rms_m'] == s['e_rms_m']
+    assert row['e_max_m'] == s['e_max_m']
+    assert math.isfinite(row['theta_error_pct'])
+
+
+@pytest.mark.parametrize('argv,match', [
+    (['--stages', 'nope'], '--stages'),
+    (['--cases', 'sine_7'], '--cases'),
+    (['--duration', '0.5'], 'duration_s'),
+])
+def test_the_command_refuses_bad_values(argv, match, capsys):
+    assert robustness.main([*argv, '--quiet']) == 1
+    assert match in capsys.readouterr().err
+
+
+def test_the_command_lists_the_family(capsys):
+    assert robustness.main(['--list-stages']) == 0
+    out = capsys.readouterr().out
+    assert all(name in out for name in FAMILY)
