@@ -28,6 +28,7 @@ from piezo_stage_ros.core.family import (
     default_family,
     member_params,
     RANGES,
+    sample_family,
     StageVariation,
     true_estimates,
 )
@@ -205,3 +206,28 @@ def test_the_command_lists_the_family(capsys):
     assert robustness.main(['--list-stages']) == 0
     out = capsys.readouterr().out
     assert all(name in out for name in FAMILY)
+
+
+def test_the_batch_and_the_single_runs_give_the_same_study(capsys):
+    # the command runs the batch; --single is the reference path of one closed loop per run
+    argv = ['--stages', 'nominal,gain_lo_zeta_lo,noise_hi', '--cases', 'sine_50,square_2ms',
+            '--duration', '0.8', '--settle', '0.2', '--samples', '2', '--quiet', '--json']
+    assert robustness.main(argv) == 0
+    batch = json.loads(capsys.readouterr().out)
+    assert robustness.main([*argv, '--single']) == 0
+    single = json.loads(capsys.readouterr().out)
+    assert batch['meta']['path'] == 'batch' and single['meta']['path'] == 'single'
+    assert len(batch['rows']) == 2 * 5
+    assert all(r['e_rms_m'] is not None for r in batch['rows'])
+    assert batch['rows'] == single['rows']
+    assert batch['worst'] == single['worst']
+
+
+def test_drawn_members_stay_inside_the_declared_ranges():
+    members = sample_family(200, seed=5)
+    assert len({m.name for m in members}) == 200
+    for var, (lo, hi, _) in RANGES.items():
+        values = [getattr(m, var) for m in members]
+        assert lo <= min(values) and max(values) <= hi
+        assert max(values) - min(values) > 0.8 * (hi - lo)
+    assert sample_family(3, seed=5) == members[:3]
