@@ -74,7 +74,8 @@ PAPER_PIC_NM = {1.0: 13.8, 10.0: 131.4, 50.0: 614.4, 100.0: 1004.6}
 
 #: The paper's RAC, section V (its epsilon chatters at 10 kHz).
 PAPER_RAC = RACParams(k_d=1.5, lambda_per_s=1500.0, epsilon_v=0.005, k_star_v=0.2, gamma=3000.0,
-                      eta=0.01, theta_min=0.5, theta_max=4.0, theta_init=1.0, phi_min=1e-4,
+                      eta=0.01, adaptation_dead_zone_v=0.005, normalisation=0.0,
+                      theta_min=0.5, theta_max=4.0, theta_init=1.0, phi_min=1e-4,
                       phi_max=5e-3, phi_init=7.5e-4, rho_v=0.18, c_min=1.0)
 NOTCH_OFF = NotchParams(mode='off')
 

@@ -68,23 +68,10 @@ def test_critical_gain_matches_the_state_space_loop_of_the_reduced_plant():
     g_crit = adaptation_bound(params, PlantParams(model='reduced'), T,
                               options=opts).critical_gain
     r = params.rac
-    red = ReducedParams()
-    alpha = math.exp(-T / red.tau_s)
-    beta = red.gain_m_per_v * (1.0 - alpha)
-    k = params.sensor_gain_v_per_m
+    matrix = _reduced_loop_matrix(params, 1.0, r.k_d, r.theta_init, r.phi_init)
 
     def radius(g: float) -> float:
-        # state (x_k, I_k-1, q_k); y = K x, I = I_prev + T y, s = y + lambda I,
-        # v = -k_d s - phi lambda y + theta y + q, x' = alpha x + beta v, q' = q - g s
-        m = np.zeros((3, 3))
-        for j in range(3):
-            x, i_prev, q = np.eye(3)[j]
-            y = k * x
-            i_now = i_prev + T * y
-            s = y + r.lambda_per_s * i_now
-            v = -r.k_d * s - r.phi_init * r.lambda_per_s * y + r.theta_init * y + q
-            m[:, j] = (alpha * x + beta * v, i_now, q - g * s)
-        return float(np.max(np.abs(np.linalg.eigvals(m))))
+        return float(np.max(np.abs(np.linalg.eigvals(matrix(g)))))
 
     assert radius(0.98 * g_crit) < 1.0 < radius(1.02 * g_crit)
 
@@ -93,13 +80,114 @@ def test_report_and_enforce_warn_on_rates_above_the_bound():
     report = check_stability(PAPER_RATES, PlantParams(model='reduced'), T)
     assert report.stable                       # the frozen loops are fine: not in the verdict
     assert 'ABOVE g_crit/2' in report.text()
-    with pytest.warns(StabilityWarning, match=r'Adaptation: .* ABOVE g_crit/2'):
+    with pytest.warns(StabilityWarning, match=r'Adaptation .* ABOVE g_crit/2'):
         enforce(report, 'refuse')              # a warning, not a refusal (see enforce)
     ok = check_stability(ControllerParams(), PlantParams(model='reduced'), T)
     assert 'within g_crit/2' in ok.text()
     with warnings.catch_warnings():
         warnings.simplefilter('error')
         enforce(ok, 'refuse')
+
+
+def _reduced_loop_matrix(params, slope, k, theta, phi):
+    """
+    Return g -> M(g), the hand-built 3-state adaptation loop of the reduced plant.
+
+    State (x_k, I_k-1, q_k) of the reduced plant under the frozen RAC with gain k (k_d outside
+    the boundary layer, k_d + k*/eps inside) and the adaptation's command perturbation q:
+    y = K x, I = I_prev + T y, s = y + lambda I, v = -k s - phi lambda y + theta y + q,
+    x' = alpha x + beta v, q' = q - g s.
+    """
+    r = params.rac
+    red = ReducedParams()
+    alpha = math.exp(-T / red.tau_s)
+    beta = red.gain_m_per_v * (1.0 - alpha) * slope
+    kk = params.sensor_gain_v_per_m
+
+    def matrix(g):
+        m = np.zeros((3, 3))
+        for j in range(3):
+            x, i_prev, q = np.eye(3)[j]
+            y = kk * x
+            i_now = i_prev + T * y
+            s = y + r.lambda_per_s * i_now
+            v = -k * s - phi * r.lambda_per_s * y + theta * y + q
+            m[:, j] = (alpha * x + beta * v, i_now, q - g * s)
+        return m
+
+    return matrix
+
+
+def _reduced_loop_polynomial(params, slope, k, theta, phi):
+    """Return p0, p1 with det(zI - M(g)) = p0 + g p1 (only the q row of M depends on g)."""
+    matrix = _reduced_loop_matrix(params, slope, k, theta, phi)
+    p0 = np.poly(matrix(0.0))
+    return p0, np.poly(matrix(1.0)) - p0
+
+
+def _cubic_critical_gain(p0, p1):
+    """
+    Return the smallest g > 0 putting a root of z^3 + a z^2 + b z + c = p0 + g p1 on |z| = 1.
+
+    Closed form: a root at z = +-1 makes p(+-1) = 0 (linear in g); a pair exp(+-j w) with a
+    real root r makes p = (z - r)(z^2 - 2 cos(w) z + 1), i.e. c = -r, a = c - 2 cos(w) and
+    b = 1 + a c - c^2, a quadratic in g, with |cos(w)| = |c - a|/2 <= 1.
+    """
+    roots = []
+    for z in (1.0, -1.0):
+        d = np.polyval(p1, z)
+        if d != 0.0:
+            roots.append(-np.polyval(p0, z) / d)
+    (_, a0, b0, c0), (_, a1, b1, c1) = p0, p1
+    # 1 - c^2 - b + a c = 0 with a = a0 + g a1, ...
+    quad = [a1 * c1 - c1 * c1, a0 * c1 + a1 * c0 - 2 * c0 * c1 - b1,
+            1.0 - c0 * c0 - b0 + a0 * c0]
+    for g in np.roots(quad):
+        if abs(g.imag) < 1e-12 * abs(g):
+            g = g.real
+            a, c = a0 + g * a1, c0 + g * c1
+            if abs(c - a) <= 2.0:
+                roots.append(g)
+    # g = 0 is the adaptation's own integrator at z = 1 (p0(1) = 0): the crossing sought is
+    # the first one of a loop that g > 0 has made stable
+    return min(g for g in roots if g > 1e-9)
+
+
+@pytest.mark.parametrize('dead_zone, regions', [(0.2, ('outside',)),
+                                                (0.002, ('inside', 'outside'))])
+def test_critical_gain_is_the_closed_form_of_the_reduced_plant_loop(dead_zone, regions):
+    # one slope, the initial estimates, no notch: g_crit is the first g at which the cubic's
+    # Schur-Cohn boundary is crossed, solved in closed form above; a dead zone narrower than
+    # the boundary layer adds the region inside it (k = k_d + k*/eps) to the cases
+    params = ControllerParams(notch=NotchParams(mode='off')).with_flat(
+        {'rac.adaptation_dead_zone_v': dead_zone})
+    opts = StabilityParams(estimates='initial', slope_points=1, slope_min=1.0, slope_max=1.0)
+    bound = adaptation_bound(params, PlantParams(model='reduced'), T, options=opts)
+    assert bound.regions == regions
+    r = params.rac
+    ks = {'outside': r.k_d, 'inside': r.k_d + r.k_star_v / r.epsilon_v}
+    expected = min(_cubic_critical_gain(*_reduced_loop_polynomial(
+        params, 1.0, ks[region], r.theta_init, r.phi_init)) for region in regions)
+    # the bisection stops within a relative 1e-3 below the crossing
+    assert expected * (1.0 - 2e-3) <= bound.critical_gain <= expected
+
+
+def test_normalisation_bounds_the_effective_gain_for_every_regressor():
+    base = ControllerParams().with_flat({'rac.gamma': 300.0, 'rac.eta': 1e-4,
+                                         'rac.adaptation_dead_zone_v': 0.002})
+    plain = adaptation_bound(base, PlantParams(model='third_order'), T)
+    assert not plain.ok and plain.gain > plain.critical_gain      # far above at y_max
+    kappa = ADAPTATION_MARGIN / plain.critical_gain
+    for k, certified in ((1.01 * kappa, True), (0.5 * kappa, False)):
+        b = adaptation_bound(base.with_flat({'rac.normalisation': k}),
+                             PlantParams(model='third_order'), T)
+        assert b.critical_gain == plain.critical_gain            # kappa is not in the loop
+        assert b.effective_gain == pytest.approx(b.gain / (1.0 + k * b.gain), rel=1e-12)
+        assert b.effective_gain < 1.0 / k
+        assert b.all_regressors == certified
+        assert b.ok == certified        # at y_max g is so large that g_eff ~ 1/kappa
+        assert (b.max_gamma() == math.inf) == certified
+        assert ('within g_crit/2 for every regressor size' in b.text()) == certified
 
 
 def _square(model: str, low_m: float, high_m: float, period_s: float,

@@ -123,7 +123,8 @@ def test_every_parameter_name_is_a_dotted_path_without_python_keywords():
 
 
 def test_rac_step_is_eqs_33_to_40_in_sensor_volts():
-    p = RACParams(gamma=100.0, eta=0.02, epsilon_v=0.01)
+    # the adaptation's own dead zone (narrower than the boundary layer) drives (38)-(39)
+    p = RACParams(gamma=100.0, eta=0.02, epsilon_v=0.01, adaptation_dead_zone_v=0.004)
     c = RACController(p, T)
     c.reset(0.0, 0.0)
     x, xd, vd = 4.0e-6, 3.9e-6, 1e-3
@@ -135,13 +136,13 @@ def test_rac_step_is_eqs_33_to_40_in_sensor_volts():
     u_fd = ydd - p.lambda_per_s * e
     v = -p.k_d * s + p.phi_init * u_fd + p.theta_init * y - p.k_star_v * sat(s / p.epsilon_v)
     assert c.step(x, xd, vd) == pytest.approx(v, rel=1e-12)
-    s_eps = s - p.epsilon_v * sat(s / p.epsilon_v)
+    s_a = s - p.adaptation_dead_zone_v * sat(s / p.adaptation_dead_zone_v)
     d = c.diagnostics()
     assert d['s_v'] == pytest.approx(s)
     assert d['theta_hat'] == pytest.approx(
-        min(max(p.theta_init - T * p.gamma * y * s_eps, p.theta_min), p.theta_max))
+        min(max(p.theta_init - T * p.gamma * y * s_a, p.theta_min), p.theta_max))
     assert d['phi_hat'] == pytest.approx(
-        min(max(p.phi_init - T * p.eta * u_fd * s_eps, p.phi_min), p.phi_max))
+        min(max(p.phi_init - T * p.eta * u_fd * s_a, p.phi_min), p.phi_max))
 
 
 def test_inside_the_boundary_layer_the_estimates_do_not_move():
@@ -157,10 +158,13 @@ def test_inside_the_boundary_layer_the_estimates_do_not_move():
 @settings(max_examples=60, deadline=None)
 @given(st.lists(st.tuples(st.floats(-1e-3, 1e-3), st.floats(-1e-3, 1e-3),
                           st.floats(-10.0, 10.0)), min_size=1, max_size=60),
-       st.floats(1.0, 1e7))
-def test_projection_keeps_the_estimates_in_their_bounds_for_any_inputs(samples, gain):
-    # huge adaptation rates and wild inputs: (P1)-(P2) must hold at every sample
-    p = RACParams(gamma=gain, eta=gain * 1e-3, epsilon_v=0.01)
+       st.floats(1.0, 1e7), st.floats(0.0, 1.0), st.floats(0.0, 1e3))
+def test_projection_keeps_the_estimates_in_their_bounds_for_any_inputs(samples, gain, eps_a,
+                                                                       kappa):
+    # huge adaptation rates, wild inputs, any dead zone and normalisation: (P1)-(P2) must hold
+    # at every sample
+    p = RACParams(gamma=gain, eta=gain * 1e-3, epsilon_v=0.01, adaptation_dead_zone_v=eps_a,
+                  normalisation=kappa)
     c = RACController(p, T)
     c.reset(0.0, 0.0)
     for x, xd, vd in samples:
@@ -182,6 +186,114 @@ def test_reset_returns_to_the_initial_estimates_and_a_zero_integral():
     c.reset(3.8e-6, 3.8e-6)
     d = c.diagnostics()
     assert (d['theta_hat'], d['phi_hat'], d['integral_v_s']) == (p.theta_init, p.phi_init, 0.0)
+
+
+def _paper_law_step(state, p, x, xd, vd, dt=T):
+    """
+    Return the command of the paper's law (38)-(39) driven by s_eps, as shipped before the
+    adaptation got its own dead zone and normalisation; ``state`` is updated in place.
+    """
+    y, yd, ydd = x * K, xd * K, vd * K
+    lam = p.lambda_per_s
+    e = y - yd
+    i_new = state['i'] + dt * e
+    s = e + lam * i_new
+    z = s * (1.0 / p.epsilon_v)
+    sz = 1.0 if z >= 1.0 else (-1.0 if z <= -1.0 else z)
+    u_fd = ydd - lam * e
+    theta, phi = state['theta'], state['phi']
+    v = -p.k_d * s + phi * u_fd + theta * y - p.k_star_v * sz
+    if v > 10.0 or v < -2.0:
+        if (v > 10.0) == (e < 0.0):
+            i_new = state['i']
+            s = e + lam * i_new
+            z = s * (1.0 / p.epsilon_v)
+            sz = 1.0 if z >= 1.0 else (-1.0 if z <= -1.0 else z)
+            v = -p.k_d * s + phi * u_fd + theta * y - p.k_star_v * sz
+        v = min(max(v, -2.0), 10.0)
+    else:
+        s_eps = s - p.epsilon_v * sz
+        if s_eps != 0.0:
+            state['phi'] = min(max(phi - dt * p.eta * u_fd * s_eps, p.phi_min), p.phi_max)
+            state['theta'] = min(max(theta - dt * p.gamma * y * s_eps, p.theta_min),
+                                 p.theta_max)
+    state['i'] = i_new
+    return v
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.tuples(st.floats(-2e-6, 40e-6), st.floats(0.0, 38e-6),
+                          st.floats(-0.05, 0.05), st.floats(1e-5, 2e-4)),
+                min_size=1, max_size=80),
+       st.floats(1e-3, 0.5), st.floats(0.0, 1e5), st.floats(0.0, 1e-2))
+def test_neutral_dead_zone_and_normalisation_are_the_paper_law_bit_for_bit(samples, eps, gamma,
+                                                                           eta):
+    # kappa = 0 and epsilon_a = epsilon: the same floating-point operations as the paper's law
+    p = RACParams(epsilon_v=eps, adaptation_dead_zone_v=eps, normalisation=0.0, gamma=gamma,
+                  eta=eta, theta_min=0.5, theta_max=4.0, phi_min=1e-4, phi_max=5e-3)
+    c = RACController(p, T)
+    c.reset(0.0, 0.0)
+    state = {'i': 0.0, 'theta': p.theta_init, 'phi': p.phi_init}
+    for x, xd, vd, dt in samples:
+        assert c.step(x, xd, vd, dt) == _paper_law_step(state, p, x, xd, vd, dt)
+        d = c.diagnostics()
+        assert (d['theta_hat'], d['phi_hat'], d['integral_v_s']) == (
+            state['theta'], state['phi'], state['i'])
+
+
+def _first_step(p, x, xd, vd):
+    """Return (y, u_fd, s) in sensor volts and the diagnostics after one step from reset."""
+    c = RACController(p, T)
+    c.reset(xd, xd)
+    c.step(x, xd, vd)
+    d = c.diagnostics()
+    e = K * (x - xd)
+    return K * x, K * vd - p.lambda_per_s * e, d['s_v'], d
+
+
+@pytest.mark.parametrize('offset_m, moves', [(0.3e-9, False), (-0.3e-9, False),
+                                             (1.9e-9, False), (3e-9, True), (-3e-9, True)])
+def test_the_adaptation_dead_zone_freezes_the_estimates_inside_it(offset_m, moves):
+    # a boundary layer much narrower than the dead zone: only epsilon_a decides
+    p = RACParams(epsilon_v=1e-5, adaptation_dead_zone_v=0.001, gamma=1e3, eta=1e-3)
+    y, u_fd, s, d = _first_step(p, 3.8e-6 + offset_m, 3.8e-6, 0.0)
+    # s = (1 + lambda T) K offset: 0.10 mV at 0.3 nm, 0.65 mV at 1.9 nm, 1.03 mV at 3 nm
+    assert (abs(s) > p.adaptation_dead_zone_v) == moves
+    if not moves:
+        assert (d['theta_hat'], d['phi_hat']) == (p.theta_init, p.phi_init)
+    else:
+        s_a = s - p.adaptation_dead_zone_v * sat(s / p.adaptation_dead_zone_v)
+        assert d['theta_hat'] == pytest.approx(p.theta_init - T * p.gamma * y * s_a, rel=1e-12)
+        assert d['phi_hat'] == pytest.approx(p.phi_init - T * p.eta * u_fd * s_a, rel=1e-12)
+
+
+def test_a_zero_dead_zone_adapts_on_every_nonzero_s():
+    p = RACParams(adaptation_dead_zone_v=0.0, gamma=1e3, eta=1e-3)
+    y, u_fd, s, d = _first_step(p, 3.8e-6 + 0.3e-9, 3.8e-6, 0.0)
+    assert 0.0 < abs(s) < p.epsilon_v                 # deep inside the boundary layer
+    assert d['theta_hat'] == pytest.approx(p.theta_init - T * p.gamma * y * s, rel=1e-12)
+    assert d['phi_hat'] == pytest.approx(p.phi_init - T * p.eta * u_fd * s, rel=1e-12)
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.floats(0.0, 38e-6), st.floats(-2e-6, 2e-6), st.floats(-0.05, 0.05),
+       st.floats(1e-3, 1e3), st.floats(1.0, 1e6), st.floats(1e-6, 1.0))
+def test_normalisation_bounds_the_per_sample_step(xd, err, vd, kappa, gamma, eta):
+    # wide bounds so no clipping: the command moves by q = y dtheta + u_fd dphi = -g/(1+kappa g)
+    # s_a with g = T (gamma y^2 + eta u_fd^2), so |q| < |s_a|/kappa for any regressor size
+    p = RACParams(adaptation_dead_zone_v=0.0, normalisation=kappa, gamma=gamma, eta=eta,
+                  theta_min=1e-9, theta_max=1e9, phi_min=1e-12, phi_max=1e9, theta_init=1.0,
+                  phi_init=1.0)
+    y, u_fd, s, d = _first_step(p, xd + err, xd, vd)
+    if d['saturated']:
+        return                                         # frozen adaptation: nothing to bound
+    q = y * (d['theta_hat'] - p.theta_init) + u_fd * (d['phi_hat'] - p.phi_init)
+    g = T * (gamma * y * y + eta * u_fd * u_fd)
+    # q is a difference of O(1) estimates times regressors: its rounding is ~1e-16 of
+    # |y| theta + |u_fd| phi, the size of the terms cancelled
+    tol = 1e-14 * (abs(y) + abs(u_fd)) * 1e9 + 1e-300
+    assert q == pytest.approx(-g / (1.0 + kappa * g) * s, rel=1e-9, abs=tol)
+    assert abs(q) <= abs(s) / kappa + tol
 
 
 # ---------------------------------------------------------------- PI

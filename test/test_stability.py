@@ -22,6 +22,8 @@ from piezo_stage_ros.core.controllers import ControllerParams, NotchParams, PIPa
 from piezo_stage_ros.core.errors import ParameterError, StabilityError
 from piezo_stage_ros.core.linear import reduced_plant, ReducedParams
 from piezo_stage_ros.core.stability import (
+    _edge_crossing,
+    _polytope_failure,
     check_stability,
     enforce,
     StabilityParams,
@@ -152,3 +154,70 @@ def test_a_larger_rac_estimate_box_is_checked_and_can_fail():
     assert not check_stability(wide, REDUCED, T).stable
     assert check_stability(wide, REDUCED, T,
                            options=StabilityParams(estimates='initial')).stable
+
+
+def _circle(n=4096):
+    return np.exp(1j * np.linspace(0.0, math.pi, n + 2)[1:-1])
+
+
+@pytest.mark.parametrize('f0, f1, t, w', [
+    ([1.0, -0.5], [1.0, -1.5], 0.5, 0.0),              # z = 0.5 + t reaches z = 1 at t = 0.5
+    ([1.0, 0.5], [1.0, 1.5], 0.5, math.pi),            # z = -(0.5 + t) reaches z = -1
+    ([1.0, 0.0, 0.5], [1.0, 0.0, 1.5], 0.5, math.pi / 2),   # z^2 + c: |z| = 1 at c = 1, z = j
+    ([1.0, 0.0, 0.25], [1.0, 0.0, 0.81], None, None),  # stays inside
+])
+def test_edge_crossing_finds_the_analytic_crossing(f0, f1, t, w):
+    hit = _edge_crossing(np.array(f0), np.array(f1), _circle())
+    if t is None:
+        assert hit is None
+    else:
+        # linear interpolation between grid points 7.7e-4 rad apart
+        assert hit == pytest.approx((t, w), abs=1e-3)
+
+
+def test_a_segment_of_stable_cubics_can_be_unstable_inside_and_is_caught():
+    # two Schur-stable cubics whose midpoint is not: sampling the vertices is not enough
+    f0 = np.real(np.poly([-0.8, 0.9 * np.exp(2.8j), 0.9 * np.exp(-2.8j)]))
+    f1 = np.real(np.poly([0.8, 0.8 * np.exp(0.1j), 0.8 * np.exp(-0.1j)]))
+    assert max(abs(np.roots(f0))) < 1.0 and max(abs(np.roots(f1))) < 1.0
+    radii = [max(abs(np.roots((1 - t) * f0 + t * f1))) for t in np.linspace(0.0, 1.0, 201)]
+    assert max(radii) > 1.0
+    failure = _polytope_failure([('f0', f0), ('f1', f1)], _circle(), T)
+    assert failure is not None and 'between f0 and f1' in failure
+    # the first crossing it reports is where the dense sampling first leaves the disc
+    t_hit = float(failure.split('t = ')[1].split(')')[0])
+    t_first = np.linspace(0.0, 1.0, 201)[np.argmax(np.array(radii) >= 1.0)]
+    assert t_first - 0.005 - 1e-3 <= t_hit <= t_first + 1e-3
+    assert _polytope_failure([('f0', f0), ('f0 again', f0 * 1.0)], _circle(), T) is None
+
+
+def test_the_certificate_covers_every_slope_between_the_sampled_ones():
+    # P control of the reduced plant: pole a - K b slope k_p, unstable for
+    # slope > (1 + a)/(K b k_p); sample only the two ends, both stable, with the limit between
+    # them impossible (a P loop is stable on an interval of slopes), so both agree; then push
+    # the upper end over: the sampled check and the certificate both refuse
+    red = ReducedParams()
+    a = math.exp(-T / red.tau_s)
+    kb = PAPER_PI.sensor_gain_v_per_m * red.gain_m_per_v * (1.0 - a)
+    kp = 10.0
+    limit = (1.0 + a) / (kb * kp)
+    params = ControllerParams(type='pi', pi=PIParams(k_p=kp, k_i=0.0), notch=NO_NOTCH)
+    for top, ok in ((0.999 * limit, True), (1.001 * limit, False)):
+        rep = check_stability(params, REDUCED, T, options=StabilityParams(
+            slope_min=0.5 * limit, slope_max=top, slope_points=2))
+        assert all(c.certified for c in rep.certificates) == ok
+        assert rep.stable == ok
+
+
+def test_the_paper_rac_on_model_20_is_refused_and_names_the_binding_constraint():
+    paper = ControllerParams(type='rac', rac=PAPER_RAC, notch=NO_NOTCH)
+    rep = check_stability(paper, THIRD, T)
+    assert not rep.stable and not rep.certified
+    assert 'Binding constraint: the frozen loops' in rep.text() and 'UNSTABLE' in rep.text()
+    with pytest.raises(StabilityError):
+        enforce(rep, 'refuse')
+    # default: both constraints hold; the report says which is closer to its limit
+    ok = check_stability(ControllerParams(), THIRD, T)
+    assert ok.certified
+    assert all(c.certified for c in ok.certificates) and len(ok.certificates) == 2
+    assert 'Binding constraint:' in ok.text()

@@ -30,6 +30,25 @@ RAC, eqs. (33)-(40), in sensor volts (e = y - y_d is the paper's x tilde)::
     dphi_hat/dt   = proj(phi_hat,   -eta   u_fd s_eps)              (38)
     dtheta_hat/dt = proj(theta_hat, -gamma y    s_eps)              (39)
 
+The package's discrete adaptive law generalises (38)-(39) in two ways, each of which reduces to
+the paper's law with its parameter at the neutral value (docs/controllers.md derives them)::
+
+    s_a   = s - eps_a * sat(s / eps_a)       (eps_a = 0: s_a = s)   dead zone of its own
+    n     = 1 + kappa T (gamma y^2 + eta u_fd^2)                    normalisation
+    phi_hat   <- clip(phi_hat   - (T/n) eta   u_fd s_a, phi_min,   phi_max)
+    theta_hat <- clip(theta_hat - (T/n) gamma y    s_a, theta_min, theta_max)
+
+- the adaptation dead zone eps_a (``adaptation_dead_zone_v``) is separate from the robust
+  term's boundary layer eps (``epsilon_v``, which still shapes -k* sat(s/eps) in (36)): the
+  boundary layer must be wide for the discrete loop's gain k_d + k*/eps, but as the dead zone
+  of the adaptation the same width (hundreds of nanometres) means the estimates never move
+  while tracking. eps_a = eps is the paper's s_eps;
+- the normalisation kappa (``normalisation``) divides each update by n: the adaptation loop's
+  per-sample gain g = T (gamma y^2 + eta u_fd^2) becomes g/(1 + kappa g) < 1/kappa whatever the
+  regressors, so kappa >= ADAPTATION_MARGIN/g_crit certifies the adaptation loop for every
+  y and u_fd, not only up to y_max (:mod:`piezo_stage_ros.core.stability`). kappa = 0 is the
+  unnormalised law.
+
 Discretization at the sample period T (step k sees y_k and returns v_k, held over one sample):
 
 - the integral by the backward rectangle I_k = I_k-1 + T e_k (the current error is in s_k,
@@ -157,6 +176,16 @@ class RACParams(Params):
                          'discrete bound of the stability check).', low=0.0)
     eta: float = param(1e-6, unit='s/V^2', description='Adaptation rate eta of phi_hat, '
                        'eq. (38) (paper 0.01; same discrete bound as gamma).', low=0.0)
+    adaptation_dead_zone_v: float = param(0.2, unit='V (sensor)', description='Dead zone '
+                                          'epsilon_a of the adaptation: (38)-(39) are driven by '
+                                          's_a = s - epsilon_a sat(s/epsilon_a) instead of '
+                                          's_eps (0: no dead zone; equal to epsilon_v: the '
+                                          "paper's law).", low=0.0)
+    normalisation: float = param(0.0, unit='-', description='Normalisation kappa of the '
+                                 'adaptation: each update is divided by n = 1 + kappa T '
+                                 '(gamma y^2 + eta u_fd^2), which caps the per-sample loop '
+                                 "gain below 1/kappa (0: the paper's unnormalised law).",
+                                 low=0.0)
     theta_min: float = param(0.9, unit='V/V', description='Lower bound of theta = a/(b c), '
                              'eq. (29) (paper 0.5).', low=0.0, low_open=True)
     theta_max: float = param(1.7, unit='V/V', description='Upper bound of theta, eq. (29) '
@@ -306,6 +335,7 @@ class RACController:
         self._kstar = p.k_star_v
         self._gamma = p.gamma
         self._eta = p.eta
+        self._set_adaptation(p)
         self.nonfinite_inputs = 0
         self.bad_dt = 0
         self.reset(0.0, 0.0)
@@ -403,14 +433,23 @@ class RACController:
             v = vmax if v > vmax else (vmin if v < vmin else v)
         else:
             self._saturated = 0.0
-            s_eps = s - self._eps * sz
-            if s_eps != 0.0:
-                # Euler step of (38)-(39), then the projection (40) on the updated estimate
+            eps_a = self._eps_a
+            if eps_a > 0.0:
+                za = s * self._inv_eps_a
+                s_a = s - eps_a * (1.0 if za >= 1.0 else (-1.0 if za <= -1.0 else za))
+            else:
+                s_a = s
+            if s_a != 0.0:
+                # Euler step of (38)-(39) with the normalised step g = T/n, then the
+                # projection (40) on the updated estimate; kappa = 0 keeps g = T exactly
+                kappa = self._kappa
+                g = dt / (1.0 + kappa * dt * (self._gamma * y * y + self._eta * u_fd * u_fd)
+                          ) if kappa > 0.0 else dt
                 p = self.params
-                ph = phi - dt * self._eta * u_fd * s_eps
+                ph = phi - g * self._eta * u_fd * s_a
                 self._phi = p.phi_max if ph > p.phi_max else (p.phi_min if ph < p.phi_min
                                                               else ph)
-                th = theta - dt * self._gamma * y * s_eps
+                th = theta - g * self._gamma * y * s_a
                 self._theta = p.theta_max if th > p.theta_max else (
                     p.theta_min if th < p.theta_min else th)
         if v != v:  # unreachable with finite inputs and bounded estimates; belt and braces
@@ -457,10 +496,18 @@ class RACController:
         self._kd, self._lam, self._eps = p.k_d, p.lambda_per_s, p.epsilon_v
         self._inv_eps = 1.0 / p.epsilon_v
         self._kstar, self._gamma, self._eta = p.k_star_v, p.gamma, p.eta
+        self._set_adaptation(p)
         self._theta = min(max(self._theta, p.theta_min), p.theta_max)
         self._phi = min(max(self._phi, p.phi_min), p.phi_max)
         self._built = params
         return True
+
+    def _set_adaptation(self, p: RACParams) -> None:
+        """Cache the adaptation's dead zone (and its inverse) and normalisation."""
+        eps_a = p.adaptation_dead_zone_v
+        self._eps_a = eps_a
+        self._inv_eps_a = 1.0 / eps_a if eps_a > 0.0 else 0.0
+        self._kappa = p.normalisation
 
     def diagnostics(self) -> Mapping[str, float]:
         """Return theta_hat, phi_hat, s [V], the integral [V s], error [V], flags, counters."""

@@ -34,43 +34,58 @@ where, for the RAC, k = k_d + k*/epsilon inside the boundary layer (|s| < epsilo
 outside it (there sat(s/epsilon) = +-1 is a constant); theta_hat and phi_hat are frozen. The
 +theta_hat y term of eq. (36) is positive feedback and -phi_hat lambda e adds proportional gain.
 
-The verdict covers every combination of: hysteresis slope on a grid over
+The check samples every combination of: hysteresis slope on a grid over
 ``[slope_min, slope_max]`` (for eq. (21) the incremental slope dw/dv lies in [2 B1 - c, c]),
-the RAC estimates at the four corners of their projection bounds and at their initial values
-(Theorem 1 only keeps them inside the bounds, so every value inside must be safe; they enter the
-linear loop only through its proportional gain, which is affine in them, so the corners give its
-extremes) or only at their initial values, and both RAC regions. The loop is stable when
-every closed-loop pole (root of den_L(z) + num_L(z)) lies strictly inside the unit circle.
+the RAC estimates at the four corners of their projection box and at their initial values
+(``estimates: corners``) or only at their initial values, and both RAC regions, and reports
+the poles and margins of each. It then *certifies* the whole set, not only the samples: the
+estimates enter the linear loop only through its proportional gain k_p = k + phi_hat lambda -
+theta_hat, affine in them, so the box maps onto an interval of k_p, and the characteristic
+polynomial den_L + num_L is affine in (slope k_p, slope k lambda). The family "every estimate
+of the box x every slope" is therefore a polytope of polynomials (a trapezoid), and by the edge
+theorem (Bartlett, Hollot and Huang 1988) every member has its roots inside the unit circle if
+and only if its four edges do: a stable vertex and no edge along which a root reaches the
+circle (:func:`_polytope_failure`, a frequency sweep with the exact crossing parameter). The
+verdict :attr:`StabilityReport.stable` is the sampled cases and these certificates.
 
-The RAC's adaptation is a second, discrete loop (:func:`adaptation_bound`): outside the boundary
-layer the Euler updates theta_hat += -T gamma y s_eps and phi_hat += -T eta u_fd s_eps move the
-command by q = y d(theta_hat) + u_fd d(phi_hat), and with the regressors y, u_fd frozen::
+The RAC's adaptation is a second, discrete loop (:func:`adaptation_bound`): where |s| exceeds
+the adaptation's dead zone epsilon_a the updates theta_hat += -(T/n) gamma y s_a and
+phi_hat += -(T/n) eta u_fd s_a move the command by q = y d(theta_hat) + u_fd d(phi_hat), and
+with the regressors y, u_fd frozen::
 
-    (z - 1) q = -g H(z) q,    g = T (gamma y^2 + eta u_fd^2)
+    (z - 1) q = -g_eff H(z) q,   g = T (gamma y^2 + eta u_fd^2),   g_eff = g / (1 + kappa g)
 
-where H(z) is the response of s to an additive command disturbance in the loop above (k = k_d,
-H(1) = 1/k_d). Every root must lie inside the unit circle: g < g_crit, the smallest critical
-gain over the cases. The report says whether the configured rates keep g at the largest
-regressors the stage can produce (y_max: the largest output the command range can hold on the
-model; u_fd: lambda y_max, a reference step across that range) below g_crit / 2.
+where n = 1 + kappa g is the normalisation and H(z) is the response of s to an additive
+command disturbance in the loop above (H(1) = 1/k). Every root must lie inside the unit
+circle: g_eff < g_crit, the smallest critical gain over the estimate box, the slopes and the
+regions where the adaptation acts (outside the boundary layer, k = k_d; and inside it,
+k = k_d + k*/epsilon, when epsilon_a < epsilon); for a fixed g the family is again a polytope,
+certified by its edges. The dead zone does not change this linear loop: for |s| > epsilon_a,
+s_a = s - epsilon_a sign(s) has slope 1, inside it the adaptation stops (slope 0), a sector
+[0, 1] nonlinearity whose every gain g' in [0, g] is below the first crossing g_crit. The
+report requires g_eff <= g_crit / ADAPTATION_MARGIN at the largest regressors the stage can
+produce (y_max: the largest output the command range can hold on the model; u_fd: lambda
+y_max, a reference step across that range), or, for every regressor size, kappa >=
+ADAPTATION_MARGIN / g_crit, since g_eff < 1/kappa whatever g is. It says which constraint
+binds (the frozen loops' worst case or the adaptation bound) and by how much.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 import math
-from typing import Sequence
+from typing import Callable, Sequence
 import warnings
 
 import numpy as np
 from numpy.typing import NDArray
-from piezo_stage_ros.core.controllers import ControllerParams, notch_design
+from piezo_stage_ros.core.controllers import ControllerParams, notch_design, RACParams
 from piezo_stage_ros.core.errors import ParameterError, StabilityError
 from piezo_stage_ros.core.linear import LinearPlant, third_order_plant
 from piezo_stage_ros.core.params import group, param, Params
 from piezo_stage_ros.core.stage import linear_plant, PlantParams
 
-__all__ = ['ADAPTATION_MARGIN', 'AdaptationBound', 'LoopCase', 'StabilityParams',
+__all__ = ['ADAPTATION_MARGIN', 'AdaptationBound', 'BoxCertificate', 'LoopCase', 'StabilityParams',
            'StabilityReport', 'StabilityWarning', 'adaptation_bound', 'check_stability',
            'enforce', 'loop_polynomials', 'stability_plant']
 
@@ -157,6 +172,28 @@ class LoopCase:
 
 
 @dataclass(frozen=True)
+class BoxCertificate:
+    """
+    Whether every linear loop of one controller family is stable, not only the sampled ones.
+
+    Attributes
+    ----------
+    label : str
+        The family: region, range of the proportional gain over the estimate box and the
+        slope interval.
+    certified : bool
+        Every loop with a proportional gain and a slope in those intervals is stable.
+    detail : str
+        Where it fails (empty when certified).
+
+    """
+
+    label: str
+    certified: bool
+    detail: str = ''
+
+
+@dataclass(frozen=True)
 class AdaptationBound:
     """
     The discrete adaptation loop of the RAC at its largest regressors (module docstring).
@@ -176,11 +213,19 @@ class AdaptationBound:
         Largest regressor of phi_hat taken, lambda y_max (a reference step across the whole
         reachable range, seen at once by the error) [V/s].
     critical_gain : float
-        g_crit: smallest per-sample gain T (gamma y^2 + eta u_fd^2) that puts a root of
-        (z - 1) + g H(z) on the unit circle, over the cases [-]; 0 when a frozen loop is
-        already unstable, inf when no gain up to 1e4 does.
+        g_crit: smallest per-sample gain that puts a root of (z - 1) + g H(z) on the unit
+        circle, over every estimate in the box, every slope and every region where the
+        adaptation acts [-]; 0 when a frozen loop is already unstable, inf when no gain up to
+        1e4 does.
     worst_label : str
         The case that sets ``critical_gain``.
+    normalisation : float
+        kappa of the law: the effective per-sample gain is g / (1 + kappa g) [-].
+    dead_zone_v : float
+        epsilon_a, the adaptation's dead zone [V].
+    regions : tuple of str
+        Where the adaptation acts: ``'outside'`` the boundary layer, and ``'inside'`` it too
+        when epsilon_a < epsilon.
 
     """
 
@@ -191,17 +236,44 @@ class AdaptationBound:
     u_fd_max_v_per_s: float
     critical_gain: float
     worst_label: str
+    normalisation: float = 0.0
+    dead_zone_v: float = 0.0
+    regions: tuple[str, ...] = ('outside',)
 
     @property
     def gain(self) -> float:
-        """Return g = T (gamma y_max^2 + eta u_fd_max^2), the per-sample gain [-]."""
+        """Return g = T (gamma y_max^2 + eta u_fd_max^2), the unnormalised per-sample gain [-]."""
         return self.sample_time_s * (self.gamma * self.y_max_v ** 2
                                      + self.eta * self.u_fd_max_v_per_s ** 2)
 
     @property
+    def effective_gain(self) -> float:
+        """Return g / (1 + kappa g) at the largest regressors [-]."""
+        g = self.gain
+        return g / (1.0 + self.normalisation * g)
+
+    @property
+    def all_regressors(self) -> bool:
+        """Return whether kappa >= ADAPTATION_MARGIN / g_crit (bound for every regressor)."""
+        return self.normalisation * self.critical_gain >= ADAPTATION_MARGIN
+
+    @property
     def ok(self) -> bool:
-        """Return whether g <= g_crit / ADAPTATION_MARGIN."""
-        return self.gain * ADAPTATION_MARGIN <= self.critical_gain
+        """Return whether g / (1 + kappa g) <= g_crit / ADAPTATION_MARGIN at y_max (or any)."""
+        return (self.all_regressors
+                or self.effective_gain * ADAPTATION_MARGIN <= self.critical_gain)
+
+    @property
+    def margin_db(self) -> float:
+        """Return 20 log10(g_crit / (ADAPTATION_MARGIN g_eff)): >= 0 when :attr:`ok` [dB]."""
+        g = self.effective_gain
+        if self.all_regressors:
+            g = 1.0 / self.normalisation   # the supremum over every regressor
+        if g == 0.0:
+            return math.inf
+        if self.critical_gain == 0.0:
+            return -math.inf
+        return 20.0 * math.log10(self.critical_gain / (ADAPTATION_MARGIN * g))
 
     def max_gamma(self, eta: float | None = None) -> float:
         """
@@ -215,24 +287,42 @@ class AdaptationBound:
         Returns
         -------
         float
-            (g_crit / ADAPTATION_MARGIN / T - eta u_fd_max^2) / y_max^2, at least 0.
+            (g_lim / T - eta u_fd_max^2) / y_max^2, at least 0, with g_lim the largest raw
+            gain whose normalised value is g_crit / ADAPTATION_MARGIN, G/(1 - kappa G) with
+            G = g_crit / ADAPTATION_MARGIN; inf when kappa G >= 1 (every gain is within).
 
         """
         e = self.eta if eta is None else eta
-        budget = self.critical_gain / ADAPTATION_MARGIN / self.sample_time_s
+        limit = self.critical_gain / ADAPTATION_MARGIN
+        if self.normalisation * limit >= 1.0:
+            return math.inf
+        budget = limit / (1.0 - self.normalisation * limit) / self.sample_time_s
         return max((budget - e * self.u_fd_max_v_per_s ** 2) / self.y_max_v ** 2, 0.0)
 
     def text(self) -> str:
         """Return one sentence: the per-sample gain against the bound."""
-        head = (f'Adaptation: T (gamma y_max^2 + eta u_fd_max^2) = {self.gain:.3g} at y_max = '
-                f'{self.y_max_v:.2f} V, u_fd_max = lambda y_max = '
-                f'{self.u_fd_max_v_per_s:.3g} V/s; discrete bound g_crit = '
-                f'{self.critical_gain:.3g} ({self.worst_label})')
+        where = ' and '.join(self.regions)
+        kappa = self.normalisation
+        head = (f'Adaptation (dead zone {self.dead_zone_v:g} V, acts {where} the boundary '
+                f'layer, kappa = {kappa:g}): T (gamma y_max^2 + eta u_fd_max^2) = '
+                f'{self.gain:.3g} at y_max = {self.y_max_v:.2f} V, u_fd_max = lambda y_max = '
+                f'{self.u_fd_max_v_per_s:.3g} V/s')
+        if kappa > 0.0:
+            head += f', normalised g/(1 + kappa g) = {self.effective_gain:.3g} (< 1/kappa)'
+        head += f'; discrete bound g_crit = {self.critical_gain:.3g} ({self.worst_label})'
+        if self.all_regressors:
+            return (head + f': kappa >= {ADAPTATION_MARGIN:g}/g_crit = '
+                    f'{ADAPTATION_MARGIN / self.critical_gain:.3g}, within '
+                    f'g_crit/{ADAPTATION_MARGIN:g} for every regressor size '
+                    f'({self.margin_db:.1f} dB to spare).')
+        need = (f' (kappa >= {ADAPTATION_MARGIN / self.critical_gain:.3g} would hold it for '
+                'every regressor size)' if self.critical_gain > 0.0 else '')
         if self.ok:
-            return head + f', within g_crit/{ADAPTATION_MARGIN:g}.'
+            return (head + f', within g_crit/{ADAPTATION_MARGIN:g} up to y_max '
+                    f'({self.margin_db:.1f} dB to spare){need}.')
         return (head + f': ABOVE g_crit/{ADAPTATION_MARGIN:g}, the estimates can limit-cycle '
                 'between their bounds on a plateau or after a step; lower gamma (at most '
-                f'{self.max_gamma():.3g} with this eta) or eta.')
+                f'{self.max_gamma():.3g} with this eta) or eta, or raise kappa{need}.')
 
 
 @dataclass(frozen=True)
@@ -261,11 +351,45 @@ class StabilityReport:
     sample_time_s: float
     cases: tuple[LoopCase, ...]
     adaptation: AdaptationBound | None = None
+    certificates: tuple[BoxCertificate, ...] = ()
 
     @property
     def stable(self) -> bool:
-        """Return whether every case is stable."""
-        return all(c.stable for c in self.cases)
+        """Return whether every sampled case is stable and every family is certified."""
+        return (all(c.stable for c in self.cases)
+                and all(c.certified for c in self.certificates))
+
+    @property
+    def certified(self) -> bool:
+        """Return whether the loops are stable and the adaptation is within its bound."""
+        return self.stable and (self.adaptation is None or self.adaptation.ok)
+
+    def binding(self) -> str:
+        """
+        Return which constraint binds and by how much.
+
+        Returns
+        -------
+        str
+            The frozen loops (their worst case, and the smallest gain margin over the cases,
+            which must stay above 0 dB) or the adaptation bound (its gain ratio over the
+            required ADAPTATION_MARGIN, in dB), whichever is closer to its limit; a failing
+            constraint always binds.
+
+        """
+        w = self.worst
+        loops = abs(self.gain_margin_db)
+        loop_text = (f'the frozen loops (worst case {w.label}: spectral radius '
+                     f'{w.spectral_radius:.4f}; smallest gain margin {_fmt(loops)} dB)')
+        if not self.stable:
+            return f'Binding constraint: {loop_text}, UNSTABLE.'
+        a = self.adaptation
+        if a is None or (a.ok and a.margin_db >= loops):
+            return f'Binding constraint: {loop_text}.'
+        state = 'within' if a.ok else 'ABOVE'
+        return (f'Binding constraint: the adaptation bound, g {state} g_crit/'
+                f'{ADAPTATION_MARGIN:g} by {a.margin_db:.1f} dB (frozen loops: {_fmt(loops)} '
+                'dB gain margin).')
 
     @property
     def worst(self) -> LoopCase:
@@ -302,8 +426,17 @@ class StabilityReport:
         margins = (f' Over all cases: smallest gain margin {_fmt(self.gain_margin_db)} dB, '
                    f'smallest phase margin {_fmt(self.phase_margin_deg)} deg (closest to 0).')
         extra = '' if self.adaptation is None else ' ' + self.adaptation.text()
+        failed = [c for c in self.certificates if not c.certified]
+        if self.certificates and not failed:
+            box = (f' Every loop of the box certified ({len(self.certificates)} families, '
+                   'every estimate x every slope, edge theorem).')
+        else:
+            box = ''.join(f' NOT CERTIFIED: {c.label}, {c.detail}.' for c in failed)
+        extra = box + extra + ' ' + self.binding()
         if self.stable:
             return head + worst + margins + extra
+        if w.stable:  # every sampled case is stable, but the box is not
+            return head + worst + extra
         pole = w.poles[int(np.argmax(np.abs(w.poles)))]
         freq = abs(math.atan2(pole.imag, pole.real)) / (2.0 * math.pi * self.sample_time_s)
         advice = (f' The dominant closed-loop pole z = {pole.real:.4f}{pole.imag:+.4f}j lies '
@@ -346,28 +479,39 @@ def _plant_tf(plant: LinearPlant, sample_time_s: float) -> tuple[FloatArray, Flo
     return num, np.asarray(den, dtype=np.float64).ravel()
 
 
-def _controller_cases(params: ControllerParams, estimates: str
-                      ) -> list[tuple[str, float, float]]:
-    """Return (label, proportional gain [V/V], integral gain [1/s]) of each linear controller."""
-    if params.type == 'pi':
-        p = params.pi
-        return [(f'PI k_p={p.k_p:g}, k_i={p.k_i:g}', p.k_p, p.k_i)]
-    if params.type == 'open_loop':
-        return [('open loop', 0.0, 0.0)]
-    r = params.rac
+def _rac_pairs(r: RACParams, estimates: str) -> list[tuple[float, float]]:
+    """Return the (theta_hat, phi_hat) pairs checked: the box's corners and the initial pair."""
     if estimates == 'corners':
         # the estimates enter only through the proportional gain, affine in them: the corners
         # give its extremes; the initial pair is checked too (the loop the run starts with)
         pairs = [(t, f) for t in (r.theta_min, r.theta_max) for f in (r.phi_min, r.phi_max)]
         pairs.append((r.theta_init, r.phi_init))
-    else:
-        pairs = [(r.theta_init, r.phi_init)]
+        return pairs
+    return [(r.theta_init, r.phi_init)]
+
+
+def _controller_families(params: ControllerParams, estimates: str
+                         ) -> list[tuple[str, float, list[tuple[str, float]]]]:
+    """
+    Return the linear controllers checked, grouped by integral gain.
+
+    Each family is (label, integral gain [1/s], [(case label, proportional gain [V/V]), ...]);
+    inside a family only the proportional gain varies (the RAC's estimates), so its extremes
+    and the slope interval span the polytope :func:`_polytope_failure` certifies.
+    """
+    if params.type == 'pi':
+        p = params.pi
+        label = f'PI k_p={p.k_p:g}, k_i={p.k_i:g}'
+        return [(label, p.k_i, [(label, p.k_p)])]
+    if params.type == 'open_loop':
+        return [('open loop', 0.0, [('open loop', 0.0)])]
+    r = params.rac
     out = []
     for region, k in (('inside', r.k_d + r.k_star_v / r.epsilon_v), ('outside', r.k_d)):
-        for theta, phi in pairs:
-            label = (f'RAC {region} boundary layer (k={k:g}), theta_hat={theta:g}, '
-                     f'phi_hat={phi:g}')
-            out.append((label, k + phi * r.lambda_per_s - theta, k * r.lambda_per_s))
+        head = f'RAC {region} boundary layer (k={k:g})'
+        cases = [(f'{head}, theta_hat={theta:g}, phi_hat={phi:g}',
+                  k + phi * r.lambda_per_s - theta) for theta, phi in _rac_pairs(r, estimates)]
+        out.append((head, k * r.lambda_per_s, cases))
     return out
 
 
@@ -505,23 +649,40 @@ def check_stability(controller_params: ControllerParams, plant_params: PlantPara
     if notch is not None:
         rest = rest * np.polyval(notch[0], z) / np.polyval(notch[1], z)
     cases: list[LoopCase] = []
-    for label, kp, ki in _controller_cases(controller_params, opts.estimates):
-        for slope in opts.slopes():
-            gain = controller_params.sensor_gain_v_per_m * slope
-            num, den = loop_polynomials(kp, ki, gain, g_num, g_den, sample_time_s, notch,
-                                        opts.delay_samples)
-            n = max(len(num), len(den))
-            char = np.pad(den, (n - len(den), 0)) + np.pad(num, (n - len(num), 0))
-            poles = np.roots(char).astype(np.complex128)
-            radius = float(np.max(np.abs(poles))) if poles.size else 0.0
-            if kp == 0.0 and ki == 0.0:
-                gm, pm = math.inf, math.inf
-            else:
-                lz = gain * (kp + ki * sample_time_s * z / (z - 1.0)) * rest
-                gm, pm = _margins(lz, num, den)
-            cases.append(LoopCase(label=f'{label}, slope={slope:.4g}', slope=slope,
-                                  spectral_radius=radius, gain_margin_db=gm,
-                                  phase_margin_deg=pm, poles=poles))
+    certificates: list[BoxCertificate] = []
+    k_sensor = controller_params.sensor_gain_v_per_m
+    grid = _circle_grid()
+
+    def char(kp: float, ki: float, slope: float) -> FloatArray:
+        num, den = loop_polynomials(kp, ki, k_sensor * slope, g_num, g_den, sample_time_s, notch,
+                                    opts.delay_samples)
+        return _padd(den, num)
+
+    for family, ki, members in _controller_families(controller_params, opts.estimates):
+        for label, kp in members:
+            for slope in opts.slopes():
+                gain = k_sensor * slope
+                poles = np.roots(char(kp, ki, slope)).astype(np.complex128)
+                radius = float(np.max(np.abs(poles))) if poles.size else 0.0
+                if kp == 0.0 and ki == 0.0:
+                    gm, pm = math.inf, math.inf
+                else:
+                    num, den = loop_polynomials(kp, ki, gain, g_num, g_den, sample_time_s,
+                                                notch, opts.delay_samples)
+                    lz = gain * (kp + ki * sample_time_s * z / (z - 1.0)) * rest
+                    gm, pm = _margins(lz, num, den)
+                cases.append(LoopCase(label=f'{label}, slope={slope:.4g}', slope=slope,
+                                      spectral_radius=radius, gain_margin_db=gm,
+                                      phase_margin_deg=pm, poles=poles))
+        kps = [kp for _, kp in members]
+        lo, hi = min(kps), max(kps)
+        vertices = [(f'slope={sl:.4g}, k_p={kp:.4g}', char(kp, ki, sl))
+                    for sl, kp in _rectangle(opts.slope_min, opts.slope_max, lo, hi)]
+        failure = _polytope_failure(vertices, grid, sample_time_s)
+        certificates.append(BoxCertificate(
+            label=(f'{family}: k_p in [{lo:.4g}, {hi:.4g}] x slope in '
+                   f'[{opts.slope_min:.4g}, {opts.slope_max:.4g}]'),
+            certified=failure is None, detail=failure or ''))
     desc = {'rac': 'RAC', 'pi': 'PI', 'open_loop': 'open loop'}[controller_params.type]
     if controller_params.notch.mode != 'off':
         desc += f' + notch ({controller_params.notch.mode})'
@@ -530,7 +691,8 @@ def check_stability(controller_params: ControllerParams, plant_params: PlantPara
         adaptation = _adaptation(controller_params, plant, g_num, g_den, sample_time_s, notch,
                                  opts)
     return StabilityReport(controller=desc, plant=plant.name, sample_time_s=sample_time_s,
-                           cases=tuple(cases), adaptation=adaptation)
+                           cases=tuple(cases), adaptation=adaptation,
+                           certificates=tuple(certificates))
 
 
 def adaptation_bound(controller_params: ControllerParams, plant_params: PlantParams,
@@ -571,35 +733,76 @@ def _adaptation(params: ControllerParams, plant: LinearPlant, g_num: FloatArray,
     k_sensor = params.sensor_gain_v_per_m
     u_abs = max(abs(params.output_min_v), abs(params.output_max_v))
     y_max = k_sensor * abs(plant.dc_gain_m_per_v) * (opts.slope_max * u_abs + r.rho_v)
-    if opts.estimates == 'corners':
-        pairs = [(t, f) for t in (r.theta_min, r.theta_max) for f in (r.phi_min, r.phi_max)]
-        pairs.append((r.theta_init, r.phi_init))
-    else:
-        pairs = [(r.theta_init, r.phi_init)]
     # s = ((1 + lambda T) z - 1)/(z - 1) e for a constant reference (backward rectangle)
     s_num = np.array([1.0 + r.lambda_per_s * sample_time_s, -1.0])
+    # the adaptation acts where |s| > epsilon_a: outside the boundary layer always, and inside
+    # it too when its dead zone is narrower than the layer (there k = k_d + k*/epsilon)
+    regions = [('outside', r.k_d)]
+    if r.adaptation_dead_zone_v < r.epsilon_v:
+        regions.insert(0, ('inside', r.k_d + r.k_star_v / r.epsilon_v))
+    grid = _circle_grid()
+
+    def parts(k: float, kp: float, slope: float) -> tuple[FloatArray, FloatArray]:
+        # y/d = P N z^-delay / (1 + L) = gain g_num n_num (z - 1) / (l_den + l_num) for a
+        # disturbance d added to the command, and s = y ((1 + lambda T) z - 1)/(z - 1):
+        # H(z) = h_num / char_l, and the adaptation loop is (z - 1) char_l + g h_num = 0
+        gain = k_sensor * slope
+        l_num, l_den = loop_polynomials(kp, k * r.lambda_per_s, gain, g_num, g_den,
+                                        sample_time_s, notch, opts.delay_samples)
+        h_num = np.convolve(g_num * gain, s_num)
+        if notch is not None:
+            h_num = np.convolve(h_num, np.asarray(notch[0], dtype=np.float64))
+        base = np.convolve(_padd(l_den, l_num), [1.0, -1.0])
+        n = max(len(base), len(h_num))
+        return np.pad(base, (n - len(base), 0)), np.pad(h_num, (n - len(h_num), 0))
+
     best = (math.inf, 'no case')
-    for theta, phi in pairs:
-        # outside the boundary layer (where s_eps != 0): k = k_d
-        kp = r.k_d + phi * r.lambda_per_s - theta
-        ki = r.k_d * r.lambda_per_s
-        for slope in opts.slopes():
-            gain = k_sensor * slope
-            l_num, l_den = loop_polynomials(kp, ki, gain, g_num, g_den, sample_time_s, notch,
-                                            opts.delay_samples)
-            # y/d = P N z^-delay / (1 + L) = gain g_num n_num (z - 1) / (l_den + l_num) for a
-            # disturbance d added to the command, and s = y ((1 + lambda T) z - 1)/(z - 1):
-            # H(z) = h_num / char_l, and the adaptation loop is (z - 1) char_l + g h_num = 0
-            h_num = np.convolve(g_num * gain, s_num)
-            if notch is not None:
-                h_num = np.convolve(h_num, np.asarray(notch[0], dtype=np.float64))
-            base = np.convolve(_padd(l_den, l_num), [1.0, -1.0])
-            crit = _critical_gain(base, h_num)
-            if crit < best[0]:
-                best = (crit, f'theta_hat={theta:g}, phi_hat={phi:g}, slope={slope:.4g}')
+    box = math.inf
+    pairs = _rac_pairs(r, opts.estimates)
+    for region, k in regions:
+        sampled = (math.inf, 'no case')
+        for theta, phi in pairs:
+            kp = k + phi * r.lambda_per_s - theta
+            for slope in opts.slopes():
+                base, h_num = parts(k, kp, slope)
+
+                def stable_at(g: float, b: FloatArray = base, h: FloatArray = h_num) -> bool:
+                    return _radius(b + g * h) < 1.0
+
+                crit = _critical_gain(stable_at)
+                if crit < sampled[0]:
+                    sampled = (crit, f'{region} boundary layer (k={k:g}), theta_hat={theta:g}, '
+                               f'phi_hat={phi:g}, slope={slope:.4g}')
+        if sampled[0] < best[0]:
+            best = sampled
+        # the whole box x every slope: the polynomials at a fixed g are affine in
+        # slope (k_p, k lambda, g), a polytope whose edges decide (edge theorem)
+        kps = [k + phi * r.lambda_per_s - theta for theta, phi in pairs]
+        corners = [(sl, kp, *parts(k, kp, sl))
+                   for sl, kp in _rectangle(opts.slope_min, opts.slope_max, min(kps), max(kps))]
+
+        def box_stable(g: float, corners: list[tuple[float, float, FloatArray, FloatArray]]
+                       = corners) -> bool:
+            verts = [(f'slope={sl:.4g}, k_p={kp:.4g}', b + g * h) for sl, kp, b, h in corners]
+            return _polytope_failure(verts, grid, sample_time_s) is None
+
+        top = sampled[0]
+        if math.isinf(top):
+            top = _G_MAX
+        if top == 0.0 or box_stable(top * (1.0 - 1e-3)):
+            g_box = top
+        else:
+            g_box = _critical_gain(box_stable, g_max=top)
+        box = min(box, g_box)
+    label = best[1]
+    if box < best[0] * (1.0 - 2e-3):
+        label = f'inside the box, below every sampled case ({label} gives {best[0]:.3g})'
     return AdaptationBound(gamma=r.gamma, eta=r.eta, sample_time_s=sample_time_s,
                            y_max_v=y_max, u_fd_max_v_per_s=r.lambda_per_s * y_max,
-                           critical_gain=best[0], worst_label=best[1])
+                           critical_gain=min(box, best[0]), worst_label=label,
+                           normalisation=r.normalisation,
+                           dead_zone_v=r.adaptation_dead_zone_v,
+                           regions=tuple(region for region, _ in regions))
 
 
 def enforce(report: StabilityReport, action: str) -> str:
@@ -649,38 +852,38 @@ def _padd(a: FloatArray, b: FloatArray) -> FloatArray:
     return np.asarray(np.pad(a, (n - len(a), 0)) + np.pad(b, (n - len(b), 0)), dtype=np.float64)
 
 
-def _radius(base: FloatArray, h_num: FloatArray, g: float) -> float:
-    """Return the largest |root| of base + g h_num (same lengths, leading base[0] != 0)."""
-    return float(np.max(np.abs(np.roots(base + g * h_num))))
+def _radius(poly: FloatArray) -> float:
+    """Return the largest |root| of a polynomial (leading coefficient != 0)."""
+    return float(np.max(np.abs(np.roots(poly))))
 
 
-def _critical_gain(base: FloatArray, h_num: FloatArray, *, g_max: float = 1e4) -> float:
+#: Largest adaptation gain searched by :func:`_critical_gain`.
+_G_MAX = 1e4
+
+
+def _critical_gain(stable: Callable[[float], bool], *, g_max: float = _G_MAX) -> float:
     """
-    Return the smallest g > 0 for which base + g h_num has a root on the unit circle.
+    Return the smallest g > 0 at which a loop whose stability ``stable(g)`` tells turns unstable.
 
     Parameters
     ----------
-    base : ndarray
-        (z - 1) times the characteristic polynomial of the loop with frozen estimates.
-    h_num : ndarray
-        Numerator of H(z) over that characteristic polynomial.
+    stable : callable
+        Whether the loop (or family of loops) with adaptation gain g is stable.
     g_max : float
         Largest gain searched; ``inf`` is returned when every gain up to it is stable.
 
     Returns
     -------
     float
-        g_crit [-], to a relative 1e-3 (from below); 0 when small gains are already
-        unstable.
+        g_crit [-], to a relative 1e-3 (from below): the first gain of a geometric grid from
+        1e-4 to ``g_max`` that is unstable, refined by bisection; 0 when small gains are
+        already unstable.
 
     """
-    n = max(len(base), len(h_num))
-    base = np.pad(base, (n - len(base), 0))
-    h_num = np.pad(h_num, (n - len(h_num), 0))
-    grid = np.geomspace(1e-4, g_max, 33)
+    grid = np.geomspace(min(1e-4, 0.5 * g_max), g_max, 33)
     lo = 0.0
     for g in grid:
-        if _radius(base, h_num, float(g)) >= 1.0:
+        if not stable(float(g)):
             hi = float(g)
             break
         lo = float(g)
@@ -690,8 +893,121 @@ def _critical_gain(base: FloatArray, h_num: FloatArray, *, g_max: float = 1e4) -
         return 0.0
     while hi - lo > 1e-3 * hi:
         mid = 0.5 * (lo + hi)
-        if _radius(base, h_num, mid) < 1.0:
+        if stable(mid):
             lo = mid
         else:
             hi = mid
     return lo
+
+
+def _rectangle(slope_lo: float, slope_hi: float, kp_lo: float, kp_hi: float
+               ) -> list[tuple[float, float]]:
+    """Return the (slope, k_p) corners in cyclic order, without repeating a degenerate side."""
+    corners = [(slope_lo, kp_lo), (slope_lo, kp_hi), (slope_hi, kp_hi), (slope_hi, kp_lo)]
+    out: list[tuple[float, float]] = []
+    for c in corners:
+        if c not in out:
+            out.append(c)
+    return out
+
+
+def _circle_grid(points: int = 16384) -> NDArray[np.complex128]:
+    """Return z = exp(j w) for w evenly spaced strictly inside (0, pi) (z = +-1 apart)."""
+    w = np.linspace(0.0, math.pi, points + 2)[1:-1]
+    return np.asarray(np.exp(1j * w), dtype=np.complex128)
+
+
+def _edge_crossing(f0: FloatArray, f1: FloatArray, grid: NDArray[np.complex128]
+                   ) -> tuple[float, float] | None:
+    """
+    Return the first point of a segment of polynomials with a root on the unit circle.
+
+    Parameters
+    ----------
+    f0, f1 : ndarray
+        End polynomials (same length, powers of z, highest first).
+    grid : ndarray
+        Points of the upper unit circle strictly between z = 1 and z = -1.
+
+    Returns
+    -------
+    (t, w) or None
+        The smallest t in [0, 1] for which f0 + t (f1 - f0) vanishes at some z = exp(j w),
+        w in [0, pi] [rad/sample]; None when there is none.
+
+    Notes
+    -----
+    f0(z) + t q(z) = 0 with t real needs f0(z) conj(q(z)) real: the sign changes of its
+    imaginary part over the grid locate the candidates (linear interpolation between grid
+    points; a 0.2 mrad grid resolves resonances with damping down to about 1e-3 at 10 kHz),
+    where t = -Re(f0 conj q)/|q|^2. At z = +-1 every value is real and t is exact.
+
+    """
+    q = f1 - f0
+    if not np.any(q):
+        return None
+    fv = np.polyval(f0, grid)
+    qv = np.polyval(q, grid)
+    w = fv * np.conj(qv)
+    im = w.imag
+    re = w.real
+    qq = (qv * np.conj(qv)).real
+    ang = np.angle(grid)
+    hits: list[tuple[float, float]] = []
+    for i in np.flatnonzero(np.signbit(im[:-1]) != np.signbit(im[1:])):
+        a = im[i] / (im[i] - im[i + 1])
+        den = qq[i] + a * (qq[i + 1] - qq[i])
+        if den > 0.0:
+            hits.append((float(-(re[i] + a * (re[i + 1] - re[i])) / den),
+                         float(ang[i] + a * (ang[i + 1] - ang[i]))))
+    for zz, wz in ((1.0, 0.0), (-1.0, math.pi)):
+        qz = float(np.polyval(q, zz))
+        if qz != 0.0:
+            hits.append((-float(np.polyval(f0, zz)) / qz, wz))
+    inside = [h for h in hits if -1e-9 <= h[0] <= 1.0 + 1e-9]
+    return min(inside) if inside else None
+
+
+def _polytope_failure(vertices: Sequence[tuple[str, FloatArray]],
+                      grid: NDArray[np.complex128], sample_time_s: float) -> str | None:
+    """
+    Return None when every polynomial of a polytope is Schur stable, else where it fails.
+
+    Parameters
+    ----------
+    vertices : sequence of (label, polynomial)
+        The polytope's vertices in cyclic order (each edge joins two neighbours); the family
+        is every convex combination. Leading coefficients must not vanish on it.
+    grid : ndarray
+        Points of the upper unit circle for :func:`_edge_crossing`.
+    sample_time_s : float
+        T [s], to report the frequency of a crossing in Hz.
+
+    Returns
+    -------
+    str or None
+        Which vertex is unstable, or between which vertices a root reaches the unit circle.
+
+    Notes
+    -----
+    By the edge theorem (Bartlett, Hollot and Huang, 1988) a polytope of polynomials of
+    constant degree has every root inside a simply connected region (here the unit disc) if
+    and only if every polynomial on its exposed edges has: a stable vertex and no edge that
+    puts a root on the circle.
+
+    """
+    n = max(len(v) for _, v in vertices)
+    verts = [(label, np.pad(v, (n - len(v), 0))) for label, v in vertices]
+    for label, v in verts:
+        radius = _radius(v)
+        if radius >= 1.0:
+            return f'at {label}: spectral radius {radius:.4f}'
+    edges = [(i, (i + 1) % len(verts)) for i in range(len(verts) if len(verts) > 2 else 1)]
+    for i, j in edges if len(verts) > 1 else []:
+        hit = _edge_crossing(verts[i][1], verts[j][1], grid)
+        if hit is not None:
+            t, w = hit
+            freq = w / (2.0 * math.pi * sample_time_s)
+            return (f'between {verts[i][0]} and {verts[j][0]} (t = {t:.3g}): a root reaches '
+                    f'the unit circle at {freq:.0f} Hz')
+    return None
