@@ -94,6 +94,43 @@ def test_the_batch_equals_single_runs_member_for_member(controller, trajectory, 
         assert any(s.diagnostics['saturated'].max() == 1.0 for s in singles)
 
 
+RAC_FIELDS = {spec.name for spec in ControllerParams.specs()}
+LAWS = [
+    # its own small dead zone, fast rates: the estimates move while tracking
+    {'rac.adaptation_dead_zone_v': 0.002, 'rac.gamma': 300.0, 'rac.eta': 1e-4},
+    # no dead zone and the normalised update (g = T / n per member)
+    {'rac.adaptation_dead_zone_v': 0.0, 'rac.normalisation': 5.0, 'rac.gamma': 300.0,
+     'rac.eta': 1e-4},
+    # the desired regressors, without and with the normalisation (one g for all members)
+    {'rac.adaptation_dead_zone_v': 0.002, 'rac.adaptation_regressor': 'desired',
+     'rac.gamma': 300.0, 'rac.eta': 1e-4},
+    {'rac.adaptation_dead_zone_v': 0.002, 'rac.adaptation_regressor': 'desired',
+     'rac.normalisation': 5.0, 'rac.gamma': 300.0, 'rac.eta': 1e-4},
+]
+
+
+@pytest.mark.parametrize('law', LAWS)
+@pytest.mark.parametrize('trajectory', [{'kind': 'sine', 'sine.frequency_hz': 100.0},
+                                        {'kind': 'square', 'square.period_s': 0.04}])
+def test_the_batch_follows_the_adaptive_law_of_the_controller(law, trajectory):
+    missing = set(law) - RAC_FIELDS
+    if missing:
+        pytest.skip(f'this RAC has no {sorted(missing)}')
+    stages = [member_params(BASE, FAMILY[name]) for name in SMALL]
+    cp = ControllerParams.from_flat(law)
+    tp = TrajectoryParams.from_flat(trajectory)
+    singles = _singles(stages, cp, tp, 0.1)
+    _assert_same(run_batch(stages, cp, make_trajectory(tp), duration_s=0.1,
+                           plant=linear_plant(BASE.plant), chunk_s=0.05), singles)
+    assert all(np.ptp(s.diagnostics['phi_hat']) > 0.0 for s in singles)
+    # per-member references: the regressors and g become arrays
+    tps = [TrajectoryParams.from_flat({'kind': 'sine', 'sine.frequency_hz': 20.0 * (i + 1)})
+           for i in range(len(stages))]
+    singles = [_singles([sp], cp, t, 0.05)[0] for sp, t in zip(stages, tps)]
+    _assert_same(run_batch(stages, cp, [make_trajectory(t) for t in tps], duration_s=0.05,
+                           plant=linear_plant(BASE.plant), chunk_s=0.05), singles)
+
+
 def test_per_member_trajectories_and_the_reduced_plant():
     reduced = BASE.with_flat({'plant.model': 'reduced', 'chain.sensor_noise_std_m': 2e-9})
     stages = [reduced, reduced.with_flat({'plant.reduced.gain_m_per_v': 3.5e-6, 'seed': 4}),

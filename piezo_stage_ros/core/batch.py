@@ -25,7 +25,7 @@ sensor noise on). How that is kept:
 - every sum is written out left to right as the scalar code adds it (no matmul, einsum or
   reduction, whose summation order is the library's), every constant is the float the scalar
   code uses (:func:`piezo_stage_ros.core.stage.fused_constants`), products keep the scalar
-  code's association ((dt eta) u_fd) s_eps;
+  code's association ((dt eta) u_fd) s_a;
 - the exponential of the hysteresis jump is libm's ``exp``, as ``math.exp`` in the scalar
   kernel: numpy's own float64 ``exp`` is a SIMD implementation (AVX-512 here) that differs from
   libm by one ulp for about 5-10 % of arguments. Without the converters that ulp is in the
@@ -368,9 +368,17 @@ class ControllerBatch:
         rac = params.rac
         self._neg_kd = -rac.k_d
         self._lam = rac.lambda_per_s
-        self._eps = rac.epsilon_v
         self._inv_eps = 1.0 / rac.epsilon_v
         self._kstar = rac.k_star_v
+        self._gamma, self._eta = rac.gamma, rac.eta
+        # the adaptive law of issue 10 (docs/controllers.md): its own dead zone eps_a, the
+        # normalisation kappa, measured or desired regressors; without these fields (the law
+        # before them) the dead zone is epsilon_v, no normalisation, measured regressors
+        self._eps_a = float(getattr(rac, 'adaptation_dead_zone_v', rac.epsilon_v))
+        self._inv_eps_a = 1.0 / self._eps_a if self._eps_a > 0.0 else 0.0
+        self._kappa = float(getattr(rac, 'normalisation', 0.0))
+        self._kappa_dt = self._kappa * self._t
+        self._desired = getattr(rac, 'adaptation_regressor', 'measured') == 'desired'
         self._dt_gamma = self._t * rac.gamma
         self._dt_eta = self._t * rac.eta
         self._kp, self._ki = params.pi.k_p, params.pi.k_i
@@ -494,15 +502,42 @@ class ControllerBatch:
             np.clip(v, self._vmin, self._vmax, out=v)
         rac = self.params.rac
         th, ph, i_old = self._spare
-        s_eps = sz
-        s_eps *= self._eps                                 # s_eps = s - eps sat(s / eps)
-        np.subtract(s, s_eps, out=s_eps)
-        np.multiply(u_fd, self._dt_eta, out=t)             # ((T eta) u_fd) s_eps
-        t *= s_eps
+        # s_a = s - eps_a sat(s / eps_a) (s_a = s without a dead zone); where s_a = 0 the
+        # updates below subtract a zero, which leaves the estimates as the scalar code does
+        s_a = sz
+        if self._eps_a > 0.0:
+            np.multiply(s, self._inv_eps_a, out=s_a)
+            np.clip(s_a, -1.0, 1.0, out=s_a)
+            s_a *= self._eps_a
+            np.subtract(s, s_a, out=s_a)
+        else:
+            s_a[...] = s
+        r_t, r_f = (yd, ydd) if self._desired else (y, u_fd)
+        # the coefficients ((g eta) r_phi) and ((g gamma) r_theta) of s_a, g = T / n
+        c_f: Any
+        c_t: Any
+        if self._kappa > 0.0:
+            if isinstance(r_t, float) and isinstance(r_f, float):
+                # desired regressors of a shared reference: one g, computed as the scalar does
+                g = self._t / (1.0 + self._kappa * self._t * (self._gamma * r_t * r_t
+                                                              + self._eta * r_f * r_f))
+                c_f, c_t = g * self._eta * r_f, g * self._gamma * r_t
+            else:
+                # n = 1 + (kappa T) ((gamma r_t) r_t + (eta r_f) r_f)
+                n = np.multiply(self._gamma, r_t) * r_t
+                n += np.multiply(self._eta, r_f) * r_f
+                n *= self._kappa_dt
+                n += 1.0
+                g_n = np.divide(self._t, n)
+                c_f = np.multiply(g_n, self._eta) * r_f
+                c_t = np.multiply(g_n, self._gamma) * r_t
+        else:  # g = T
+            c_f = r_f * self._dt_eta
+            c_t = r_t * self._dt_gamma
+        np.multiply(c_f, s_a, out=t)
         np.subtract(phi, t, out=ph)
         np.clip(ph, rac.phi_min, rac.phi_max, out=ph)
-        np.multiply(y, self._dt_gamma, out=t)              # ((T gamma) y) s_eps
-        t *= s_eps
+        np.multiply(c_t, s_a, out=t)
         np.subtract(theta, t, out=th)
         np.clip(th, rac.theta_min, rac.theta_max, out=th)
         if any_sat:  # the adaptation is frozen for a clipped sample
