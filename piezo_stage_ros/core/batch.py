@@ -108,11 +108,23 @@ def libm_exp(x: FloatArray, out: FloatArray | None = None) -> FloatArray:
         ``out`` (or a new array) holding ``math.exp(x_i)`` bit for bit (module docstring).
 
     """
+    xa = np.ascontiguousarray(x, dtype=np.float64)
+    return _exp_function()(xa, np.empty_like(xa) if out is None else out)
+
+
+def _clip(x: FloatArray, low: Any, high: Any) -> None:
+    """Clip in place: min(max(x, low), high), what the scalar code's comparisons give."""
+    # two ufunc calls cost less than np.clip's Python-level dispatch on arrays of this size
+    np.maximum(x, low, out=x)
+    np.minimum(x, high, out=x)
+
+
+def _exp_function() -> Callable[[FloatArray, FloatArray], FloatArray]:
+    """Return the checked implementation :func:`libm_exp` uses (contiguous arrays only)."""
     global _EXP
     if _EXP is None:
         _EXP = _select_exp()
-    xa = np.ascontiguousarray(x, dtype=np.float64)
-    return _EXP(xa, np.empty_like(xa) if out is None else out)
+    return _EXP
 
 
 def _same(values: Sequence[float]) -> float | FloatArray:
@@ -199,6 +211,7 @@ class StageFamilyBatch:
         self._seed_of = np.array([self._seed_list.index(s) for s in seeds], dtype=np.intp)
         self._lead = {s: int(self._noisy[seeds.index(s)]) for s in self._seed_list}
         self._reserve = 1
+        self._exp = _exp_function()
         self._load_state()
 
     def reset(self, position_m: float | None = None) -> FloatArray:
@@ -285,18 +298,18 @@ class StageFamilyBatch:
             np.multiply(command_v, ds, out=v)
             v += do
             np.floor(v, out=v)
-            np.clip(v, 0.0, dtop, out=v)
+            _clip(v, 0.0, dtop)
             v *= dos
             v += doo
         else:
             v[...] = command_v
-        np.clip(v, self._vmin, self._vmax, out=v)
+        _clip(v, self._vmin, self._vmax)
         if self._has_h:
             # e <- e decay + shift copysign(1 - decay, dv), decay = exp(-alpha |dv|)
             np.subtract(v, self._v_last, out=dv)
             np.abs(dv, out=decay)
             decay *= self._neg_alpha
-            libm_exp(decay, out=decay)
+            self._exp(decay, decay)
             np.subtract(1.0, decay, out=om)
             np.copysign(om, dv, out=om)
             om *= self._shift
@@ -334,7 +347,7 @@ class StageFamilyBatch:
         pos *= as_
         pos += ao
         np.floor(pos, out=pos)
-        np.clip(pos, 0.0, atop, out=pos)
+        _clip(pos, 0.0, atop)
         pos *= aos
         return np.add(pos, aoo)
 
@@ -474,7 +487,7 @@ class ControllerBatch:
         np.multiply(i_new, lam, out=s)                     # s = e + lambda I
         np.add(e, s, out=s)
         np.multiply(s, self._inv_eps, out=sz)              # sat(s / eps)
-        np.clip(sz, -1.0, 1.0, out=sz)
+        _clip(sz, -1.0, 1.0)
         np.multiply(e, lam, out=u_fd)                      # u_fd = dy_d/dt - lambda e
         np.subtract(ydd, u_fd, out=u_fd)
         # v = ((-k_d s + phi_hat u_fd) + theta_hat y) - k* sat
@@ -499,7 +512,7 @@ class ControllerBatch:
                 np.copyto(s, s_old, where=redo)
                 np.copyto(sz, sz_old, where=redo)
                 np.copyto(v, v_old, where=redo)
-            np.clip(v, self._vmin, self._vmax, out=v)
+            _clip(v, self._vmin, self._vmax)
         rac = self.params.rac
         th, ph, i_old = self._spare
         # s_a = s - eps_a sat(s / eps_a) (s_a = s without a dead zone); where s_a = 0 the
@@ -507,7 +520,7 @@ class ControllerBatch:
         s_a = sz
         if self._eps_a > 0.0:
             np.multiply(s, self._inv_eps_a, out=s_a)
-            np.clip(s_a, -1.0, 1.0, out=s_a)
+            _clip(s_a, -1.0, 1.0)
             s_a *= self._eps_a
             np.subtract(s, s_a, out=s_a)
         else:
@@ -536,10 +549,10 @@ class ControllerBatch:
             c_t = r_t * self._dt_gamma
         np.multiply(c_f, s_a, out=t)
         np.subtract(phi, t, out=ph)
-        np.clip(ph, rac.phi_min, rac.phi_max, out=ph)
+        _clip(ph, rac.phi_min, rac.phi_max)
         np.multiply(c_t, s_a, out=t)
         np.subtract(theta, t, out=th)
-        np.clip(th, rac.theta_min, rac.theta_max, out=th)
+        _clip(th, rac.theta_min, rac.theta_max)
         if any_sat:  # the adaptation is frozen for a clipped sample
             np.copyto(ph, phi, where=sat)
             np.copyto(th, theta, where=sat)
