@@ -158,13 +158,14 @@ def test_inside_the_boundary_layer_the_estimates_do_not_move():
 @settings(max_examples=60, deadline=None)
 @given(st.lists(st.tuples(st.floats(-1e-3, 1e-3), st.floats(-1e-3, 1e-3),
                           st.floats(-10.0, 10.0)), min_size=1, max_size=60),
-       st.floats(1.0, 1e7), st.floats(0.0, 1.0), st.floats(0.0, 1e3))
+       st.floats(1.0, 1e7), st.floats(0.0, 1.0), st.floats(0.0, 1e3),
+       st.sampled_from(['measured', 'desired']))
 def test_projection_keeps_the_estimates_in_their_bounds_for_any_inputs(samples, gain, eps_a,
-                                                                       kappa):
-    # huge adaptation rates, wild inputs, any dead zone and normalisation: (P1)-(P2) must hold
-    # at every sample
+                                                                       kappa, regressor):
+    # huge adaptation rates, wild inputs, any dead zone, normalisation and regressors: (P1)-(P2)
+    # must hold at every sample
     p = RACParams(gamma=gain, eta=gain * 1e-3, epsilon_v=0.01, adaptation_dead_zone_v=eps_a,
-                  normalisation=kappa)
+                  normalisation=kappa, adaptation_regressor=regressor)
     c = RACController(p, T)
     c.reset(0.0, 0.0)
     for x, xd, vd in samples:
@@ -230,7 +231,8 @@ def test_neutral_dead_zone_and_normalisation_are_the_paper_law_bit_for_bit(sampl
                                                                            eta):
     # kappa = 0 and epsilon_a = epsilon: the same floating-point operations as the paper's law
     p = RACParams(epsilon_v=eps, adaptation_dead_zone_v=eps, normalisation=0.0, gamma=gamma,
-                  eta=eta, theta_min=0.5, theta_max=4.0, phi_min=1e-4, phi_max=5e-3)
+                  eta=eta, theta_min=0.5, theta_max=4.0, phi_min=1e-4, phi_max=5e-3,
+                  adaptation_regressor='measured')
     c = RACController(p, T)
     c.reset(0.0, 0.0)
     state = {'i': 0.0, 'theta': p.theta_init, 'phi': p.phi_init}
@@ -283,7 +285,7 @@ def test_normalisation_bounds_the_per_sample_step(xd, err, vd, kappa, gamma, eta
     # s_a with g = T (gamma y^2 + eta u_fd^2), so |q| < |s_a|/kappa for any regressor size
     p = RACParams(adaptation_dead_zone_v=0.0, normalisation=kappa, gamma=gamma, eta=eta,
                   theta_min=1e-9, theta_max=1e9, phi_min=1e-12, phi_max=1e9, theta_init=1.0,
-                  phi_init=1.0)
+                  phi_init=1.0, adaptation_regressor='measured')
     y, u_fd, s, d = _first_step(p, xd + err, xd, vd)
     if d['saturated']:
         return                                         # frozen adaptation: nothing to bound
@@ -294,6 +296,33 @@ def test_normalisation_bounds_the_per_sample_step(xd, err, vd, kappa, gamma, eta
     tol = 1e-14 * (abs(y) + abs(u_fd)) * 1e9 + 1e-300
     assert q == pytest.approx(-g / (1.0 + kappa * g) * s, rel=1e-9, abs=tol)
     assert abs(q) <= abs(s) / kappa + tol
+
+
+@pytest.mark.parametrize('kappa', [0.0, 20.0])
+def test_desired_regressors_drive_the_update_by_the_reference(kappa):
+    p = RACParams(adaptation_dead_zone_v=0.001, gamma=300.0, eta=1e-3, normalisation=kappa,
+                  adaptation_regressor='desired', theta_min=0.5, theta_max=4.0,
+                  phi_min=1e-4, phi_max=5e-3)
+    x, xd, vd = 4.0e-6, 3.9e-6, 2e-3
+    _, _, s, d = _first_step(p, x, xd, vd)
+    yd, ydd = K * xd, K * vd
+    s_a = s - p.adaptation_dead_zone_v * sat(s / p.adaptation_dead_zone_v)
+    g = T / (1.0 + kappa * T * (p.gamma * yd * yd + p.eta * ydd * ydd))
+    assert d['theta_hat'] == pytest.approx(p.theta_init - g * p.gamma * yd * s_a, rel=1e-12)
+    assert d['phi_hat'] == pytest.approx(p.phi_init - g * p.eta * ydd * s_a, rel=1e-12)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(-30e-9, 30e-9), min_size=1, max_size=80), st.floats(0.0, 38e-6))
+def test_with_desired_regressors_noise_on_a_plateau_cannot_move_phi_hat(noise, level):
+    # a constant reference has dy_d/dt = 0: whatever the sensor reads, phi_hat stays; with the
+    # measured regressor u_fd = -lambda e the same noise moves it (the drift it cures)
+    kw = dict(adaptation_dead_zone_v=0.0, gamma=300.0, eta=1e-2)
+    desired = RACController(RACParams(adaptation_regressor='desired', **kw), T)
+    desired.reset(level, level)
+    for n in noise:
+        desired.step(level + n, level, 0.0)
+        assert desired.diagnostics()['phi_hat'] == RACParams().phi_init
 
 
 # ---------------------------------------------------------------- PI

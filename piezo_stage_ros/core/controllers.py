@@ -34,9 +34,10 @@ The package's discrete adaptive law generalises (38)-(39) in two ways, each of w
 the paper's law with its parameter at the neutral value (docs/controllers.md derives them)::
 
     s_a   = s - eps_a * sat(s / eps_a)       (eps_a = 0: s_a = s)   dead zone of its own
-    n     = 1 + kappa T (gamma y^2 + eta u_fd^2)                    normalisation
-    phi_hat   <- clip(phi_hat   - (T/n) eta   u_fd s_a, phi_min,   phi_max)
-    theta_hat <- clip(theta_hat - (T/n) gamma y    s_a, theta_min, theta_max)
+    (r_theta, r_phi) = (y, u_fd) measured, or (y_d, dy_d/dt) desired  regressors
+    n     = 1 + kappa T (gamma r_theta^2 + eta r_phi^2)             normalisation
+    phi_hat   <- clip(phi_hat   - (T/n) eta   r_phi   s_a, phi_min,   phi_max)
+    theta_hat <- clip(theta_hat - (T/n) gamma r_theta s_a, theta_min, theta_max)
 
 - the adaptation dead zone eps_a (``adaptation_dead_zone_v``) is separate from the robust
   term's boundary layer eps (``epsilon_v``, which still shapes -k* sat(s/eps) in (36)): the
@@ -47,7 +48,13 @@ the paper's law with its parameter at the neutral value (docs/controllers.md der
   per-sample gain g = T (gamma y^2 + eta u_fd^2) becomes g/(1 + kappa g) < 1/kappa whatever the
   regressors, so kappa >= ADAPTATION_MARGIN/g_crit certifies the adaptation loop for every
   y and u_fd, not only up to y_max (:mod:`piezo_stage_ros.core.stability`). kappa = 0 is the
-  unnormalised law.
+  unnormalised law;
+- the regressors (``adaptation_regressor``): the paper's measured y and u_fd = dy_d/dt -
+  lambda e, or the desired y_d and dy_d/dt (desired compensation, Sadegh and Horowitz 1990).
+  With the measured ones the update holds -gamma e s_a and +eta lambda e s_a, and e s_a > 0 on
+  every transient (square-wave edges, sensor noise): the estimates are pumped towards a larger
+  proportional gain k + lambda phi_hat - theta_hat, which drives the high-gain stages unstable.
+  The desired regressors carry neither the error nor the noise.
 
 Discretization at the sample period T (step k sees y_k and returns v_k, held over one sample):
 
@@ -181,6 +188,12 @@ class RACParams(Params):
                                           's_a = s - epsilon_a sat(s/epsilon_a) instead of '
                                           's_eps (0: no dead zone; equal to epsilon_v: the '
                                           "paper's law).", low=0.0)
+    adaptation_regressor: str = param('measured', unit='-', description='Regressors of '
+                                      "(38)-(39): measured = the paper's y and u_fd = dy_d/dt "
+                                      '- lambda e; desired = y_d and dy_d/dt (desired '
+                                      'compensation: no error or sensor noise in the update, '
+                                      'so no drift towards a larger loop gain).',
+                                      choices=('measured', 'desired'))
     normalisation: float = param(0.0, unit='-', description='Normalisation kappa of the '
                                  'adaptation: each update is divided by n = 1 + kappa T '
                                  '(gamma y^2 + eta u_fd^2), which caps the per-sample loop '
@@ -442,14 +455,18 @@ class RACController:
             if s_a != 0.0:
                 # Euler step of (38)-(39) with the normalised step g = T/n, then the
                 # projection (40) on the updated estimate; kappa = 0 keeps g = T exactly
+                if self._desired:
+                    r_t, r_f = yd, ydd
+                else:
+                    r_t, r_f = y, u_fd
                 kappa = self._kappa
-                g = dt / (1.0 + kappa * dt * (self._gamma * y * y + self._eta * u_fd * u_fd)
+                g = dt / (1.0 + kappa * dt * (self._gamma * r_t * r_t + self._eta * r_f * r_f)
                           ) if kappa > 0.0 else dt
                 p = self.params
-                ph = phi - g * self._eta * u_fd * s_a
+                ph = phi - g * self._eta * r_f * s_a
                 self._phi = p.phi_max if ph > p.phi_max else (p.phi_min if ph < p.phi_min
                                                               else ph)
-                th = theta - g * self._gamma * y * s_a
+                th = theta - g * self._gamma * r_t * s_a
                 self._theta = p.theta_max if th > p.theta_max else (
                     p.theta_min if th < p.theta_min else th)
         if v != v:  # unreachable with finite inputs and bounded estimates; belt and braces
@@ -505,9 +522,13 @@ class RACController:
     def _set_adaptation(self, p: RACParams) -> None:
         """Cache the adaptation's dead zone (and its inverse) and normalisation."""
         eps_a = p.adaptation_dead_zone_v
-        self._eps_a = eps_a
-        self._inv_eps_a = 1.0 / eps_a if eps_a > 0.0 else 0.0
+        inv = 1.0 / eps_a if eps_a > 0.0 else math.inf
+        # a dead zone so narrow that its inverse overflows (subnormal) is no dead zone: s * inf
+        # would be NaN at s = 0
+        self._eps_a = eps_a if math.isfinite(inv) else 0.0
+        self._inv_eps_a = inv if math.isfinite(inv) else 0.0
         self._kappa = p.normalisation
+        self._desired = p.adaptation_regressor == 'desired'
 
     def diagnostics(self) -> Mapping[str, float]:
         """Return theta_hat, phi_hat, s [V], the integral [V s], error [V], flags, counters."""

@@ -226,6 +226,11 @@ class AdaptationBound:
     regions : tuple of str
         Where the adaptation acts: ``'outside'`` the boundary layer, and ``'inside'`` it too
         when epsilon_a < epsilon.
+    regressor : str
+        ``'measured'`` (y, u_fd) or ``'desired'`` (y_d, dy_d/dt); with the desired ones the
+        command moves by y d(theta_hat) + u_fd d(phi_hat) = -g s_a (gamma y y_d + eta u_fd
+        dy_d/dt), the same loop gain while tracking (y = y_d, u_fd = dy_d/dt), which is the
+        regime the frozen-regressor bound describes; y_max and lambda y_max bound both kinds.
 
     """
 
@@ -239,6 +244,7 @@ class AdaptationBound:
     normalisation: float = 0.0
     dead_zone_v: float = 0.0
     regions: tuple[str, ...] = ('outside',)
+    regressor: str = 'measured'
 
     @property
     def gain(self) -> float:
@@ -303,8 +309,9 @@ class AdaptationBound:
         """Return one sentence: the per-sample gain against the bound."""
         where = ' and '.join(self.regions)
         kappa = self.normalisation
-        head = (f'Adaptation (dead zone {self.dead_zone_v:g} V, acts {where} the boundary '
-                f'layer, kappa = {kappa:g}): T (gamma y_max^2 + eta u_fd_max^2) = '
+        head = (f'Adaptation ({self.regressor} regressors, dead zone {self.dead_zone_v:g} V, '
+                f'acts {where} the boundary layer, kappa = {kappa:g}): T (gamma y_max^2 + eta '
+                'u_fd_max^2) = '
                 f'{self.gain:.3g} at y_max = {self.y_max_v:.2f} V, u_fd_max = lambda y_max = '
                 f'{self.u_fd_max_v_per_s:.3g} V/s')
         if kappa > 0.0:
@@ -802,7 +809,8 @@ def _adaptation(params: ControllerParams, plant: LinearPlant, g_num: FloatArray,
                            critical_gain=min(box, best[0]), worst_label=label,
                            normalisation=r.normalisation,
                            dead_zone_v=r.adaptation_dead_zone_v,
-                           regions=tuple(region for region, _ in regions))
+                           regions=tuple(region for region, _ in regions),
+                           regressor=r.adaptation_regressor)
 
 
 def enforce(report: StabilityReport, action: str) -> str:
