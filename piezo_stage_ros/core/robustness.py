@@ -54,7 +54,7 @@ from piezo_stage_ros.core.stage import linear_plant, Stage, StageParams
 from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
 
 __all__ = ['BATCH_MEMBERS', 'CASES', 'COLUMNS', 'RobustnessResult', 'case_metrics',
-           'case_trajectory', 'format_result', 'run_study', 'worst']
+           'case_trajectory', 'format_result', 'run_study', 'summary_table', 'worst']
 
 #: The cases of the study: name -> (trajectory_node values, what is measured).
 CASES: dict[str, tuple[dict[str, Any], str]] = {
@@ -222,7 +222,8 @@ class RobustnessResult:
             return v
         return {'meta': clean(self.meta), 'stages': [clean(s) for s in self.stages],
                 'cases': list(self.cases), 'rows': [clean(r) for r in self.rows],
-                'worst': {case: clean(worst(self, case)) for case in self.cases}}
+                'worst': {case: clean(worst(self, case)) for case in self.cases},
+                'summary': summary_table(self)}
 
 
 def _stage_rows(name: str, case: str, m: dict[str, float], truth: tuple[float, float]
@@ -366,6 +367,52 @@ def worst(result: RobustnessResult, case: str) -> dict[str, Any]:
     return out
 
 
+def summary_table(result: RobustnessResult) -> list[str]:
+    """
+    Return a Markdown table: per case the nominal stage and the worst of the family.
+
+    Parameters
+    ----------
+    result : RobustnessResult
+        The study.
+
+    Returns
+    -------
+    list of str
+        One row per case: e_rms of the nominal stage, median and worst over every member
+        (with its name), how many members exceed 1.5 times the nominal e_rms, the worst e_m,
+        the command range, the largest final estimate error against the truth [%].
+
+    """
+    lines = ['| case | nominal e_rms [nm] | median [nm] | worst e_rms [nm] (stage) | '
+             '> 1.5 x nominal | worst e_m [nm] | command [V] | theta_hat, phi_hat end vs true '
+             '[%] |', '| --- | ---: | ---: | --- | ---: | ---: | --- | --- |']
+    for case in result.cases:
+        rows = [r for r in result.rows if r['case'] == case]
+        nominal = next((r['e_rms_m'] for r in rows if r['stage'] == 'nominal'), math.nan)
+        e = np.asarray([r['e_rms_m'] for r in rows], dtype=np.float64)
+        finite = e[np.isfinite(e)]
+        over = int(np.count_nonzero(finite > 1.5 * nominal)) if math.isfinite(nominal) else 0
+        w = worst(result, case)
+
+        def cell(key: str, scale: float, fmt: str, name: bool = True,
+                 w: dict[str, Any] = w) -> str:
+            if key not in w:
+                return '-'
+            text = format(w[key]['value'] * scale, fmt)
+            return f'{text} ({w[key]["stage"]})' if name else text
+        lines.append(
+            f'| {case} | {nominal * 1e9:.2f} | '
+            f'{float(np.median(finite)) * 1e9 if finite.size else math.nan:.2f} | '
+            f'{cell("e_rms_m", 1e9, ".2f")} | {over} of {len(rows)} | '
+            f'{cell("e_max_m", 1e9, ".1f", False)} | '
+            f'{cell("command_min_v", 1.0, ".2f", False)} ... '
+            f'{cell("command_max_v", 1.0, ".2f", False)} | '
+            f'{cell("theta_error_pct", 1.0, "+.0f", False)}, '
+            f'{cell("phi_error_pct", 1.0, "+.0f", False)} |')
+    return lines
+
+
 def format_result(result: RobustnessResult) -> str:
     """
     Return one plain-text table per case, each with its worst-case line.
@@ -419,4 +466,5 @@ def format_result(result: RobustnessResult) -> str:
                 parts.append(f'{header} {format(w[key]["value"] * scale, fmt)} '
                              f'({w[key]["stage"]})')
         lines.append('worst: ' + '; '.join(parts))
+    lines += ['', 'summary (every member):', *summary_table(result)]
     return '\n'.join(lines)
