@@ -387,8 +387,11 @@ class ControllerBatch:
         # the adaptive law of issue 10 (docs/controllers.md): its own dead zone eps_a, the
         # normalisation kappa, measured or desired regressors; without these fields (the law
         # before them) the dead zone is epsilon_v, no normalisation, measured regressors
-        self._eps_a = float(getattr(rac, 'adaptation_dead_zone_v', rac.epsilon_v))
-        self._inv_eps_a = 1.0 / self._eps_a if self._eps_a > 0.0 else 0.0
+        eps_a = float(getattr(rac, 'adaptation_dead_zone_v', rac.epsilon_v))
+        inv = 1.0 / eps_a if eps_a > 0.0 else math.inf
+        # as the controller: a dead zone whose inverse overflows (subnormal) is no dead zone
+        self._eps_a = eps_a if math.isfinite(inv) else 0.0
+        self._inv_eps_a = inv if math.isfinite(inv) else 0.0
         self._kappa = float(getattr(rac, 'normalisation', 0.0))
         self._kappa_dt = self._kappa * self._t
         self._desired = getattr(rac, 'adaptation_regressor', 'measured') == 'desired'
