@@ -124,7 +124,8 @@ def test_every_parameter_name_is_a_dotted_path_without_python_keywords():
 
 def test_rac_step_is_eqs_33_to_40_in_sensor_volts():
     # the adaptation's own dead zone (narrower than the boundary layer) drives (38)-(39)
-    p = RACParams(gamma=100.0, eta=0.02, epsilon_v=0.01, adaptation_dead_zone_v=0.004)
+    p = RACParams(gamma=100.0, eta=0.02, epsilon_v=0.01, adaptation_dead_zone_v=0.004,
+                  adaptation_regressor='measured', normalisation=0.0)
     c = RACController(p, T)
     c.reset(0.0, 0.0)
     x, xd, vd = 4.0e-6, 3.9e-6, 1e-3
@@ -257,7 +258,8 @@ def _first_step(p, x, xd, vd):
                                              (1.9e-9, False), (3e-9, True), (-3e-9, True)])
 def test_the_adaptation_dead_zone_freezes_the_estimates_inside_it(offset_m, moves):
     # a boundary layer much narrower than the dead zone: only epsilon_a decides
-    p = RACParams(epsilon_v=1e-5, adaptation_dead_zone_v=0.001, gamma=1e3, eta=1e-3)
+    p = RACParams(epsilon_v=1e-5, adaptation_dead_zone_v=0.001, gamma=1e3, eta=1e-3,
+                  adaptation_regressor='measured', normalisation=0.0)
     y, u_fd, s, d = _first_step(p, 3.8e-6 + offset_m, 3.8e-6, 0.0)
     # s = (1 + lambda T) K offset: 0.10 mV at 0.3 nm, 0.65 mV at 1.9 nm, 1.03 mV at 3 nm
     assert (abs(s) > p.adaptation_dead_zone_v) == moves
@@ -270,7 +272,8 @@ def test_the_adaptation_dead_zone_freezes_the_estimates_inside_it(offset_m, move
 
 
 def test_a_zero_dead_zone_adapts_on_every_nonzero_s():
-    p = RACParams(adaptation_dead_zone_v=0.0, gamma=1e3, eta=1e-3)
+    p = RACParams(adaptation_dead_zone_v=0.0, gamma=1e3, eta=1e-3,
+                  adaptation_regressor='measured', normalisation=0.0)
     y, u_fd, s, d = _first_step(p, 3.8e-6 + 0.3e-9, 3.8e-6, 0.0)
     assert 0.0 < abs(s) < p.epsilon_v                 # deep inside the boundary layer
     assert d['theta_hat'] == pytest.approx(p.theta_init - T * p.gamma * y * s, rel=1e-12)

@@ -139,8 +139,11 @@ def test_identification_excitations_run_with_their_amplitude(
 
 
 def test_paper_adaptation_rates_are_warned_about(capsys: pytest.CaptureFixture[str]) -> None:
+    # the paper's rates without the normalisation (the paper's law has none)
     assert simulate.main(['--param', 'controller_node:rac.gamma=3000', '--param',
-                          'controller_node:rac.eta=0.01', '--duration', '0.05', '--json']) == 0
+                          'controller_node:rac.eta=0.01', '--param',
+                          'controller_node:rac.normalisation=0', '--duration', '0.05',
+                          '--json']) == 0
     err = capsys.readouterr().err
     assert 'WARNING: ADAPTATION GAIN ABOVE THE DISCRETE BOUND' in err
     assert simulate.main(['--duration', '0.05', '--json']) == 0

@@ -177,40 +177,56 @@ class RACParams(Params):
                              '(paper 0.005, which chatters at 10 kHz).', low=0.0, low_open=True)
     k_star_v: float = param(0.2, unit='V', description='Robust gain k* of eq. (36); must be '
                             '>= rho/c_min (paper 0.2).', low=0.0)
-    gamma: float = param(10.0, unit='1/(V^2 s)', description='Adaptation rate gamma of '
-                         'theta_hat, eq. (39) (paper 3000, which limit-cycles at 10 kHz: '
-                         'T (gamma y_max^2 + eta (lambda y_max)^2) must stay below the '
-                         'discrete bound of the stability check).', low=0.0)
-    eta: float = param(1e-6, unit='s/V^2', description='Adaptation rate eta of phi_hat, '
-                       'eq. (38) (paper 0.01; same discrete bound as gamma).', low=0.0)
-    adaptation_dead_zone_v: float = param(0.2, unit='V (sensor)', description='Dead zone '
+    gamma: float = param(100.0, unit='1/(V^2 s)', description='Adaptation rate gamma of '
+                         'theta_hat, eq. (39) (paper 3000). With the normalisation the '
+                         'discrete adaptation loop is stable for any rate; 100 is what the '
+                         'stage-family study of tune (section 9) found best: faster rates add '
+                         'estimate jitter to the tracking error.', low=0.0)
+    eta: float = param(3e-4, unit='s/V^2', description='Adaptation rate eta of phi_hat, '
+                       'eq. (38) (paper 0.01; 1e-3 and more drives the high-gain stages of '
+                       'the family unstable at 10 Hz, tune section 9).', low=0.0)
+    adaptation_dead_zone_v: float = param(0.002, unit='V (sensor)', description='Dead zone '
                                           'epsilon_a of the adaptation: (38)-(39) are driven by '
                                           's_a = s - epsilon_a sat(s/epsilon_a) instead of '
                                           's_eps (0: no dead zone; equal to epsilon_v: the '
-                                          "paper's law).", low=0.0)
-    adaptation_regressor: str = param('measured', unit='-', description='Regressors of '
+                                          "paper's law). 2 mV = 7.6 nm: above the 16-bit "
+                                          'ADC step (0.3 mV) and 2.5 times the s of 3 nm rms '
+                                          'sensor noise, far below the 0.2 V boundary layer '
+                                          'that kept the old default from adapting at all.',
+                                          low=0.0)
+    adaptation_regressor: str = param('desired', unit='-', description='Regressors of '
                                       "(38)-(39): measured = the paper's y and u_fd = dy_d/dt "
                                       '- lambda e; desired = y_d and dy_d/dt (desired '
                                       'compensation: no error or sensor noise in the update, '
                                       'so no drift towards a larger loop gain).',
                                       choices=('measured', 'desired'))
-    normalisation: float = param(0.0, unit='-', description='Normalisation kappa of the '
+    normalisation: float = param(20.0, unit='-', description='Normalisation kappa of the '
                                  'adaptation: each update is divided by n = 1 + kappa T '
-                                 '(gamma y^2 + eta u_fd^2), which caps the per-sample loop '
-                                 "gain below 1/kappa (0: the paper's unnormalised law).",
+                                 '(gamma r_theta^2 + eta r_phi^2), which caps the per-sample '
+                                 "loop gain below 1/kappa (0: the paper's unnormalised law). "
+                                 '20 >= 2/g_crit = 14.4 on model (20): the stability check '
+                                 'certifies the adaptation loop for every regressor size.',
                                  low=0.0)
-    theta_min: float = param(0.9, unit='V/V', description='Lower bound of theta = a/(b c), '
-                             'eq. (29) (paper 0.5).', low=0.0, low_open=True)
-    theta_max: float = param(1.7, unit='V/V', description='Upper bound of theta, eq. (29) '
-                             '(paper 4).', low=0.0, low_open=True)
+    theta_min: float = param(1.05, unit='V/V', description='Lower bound of theta = a/(b c), '
+                             'eq. (29) (paper 0.5). Above the true 0.92 of a 1.4x-gain stage on '
+                             'purpose: a smaller theta_hat raises the proportional gain '
+                             'k + lambda phi_hat - theta_hat towards instability there.',
+                             low=0.0, low_open=True)
+    theta_max: float = param(2.0, unit='V/V', description='Upper bound of theta, eq. (29) '
+                             '(paper 4; theta = 1.85 for a 0.7x-gain stage).', low=0.0,
+                             low_open=True)
     theta_init: float = param(1.29, unit='V/V', description='Initial estimate theta_hat(0) '
-                              '(paper 1).', low=0.0, low_open=True)
-    phi_min: float = param(2.2e-4, unit='s', description='Lower bound of phi = 1/(b c), '
+                              '(paper 1; the model value).', low=0.0, low_open=True)
+    phi_min: float = param(2e-4, unit='s', description='Lower bound of phi = 1/(b c), '
                            'eq. (30) (paper 1e-4).', low=0.0, low_open=True)
-    phi_max: float = param(5.5e-4, unit='s', description='Upper bound of phi, eq. (30) '
-                           '(paper 5e-3).', low=0.0, low_open=True)
-    phi_init: float = param(5.0e-4, unit='s', description='Initial estimate phi_hat(0) '
-                            '(paper 7.5e-4).', low=0.0, low_open=True)
+    phi_max: float = param(9e-4, unit='s', description='Upper bound of phi, eq. (30) '
+                           '(paper 5e-3); the feedforward gain a slow, 0.7x-gain stage needs '
+                           'at 100 Hz is about 8e-4 (1.5 times its phi: ZOH delay and '
+                           'hysteresis lag).', low=0.0, low_open=True)
+    phi_init: float = param(2.5e-4, unit='s', description='Initial estimate phi_hat(0) '
+                            '(paper 7.5e-4); below the model 3.16e-4 so that a high-gain stage '
+                            'starts with margin; it adapts up where dy_d/dt excites it.',
+                            low=0.0, low_open=True)
     rho_v: float = param(0.18, unit='V', description='Bound rho on the hysteresis term |d|, '
                          'eq. (31) (paper 0.18; (c - B1)/alpha = 0.1785 for the default stage).',
                          low=0.0)
@@ -272,7 +288,7 @@ class NotchParams(Params):
                                 low=0.0, low_open=True)
     zero_damping: float = param(0.084, unit='-', description='Damping of the notch zeros in '
                                 'manual mode (depth: 0 = infinitely deep).', low=0.0, high=1.0)
-    pole_damping: float = param(1.0, unit='-', description='Damping of the notch poles '
+    pole_damping: float = param(1.5, unit='-', description='Damping of the notch poles '
                                 '(width), both modes.', low=0.0, low_open=True, high=2.0)
 
 
