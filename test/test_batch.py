@@ -106,6 +106,8 @@ LAWS = [
      'rac.gamma': 300.0, 'rac.eta': 1e-4},
     {'rac.adaptation_dead_zone_v': 0.002, 'rac.adaptation_regressor': 'desired',
      'rac.normalisation': 5.0, 'rac.gamma': 300.0, 'rac.eta': 1e-4},
+    # a subnormal dead zone, whose inverse overflows, is no dead zone
+    {'rac.adaptation_dead_zone_v': 1e-310, 'rac.gamma': 300.0, 'rac.eta': 1e-4},
 ]
 
 

@@ -339,9 +339,11 @@ def run_sim_benchmark(*, duration_s: float = 2.0, batch: int = 1000, batch_steps
     bl_cpu = batch_loop_speed(batch, repeats=repeats, clock=time.process_time)
     out['batch_loop_steps_per_s'] = bl
     out['batch_loop_steps_per_cpu_s'] = bl_cpu
+    # both verdicts: on a shared machine the wall figure moves with the others' load
     say(f'  batched closed loop, RAC + notch, {batch} family members (third_order, 16 bit, '
         f'noise): {bl:.3g} stage-steps per wall s, {bl_cpu:.3g} per CPU s (target >= 1e7: '
-        f'{"met" if bl >= 1e7 else "NOT met"})')
+        f'{"met" if bl >= 1e7 else "NOT met"} per wall s, '
+        f'{"met" if bl_cpu >= 1e7 else "NOT met"} per CPU s)')
     for ctype in ('rac', 'pi'):
         st = controller_step_times(ctype, steps=controller_steps)
         out[f'{ctype}_step'] = st

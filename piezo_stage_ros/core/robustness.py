@@ -54,7 +54,8 @@ from piezo_stage_ros.core.stage import linear_plant, Stage, StageParams
 from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
 
 __all__ = ['BATCH_MEMBERS', 'CASES', 'COLUMNS', 'RobustnessResult', 'case_metrics',
-           'case_trajectory', 'format_result', 'run_study', 'summary_table', 'worst']
+           'case_trajectory', 'format_result', 'run_study', 'stage_table', 'summary_table',
+           'worst']
 
 #: The cases of the study: name -> (trajectory_node values, what is measured).
 CASES: dict[str, tuple[dict[str, Any], str]] = {
@@ -413,6 +414,37 @@ def summary_table(result: RobustnessResult) -> list[str]:
     return lines
 
 
+def stage_table(result: RobustnessResult) -> list[str]:
+    """
+    Return a Markdown table of e_rms [nm]: one row per listed stage, one column per case.
+
+    Parameters
+    ----------
+    result : RobustnessResult
+        The study.
+
+    Returns
+    -------
+    list of str
+        Header and rows; the last row is the worst over every member (listed or not).
+
+    """
+    by = {(r['stage'], r['case']): r['e_rms_m'] for r in result.rows}
+    lines = ['| e_rms [nm] | ' + ' | '.join(result.cases) + ' |',
+             '| --- |' + ' ---: |' * len(result.cases)]
+    for st in result.stages:
+        if st.get('listed', True):
+            cells = [by.get((st['name'], c), math.nan) for c in result.cases]
+            lines.append(f'| {st["name"]} | ' + ' | '.join(f'{v * 1e9:.2f}' for v in cells)
+                         + ' |')
+    worst_cells = []
+    for c in result.cases:
+        w = worst(result, c).get('e_rms_m')
+        worst_cells.append(f'{w["value"] * 1e9:.2f}' if w else '-')
+    lines.append(f'| worst of all {len(result.stages)} | ' + ' | '.join(worst_cells) + ' |')
+    return lines
+
+
 def format_result(result: RobustnessResult) -> str:
     """
     Return one plain-text table per case, each with its worst-case line.
@@ -466,5 +498,6 @@ def format_result(result: RobustnessResult) -> str:
                 parts.append(f'{header} {format(w[key]["value"] * scale, fmt)} '
                              f'({w[key]["stage"]})')
         lines.append('worst: ' + '; '.join(parts))
-    lines += ['', 'summary (every member):', *summary_table(result)]
+    lines += ['', 'summary (every member):', *summary_table(result), '', 'e_rms per stage:',
+              *stage_table(result)]
     return '\n'.join(lines)
