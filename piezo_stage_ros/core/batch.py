@@ -249,7 +249,7 @@ class StageFamilyBatch:
         self._buf = np.empty((6, self.n))
         self._v_last = np.array([s.h[0] if self._has_h else 0.0 for s in states])
         self._e = np.array([s.h[1] if self._has_h else 0.0 for s in states])
-        self._normals = np.zeros((0, self._noisy.size))
+        self._normals = np.zeros((0, len(self._seed_list)))
         self._cursor = 0
 
     def reserve(self, steps: int) -> None:
@@ -265,16 +265,17 @@ class StageFamilyBatch:
         """
         self._reserve = max(int(steps), 1)
 
-    def _next_normals(self) -> FloatArray:
+    def _next_normals(self) -> Any:
+        """Return the next normal of every noisy member (a scalar when they share one seed)."""
         if self._cursor >= self._normals.shape[0]:
-            block = [self._stages[self._lead[s]].rng.standard_normal(self._reserve)
-                     for s in self._seed_list]
-            self._normals = np.stack(block, axis=1)[:, self._seed_of]
+            # one column per seed; members of a seed read its column
+            self._normals = np.stack([self._stages[self._lead[s]].rng.standard_normal(
+                self._reserve) for s in self._seed_list], axis=1)
             self._cursor = 0
             self._reserve = 1
         row = self._normals[self._cursor]
         self._cursor += 1
-        return np.asarray(row, dtype=np.float64)
+        return row[0] if len(self._seed_list) == 1 else row[self._seed_of]
 
     def step(self, command_v: FloatArray) -> FloatArray:
         """
