@@ -31,7 +31,10 @@ hysteresis) with the reduced plant (25) and the third-order plant (20), for
 7. the same with one sample of computational delay, and a tuning that tolerates it;
 8. the discrete adaptation loop: the bound of :func:`piezo_stage_ros.core.stability.
    adaptation_bound` per model, and the square-wave steady state (Fig. 10, and a 3.8 -> 28 um
-   square wave near the top of the reachable range) against the adaptation rates gamma, eta.
+   square wave near the top of the reachable range) against the adaptation rates gamma, eta;
+9. the stage family (issue 10, :mod:`piezo_stage_ros.core.family`): the worst stage of each
+   case for the default, for the old default, for the issue's reference and for one change at
+   a time from the default (``--family`` runs only this section, about 3 minutes).
 
 Errors are those of :func:`piezo_stage_ros.core.metrics.summarize` (measured position, steady-state
 window after max(2 periods, 0.1 s)). The default run takes about a minute.
@@ -75,17 +78,125 @@ PAPER_PIC_NM = {1.0: 13.8, 10.0: 131.4, 50.0: 614.4, 100.0: 1004.6}
 #: The paper's RAC, section V (its epsilon chatters at 10 kHz).
 PAPER_RAC = RACParams(k_d=1.5, lambda_per_s=1500.0, epsilon_v=0.005, k_star_v=0.2, gamma=3000.0,
                       eta=0.01, adaptation_dead_zone_v=0.005, normalisation=0.0,
+                      adaptation_regressor='measured',
                       theta_min=0.5, theta_max=4.0, theta_init=1.0, phi_min=1e-4,
                       phi_max=5e-3, phi_init=7.5e-4, rho_v=0.18, c_min=1.0)
 NOTCH_OFF = NotchParams(mode='off')
 
-#: The best tuning found that is stable on the third-order model (20) *without* the notch
-#: (every corner, >= 3 dB and >= 35 deg); the default differs in k_d, lambda, epsilon, phi_hat(0).
-WITHOUT_NOTCH = RACParams(k_d=0.4, lambda_per_s=2000.0, epsilon_v=0.6, phi_init=4.2e-4)
-
 #: A tuning that passes every corner with one sample of computational delay in the loop
 #: (``stability.delay_samples: 1``), for set-ups that apply u_k one sample late.
 DELAY_ONE_SAMPLE = RACParams(k_d=1.0, lambda_per_s=2000.0, epsilon_v=0.4)
+
+
+#: The RAC defaults before issue 10: a 0.2 V dead zone (the boundary layer) that kept the
+#: estimates still while tracking, the paper's measured regressors, no normalisation.
+OLD_DEFAULT = RACParams(gamma=10.0, eta=1e-6, adaptation_dead_zone_v=0.2,
+                        adaptation_regressor='measured', normalisation=0.0, theta_min=0.9,
+                        theta_max=1.7, phi_min=2.2e-4, phi_max=5.5e-4, phi_init=5e-4)
+#: The notch of the old default (narrower).
+OLD_NOTCH = NotchParams(pole_damping=1.0)
+
+#: The best tuning found that is stable on the third-order model (20) *without* the notch
+#: (every corner, >= 3 dB and >= 35 deg, with the old default's box and law, whose estimates
+#: do not move); the old default differs in k_d, lambda, epsilon, phi_hat(0).
+WITHOUT_NOTCH = OLD_DEFAULT.replace(k_d=0.4, lambda_per_s=2000.0, epsilon_v=0.6,
+                                    phi_init=4.2e-4)
+#: The starting point of issue 10 (a reference simulation on the reduced plant): its own 2 mV
+#: dead zone, gamma 300, eta 1e-4, a wider box; the paper's measured regressors.
+ISSUE_REFERENCE = OLD_DEFAULT.replace(gamma=300.0, eta=1e-4, adaptation_dead_zone_v=0.002,
+                                      theta_max=2.0, phi_min=2e-4, phi_max=6e-4)
+
+#: Cases of section 9 (keys of :data:`piezo_stage_ros.core.robustness.CASES`), with the sensor
+#: noise they run with: None keeps each stage's own (0 or 3 nm), a number sets it on every
+#: stage [m rms].
+FAMILY_CASES: tuple[tuple[str, str, float | None], ...] = (
+    ('100 Hz', 'sine_100', None), ('10 Hz', 'sine_10', None),
+    ('Fig. 10 square, 3 nm', 'square', 3e-9), ('Fig. 10 S-curve 2 ms, 3 nm', 'square_2ms', 3e-9),
+)
+
+
+def family_worst(params: ControllerParams, *, duration_s: float = 2.0
+                 ) -> dict[str, tuple[float, str, float]]:
+    """
+    Run the stage family on the cases of :data:`FAMILY_CASES` and return the worst stages.
+
+    Parameters
+    ----------
+    params : ControllerParams
+        Controller, the same on every stage (nothing retuned).
+    duration_s : float
+        Simulated time per run [s]; the steady state starts after 1 s.
+
+    Returns
+    -------
+    dict
+        Case label -> (largest e_rms [m], its stage, the nominal stage's e_rms [m]); for the
+        sines, noise-free stages and stages with 3 nm noise apart (``'10 Hz, noisy stages'``),
+        since 3 nm of sensor noise alone puts about 3.5 nm into the measured error.
+
+    """
+    from dataclasses import replace as dc_replace
+
+    from piezo_stage_ros.core.family import default_family
+    from piezo_stage_ros.core.robustness import run_study
+
+    stage = StageParams.from_flat({'plant.model': 'third_order'})
+    family = default_family()
+    out: dict[str, tuple[float, str, float]] = {}
+    for label, case, noise in FAMILY_CASES:
+        members = family if noise is None else tuple(dc_replace(m, noise_m=noise)
+                                                     for m in family)
+        res = run_study(stage, params, TrajectoryParams(), family=members, cases=[case],
+                        duration_s=duration_s)
+        noisy = {m.name for m in members if m.noise_m > 0.0}
+        groups = [(label, [r for r in res.rows if noise is not None or r['stage'] not in noisy])]
+        if noise is None and noisy:
+            groups.append((f'{label}, noisy stages', [r for r in res.rows
+                                                      if r['stage'] in noisy]))
+        nominal = next(r['e_rms_m'] for r in res.rows if r['stage'] == 'nominal')
+        for name, rows in groups:
+            top = max(rows, key=lambda r: r['e_rms_m'] if r['e_rms_m'] == r['e_rms_m']
+                      else np.inf)
+            out[name] = (top['e_rms_m'], top['stage'], nominal)
+    return out
+
+
+def family_table() -> None:
+    """Print section 9: the worst stage of the family per case, per configuration."""
+    default = ControllerParams()
+    d = default.rac
+    rows: list[tuple[str, ControllerParams]] = [
+        ('default', default),
+        ('old default (issue 10: never adapts)', controller('rac', rac=OLD_DEFAULT).replace(
+            notch=OLD_NOTCH)),
+        ("issue's reference (measured regressors)", controller(
+            'rac', rac=ISSUE_REFERENCE).replace(notch=OLD_NOTCH)),
+        ('measured regressors', controller('rac', rac=d.replace(
+            adaptation_regressor='measured'))),
+        ('gamma 300', controller('rac', rac=d.replace(gamma=300.0))),
+        ('gamma 30', controller('rac', rac=d.replace(gamma=30.0))),
+        ('eta 1e-3', controller('rac', rac=d.replace(eta=1e-3))),
+        ('theta_min 0.9', controller('rac', rac=d.replace(theta_min=0.9))),
+        ('theta_min 1.1', controller('rac', rac=d.replace(theta_min=1.1))),
+        ('phi_init 4e-4', controller('rac', rac=d.replace(phi_init=4e-4))),
+        ('phi_max 7e-4', controller('rac', rac=d.replace(phi_max=7e-4))),
+        ('notch pole damping 1.0', default.replace(notch=OLD_NOTCH)),
+        ('dead zone 0.2 V (= epsilon)', controller('rac', rac=d.replace(
+            adaptation_dead_zone_v=0.2))),
+    ]
+    heads = [label for label, _, _ in FAMILY_CASES]
+    heads.insert(2, '10 Hz, noisy stages')
+    print(_row(['configuration', *heads, 'nominal 100 / 10 Hz', 'check (model (20))']))
+    print(_row(['---'] * (len(heads) + 3)))
+    for name, params in rows:
+        w = family_worst(params)
+        cells = [f'{w[h][0] * 1e9:.1f} ({w[h][1]})' for h in heads]
+        rep = check_stability(params, PlantParams(model='third_order'), 1e-4)
+        check = ('certified' if rep.certified else 'loops unstable' if not rep.stable
+                 else 'adaptation above bound')
+        check += f', GM {rep.gain_margin_db:.1f} dB, PM {rep.phase_margin_deg:.0f} deg'
+        nominal = f"{w['100 Hz'][2] * 1e9:.1f} / {w['10 Hz'][2] * 1e9:.1f}"
+        print(_row([name, *cells, nominal, check]), flush=True)
 
 
 class Delayed:
@@ -289,6 +400,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                      description=__doc__.split('\n\n')[0].strip())
     parser.add_argument('--skip-sweeps', action='store_true',
                         help='print only the stability verdicts and Table III')
+    parser.add_argument('--family', action='store_true',
+                        help='print only section 9, the stage family (about 3 minutes)')
     parser.add_argument('--params-table', action='store_true',
                         help='print the Markdown table of the controller_node parameters and exit')
     args = parser.parse_args(argv)
@@ -298,6 +411,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(controller_table().markdown())
         return 0
     start = time.monotonic()
+    if args.family:
+        print('## 9. The stage family: worst e_rms [nm] (stage) over the family, steady state '
+              'after 1 s of 2 s runs\n')
+        family_table()
+        print(f'\n(study took {time.monotonic() - start:.0f} s)')
+        return 0
     default = ControllerParams()
     d = default.rac
     freqs = ' | '.join(f'{f:g} Hz' for f in FREQUENCIES_HZ)
@@ -398,7 +517,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not args.skip_sweeps:
         print('\n## 8. The discrete adaptation loop\n')
         print(_row(['plant', 'y_max [V]', 'u_fd_max = lambda y_max [V/s]', 'g_crit (corners)',
-                    'g_crit (initial estimates)', 'g of the default',
+                    'g_crit (initial estimates)', 'g -> g/(1 + kappa g) of the default',
                     'max gamma (eta 0 / default eta)']))
         print(_row(['---'] * 7))
         for model in ('reduced', 'third_order', 'electromechanical'):
@@ -406,20 +525,23 @@ def main(argv: Sequence[str] | None = None) -> int:
             b0 = adaptation_bound(default, PlantParams(model=model), 1e-4,
                                   options=StabilityParams(estimates='initial'))
             print(_row([model, f'{b.y_max_v:.2f}', f'{b.u_fd_max_v_per_s:.3g}',
-                        f'{b.critical_gain:.3f}', f'{b0.critical_gain:.3f}', f'{b.gain:.3f}',
+                        f'{b.critical_gain:.3f}', f'{b0.critical_gain:.3f}',
+                        f'{b.gain:.3g} -> {b.effective_gain:.3g}',
                         f'{b.max_gamma(0.0):.1f} / {b.max_gamma():.1f}']))
         print('\nSquare waves from 3.8 um with the default RAC and the rates below (ideal jumps, '
               '2 periods): steady-state e_rms / e_max [nm] over the last half of every '
-              'plateau, and the theta_hat range; g / g_crit at y_max on the reduced model.\n')
-        print(_row(['gamma', 'eta', 'g / g_crit', 'Fig. 10 reduced', 'Fig. 10 third-order',
+              'plateau, and the theta_hat range; g / g_crit at y_max on the reduced model, '
+              'g/(1 + kappa g) with the default kappa.\n')
+        print(_row(['gamma', 'eta', 'g_eff / g_crit', 'Fig. 10 reduced', 'Fig. 10 third-order',
                     '28 um reduced', '28 um third-order', 'theta_hat range (Fig. 10 reduced)']))
         print(_row(['---'] * 8))
         crit = adaptation_bound(default, PlantParams(model='reduced'), 1e-4)
         for gamma, eta in ((3000.0, 0.01), (3000.0, d.eta), (1000.0, d.eta), (300.0, d.eta),
                            (100.0, d.eta), (30.0, d.eta), (10.0, 0.01), (d.gamma, d.eta)):
             p = controller('rac', rac=d.replace(gamma=gamma, eta=eta))
-            ratio = crit.sample_time_s * (gamma * crit.y_max_v ** 2
-                                          + eta * crit.u_fd_max_v_per_s ** 2)
+            g = crit.sample_time_s * (gamma * crit.y_max_v ** 2
+                                      + eta * crit.u_fd_max_v_per_s ** 2)
+            ratio = g / (1.0 + d.normalisation * g)
             cells = []
             rng = ''
             for high, period in ((11.6e-6, 0.5), (28e-6, 0.1)):
@@ -431,6 +553,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                         rng = f'{t0:.3f} ... {t1:.3f}'
             print(_row([f'{gamma:g}', f'{eta:g}', f'{ratio / crit.critical_gain:.3g}', *cells,
                         rng]), flush=True)
+    if not args.skip_sweeps:
+        print('\n## 9. The stage family: worst e_rms [nm] (stage) over the family, steady '
+              'state after 1 s of 2 s runs\n')
+        family_table()
     print(f'\n(study took {time.monotonic() - start:.0f} s)')
     return 0
 

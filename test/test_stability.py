@@ -225,3 +225,17 @@ def test_the_paper_rac_on_model_20_is_refused_and_names_the_binding_constraint()
     assert ok.certified
     assert all(c.certified for c in ok.certificates) and len(ok.certificates) == 2
     assert 'Binding constraint:' in ok.text()
+
+
+def test_config_rac_paper_is_the_paper_law_and_is_refused_on_model_20():
+    from piezo_stage_ros.core.config import find_config, load_config
+    config = load_config([find_config('default.yaml'), find_config('rac_paper.yaml')])
+    flat = {k: v for k, v in config.node('controller_node').items()
+            if k.split('.')[0] in ('type', 'rac', 'notch')}
+    params = ControllerParams.from_flat(flat)
+    assert params.rac == PAPER_RAC and params.notch.mode == 'off'
+    rep = check_stability(params, THIRD, T)
+    assert not rep.stable
+    assert not rep.adaptation.ok        # kappa = 0: the paper's rates are far above the bound
+    with pytest.raises(StabilityError):
+        enforce(rep, 'refuse')

@@ -183,8 +183,9 @@ class RACParams(Params):
                          'stage-family study of tune (section 9) found best: faster rates add '
                          'estimate jitter to the tracking error.', low=0.0)
     eta: float = param(3e-4, unit='s/V^2', description='Adaptation rate eta of phi_hat, '
-                       'eq. (38) (paper 0.01; 1e-3 and more drives the high-gain stages of '
-                       'the family unstable at 10 Hz, tune section 9).', low=0.0)
+                       'eq. (38) (paper 0.01; phi_hat is excited only by dy_d/dt, and 1e-3 '
+                       'is already slightly worse on the noisy stages of tune section 9).',
+                       low=0.0)
     adaptation_dead_zone_v: float = param(0.002, unit='V (sensor)', description='Dead zone '
                                           'epsilon_a of the adaptation: (38)-(39) are driven by '
                                           's_a = s - epsilon_a sat(s/epsilon_a) instead of '
