@@ -386,16 +386,15 @@ class ControllerBatch:
         self._kstar = rac.k_star_v
         self._gamma, self._eta = rac.gamma, rac.eta
         # the adaptive law of issue 10 (docs/controllers.md): its own dead zone eps_a, the
-        # normalisation kappa, measured or desired regressors; without these fields (the law
-        # before them) the dead zone is epsilon_v, no normalisation, measured regressors
-        eps_a = float(getattr(rac, 'adaptation_dead_zone_v', rac.epsilon_v))
+        # normalisation kappa, measured or desired regressors
+        eps_a = rac.adaptation_dead_zone_v
         inv = 1.0 / eps_a if eps_a > 0.0 else math.inf
         # as the controller: a dead zone whose inverse overflows (subnormal) is no dead zone
         self._eps_a = eps_a if math.isfinite(inv) else 0.0
         self._inv_eps_a = inv if math.isfinite(inv) else 0.0
-        self._kappa = float(getattr(rac, 'normalisation', 0.0))
+        self._kappa = rac.normalisation
         self._kappa_dt = self._kappa * self._t
-        self._desired = getattr(rac, 'adaptation_regressor', 'measured') == 'desired'
+        self._desired = rac.adaptation_regressor == 'desired'
         self._dt_gamma = self._t * rac.gamma
         self._dt_eta = self._t * rac.eta
         self._kp, self._ki = params.pi.k_p, params.pi.k_i
