@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 from piezo_stage_ros import robustness
 from piezo_stage_ros.core import metrics
 from piezo_stage_ros.core.controllers import ControllerParams, plant_resonance
@@ -34,7 +35,7 @@ from piezo_stage_ros.core.family import (
 )
 from piezo_stage_ros.core.identification import factors_of
 from piezo_stage_ros.core.stage import linear_plant, StageParams
-from piezo_stage_ros.core.trajectories import TrajectoryParams
+from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
 import pytest
 
 BASE = StageParams()
@@ -231,3 +232,23 @@ def test_drawn_members_stay_inside_the_declared_ranges():
         assert lo <= min(values) and max(values) <= hi
         assert max(values) - min(values) > 0.8 * (hi - lo)
     assert sample_family(3, seed=5) == members[:3]
+
+
+@pytest.mark.parametrize('case', ['square', 'square_2ms', 'staircase'])
+def test_case_metrics_take_the_plateau_tails_after_the_settle_time(case):
+    # a record whose error is 2 nm on the last half of every plateau after 1 s and large
+    # everywhere else: the steady state must see exactly the 2 nm
+    from piezo_stage_ros.core.record import RunRecord
+    from piezo_stage_ros.core.robustness import case_metrics, case_trajectory
+    tp = case_trajectory(case, TrajectoryParams(), 2.0)
+    t = np.arange(20000) * 1e-4
+    ref, vel = make_trajectory(tp).evaluate(t)
+    plateau = tp.square.period_s / 2 if case.startswith('square') else tp.staircase.dwell_s
+    n = int(round(plateau / 1e-4))
+    phase = np.arange(t.size) % n
+    tail = (phase >= n - n // 2) & (t >= 1.0 - 1e-9)
+    err = np.where(tail, 2e-9, 5e-7)
+    rec = RunRecord(t, ref + err, ref, vel, np.zeros_like(t))
+    m = case_metrics(case, rec, tp, settle_s=1.0)
+    assert m['e_rms_m'] == pytest.approx(2e-9, rel=1e-12)
+    assert m['e_max_m'] == pytest.approx(2e-9, rel=1e-12)
