@@ -26,6 +26,7 @@ Examples::
     robustness                                   # every stage, every case, 2 s runs
     robustness --cases sine_100,square --stages nominal,gain_lo,gain_hi --out runs/rob
     robustness --param controller_node:rac.gamma=300 --json
+    robustness --samples 1000 --cases sine_100   # and 1000 members drawn inside the ranges
 
 Exit status: 0 on success, 1 on a bad parameter or configuration, 2 on bad command-line usage.
 """
@@ -69,6 +70,14 @@ def _parser() -> argparse.ArgumentParser:
                    help='Members of the family to run (default all; names as listed by '
                    '--list-stages).')
     p.add_argument('--list-stages', action='store_true', help='Print the family and exit.')
+    p.add_argument('--samples', type=int, default=0, metavar='N',
+                   help='Add N members drawn uniformly inside every range (seed --sample-seed); '
+                   'they count in the worst case, the tables list only the named members.')
+    p.add_argument('--sample-seed', type=int, default=0, metavar='N',
+                   help='Seed of the drawn members (default 0).')
+    p.add_argument('--single', action='store_true',
+                   help='One closed-loop run per stage and case instead of the batch (the '
+                   'reference path; same numbers, slower for many stages).')
     p.add_argument('--duration', type=float, default=2.0, metavar='S',
                    help='Simulated time per run [s] (default 2).')
     p.add_argument('--settle', type=float, default=1.0, metavar='S',
@@ -102,7 +111,7 @@ def _pick(text: str | None, known: Sequence[str], what: str) -> list[str]:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from piezo_stage_ros.core.family import default_family
+    from piezo_stage_ros.core.family import default_family, sample_family
     from piezo_stage_ros.core.robustness import CASES, format_result, run_study
 
     family = default_family()
@@ -113,6 +122,8 @@ def _run(args: argparse.Namespace) -> int:
     params = _load(args)
     by_name = {m.name: m for m in family}
     stages = [by_name[n] for n in _pick(args.stages, list(by_name), '--stages')]
+    named = {m.name for m in stages}
+    stages += list(sample_family(args.samples, args.sample_seed)) if args.samples > 0 else []
     cases = _pick(args.cases, list(CASES), '--cases')
     t0 = time.perf_counter()
 
@@ -122,7 +133,8 @@ def _run(args: argparse.Namespace) -> int:
 
     result = run_study(params['stage'], params['controller'], params['trajectory'],
                        family=stages, cases=cases, duration_s=args.duration,
-                       settle_s=args.settle, progress=progress)
+                       settle_s=args.settle, traced=named, batch=not args.single,
+                       progress=progress)
     result.meta['wall_seconds'] = time.perf_counter() - t0
     result.meta['config_files'] = [str(p) for p in params['config'].sources]
     result.meta['params'] = list(args.param)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 from piezo_stage_ros import robustness
 from piezo_stage_ros.core import metrics
 from piezo_stage_ros.core.controllers import ControllerParams, plant_resonance
@@ -28,12 +29,13 @@ from piezo_stage_ros.core.family import (
     default_family,
     member_params,
     RANGES,
+    sample_family,
     StageVariation,
     true_estimates,
 )
 from piezo_stage_ros.core.identification import factors_of
 from piezo_stage_ros.core.stage import linear_plant, StageParams
-from piezo_stage_ros.core.trajectories import TrajectoryParams
+from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
 import pytest
 
 BASE = StageParams()
@@ -205,3 +207,48 @@ def test_the_command_lists_the_family(capsys):
     assert robustness.main(['--list-stages']) == 0
     out = capsys.readouterr().out
     assert all(name in out for name in FAMILY)
+
+
+def test_the_batch_and_the_single_runs_give_the_same_study(capsys):
+    # the command runs the batch; --single is the reference path of one closed loop per run
+    argv = ['--stages', 'nominal,gain_lo_zeta_lo,noise_hi', '--cases', 'sine_50,square_2ms',
+            '--duration', '0.8', '--settle', '0.2', '--samples', '2', '--quiet', '--json']
+    assert robustness.main(argv) == 0
+    batch = json.loads(capsys.readouterr().out)
+    assert robustness.main([*argv, '--single']) == 0
+    single = json.loads(capsys.readouterr().out)
+    assert batch['meta']['path'] == 'batch' and single['meta']['path'] == 'single'
+    assert len(batch['rows']) == 2 * 5
+    assert all(r['e_rms_m'] is not None for r in batch['rows'])
+    assert batch['rows'] == single['rows']
+    assert batch['worst'] == single['worst']
+
+
+def test_drawn_members_stay_inside_the_declared_ranges():
+    members = sample_family(200, seed=5)
+    assert len({m.name for m in members}) == 200
+    for var, (lo, hi, _) in RANGES.items():
+        values = [getattr(m, var) for m in members]
+        assert lo <= min(values) and max(values) <= hi
+        assert max(values) - min(values) > 0.8 * (hi - lo)
+    assert sample_family(3, seed=5) == members[:3]
+
+
+@pytest.mark.parametrize('case', ['square', 'square_2ms', 'staircase'])
+def test_case_metrics_take_the_plateau_tails_after_the_settle_time(case):
+    # a record whose error is 2 nm on the last half of every plateau after 1 s and large
+    # everywhere else: the steady state must see exactly the 2 nm
+    from piezo_stage_ros.core.record import RunRecord
+    from piezo_stage_ros.core.robustness import case_metrics, case_trajectory
+    tp = case_trajectory(case, TrajectoryParams(), 2.0)
+    t = np.arange(20000) * 1e-4
+    ref, vel = make_trajectory(tp).evaluate(t)
+    plateau = tp.square.period_s / 2 if case.startswith('square') else tp.staircase.dwell_s
+    n = int(round(plateau / 1e-4))
+    phase = np.arange(t.size) % n
+    tail = (phase >= n - n // 2) & (t >= 1.0 - 1e-9)
+    err = np.where(tail, 2e-9, 5e-7)
+    rec = RunRecord(t, ref + err, ref, vel, np.zeros_like(t))
+    m = case_metrics(case, rec, tp, settle_s=1.0)
+    assert m['e_rms_m'] == pytest.approx(2e-9, rel=1e-12)
+    assert m['e_max_m'] == pytest.approx(2e-9, rel=1e-12)

@@ -51,7 +51,7 @@ def plot_errors(result: RobustnessResult, path: Path) -> Path:
         ``path``.
 
     """
-    names = [s['name'] for s in result.stages]
+    names = [s['name'] for s in result.stages if s.get('listed', True)]
     cols = 2 if len(result.cases) > 1 else 1
     rows = math.ceil(len(result.cases) / cols)
     height = max(2.5, 0.16 * len(names) + 1.0)

@@ -53,12 +53,14 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 import math
 
+import numpy as np
 from piezo_stage_ros.core.errors import ParameterError
 from piezo_stage_ros.core.hysteresis import make_hysteresis
 from piezo_stage_ros.core.identification import factors_of, LinearFactors, third_order_of
 from piezo_stage_ros.core.stage import linear_plant, StageParams
 
-__all__ = ['RANGES', 'StageVariation', 'default_family', 'member_params', 'true_estimates']
+__all__ = ['RANGES', 'StageVariation', 'default_family', 'member_params', 'sample_family',
+           'true_estimates']
 
 #: Declared range of each variable of the family: (low, high, what it scales). Factors are
 #: relative to the configured stage; ``noise_m`` is absolute [m rms].
@@ -160,6 +162,37 @@ def default_family() -> tuple[StageVariation, ...]:
                        noise_m=RANGES['noise_m'][1]),
     ]
     return tuple(members)
+
+
+def sample_family(n: int, seed: int = 0) -> tuple[StageVariation, ...]:
+    """
+    Return ``n`` members drawn uniformly and independently inside every range of :data:`RANGES`.
+
+    Parameters
+    ----------
+    n : int
+        Number of members, >= 0.
+    seed : int
+        Seed of the draw (the same seed gives the same members).
+
+    Returns
+    -------
+    tuple of StageVariation
+        Named ``random_0000``, ``random_0001`` ...
+
+    """
+    if n < 0:
+        raise ParameterError('n', n, '[0, inf)')
+    rng = np.random.default_rng(seed)
+    names = list(RANGES)
+    low = np.array([RANGES[v][0] for v in names])
+    high = np.array([RANGES[v][1] for v in names])
+    # one row per member, filled row after row: the first k members of any n are the same
+    draws = rng.uniform(low, high, size=(n, len(names)))
+    width = max(4, len(str(n - 1)))
+    return tuple(StageVariation(f'random_{i:0{width}d}',
+                                **{v: float(x) for v, x in zip(names, draws[i])})
+                 for i in range(n))
 
 
 def member_params(base: StageParams, member: StageVariation) -> StageParams:

@@ -60,8 +60,8 @@ from piezo_stage_ros.core.linear import (
 )
 from piezo_stage_ros.core.params import group, param, Params
 
-__all__ = ['PlantParams', 'SignalChainParams', 'Stage', 'StageBatch', 'StageParams',
-           'amplifier_input', 'linear_plant', 'quantize']
+__all__ = ['FusedConstants', 'PlantParams', 'SignalChainParams', 'Stage', 'StageBatch',
+           'StageParams', 'amplifier_input', 'fused_constants', 'linear_plant', 'quantize']
 
 FloatArray = NDArray[np.float64]
 
@@ -419,6 +419,91 @@ def _generic_kernel(core: _StageCore, rng: np.random.Generator) -> _Kernel:
     return _Kernel(step, get, set_)
 
 
+@dataclass(frozen=True)
+class FusedConstants:
+    """
+    The plain floats the fused per-sample kernel computes with, for one stage.
+
+    The scalar kernel (:func:`_fused_kernel`) and the batch of stages
+    (:class:`piezo_stage_ros.core.batch.StageFamilyBatch`) both take them from
+    :func:`fused_constants`, so the two step the same numbers.
+
+    Attributes
+    ----------
+    order : int
+        1 (reduced) or 3 (third-order).
+    has_hysteresis : bool
+        Backlash-like hysteresis ahead of the plant (else none).
+    alpha, slope, shift : float
+        alpha, c and -rho of eq. (21) (0, 1, 0 without hysteresis).
+    ad : tuple of tuple of float
+        Ad, order x order.
+    bd : tuple of float
+        The w column of Bd.
+    c : tuple of float
+        The output row.
+    vmin, vmax, safe : float
+        Amplifier range and safe voltage [V].
+    noise : float
+        Sensor noise [m rms].
+    dac, adc : tuple of float or None
+        (scale, offset, top, out_scale, out_offset) of each converter; None without
+        quantization.
+
+    """
+
+    order: int
+    has_hysteresis: bool
+    alpha: float
+    slope: float
+    shift: float
+    ad: tuple[tuple[float, ...], ...]
+    bd: tuple[float, ...]
+    c: tuple[float, ...]
+    vmin: float
+    vmax: float
+    safe: float
+    noise: float
+    dac: tuple[float, float, float, float, float] | None
+    adc: tuple[float, float, float, float, float] | None
+
+
+def fused_constants(core: _StageCore) -> FusedConstants | None:
+    """
+    Return the constants of the fused kernel for a stage, or None where it does not apply.
+
+    Parameters
+    ----------
+    core : _StageCore
+        The stage's models and matrices.
+
+    Returns
+    -------
+    FusedConstants or None
+        None unless the stage is a linear model of order 1 or 3 with the backlash-like
+        hysteresis (or none) ahead of it.
+
+    """
+    hyst = core.hysteresis
+    order = core.plant.order
+    if core.charge_hysteresis or order not in (1, 3) or \
+            not isinstance(hyst, (BacklashLike, NoHysteresis)):
+        return None
+    chain = core.params.chain
+
+    def conv(c: _Converter | None) -> tuple[float, float, float, float, float] | None:
+        return None if c is None else (c.scale, c.offset, c.top, c.out_scale, c.out_offset)
+    return FusedConstants(
+        order=order, has_hysteresis=isinstance(hyst, BacklashLike),
+        alpha=hyst.params.alpha if isinstance(hyst, BacklashLike) else 0.0,
+        slope=hyst.slope, shift=-hyst.bound,
+        ad=tuple(tuple(float(a) for a in row) for row in core.discrete.ad),
+        bd=tuple(float(row[0]) for row in core.discrete.bd),
+        c=tuple(float(v) for v in core.discrete.c),
+        vmin=chain.amplifier_min_v, vmax=chain.amplifier_max_v, safe=chain.safe_voltage_v,
+        noise=chain.sensor_noise_std_m, dac=conv(core.dac), adc=conv(core.adc))
+
+
 def _fused_kernel(core: _StageCore, rng: np.random.Generator) -> _Kernel | None:
     """
     Return a fused per-sample kernel for the common case, or None where it does not apply.
@@ -430,28 +515,17 @@ def _fused_kernel(core: _StageCore, rng: np.random.Generator) -> _Kernel | None:
     offline runner and of the simulated plant node. It computes exactly what the generic kernel
     computes, operation for operation (a test compares the two bit for bit).
     """
-    hyst = core.hysteresis
-    order = core.plant.order
-    if core.charge_hysteresis or order not in (1, 3) or \
-            not isinstance(hyst, (BacklashLike, NoHysteresis)):
+    k = fused_constants(core)
+    if k is None:
         return None
-    has_h = isinstance(hyst, BacklashLike)
-    alpha = hyst.params.alpha if isinstance(hyst, BacklashLike) else 0.0
-    slope = hyst.slope
-    shift = -hyst.bound
-    chain = core.params.chain
-    vmin, vmax, safe = chain.amplifier_min_v, chain.amplifier_max_v, chain.safe_voltage_v
-    noise = chain.sensor_noise_std_m
+    order, has_h, alpha, slope, shift = k.order, k.has_hysteresis, k.alpha, k.slope, k.shift
+    vmin, vmax, safe, noise = k.vmin, k.vmax, k.safe, k.noise
     normal = rng.standard_normal
-    dac, adc = core.dac, core.adc
-    quantize_in, quantize_out = dac is not None, adc is not None
-    ds, do, dtop, dos, doo = ((dac.scale, dac.offset, dac.top, dac.out_scale, dac.out_offset)
-                              if dac is not None else (0.0,) * 5)
-    as_, ao, atop, aos, aoo = ((adc.scale, adc.offset, adc.top, adc.out_scale, adc.out_offset)
-                               if adc is not None else (0.0,) * 5)
-    ad = [[float(a) for a in row] for row in core.discrete.ad]
-    bd = [float(row[0]) for row in core.discrete.bd]
-    cc = [float(v) for v in core.discrete.c] + [0.0, 0.0]
+    quantize_in, quantize_out = k.dac is not None, k.adc is not None
+    ds, do, dtop, dos, doo = k.dac if k.dac is not None else (0.0,) * 5
+    as_, ao, atop, aos, aoo = k.adc if k.adc is not None else (0.0,) * 5
+    ad, bd = k.ad, k.bd
+    cc = list(k.c) + [0.0, 0.0]
     c0, c1, c2 = cc[0], cc[1], cc[2]
     exp, floor, copysign, isfinite = math.exp, math.floor, math.copysign, math.isfinite
     if order == 3:
