@@ -37,31 +37,23 @@ import argparse
 import json
 from pathlib import Path
 import sys
-import time
-from typing import Any, NoReturn, Sequence
+from typing import Sequence
+
+from piezo_stage_ros import cli
+from piezo_stage_ros.core.controllers import ControllerParams
+from piezo_stage_ros.core.errors import ParameterError
 
 __all__ = ['main']
 
 PROG = 'robustness'
 
 
-class _UsageError(Exception):
-    pass
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> NoReturn:
-        raise _UsageError(message)
-
-
 def _parser() -> argparse.ArgumentParser:
-    p = _Parser(prog=PROG, description='Run one controller configuration on a family of stages '
-                'and print e_rms, e_m, command range and the adapted estimates per stage.')
-    p.add_argument('--config', action='append', default=[], metavar='FILE',
-                   help='ROS 2 parameter file on top of config/default.yaml (repeatable).')
-    p.add_argument('--param', action='append', default=[], metavar='NODE:NAME=VALUE',
-                   help='Set one parameter (as simulate --param).')
-    p.add_argument('--controller', choices=('rac', 'pi', 'open_loop'),
+    p = cli.Parser(prog=PROG, description='Run one controller configuration on a family of '
+                   'stages and print e_rms, e_m, command range and the adapted estimates per '
+                   'stage.')
+    cli.add_config_options(p)
+    p.add_argument('--controller', choices=cli.choices(ControllerParams, 'type'),
                    help='Controller (default: the configured one).')
     p.add_argument('--cases', metavar='A,B,...',
                    help='Cases to run (default all): sine_1, sine_10, sine_50, sine_100, '
@@ -90,17 +82,7 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _load(args: argparse.Namespace) -> dict[str, Any]:
-    from piezo_stage_ros.simulate import load_parameters
-    ns = argparse.Namespace(config=args.config, param=args.param, plant=None, hysteresis=None,
-                            controller=args.controller, trajectory=None, frequency=None,
-                            amplitude=None, offset=None, csv=None, seed=None, noise=None,
-                            refuse_unstable=False)
-    return load_parameters(ns)
-
-
 def _pick(text: str | None, known: Sequence[str], what: str) -> list[str]:
-    from piezo_stage_ros.core.errors import ParameterError
     if text is None:
         return list(known)
     names = [n.strip() for n in text.split(',') if n.strip()]
@@ -119,24 +101,20 @@ def _run(args: argparse.Namespace) -> int:
         for m in family:
             print(f'{m.name:24s} {m.describe()}')
         return 0
-    params = _load(args)
+    loop = cli.offline_loop(PROG, cli.loop_overrides(
+        cli.read_config(args.config, args.param), controller=args.controller))
     by_name = {m.name: m for m in family}
     stages = [by_name[n] for n in _pick(args.stages, list(by_name), '--stages')]
     named = {m.name for m in stages}
     stages += list(sample_family(args.samples, args.sample_seed)) if args.samples > 0 else []
     cases = _pick(args.cases, list(CASES), '--cases')
-    t0 = time.perf_counter()
-
-    def progress(line: str) -> None:
-        if not args.quiet:
-            print(f'[{time.perf_counter() - t0:6.1f} s] {line}', file=sys.stderr, flush=True)
-
-    result = run_study(params['stage'], params['controller'], params['trajectory'],
+    progress = cli.Progress(PROG, enabled=not args.quiet)
+    result = run_study(loop.stage, loop.controller, loop.trajectory,
                        family=stages, cases=cases, duration_s=args.duration,
                        settle_s=args.settle, traced=named, batch=not args.single,
-                       progress=progress)
-    result.meta['wall_seconds'] = time.perf_counter() - t0
-    result.meta['config_files'] = [str(p) for p in params['config'].sources]
+                       progress=progress.line)
+    result.meta['wall_seconds'] = progress.elapsed()
+    result.meta['config_files'] = [str(p) for p in loop.sources]
     result.meta['params'] = list(args.param)
     text = format_result(result)
     payload = result.to_json()
@@ -148,8 +126,8 @@ def _run(args: argparse.Namespace) -> int:
         (out / 'robustness.txt').write_text(text + '\n', encoding='utf8')
         from piezo_stage_ros.analysis.robustness_plots import save_plots
         written = save_plots(result, out)
-        progress(f'wrote {out / "robustness.json"}, {out / "robustness.txt"} and '
-                 f'{len(written)} plots')
+        progress.line(f'wrote {out / "robustness.json"}, {out / "robustness.txt"} and '
+                      f'{len(written)} plots')
     print(json.dumps(payload, sort_keys=True) if args.json else text)
     return 0
 
@@ -166,23 +144,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     Returns
     -------
     int
-        0 on success, 1 on a bad parameter or configuration, 2 on bad usage.
+        0 on success, 1 on a bad parameter, configuration or file, 2 on bad usage, 130 on
+        Ctrl-C.
 
     """
-    from piezo_stage_ros.core.errors import PiezoStageError
-    try:
-        args = _parser().parse_args(argv)
-    except _UsageError as exc:
-        print(f'{PROG}: error: {exc} (see {PROG} --help)', file=sys.stderr)
-        return 2
-    try:
-        return _run(args)
-    except PiezoStageError as exc:
-        print(f'{PROG}: error: {exc}', file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(f'{PROG}: error: interrupted', file=sys.stderr)
-        return 130
+    return cli.run_command(PROG, _parser(), _run, argv)
 
 
 if __name__ == '__main__':
