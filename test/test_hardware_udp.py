@@ -77,6 +77,8 @@ def test_bridge_through_emulator_equals_the_model(emulator):
     for u in commands:
         bridge.write_voltage(float(u))
         got.append(bridge.read_position())
+    # bit for bit: the emulator steps the same Stage kernel on the same commands and the UDP
+    # frames carry float64 as they are
     np.testing.assert_array_equal(got, stage.run_open_loop(commands))
     assert bridge.stats()['lost'] == 0 and bridge.stats()['target_missing'] == 0
     bridge.safe_stop(0.0)
@@ -207,6 +209,8 @@ def test_lockstep_through_udp_equals_the_offline_runner(noise):
         xd, vd = traj.on_position(sample.stamp_ns)
         ctrl.on_position(sample.stamp_ns, sample.position_m, 0.0)
         sample = plant.on_command(ctrl.on_reference(sample.stamp_ns, xd, vd).voltage_v, 0.0)
+    # bit for bit: lockstep runs the offline runner's scalar stage and controller arithmetic in
+    # the same order, sample by sample (see test_lockstep.py)
     np.testing.assert_array_equal(positions, rec.position_m)
     plant.stop()
     emulator.close()
