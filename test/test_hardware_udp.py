@@ -90,7 +90,9 @@ def test_bridge_through_emulator_equals_the_model(emulator):
 
 def test_lost_replies_are_counted_and_the_last_position_held():
     with TargetEmulator(PARAMS, drop_reply_every=4) as emu:
-        bridge = connected(emu, timeout_s=0.05)
+        # a reply that comes must not count as lost: on a loaded machine the emulator's thread
+        # can wait tens of ms for a core, so the timeout is 0.5 s (each dropped reply costs it)
+        bridge = connected(emu, timeout_s=0.5)
         bridge.safe_start(0.0)
         positions = []
         for k in range(12):
@@ -114,7 +116,8 @@ def test_consecutive_losses_raise_and_a_silent_target_fails_start():
     finally:
         silent.close()
     with TargetEmulator(PARAMS, drop_reply_every=1) as emu:
-        bridge = connected(emu, timeout_s=0.01, max_consecutive_losses=2)
+        # 0.2 s, not 10 ms: the HELLO replies of safe_start do come, on a loaded machine late
+        bridge = connected(emu, timeout_s=0.2, max_consecutive_losses=2)
         bridge.safe_start(0.0)
         bridge.read_position()
         bridge.read_position()
