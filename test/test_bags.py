@@ -58,6 +58,7 @@ def make_record(n=2000, start_s=0.0, diagnostics=True):
 
 def assert_same_run(a, b):
     np.testing.assert_allclose(a.time_s, b.time_s, rtol=0, atol=1e-12)
+    # bit for bit: a bag round trip stores the float64 samples as they are (no arithmetic)
     for name in ('position_m', 'reference_m', 'reference_velocity_mps', 'command_v'):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
     assert sorted(a.diagnostics) == sorted(b.diagnostics)
@@ -524,6 +525,7 @@ def test_irregular_records_in_chunks(tmp_path):
     rec = read_run(bag)
     assert len(rec) == 8000
     k = np.arange(8000)
+    # bit for bit: the bag holds the very products k * 1e-9 ... written above (no arithmetic)
     np.testing.assert_array_equal(rec.position_m, k * 1e-9)
     np.testing.assert_array_equal(rec.reference_m, k * 2e-9)
     np.testing.assert_array_equal(rec.reference_velocity_mps, k.astype(float))

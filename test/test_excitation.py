@@ -39,6 +39,7 @@ def test_noise_is_a_trajectory_deterministic_from_its_seed() -> None:
     assert isinstance(a, Trajectory)
     x1, v1 = a.evaluate(t)
     x2, v2 = NoiseExcitation(NoiseParams(seed=3)).evaluate(t)
+    # bit for bit: the same generator, FFT and arithmetic on the same machine, twice
     np.testing.assert_array_equal(x1, x2)
     np.testing.assert_array_equal(v1, v2)
     x3, _ = NoiseExcitation(NoiseParams(seed=4)).evaluate(t)
@@ -56,8 +57,12 @@ def test_noise_amplitude_offset_and_band() -> None:
     spectrum = np.abs(np.fft.rfft(x - x.mean())) ** 2
     f = np.fft.rfftfreq(x.size, 1.0 / FS)
     inside = (f >= 100.0) & (f <= 2000.0)
+    # Out of the band only rounding is left: samples rounded at eps * 5e-6 m (the offset)
+    # against a 0.2e-6 m signal, and the FFTs' own eps * log2(N) relative error, give a power
+    # ratio ~(log2(N) eps * 5e-6 / 0.2e-6)^2 ~ 1e-26: 1e-20 is a million times above it.
     assert spectrum[~inside].sum() < 1e-20 * spectrum[inside].sum()
-    # flat ("white") inside the band: every frequency of the band has the same power
+    # flat ("white") inside the band: every frequency of the band has the same power, to the
+    # FFT's rounding, |dX_k| / |X_k| <= log2(N) eps sqrt(bins in band) ~ 1e-13 (1e-8 is above)
     assert np.ptp(spectrum[inside]) < 1e-8 * spectrum[inside].max()
     assert exc.extent_m[0] <= x.min() and x.max() <= exc.extent_m[1]
 
@@ -132,6 +137,7 @@ def test_kinds_noise_and_chirp_are_trajectories_of_the_trajectory_node() -> None
         t = np.arange(100) / FS
         x, v = traj.evaluate(t)
         direct = make_excitation(kind, getattr(params, kind)).evaluate(t)
+        # bit for bit: the same object's code on the same times, reached two ways
         np.testing.assert_array_equal(x, direct[0])
         np.testing.assert_array_equal(v, direct[1])
     # the travel check covers the excitations too

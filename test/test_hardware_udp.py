@@ -77,6 +77,8 @@ def test_bridge_through_emulator_equals_the_model(emulator):
     for u in commands:
         bridge.write_voltage(float(u))
         got.append(bridge.read_position())
+    # bit for bit: the emulator steps the same Stage kernel on the same commands and the UDP
+    # frames carry float64 as they are
     np.testing.assert_array_equal(got, stage.run_open_loop(commands))
     assert bridge.stats()['lost'] == 0 and bridge.stats()['target_missing'] == 0
     bridge.safe_stop(0.0)
@@ -88,7 +90,9 @@ def test_bridge_through_emulator_equals_the_model(emulator):
 
 def test_lost_replies_are_counted_and_the_last_position_held():
     with TargetEmulator(PARAMS, drop_reply_every=4) as emu:
-        bridge = connected(emu, timeout_s=0.05)
+        # a reply that comes must not count as lost: on a loaded machine the emulator's thread
+        # can wait tens of ms for a core, so the timeout is 0.5 s (each dropped reply costs it)
+        bridge = connected(emu, timeout_s=0.5)
         bridge.safe_start(0.0)
         positions = []
         for k in range(12):
@@ -112,7 +116,8 @@ def test_consecutive_losses_raise_and_a_silent_target_fails_start():
     finally:
         silent.close()
     with TargetEmulator(PARAMS, drop_reply_every=1) as emu:
-        bridge = connected(emu, timeout_s=0.01, max_consecutive_losses=2)
+        # 0.2 s, not 10 ms: the HELLO replies of safe_start do come, on a loaded machine late
+        bridge = connected(emu, timeout_s=0.2, max_consecutive_losses=2)
         bridge.safe_start(0.0)
         bridge.read_position()
         bridge.read_position()
@@ -207,6 +212,8 @@ def test_lockstep_through_udp_equals_the_offline_runner(noise):
         xd, vd = traj.on_position(sample.stamp_ns)
         ctrl.on_position(sample.stamp_ns, sample.position_m, 0.0)
         sample = plant.on_command(ctrl.on_reference(sample.stamp_ns, xd, vd).voltage_v, 0.0)
+    # bit for bit: lockstep runs the offline runner's scalar stage and controller arithmetic in
+    # the same order, sample by sample (see test_lockstep.py)
     np.testing.assert_array_equal(positions, rec.position_m)
     plant.stop()
     emulator.close()

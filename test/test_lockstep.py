@@ -108,6 +108,11 @@ def test_lockstep_equals_offline_runner_bit_for_bit(kind, traj, noise, model):
     rec = offline(params, kind, tp, duration, chunk)
     stamps, pos, ref, vel, cmd, ctrl, plant = lockstep(params, kind, tp, duration, chunk)
     assert len(pos) == len(rec) == 2537
+    # Bit for bit, on purpose: the nodes' logic calls the same scalar stage kernel and the same
+    # controller step as the offline runner, in the same order, and the trajectory is the same
+    # numpy ufunc on the same times (one per call here, a chunk there: numpy's loops give an
+    # element the same value at any position, at every SIMD level test-matrix runs). Any
+    # difference would be a real divergence, which the 16-bit quantization would then amplify.
     np.testing.assert_array_equal(stamps, np.round(np.arange(2537) * 1e9 / RATE).astype(int))
     np.testing.assert_array_equal(pos, rec.position_m)
     np.testing.assert_array_equal(ref, rec.reference_m)

@@ -253,6 +253,8 @@ def test_shaped_square_starts_where_the_ideal_jump_is_and_reaches_the_level() ->
         moving[edge:edge + 20] = True
         assert p1[edge] == pytest.approx(p0[edge - 1], abs=1e-18)
         assert abs(v1[edge]) < 1e-20
+    # bit for bit: away from the edges the S-curve is exactly 0 or 1, so both compute the same
+    # correctly rounded + and * on the same numbers (no transcendental function involved)
     np.testing.assert_array_equal(p1[~moving], p0[~moving])
     assert p1[2510] == pytest.approx(7.7e-6, abs=1e-15)   # half way at the middle
     assert p1[0] == 3.8e-6 and v1[0] == 0.0               # the run starts at rest, low
@@ -263,6 +265,7 @@ def test_transition_zero_is_the_ideal_jump() -> None:
         a = build({'kind': kind})
         b = build({'kind': kind, f'{kind}.transition_s': 0.0})
         t = np.arange(0, 5000) * T
+        # bit for bit: transition 0 is the same code path as no transition
         np.testing.assert_array_equal(a.evaluate(t)[0], b.evaluate(t)[0])  # type: ignore
         assert np.all(b.evaluate(t)[1] == 0.0)  # type: ignore[attr-defined]
 
