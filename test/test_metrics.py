@@ -174,6 +174,7 @@ def test_summarize_diagnostic_ranges_and_empty_record() -> None:
     rec = RunRecord(t, t, t, t, t, diagnostics={'theta_hat': np.array([1.0, 2.0, np.nan, 0.5])})
     s = metrics.summarize(rec)
     assert s.diagnostic_ranges == {'theta_hat': (0.5, 2.0)}
+    assert hash(s) == hash(metrics.summarize(rec)) and s == metrics.summarize(rec)
     assert (s.as_dict()['theta_hat_min'], s.as_dict()['theta_hat_max']) == (0.5, 2.0)
     empty = metrics.summarize(RunRecord(*(np.zeros(0),) * 5))
     assert empty.samples == 0 and math.isnan(empty.e_rms_m)

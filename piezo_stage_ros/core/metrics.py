@@ -187,8 +187,9 @@ class TrackingMetrics(_Record):
     steady_state_start_s: float
     steady_state_samples: int
     loop_width_pct: float
+    # left out of the hash (a dict has none), so the record hashes like its float fields
     diagnostic_ranges: Mapping[str, tuple[float, float]] = field(
-        default_factory=dict, metadata={'json': False})
+        default_factory=dict, hash=False, metadata={'json': False})
 
     def as_dict(self) -> dict[str, float]:
         """
