@@ -44,11 +44,13 @@ default; docs/nodes.md). When the plant ends its run the launch ends.
 """
 
 # ruff takes `launch` for this repository's launch/ folder; for ament (flake8) it is the
-# third-party package it is, sorted as below.
+# third-party package it is, sorted as below. mypy checks this file (make typecheck) with
+# namespace packages off (pyproject.toml), so `launch` is ROS's package, not that folder.
 from __future__ import annotations  # noqa: I001
 
 import os
 import tempfile
+from typing import Any, Mapping
 
 from launch import LaunchContext, LaunchDescription
 from launch.actions import (
@@ -63,7 +65,7 @@ from launch.events import Shutdown
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 from piezo_stage_ros.cli import choices
-from piezo_stage_ros.core.config import find_config, load_config
+from piezo_stage_ros.core.config import Config, find_config, load_config
 from piezo_stage_ros.core.controllers import ControllerParams
 from piezo_stage_ros.core.loop_config import LoopConfig, MODES
 from piezo_stage_ros.core.wire import RECORDED_TOPICS
@@ -87,9 +89,9 @@ ARGUMENTS = {
 }
 
 
-def _unflatten(values: dict) -> dict:
+def _unflatten(values: Mapping[str, Any]) -> dict[str, Any]:
     """Return ``{'a': {'b': v}}`` for ``{'a.b': v}``."""
-    out: dict = {}
+    out: dict[str, Any] = {}
     for name, value in values.items():
         *groups, leaf = name.split('.')
         node = out
@@ -99,7 +101,7 @@ def _unflatten(values: dict) -> dict:
     return out
 
 
-def _parameter_file(config, per_node: dict) -> str:
+def _parameter_file(config: Config, per_node: Mapping[str, Mapping[str, Any]]) -> str:
     """
     Write one parameter file with a section per node and return its path.
 
@@ -107,7 +109,7 @@ def _parameter_file(config, per_node: dict) -> str:
     the merged values of every file given plus this launch's own settings: one file serves the
     three processes or the composed one alike.
     """
-    doc = {}
+    doc: dict[str, Any] = {}
     for node, extra in per_node.items():
         values = dict(config.node(node))
         values.update(extra)
@@ -118,7 +120,7 @@ def _parameter_file(config, per_node: dict) -> str:
     return path
 
 
-def _launch(context: LaunchContext) -> list:
+def _launch(context: LaunchContext) -> list[Any]:
     arg = {name: LaunchConfiguration(name).perform(context) for name in ARGUMENTS}
     files = [str(find_config(arg['config']))]
     files += [str(find_config(arg[k])) for k in ('scenario', 'overrides') if arg[k]]
@@ -148,7 +150,7 @@ def _launch(context: LaunchContext) -> list:
                                       'trajectory_node': trajectory})
     ns = arg['namespace']
     extra = ['--executor', arg['executor']]
-    actions: list = []
+    actions: list[Any] = []
     if arg['composed'].lower() == 'true':
         if arg['direct'].lower() == 'true':
             extra.append('--direct')

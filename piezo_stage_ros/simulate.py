@@ -185,7 +185,7 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
     wall = time.perf_counter() - start
     summary = metrics.summarize(record)
     sim = float(record.meta['duration_s'])
-    out: dict[str, Any] = dict(summary)
+    out: dict[str, Any] = summary.as_dict()
     out.update({'sim_seconds': sim, 'wall_seconds': wall,
                 'realtime_factor': sim / wall if wall > 0 else math.inf,
                 'stable': bool(report.stable), 'plant': stage.plant.model,
@@ -201,20 +201,21 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
           f'hysteresis, trajectory {traj.kind}'
           + (f' (period {period:g} s)' if period else ''))
     print(f'stability check: {"stable" if report.stable else "UNSTABLE"}')
-    print(f'simulated {sim:g} s ({int(summary["samples"])} samples) in {wall:.3f} s wall '
+    print(f'simulated {sim:g} s ({summary.samples} samples) in {wall:.3f} s wall '
           f'({out["realtime_factor"]:.1f}x real time)')
-    print(f'steady state from {summary["steady_state_start_s"]:g} s '
-          f'({int(summary["steady_state_samples"])} samples):')
-    print(f'  e_m   = {summary["e_max_m"] * 1e9:10.2f} nm')
-    print(f'  e_rms = {summary["e_rms_m"] * 1e9:10.2f} nm')
-    if math.isfinite(summary['loop_width_pct']):
-        print(f'  loop width (x vs x_d) = {summary["loop_width_pct"]:.2f} % of range')
-    print(f'whole run: e_m = {summary["e_max_all_m"] * 1e9:.2f} nm, e_rms = '
-          f'{summary["e_rms_all_m"] * 1e9:.2f} nm')
-    print(f'command range: {summary["command_min_v"]:.3f} ... {summary["command_max_v"]:.3f} V')
+    print(f'steady state from {summary.steady_state_start_s:g} s '
+          f'({summary.steady_state_samples} samples):')
+    print(f'  e_m   = {summary.e_max_m * 1e9:10.2f} nm')
+    print(f'  e_rms = {summary.e_rms_m * 1e9:10.2f} nm')
+    if math.isfinite(summary.loop_width_pct):
+        print(f'  loop width (x vs x_d) = {summary.loop_width_pct:.2f} % of range')
+    print(f'whole run: e_m = {summary.e_max_all_m * 1e9:.2f} nm, e_rms = '
+          f'{summary.e_rms_all_m * 1e9:.2f} nm')
+    print(f'command range: {summary.command_min_v:.3f} ... {summary.command_max_v:.3f} V')
     for name in ('theta_hat', 'phi_hat'):
-        if f'{name}_min' in summary:
-            print(f'{name}: {summary[name + "_min"]:.6g} ... {summary[name + "_max"]:.6g}')
+        if name in summary.diagnostic_ranges:
+            low, high = summary.diagnostic_ranges[name]
+            print(f'{name}: {low:.6g} ... {high:.6g}')
     if args.bag is not None:
         print(f'bag written: {args.bag} ({args.storage})')
     return 0

@@ -319,7 +319,7 @@ def track(params: ControllerParams, model: str, frequency_hz: float,
         duration = duration_s
     record = run(stage, ctrl, traj, duration_s=duration, record_diagnostics=False)
     m = summarize(record, period_s=period)
-    return m['e_rms_m'], m['e_max_m']
+    return m.e_rms_m, m.e_max_m
 
 
 def square_steady_state(params: ControllerParams, model: str, *, high_m: float = 11.6e-6,
@@ -355,7 +355,7 @@ def square_steady_state(params: ControllerParams, model: str, *, high_m: float =
                   duration_s=periods * period_s)
     m = square_edge_metrics(rec.time_s, rec.position_m, rec.reference_m, tp.square)
     theta = np.asarray(rec.diagnostics['theta_hat'])
-    return m['ss_e_rms_m'], m['ss_e_max_m'], float(np.min(theta)), float(np.max(theta))
+    return m.ss_e_rms_m, m.ss_e_max_m, float(np.min(theta)), float(np.max(theta))
 
 
 def verdict(params: ControllerParams, model: str, sample_time_s: float = 1e-4,

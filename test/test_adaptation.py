@@ -225,8 +225,8 @@ def test_default_rac_has_no_limit_cycle_on_a_square_wave(model, low_m, high_m, p
     m, theta, pp = _square(model, low_m, high_m, period_s, periods)
     r = ControllerParams().rac
     # old default: 1.2 um rms, 2.6 um peak (Fig. 10) and 2.3 um rms (28 um) on the plateaus
-    assert m['ss_e_rms_m'] < 3e-9      # a few ADC steps (1.16 nm)
-    assert m['ss_e_max_m'] < 10e-9
+    assert m.ss_e_rms_m < 3e-9      # a few ADC steps (1.16 nm)
+    assert m.ss_e_max_m < 10e-9
     assert np.max(pp) < 10e-9          # no oscillation left on any plateau
     # theta_hat moves on the edges but never reaches a bound (the paper's rates bang it between
     # both), and it ends within 5 % of the model's theta = 1/(K_PSCM g c) = 1.293

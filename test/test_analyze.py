@@ -79,7 +79,7 @@ def test_metrics_of_a_bag_equal_those_of_the_run_that_wrote_it(tmp_path, capsys,
     assert len(lines) == 1
     from_bag = json.loads(lines[0])
     assert from_bag['bag'] == str(bag) and from_bag['time_origin_s'] == 0.0
-    from_run = summarize(record)
+    from_run = summarize(record).as_dict()
     # The default window is the runner's (two periods of 100 Hz, at least 0.1 s).
     assert from_run['steady_state_start_s'] == pytest.approx(0.1)
     assert_metrics_equal(from_run, from_bag)
@@ -96,7 +96,7 @@ def test_graph_recording_without_meta_gets_simulates_window(tmp_path, kind):
     analysis = analyze_bag(bag)
     assert analysis.record.meta['trajectory_period_s'] == pytest.approx(
         record.meta['trajectory_period_s'], rel=1e-9)
-    expected = summarize(record)
+    expected = summarize(record).as_dict()
     for key in ('steady_state_start_s', 'steady_state_samples', 'e_max_m', 'e_rms_m',
                 'loop_width_pct'):
         assert analysis.metrics[key] == pytest.approx(expected[key], rel=1e-9), key
@@ -121,7 +121,7 @@ def test_streamed_bag_equals_the_run(tmp_path):
         writer.set_meta(record.meta)
     analysis = analyze_bag(bag)
     assert analysis.samples == len(record) == 3000
-    assert_metrics_equal(summarize(record), analysis.metrics)
+    assert_metrics_equal(summarize(record).as_dict(), analysis.metrics)
     assert analysis.record.meta['trajectory_period_s'] == record.meta['trajectory_period_s']
 
 
@@ -131,7 +131,7 @@ def test_square_wave_bag_has_the_step_figures(tmp_path):
     write_run(record, bag)
     analysis = analyze_bag(bag)
     expected = square_wave_metrics(record.time_s, record.position_m, record.reference_m,
-                                   period_s=0.1)
+                                   period_s=0.1).as_dict()
     for key in ('rise_time_s', 'overshoot_pct', 'settling_time_s', 'ss_e_rms_m'):
         assert analysis.metrics[key] == pytest.approx(expected[key], rel=1e-9, abs=1e-12), key
     assert analysis.metrics['edges'] == expected['edges'] >= 3
@@ -143,7 +143,7 @@ def test_explicit_window(tmp_path, capsys):
     write_run(record, bag)
     assert analyze.main(['--json', '--steady-state-start', '0.2', str(bag)]) == 0
     from_bag = json.loads(capsys.readouterr().out)
-    assert_metrics_equal(summarize(record, steady_state_start_s=0.2), from_bag)
+    assert_metrics_equal(summarize(record, steady_state_start_s=0.2).as_dict(), from_bag)
 
 
 @pytest.mark.parametrize('name', ['stage_sine5hz_mcap', 'stage_sine5hz_sqlite3'])

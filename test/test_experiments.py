@@ -149,9 +149,10 @@ def test_square_edge_metrics_equal_the_generic_ones_for_the_ideal_wave() -> None
     tp = TrajectoryParams.from_flat({'kind': 'square', 'square.period_s': 0.02})
     rec = ex.run_one(StageParams.from_flat({'plant.model': 'reduced'}), ControllerParams(), tp,
                      duration_s=0.05)
-    ours = ex.square_edge_metrics(rec.time_s, rec.position_m, rec.reference_m, tp.square)
+    ours = ex.square_edge_metrics(rec.time_s, rec.position_m, rec.reference_m,
+                                  tp.square).as_dict()
     generic = metrics.square_wave_metrics(rec.time_s, rec.position_m, rec.reference_m,
-                                          period_s=0.02)
+                                          period_s=0.02).as_dict()
     assert ours.keys() == generic.keys()
     for key, value in generic.items():
         assert ours[key] == pytest.approx(value, rel=1e-12, nan_ok=True), key

@@ -309,7 +309,7 @@ def _track_error(true: StageParams, model: StageParams, frequency_hz: float = 10
         {'kind': 'sine', 'sine.frequency_hz': frequency_hz}))
     record = run(Stage(stage_params), controller, trajectory, duration_s=0.2 + 0.5e-4,
                  record_diagnostics=False)
-    return float(summarize(record, period_s=1.0 / frequency_hz)['e_rms_m'])
+    return summarize(record, period_s=1.0 / frequency_hz).e_rms_m
 
 
 @pytest.mark.parametrize('seed', [None, 3, 11])

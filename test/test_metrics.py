@@ -68,10 +68,10 @@ def test_first_order_step(tau: float) -> None:
     t = np.arange(0.0, 20 * tau, tau / 2000)
     y = 1.0 - np.exp(-t / tau)
     m = metrics.step_response(t, y, step_time_s=0.0, initial_m=0.0, final_m=1.0)
-    assert m['rise_time_s'] == pytest.approx(tau * math.log(9.0), rel=1e-3)
-    assert m['overshoot_pct'] == 0.0
-    assert m['settling_time_s'] == pytest.approx(tau * math.log(50.0), rel=1e-3)
-    assert m['ss_e_max_m'] <= math.exp(-10.0) * 1.001
+    assert m.rise_time_s == pytest.approx(tau * math.log(9.0), rel=1e-3)
+    assert m.overshoot_pct == 0.0
+    assert m.settling_time_s == pytest.approx(tau * math.log(50.0), rel=1e-3)
+    assert m.ss_e_max_m <= math.exp(-10.0) * 1.001
 
 
 def test_second_order_step_overshoot_and_settling() -> None:
@@ -84,24 +84,24 @@ def test_second_order_step_overshoot_and_settling() -> None:
     y = 3.0 - 2.0 * unit
     m = metrics.step_response(t + 0.1, y, step_time_s=0.1, initial_m=3.0, final_m=1.0)
     expected = 100 * math.exp(-zeta * math.pi / math.sqrt(1 - zeta ** 2))
-    assert m['overshoot_pct'] == pytest.approx(expected, rel=1e-4)
+    assert m.overshoot_pct == pytest.approx(expected, rel=1e-4)
     # settling: the last time the envelope-bounded response is outside 2 %; the envelope
     # bound exp(-zeta wn t)/sqrt(1-zeta^2) = 0.02 is an upper limit, one half period below it
     bound = -math.log(0.02 * math.sqrt(1 - zeta ** 2)) / (zeta * wn)
-    assert bound - math.pi / wd < m['settling_time_s'] <= bound
+    assert bound - math.pi / wd < m.settling_time_s <= bound
     # 10-90 % rise time of this system (numerically, fine grid): 1.25/wn within 10 %
-    assert m['rise_time_s'] == pytest.approx(1.25 / wn * (1 + 0.0), rel=0.1)
+    assert m.rise_time_s == pytest.approx(1.25 / wn * (1 + 0.0), rel=0.1)
 
 
 def test_settle_band_in_metres_and_never_settling() -> None:
     t = np.arange(0.0, 1.0, 1e-3)
     y = np.where(t > 0.5, 1.0 + 0.05, 1.0)  # stays 5 % off after 0.5 s
     m = metrics.step_response(t, y, step_time_s=0.0, initial_m=0.0, final_m=1.0)
-    assert math.isnan(m['settling_time_s'])
+    assert math.isnan(m.settling_time_s)
     m = metrics.step_response(t, y, step_time_s=0.0, initial_m=0.0, final_m=1.0,
                               settle_band_m=0.06)
-    assert m['settle_band_m'] == 0.06
-    assert m['settling_time_s'] == 0.0
+    assert m.settle_band_m == 0.06
+    assert m.settling_time_s == 0.0
     with pytest.raises(PiezoStageError, match='no step'):
         metrics.step_response(t, y, step_time_s=0.0, initial_m=1.0, final_m=1.0)
 
@@ -116,11 +116,11 @@ def test_square_wave_metrics_of_first_order_edges() -> None:
     for k in range(1, t.size):  # exact ZOH first order following the reference
         y[k] = a * y[k - 1] + (1 - a) * ref[k - 1]
     m = metrics.square_wave_metrics(t, y, ref, period_s=period)
-    assert m['edges'] == 9.0
+    assert m.edges == 9.0
     # the ZOH samples lag one sample: rise time tau ln 9 within one sample
-    assert m['rise_time_s'] == pytest.approx(tau * math.log(9.0), abs=1.5 * dt)
-    assert m['overshoot_pct'] == 0.0
-    assert m['ss_e_max_m'] < 1e-9
+    assert m.rise_time_s == pytest.approx(tau * math.log(9.0), abs=1.5 * dt)
+    assert m.overshoot_pct == 0.0
+    assert m.ss_e_max_m < 1e-9
 
 
 def test_steady_state_window_rules() -> None:
@@ -144,17 +144,17 @@ def test_summarize_sine_error_over_whole_periods() -> None:
     cmd = np.linspace(-1.0, 9.0, t.size)
     rec = _record(t, xd + err, xd, period=1 / f, cmd=cmd)
     s = metrics.summarize(rec)
-    assert s['steady_state_start_s'] == pytest.approx(0.2)
-    assert s['steady_state_samples'] == 3000
-    assert s['e_max_m'] == pytest.approx(1e-8, rel=1e-6)
-    assert s['e_rms_m'] == pytest.approx(1e-8 / math.sqrt(2), rel=1e-9)
-    assert s['e_max_all_m'] == pytest.approx(1e-6)
-    assert s['command_min_v'] == -1.0 and s['command_max_v'] == 9.0
-    assert s['samples'] == 5000
-    assert s['duration_s'] == pytest.approx(0.5)
+    assert s.steady_state_start_s == pytest.approx(0.2)
+    assert s.steady_state_samples == 3000
+    assert s.e_max_m == pytest.approx(1e-8, rel=1e-6)
+    assert s.e_rms_m == pytest.approx(1e-8 / math.sqrt(2), rel=1e-9)
+    assert s.e_max_all_m == pytest.approx(1e-6)
+    assert s.command_min_v == -1.0 and s.command_max_v == 9.0
+    assert s.samples == 5000
+    assert s.duration_s == pytest.approx(0.5)
     # an explicit start wins over the period rule
     s0 = metrics.summarize(rec, steady_state_start_s=0.0)
-    assert s0['e_max_m'] == pytest.approx(1e-6)
+    assert s0.e_max_m == pytest.approx(1e-6)
 
 
 def test_summarize_same_numbers_in_an_epoch_time_base() -> None:
@@ -166,13 +166,44 @@ def test_summarize_same_numbers_in_an_epoch_time_base() -> None:
     a = metrics.summarize(_record(t, x, xd, period=0.05))
     b = metrics.summarize(_record(t + 1.7e9, x, xd, period=0.05))
     for key in ('e_max_m', 'e_rms_m', 'steady_state_samples', 'loop_width_pct'):
-        assert a[key] == pytest.approx(b[key], rel=1e-9)
+        assert a.as_dict()[key] == pytest.approx(b.as_dict()[key], rel=1e-9)
 
 
 def test_summarize_diagnostic_ranges_and_empty_record() -> None:
     t = np.arange(4) * 1e-4
     rec = RunRecord(t, t, t, t, t, diagnostics={'theta_hat': np.array([1.0, 2.0, np.nan, 0.5])})
     s = metrics.summarize(rec)
-    assert (s['theta_hat_min'], s['theta_hat_max']) == (0.5, 2.0)
+    assert s.diagnostic_ranges == {'theta_hat': (0.5, 2.0)}
+    assert hash(s) == hash(metrics.summarize(rec)) and s == metrics.summarize(rec)
+    assert (s.as_dict()['theta_hat_min'], s.as_dict()['theta_hat_max']) == (0.5, 2.0)
     empty = metrics.summarize(RunRecord(*(np.zeros(0),) * 5))
-    assert empty['samples'] == 0 and math.isnan(empty['e_rms_m'])
+    assert empty.samples == 0 and math.isnan(empty.e_rms_m)
+
+
+def test_records_give_the_json_field_names_in_order() -> None:
+    # as_dict() is the JSON object of simulate --json and analyze --json: names, order, floats
+    t = np.arange(0, 2000) * 1e-4
+    xd = np.sin(2 * np.pi * 20 * t)
+    diag = {'theta_hat': np.full(t.size, 1.5), 'phi_hat': np.linspace(0.0, 1.0, t.size)}
+    rec = _record(t, xd + 1e-3, xd, period=0.05)
+    rec = RunRecord(rec.time_s, rec.position_m, rec.reference_m, rec.reference_velocity_mps,
+                    rec.command_v, diagnostics=diag, meta=rec.meta)
+    s = metrics.summarize(rec)
+    d = s.as_dict()
+    assert list(d) == ['samples', 'e_max_m', 'e_rms_m', 'e_max_all_m', 'e_rms_all_m',
+                       'command_min_v', 'command_max_v', 'duration_s', 'steady_state_start_s',
+                       'steady_state_samples', 'loop_width_pct', 'phi_hat_min', 'phi_hat_max',
+                       'theta_hat_min', 'theta_hat_max']
+    assert all(type(v) is float for v in d.values())
+    assert (s.samples, d['samples']) == (2000, 2000.0)
+    assert d['e_rms_m'] == s.e_rms_m and d['phi_hat_max'] == 1.0
+    step = metrics.step_response(t, np.minimum(t / 0.01, 1.0), step_time_s=0.0, initial_m=0.0,
+                                 final_m=1.0)
+    assert list(step.as_dict()) == ['rise_time_s', 'overshoot_pct', 'settling_time_s',
+                                    'settle_band_m', 'ss_e_max_m', 'ss_e_rms_m']
+    ref = np.where((t % 0.05) < 0.025, 1.0, 0.0)
+    edges = metrics.square_wave_metrics(t, ref, ref, period_s=0.05)
+    assert list(edges.as_dict()) == ['rise_time_s', 'overshoot_pct', 'settling_time_s',
+                                     'settling_time_max_s', 'settle_band_m', 'ss_e_max_m',
+                                     'ss_e_rms_m', 'edges']
+    assert edges.edges == 7 and edges.as_dict()['edges'] == 7.0

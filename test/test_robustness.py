@@ -188,8 +188,8 @@ def test_the_command_matches_a_simulate_run_of_the_same_stage(capsys):
     rec = run_one(member_params(BASE, FAMILY['gain_hi']), ControllerParams(),
                   TrajectoryParams(), duration_s=0.3)
     s = metrics.summarize(rec, steady_state_start_s=0.1)
-    assert row['e_rms_m'] == s['e_rms_m']
-    assert row['e_max_m'] == s['e_max_m']
+    assert row['e_rms_m'] == s.e_rms_m
+    assert row['e_max_m'] == s.e_max_m
     assert math.isfinite(row['theta_error_pct'])
 
 

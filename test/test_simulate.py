@@ -53,7 +53,7 @@ def test_json_has_the_required_keys_and_matches_the_core(
     tp = TrajectoryParams.from_flat({'sine.frequency_hz': 50.0})
     rec = ex.run_one(sp, ControllerParams(type='pi'), tp, duration_s=0.2)
     s = metrics.summarize(rec)
-    assert d['e_rms_m'] == s['e_rms_m'] and d['e_max_m'] == s['e_max_m']
+    assert d['e_rms_m'] == s.e_rms_m and d['e_max_m'] == s.e_max_m
 
 
 def test_readable_summary(capsys: pytest.CaptureFixture[str]) -> None:
@@ -184,8 +184,8 @@ def test_bag_is_written_and_reads_back_the_same_metrics(
     assert (bag / 'metadata.yaml').is_file()
     record = read_run(bag)
     s = metrics.summarize(record)
-    assert s['samples'] == d['samples']
-    assert s['e_rms_m'] == pytest.approx(d['e_rms_m'], rel=1e-12)
+    assert s.samples == d['samples']
+    assert s.e_rms_m == pytest.approx(d['e_rms_m'], rel=1e-12)
     # no overwrite without --overwrite; with it, fine
     assert simulate.main(['--duration', '0.01', '--bag', str(bag)]) == 1
     capsys.readouterr()

@@ -118,8 +118,7 @@ def compute_metrics(record: RunRecord,
 
     """
     from piezo_stage_ros.core.metrics import square_wave_metrics, summarize
-    out = {str(k): float(v) for k, v in
-           summarize(record, steady_state_start_s=steady_state_start_s).items()}
+    out = summarize(record, steady_state_start_s=steady_state_start_s).as_dict()
     if _is_piecewise_constant(record.reference_m):
         period = record.meta.get('trajectory_period_s')
         try:
@@ -128,8 +127,8 @@ def compute_metrics(record: RunRecord,
                 period_s=float(period) if isinstance(period, (int, float)) else float(
                     record.time_s[-1] - record.time_s[0]))
         except PiezoStageError:
-            steps = {}
-        out.update({k: float(v) for k, v in steps.items() if k not in out})
+            return out
+        out.update({k: v for k, v in steps.as_dict().items() if k not in out})
     return out
 
 

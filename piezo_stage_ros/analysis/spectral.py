@@ -30,12 +30,11 @@ import re
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 from piezo_stage_ros.core.errors import PiezoStageError
 from piezo_stage_ros.core.identification import estimate_frequency_response, IdentificationError
 from piezo_stage_ros.core.record import RunRecord
 from piezo_stage_ros.core.stage import StageParams
-from piezo_stage_ros.core.types import FloatArray
+from piezo_stage_ros.core.types import ComplexArray, FloatArray
 
 __all__ = ['BodeEstimate', 'estimate_bode', 'is_excitation_run']
 
@@ -66,7 +65,7 @@ class BodeEstimate:
     """
 
     frequency_hz: FloatArray
-    response: NDArray[np.complex128]
+    response: ComplexArray
     coherence: FloatArray
     unit: str
     scale: float

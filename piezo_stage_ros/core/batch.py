@@ -52,18 +52,16 @@ import math
 from typing import Any, Callable, Sequence
 
 import numpy as np
-from numpy.typing import NDArray
 from piezo_stage_ros.core.controllers import ControllerParams, notch_design
 from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
 from piezo_stage_ros.core.interfaces import Trajectory
 from piezo_stage_ros.core.linear import LinearPlant
 from piezo_stage_ros.core.record import RunRecord
 from piezo_stage_ros.core.stage import fused_constants, FusedConstants, Stage, StageParams
+from piezo_stage_ros.core.types import FloatArray
 
 __all__ = ['ControllerBatch', 'StageFamilyBatch', 'libm_exp', 'run_batch']
 
-FloatArray = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
 
 
 def _exp_by_math(x: FloatArray, out: FloatArray) -> FloatArray:

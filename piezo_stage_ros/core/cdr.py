@@ -55,8 +55,7 @@ import struct
 from typing import Final
 
 import numpy as np
-from numpy.typing import NDArray
-from piezo_stage_ros.core.types import ByteMatrix, FloatArray, IntArray
+from piezo_stage_ros.core.types import BoolArray, ByteMatrix, FloatArray, IntArray
 from piezo_stage_ros.core.wire import NS_PER_S
 
 __all__ = ['HEADER_LE', 'CdrError', 'JointStateDecoder', 'JointStateEncoder',
@@ -379,7 +378,7 @@ class Layout:
     """
 
     template: ByteMatrix
-    fixed: NDArray[np.bool_]
+    fixed: BoolArray
     stamp_offset: int | None
     arrays: dict[str, tuple[int, int]]
     names: tuple[str, ...]
@@ -423,7 +422,7 @@ class Layout:
             out[:, off:off + 8 * count] = values.view(np.uint8)
         return out
 
-    def decode(self, rows: ByteMatrix) -> tuple[NDArray[np.bool_], IntArray | None,
+    def decode(self, rows: ByteMatrix) -> tuple[BoolArray, IntArray | None,
                                                 dict[str, FloatArray]]:
         """
         Decode the rows that match this layout.

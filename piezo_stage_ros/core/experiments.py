@@ -267,16 +267,16 @@ def run_table3(stage_params: StageParams, controllers: dict[str, ControllerParam
                 paper = PAPER_TABLE3.get(float(f), {}).get(cp.type)
                 row: dict[str, Any] = {
                     'plant': plant, 'controller': name, 'frequency_hz': float(f),
-                    'e_max_m': s['e_max_m'], 'e_rms_m': s['e_rms_m'],
+                    'e_max_m': s.e_max_m, 'e_rms_m': s.e_rms_m,
                     'paper_e_max_m': paper[0] if paper else math.nan,
                     'paper_e_rms_m': paper[1] if paper else math.nan,
-                    'rms_ratio': s['e_rms_m'] / paper[1] if paper else math.nan,
-                    'command_min_v': s['command_min_v'], 'command_max_v': s['command_max_v'],
-                    'stable': stable, 'duration_s': s['duration_s'],
-                    'steady_state_start_s': s['steady_state_start_s']}
+                    'rms_ratio': s.e_rms_m / paper[1] if paper else math.nan,
+                    'command_min_v': s.command_min_v, 'command_max_v': s.command_max_v,
+                    'stable': stable, 'duration_s': s.duration_s,
+                    'steady_state_start_s': s.steady_state_start_s}
                 result.rows.append(row)
                 _say(progress, f'table3: {plant:11s} {name:4s} {f:6g} Hz: e_rms '
-                               f'{s["e_rms_m"] * 1e9:9.1f} nm (paper '
+                               f'{s.e_rms_m * 1e9:9.1f} nm (paper '
                                f'{row["paper_e_rms_m"] * 1e9:.1f})')
     result.summary = _table3_matrix(result.rows, list(frequencies_hz))
     result.notes += [
@@ -310,7 +310,7 @@ def _table3_matrix(rows: list[dict[str, Any]], frequencies: list[float]) -> list
 
 def square_edge_metrics(time_s: np.ndarray, position_m: np.ndarray, reference_m: np.ndarray,
                         square: SquareParams, *, settle_band_m: float = 0.0,
-                        plateau_fraction: float = 0.5) -> dict[str, float]:
+                        plateau_fraction: float = 0.5) -> metrics.EdgeMetrics:
     """
     Return the step-response figures of a square-wave run, edges taken from its parameters.
 
@@ -327,8 +327,8 @@ def square_edge_metrics(time_s: np.ndarray, position_m: np.ndarray, reference_m:
 
     Returns
     -------
-    dict
-        The keys of :func:`piezo_stage_ros.core.metrics.square_wave_metrics`. Each edge is
+    EdgeMetrics
+        The figures of :func:`piezo_stage_ros.core.metrics.square_wave_metrics`. Each edge is
         measured from the time of the ideal jump, which is where a shaped transition starts,
         between the two levels (not the moving reference): rise time 10-90 % and settling of the
         measured position, so for a shaped reference they include the reference's own motion.
@@ -425,14 +425,14 @@ def run_square(stage_params: StageParams, controller_params: ControllerParams, *
             theta = np.asarray(rec.diagnostics.get('theta_hat', [math.nan]), dtype=np.float64)
             label = 'ideal jump (paper)' if tr == 0.0 else f'S-curve {tr * 1e3:g} ms'
             result.rows.append({'plant': plant, 'reference': label, 'transition_s': float(tr),
-                                **{k: m[k] for k in PAPER_FIG10},
-                                'settling_time_max_s': m['settling_time_max_s'],
+                                **{k: getattr(m, k) for k in PAPER_FIG10},
+                                'settling_time_max_s': m.settling_time_max_s,
                                 'theta_hat_min': float(np.min(theta)),
                                 'theta_hat_max': float(np.max(theta)), 'stable': stable})
-            _say(progress, f'square: {plant:11s} {label:18s} rise {m["rise_time_s"] * 1e3:.2f} '
-                           f'ms, overshoot {m["overshoot_pct"]:.2f} %, settling '
-                           f'{m["settling_time_s"] * 1e3:.2f} ms, ss e_rms '
-                           f'{m["ss_e_rms_m"] * 1e9:.2f} nm')
+            _say(progress, f'square: {plant:11s} {label:18s} rise {m.rise_time_s * 1e3:.2f} '
+                           f'ms, overshoot {m.overshoot_pct:.2f} %, settling '
+                           f'{m.settling_time_s * 1e3:.2f} ms, ss e_rms '
+                           f'{m.ss_e_rms_m * 1e9:.2f} nm')
     result.notes += [
         'Medians over every edge of the run (rising and falling), each measured from the time '
         'of the ideal jump between the two levels: rise time 10-90 % of the step and settling '
@@ -580,11 +580,11 @@ def run_multisine(stage_params: StageParams, controller_params: ControllerParams
             rec = run_one(sp, cp, tp)
             s = metrics.summarize(rec)
             result.rows.append({'plant': plant, 'loop': f'{loop} ({cp.type})',
-                                'loop_width_pct': s['loop_width_pct'], 'paper_width_pct': paper,
-                                'e_max_m': s['e_max_m'], 'e_rms_m': s['e_rms_m'],
+                                'loop_width_pct': s.loop_width_pct, 'paper_width_pct': paper,
+                                'e_max_m': s.e_max_m, 'e_rms_m': s.e_rms_m,
                                 'stable': stable})
             _say(progress, f'multisine: {plant:11s} {loop:6s} loop width '
-                           f'{s["loop_width_pct"]:.2f} %')
+                           f'{s.loop_width_pct:.2f} %')
     result.notes += [
         'Loop width: largest vertical distance between the ascending and descending branches '
         'of x (measured) vs x_d, in % of the range of x, over the steady-state window.',

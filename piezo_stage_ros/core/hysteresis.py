@@ -45,9 +45,9 @@ import math
 from typing import Any, Protocol, Union
 
 import numpy as np
-from numpy.typing import NDArray
 from piezo_stage_ros.core.errors import ParameterError
 from piezo_stage_ros.core.params import group, param, Params
+from piezo_stage_ros.core.types import FloatArray
 
 __all__ = [
     'BacklashLike', 'BacklashLikeParams', 'BoucWen', 'BoucWenParams', 'HysteresisModel',
@@ -55,7 +55,7 @@ __all__ = [
     'make_hysteresis',
 ]
 
-Value = Union[float, NDArray[np.float64]]
+Value = Union[float, FloatArray]
 
 
 class HysteresisModel(Protocol):
@@ -332,13 +332,13 @@ class PrandtlIshlinskii:
         """Return sum p_i r_i, the bound of |w - slope v|."""
         return float(np.sum(self._p * self._r))
 
-    def rest_state(self, v0: Value) -> tuple[Value, NDArray[np.float64]]:
+    def rest_state(self, v0: Value) -> tuple[Value, FloatArray]:
         """Return ``(v0, y)`` with every play operator at rest at ``v0``."""
         y = np.multiply.outer(np.ones_like(self._r), np.asarray(v0, dtype=np.float64))
         return (v0, y)
 
-    def step(self, state: tuple[Value, NDArray[np.float64]],
-             v: Value) -> tuple[tuple[Value, NDArray[np.float64]], Value]:
+    def step(self, state: tuple[Value, FloatArray],
+             v: Value) -> tuple[tuple[Value, FloatArray], Value]:
         """
         Apply the play operators to the new input ``v`` [V].
 

@@ -58,7 +58,6 @@ import math
 from typing import Any, Callable, Sequence
 
 import numpy as np
-from numpy.typing import NDArray
 from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
 from piezo_stage_ros.core.hysteresis import (
     BacklashLike,
@@ -73,7 +72,7 @@ from piezo_stage_ros.core.linear import third_order_plant, ThirdOrderParams
 from piezo_stage_ros.core.params import param, Params
 from piezo_stage_ros.core.record import RunRecord
 from piezo_stage_ros.core.stage import amplifier_input, SignalChainParams, StageParams
-from piezo_stage_ros.core.types import FloatArray
+from piezo_stage_ros.core.types import BoolArray, ComplexArray, FloatArray
 from scipy import optimize, signal
 
 __all__ = [
@@ -84,7 +83,7 @@ __all__ = [
     'fit_step_response', 'identify', 'pscm_gain', 'sample_time_of', 'third_order_of',
 ]
 
-ComplexArray = NDArray[np.complex128]
+ComplexArray = ComplexArray
 
 #: Residuals of the time-domain fits are in nanometres (optimizer tolerances are absolute).
 _NM = 1e9
@@ -556,7 +555,7 @@ class FrequencyFit:
     factors: LinearFactors
     std: LinearFactors
     data: FrequencyResponse
-    used: NDArray[np.bool_]
+    used: BoolArray
     model: ComplexArray
     rms_log_error: float
 
@@ -706,7 +705,7 @@ class StepFit:
     std: LinearFactors
     records: list[RunRecord]
     models: list[FloatArray]
-    masks: list[NDArray[np.bool_]]
+    masks: list[BoolArray]
     residual_rms_m: float
     jumps_v: FloatArray
     jumps_m: FloatArray

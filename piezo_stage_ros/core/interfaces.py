@@ -31,8 +31,8 @@ from __future__ import annotations
 
 from typing import Mapping, Protocol, runtime_checkable
 
-import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
+from piezo_stage_ros.core.types import FloatArray
 
 __all__ = ['Controller', 'Trajectory']
 
@@ -41,7 +41,7 @@ __all__ = ['Controller', 'Trajectory']
 class Trajectory(Protocol):
     """A desired position x_d(t) [m] with its time derivative [m/s]."""
 
-    def evaluate(self, time_s: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def evaluate(self, time_s: ArrayLike) -> tuple[FloatArray, FloatArray]:
         """
         Evaluate the trajectory.
 

@@ -46,8 +46,9 @@ import math
 from typing import Sequence
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 from piezo_stage_ros.core.params import param, Params
+from piezo_stage_ros.core.types import ComplexArray, FloatArray
 from scipy.linalg import expm
 
 __all__ = [
@@ -55,7 +56,6 @@ __all__ = [
     'ThirdOrderParams', 'electromechanical_plant', 'reduced_plant', 'third_order_plant',
 ]
 
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -174,7 +174,7 @@ class DiscreteLinearPlant:
     c: FloatArray
     sample_time_s: float
 
-    def poles(self) -> NDArray[np.complex128]:
+    def poles(self) -> ComplexArray:
         """Return the eigenvalues of Ad (discrete-time poles)."""
         return np.asarray(np.linalg.eigvals(self.ad), dtype=np.complex128)
 
@@ -216,11 +216,11 @@ class LinearPlant:
         """Return the equilibrium state for a constant first input ``w0`` [V] (others zero)."""
         return np.asarray(-np.linalg.solve(self.a, self.b[:, 0] * w0), dtype=np.float64)
 
-    def poles(self) -> NDArray[np.complex128]:
+    def poles(self) -> ComplexArray:
         """Return the continuous-time poles [rad/s]."""
         return np.asarray(np.linalg.eigvals(self.a), dtype=np.complex128)
 
-    def frequency_response(self, omega_rad_s: ArrayLike) -> NDArray[np.complex128]:
+    def frequency_response(self, omega_rad_s: ArrayLike) -> ComplexArray:
         """
         Evaluate G(j omega) from the first input to position.
 

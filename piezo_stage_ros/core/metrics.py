@@ -35,15 +35,19 @@ Definitions (section V of the paper and this package's choices, stated once here
   response never leaves again, steady-state e_m and e_rms over the last ``plateau_fraction`` of
   the plateau.
 
-Every function takes arrays and returns plain floats: the same numbers come from an offline run
-(:func:`summarize` of the :class:`~piezo_stage_ros.core.record.RunRecord`) and from its bag read
-back by ``analyze``.
+Every function takes arrays and returns plain floats or a frozen record of them
+(:class:`TrackingMetrics`, :class:`StepMetrics`, :class:`EdgeMetrics`: typed fields with the unit
+in each name, and ``as_dict()`` giving the JSON field names of ``simulate --json`` and
+``analyze --json``): the same numbers come from an offline run (:func:`summarize` of the
+:class:`~piezo_stage_ros.core.record.RunRecord`) and from its bag read back by ``analyze``.
 """
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass, field
 import math
-from typing import Any, Mapping, Sequence
+from typing import Any, ClassVar, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -51,8 +55,9 @@ from piezo_stage_ros.core.errors import PiezoStageError
 from piezo_stage_ros.core.record import RunRecord
 from piezo_stage_ros.core.types import FloatArray
 
-__all__ = ['TRANSIENT_PERIODS', 'TRANSIENT_S', 'edge_metrics', 'error_metrics', 'loop_width',
-           'square_wave_metrics', 'steady_state_start', 'step_response', 'summarize']
+__all__ = ['EdgeMetrics', 'StepMetrics', 'TRANSIENT_PERIODS', 'TRANSIENT_S', 'TrackingMetrics',
+           'edge_metrics', 'error_metrics', 'loop_width', 'square_wave_metrics',
+           'steady_state_start', 'step_response', 'summarize']
 
 
 #: Whole periods of a periodic reference skipped before the steady-state window.
@@ -61,6 +66,148 @@ TRANSIENT_PERIODS = 2
 TRANSIENT_S = 0.1
 #: Meta key holding the reference period [s] (written by the closed loop, read from bags).
 PERIOD_KEY = 'trajectory_period_s'
+
+
+class _Record:
+    """A frozen record of figures whose JSON object is its fields, in declaration order."""
+
+    # set by @dataclass on each subclass; declared so that dataclasses.fields(self) type-checks
+    __dataclass_fields__: ClassVar[dict[str, Any]]
+
+    def as_dict(self) -> dict[str, float]:
+        """
+        Return the figures keyed by field name (the JSON field names), counts as floats.
+
+        Returns
+        -------
+        dict of str to float
+            One entry per field, in declaration order (fields marked ``json: False`` left out).
+
+        """
+        return {f.name: float(getattr(self, f.name)) for f in dataclasses.fields(self)
+                if f.metadata.get('json', True)}
+
+
+@dataclass(frozen=True)
+class StepMetrics(_Record):
+    """
+    Figures of one step response (:func:`step_response`).
+
+    Attributes
+    ----------
+    rise_time_s : float
+        10 % to 90 % of the step [s]; NaN if the response never gets there.
+    overshoot_pct : float
+        Largest excursion past the final value in % of the step, 0 if none.
+    settling_time_s : float
+        From the step to the last entry into the band [s]; NaN if it never settles.
+    settle_band_m : float
+        Half-width of the settling band [m].
+    ss_e_max_m, ss_e_rms_m : float
+        Steady-state error to the final value over the end of the plateau [m].
+
+    """
+
+    rise_time_s: float
+    overshoot_pct: float
+    settling_time_s: float
+    settle_band_m: float
+    ss_e_max_m: float
+    ss_e_rms_m: float
+
+
+@dataclass(frozen=True)
+class EdgeMetrics(_Record):
+    """
+    Step-response figures over the edges of a run (:func:`edge_metrics`).
+
+    Attributes
+    ----------
+    rise_time_s, overshoot_pct, settling_time_s : float
+        Medians over the edges of the :class:`StepMetrics` fields [s], [%], [s] (NaN edges
+        left out).
+    settling_time_max_s : float
+        Longest settling time over the edges [s]; NaN if one edge never settles.
+    settle_band_m : float
+        Half-width of the settling band of the first edge [m].
+    ss_e_max_m, ss_e_rms_m : float
+        Measured minus reference over all plateau tails: largest and rms [m].
+    edges : int
+        Number of edges measured.
+
+    """
+
+    rise_time_s: float
+    overshoot_pct: float
+    settling_time_s: float
+    settling_time_max_s: float
+    settle_band_m: float
+    ss_e_max_m: float
+    ss_e_rms_m: float
+    edges: int
+
+
+@dataclass(frozen=True)
+class TrackingMetrics(_Record):
+    """
+    The standard metrics of one run (:func:`summarize`).
+
+    Attributes
+    ----------
+    samples : int
+        Samples in the run.
+    e_max_m, e_rms_m : float
+        (D1), (D2) over the steady-state window [m].
+    e_max_all_m, e_rms_all_m : float
+        (D1), (D2) over the whole run [m].
+    command_min_v, command_max_v : float
+        Range of the command over the whole run [V].
+    duration_s : float
+        Samples times the sample time [s].
+    steady_state_start_s : float
+        Start of the steady-state window since the first sample [s].
+    steady_state_samples : int
+        Samples in the steady-state window.
+    loop_width_pct : float
+        Loop width of x against x_d over the window [%]; NaN when x_d is constant.
+    diagnostic_ranges : mapping of str to (float, float)
+        Finite minimum and maximum of each diagnostic, by name (NaN, NaN when none is finite);
+        the JSON fields ``<name>_min`` and ``<name>_max``.
+
+    """
+
+    samples: int
+    e_max_m: float
+    e_rms_m: float
+    e_max_all_m: float
+    e_rms_all_m: float
+    command_min_v: float
+    command_max_v: float
+    duration_s: float
+    steady_state_start_s: float
+    steady_state_samples: int
+    loop_width_pct: float
+    # left out of the hash (a dict has none), so the record hashes like its float fields
+    diagnostic_ranges: Mapping[str, tuple[float, float]] = field(
+        default_factory=dict, hash=False, metadata={'json': False})
+
+    def as_dict(self) -> dict[str, float]:
+        """
+        Return the metrics keyed by their JSON field names, counts as floats.
+
+        Returns
+        -------
+        dict of str to float
+            The fields in declaration order, then ``<name>_min``, ``<name>_max`` of each
+            diagnostic in name order: the objects ``simulate --json`` and ``analyze --json``
+            print.
+
+        """
+        out = super().as_dict()
+        for name, (low, high) in sorted(self.diagnostic_ranges.items()):
+            out[f'{name}_min'] = low
+            out[f'{name}_max'] = high
+        return out
 
 
 def _f64(values: ArrayLike) -> FloatArray:
@@ -207,7 +354,7 @@ def loop_width(x: ArrayLike, y: ArrayLike, *, levels: int = 201) -> float:
 def step_response(time_s: ArrayLike, position_m: ArrayLike, *, step_time_s: float,
                   initial_m: float, final_m: float, settle_band_m: float = 0.0,
                   settle_fraction: float = 0.02, plateau_fraction: float = 0.5
-                  ) -> dict[str, float]:
+                  ) -> StepMetrics:
     """
     Return rise time, overshoot, settling time and steady-state error of one step.
 
@@ -231,7 +378,7 @@ def step_response(time_s: ArrayLike, position_m: ArrayLike, *, step_time_s: floa
 
     Returns
     -------
-    dict
+    StepMetrics
         ``rise_time_s`` (10 % to 90 % of the step), ``overshoot_pct`` (largest excursion past
         the final value in % of the step, 0 if none), ``settling_time_s`` (from the step to the
         last entry into the band; NaN if it never settles), ``settle_band_m``, ``ss_e_max_m``
@@ -263,8 +410,8 @@ def step_response(time_s: ArrayLike, position_m: ArrayLike, *, step_time_s: floa
         settling = float(t[outside[-1] + 1])
     n_tail = max(int(round(plateau_fraction * t.size)), 1)
     e_max, e_rms = error_metrics(y[-n_tail:] - final_m)
-    return {'rise_time_s': rise, 'overshoot_pct': overshoot, 'settling_time_s': settling,
-            'settle_band_m': band, 'ss_e_max_m': e_max, 'ss_e_rms_m': e_rms}
+    return StepMetrics(rise_time_s=rise, overshoot_pct=overshoot, settling_time_s=settling,
+                       settle_band_m=band, ss_e_max_m=e_max, ss_e_rms_m=e_rms)
 
 
 def _crossing(t: FloatArray, frac: FloatArray, i: int, level: float) -> float:
@@ -280,7 +427,7 @@ def _crossing(t: FloatArray, frac: FloatArray, i: int, level: float) -> float:
 def square_wave_metrics(time_s: ArrayLike, position_m: ArrayLike, reference_m: ArrayLike, *,
                         period_s: float, settle_band_m: float = 0.0,
                         plateau_fraction: float = 0.5, skip_edges: int = 0
-                        ) -> dict[str, float]:
+                        ) -> EdgeMetrics:
     """
     Return step-response figures of a square-wave run, over its edges.
 
@@ -299,7 +446,7 @@ def square_wave_metrics(time_s: ArrayLike, position_m: ArrayLike, reference_m: A
 
     Returns
     -------
-    dict
+    EdgeMetrics
         Medians over the edges of ``rise_time_s``, ``overshoot_pct``, ``settling_time_s``
         (max over edges as ``settling_time_max_s``), steady-state ``ss_e_max_m`` (max over
         plateaus) and ``ss_e_rms_m`` (rms over all plateau tails), and ``edges``.
@@ -317,7 +464,7 @@ def square_wave_metrics(time_s: ArrayLike, position_m: ArrayLike, reference_m: A
 def edge_metrics(time_s: FloatArray, position_m: FloatArray, reference_m: FloatArray,
                  edges: Sequence[tuple[int, float, float]], *, settle_band_m: float = 0.0,
                  plateau_fraction: float = 0.5, what: str = 'no complete edge in the run'
-                 ) -> dict[str, float]:
+                 ) -> EdgeMetrics:
     """
     Return step-response figures over given edges, each lasting until the next one.
 
@@ -336,8 +483,8 @@ def edge_metrics(time_s: FloatArray, position_m: FloatArray, reference_m: FloatA
 
     Returns
     -------
-    dict
-        The keys of :func:`square_wave_metrics`.
+    EdgeMetrics
+        The figures of :func:`square_wave_metrics`.
 
     Raises
     ------
@@ -346,7 +493,7 @@ def edge_metrics(time_s: FloatArray, position_m: FloatArray, reference_m: FloatA
 
     """
     t, y, r = time_s, position_m, reference_m
-    rows: list[dict[str, float]] = []
+    rows: list[StepMetrics] = []
     tail_errors: list[FloatArray] = []
     bounds = [i for i, _, _ in edges] + [t.size]
     for (i0, initial, final), i1 in zip(edges, bounds[1:]):
@@ -362,21 +509,22 @@ def edge_metrics(time_s: FloatArray, position_m: FloatArray, reference_m: FloatA
         raise PiezoStageError(what)
     e_max, e_rms = error_metrics(np.concatenate(tail_errors))
 
-    def med(key: str) -> float:
-        values = np.asarray([row[key] for row in rows], dtype=np.float64)
-        values = values[np.isfinite(values)]
-        return float(np.median(values)) if values.size else math.nan
-    settle = [row['settling_time_s'] for row in rows]
-    return {'rise_time_s': med('rise_time_s'), 'overshoot_pct': med('overshoot_pct'),
-            'settling_time_s': med('settling_time_s'),
-            'settling_time_max_s': float(np.max(settle)) if not np.isnan(settle).any()
-            else math.nan,
-            'settle_band_m': rows[0]['settle_band_m'], 'ss_e_max_m': e_max,
-            'ss_e_rms_m': e_rms, 'edges': float(len(rows))}
+    def med(values: list[float]) -> float:
+        finite = np.asarray(values, dtype=np.float64)
+        finite = finite[np.isfinite(finite)]
+        return float(np.median(finite)) if finite.size else math.nan
+    settle = [row.settling_time_s for row in rows]
+    return EdgeMetrics(
+        rise_time_s=med([row.rise_time_s for row in rows]),
+        overshoot_pct=med([row.overshoot_pct for row in rows]),
+        settling_time_s=med(settle),
+        settling_time_max_s=float(np.max(settle)) if not np.isnan(settle).any() else math.nan,
+        settle_band_m=rows[0].settle_band_m, ss_e_max_m=e_max, ss_e_rms_m=e_rms,
+        edges=len(rows))
 
 
 def summarize(record: RunRecord, *, steady_state_start_s: float | None = None,
-              period_s: float | None = None) -> dict[str, float]:
+              period_s: float | None = None) -> TrackingMetrics:
     """
     Return the standard metrics of one run (what ``simulate --json`` and ``analyze`` print).
 
@@ -393,25 +541,23 @@ def summarize(record: RunRecord, *, steady_state_start_s: float | None = None,
 
     Returns
     -------
-    dict of str to float
+    TrackingMetrics
         ``e_max_m``, ``e_rms_m`` (steady-state window), ``e_max_all_m``, ``e_rms_all_m`` (whole
         run), ``command_min_v``, ``command_max_v`` (whole run), ``samples``, ``duration_s``,
         ``steady_state_start_s`` (since the first sample), ``steady_state_samples``,
-        ``loop_width_pct`` (x vs x_d over the window; NaN when x_d is constant), and for each
-        diagnostic ``<name>_min`` / ``<name>_max``.
+        ``loop_width_pct`` (x vs x_d over the window; NaN when x_d is constant), and the
+        finite range of each diagnostic; ``as_dict()`` gives the JSON object.
 
     """
     t = _f64(record.time_s)
     n = t.size
     period = period_s if period_s is not None else _meta_period(record.meta)
-    out: dict[str, float] = {'samples': float(n)}
     if n == 0:
         nan = math.nan
-        out.update({'e_max_m': nan, 'e_rms_m': nan, 'e_max_all_m': nan, 'e_rms_all_m': nan,
-                    'command_min_v': nan, 'command_max_v': nan, 'duration_s': 0.0,
-                    'steady_state_start_s': 0.0, 'steady_state_samples': 0.0,
-                    'loop_width_pct': nan})
-        return out
+        return TrackingMetrics(samples=0, e_max_m=nan, e_rms_m=nan, e_max_all_m=nan,
+                               e_rms_all_m=nan, command_min_v=nan, command_max_v=nan,
+                               duration_s=0.0, steady_state_start_s=0.0,
+                               steady_state_samples=0, loop_width_pct=nan)
     dt = (t[-1] - t[0]) / (n - 1) if n > 1 else 0.0
     if steady_state_start_s is None:
         start_abs = steady_state_start(t, period)
@@ -425,18 +571,18 @@ def summarize(record: RunRecord, *, steady_state_start_s: float | None = None,
     ref = _f64(record.reference_m)[window]
     pos = _f64(record.position_m)[window]
     width = loop_width(ref, pos) if ref.size > 2 and np.ptp(ref) > 0.0 else math.nan
-    out.update({'e_max_m': e_max, 'e_rms_m': e_rms, 'e_max_all_m': e_max_all,
-                'e_rms_all_m': e_rms_all, 'command_min_v': float(np.min(cmd)),
-                'command_max_v': float(np.max(cmd)), 'duration_s': float(n * dt),
-                'steady_state_start_s': start_abs - float(t[0]),
-                'steady_state_samples': float(window.stop - window.start),
-                'loop_width_pct': width})
+    ranges: dict[str, tuple[float, float]] = {}
     for name, values in sorted(record.diagnostics.items()):
         v = _f64(values)
         finite = v[np.isfinite(v)]
-        out[f'{name}_min'] = float(np.min(finite)) if finite.size else math.nan
-        out[f'{name}_max'] = float(np.max(finite)) if finite.size else math.nan
-    return out
+        ranges[name] = ((float(np.min(finite)), float(np.max(finite))) if finite.size
+                        else (math.nan, math.nan))
+    return TrackingMetrics(samples=n, e_max_m=e_max, e_rms_m=e_rms, e_max_all_m=e_max_all,
+                           e_rms_all_m=e_rms_all, command_min_v=float(np.min(cmd)),
+                           command_max_v=float(np.max(cmd)), duration_s=float(n * dt),
+                           steady_state_start_s=start_abs - float(t[0]),
+                           steady_state_samples=window.stop - window.start,
+                           loop_width_pct=width, diagnostic_ranges=ranges)
 
 
 def _meta_period(meta: Mapping[str, Any]) -> float | None:

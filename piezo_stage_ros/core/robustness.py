@@ -147,7 +147,7 @@ def case_metrics(case: str, record: RunRecord, trajectory: TrajectoryParams, *,
         period = make_trajectory(trajectory).period_s
         s = metrics.summarize(record, steady_state_start_s=settle_s, period_s=period)
         late = t[-1] + (t[1] - t[0] if t.size > 1 else 0.0) > settle_s + (period or 0.0) - 1e-9
-        out.update({'e_max_m': s['e_max_m'], 'e_rms_m': s['e_rms_m']} if late
+        out.update({'e_max_m': s.e_max_m, 'e_rms_m': s.e_rms_m} if late
                    else _nan_metrics())
     elif how == 'square':
         sq = trajectory.square
@@ -156,9 +156,9 @@ def case_metrics(case: str, record: RunRecord, trajectory: TrajectoryParams, *,
         try:
             m = square_edge_metrics(t[i0:] - start, record.position_m[i0:],
                                     record.reference_m[i0:], sq)
-            out.update({'e_max_m': m['ss_e_max_m'], 'e_rms_m': m['ss_e_rms_m'],
-                        'overshoot_pct': m['overshoot_pct'],
-                        'settling_time_s': m['settling_time_s']})
+            out.update({'e_max_m': m.ss_e_max_m, 'e_rms_m': m.ss_e_rms_m,
+                        'overshoot_pct': m.overshoot_pct,
+                        'settling_time_s': m.settling_time_s})
         except PiezoStageError:
             out.update(_nan_metrics())
     else:

@@ -78,13 +78,12 @@ from typing import Callable, Sequence
 import warnings
 
 import numpy as np
-from numpy.typing import NDArray
 from piezo_stage_ros.core.controllers import ControllerParams, notch_design, RACParams
 from piezo_stage_ros.core.errors import ParameterError, StabilityError
 from piezo_stage_ros.core.linear import LinearPlant, third_order_plant
 from piezo_stage_ros.core.params import group, param, Params
 from piezo_stage_ros.core.stage import linear_plant, PlantParams
-from piezo_stage_ros.core.types import FloatArray
+from piezo_stage_ros.core.types import ComplexArray, FloatArray
 
 __all__ = ['ADAPTATION_MARGIN', 'AdaptationBound', 'BoxCertificate', 'LoopCase', 'StabilityParams',
            'StabilityReport', 'StabilityWarning', 'adaptation_bound', 'check_stability',
@@ -167,7 +166,7 @@ class LoopCase:
     spectral_radius: float
     gain_margin_db: float
     phase_margin_deg: float
-    poles: NDArray[np.complex128] = field(repr=False)
+    poles: ComplexArray = field(repr=False)
 
     @property
     def stable(self) -> bool:
@@ -573,14 +572,14 @@ def loop_polynomials(kp: float, ki: float, gain: float, plant_num: FloatArray,
     return np.asarray(num, dtype=np.float64), np.asarray(den, dtype=np.float64)
 
 
-def _unit_circle(sample_time_s: float) -> NDArray[np.complex128]:
+def _unit_circle(sample_time_s: float) -> ComplexArray:
     """Return z = exp(j w T) on a log grid from 1e-4 of Nyquist up to (just below) Nyquist."""
     omega = np.geomspace(1e-4, 1.0, 10001) * math.pi / sample_time_s
     omega[-1] = math.pi / sample_time_s * (1.0 - 1e-9)
     return np.asarray(np.exp(1j * omega * sample_time_s), dtype=np.complex128)
 
 
-def _margins(lz: NDArray[np.complex128], num: FloatArray, den: FloatArray
+def _margins(lz: ComplexArray, num: FloatArray, den: FloatArray
              ) -> tuple[float, float]:
     """Return the gain and phase margins of L(z) = num/den closest to zero [dB], [deg]."""
     mag = np.abs(lz)
@@ -923,13 +922,13 @@ def _rectangle(slope_lo: float, slope_hi: float, kp_lo: float, kp_hi: float
     return out
 
 
-def _circle_grid(points: int = 16384) -> NDArray[np.complex128]:
+def _circle_grid(points: int = 16384) -> ComplexArray:
     """Return z = exp(j w) for w evenly spaced strictly inside (0, pi) (z = +-1 apart)."""
     w = np.linspace(0.0, math.pi, points + 2)[1:-1]
     return np.asarray(np.exp(1j * w), dtype=np.complex128)
 
 
-def _edge_crossing(f0: FloatArray, f1: FloatArray, grid: NDArray[np.complex128]
+def _edge_crossing(f0: FloatArray, f1: FloatArray, grid: ComplexArray
                    ) -> tuple[float, float] | None:
     """
     Return the first point of a segment of polynomials with a root on the unit circle.
@@ -981,7 +980,7 @@ def _edge_crossing(f0: FloatArray, f1: FloatArray, grid: NDArray[np.complex128]
 
 
 def _polytope_failure(vertices: Sequence[tuple[str, FloatArray]],
-                      grid: NDArray[np.complex128], sample_time_s: float) -> str | None:
+                      grid: ComplexArray, sample_time_s: float) -> str | None:
     """
     Return None when every polynomial of a polytope is Schur stable, else where it fails.
 

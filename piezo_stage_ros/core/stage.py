@@ -39,7 +39,7 @@ import math
 from typing import Any, Callable, Sequence
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 from piezo_stage_ros.core.errors import ParameterError
 from piezo_stage_ros.core.hysteresis import (
     BacklashLike,
@@ -59,11 +59,11 @@ from piezo_stage_ros.core.linear import (
     ThirdOrderParams,
 )
 from piezo_stage_ros.core.params import group, param, Params
+from piezo_stage_ros.core.types import FloatArray
 
 __all__ = ['FusedConstants', 'PlantParams', 'SignalChainParams', 'Stage', 'StageBatch',
            'StageParams', 'amplifier_input', 'fused_constants', 'linear_plant', 'quantize']
 
-FloatArray = NDArray[np.float64]
 
 #: K_PSCM of eq. (15): 10 V over the 38 um travel, in V/m.
 SENSOR_GAIN_V_PER_M = 10.0 / 38e-6

@@ -54,7 +54,7 @@ import os
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 from piezo_stage_ros.core.errors import ConfigError, ParameterError
 from piezo_stage_ros.core.excitation import (
     ChirpExcitation,
@@ -63,12 +63,12 @@ from piezo_stage_ros.core.excitation import (
     NoiseParams,
 )
 from piezo_stage_ros.core.params import group, param, Params
+from piezo_stage_ros.core.types import FloatArray
 
 __all__ = ['CsvParams', 'MultisineParams', 'SineParams', 'SquareParams', 'StaircaseParams',
            'StepParams', 'TableTrajectory', 'TrajectoryBase', 'TrajectoryParams',
            'TriangleParams', 'load_table', 'make_trajectory', 's_curve']
 
-FloatArray = NDArray[np.float64]
 
 #: Stage travel of the P-753.31C [m] (sensor 0 ... 10 V over 0 ... 38 um).
 TRAVEL_MAX_M = 38e-6

@@ -22,7 +22,7 @@ from typing import TypeAlias
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ['ByteMatrix', 'FloatArray', 'IntArray']
+__all__ = ['BoolArray', 'ByteMatrix', 'ComplexArray', 'FloatArray', 'IntArray']
 
 #: A float64 array: samples, coefficients, frequencies (units in each signature's docstring).
 FloatArray: TypeAlias = NDArray[np.float64]
@@ -30,3 +30,7 @@ FloatArray: TypeAlias = NDArray[np.float64]
 IntArray: TypeAlias = NDArray[np.int64]
 #: Rows of raw bytes: one serialized message per row.
 ByteMatrix: TypeAlias = NDArray[np.uint8]
+#: A boolean array: masks over samples or rows.
+BoolArray: TypeAlias = NDArray[np.bool_]
+#: A complex128 array: poles, zeros, frequency responses.
+ComplexArray: TypeAlias = NDArray[np.complex128]
