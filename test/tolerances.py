@@ -24,14 +24,15 @@ the order of operations and so the last bits, always within these bounds. See do
 import math
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
+from piezo_stage_ros.core.types import FloatArray
 
 EPS = float(np.finfo(np.float64).eps)  # 2.2e-16, unit roundoff u = EPS / 2
 
 
-def ss2tf_freqz_error_bound(a: NDArray[np.float64], b: NDArray[np.float64],
-                            c: NDArray[np.float64], den: NDArray[np.float64],
-                            z: ArrayLike) -> NDArray[np.float64]:
+def ss2tf_freqz_error_bound(a: FloatArray, b: FloatArray,
+                            c: FloatArray, den: FloatArray,
+                            z: ArrayLike) -> FloatArray:
     """
     Bound the absolute error of H(z) computed as ss2tf then freqz, and of C (zI - A)^-1 B.
 
@@ -67,9 +68,9 @@ def gamma(m: int) -> float:
     return m * u / (1 - m * u)
 
 
-def lti_rounding_bound(ad: NDArray[np.float64], bd: NDArray[np.float64],
-                       c: NDArray[np.float64], x_abs_max: NDArray[np.float64],
-                       w_abs_max: NDArray[np.float64], steps: int) -> float:
+def lti_rounding_bound(ad: FloatArray, bd: FloatArray,
+                       c: FloatArray, x_abs_max: FloatArray,
+                       w_abs_max: FloatArray, steps: int) -> float:
     """
     Bound |y_a - y_b| of two runs of x+ = Ad x + Bd w, y = c x that round differently.
 
@@ -90,7 +91,7 @@ def lti_rounding_bound(ad: NDArray[np.float64], bd: NDArray[np.float64],
     return float(gain @ per_step + 2 * gamma(n) * np.abs(c) @ x_abs_max)
 
 
-def charpoly_error_bound(a: NDArray[np.float64]) -> NDArray[np.float64]:
+def charpoly_error_bound(a: FloatArray) -> FloatArray:
     """
     Bound the absolute error of each coefficient of ``np.poly(a)``, highest power first.
 
