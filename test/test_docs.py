@@ -110,3 +110,26 @@ def test_relative_links_lead_somewhere(page: Path):
         elif anchor and dest.suffix == '.md' and anchor not in anchors(dest):
             broken.append(f'{target}: no heading with anchor #{anchor} in {dest.name}')
     assert not broken, f'{page.name}: ' + '; '.join(broken)
+
+
+def _section(text: str, title: str) -> str:
+    start = text.index(f'\n## {title}\n')
+    end = text.find('\n## ', start + 1)
+    return text[start:] if end < 0 else text[start:end]
+
+
+def test_the_readme_headline_rows_are_copies_of_the_docs():
+    # The README repeats a few rows of the results and speed tables; each must be a row of a
+    # docs/ page (where the command that makes it sits), so that a rerun updates one place and
+    # this test names the copy left behind.
+    readme = ROOT / 'README.md'
+    docs_rows = {
+        line for page in PAGES if page != readme
+        for line in page.read_text(encoding='utf-8').splitlines()}
+    rows = [
+        line for line in _section(readme.read_text(encoding='utf-8'),
+                                  'Results beside the paper').splitlines()
+        if line.startswith('| ') and not line.startswith('| ---')]
+    assert len(rows) > 10
+    stale = [row for row in rows if row not in docs_rows]
+    assert not stale, 'README rows not in docs/ (update both): ' + '; '.join(stale)
