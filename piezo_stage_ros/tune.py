@@ -416,7 +416,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _study(args: argparse.Namespace) -> int:
     """Print the study's tables (or the parameter table)."""
     if args.params_table:
-        # the node's own table (the README's is generated from the same declarations)
+        # the node's own table (docs/parameters.md is generated from the same declarations)
         from piezo_stage_ros.core.loop_config import controller_table
         print(controller_table().markdown())
         return 0

@@ -25,7 +25,7 @@ From that one declaration come:
 - :meth:`Params.from_flat` / :meth:`Params.to_flat`, the mapping to and from dotted ROS parameter
   names (``'rac.epsilon'``), used by the YAML loader and by the nodes;
 - :meth:`Params.specs`, the table (name, type, default, unit, range, description, read-only) from
-  which a node declares its ROS parameters with descriptors and the README documents them.
+  which a node declares its ROS parameters with descriptors and docs/parameters.md documents them.
 
 Parameter objects live beside the code they configure; this module knows none of them.
 """
@@ -176,7 +176,7 @@ def param(default: Any, *, unit: str, description: str, low: float | None = None
     unit : str
         Physical unit; ``'-'`` when dimensionless.
     description : str
-        One sentence shown in ROS parameter descriptors and the README.
+        One sentence shown in ROS parameter descriptors and docs/parameters.md.
     low, high : float, optional
         Range bounds (inclusive unless ``low_open`` / ``high_open``).
     low_open, high_open : bool
@@ -327,7 +327,7 @@ class Params:
             for key in local:
                 if key not in known:
                     raise ParameterError(prefix + key, local[key],
-                                         'a known parameter name (see the README tables)',
+                                         'a known parameter name (see docs/parameters.md)',
                                          'is not a parameter of this node')
         return cls._build(local, prefix)
 

@@ -1,0 +1,135 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The documentation holds no copy that drifts and no link that leads nowhere.
+
+The parameter tables of docs/parameters.md are the declarations; every relative link of the
+README and of docs/ names a file (and a heading) that exists.
+"""
+
+from pathlib import Path
+import re
+
+from piezo_stage_ros.nodes.tables import controller_table, plant_table, trajectory_table
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PARAMETERS = ROOT / 'docs' / 'parameters.md'
+PAGES = [ROOT / 'README.md', *sorted((ROOT / 'docs').glob('*.md'))]
+BEGIN = '<!-- parameter tables: begin -->'
+END = '<!-- parameter tables: end -->'
+
+FENCE = re.compile(r'^(```|~~~).*?^\1', re.MULTILINE | re.DOTALL)
+CODE = re.compile(r'`[^`\n]*`')
+LINK = re.compile(r'\[[^\]]*\]\(([^)\s]+)\)')
+HEADING = re.compile(r'^#{1,6}\s+(.*?)\s*#*\s*$', re.MULTILINE)
+
+
+def generated() -> str:
+    return '\n'.join(t.markdown() for t in (plant_table(), controller_table(), trajectory_table()))
+
+
+def test_parameter_tables_are_current():
+    text = PARAMETERS.read_text(encoding='utf-8')
+    assert BEGIN in text and END in text
+    block = text.split(BEGIN, 1)[1].split(END, 1)[0].strip()
+    assert block == generated().strip(), (
+        'docs/parameters.md is out of date: replace the block between the markers with '
+        'the output of `python3 -m piezo_stage_ros.nodes.tables`')
+
+
+def test_every_declared_parameter_is_documented():
+    text = PARAMETERS.read_text(encoding='utf-8')
+    for table in (plant_table(), controller_table(), trajectory_table()):
+        for spec in table.specs():
+            assert f'| `{spec.name}` |' in text, spec.name
+
+
+def _prose(text: str) -> str:
+    """
+    Return the text without fenced code blocks.
+
+    Headings and links inside a code block are not Markdown (e.g. a shell comment).
+    """
+    return FENCE.sub('', text)
+
+
+def anchors(path: Path) -> set[str]:
+    """
+    Return the anchors GitHub gives the headings of a Markdown file.
+
+    Lower case, punctuation other than '-' and '_' dropped, spaces to '-'; a repeated heading
+    gets '-1', '-2', ... appended.
+    """
+    seen: dict[str, int] = {}
+    result = set()
+    for heading in HEADING.findall(_prose(path.read_text(encoding='utf-8'))):
+        slug = re.sub(r'[^\w\- ]', '', heading.strip().lower()).replace(' ', '-')
+        count = seen.get(slug, 0)
+        seen[slug] = count + 1
+        result.add(slug if count == 0 else f'{slug}-{count}')
+    return result
+
+
+def links(path: Path) -> list[str]:
+    """Return the relative link targets of a Markdown file (no URLs, no code)."""
+    prose = CODE.sub('', _prose(path.read_text(encoding='utf-8')))
+    return [t for t in LINK.findall(prose) if not re.match(r'[a-z][a-z0-9+.-]*:', t)]
+
+
+def test_the_link_checker_sees_links_and_anchors(tmp_path):
+    # The check below must be able to fail: a page with one good and two bad links.
+    page = tmp_path / 'page.md'
+    page.write_text('# A `b` c, d\n\n## A `b` c, d\n\n[x](page.md#a-b-c-d-1) [y](gone.md) '
+                    '[z](#nothing) `[w](not-a-link.md)` [u](https://example.org)\n',
+                    encoding='utf-8')
+    assert anchors(page) == {'a-b-c-d', 'a-b-c-d-1'}
+    assert links(page) == ['page.md#a-b-c-d-1', 'gone.md', '#nothing']
+
+
+@pytest.mark.parametrize('page', PAGES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_relative_links_lead_somewhere(page: Path):
+    broken = []
+    for target in links(page):
+        file_part, _, anchor = target.partition('#')
+        dest = (page.parent / file_part).resolve() if file_part else page
+        if not dest.exists():
+            broken.append(f'{target}: no file {dest}')
+        elif anchor and dest.suffix == '.md' and anchor not in anchors(dest):
+            broken.append(f'{target}: no heading with anchor #{anchor} in {dest.name}')
+    assert not broken, f'{page.name}: ' + '; '.join(broken)
+
+
+def _section(text: str, title: str) -> str:
+    start = text.index(f'\n## {title}\n')
+    end = text.find('\n## ', start + 1)
+    return text[start:] if end < 0 else text[start:end]
+
+
+def test_the_readme_headline_rows_are_copies_of_the_docs():
+    # The README repeats a few rows of the results and speed tables; each must be a row of a
+    # docs/ page (where the command that makes it sits), so that a rerun updates one place and
+    # this test names the copy left behind.
+    readme = ROOT / 'README.md'
+    docs_rows = {
+        line for page in PAGES if page != readme
+        for line in page.read_text(encoding='utf-8').splitlines()}
+    rows = [
+        line for line in _section(readme.read_text(encoding='utf-8'),
+                                  'Results beside the paper').splitlines()
+        if line.startswith('| ') and not line.startswith('| ---')]
+    assert len(rows) > 10
+    stale = [row for row in rows if row not in docs_rows]
+    assert not stale, 'README rows not in docs/ (update both): ' + '; '.join(stale)
