@@ -68,7 +68,8 @@ from piezo_stage_ros.core.stage import PlantParams, StageParams
 from piezo_stage_ros.core.trajectories import TrajectoryParams
 
 __all__ = ['BridgeParams', 'ControllerNodeParams', 'Declaration', 'Group', 'LockstepParams',
-           'LoopConfig', 'MODES', 'NodeTable', 'PlantNodeParams', 'TrajectoryNodeParams',
+           'LoopConfig', 'MODES', 'NodeTable', 'PlantNodeParams', 'ServoParams',
+           'TrajectoryNodeParams',
            'TABLES', 'controller_table', 'design_plant', 'load_loop_config', 'plant_table',
            'trajectory_table']
 
@@ -110,6 +111,25 @@ class BridgeParams(Params):
 
 
 @dataclass(frozen=True)
+class ServoParams(Params):
+    """The paced servo loop of real-time mode (nodes/servo.py): its clock and its thread."""
+
+    spin_us: float = param(200.0, unit='us', description='Sleep until this close to each due '
+                           'time, then spin on the clock (above the period: always spin; with '
+                           'SCHED_FIFO, whose sleeps wake on time, 30 leaves the CPU idle in '
+                           'between).', low=0.0, high=1e6, read_only=True)
+    fifo_priority: int = param(0, unit='-', description='SCHED_FIFO priority of the servo '
+                               'thread (1..99; 0: the default scheduler); applied where '
+                               'permitted, else reported.', low=0, high=99, read_only=True)
+    cpu: int = param(-1, unit='-', description='CPU the servo thread runs on (-1: any).',
+                     low=-1, high=1023, read_only=True)
+    switch_interval_us: float = param(0.0, unit='us', description="The interpreter's switch "
+                                      'interval (sys.setswitchinterval; 0: unchanged, '
+                                      "CPython's default is 5000).", low=0.0, high=1e6,
+                                      read_only=True)
+
+
+@dataclass(frozen=True)
 class PlantNodeParams(Params):
     """Plant node parameters beyond the stage itself."""
 
@@ -128,6 +148,7 @@ class PlantNodeParams(Params):
                                    'counters (wall time).', low=0.01, high=3600.0)
     lockstep: LockstepParams = group(LockstepParams, 'lockstep start-up')
     bridge: BridgeParams = group(BridgeParams, 'UDP bridge')
+    servo: ServoParams = group(ServoParams, 'real-time servo loop')
 
 
 @dataclass(frozen=True)
