@@ -16,6 +16,8 @@
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 from piezo_stage_ros.core.closed_loop import run
 from piezo_stage_ros.core.controllers import build_controller, ControllerParams
@@ -109,7 +111,14 @@ def test_lateness_statistics_from_the_histogram():
 
 
 def test_realtime_setup_reports_what_it_applied_or_was_refused():
-    report = realtime_setup(cpus=[0], fifo_priority=1)
+    # in a thread of its own: affinity and scheduler are the calling thread's (Linux), and the
+    # test process must not keep them (its children, the emulator of a benchmark, would)
+    out: dict = {}
+    worker = threading.Thread(target=lambda: out.update(realtime_setup(cpus=[0],
+                                                                       fifo_priority=1)))
+    worker.start()
+    worker.join()
+    report = out
     assert set(report) == {'affinity', 'sched_fifo'}
     assert all(v.startswith(('applied', 'refused')) for v in report.values())
     assert realtime_setup() == {}
@@ -222,3 +231,15 @@ def test_servo_loop_of_the_plant_alone_holds_what_it_was_given_and_counts_late()
     got = loop.drain()
     assert [s.applied_v for s in got] == [guard.safe_v, guard.safe_v, 1.5, 1.5]
     assert np.isnan(got[1].command_v) and loop.stats()['late'] == 1
+
+
+def test_servo_loop_stalled_past_its_end_counts_only_the_samples_of_the_run():
+    clock = FakeClock(per_read=300)
+    loop = servo(clock, 0.001)  # 10 samples
+    loop.start()
+    for _ in range(5):
+        loop.step()
+    clock.now += 20 * PERIOD  # samples 6 .. 9 skipped, and the run is over
+    assert not loop.step()
+    stats = loop.stats()
+    assert stats['paced_samples'] == 6 and stats['skipped'] == 4 and loop.done

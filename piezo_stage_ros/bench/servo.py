@@ -173,7 +173,8 @@ def run_bridge(loop: LoopConfig, duration_s: float, offline_rms: float, *,
             if 'listening on' in line:
                 port = int(line.rsplit(':', 1)[1])
                 break
-        bridge = UdpStreamBridge('127.0.0.1', port, timeout_s=0.05)
+        # a generous wait: on a loaded machine the target process may stall; that is counted
+        bridge = UdpStreamBridge('127.0.0.1', port, timeout_s=1.0)
         servo = make_servo(loop, duration_s, bridge)
         stats, got = serve(servo, ros_side=True, fifo_priority=fifo_priority,
                            spin_ns=30_000 if fifo_priority else 200_000)

@@ -84,6 +84,14 @@ class LatenessStats:
         b = lateness_ns // NS_PER_US
         self._bins[b if 0 <= b < self._top else (0 if b < 0 else self._top)] += 1
 
+    def remove(self, lateness_ns: int) -> None:
+        """Undo :meth:`add` of a sample that was not taken after all (the maximum stays)."""
+        self.samples -= 1
+        if lateness_ns > self._half:
+            self.late_half -= 1
+        b = lateness_ns // NS_PER_US
+        self._bins[b if 0 <= b < self._top else (0 if b < 0 else self._top)] -= 1
+
     def skip(self, count: int) -> None:
         """Record ``count`` samples skipped after a stall."""
         self.skipped += count

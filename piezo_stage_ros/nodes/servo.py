@@ -115,13 +115,17 @@ class ServoLoop:
         lateness is the arrival against the grid of the first one, and gaps count as skipped.
     capacity : int
         Samples the queue to the ROS side holds (65536: 6.5 s at 10 kHz).
+    on_sample : callable, optional
+        Called in the loop's thread with each sample as soon as it is served (the plant alone
+        publishes y_k at once, for a controller in another node); keep it short.
 
     """
 
     def __init__(self, plant: GuardedPlant, trajectory: TrajectoryLogic | None,
                  controller: ControllerLogic | None, *, sample_rate_hz: float,
                  duration_s: float = 0.0, pacer: Pacer | None = None,
-                 capacity: int = 65536) -> None:
+                 capacity: int = 65536,
+                 on_sample: Callable[[ServoSample], None] | None = None) -> None:
         self.plant = plant
         self.trajectory = trajectory
         self.controller = controller
@@ -141,6 +145,7 @@ class ServoLoop:
         self.bridge_clock: Any = plant.bridge if hasattr(plant.bridge, 'sample_index') \
             else None
         self._t0_arrival = 0
+        self.on_sample = on_sample
         self._halt = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -168,6 +173,8 @@ class ServoLoop:
                                             applied, lateness_ns,
                                             out.diagnostics if out else None))
         self.pushed += 1
+        if self.on_sample is not None:
+            self.on_sample(self.samples[-1])
         if self.total and index + 1 >= self.total:
             self.done = True
 
@@ -205,7 +212,10 @@ class ServoLoop:
         if index - before > 1:
             self.plant.skipped(index - before - 1)
         if self.total and index >= self.total:
-            # a stall ran past the end of the run: nothing left to take
+            # a stall ran past the end of the run: nothing left to take, and the samples after
+            # its end were never due in it
+            self.pacer.stats.remove(lateness)
+            self.pacer.stats.skipped -= index - self.total
             self.done = True
             return False
         now = self.pacer.due_ns(index) + lateness
@@ -220,13 +230,14 @@ class ServoLoop:
         index = bridge.sample_index
         if index == before:
             return True  # nothing arrived in time (counted lost by the bridge); wait again
-        if index - before > 1:
-            self.pacer.stats.skip(index - before - 1)
+        last = min(index, self.total) if self.total else index
+        if last - before > 1:
+            self.pacer.stats.skip(last - before - 1)
+        if self.total and index >= self.total:
+            self.done = True  # the gap ran past the end of the run
+            return False
         lateness = bridge.arrival_ns - (self._t0_arrival + index * self.pacer.period_ns)
         self.pacer.stats.add(lateness)
-        if self.total and index >= self.total:
-            self.done = True
-            return False
         self._serve(index, position, bridge.arrival_ns, lateness)
         return not self.done
 
@@ -259,6 +270,11 @@ class ServoLoop:
                                         name='servo', daemon=True)
         self._thread.start()
         return self._thread
+
+    @property
+    def finished(self) -> bool:
+        """Return whether the thread of :meth:`start_thread` has ended."""
+        return self._thread is not None and not self._thread.is_alive()
 
     def stop(self, timeout_s: float = 2.0) -> None:
         """Ask the loop to stop after the current sample and wait for its thread."""

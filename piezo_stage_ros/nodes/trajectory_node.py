@@ -116,10 +116,15 @@ class TrajectoryNode(Node):
     def answer(self, stamp_ns: int) -> tuple[float, float]:
         """Return x_d [m] and x_d' [m/s] for the sample stamped ``stamp_ns`` [ns]."""
         ref, vel = self.logic.on_position(stamp_ns)
+        self.publish(stamp_ns, ref, vel)
+        return ref, vel
+
+    def publish(self, stamp_ns: int, reference_m: float, velocity_mps: float) -> None:
+        """Publish a reference computed by call, while an outside subscriber listens."""
         if self._gate():
             sec, nanosec = divmod(stamp_ns, 1_000_000_000)
-            self._pub.publish(self._encoder.encode(sec, nanosec, (ref,), (vel,)))
-        return ref, vel
+            self._pub.publish(self._encoder.encode(sec, nanosec, (reference_m,),
+                                                   (velocity_mps,)))
 
     def _on_position(self, data: bytes) -> None:
         try:
