@@ -186,6 +186,13 @@ class TrajectoryNodeParams(_PeerNodeParams):
     chunk_s: float = param(1.0, unit='s', description='The reference is evaluated this much at '
                            'a time, aligned as the offline runner does (real time: at most '
                            '5 ms at a time).', low=1e-4, high=100.0, read_only=True)
+    lockstep_ahead: int = param(0, unit='samples', description='Lockstep: publish the reference '
+                                'this many samples ahead of the position it answers (it does '
+                                'not depend on the position; the controller pairs by stamp), '
+                                'which takes the trajectory node out of the per-sample path; '
+                                'a start, stop or switch then takes effect after the samples '
+                                'already sent; 0: answer each position.', low=0, high=100000,
+                                read_only=True)
 
 
 @dataclass(frozen=True)

@@ -327,6 +327,7 @@ class TrajectoryLogic:
         first, _ = trajectory.evaluate(np.zeros(1))
         self.hold_m = float(first[0])
         self.answered = 0
+        self._ahead_sent = -1
 
     def start(self) -> None:
         """Stream from the next sample on, from t = 0."""
@@ -352,6 +353,34 @@ class TrajectoryLogic:
             self._chunk_index = chunk
         i = index - chunk * self.chunk
         return self._ref[i], self._vel[i]
+
+    def ahead(self, stamp_ns: int, count: int) -> list[tuple[int, float, float]]:
+        """
+        Lockstep: return the references up to ``count`` samples after ``stamp_ns`` not sent yet.
+
+        The reference does not depend on the position, so it can go out ahead and the
+        controller pairs it with its position by stamp. The stamps are the plant's, computed by
+        the same rule (t_0 + round(k 10^9 / rate) ns) from the first position's stamp.
+
+        Returns
+        -------
+        list of (stamp_ns, position_m, velocity_mps)
+            Oldest first; the sample ``stamp_ns`` itself when it was not sent yet.
+
+        """
+        if self._start_ns is None:
+            out = [(stamp_ns, *self.on_position(stamp_ns))]
+            self._ahead_sent = 0
+        else:
+            out = []
+        start = self._start_ns
+        assert start is not None
+        index = round((stamp_ns - start) * self.rate_hz / NS_PER_S)
+        for k in range(max(self._ahead_sent + 1, index), index + count + 1):
+            stamp = start + round(k * NS_PER_S / self.rate_hz)
+            out.append((stamp, *self.on_position(stamp)))
+            self._ahead_sent = k
+        return out
 
     def on_position(self, stamp_ns: int) -> tuple[float, float]:
         """
@@ -461,7 +490,8 @@ class ControllerLogic:
         self._rebuild = rebuild
         self.names, self._read = diagnostic_reader(controller)
         self._pos: tuple[int, float] | None = None
-        self._ref: tuple[int, float, float] | None = None
+        # references by stamp: they may come ahead of their positions (lockstep_ahead)
+        self._refs: dict[int, tuple[float, float]] = {}
         self._last_stamp: int | None = None
         self._pending: Any = None
         self._needs_reset = True
@@ -502,14 +532,29 @@ class ControllerLogic:
     def on_reference(self, stamp_ns: int, reference_m: float,
                      reference_velocity_mps: float) -> Command | None:
         """Take x_d and x_d' [m, m/s] for the sample stamped ``stamp_ns`` [ns]."""
-        self._ref = (stamp_ns, reference_m, reference_velocity_mps)
+        self._refs[stamp_ns] = (reference_m, reference_velocity_mps)
+        if len(self._refs) > 100_000:
+            # references for positions that never came (a plant that stopped): keep the newest
+            for old in list(self._refs)[:50_000]:
+                del self._refs[old]
         return self._try()
 
     def _try(self) -> Command | None:
-        pos, ref = self._pos, self._ref
-        if pos is None or ref is None or pos[0] != ref[0]:
+        pos = self._pos
+        if pos is None:
             return None
         stamp = pos[0]
+        ref = self._refs.get(stamp)
+        if ref is None:
+            return None
+        refs = self._refs
+        while True:
+            # references older than this sample are of no use any more (kept: this one, for a
+            # position sent again)
+            first = next(iter(refs))
+            if first >= stamp:
+                break
+            del refs[first]
         if stamp == self._last_stamp:
             # a sample published again (lockstep resend): its command is already out
             self.duplicates += 1
@@ -517,7 +562,7 @@ class ControllerLogic:
         if self._last_stamp is not None and stamp < self._last_stamp:
             self.duplicates += 1
             return None
-        y, xd, vd = pos[1], ref[1], ref[2]
+        y, xd, vd = pos[1], ref[0], ref[1]
         if self._pending is not None:
             self._apply_pending(y, xd)
         if self._needs_reset:

@@ -72,6 +72,7 @@ class TrajectoryNode(Node):
         self._sub = self.create_subscription(JointState, topics.POSITION, self._on_position,
                                              qos.LOOP, raw=True)
         self._gate: Callable[[], bool] = lambda: True
+        self._ahead = opts.lockstep_ahead if opts.mode == 'lockstep' else 0
         self.create_service(Trigger, '~/start', self._start)
         self.create_service(Trigger, '~/stop', self._stop)
         self.get_logger().info(f'trajectory {params.kind}, '
@@ -140,8 +141,17 @@ class TrajectoryNode(Node):
             self.get_logger().warning(f'stage/position: {exc}; dropped',
                                       throttle_duration_sec=1.0)
             return
-        ref, vel = self.logic.on_position(stamp_to_ns(sec, nanosec))
+        stamp = stamp_to_ns(sec, nanosec)
         try:
+            if self._ahead:
+                # lockstep_ahead: x_d goes out ahead of its position (it does not depend on
+                # it); the controller pairs by stamp, so this node leaves the critical path
+                encode, publish = self._encoder.encode, self._pub.publish
+                for k_stamp, ref, vel in self.logic.ahead(stamp, self._ahead):
+                    ksec, knsec = divmod(k_stamp, 1_000_000_000)
+                    publish(encode(ksec, knsec, (ref,), (vel,)))
+                return
+            ref, vel = self.logic.on_position(stamp)
             self._pub.publish(self._encoder.encode(sec, nanosec, (ref,), (vel,)))
         except Exception:
             if self.context.ok():
