@@ -135,8 +135,10 @@ class PlantNodeParams(Params):
 
     mode: str = param('lockstep', unit='-', description=_MODE_DOC, choices=MODES,
                       read_only=True)
-    backend: str = param('model', unit='-', description='The stage model of the core, or the '
-                         'UDP bridge to a real-time I/O target.', choices=('model', 'udp'),
+    backend: str = param('model', unit='-', description='The stage model of the core, the '
+                         'UDP bridge to a real-time I/O target (udp: one request per sample), '
+                         'or the same target streaming samples on its own clock (udp_stream: '
+                         'the host answers each).', choices=('model', 'udp', 'udp_stream'),
                          read_only=True)
     duration_s: float = param(0.0, unit='s', description='Stop after this much loop time '
                               '(round(duration_s * rate) samples); 0 runs until shut down.',
@@ -149,6 +151,11 @@ class PlantNodeParams(Params):
     lockstep: LockstepParams = group(LockstepParams, 'lockstep start-up')
     bridge: BridgeParams = group(BridgeParams, 'UDP bridge')
     servo: ServoParams = group(ServoParams, 'real-time servo loop')
+
+    def _check(self) -> None:
+        if self.backend == 'udp_stream' and self.mode != 'realtime':
+            raise ParameterError('backend', self.backend, "'model' or 'udp' in lockstep",
+                                 'needs mode realtime (the target owns the clock)')
 
 
 @dataclass(frozen=True)

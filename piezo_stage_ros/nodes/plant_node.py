@@ -35,7 +35,7 @@ from piezo_stage_ros.core.stage import StageParams
 from piezo_stage_ros.hardware.bridge import Bridge, ModelBridge
 from piezo_stage_ros.hardware.pacing import Pacer, realtime_setup
 from piezo_stage_ros.hardware.safety import GuardedPlant
-from piezo_stage_ros.hardware.udp import UdpBridge
+from piezo_stage_ros.hardware.udp import UdpBridge, UdpStreamBridge
 from piezo_stage_ros.nodes import qos, topics
 from piezo_stage_ros.nodes.cdr import CdrError, decode_float64, encode_clock, JointStateEncoder
 from piezo_stage_ros.nodes.logic import (
@@ -62,9 +62,10 @@ __all__ = ['PlantNode', 'main']
 
 def make_bridge(stage: StageParams, opts: PlantNodeParams) -> Bridge:
     """Return the backend the node parameters name."""
-    if opts.backend == 'udp':
-        return UdpBridge(opts.bridge.host, opts.bridge.port, timeout_s=opts.bridge.timeout_s,
-                         max_consecutive_losses=opts.bridge.max_consecutive_losses)
+    if opts.backend in ('udp', 'udp_stream'):
+        kind = UdpStreamBridge if opts.backend == 'udp_stream' else UdpBridge
+        return kind(opts.bridge.host, opts.bridge.port, timeout_s=opts.bridge.timeout_s,
+                    max_consecutive_losses=opts.bridge.max_consecutive_losses)
     return ModelBridge(stage)
 
 
