@@ -243,3 +243,25 @@ def test_servo_loop_stalled_past_its_end_counts_only_the_samples_of_the_run():
     assert not loop.step()
     stats = loop.stats()
     assert stats['paced_samples'] == 6 and stats['skipped'] == 4 and loop.done
+
+
+def test_sample_ring_hands_samples_to_another_reader_and_counts_what_it_missed():
+    from piezo_stage_ros.nodes.servo import SampleRing, ServoSample
+    ring = SampleRing(capacity=8)
+    reader = SampleRing(capacity=8, name=ring.name)
+    try:
+        stamp = 1_700_000_000_123_456_789  # since the epoch: must stay an exact integer
+        for k in range(5):
+            ring.append(ServoSample(k, stamp + k, 1.0 * k, 2.0, 3.0, 4.0, 5.0, 10 * k, None))
+        ints, floats, missed = reader.take()
+        assert missed == 0 and ints[:, 0].tolist() == list(range(5))
+        assert ints[:, 1].tolist() == [stamp + k for k in range(5)]
+        assert floats[:, 0].tolist() == [0.0, 1.0, 2.0, 3.0, 4.0]
+        for k in range(5, 20):  # 15 more into 8 rows: the reader misses 7
+            ring.append(ServoSample(k, stamp + k, 1.0 * k, 2.0, 3.0, 4.0, 5.0, 0, None))
+        ints, _, missed = reader.take()
+        assert missed == 7 and ints[:, 0].tolist() == list(range(12, 20))
+        assert reader.take()[0].shape == (0, 3)
+    finally:
+        reader.close()
+        ring.close(unlink=True)

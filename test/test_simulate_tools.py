@@ -75,7 +75,7 @@ def test_benchmark_servo_suite_reports_every_case(capsys: pytest.CaptureFixture[
     # a short real-time run of each case: the figures are there and add up (no timing asserted)
     assert benchmark.main(['--suite', 'servo', '--realtime-s', '0.05', '--json']) == 0
     d = json.loads(capsys.readouterr().out)['servo']
-    assert len(d) == 4 and 'bridge (paced emulator)' in d
+    assert len(d) == 5 and 'bridge (paced emulator)' in d
     for case in d.values():
         assert 'error' not in case, case.get('error')
         assert case['paced_samples'] + case['skipped'] == 500

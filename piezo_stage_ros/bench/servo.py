@@ -23,6 +23,9 @@ plant, 100 Hz sine):
   position, reference and command into CDR bytes, the work of publishing them), once with
   CPython's default switch interval (5 ms) and once with it lowered to 50 us;
 - ``servo-alone``: the servo thread with nothing beside it (the bound of this machine);
+- ``servo-process``: the servo loop in a process of its own (spawned, no rclpy), handing each
+  sample over through shared memory (:class:`~piezo_stage_ros.nodes.servo.SampleRing`) to this
+  process, which does the same publishing work: no interpreter lock shared with it;
 - ``bridge``: the servo loop as the host of the UDP bridge against the emulator in its own
   process, the emulator pacing its own 10 kHz clock (``stage_emulator --paced``): the host
   answers each sample; reports the host's answer latency and the target's missing commands.
@@ -53,11 +56,11 @@ from piezo_stage_ros.hardware.safety import GuardedPlant
 from piezo_stage_ros.hardware.udp import UdpStreamBridge
 from piezo_stage_ros.nodes.cdr import encode_float64, JointStateEncoder
 from piezo_stage_ros.nodes.logic import ControllerLogic, TrajectoryLogic
-from piezo_stage_ros.nodes.servo import ServoLoop, ServoSample
+from piezo_stage_ros.nodes.servo import SampleRing, ServoLoop, ServoSample
 
 __all__ = ['CASES', 'loop_config', 'run_servo_benchmark', 'steady_e_rms']
 
-CASES = ('servo-alone', 'servo', 'bridge')
+CASES = ('servo-alone', 'servo', 'servo-process', 'bridge')
 CONFIG = 'table3_rac.yaml'
 
 
@@ -74,7 +77,9 @@ def steady_e_rms(index: np.ndarray, position_m: np.ndarray, reference_m: np.ndar
     return error_metrics(position_m[keep] - reference_m[keep])[1]
 
 
-def make_servo(loop: LoopConfig, duration_s: float, bridge: Bridge | None = None) -> ServoLoop:
+def make_servo(loop: LoopConfig, duration_s: float, bridge: Bridge | None = None, *,
+               capacity: int = 65536,
+               on_sample: Callable[[ServoSample], None] | None = None) -> ServoLoop:
     """Return the servo loop of ``loop`` on the model (or on ``bridge``)."""
     stage = loop.stage
     period = 1.0 / stage.sample_rate_hz
@@ -84,7 +89,8 @@ def make_servo(loop: LoopConfig, duration_s: float, bridge: Bridge | None = None
                      TrajectoryLogic(make_trajectory(loop.trajectory),
                                      sample_rate_hz=stage.sample_rate_hz, chunk_s=0.005),
                      ControllerLogic(ctrl, mode='realtime'),
-                     sample_rate_hz=stage.sample_rate_hz, duration_s=duration_s)
+                     sample_rate_hz=stage.sample_rate_hz, duration_s=duration_s,
+                     capacity=capacity, on_sample=on_sample)
 
 
 def _ros_side_work(encoders: tuple[JointStateEncoder, JointStateEncoder]
@@ -131,10 +137,16 @@ def serve(servo: ServoLoop, *, ros_side: bool, switch_interval_s: float = 0.0,
 
 def _figures(stats: dict[str, Any], got: list[ServoSample], loop: LoopConfig,
              offline_rms: float) -> dict[str, Any]:
+    return _array_figures(stats, np.array([s.k for s in got], dtype=np.float64),
+                          np.array([s.position_m for s in got]),
+                          np.array([s.reference_m for s in got]), loop, offline_rms)
+
+
+def _array_figures(stats: dict[str, Any], idx: np.ndarray, position_m: np.ndarray,
+                   reference_m: np.ndarray, loop: LoopConfig, offline_rms: float
+                   ) -> dict[str, Any]:
     period = 1.0 / loop.stage.sample_rate_hz
-    idx = np.array([s.k for s in got], dtype=np.float64)
-    rms = steady_e_rms(idx, np.array([s.position_m for s in got]),
-                       np.array([s.reference_m for s in got]), period,
+    rms = steady_e_rms(idx, position_m, reference_m, period,
                        1.0 / loop.trajectory.sine.frequency_hz)
     keys = ('paced_samples', 'lateness_p50_us', 'lateness_p99_us', 'lateness_max_us',
             'late_half_period', 'skipped', 'queue_overruns', 'sched_fifo')
@@ -144,6 +156,68 @@ def _figures(stats: dict[str, Any], got: list[ServoSample], loop: LoopConfig,
     if 'error' in stats:
         out['error'] = stats['error']
     return out
+
+
+def _servo_process(ring_name: str, duration_s: float, fifo_priority: int, spin_ns: int,
+                   results: Any) -> None:
+    # the servo loop in a process of its own (no rclpy, nothing else in its interpreter): the
+    # samples go to the parent through shared memory, the figures at the end through a queue
+    ring = SampleRing(name=ring_name)
+    try:
+        servo = make_servo(loop_config(), duration_s, capacity=0, on_sample=ring.append)
+        servo.pacer.spin_ns = spin_ns
+        servo.run(setup=lambda: realtime_setup(fifo_priority=fifo_priority))
+        stats = servo.stats()
+        stats.update(servo.setup_report)
+        results.put(stats)
+    finally:
+        ring.close()
+
+
+def serve_in_process(duration_s: float, *, fifo_priority: int = 0, spin_ns: int = 200_000
+                     ) -> tuple[dict[str, Any], np.ndarray, np.ndarray, int]:
+    """
+    Run the servo loop in a spawned process, playing the ROS side here on what it hands over.
+
+    Returns the loop's stats, the integer and float columns of every sample read from the
+    ring (:class:`~piezo_stage_ros.nodes.servo.SampleRing`), and the samples the reader missed.
+    """
+    import multiprocessing
+
+    ctx = multiprocessing.get_context('spawn')
+    ring = SampleRing()
+    results = ctx.Queue()
+    proc = ctx.Process(target=_servo_process, args=(ring.name, duration_s, fifo_priority,
+                                                    spin_ns, results), daemon=True)
+    position = JointStateEncoder(['stage'])
+    reference = JointStateEncoder(['stage'], with_velocity=True)
+    ints: list[np.ndarray] = []
+    floats: list[np.ndarray] = []
+    missed = 0
+    try:
+        proc.start()
+        while True:
+            alive = proc.is_alive()
+            time.sleep(0.005)
+            i, f, m = ring.take()
+            missed += m
+            for row, values in zip(i.tolist(), f.tolist()):
+                # the work of publishing each sample: its three messages as CDR bytes
+                sec, nanosec = divmod(row[1], 1_000_000_000)
+                position.encode(sec, nanosec, (values[0],))
+                reference.encode(sec, nanosec, (values[1],), (values[2],))
+                encode_float64(values[3])
+            ints.append(i)
+            floats.append(f)
+            if not alive:
+                break
+        stats = results.get(timeout=30)
+        proc.join(10)
+    finally:
+        if proc.is_alive():
+            proc.kill()
+        ring.close(unlink=True)
+    return stats, np.concatenate(ints), np.concatenate(floats), missed
 
 
 def run_bridge(loop: LoopConfig, duration_s: float, offline_rms: float, *,
@@ -233,6 +307,13 @@ def run_servo_benchmark(cases: tuple[str, ...] = CASES, duration_s: float = 10.0
                     *serve(make_servo(loop, duration_s), ros_side=True,
                            switch_interval_s=interval, fifo_priority=fifo_priority,
                            spin_ns=spin), loop, offline_rms)
+        elif case == 'servo-process':
+            stats, ints, floats, missed = serve_in_process(
+                duration_s, fifo_priority=fifo_priority, spin_ns=spin)
+            out['servo process + ROS side in another'] = _array_figures(
+                {**stats, 'ring_missed': missed}, ints[:, 0].astype(np.float64), floats[:, 0],
+                floats[:, 1], loop, offline_rms)
+            out['servo process + ROS side in another']['ring_missed'] = missed
         elif case == 'bridge':
             out['bridge (paced emulator)'] = run_bridge(loop, duration_s, offline_rms,
                                                         fifo_priority=fifo_priority)

@@ -38,15 +38,17 @@ from __future__ import annotations
 
 from collections import deque
 import math
+from multiprocessing import shared_memory
 import threading
 import time
 from typing import Any, Callable, NamedTuple, Sequence
 
+import numpy as np
 from piezo_stage_ros.hardware.pacing import Pacer
 from piezo_stage_ros.hardware.safety import GuardedPlant
 from piezo_stage_ros.nodes.logic import ControllerLogic, NS_PER_S, sample_count, TrajectoryLogic
 
-__all__ = ['ServoLoop', 'ServoSample']
+__all__ = ['SampleRing', 'ServoLoop', 'ServoSample']
 
 
 class ServoSample(NamedTuple):
@@ -87,6 +89,83 @@ class ServoSample(NamedTuple):
     diagnostics: Sequence[float] | None
 
 
+class SampleRing:
+    """
+    A single-writer ring of servo samples in shared memory, for a servo loop in another process.
+
+    The writer (the servo process) stores each sample in row ``n % capacity`` and then
+    increments the count ``n``; a reader copies the rows written since its last read and tells
+    from the count how many it missed (overwritten before it came). No lock: one writer, the
+    count is written after its row (x86 and ARM64 keep the order of these two stores as seen
+    from Python), and a reader only copies. Stamps stay integers (int64 [ns]).
+
+    Parameters
+    ----------
+    capacity : int
+        Rows (samples) the ring holds.
+    name : str, optional
+        Attach to an existing ring of that name (the other process); default: create one.
+
+    """
+
+    FLOATS = ('position_m', 'reference_m', 'velocity_mps', 'command_v', 'applied_v')
+
+    def __init__(self, capacity: int = 65536, name: str | None = None) -> None:
+        self.capacity = int(capacity)
+        size = 8 + self.capacity * 8 * (3 + len(self.FLOATS))
+        self.shm = shared_memory.SharedMemory(name=name, create=name is None, size=size)
+        buf = self.shm.buf
+        self._count = np.ndarray((1,), dtype=np.int64, buffer=buf)
+        self._ints = np.ndarray((self.capacity, 3), dtype=np.int64, buffer=buf, offset=8)
+        self._floats = np.ndarray((self.capacity, len(self.FLOATS)), dtype=np.float64,
+                                  buffer=buf, offset=8 + self.capacity * 24)
+        if name is None:
+            self._count[0] = 0
+        self.read = 0
+
+    @property
+    def name(self) -> str:
+        """Return the name another process attaches with."""
+        return str(self.shm.name)
+
+    def append(self, s: ServoSample) -> None:
+        """Store one sample (the writer's side; never waits)."""
+        n = int(self._count[0])
+        row = n % self.capacity
+        self._ints[row] = (s.k, s.stamp_ns, s.lateness_ns)
+        self._floats[row] = (s.position_m, s.reference_m, s.velocity_mps, s.command_v,
+                             s.applied_v)
+        self._count[0] = n + 1
+
+    def take(self) -> tuple[Any, Any, int]:
+        """
+        Return the samples written since the last call (the reader's side).
+
+        Returns
+        -------
+        ints : ndarray of int64, shape (n, 3)
+            k, stamp [ns], lateness [ns] per sample.
+        floats : ndarray of float64, shape (n, 5)
+            Columns :attr:`FLOATS`.
+        missed : int
+            Samples overwritten before they were read.
+
+        """
+        end = int(self._count[0])
+        missed = max(end - self.read - self.capacity, 0)
+        start = self.read + missed
+        rows = [i % self.capacity for i in range(start, end)]
+        self.read = end
+        return self._ints[rows].copy(), self._floats[rows].copy(), missed
+
+    def close(self, unlink: bool = False) -> None:
+        """Detach (and remove, by the creator)."""
+        del self._count, self._ints, self._floats
+        self.shm.close()
+        if unlink:
+            self.shm.unlink()
+
+
 class ServoLoop:
     """
     Plant I/O, trajectory, controller and safety of every sample, paced by one clock.
@@ -114,7 +193,8 @@ class ServoLoop:
         its samples) paces the loop instead: each sample is served when it arrives, its
         lateness is the arrival against the grid of the first one, and gaps count as skipped.
     capacity : int
-        Samples the queue to the ROS side holds (65536: 6.5 s at 10 kHz).
+        Samples the queue to the ROS side holds (65536: 6.5 s at 10 kHz); 0: no queue (the
+        samples go only to ``on_sample``, e.g. :meth:`SampleRing.append` in another process).
     on_sample : callable, optional
         Called in the loop's thread with each sample as soon as it is served (the plant alone
         publishes y_k at once, for a controller in another node); keep it short.
@@ -133,7 +213,7 @@ class ServoLoop:
         period_ns = round(NS_PER_S / self.rate_hz)
         self.pacer = pacer if pacer is not None else Pacer(period_ns)
         self.total = sample_count(duration_s, self.rate_hz)
-        self.samples: deque[ServoSample] = deque(maxlen=max(1, capacity))
+        self.samples: deque[ServoSample] = deque(maxlen=max(0, capacity))
         self.pushed = 0
         self.drained = 0
         self.start_ns = 0
@@ -159,8 +239,8 @@ class ServoLoop:
         self.index = index
         if self.controller is None or self.trajectory is None:
             # the plant alone: the command comes from elsewhere (another node), held as is
-            self.samples.append(ServoSample(index, stamp, position_m, math.nan, math.nan,
-                                            math.nan, plant.applied_v, lateness_ns, None))
+            sample = ServoSample(index, stamp, position_m, math.nan, math.nan, math.nan,
+                                 plant.applied_v, lateness_ns, None)
         else:
             now_s = now_ns / NS_PER_S
             ref, vel = self.trajectory.on_position(stamp)
@@ -169,12 +249,13 @@ class ServoLoop:
             u = out.voltage_v if out is not None else self.controller.safe_voltage_v
             applied = plant.applied_v
             plant.command(u, now_s)
-            self.samples.append(ServoSample(index, stamp, position_m, ref, vel, u,
-                                            applied, lateness_ns,
-                                            out.diagnostics if out else None))
-        self.pushed += 1
+            sample = ServoSample(index, stamp, position_m, ref, vel, u, applied, lateness_ns,
+                                 out.diagnostics if out else None)
+        if self.samples.maxlen:
+            self.samples.append(sample)
+            self.pushed += 1
         if self.on_sample is not None:
-            self.on_sample(self.samples[-1])
+            self.on_sample(sample)
         if self.total and index + 1 >= self.total:
             self.done = True
 
@@ -300,7 +381,7 @@ class ServoLoop:
         out = self.plant.stats()
         out.update(self.pacer.stats.summary())
         out.update({'index': self.index, 'queue_overruns':
-                    self.pushed - self.drained - len(self.samples),
+                    max(self.pushed - self.drained - len(self.samples), 0),
                     'controller_steps': self.controller.steps if self.controller else 0})
         if self.error is not None:
             out['error'] = repr(self.error)
