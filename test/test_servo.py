@@ -265,3 +265,25 @@ def test_sample_ring_hands_samples_to_another_reader_and_counts_what_it_missed()
     finally:
         reader.close()
         ring.close(unlink=True)
+
+
+def test_servo_loop_of_the_plant_alone_drives_the_safe_voltage_when_commands_stop():
+    params = StageParams.from_flat(STAGE)
+    clock = FakeClock(per_read=300)
+    guard = GuardedPlant(ModelBridge(params), params.chain, 0.01)
+    loop = ServoLoop(guard, None, None, sample_rate_hz=1e4, duration_s=0.03,
+                     pacer=Pacer(PERIOD, clock=clock, sleep=clock.sleep))
+    loop.start()
+    command_s = clock.now / 1e9
+    guard.command(5.0, command_s)  # the only command from the controller, then silence
+    while loop.step():
+        pass
+    got = loop.drain()
+    applied = [s.applied_v for s in got]
+    first_safe = applied.index(guard.safe_v, 1)
+    # held while the silence is within the 10 ms timeout, then the safe voltage to the end
+    assert set(applied[1:first_safe]) == {5.0} and set(applied[first_safe:]) == {guard.safe_v}
+    taken_s = [(loop.pacer.due_ns(s.k) + s.lateness_ns) / 1e9 for s in got]
+    assert taken_s[first_safe] - command_s > 0.01 >= taken_s[first_safe - 1] - command_s
+    stats = loop.stats()
+    assert stats['watchdog_trips'] == 1 and stats['safe_samples'] == len(got) - first_safe

@@ -92,7 +92,11 @@ class Sample:
 
 class PlantLogic:
     """
-    The plant node's behaviour: owns time in lockstep, samples on its clock in real time.
+    The plant node's behaviour in lockstep: owns simulation time, one sample per command.
+
+    In real time the plant node samples with the paced servo loop
+    (:class:`piezo_stage_ros.nodes.servo.ServoLoop`) instead; this object then only holds the
+    mode, the rate and the run length.
 
     Parameters
     ----------
@@ -106,15 +110,11 @@ class PlantLogic:
         Stop after ``round(duration_s * rate)`` samples; 0 runs on.
     resend_s : float
         Lockstep: publish the waiting sample again after this long without its command [s].
-    max_catch_up : int
-        Real time: at most this many overdue samples are taken at once; beyond that the
-        schedule restarts from now (counted in ``skipped``).
 
     """
 
     def __init__(self, plant: GuardedPlant, *, mode: str, sample_rate_hz: float,
-                 duration_s: float = 0.0, resend_s: float = 0.5,
-                 max_catch_up: int = 100) -> None:
+                 duration_s: float = 0.0, resend_s: float = 0.5) -> None:
         if mode not in ('lockstep', 'realtime'):
             raise ParameterError('mode', mode, "one of 'lockstep', 'realtime'")
         self.plant = plant
@@ -124,7 +124,6 @@ class PlantLogic:
         self.period_s = 1.0 / self.rate_hz
         self.total = sample_count(duration_s, self.rate_hz)
         self.resend_s = resend_s
-        self.max_catch_up = max(1, max_catch_up)
         self.start_ns = 0
         self.index = -1
         self.done = False
@@ -134,8 +133,6 @@ class PlantLogic:
         self._t0_s = 0.0
         self.resends = 0
         self.unexpected = 0
-        self.skipped = 0
-        self.catch_up = 0
 
     @property
     def last_sample(self) -> Sample | None:
@@ -223,56 +220,6 @@ class PlantLogic:
         self.resends += 1
         return self._last
 
-    def on_tick(self, now_s: float,
-                command_for: Callable[[Sample], float] | None = None) -> list[Sample]:
-        """
-        Real time: take every sample whose time has come and return them (usually one).
-
-        Parameters
-        ----------
-        now_s : float
-            Monotonic wall time [s]; sample k is due at start + k / rate.
-        command_for : callable, optional
-            ``command_for(sample) -> u_k``, called right after each sample (a controller
-            called in process): its command is held from the next sample on, also within a
-            catch-up.
-
-        Returns
-        -------
-        list of Sample
-            The samples to publish, oldest first.
-
-        """
-        if self.lockstep or self.done or self.index < 0:
-            return []
-        due = int((now_s - self._t0_s) * self.rate_hz)
-        behind = due - self.index
-        if behind > self.max_catch_up:
-            # a long stall (suspend, debugger): no burst; the samples missed are skipped, the
-            # schedule and the stamps move on by as many periods, so the next one is due now
-            skip = behind - 1
-            self.skipped += skip
-            self._t0_s += skip * self.period_s
-            self.start_ns += round(skip * NS_PER_S / self.rate_hz)
-            behind = 1
-        out: list[Sample] = []
-        for _ in range(max(behind, 0)):
-            if behind > 1:
-                self.catch_up += 1
-            position = self.plant.sample(now_s)
-            sample = self._sample(position)
-            out.append(sample)
-            if self.total and self.index + 1 >= self.total:
-                self.done = True
-                break
-            if command_for is not None:
-                self.plant.command(command_for(sample), now_s)
-        return out
-
-    def next_due_s(self) -> float:
-        """Real time: return the monotonic time [s] the next sample is due."""
-        return self._t0_s + (self.index + 1) * self.period_s
-
     def stop(self) -> None:
         """Drive the safe voltage and release the backend."""
         self.done = True
@@ -283,8 +230,7 @@ class PlantLogic:
         """Return the counters: samples, late, resends, watchdog trips, bridge losses."""
         out = self.plant.stats()
         out.update({'index': self.index, 'resends': self.resends,
-                    'unexpected_commands': self.unexpected, 'skipped': self.skipped,
-                    'catch_up': self.catch_up})
+                    'unexpected_commands': self.unexpected})
         return out
 
 
