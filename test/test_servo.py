@@ -217,12 +217,17 @@ def test_servo_loop_records_what_the_plant_applied_with_each_sample():
     assert [s.applied_v for s in got[1:]] == [s.command_v for s in got[:-1]]
 
 
-def test_servo_loop_of_the_plant_alone_holds_what_it_was_given_and_counts_late():
+def plant_alone(clock: FakeClock, duration_s: float) -> ServoLoop:
     params = StageParams.from_flat(STAGE)
-    clock = FakeClock(per_read=300)
-    guard = GuardedPlant(ModelBridge(params), params.chain, 0.01)
-    loop = ServoLoop(guard, None, None, sample_rate_hz=1e4, duration_s=0.001,
+    return ServoLoop(GuardedPlant(ModelBridge(params), params.chain, 0.01), None, None,
+                     sample_rate_hz=1e4, duration_s=duration_s,
                      pacer=Pacer(PERIOD, clock=clock, sleep=clock.sleep))
+
+
+def test_servo_loop_of_the_plant_alone_holds_what_it_was_given_and_counts_late():
+    clock = FakeClock(per_read=300)
+    loop = plant_alone(clock, 0.001)
+    guard = loop.plant
     loop.start()
     loop.step()  # sample 1: no command yet (the guard counts lateness from sample 2 on)
     guard.command(1.5, clock.now / 1e9)  # a command from another node
@@ -268,11 +273,9 @@ def test_sample_ring_hands_samples_to_another_reader_and_counts_what_it_missed()
 
 
 def test_servo_loop_of_the_plant_alone_drives_the_safe_voltage_when_commands_stop():
-    params = StageParams.from_flat(STAGE)
     clock = FakeClock(per_read=300)
-    guard = GuardedPlant(ModelBridge(params), params.chain, 0.01)
-    loop = ServoLoop(guard, None, None, sample_rate_hz=1e4, duration_s=0.03,
-                     pacer=Pacer(PERIOD, clock=clock, sleep=clock.sleep))
+    loop = plant_alone(clock, 0.03)
+    guard = loop.plant
     loop.start()
     command_s = clock.now / 1e9
     guard.command(5.0, command_s)  # the only command from the controller, then silence
