@@ -66,6 +66,7 @@ from piezo_stage_ros.cli import choices
 from piezo_stage_ros.core.config import find_config, load_config
 from piezo_stage_ros.core.controllers import ControllerParams
 from piezo_stage_ros.core.loop_config import LoopConfig, MODES
+from piezo_stage_ros.core.wire import RECORDED_TOPICS
 import yaml
 
 ARGUMENTS = {
@@ -84,8 +85,6 @@ ARGUMENTS = {
     'sim_time': ('true', 'lockstep: use_sim_time on the controller and trajectory nodes'),
     'direct': ('false', 'composed only: hand samples from node to node by call (intra-process)'),
 }
-TOPICS = ('stage/position', 'stage/reference', 'stage/command', 'stage/diagnostics',
-          'stage/status')
 
 
 def _unflatten(values: dict) -> dict:
@@ -179,7 +178,7 @@ def _launch(context: LaunchContext) -> list:
         qos_file = os.path.join(os.path.dirname(files[0]), 'record_qos.yaml')
         if os.path.isfile(qos_file):
             cmd += ['--qos-profile-overrides-path', qos_file]
-        cmd += ['--topics'] + [prefix + t for t in TOPICS]
+        cmd += ['--topics'] + [prefix + t for t in RECORDED_TOPICS]
         actions.append(ExecuteProcess(cmd=cmd, output='screen'))
     if arg['end_with_plant'].lower() == 'true':
         # the plant's run is complete (or failed): end the whole launch, the recorder included

@@ -225,7 +225,7 @@ def parameter_file_text(stage: StageParams, *, header: Sequence[str] = (),
 
 
 def _read_bags(paths: Sequence[tuple[str, str | None]]) -> list[tuple[RunRecord, str | None]]:
-    from piezo_stage_ros.analysis.bagio import read_run
+    from piezo_stage_ros.analysis.bagread import read_run
     out = []
     for path, role in paths:
         if not Path(path).exists():
@@ -235,7 +235,7 @@ def _read_bags(paths: Sequence[tuple[str, str | None]]) -> list[tuple[RunRecord,
 
 
 def _simulate(args: argparse.Namespace, base: StageParams) -> tuple[list[str], StageParams]:
-    from piezo_stage_ros.analysis.bagio import write_run
+    from piezo_stage_ros.analysis.bagwrite import write_run
     from piezo_stage_ros.core.identification_experiments import (
         ExperimentPlan,
         perturbed_stage,

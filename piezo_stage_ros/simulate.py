@@ -172,7 +172,7 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
             'config_files': [str(p) for p in loop.sources]}
     start = time.perf_counter()
     if args.bag is not None:
-        from piezo_stage_ros.analysis.bagio import RunBagWriter
+        from piezo_stage_ros.analysis.bagwrite import RunBagWriter
         with RunBagWriter(args.bag, storage=args.storage, overwrite=args.overwrite) as writer:
             def stream(chunk: Any) -> None:
                 writer.set_meta(chunk.meta)

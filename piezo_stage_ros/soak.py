@@ -166,7 +166,7 @@ def _soak(args: argparse.Namespace) -> int:
 
     meta = {'soak_minutes': args.minutes, 'stable': bool(report.stable)}
     if args.bag is not None:
-        from piezo_stage_ros.analysis.bagio import RunBagWriter
+        from piezo_stage_ros.analysis.bagwrite import RunBagWriter
         with RunBagWriter(args.bag, storage=args.storage, overwrite=args.overwrite) as writer:
             run_one(stage, ctrl, traj, duration_s=duration, chunk_callback=on_chunk, keep=False,
                     meta=meta)

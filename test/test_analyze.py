@@ -22,7 +22,7 @@ import sys
 
 import numpy as np
 from piezo_stage_ros import analyze
-from piezo_stage_ros.analysis.bagio import RunBagWriter, write_run
+from piezo_stage_ros.analysis.bagwrite import RunBagWriter, write_run
 from piezo_stage_ros.analysis.replay import analyze_bag
 from piezo_stage_ros.core.closed_loop import run
 from piezo_stage_ros.core.controllers import build_controller, ControllerParams

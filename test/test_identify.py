@@ -20,7 +20,7 @@ from pathlib import Path
 import re
 
 import numpy as np
-from piezo_stage_ros.analysis.bagio import write_run
+from piezo_stage_ros.analysis.bagwrite import write_run
 from piezo_stage_ros.core.config import load_config
 from piezo_stage_ros.core.identification import factors_of
 from piezo_stage_ros.core.identification_experiments import perturbed_stage, run_experiments
@@ -179,7 +179,7 @@ def test_bad_input_gives_one_line_and_a_status(tmp_path: Path,
 
 def test_report_without_a_sine_run_has_no_fig6(bags: tuple[dict[str, Path], StageParams],
                                                tmp_path: Path) -> None:
-    from piezo_stage_ros.analysis.bagio import read_run
+    from piezo_stage_ros.analysis.bagread import read_run
     from piezo_stage_ros.analysis.identification_report import write_report
     from piezo_stage_ros.core.identification import identify
     paths, _ = bags

@@ -27,13 +27,10 @@ from piezo_stage_ros.core.stage import StageParams
 from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
 from piezo_stage_ros.hardware.bridge import ModelBridge
 from piezo_stage_ros.hardware.safety import GuardedPlant
-from piezo_stage_ros.nodes import topics
 from piezo_stage_ros.nodes.logic import (
     ControllerLogic,
-    ns_to_stamp,
     PlantLogic,
     sample_count,
-    stamp_to_ns,
     TrajectoryLogic,
 )
 from piezo_stage_ros.nodes.tables import (
@@ -53,19 +50,6 @@ RATE = 10000.0
 
 
 # --- topics and tables --------------------------------------------------------------------
-
-def test_topics_agree_with_the_bag_layout():
-    bagio = pytest.importorskip('piezo_stage_ros.analysis.bagio',
-                                reason='rosbags is needed to compare with the bag layout')
-    names = bagio.topic_names('/stage')
-    for key, ours in (('position', topics.POSITION), ('reference', topics.REFERENCE),
-                      ('command', topics.COMMAND), ('diagnostics', topics.DIAGNOSTICS)):
-        # relative names resolve under the root namespace to the bag's default namespace
-        assert '/' + ours == names[key]
-        assert topics.TOPIC_TYPES[ours] == bagio.TOPIC_TYPES[key]
-    assert topics.JOINT_NAME == bagio.JOINT_NAME
-    assert all(not t.startswith('/') for t in topics.TOPIC_TYPES if t != topics.CLOCK)
-
 
 @pytest.mark.parametrize('node', sorted(TABLES))
 def test_every_row_has_unit_description_and_a_valid_default(node):
@@ -145,9 +129,7 @@ def test_duplicate_names_are_refused_and_markdown_lists_every_row():
 
 # --- plain-value helpers ------------------------------------------------------------------
 
-def test_stamps_and_sample_counts():
-    assert ns_to_stamp(1_500_000_123) == (1, 500_000_123)
-    assert stamp_to_ns(*ns_to_stamp(987_654_321_012)) == 987_654_321_012
+def test_sample_counts():
     assert sample_count(0.1, RATE) == 1000 and sample_count(0.0, RATE) == 0
     assert sample_count(1e-9, RATE) == 1
 
@@ -342,7 +324,8 @@ def test_gain_changes_apply_at_the_next_sample():
 ROS_ROOTS = {'rclpy', 'rcl_interfaces', 'sensor_msgs', 'std_msgs', 'rosgraph_msgs',
              'builtin_interfaces', 'diagnostic_msgs', 'std_srvs', 'launch', 'launch_ros'}
 PACKAGE = Path(__file__).resolve().parents[1] / 'piezo_stage_ros'
-RCLPY_FREE = sorted([PACKAGE / 'nodes' / f'{m}.py' for m in ('logic', 'tables', 'topics', 'cdr')]
+RCLPY_FREE = sorted([PACKAGE / 'nodes' / f'{m}.py' for m in ('logic', 'tables')]
+                    + [PACKAGE / 'core' / f'{m}.py' for m in ('wire', 'cdr')]
                     + list((PACKAGE / 'hardware').glob('*.py')))
 
 
@@ -373,7 +356,7 @@ def test_the_testable_node_modules_import_with_ros_blocked():
         '            raise ImportError("blocked: " + name)\n'
         'sys.meta_path.insert(0, Block())\n'
         'import piezo_stage_ros.nodes.logic, piezo_stage_ros.nodes.tables\n'
-        'import piezo_stage_ros.nodes.topics, piezo_stage_ros.nodes.cdr\n'
+        'import piezo_stage_ros.core.wire, piezo_stage_ros.core.cdr\n'
         'import piezo_stage_ros.hardware.emulator, piezo_stage_ros.hardware.udp\n'
         'import piezo_stage_ros.bench.ros\n'
         'print("ok")\n')

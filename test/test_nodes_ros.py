@@ -29,13 +29,14 @@ import pytest
 rclpy = pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not importable here; '
                                             'the node logic is tested without it elsewhere')
 
+from piezo_stage_ros.core import wire  # noqa: E402
 from piezo_stage_ros.core.closed_loop import run  # noqa: E402
 from piezo_stage_ros.core.controllers import build_controller, ControllerParams  # noqa: E402
 from piezo_stage_ros.core.errors import ParameterError  # noqa: E402
 from piezo_stage_ros.core.stage import linear_plant, Stage, StageParams  # noqa: E402
 from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams  # noqa: E402
 from piezo_stage_ros.hardware.emulator import TargetEmulator  # noqa: E402
-from piezo_stage_ros.nodes import stage_servo, topics  # noqa: E402
+from piezo_stage_ros.nodes import stage_servo  # noqa: E402
 from piezo_stage_ros.nodes.controller_node import ControllerNode  # noqa: E402
 from piezo_stage_ros.nodes.plant_node import PlantNode  # noqa: E402
 from piezo_stage_ros.nodes.runner import make_executor  # noqa: E402
@@ -87,10 +88,10 @@ class Probe(Node):
         self.positions: list[tuple[int, float]] = []
         self.references: list[float] = []
         self.commands: list[float] = []
-        self.create_subscription(JointState, topics.POSITION, self._pos, RECORD)
-        self.create_subscription(JointState, topics.REFERENCE,
+        self.create_subscription(JointState, wire.POSITION, self._pos, RECORD)
+        self.create_subscription(JointState, wire.REFERENCE,
                                  lambda m: self.references.append(m.position[0]), RECORD)
-        self.create_subscription(Float64, topics.COMMAND,
+        self.create_subscription(Float64, wire.COMMAND,
                                  lambda m: self.commands.append(m.data), RECORD)
 
     def _pos(self, msg: JointState) -> None:

@@ -175,7 +175,7 @@ def test_experiment_fig6_json(capsys: pytest.CaptureFixture[str]) -> None:
 def test_bag_is_written_and_reads_back_the_same_metrics(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     pytest.importorskip('rosbags')
-    from piezo_stage_ros.analysis.bagio import read_run
+    from piezo_stage_ros.analysis.bagread import read_run
     bag = tmp_path / 'run'
     d = run_json(capsys, '--plant', 'reduced', '--duration', '0.05', '--bag', str(bag))
     assert (bag / 'metadata.yaml').is_file()

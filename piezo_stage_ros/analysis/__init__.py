@@ -15,7 +15,10 @@
 """
 Bag writing and reading (rosbags), reports and plots (matplotlib); no rclpy here.
 
-- :mod:`~piezo_stage_ros.analysis.bagio`: runs as rosbag2 bags, bulk reading, time alignment;
+- :mod:`~piezo_stage_ros.analysis.bagwrite`: runs written as rosbag2 bags (``simulate --bag``);
+- :mod:`~piezo_stage_ros.analysis.bagread`: bags read in bulk into runs, time alignment;
+- :mod:`~piezo_stage_ros.analysis.bagfast`: the bulk writer and the MCAP scanner, the only
+  module that uses rosbags' internals;
 - :mod:`~piezo_stage_ros.analysis.replay`: metrics of a bag (``analyze``), its summary;
 - :mod:`~piezo_stage_ros.analysis.spectral`: frequency-response estimate of noise/sweep runs;
 - :mod:`~piezo_stage_ros.analysis.plots`: the paper-style figures (imports matplotlib);

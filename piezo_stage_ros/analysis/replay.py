@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from piezo_stage_ros.analysis.bagio import ProgressCallback, read_run
+from piezo_stage_ros.analysis.bagread import ProgressCallback, read_run
 from piezo_stage_ros.analysis.spectral import BodeEstimate, estimate_bode, is_excitation_run
 from piezo_stage_ros.core.errors import PiezoStageError
 from piezo_stage_ros.core.record import RunRecord
@@ -222,7 +222,7 @@ def analyze_bag(path: str | Path, *, namespace: str | None = None,
     Raises
     ------
     BagError
-        The bag cannot be read (see :func:`~piezo_stage_ros.analysis.bagio.read_run`).
+        The bag cannot be read (see :func:`~piezo_stage_ros.analysis.bagread.read_run`).
     PiezoStageError
         The metrics or the Bode estimate cannot be computed.
 

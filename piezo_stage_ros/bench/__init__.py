@@ -17,7 +17,9 @@ Benchmarks (not tests): they time things and print numbers, they assert nothing.
 
 - :mod:`piezo_stage_ros.bench.sim`: closed-loop simulation speed, batch stage throughput,
   controller step latency;
-- :mod:`piezo_stage_ros.bench.bags`: bag writing, reading and analysis throughput.
+- :mod:`piezo_stage_ros.bench.bags`: bag writing, reading and analysis throughput;
+- :mod:`piezo_stage_ros.bench.mcap_library`: Foxglove's ``mcap`` through its public API, for
+  comparison (needs ``pip install mcap``, not a dependency).
 
 The ``benchmark`` command runs them (``benchmark --suite sim|bags|all``).
 """

@@ -34,7 +34,8 @@ import time
 from typing import TypeVar
 
 import numpy as np
-from piezo_stage_ros.analysis.bagio import read_run, write_run
+from piezo_stage_ros.analysis.bagread import read_run
+from piezo_stage_ros.analysis.bagwrite import write_run
 from piezo_stage_ros.analysis.replay import analyze_bag
 from piezo_stage_ros.core.record import RunRecord
 

@@ -162,8 +162,8 @@ def _cross(duration_s: float, executor: str, three: bool = False, ahead: int = 0
 def _pingpong(round_trips: int = 20000) -> dict[str, Any]:
     import time
 
+    from piezo_stage_ros.core.cdr import encode_float64
     from piezo_stage_ros.nodes import qos
-    from piezo_stage_ros.nodes.cdr import encode_float64
     from piezo_stage_ros.nodes.runner import make_executor
     import rclpy
     from rclpy.context import Context

@@ -44,6 +44,7 @@ from typing import Any, Callable
 
 import numpy as np
 from piezo_stage_ros import cli
+from piezo_stage_ros.core.cdr import encode_float64, JointStateEncoder
 from piezo_stage_ros.core.closed_loop import run
 from piezo_stage_ros.core.controllers import build_controller
 from piezo_stage_ros.core.loop_config import LoopConfig
@@ -54,7 +55,6 @@ from piezo_stage_ros.hardware.bridge import Bridge, ModelBridge
 from piezo_stage_ros.hardware.pacing import realtime_setup
 from piezo_stage_ros.hardware.safety import GuardedPlant
 from piezo_stage_ros.hardware.udp import UdpStreamBridge
-from piezo_stage_ros.nodes.cdr import encode_float64, JointStateEncoder
 from piezo_stage_ros.nodes.logic import ControllerLogic, TrajectoryLogic
 from piezo_stage_ros.nodes.servo import SampleRing, ServoLoop, ServoSample
 

@@ -13,8 +13,10 @@
 # limitations under the License.
 
 """
-ROS-free core: models, hysteresis, signal chain, controllers, trajectories, metrics.
+ROS-free core: models, hysteresis, signal chain, controllers, trajectories, metrics, the wire.
 
 Imports numpy and scipy only (PyYAML in :mod:`piezo_stage_ros.core.config`); never rclpy,
-rosbags or matplotlib. A test enforces this.
+rosbags or matplotlib. A test enforces this. The wire contract (topics, stamps, diagnostics
+layout: :mod:`~piezo_stage_ros.core.wire`) and the CDR codec (:mod:`~piezo_stage_ros.core.cdr`)
+live here because both the nodes and the bag tools need them without rclpy or rosbags.
 """

@@ -30,9 +30,8 @@ once, outputs go into preallocated arrays, and a ``chunk_callback`` receives eac
 :class:`RunRecord` (streamed to a bag, or reduced to per-minute statistics by the soak) so that
 memory stays flat however long the run.
 
-Controller diagnostics: a controller may offer the cheap pair ``diagnostic_names`` (a tuple of
-str) and ``diagnostic_values()`` (a tuple of floats in that order); otherwise its
-``diagnostics()`` mapping is read. Either way they are sampled every ``diagnostics_every``
+Controller diagnostics are read by :func:`piezo_stage_ros.core.wire.diagnostic_reader`, the
+reader the controller node uses too (names in sorted order), every ``diagnostics_every``
 samples and held in between (zero-order), which keeps the per-sample cost of the loop low.
 """
 
@@ -46,6 +45,7 @@ from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
 from piezo_stage_ros.core.interfaces import Controller, Trajectory
 from piezo_stage_ros.core.record import RunRecord
 from piezo_stage_ros.core.types import FloatArray
+from piezo_stage_ros.core.wire import diagnostic_reader
 
 __all__ = ['ChunkCallback', 'Plant', 'concatenate', 'run']
 
@@ -69,26 +69,6 @@ class Plant(Protocol):
     def step(self, command_v: float) -> float:
         """Hold the command over one sample and return the measured position [m]."""
         ...
-
-
-def _diagnostic_reader(controller: Controller
-                       ) -> tuple[tuple[str, ...], Callable[[], Sequence[float]]]:
-    """Return the diagnostic names and a function returning their values in that order."""
-    names = getattr(controller, 'diagnostic_names', None)
-    values = getattr(controller, 'diagnostic_values', None)
-    if isinstance(names, tuple) and callable(values):
-        return tuple(str(n) for n in names), values
-    first: Mapping[str, float] = controller.diagnostics()
-    keys = tuple(first)
-    diagnostics = controller.diagnostics
-
-    def read() -> Sequence[float]:
-        d = diagnostics()
-        try:
-            return [d[k] for k in keys]
-        except KeyError:  # a controller whose diagnostics change shape: NaN for the missing
-            return [d.get(k, math.nan) for k in keys]
-    return keys, read
 
 
 def run(stage: Plant, controller: Controller, trajectory: Trajectory, *, duration_s: float,
@@ -168,7 +148,7 @@ def run(stage: Plant, controller: Controller, trajectory: Trajectory, *, duratio
     names: tuple[str, ...] = ()
     read_diag: Callable[[], Sequence[float]] | None = None
     if record_diagnostics:
-        names, read_diag = _diagnostic_reader(controller)
+        names, read_diag = diagnostic_reader(controller)
 
     chunks: list[RunRecord] = []
     last: RunRecord | None = None

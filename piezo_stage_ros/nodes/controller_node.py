@@ -34,24 +34,23 @@ import sys
 import time
 from typing import Any, Callable, Sequence
 
-from piezo_stage_ros.core.controllers import build_controller, ControllerParams
-from piezo_stage_ros.core.errors import StabilityError
-from piezo_stage_ros.core.interfaces import Controller
-from piezo_stage_ros.core.stability import check_stability, StabilityParams
-from piezo_stage_ros.core.stage import linear_plant, PlantParams
-from piezo_stage_ros.nodes import qos, topics
-from piezo_stage_ros.nodes.cdr import (
+from piezo_stage_ros.core import wire
+from piezo_stage_ros.core.cdr import (
     CdrError,
     encode_float64,
     JointStateDecoder,
     JointStateEncoder,
 )
+from piezo_stage_ros.core.controllers import build_controller, ControllerParams
+from piezo_stage_ros.core.errors import StabilityError
+from piezo_stage_ros.core.interfaces import Controller
+from piezo_stage_ros.core.stability import check_stability, StabilityParams
+from piezo_stage_ros.core.stage import linear_plant, PlantParams
+from piezo_stage_ros.nodes import qos
 from piezo_stage_ros.nodes.logic import (
     Command,
     ControllerLogic,
     Gate,
-    ns_to_stamp,
-    stamp_to_ns,
 )
 from piezo_stage_ros.nodes.parameters import ParameterBinding
 from piezo_stage_ros.nodes.runner import run
@@ -106,19 +105,19 @@ class ControllerNode(Node):
                                      diagnostics_every=opts.diagnostics_every,
                                      rebuild=self._rebuild)
         self._stability = stability
-        # CDR bytes in and out (nodes/cdr.py): rclpy message objects cost more than a sample
+        # CDR bytes in and out (core/cdr.py): rclpy message objects cost more than a sample
         self._diag_names = self.logic.names
         self._diag = JointStateEncoder(self._diag_names)
-        self._positions = JointStateDecoder([topics.JOINT_NAME])
-        self._references = JointStateDecoder([topics.JOINT_NAME], with_velocity=True)
+        self._positions = JointStateDecoder([wire.JOINT_NAME])
+        self._references = JointStateDecoder([wire.JOINT_NAME], with_velocity=True)
         self._matched = False
         self.malformed = 0
-        self._cmd_pub = self.create_publisher(Float64, topics.COMMAND, qos.LOOP)
-        self._diag_pub = self.create_publisher(JointState, topics.DIAGNOSTICS, qos.LOOP)
+        self._cmd_pub = self.create_publisher(Float64, wire.COMMAND, qos.LOOP)
+        self._diag_pub = self.create_publisher(JointState, wire.DIAGNOSTICS, qos.LOOP)
         self._subs = [
-            self.create_subscription(JointState, topics.POSITION, self._on_position, qos.LOOP,
+            self.create_subscription(JointState, wire.POSITION, self._on_position, qos.LOOP,
                                      raw=True),
-            self.create_subscription(JointState, topics.REFERENCE, self._on_reference,
+            self.create_subscription(JointState, wire.REFERENCE, self._on_reference,
                                      qos.LOOP, raw=True)]
         self._cmd_gate: Callable[[], bool] = lambda: True
         self._diag_gate: Callable[[], bool] = lambda: True
@@ -212,12 +211,12 @@ class ControllerNode(Node):
                 # a rebuilt controller of another kind reports other internals
                 self._diag_names = self.logic.names
                 self._diag = JointStateEncoder(self._diag_names)
-            sec, nanosec = ns_to_stamp(out.stamp_ns)
+            sec, nanosec = wire.ns_to_stamp(out.stamp_ns)
             self._diag_pub.publish(self._diag.encode(sec, nanosec, out.diagnostics))
 
     def _decode(self, data: bytes, topic: str) -> tuple[int, int, float, float] | None:
         try:
-            if topic == topics.POSITION:
+            if topic == wire.POSITION:
                 return self._positions.decode(data)
             return self._references.decode(data)
         except CdrError as exc:
@@ -233,9 +232,9 @@ class ControllerNode(Node):
 
     def _on_reference(self, data: bytes) -> None:
         try:
-            msg = self._decode(data, topics.REFERENCE)
+            msg = self._decode(data, wire.REFERENCE)
             if msg is not None:
-                self.publish(self.logic.on_reference(stamp_to_ns(msg[0], msg[1]), msg[2],
+                self.publish(self.logic.on_reference(wire.stamp_to_ns(msg[0], msg[1]), msg[2],
                                                       msg[3]))
         except KeyboardInterrupt:
             return
@@ -246,9 +245,9 @@ class ControllerNode(Node):
                 # the command would reach nobody yet; the plant publishes this sample again
                 return
             self._matched = True
-        msg = self._decode(data, topics.POSITION)
+        msg = self._decode(data, wire.POSITION)
         if msg is not None:
-            self.publish(self.logic.on_position(stamp_to_ns(msg[0], msg[1]), msg[2],
+            self.publish(self.logic.on_position(wire.stamp_to_ns(msg[0], msg[1]), msg[2],
                                                  time.monotonic()))
 
     def _check_watchdog(self) -> None:

@@ -37,28 +37,15 @@ twice for one stamp, so the plant receives exactly one command per sample.
 from __future__ import annotations
 
 from dataclasses import dataclass
-import math
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
 from piezo_stage_ros.core.interfaces import Controller, Trajectory
+from piezo_stage_ros.core.wire import diagnostic_reader, NS_PER_S
 from piezo_stage_ros.hardware.safety import GuardedPlant, Watchdog
 
-__all__ = ['ControllerLogic', 'Gate', 'PlantLogic', 'Sample', 'TrajectoryLogic', 'ns_to_stamp',
-           'stamp_to_ns', 'sample_count']
-
-NS_PER_S = 1_000_000_000
-
-
-def ns_to_stamp(stamp_ns: int) -> tuple[int, int]:
-    """Return ``(sec, nanosec)`` of a ``builtin_interfaces/Time`` for ``stamp_ns`` [ns] >= 0."""
-    return divmod(int(stamp_ns), NS_PER_S)
-
-
-def stamp_to_ns(sec: int, nanosec: int) -> int:
-    """Return the nanoseconds of a ``builtin_interfaces/Time`` (``sec`` [s], ``nanosec`` [ns])."""
-    return int(sec) * NS_PER_S + int(nanosec)
+__all__ = ['ControllerLogic', 'Gate', 'PlantLogic', 'Sample', 'TrajectoryLogic', 'sample_count']
 
 
 def sample_count(duration_s: float, sample_rate_hz: float) -> int:
@@ -356,27 +343,6 @@ class TrajectoryLogic:
         ref, vel = self._evaluate(index)
         self.hold_m = ref
         return ref, vel
-
-
-def diagnostic_reader(controller: Controller
-                      ) -> tuple[tuple[str, ...], Callable[[], Sequence[float]]]:
-    """
-    Return the controller's diagnostic names and a function returning their values.
-
-    Uses the cheap pair ``diagnostic_names`` / ``diagnostic_values()`` when the controller has
-    it, else its ``diagnostics()`` mapping (names sorted), as the offline runner does.
-    """
-    names = getattr(controller, 'diagnostic_names', None)
-    values = getattr(controller, 'diagnostic_values', None)
-    if isinstance(names, tuple) and callable(values):
-        return tuple(str(n) for n in names), values
-    keys = tuple(sorted(controller.diagnostics()))
-    diagnostics = controller.diagnostics
-
-    def read() -> Sequence[float]:
-        d: Mapping[str, float] = diagnostics()
-        return [float(d.get(k, math.nan)) for k in keys]
-    return keys, read
 
 
 @dataclass(frozen=True)

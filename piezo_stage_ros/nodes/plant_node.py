@@ -30,18 +30,18 @@ import time
 from typing import Any, Callable, Sequence
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from piezo_stage_ros.core import wire
+from piezo_stage_ros.core.cdr import CdrError, decode_float64, encode_clock, JointStateEncoder
 from piezo_stage_ros.core.errors import PiezoStageError
 from piezo_stage_ros.core.stage import StageParams
 from piezo_stage_ros.hardware.bridge import Bridge, ModelBridge
 from piezo_stage_ros.hardware.pacing import Pacer, realtime_setup
 from piezo_stage_ros.hardware.safety import GuardedPlant
 from piezo_stage_ros.hardware.udp import UdpBridge, UdpStreamBridge
-from piezo_stage_ros.nodes import qos, topics
-from piezo_stage_ros.nodes.cdr import CdrError, decode_float64, encode_clock, JointStateEncoder
+from piezo_stage_ros.nodes import qos
 from piezo_stage_ros.nodes.logic import (
     ControllerLogic,
     Gate,
-    ns_to_stamp,
     PlantLogic,
     Sample,
     TrajectoryLogic,
@@ -96,18 +96,18 @@ class PlantNode(Node):
                                 duration_s=opts.duration_s, resend_s=opts.lockstep.resend_s)
         self.finished = Future()
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
-        # messages go out and come in as CDR bytes (nodes/cdr.py): rclpy message objects
+        # messages go out and come in as CDR bytes (core/cdr.py): rclpy message objects
         # cost more than the whole sample
-        self._encoder = JointStateEncoder([topics.JOINT_NAME])
+        self._encoder = JointStateEncoder([wire.JOINT_NAME])
         self.malformed = 0
-        self._pub = self.create_publisher(JointState, topics.POSITION, qos.LOOP)
-        self._clock_pub = self.create_publisher(ClockMsg, topics.CLOCK, qos.CLOCK) \
+        self._pub = self.create_publisher(JointState, wire.POSITION, qos.LOOP)
+        self._clock_pub = self.create_publisher(ClockMsg, wire.CLOCK, qos.CLOCK) \
             if self.logic.lockstep else None
         # /clock goes out only while someone listens (looked at every 1000 samples)
         self._clock_gate: Callable[[], bool] = Gate(self._clock_pub.get_subscription_count) \
             if self._clock_pub is not None else (lambda: False)
-        self._status_pub = self.create_publisher(DiagnosticStatus, topics.STATUS, qos.STATUS)
-        self._cmd_sub = self.create_subscription(Float64, topics.COMMAND, self._on_command,
+        self._status_pub = self.create_publisher(DiagnosticStatus, wire.STATUS, qos.STATUS)
+        self._cmd_sub = self.create_subscription(Float64, wire.COMMAND, self._on_command,
                                                  qos.LOOP, raw=True)
         self._direct: Callable[[Sample], float] | None = None
         self._position_gate: Callable[[], bool] = lambda: True
@@ -146,7 +146,7 @@ class PlantNode(Node):
         self.opts = opts
 
     def _publish(self, sample: Sample) -> None:
-        sec, nanosec = ns_to_stamp(sample.stamp_ns)
+        sec, nanosec = wire.ns_to_stamp(sample.stamp_ns)
         if self._clock_pub is not None and self._clock_gate():
             self._clock_pub.publish(encode_clock(sec, nanosec))
         if self._position_gate():
@@ -179,7 +179,7 @@ class PlantNode(Node):
                          on_sample=on_sample)
 
     def _publish_sample(self, s: ServoSample) -> None:
-        sec, nanosec = ns_to_stamp(s.stamp_ns)
+        sec, nanosec = wire.ns_to_stamp(s.stamp_ns)
         self._pub.publish(self._encoder.encode(sec, nanosec, (s.position_m,)))
 
     def attach_servo(self, trajectory: TrajectoryLogic, controller: ControllerLogic,
@@ -235,7 +235,7 @@ class PlantNode(Node):
         if self._position_gate():
             publish, encode = self._pub.publish, self._encoder.encode
             for s in batch:
-                sec, nanosec = ns_to_stamp(s.stamp_ns)
+                sec, nanosec = wire.ns_to_stamp(s.stamp_ns)
                 publish(encode(sec, nanosec, (s.position_m,)))
         self._peers(batch)
 
@@ -305,7 +305,7 @@ class PlantNode(Node):
             command_v = decode_float64(data)
         except CdrError as exc:
             self.malformed += 1
-            self.get_logger().warning(f'stage/command: {exc}; dropped', throttle_duration_sec=1.0)
+            self.get_logger().warning(f'{wire.COMMAND}: {exc}; dropped', throttle_duration_sec=1.0)
             return
         try:
             if self.servo is not None:

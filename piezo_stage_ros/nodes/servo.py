@@ -44,9 +44,10 @@ import time
 from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
+from piezo_stage_ros.core.wire import NS_PER_S
 from piezo_stage_ros.hardware.pacing import Pacer
 from piezo_stage_ros.hardware.safety import GuardedPlant
-from piezo_stage_ros.nodes.logic import ControllerLogic, NS_PER_S, sample_count, TrajectoryLogic
+from piezo_stage_ros.nodes.logic import ControllerLogic, sample_count, TrajectoryLogic
 
 __all__ = ['SampleRing', 'ServoLoop', 'ServoSample']
 

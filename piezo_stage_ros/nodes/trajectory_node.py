@@ -28,10 +28,11 @@ from __future__ import annotations
 
 from typing import Any, Callable, Sequence
 
+from piezo_stage_ros.core import wire
+from piezo_stage_ros.core.cdr import CdrError, JointStateDecoder, JointStateEncoder
 from piezo_stage_ros.core.trajectories import make_trajectory
-from piezo_stage_ros.nodes import qos, topics
-from piezo_stage_ros.nodes.cdr import CdrError, JointStateDecoder, JointStateEncoder
-from piezo_stage_ros.nodes.logic import Gate, stamp_to_ns, TrajectoryLogic
+from piezo_stage_ros.nodes import qos
+from piezo_stage_ros.nodes.logic import Gate, TrajectoryLogic
 from piezo_stage_ros.nodes.parameters import ParameterBinding
 from piezo_stage_ros.nodes.runner import run
 from piezo_stage_ros.nodes.tables import trajectory_table, TrajectoryNodeParams
@@ -64,12 +65,12 @@ class TrajectoryNode(Node):
         chunk_s = opts.chunk_s if opts.mode == 'lockstep' else min(opts.chunk_s, 0.005)
         self.logic = TrajectoryLogic(make_trajectory(params), sample_rate_hz=opts.sample_rate_hz,
                                      chunk_s=chunk_s, active=opts.active)
-        # CDR bytes in and out (nodes/cdr.py): rclpy message objects cost more than a sample
-        self._encoder = JointStateEncoder([topics.JOINT_NAME], with_velocity=True)
-        self._decoder = JointStateDecoder([topics.JOINT_NAME])
+        # CDR bytes in and out (core/cdr.py): rclpy message objects cost more than a sample
+        self._encoder = JointStateEncoder([wire.JOINT_NAME], with_velocity=True)
+        self._decoder = JointStateDecoder([wire.JOINT_NAME])
         self.malformed = 0
-        self._pub = self.create_publisher(JointState, topics.REFERENCE, qos.LOOP)
-        self._sub = self.create_subscription(JointState, topics.POSITION, self._on_position,
+        self._pub = self.create_publisher(JointState, wire.REFERENCE, qos.LOOP)
+        self._sub = self.create_subscription(JointState, wire.POSITION, self._on_position,
                                              qos.LOOP, raw=True)
         self._gate: Callable[[], bool] = lambda: True
         self._ahead = opts.lockstep_ahead if opts.mode == 'lockstep' else 0
@@ -123,7 +124,7 @@ class TrajectoryNode(Node):
     def publish(self, stamp_ns: int, reference_m: float, velocity_mps: float) -> None:
         """Publish a reference computed by call, while an outside subscriber listens."""
         if self._gate():
-            sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+            sec, nanosec = wire.ns_to_stamp(stamp_ns)
             self._pub.publish(self._encoder.encode(sec, nanosec, (reference_m,),
                                                    (velocity_mps,)))
 
@@ -138,10 +139,10 @@ class TrajectoryNode(Node):
             sec, nanosec, _, _ = self._decoder.decode(data)
         except CdrError as exc:
             self.malformed += 1
-            self.get_logger().warning(f'stage/position: {exc}; dropped',
+            self.get_logger().warning(f'{wire.POSITION}: {exc}; dropped',
                                       throttle_duration_sec=1.0)
             return
-        stamp = stamp_to_ns(sec, nanosec)
+        stamp = wire.stamp_to_ns(sec, nanosec)
         try:
             if self._ahead:
                 # lockstep_ahead: x_d goes out ahead of its position (it does not depend on

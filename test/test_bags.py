@@ -18,8 +18,10 @@ from pathlib import Path
 import shutil
 
 import numpy as np
-from piezo_stage_ros.analysis import bagio
-from piezo_stage_ros.analysis.bagio import read_run, read_topics, RunBagWriter, write_run
+from piezo_stage_ros.analysis import bagread
+from piezo_stage_ros.analysis.bagread import read_run, read_topics
+from piezo_stage_ros.analysis.bagwrite import RunBagWriter, write_run
+from piezo_stage_ros.core import wire
 from piezo_stage_ros.core.errors import BagError
 from piezo_stage_ros.core.record import RunRecord
 import pytest
@@ -200,7 +202,7 @@ def test_two_stages_in_one_bag_need_a_namespace(tmp_path):
     with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         for ns in ('/a', '/b'):
             for key in ('position', 'reference', 'command'):
-                writer.add_connection(f'{ns}/{key}', bagio.TOPIC_TYPES[key], typestore=STORE)
+                writer.add_connection(f'{ns}/{key}', wire.BAG_TOPICS[key], typestore=STORE)
     with pytest.raises(BagError, match=r'several stages recorded \(/a, /b\)'):
         read_run(bag)
 
@@ -260,7 +262,7 @@ def _write_graph_bag(bag, n=400, *, skip_cmd_start=0, extra_cmd_end=0, jitter_ns
     if compression:
         writer.set_compression(compression, CompressionFormat.ZSTD)
     with writer:
-        conns = {key: writer.add_connection(f'/stage/{key}', bagio.TOPIC_TYPES[key],
+        conns = {key: writer.add_connection(f'/stage/{key}', wire.BAG_TOPICS[key],
                                             typestore=STORE)
                  for key in ('position', 'reference', 'command')}
         # Bursty delivery: a receive time may lag by several periods, never reorders a topic.
@@ -372,7 +374,7 @@ def test_empty_bag(tmp_path):
 def test_required_topic_without_messages(tmp_path):
     bag = tmp_path / 'silent'
     with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        conns = [writer.add_connection(f'/stage/{k}', bagio.TOPIC_TYPES[k], typestore=STORE)
+        conns = [writer.add_connection(f'/stage/{k}', wire.BAG_TOPICS[k], typestore=STORE)
                  for k in ('position', 'reference', 'command')]
         writer.write(conns[0], 0, _js(0, [0.0]))
         writer.write(conns[1], 0, _js(0, [0.0], [0.0]))
@@ -505,7 +507,7 @@ def test_irregular_records_in_chunks(tmp_path):
     bag = tmp_path / 'irregular'
     rng = np.random.default_rng(3)
     with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        conns = {key: writer.add_connection(f'/stage/{key}', bagio.TOPIC_TYPES[key],
+        conns = {key: writer.add_connection(f'/stage/{key}', wire.BAG_TOPICS[key],
                                             typestore=STORE)
                  for key in ('position', 'reference', 'command')}
         other = writer.add_connection('/other', F64, typestore=STORE)
@@ -531,7 +533,7 @@ def test_irregular_records_in_chunks(tmp_path):
 def test_unstamped_messages_are_refused(tmp_path):
     bag = tmp_path / 'nostamp'
     with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        conns = {key: writer.add_connection(f'/stage/{key}', bagio.TOPIC_TYPES[key],
+        conns = {key: writer.add_connection(f'/stage/{key}', wire.BAG_TOPICS[key],
                                             typestore=STORE)
                  for key in ('position', 'reference', 'command')}
         for k in range(100):
@@ -579,7 +581,7 @@ def test_record_qos_file_covers_every_topic():
     import yaml
     path = Path(__file__).resolve().parents[1] / 'config' / 'record_qos.yaml'
     profiles = yaml.safe_load(path.read_text())
-    assert set(profiles) == set(bagio.topic_names('/stage').values())
+    assert set(profiles) == set(wire.topic_names('/stage').values())
     for profile in profiles.values():
         assert profile['reliability'] == 'reliable'
         assert profile['history'] == 'keep_last' and profile['depth'] >= 1000
@@ -597,6 +599,6 @@ def test_commands_pair_with_the_position_they_answer(command_delay_us, next_posi
     rng = np.random.default_rng(0)
     position_ns = k * next_position_us * 1000
     command_ns = position_ns + command_delay_us * 1000 + rng.integers(0, 3000, k.size)
-    offset, median_ns = bagio._command_offset(position_ns, np.sort(command_ns))
+    offset, median_ns = bagread._command_offset(position_ns, np.sort(command_ns))
     assert offset == expected
     assert median_ns >= 0.0

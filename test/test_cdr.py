@@ -12,13 +12,13 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""The loop's messages in CDR, byte for byte against the serializer of rosbags."""
+"""The CDR codec (core/cdr.py), byte for byte against the serializer of rosbags."""
 
 from __future__ import annotations
 
 import math
 
-from piezo_stage_ros.nodes import cdr
+from piezo_stage_ros.core import cdr
 import pytest
 
 typesys = pytest.importorskip('rosbags.typesys', reason='rosbags is the reference serializer')
@@ -120,3 +120,85 @@ def test_bad_bytes_are_refused():
         cdr.decode_joint_state(cdr.encode_joint_state(1, 2, ['stage'], [1.0])[:40])
     with pytest.raises(cdr.CdrError, match='12 bytes'):
         cdr.decode_float64(cdr.HEADER_LE + b'\x00' * 4)
+
+
+# --- the batch layouts of the bag tools: the same codec, many messages at once ------------
+
+LAYOUT_CASES = [
+    ('', ['stage'], 1, 0, 0),
+    ('', ['stage'], 1, 1, 0),
+    ('', ['error_v', 'integral_v_s', 'saturated'], 3, 0, 0),
+    ('frame', ['a', 'bc'], 2, 2, 1),
+    ('xyz12', [], 0, 0, 0),
+]
+
+
+@pytest.mark.parametrize('frame, names, n_pos, n_vel, n_eff', LAYOUT_CASES)
+def test_batch_layout_equals_the_reference(frame, names, n_pos, n_vel, n_eff):
+    layout = cdr.joint_state_layout(frame_id=frame, names=names, n_position=n_pos,
+                                    n_velocity=n_vel, n_effort=n_eff)
+    rng = np.random.default_rng(3)
+    n = 5
+    stamp_ns = np.array([0, 1, 999_999_999, 1_600_000_000_123_456_789, 2**31 * 10**9 - 1])
+    values = {'position': rng.normal(size=(n, n_pos)), 'velocity': rng.normal(size=(n, n_vel)),
+              'effort': rng.normal(size=(n, n_eff))}
+    rows = layout.encode(stamp_ns, {k: v for k, v in values.items() if v.shape[1]}, n)
+    for i in range(n):
+        sec, nsec = divmod(int(stamp_ns[i]), 1_000_000_000)
+        expected = reference(sec, nsec, names, values['position'][i], values['velocity'][i],
+                             values['effort'][i], frame)
+        assert rows[i].tobytes() == expected
+    ok, stamps, arrays = layout.decode(rows)
+    assert ok.all()
+    np.testing.assert_array_equal(stamps, stamp_ns)
+    for name, vals in values.items():
+        if vals.shape[1]:
+            np.testing.assert_array_equal(arrays[name], vals)
+
+
+def test_batch_layout_rejects_rows_of_another_layout():
+    layout = cdr.joint_state_layout(names=['stage'], n_position=1)
+    ours = np.frombuffer(reference(1, 2, ['stage'], [3.0]), np.uint8)
+    other = np.frombuffer(reference(1, 2, ['stagf'], [3.0]), np.uint8)  # same size
+    ok, stamps, arrays = layout.decode(np.stack([ours, other, ours]))
+    np.testing.assert_array_equal(ok, [True, False, True])
+    np.testing.assert_array_equal(arrays['position'][:, 0], [3.0, 3.0])
+
+
+def test_float64_layout_equals_the_reference():
+    layout = cdr.float64_layout()
+    data = np.array([[0.0], [-2.5], [math.inf]])
+    rows = layout.encode(None, {'data': data}, 3)
+    for i, value in enumerate(data[:, 0]):
+        assert rows[i].tobytes() == bytes(STORE.serialize_cdr(Float64(data=value),
+                                                              'std_msgs/msg/Float64'))
+    ok, stamps, arrays = layout.decode(rows)
+    assert ok.all() and stamps is None
+    np.testing.assert_array_equal(arrays['data'], data)
+
+
+@pytest.mark.parametrize('little_endian', [True, False])
+@pytest.mark.parametrize('sec, nanosec, names, position, velocity, effort, frame', CASES)
+def test_generic_decoder_reads_every_field(sec, nanosec, names, position, velocity, effort,
+                                           frame, little_endian):
+    msg = JointState(header=Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=frame),
+                     name=list(names), position=np.array(position, dtype=np.float64),
+                     velocity=np.array(velocity, dtype=np.float64),
+                     effort=np.array(effort, dtype=np.float64))
+    raw = bytes(STORE.serialize_cdr(msg, 'sensor_msgs/msg/JointState',
+                                    little_endian=little_endian))
+    got = cdr.decode_joint_state_message(raw)
+    assert (got.sec, got.nanosec, got.frame_id, got.names) == (sec, nanosec, frame, tuple(names))
+    for field, expected in (('position', position), ('velocity', velocity),
+                            ('effort', effort)):
+        np.testing.assert_array_equal(getattr(got, field), np.array(expected, dtype=float))
+        assert getattr(got, field).dtype == np.float64
+
+
+def test_generic_decoder_refuses_overruns():
+    raw = bytearray(cdr.encode_joint_state(1, 2, ['stage'], [1.0], [2.0]))
+    with pytest.raises(cdr.CdrError, match='truncated'):
+        cdr.decode_joint_state_message(bytes(raw[:-1]))
+    raw[12] = 0xFF  # frame_id length far beyond the message
+    with pytest.raises(cdr.CdrError, match='truncated'):
+        cdr.decode_joint_state_message(bytes(raw))

@@ -1,0 +1,674 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Read rosbag2 bags of runs in bulk with numpy, and align their topics by time.
+
+Reading does not build a Python message object per message. The messages of one topic have the
+same CDR layout (a 1-element array and a fixed name list), so each storage chunk is cut into a
+``(messages, bytes)`` uint8 matrix, every byte that must be constant is compared with a template
+(:class:`~piezo_stage_ros.core.cdr.Layout`, the codec the nodes use), and the stamps and values
+are taken out as numpy views. A message that does not match the template (another layout,
+big-endian CDR, a changed frame_id) is decoded by the codec's generic decoder instead, so the
+fast path is an optimisation, never a guess. MCAP files are scanned by
+:class:`~.bagfast.McapScanner`, sqlite3 files with one query per topic, anything else
+(compressed bags) through rosbags' ``Reader``.
+
+Alignment rule (:func:`read_run`): position and reference samples are paired by equal header
+stamp (exact nanoseconds); stamps present on only one of them (a recorder that started late or
+stopped early) are dropped. The command has no stamp; receive times jitter by more than a
+sample period in real recordings, so commands are paired by order: command i + offset with
+position message i, the offset (a recorder that caught a few more or fewer commands at the
+start) being the one that minimises the median log-time difference. Diagnostics are paired by
+stamp and are NaN where missing. The counts of dropped messages are in
+``record.meta['alignment']``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+import json
+from pathlib import Path, PurePath
+import sqlite3
+import struct
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from piezo_stage_ros.analysis.bagfast import describe as _describe
+from piezo_stage_ros.analysis.bagfast import McapScanner
+from piezo_stage_ros.core.cdr import (
+    CdrError,
+    decode_float64,
+    decode_joint_state_message,
+    float64_layout,
+    joint_state_layout,
+    JointStateMessage,
+    Layout,
+)
+from piezo_stage_ros.core.errors import BagError
+from piezo_stage_ros.core.record import RunRecord
+from piezo_stage_ros.core.wire import (
+    BAG_TOPICS,
+    COMMAND_TYPE,
+    META_KEY,
+    normalize_namespace,
+    REQUIRED_TOPICS,
+    stamp_to_ns,
+    topic_names,
+)
+from rosbags.rosbag2 import Reader, ReaderError
+import yaml
+
+__all__ = ['BagInfo', 'ProgressCallback', 'bag_info', 'read_run', 'read_topics']
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+ByteMatrix = NDArray[np.uint8]
+
+#: Called as ``progress(messages_read, messages_total)`` while a bag is read.
+ProgressCallback = Callable[[int, int], None]
+
+# Messages handed to the decoder at once: big enough for numpy to pay off, small enough that the
+# raw bytes of a long bag are never all in memory.
+_BATCH = 65536
+# Byte layouts kept per message size (e.g. two frame_ids of the same length).
+_LAYOUTS_PER_SIZE = 4
+
+
+
+
+@dataclass
+class BagInfo:
+    """
+    What a bag holds, from its metadata.
+
+    Attributes
+    ----------
+    path : Path
+        The bag.
+    storage : str
+        Storage identifier (``'mcap'`` or ``'sqlite3'``).
+    message_count : int
+        Messages in the bag.
+    topics : dict of str to (str, int)
+        Topic -> (message type, message count).
+    meta : dict
+        The run description written by :class:`RunBagWriter` (empty for other bags).
+    compressed : bool
+        True when rosbag2 compression is on (then the generic reader is used).
+    files : list of Path
+        Storage files.
+    decoded : dict of str to (int, int)
+        After reading: topic -> (messages decoded, of which by the bulk path).
+
+    """
+
+    path: Path
+    storage: str
+    message_count: int
+    topics: dict[str, tuple[str, int]]
+    meta: dict[str, Any]
+    compressed: bool
+    files: list[Path]
+    decoded: dict[str, tuple[int, int]] = field(default_factory=dict)
+
+
+def bag_info(path: str | Path) -> BagInfo:
+    """
+    Open a bag with rosbags and return its metadata, checking that it can be read.
+
+    Parameters
+    ----------
+    path : path-like
+        A rosbag2 directory, or a single ``.mcap`` / ``.db3`` file.
+
+    Returns
+    -------
+    BagInfo
+        Storage, topics, counts and run description.
+
+    Raises
+    ------
+    BagError
+        Not a bag, unreadable metadata, unknown storage, missing or truncated storage file.
+
+    """
+    bag = Path(path)
+    if not bag.exists():
+        raise BagError(f'bag {bag}: does not exist')
+    if bag.is_dir() and not (bag / 'metadata.yaml').is_file():
+        raise BagError(f'bag {bag}: not a rosbag2 bag (no metadata.yaml)')
+    try:
+        with Reader(bag) as reader:
+            topics: dict[str, tuple[str, int]] = {}
+            for conn in reader.connections:
+                old = topics.get(conn.topic)
+                if old is not None and old[0] != conn.msgtype:
+                    raise BagError(f'bag {bag}: topic {conn.topic} has two types, {old[0]} and '
+                                   f'{conn.msgtype}')
+                topics[conn.topic] = (conn.msgtype, (old[1] if old else 0) + conn.msgcount)
+            count = reader.message_count
+            compressed = bool(reader.compression_mode)
+    except BagError:
+        raise
+    except (ReaderError, OSError, KeyError, ValueError, TypeError, IndexError,
+            struct.error, sqlite3.Error) as err:
+        raise BagError(f'bag {bag}: cannot open it: {_describe(err)}') from None
+    except Exception as err:  # noqa: BLE001 - apsw and the storage plugins raise their own types
+        raise BagError(f'bag {bag}: cannot open it: {_describe(err)}') from None
+    storage, files, meta = _storage_files(bag)
+    return BagInfo(bag, storage, count, topics, meta, compressed, files)
+
+
+def _storage_files(bag: Path) -> tuple[str, list[Path], dict[str, Any]]:
+    if not bag.is_dir():
+        return ('mcap' if bag.suffix == '.mcap' else 'sqlite3'), [bag], {}
+    # rosbags has validated metadata.yaml already; this only picks out what it does not expose.
+    try:
+        with (bag / 'metadata.yaml').open('r', encoding='utf8') as stream:
+            info = yaml.safe_load(stream)['rosbag2_bagfile_information']
+        files = [bag / PurePath(str(name)).name for name in info['relative_file_paths']]
+    except (OSError, yaml.YAMLError, KeyError, TypeError) as err:
+        raise BagError(f'bag {bag}: cannot read metadata.yaml: {_describe(err)}') from None
+    meta: dict[str, Any] = {}
+    custom = info.get('custom_data')
+    if isinstance(custom, dict) and isinstance(custom.get(META_KEY), str):
+        try:
+            loaded = json.loads(custom[META_KEY])
+        except ValueError:
+            loaded = None
+        if isinstance(loaded, dict):
+            meta = loaded
+    return str(info['storage_identifier']), files, meta
+
+
+def _find_namespace(info: BagInfo, namespace: str | None) -> str:
+    if namespace is not None:
+        return normalize_namespace(namespace)
+    candidates = sorted({topic[:-len('/position')] for topic in info.topics
+                         if topic.endswith('/position')
+                         and f'{topic[:-len("/position")]}/command' in info.topics})
+    if len(candidates) == 1:
+        return candidates[0]
+    if not candidates:
+        raise BagError(f'bag {info.path}: no stage topics found (expected <namespace>/position, '
+                       f'/reference and /command; the bag has {sorted(info.topics) or "none"})')
+    raise BagError(f'bag {info.path}: several stages recorded ({", ".join(candidates)}); '
+                   'choose one with namespace= / --namespace')
+
+
+class _TopicData:
+    """Accumulates the decoded messages of one topic as numpy arrays."""
+
+    def __init__(self, bag: Path, topic: str, msgtype: str) -> None:
+        self.bag = bag
+        self.topic = topic
+        self.msgtype = msgtype
+        self.layouts: dict[int, list[Layout]] = {}
+        self.names: tuple[str, ...] | None = None
+        self.log_ns: list[IntArray] = []
+        self.stamp_ns: list[IntArray] = []
+        self.values: list[FloatArray] = []
+        self.pending: list[tuple[int, bytes]] = []
+        self.count = 0
+        self.fast = 0
+
+    # Messages that arrive one at a time (generic reader, unchunked MCAP) are batched first.
+    def push(self, log_ns: int, data: bytes) -> None:
+        self.pending.append((log_ns, data))
+        if len(self.pending) >= _BATCH:
+            self.flush()
+
+    def flush(self) -> None:
+        pending, self.pending = self.pending, []
+        by_size: dict[int, list[tuple[int, bytes]]] = {}
+        for item in pending:
+            by_size.setdefault(len(item[1]), []).append(item)
+        for size, items in by_size.items():
+            rows = np.frombuffer(b''.join(d for _, d in items), dtype=np.uint8)
+            self.add(np.fromiter((t for t, _ in items), dtype=np.int64, count=len(items)),
+                     rows.reshape(len(items), size))
+
+    def add(self, log_ns: IntArray, rows: ByteMatrix) -> None:
+        """Decode ``(n, size)`` raw messages of one size with their log times [ns]."""
+        n, size = rows.shape
+        if n == 0:
+            return
+        self.count += n
+        layouts = self.layouts.setdefault(size, [])
+        if not layouts:
+            layouts.append(self._layout_for(rows[0].tobytes()))
+        # Try the known layouts of this size in turn; a message none of them fits starts a new
+        # one (a few per size at most), the rest goes through the generic decoder.
+        index = 0
+        while True:
+            layout = layouts[index]
+            ok, stamps, arrays = layout.decode(rows)
+            if ok.any():
+                good = slice(None) if ok.all() else ok
+                self._append(log_ns[good], stamps, self._columns(arrays, layout.names))
+                self.fast += int(ok.sum())
+                if ok.all():
+                    return
+                rows, log_ns = rows[~ok], log_ns[~ok]
+            index += 1
+            if index == len(layouts):
+                if len(layouts) >= _LAYOUTS_PER_SIZE:
+                    break
+                layouts.append(self._layout_for(rows[0].tobytes()))
+        for i in range(rows.shape[0]):
+            self._generic(int(log_ns[i]), rows[i].tobytes())
+
+    def _layout_for(self, data: bytes) -> Layout:
+        if self.msgtype == COMMAND_TYPE:
+            self._decode_command(data)
+            layout = float64_layout()
+        else:
+            msg = self._decode_joint_state(data)
+            layout = joint_state_layout(frame_id=msg.frame_id, names=msg.names,
+                                        n_position=msg.position.size,
+                                        n_velocity=msg.velocity.size, n_effort=msg.effort.size)
+        # A layout whose template does not reproduce a real message (big-endian, other
+        # padding) would decode garbage: such messages go through the generic decoder (the
+        # layout's size never matches).
+        if layout.size != len(data):
+            return Layout(np.zeros(len(data), np.uint8), np.ones(len(data), bool), None, {}, ())
+        return layout
+
+    def _corrupt(self, err: CdrError) -> BagError:
+        return BagError(f'bag {self.bag}: a message on {self.topic} cannot be decoded as '
+                        f'{self.msgtype} (corrupt data?): {_describe(err)}')
+
+    def _decode_command(self, data: bytes) -> float:
+        try:
+            return decode_float64(data)
+        except CdrError as err:
+            raise self._corrupt(err) from None
+
+    def _decode_joint_state(self, data: bytes) -> JointStateMessage:
+        try:
+            return decode_joint_state_message(data)
+        except CdrError as err:
+            raise self._corrupt(err) from None
+
+    def _generic(self, log_ns: int, data: bytes) -> None:
+        stamps: IntArray | None = None
+        if self.msgtype == COMMAND_TYPE:
+            arrays = {'data': np.array([[self._decode_command(data)]])}
+            names: tuple[str, ...] = ()
+        else:
+            msg = self._decode_joint_state(data)
+            stamps = np.array([stamp_to_ns(msg.sec, msg.nanosec)], dtype=np.int64)
+            names = msg.names
+            arrays = {'position': msg.position.reshape(1, -1),
+                      'velocity': msg.velocity.reshape(1, -1)}
+        self._append(np.array([log_ns], dtype=np.int64), stamps, self._columns(arrays, names))
+
+    def _columns(self, arrays: Mapping[str, FloatArray], names: tuple[str, ...]) -> FloatArray:
+        if self.msgtype == COMMAND_TYPE:
+            return arrays['data'][:, :1]
+        position = arrays.get('position')
+        n = 0 if position is None else position.shape[0]
+        if self.names is None:
+            self.names = names
+        if self.topic.endswith('/diagnostics'):
+            if names != self.names:
+                raise BagError(f'bag {self.bag}: the names on {self.topic} change from '
+                               f'{list(self.names)} to {list(names)}')
+            assert position is not None
+            return position
+        if position is None or position.shape[1] < 1:
+            raise BagError(f'bag {self.bag}: a message on {self.topic} has an empty position')
+        velocity = arrays.get('velocity')
+        out = np.full((n, 2), np.nan)
+        out[:, 0] = position[:, 0]
+        if velocity is not None and velocity.shape[1] >= 1:
+            out[:, 1] = velocity[:, 0]
+        return out
+
+    def _append(self, log_ns: IntArray, stamp_ns: IntArray | None, values: FloatArray) -> None:
+        self.log_ns.append(log_ns)
+        if stamp_ns is not None:
+            self.stamp_ns.append(stamp_ns)
+        self.values.append(values)
+
+    def finish(self) -> tuple[IntArray, IntArray | None, FloatArray]:
+        """Return log times, stamps (None for unstamped) and values, ordered by time."""
+        self.flush()
+        log_ns = np.concatenate(self.log_ns) if self.log_ns else np.zeros(0, np.int64)
+        width = len(self.names or ()) if self.topic.endswith('/diagnostics') else (
+            1 if self.msgtype == COMMAND_TYPE else 2)
+        values = np.concatenate(self.values) if self.values else np.zeros((0, width))
+        stamps = None
+        if self.msgtype != COMMAND_TYPE:
+            stamps = np.concatenate(self.stamp_ns) if self.stamp_ns else np.zeros(0, np.int64)
+        key = log_ns if stamps is None else stamps
+        order = np.argsort(key, kind='stable')
+        if np.any(order != np.arange(order.size)):
+            log_ns, values = log_ns[order], values[order]
+            stamps = None if stamps is None else stamps[order]
+        return log_ns, stamps, values
+
+
+
+def _scan_sqlite(bag: Path, file: Path, wanted: Mapping[str, _TopicData],
+                 tick: Callable[[int], None]) -> None:
+    try:
+        con = sqlite3.connect(f'file:{file}?mode=ro', uri=True)
+    except sqlite3.Error as err:
+        raise BagError(f'bag {bag}: cannot open {file.name}: {_describe(err)}') from None
+    try:
+        ids = {name: tid for tid, name in con.execute('SELECT id, name FROM topics')}
+        for name, topic in wanted.items():
+            if name not in ids:
+                continue
+            cursor = con.execute('SELECT timestamp, data FROM messages WHERE topic_id = ? '
+                                 'ORDER BY id', (ids[name],))
+            while rows := cursor.fetchmany(_BATCH):
+                sizes = {len(data) for _, data in rows}
+                if len(sizes) == 1:
+                    size = sizes.pop()
+                    log_ns = np.fromiter((t for t, _ in rows), dtype=np.int64, count=len(rows))
+                    raw = np.frombuffer(b''.join(d for _, d in rows), dtype=np.uint8)
+                    topic.add(log_ns, raw.reshape(len(rows), size))
+                else:
+                    for log, data in rows:
+                        topic.push(int(log), bytes(data))
+                    topic.flush()
+                tick(len(rows))
+    except sqlite3.Error as err:
+        raise BagError(f'bag {bag}: corrupt sqlite3 storage: {_describe(err)}') from None
+    finally:
+        con.close()
+
+
+def _scan_generic(info: BagInfo, wanted: Mapping[str, _TopicData],
+                  tick: Callable[[int], None]) -> None:
+    try:
+        with Reader(info.path) as reader:
+            connections = [c for c in reader.connections if c.topic in wanted]
+            for connection, log_ns, data in reader.messages(connections=connections):
+                wanted[connection.topic].push(log_ns, bytes(data))
+                tick(1)
+    except BagError:
+        raise
+    except Exception as err:  # noqa: BLE001 - storage plugins and decompressors vary
+        raise BagError(f'bag {info.path}: cannot read messages: {_describe(err)}') from None
+    for topic in wanted.values():
+        topic.flush()
+
+
+def _progress_ticker(progress: ProgressCallback | None, total: int) -> Callable[[int], None]:
+    if progress is None:
+        return lambda n: None
+    done = [0]
+    every = max(total // 100, 1)
+    last = [0]
+
+    def tick(n: int) -> None:
+        done[0] += n
+        if done[0] - last[0] >= every or done[0] >= total:
+            last[0] = done[0]
+            progress(done[0], total)
+    return tick
+
+
+def read_topics(path: str | Path, *, namespace: str | None = None,
+                progress: ProgressCallback | None = None
+                ) -> tuple[BagInfo, str, dict[str, tuple[IntArray, IntArray | None, FloatArray]],
+                           dict[str, tuple[str, ...]]]:
+    """
+    Read the stage topics of a bag as numpy arrays, without aligning them.
+
+    Parameters
+    ----------
+    path : path-like
+        The bag.
+    namespace : str, optional
+        Topic namespace; found from the bag when there is exactly one stage in it.
+    progress : callable, optional
+        Called as ``progress(messages_read, messages_total)`` about a hundred times.
+
+    Returns
+    -------
+    info : BagInfo
+        Metadata of the bag.
+    namespace : str
+        The namespace used.
+    topics : dict
+        Relative topic name -> (log times [ns], header stamps [ns] or None, values).
+    names : dict
+        Relative topic name -> JointState names seen (for diagnostics: the keys).
+
+    Raises
+    ------
+    BagError
+        See :func:`read_run`.
+
+    """
+    info = bag_info(path)
+    ns = _find_namespace(info, namespace)
+    topics = topic_names(ns)
+    if info.message_count == 0:
+        raise BagError(f'bag {info.path}: bag is empty (no messages)')
+    for key in REQUIRED_TOPICS:
+        if topics[key] not in info.topics:
+            raise BagError(f'bag {info.path}: topic {topics[key]} is missing')
+    for key, topic in topics.items():
+        if topic in info.topics and info.topics[topic][0] != BAG_TOPICS[key]:
+            raise BagError(f'bag {info.path}: topic {topic} has type {info.topics[topic][0]}, '
+                           f'expected {BAG_TOPICS[key]}')
+    wanted = {topic: _TopicData(info.path, topic, BAG_TOPICS[key])
+              for key, topic in topics.items() if topic in info.topics}
+    total = sum(info.topics[t][1] for t in wanted)
+    tick = _progress_ticker(progress, total)
+    if info.compressed or info.storage not in ('mcap', 'sqlite3'):
+        _scan_generic(info, wanted, tick)
+    else:
+        for file in info.files:
+            if info.storage == 'mcap':
+                McapScanner(info.path, file, wanted, tick).scan()
+            else:
+                _scan_sqlite(info.path, file, wanted, tick)
+    out = {}
+    names = {}
+    for key, topic in topics.items():
+        if topic in wanted:
+            out[key] = wanted[topic].finish()
+            names[key] = wanted[topic].names or ()
+            info.decoded[topic] = (wanted[topic].count, wanted[topic].fast)
+    for key in REQUIRED_TOPICS:
+        if out[key][0].size == 0:
+            raise BagError(f'bag {info.path}: topic {topics[key]} has no messages')
+    return info, ns, out, names
+
+
+def _unique_first(stamps: IntArray) -> NDArray[np.intp]:
+    # Indices of the first message of each stamp (a republished sample counts once).
+    if stamps.size < 2:
+        return np.arange(stamps.size)
+    keep = np.ones(stamps.size, dtype=bool)
+    keep[1:] = stamps[1:] != stamps[:-1]
+    return np.flatnonzero(keep)
+
+
+def _command_offset(position_log_ns: IntArray, command_log_ns: IntArray,
+                    search: int = 50) -> tuple[int, float]:
+    """
+    Find the index offset that pairs position and command messages, by their log times.
+
+    Receive times jitter by more than a sample period in a real recording (bursts of several
+    milliseconds were seen at 1 kHz), so nearest-log-time matching mispairs; both topics are
+    published in sample order over reliable QoS, so pairing by index is right once the offset
+    at the start is known. The command of sample k is computed from the position of sample k,
+    so it is received after it: among the offsets whose median log-time difference
+    command - position is not negative, the one with the smallest median is chosen (causal
+    pairing). Nearest-in-time would be wrong for a lockstep recording, where the plant publishes
+    sample k+1 right after command k arrives, closer to it than sample k. Only when no offset
+    is causal (clock trouble) does the smallest median absolute difference decide. A command
+    that comes back later than one sample period cannot be told apart from the next one by log
+    times; the command message has no stamp (design section 6).
+
+    Parameters
+    ----------
+    position_log_ns : ndarray of int64
+        Log times of the position messages in stamp order [ns].
+    command_log_ns : ndarray of int64
+        Log times of the command messages, sorted [ns].
+    search : int
+        Largest offset tried, in messages.
+
+    Returns
+    -------
+    offset : int
+        Command index = position index + offset.
+    median_ns : float
+        Median log-time difference command - position at that offset [ns].
+
+    """
+    n, m = position_log_ns.size, command_log_ns.size
+    causal: tuple[float, int, float] | None = None
+    nearest: tuple[float, int, float] | None = None
+    for offset in sorted(range(-search, search + 1), key=abs):
+        lo, hi = max(0, -offset), min(n, m - offset)
+        if hi - lo < min(n, m) // 2 or hi <= lo:
+            continue
+        # A few thousand pairs spread over the run decide the median as well as all of them.
+        pick = np.linspace(lo, hi - 1, min(hi - lo, 4096)).astype(np.int64)
+        delta = command_log_ns[pick + offset] - position_log_ns[pick]
+        median = float(np.median(delta))
+        cost = float(np.median(np.abs(delta)))
+        if median >= 0.0 and (causal is None or median < causal[0]):
+            causal = (median, offset, median)
+        if nearest is None or cost < nearest[0]:
+            nearest = (cost, offset, median)
+    best = causal if causal is not None else nearest
+    if best is None:
+        return 0, 0.0
+    return best[1], best[2]
+
+
+def read_run(path: str | Path, *, namespace: str | None = None,
+             progress: ProgressCallback | None = None, relative_time: bool = False) -> RunRecord:
+    """
+    Read a bag into a run record, aligning its topics by time.
+
+    Alignment: position and reference are paired by equal header stamps; the command (no stamp)
+    is paired by order, command i + offset with position message i, the offset found from the
+    log times (:func:`_command_offset`); diagnostics are paired by stamp (NaN where missing).
+    Samples that cannot be paired are dropped and counted in ``meta['alignment']``.
+
+    Parameters
+    ----------
+    path : path-like
+        A rosbag2 bag directory (MCAP or sqlite3), or a single ``.mcap``/``.db3`` file.
+    namespace : str, optional
+        Topic namespace (``'/stage'``); found from the bag when it holds exactly one stage.
+    progress : callable, optional
+        Called as ``progress(messages_read, messages_total)`` while reading.
+    relative_time : bool
+        Give ``time_s`` from the first aligned stamp, computed in integer nanoseconds (stamps
+        since the epoch lose 0.2 us to float64 otherwise).
+
+    Returns
+    -------
+    RunRecord
+        ``time_s`` are the header stamps [s] (from the first one with ``relative_time``);
+        ``meta`` is the run description stored in the bag plus ``bag``, ``namespace``,
+        ``storage``, ``alignment`` and ``time_origin_ns`` (the first aligned stamp).
+
+    Raises
+    ------
+    BagError
+        Not a bag, empty bag, missing topic, wrong message type on a known topic, truncated or
+        corrupt file, unknown storage, or no sample that can be aligned; the message names the
+        bag and the problem.
+
+    """
+    info, ns, topics, names = read_topics(path, namespace=namespace, progress=progress)
+    pos_log, pos_stamp, pos_val = topics['position']
+    ref_log, ref_stamp, ref_val = topics['reference']
+    cmd_log, _, cmd_val = topics['command']
+    assert pos_stamp is not None and ref_stamp is not None
+    pi = _unique_first(pos_stamp)
+    ri = _unique_first(ref_stamp)
+    for key, stamps, unique in (('position', pos_stamp, pi), ('reference', ref_stamp, ri)):
+        # A publisher that does not stamp its messages gives one sample for the whole run.
+        if stamps.size >= 4 and unique.size < stamps.size // 2:
+            raise BagError(f'bag {info.path}: topic {ns}/{key} has {stamps.size} messages but '
+                           f'only {unique.size} distinct header stamps; are the messages '
+                           'stamped with the sample time?')
+    # The command of position message i (in stamp order) is command message i + offset (in
+    # log-time order); the offset absorbs a recorder that started a few messages late or early.
+    order = np.argsort(cmd_log, kind='stable')
+    offset, residual_ns = _command_offset(pos_log[pi], cmd_log[order])
+    idx = np.arange(pi.size) + offset
+    has_cmd = (idx >= 0) & (idx < order.size)
+    pi, cmd_pick = pi[has_cmd], order[idx[has_cmd]]
+    common, ia, ib = np.intersect1d(pos_stamp[pi], ref_stamp[ri], assume_unique=True,
+                                    return_indices=True)
+    pi, ri, cmd_pick = pi[ia], ri[ib], cmd_pick[ia]
+    if common.size == 0:
+        raise BagError(f'bag {info.path}: no position, reference and command messages that '
+                       'belong to the same sample; nothing to align')
+    command = cmd_val[cmd_pick, 0]
+    diagnostics: dict[str, FloatArray] = {}
+    if 'diagnostics' in topics:
+        _, diag_stamp, diag_val = topics['diagnostics']
+        assert diag_stamp is not None
+        di = _unique_first(diag_stamp)
+        k = np.searchsorted(diag_stamp[di], common)
+        k = np.clip(k, 0, max(di.size - 1, 0))
+        found = (di.size > 0) & (diag_stamp[di][k] == common) if di.size else np.zeros(
+            common.size, dtype=bool)
+        for col, key in enumerate(names.get('diagnostics', ())):
+            column = np.full(common.size, np.nan)
+            if di.size:
+                column[found] = diag_val[di[k[found]], col]
+            diagnostics[key] = column
+    meta = dict(info.meta)
+    origin_ns = int(common[0])
+    meta.update({
+        'bag': str(info.path),
+        'time_origin_ns': origin_ns,
+        'namespace': ns,
+        'storage': info.storage,
+        'alignment': {
+            'samples': int(common.size),
+            'position_messages': int(pos_stamp.size),
+            'reference_messages': int(ref_stamp.size),
+            'command_messages': int(cmd_log.size),
+            'dropped_position': int(pos_stamp.size - common.size),
+            'dropped_reference': int(ref_stamp.size - common.size),
+            'dropped_command': int(cmd_log.size - common.size),
+            'command_offset': int(offset),
+            'command_log_delay_median_s': float(residual_ns) / 1e9,
+        },
+        # How many messages the bulk decoder took (the rest went through rosbags one by one).
+        'decoding': {topic: {'messages': count, 'bulk': fast}
+                     for topic, (count, fast) in info.decoded.items()},
+    })
+    return RunRecord(
+        time_s=(common - origin_ns) / 1e9 if relative_time else common / 1e9,
+        position_m=pos_val[pi, 0],
+        reference_m=ref_val[ri, 0],
+        reference_velocity_mps=ref_val[ri, 1],
+        command_v=command,
+        diagnostics=diagnostics,
+        meta=meta,
+    )
+
+

@@ -1,0 +1,208 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The wire contract of a stage: topics, message types, joint name, stamps and diagnostics.
+
+One module says what goes over the wire and into a bag; the nodes, the launch file, the bag
+writer and the bag reader take it from here (rclpy- and rosbags-free, so it lives in ``core``:
+the offline loop reads the controller's diagnostics with the same reader as the nodes). The
+bytes themselves are :mod:`piezo_stage_ros.core.cdr`.
+
+Topics, relative to the launch namespace (several stages side by side), all under the stage
+prefix ``stage/``; under the root namespace the bag of a run has them as ``/stage/position`` ...
+(:data:`DEFAULT_NAMESPACE`, the bag's *namespace* is everything before the last ``/``):
+
+- ``stage/position``, ``sensor_msgs/msg/JointState``: stamp t_k, name ['stage'], position [y_k] m;
+- ``stage/reference``, ``sensor_msgs/msg/JointState``: stamp t_k, name ['stage'],
+  position [x_d] m, velocity [x_d'] m/s;
+- ``stage/command``, ``std_msgs/msg/Float64``: amplifier input u_k [V], held over the sample
+  (no stamp);
+- ``stage/diagnostics``, ``sensor_msgs/msg/JointState``: stamp t_k, name [keys],
+  position [values]: the controller's internals, keys in sorted order
+  (:func:`diagnostic_reader`);
+- ``stage/status``, ``diagnostic_msgs/msg/DiagnosticStatus``: plant counters, about once a second;
+- ``/clock``, ``rosgraph_msgs/msg/Clock``: t_k, lockstep only (absolute: one clock per graph).
+
+Stamps are ``builtin_interfaces/msg/Time`` (int32 sec, uint32 nanosec) of the sample time;
+:func:`ns_to_stamp` and :func:`stamp_to_ns` convert, in integer nanoseconds.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+import math
+import operator
+import re
+from typing import Final
+
+from piezo_stage_ros.core.errors import BagError
+from piezo_stage_ros.core.interfaces import Controller
+
+__all__ = [
+    'BAG_TOPICS', 'CLOCK', 'CLOCK_TYPE', 'COMMAND', 'COMMAND_TYPE', 'DEFAULT_NAMESPACE',
+    'DIAGNOSTICS', 'JOINT_NAME', 'JOINT_STATE_TYPE', 'META_KEY', 'NS_PER_S', 'POSITION',
+    'RECORDED_TOPICS', 'REFERENCE', 'REQUIRED_TOPICS', 'STAGE', 'STATUS', 'STATUS_TYPE',
+    'TOPIC_TYPES', 'diagnostic_reader', 'normalize_namespace', 'ns_to_stamp', 'stamp_to_ns',
+    'topic_names',
+]
+
+JOINT_STATE_TYPE: Final = 'sensor_msgs/msg/JointState'
+COMMAND_TYPE: Final = 'std_msgs/msg/Float64'
+CLOCK_TYPE: Final = 'rosgraph_msgs/msg/Clock'
+STATUS_TYPE: Final = 'diagnostic_msgs/msg/DiagnosticStatus'
+
+#: The stage's topic prefix, and the name of its one joint in every JointState.
+STAGE: Final = 'stage'
+JOINT_NAME: Final = STAGE
+
+#: The topics of a run in a bag: the last part of the name -> message type, in the order the
+#: nodes publish a sample (``diagnostics`` is optional, the others are required).
+BAG_TOPICS: Final[Mapping[str, str]] = {
+    'position': JOINT_STATE_TYPE,
+    'reference': JOINT_STATE_TYPE,
+    'command': COMMAND_TYPE,
+    'diagnostics': JOINT_STATE_TYPE,
+}
+REQUIRED_TOPICS: Final = ('position', 'reference', 'command')
+
+POSITION: Final = f'{STAGE}/position'
+REFERENCE: Final = f'{STAGE}/reference'
+COMMAND: Final = f'{STAGE}/command'
+DIAGNOSTICS: Final = f'{STAGE}/diagnostics'
+#: Plant counters (late samples, resends, watchdog trips, bridge losses), about once a second.
+STATUS: Final = f'{STAGE}/status'
+CLOCK: Final = '/clock'
+
+#: Topic name as the nodes use it (relative, except ``/clock``) -> message type.
+TOPIC_TYPES: Final[Mapping[str, str]] = {
+    **{f'{STAGE}/{leaf}': msgtype for leaf, msgtype in BAG_TOPICS.items()},
+    STATUS: STATUS_TYPE,
+    CLOCK: CLOCK_TYPE,
+}
+#: What ``ros2 bag record`` takes from a stage (relative to the launch namespace).
+RECORDED_TOPICS: Final = (POSITION, REFERENCE, COMMAND, DIAGNOSTICS, STATUS)
+
+#: The bag namespace of a stage launched in the root namespace.
+DEFAULT_NAMESPACE: Final = '/' + STAGE
+#: Key of the run description (JSON) in a bag's ``custom_data``.
+META_KEY: Final = 'piezo_stage_ros.meta'
+
+NS_PER_S: Final = 1_000_000_000
+
+_NAMESPACE_RE = re.compile(r'^(/[A-Za-z][A-Za-z0-9_]*)*$')
+
+
+def ns_to_stamp(stamp_ns: int) -> tuple[int, int]:
+    """Return ``(sec, nanosec)`` of a ``builtin_interfaces/Time`` for ``stamp_ns`` [ns] >= 0."""
+    return divmod(int(stamp_ns), NS_PER_S)
+
+
+def stamp_to_ns(sec: int, nanosec: int) -> int:
+    """Return the nanoseconds of a ``builtin_interfaces/Time`` (``sec`` [s], ``nanosec`` [ns])."""
+    return int(sec) * NS_PER_S + int(nanosec)
+
+
+def normalize_namespace(namespace: str) -> str:
+    """
+    Return a bag namespace in absolute form without a trailing ``/`` (``''`` for the root).
+
+    Parameters
+    ----------
+    namespace : str
+        ROS namespace, e.g. ``'/stage'``, ``'stage'``, ``'/'``.
+
+    Raises
+    ------
+    BagError
+        If it is not a valid ROS namespace.
+
+    """
+    ns = namespace.rstrip('/')
+    if ns and not ns.startswith('/'):
+        ns = '/' + ns
+    if not _NAMESPACE_RE.match(ns):
+        raise BagError(
+            f'namespace {namespace!r} is not a valid ROS namespace; allowed: '
+            "'/name[/name...]' of letters, digits and '_' (each part starting with a letter)")
+    return ns
+
+
+def topic_names(namespace: str = DEFAULT_NAMESPACE) -> dict[str, str]:
+    """
+    Return the absolute topic names of a run under a namespace.
+
+    Parameters
+    ----------
+    namespace : str
+        ROS namespace, e.g. ``'/stage'`` (``''`` or ``'/'`` for the root).
+
+    Returns
+    -------
+    dict of str to str
+        ``{'position': '/stage/position', 'reference': ..., 'command': ..., 'diagnostics': ...}``.
+
+    """
+    ns = normalize_namespace(namespace)
+    return {key: f'{ns}/{key}' for key in BAG_TOPICS}
+
+
+def diagnostic_reader(controller: Controller
+                      ) -> tuple[tuple[str, ...], Callable[[], Sequence[float]]]:
+    """
+    Return a controller's diagnostic names in wire order and a function reading their values.
+
+    The wire order is the sorted order of the names, whichever way the controller offers them:
+    the cheap pair ``diagnostic_names`` (a tuple of str) / ``diagnostic_values()`` (floats in
+    that order), or else its ``diagnostics()`` mapping. Sorted, because bags have always stored
+    the keys sorted, and because then a controller's layout does not depend on the order in
+    which it happens to build its mapping: the offline loop, the controller node and a bag all
+    carry the same columns in the same order.
+
+    Parameters
+    ----------
+    controller : Controller
+        The controller whose internals are read.
+
+    Returns
+    -------
+    names : tuple of str
+        Diagnostic names, sorted.
+    read : callable
+        ``read()`` returns the current values in the order of ``names``; a name the mapping
+        no longer has reads as NaN.
+
+    """
+    names = getattr(controller, 'diagnostic_names', None)
+    values = getattr(controller, 'diagnostic_values', None)
+    if isinstance(names, tuple) and callable(values):
+        declared = tuple(str(n) for n in names)
+        order = sorted(range(len(declared)), key=declared.__getitem__)
+        keys = tuple(declared[i] for i in order)
+        if order == list(range(len(order))):
+            return keys, values
+        if len(order) == 1:  # itemgetter of one index returns the item, not a tuple
+            return keys, lambda: (values()[0],)
+        pick = operator.itemgetter(*order)
+        return keys, lambda: pick(values())  # type: ignore[no-any-return]
+    keys = tuple(sorted(controller.diagnostics()))
+    diagnostics = controller.diagnostics
+
+    def read() -> Sequence[float]:
+        d = diagnostics()
+        try:
+            return [float(d[k]) for k in keys]
+        except KeyError:  # a controller whose diagnostics change shape: NaN for the missing
+            return [float(d.get(k, math.nan)) for k in keys]
+    return keys, read
