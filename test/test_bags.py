@@ -14,6 +14,8 @@
 
 """Bags written with rosbags in tmp_path and read back: round trips, alignment, bad bags."""
 
+import json
+import math
 from pathlib import Path
 import shutil
 
@@ -252,7 +254,7 @@ def _f64(value):
 
 
 def _write_graph_bag(bag, n=400, *, skip_cmd_start=0, extra_cmd_end=0, jitter_ns=3_000_000,
-                     frame_ids=('',), compression=None):
+                     frame_ids=('',), compression=None, cmd_every=1):
     """A bag as the ROS graph gives it: receive times jitter, ends a little ragged."""
     rng = np.random.default_rng(1)
     period = 1_000_000
@@ -281,7 +283,7 @@ def _write_graph_bag(bag, n=400, *, skip_cmd_start=0, extra_cmd_end=0, jitter_ns
                                                           frame_id=frame))
                 writer.write(conns['reference'], log + 1000,
                              _js(t0 + k * period, [k * 1e-9 + 1e-8], [2.0], frame_id=frame))
-            if k >= skip_cmd_start:
+            if k >= skip_cmd_start and k % cmd_every == 0:
                 writer.write(conns['command'], int(cmd_logs[k]), _f64(k * 0.001))
 
 
@@ -297,6 +299,26 @@ def test_graph_bag_with_jitter_and_ragged_ends(tmp_path):
     np.testing.assert_allclose(rec.position_m - rec.reference_m, -1e-8, atol=1e-20)
     assert rec.meta['alignment']['command_offset'] == -3
     assert rec.meta['alignment']['dropped_command'] == 2
+
+
+def test_real_time_bag_with_most_commands_missing_is_analysed_with_a_warning(tmp_path, capsys):
+    # a real-time run through separate processes: one command recorded for 20 samples (late or
+    # lost); the commands carry no stamp, so they cannot be paired, but the tracking error can
+    bag = tmp_path / 'sparse'
+    _write_graph_bag(bag, cmd_every=20)
+    rec = read_run(bag)
+    assert len(rec) == 400 and np.isnan(rec.command_v).all()
+    np.testing.assert_allclose(rec.position_m - rec.reference_m, -1e-8, atol=1e-20)
+    align = rec.meta['alignment']
+    assert not align['commands_paired']
+    assert '20 commands for 400 positions' in align['warnings'][0]
+    from piezo_stage_ros import analyze
+    assert analyze.main([str(bag), '--json']) == 0
+    out = capsys.readouterr()
+    assert 'analyze: warning: bag' in out.err and 'cannot be paired' in out.err
+    summary = json.loads(out.out.splitlines()[-1])
+    assert summary['samples'] == 400 and summary['command_min_v'] is None
+    assert math.isclose(summary['e_rms_all_m'], 1e-8, rel_tol=1e-9)
 
 
 def test_mixed_layouts_use_the_generic_decoder_where_needed(tmp_path):

@@ -569,7 +569,10 @@ def read_run(path: str | Path, *, namespace: str | None = None,
     Alignment: position and reference are paired by equal header stamps; the command (no stamp)
     is paired by order, command i + offset with position message i, the offset found from the
     log times (:func:`_command_offset`); diagnostics are paired by stamp (NaN where missing).
-    Samples that cannot be paired are dropped and counted in ``meta['alignment']``.
+    Samples that cannot be paired are dropped and counted in ``meta['alignment']``. When far
+    fewer commands than positions were recorded (fewer than half: a real-time run whose commands
+    came late or not at all), or none pairs, the commands are left out (NaN) and every sample
+    with a position and a reference is kept, with a warning in ``meta['alignment']['warnings']``.
 
     Parameters
     ----------
@@ -617,14 +620,31 @@ def read_run(path: str | Path, *, namespace: str | None = None,
     offset, residual_ns = _command_offset(pos_log[pi], cmd_log[order])
     idx = np.arange(pi.size) + offset
     has_cmd = (idx >= 0) & (idx < order.size)
-    pi, cmd_pick = pi[has_cmd], order[idx[has_cmd]]
-    common, ia, ib = np.intersect1d(pos_stamp[pi], ref_stamp[ri], assume_unique=True,
-                                    return_indices=True)
-    pi, ri, cmd_pick = pi[ia], ri[ib], cmd_pick[ia]
-    if common.size == 0:
-        raise BagError(f'bag {info.path}: no position, reference and command messages that '
-                       'belong to the same sample; nothing to align')
-    command = cmd_val[cmd_pick, 0]
+    warnings: list[str] = []
+    by_order = order.size >= pi.size // 2
+    if by_order:
+        pi_cmd, cmd_pick = pi[has_cmd], order[idx[has_cmd]]
+        common, ia, ib = np.intersect1d(pos_stamp[pi_cmd], ref_stamp[ri], assume_unique=True,
+                                        return_indices=True)
+    if not by_order or common.size == 0:
+        # Commands carry no stamp; when far fewer came than positions (a real-time run whose
+        # commands came late or not at all) they cannot be paired by order. The tracking error
+        # needs position and reference only: every sample that has both is kept, the command
+        # is NaN, and the bag is analysed with a warning instead of refused.
+        common, ia, ib = np.intersect1d(pos_stamp[pi], ref_stamp[ri], assume_unique=True,
+                                        return_indices=True)
+        if common.size == 0:
+            raise BagError(f'bag {info.path}: no position and reference messages that belong '
+                           'to the same sample; nothing to align')
+        warnings.append(f'{cmd_log.size} commands for {pi.size} positions: commands (no '
+                        'stamp) cannot be paired with their samples; the tracking error is over '
+                        f'all {common.size} samples, the command is left out (NaN)')
+        pi, ri = pi[ia], ri[ib]
+        command = np.full(common.size, np.nan)
+        offset, residual_ns = 0, 0.0
+    else:
+        pi, ri, cmd_pick = pi_cmd[ia], ri[ib], cmd_pick[ia]
+        command = cmd_val[cmd_pick, 0]
     diagnostics: dict[str, FloatArray] = {}
     if 'diagnostics' in topics:
         _, diag_stamp, diag_val = topics['diagnostics']
@@ -656,6 +676,8 @@ def read_run(path: str | Path, *, namespace: str | None = None,
             'dropped_command': int(cmd_log.size - common.size),
             'command_offset': int(offset),
             'command_log_delay_median_s': float(residual_ns) / 1e9,
+            'commands_paired': bool(np.isfinite(command).any()),
+            'warnings': warnings,
         },
         # How many messages the bulk decoder took (the rest went through rosbags one by one).
         'decoding': {topic: {'messages': count, 'bulk': fast}

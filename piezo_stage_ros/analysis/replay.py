@@ -249,6 +249,7 @@ def analyze_bag(path: str | Path, *, namespace: str | None = None,
     if dropped:
         notes.append('messages that could not be aligned were dropped: '
                      + ', '.join(f'{k[8:]} {v}' for k, v in dropped.items()))
+    notes += [f'warning: {text}' for text in align.get('warnings', ())]
     estimate = None
     if bode or (bode is None and is_excitation_run(record.meta)):
         try:
