@@ -238,14 +238,14 @@ def test_shared_jazzy_bags(name):
     assert all(d['bulk'] == d['messages'] == 3000 for d in rec.meta['decoding'].values())
 
 
-def _js(stamp_ns, position, velocity=(), frame_id='', names=('stage',)):
+def _js(stamp_ns, position, velocity=(), frame_id='', names=('stage',), effort=()):
     msg = STORE.types[JS](
         header=STORE.types['std_msgs/msg/Header'](
             stamp=STORE.types['builtin_interfaces/msg/Time'](sec=stamp_ns // 10**9,
                                                              nanosec=stamp_ns % 10**9),
             frame_id=frame_id),
         name=list(names), position=np.array(position, dtype=float),
-        velocity=np.array(velocity, dtype=float), effort=np.array([], dtype=float))
+        velocity=np.array(velocity, dtype=float), effort=np.array(effort, dtype=float))
     return STORE.serialize_cdr(msg, JS)
 
 
@@ -254,7 +254,7 @@ def _f64(value):
 
 
 def _write_graph_bag(bag, n=400, *, skip_cmd_start=0, extra_cmd_end=0, jitter_ns=3_000_000,
-                     frame_ids=('',), compression=None, cmd_every=1):
+                     frame_ids=('',), compression=None, cmd_every=1, applied_missing=None):
     """A bag as the ROS graph gives it: receive times jitter, ends a little ragged."""
     rng = np.random.default_rng(1)
     period = 1_000_000
@@ -264,9 +264,11 @@ def _write_graph_bag(bag, n=400, *, skip_cmd_start=0, extra_cmd_end=0, jitter_ns
     if compression:
         writer.set_compression(compression, CompressionFormat.ZSTD)
     with writer:
+        keys = ('position', 'reference', 'command') + (
+            ('applied',) if applied_missing is not None else ())
         conns = {key: writer.add_connection(f'/stage/{key}', wire.BAG_TOPICS[key],
                                             typestore=STORE)
-                 for key in ('position', 'reference', 'command')}
+                 for key in keys}
         # Bursty delivery: a receive time may lag by several periods, never reorders a topic.
         lag = np.maximum.accumulate(rng.uniform(0, jitter_ns, n + extra_cmd_end)
                                     + np.arange(n + extra_cmd_end) * period) - np.arange(
@@ -283,6 +285,10 @@ def _write_graph_bag(bag, n=400, *, skip_cmd_start=0, extra_cmd_end=0, jitter_ns
                                                           frame_id=frame))
                 writer.write(conns['reference'], log + 1000,
                              _js(t0 + k * period, [k * 1e-9 + 1e-8], [2.0], frame_id=frame))
+                if applied_missing is not None and k not in applied_missing:
+                    # what the plant held over sample k, published after it (as the node does)
+                    writer.write(conns['applied'], log + 2000,
+                                 _js(t0 + k * period, [], effort=[k * 0.002]))
             if k >= skip_cmd_start and k % cmd_every == 0:
                 writer.write(conns['command'], int(cmd_logs[k]), _f64(k * 0.001))
 
@@ -319,6 +325,23 @@ def test_real_time_bag_with_most_commands_missing_is_analysed_with_a_warning(tmp
     summary = json.loads(out.out.splitlines()[-1])
     assert summary['samples'] == 400 and summary['command_min_v'] is None
     assert math.isclose(summary['e_rms_all_m'], 1e-8, rel_tol=1e-9)
+
+
+@pytest.mark.parametrize('missing', [(), (5, 6, 399)])
+def test_real_time_bag_takes_the_applied_input_by_stamp(tmp_path, missing):
+    # stage/applied: what the plant held over each sample, stamped; commands (sparse, no stamp)
+    # are not needed; a sample without its applied message gets NaN and a warning
+    bag = tmp_path / 'applied'
+    _write_graph_bag(bag, cmd_every=20, applied_missing=missing)
+    rec = read_run(bag)
+    assert len(rec) == 400
+    k = np.round((rec.time_s - 1.7e9) * 1e3).astype(int)
+    expected = np.where(np.isin(k, missing), np.nan, k * 0.002)
+    np.testing.assert_array_equal(rec.command_v, expected)
+    align = rec.meta['alignment']
+    assert align['command_source'] == 'applied'
+    assert align['warnings'] == (['3 of 400 samples have no applied input recorded '
+                                  '(stage/applied); their command is NaN'] if missing else [])
 
 
 def test_mixed_layouts_use_the_generic_decoder_where_needed(tmp_path):

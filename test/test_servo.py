@@ -290,3 +290,11 @@ def test_servo_loop_of_the_plant_alone_drives_the_safe_voltage_when_commands_sto
     assert taken_s[first_safe] - command_s > 0.01 >= taken_s[first_safe - 1] - command_s
     stats = loop.stats()
     assert stats['watchdog_trips'] == 1 and stats['safe_samples'] == len(got) - first_safe
+
+
+def test_servo_loop_keeps_the_voltage_held_after_the_last_sample():
+    loop = servo(FakeClock(per_read=300), 0.001)
+    loop.run()
+    got = loop.drain()
+    # held over the sample after the last one (the plant's stop then drives the safe voltage)
+    assert loop.held_v == got[-1].command_v and loop.plant.held_v == loop.plant.safe_v

@@ -314,7 +314,8 @@ class _TopicData:
             stamps = np.array([stamp_to_ns(msg.sec, msg.nanosec)], dtype=np.int64)
             names = msg.names
             arrays = {'position': msg.position.reshape(1, -1),
-                      'velocity': msg.velocity.reshape(1, -1)}
+                      'velocity': msg.velocity.reshape(1, -1),
+                      'effort': msg.effort.reshape(1, -1)}
         self._append(np.array([log_ns], dtype=np.int64), stamps, self._columns(arrays, names))
 
     def _columns(self, arrays: Mapping[str, FloatArray], names: tuple[str, ...]) -> FloatArray:
@@ -324,6 +325,12 @@ class _TopicData:
         n = 0 if position is None else position.shape[0]
         if self.names is None:
             self.names = names
+        if self.topic.endswith('/applied'):
+            # the amplifier input the plant applied, in the effort array
+            effort = arrays.get('effort')
+            if effort is None or effort.shape[1] < 1:
+                raise BagError(f'bag {self.bag}: a message on {self.topic} has an empty effort')
+            return effort[:, :1]
         if self.topic.endswith('/diagnostics'):
             if names != self.names:
                 raise BagError(f'bag {self.bag}: the names on {self.topic} change from '
@@ -350,7 +357,7 @@ class _TopicData:
         self.flush()
         log_ns = np.concatenate(self.log_ns) if self.log_ns else np.zeros(0, np.int64)
         width = len(self.names or ()) if self.topic.endswith('/diagnostics') else (
-            1 if self.msgtype == COMMAND_TYPE else 2)
+            1 if self.msgtype == COMMAND_TYPE or self.topic.endswith('/applied') else 2)
         values = np.concatenate(self.values) if self.values else np.zeros((0, width))
         stamps = None
         if self.msgtype != COMMAND_TYPE:
@@ -561,6 +568,17 @@ def _command_offset(position_log_ns: IntArray, command_log_ns: IntArray,
     return best[1], best[2]
 
 
+def _by_stamp(stamps: IntArray, values: FloatArray, wanted: IntArray) -> FloatArray:
+    """Return the value of the first message stamped each of ``wanted``, NaN where none is."""
+    first = _unique_first(stamps)
+    out = np.full(wanted.size, np.nan)
+    if first.size:
+        k = np.clip(np.searchsorted(stamps[first], wanted), 0, first.size - 1)
+        found = stamps[first][k] == wanted
+        out[found] = values[first[k[found]]]
+    return out
+
+
 def read_run(path: str | Path, *, namespace: str | None = None,
              progress: ProgressCallback | None = None, relative_time: bool = False) -> RunRecord:
     """
@@ -573,6 +591,8 @@ def read_run(path: str | Path, *, namespace: str | None = None,
     fewer commands than positions were recorded (fewer than half: a real-time run whose commands
     came late or not at all), or none pairs, the commands are left out (NaN) and every sample
     with a position and a reference is kept, with a warning in ``meta['alignment']['warnings']``.
+    A bag with ``applied`` (real time: the amplifier input the plant held over each sample,
+    stamped) takes the command from it by stamp instead, NaN (with a warning) where missing.
 
     Parameters
     ----------
@@ -626,7 +646,24 @@ def read_run(path: str | Path, *, namespace: str | None = None,
         pi_cmd, cmd_pick = pi[has_cmd], order[idx[has_cmd]]
         common, ia, ib = np.intersect1d(pos_stamp[pi_cmd], ref_stamp[ri], assume_unique=True,
                                         return_indices=True)
-    if not by_order or common.size == 0:
+    if 'applied' in topics:
+        # real time: what the plant applied over each sample, stamped with it; the command
+        # topic (no stamp) is not needed to pair anything
+        common, ia, ib = np.intersect1d(pos_stamp[pi], ref_stamp[ri], assume_unique=True,
+                                        return_indices=True)
+        if common.size == 0:
+            raise BagError(f'bag {info.path}: no position and reference messages that belong '
+                           'to the same sample; nothing to align')
+        pi, ri = pi[ia], ri[ib]
+        _, app_stamp, app_val = topics['applied']
+        assert app_stamp is not None
+        command = _by_stamp(app_stamp, app_val[:, 0], common)
+        missing = int(np.isnan(command).sum())
+        if missing:
+            warnings.append(f'{missing} of {common.size} samples have no applied input '
+                            'recorded (stage/applied); their command is NaN')
+        offset, residual_ns = 0, 0.0
+    elif not by_order or common.size == 0:
         # Commands carry no stamp; when far fewer came than positions (a real-time run whose
         # commands came late or not at all) they cannot be paired by order. The tracking error
         # needs position and reference only: every sample that has both is kept, the command
@@ -649,16 +686,8 @@ def read_run(path: str | Path, *, namespace: str | None = None,
     if 'diagnostics' in topics:
         _, diag_stamp, diag_val = topics['diagnostics']
         assert diag_stamp is not None
-        di = _unique_first(diag_stamp)
-        k = np.searchsorted(diag_stamp[di], common)
-        k = np.clip(k, 0, max(di.size - 1, 0))
-        found = (di.size > 0) & (diag_stamp[di][k] == common) if di.size else np.zeros(
-            common.size, dtype=bool)
         for col, key in enumerate(names.get('diagnostics', ())):
-            column = np.full(common.size, np.nan)
-            if di.size:
-                column[found] = diag_val[di[k[found]], col]
-            diagnostics[key] = column
+            diagnostics[key] = _by_stamp(diag_stamp, diag_val[:, col], common)
     meta = dict(info.meta)
     origin_ns = int(common[0])
     meta.update({
@@ -677,6 +706,7 @@ def read_run(path: str | Path, *, namespace: str | None = None,
             'command_offset': int(offset),
             'command_log_delay_median_s': float(residual_ns) / 1e9,
             'commands_paired': bool(np.isfinite(command).any()),
+            'command_source': 'applied' if 'applied' in topics else 'command',
             'warnings': warnings,
         },
         # How many messages the bulk decoder took (the rest went through rosbags one by one).

@@ -114,6 +114,15 @@ class PlantNode(Node):
         self.servo: ServoLoop | None = None
         self._peers: Callable[[list[ServoSample]], None] | None = None
         self._servo_reported = False
+        # real time: what the plant held over each sample, stamped with it, for the bag
+        # (stage/applied, JointState effort; wire.APPLIED): published from the executor
+        self._applied_pub = None if self.logic.lockstep else self.create_publisher(
+            JointState, wire.APPLIED, qos.LOOP)
+        self._applied_encoder = JointStateEncoder([wire.JOINT_NAME], effort=True)
+        self._applied_gate: Callable[[], bool] = Gate(
+            self._applied_pub.get_subscription_count, every=50) \
+            if self._applied_pub is not None else (lambda: False)
+        self._held_since: int | None = None
         if self.logic.lockstep:
             # wall (steady) time: simulation time stands still while the plant waits
             self._timer = self.create_timer(0.005, self._lockstep_tick, clock=self._steady)
@@ -213,6 +222,7 @@ class PlantNode(Node):
             batch = servo.drain()
             if batch:
                 self._publish_batch(batch)
+                self._publish_applied(batch)
             if not self._servo_reported and (servo.setup_report or finished):
                 self._servo_reported = True
                 for key, text in servo.setup_report.items():
@@ -228,6 +238,19 @@ class PlantNode(Node):
             return
         except Exception as exc:  # noqa: BLE001
             self._fault(exc)
+
+    def _publish_applied(self, batch: list[ServoSample]) -> None:
+        # sample k's applied_v was held over the sample that ended at t_k: it goes out stamped
+        # with the sample taken before (the start of that hold), as stage/command is stamped
+        gate = self._applied_gate()
+        encode, publish = self._applied_encoder.encode, self._applied_pub
+        since = self._held_since
+        for s in batch:
+            if since is not None and gate and publish is not None:
+                sec, nanosec = wire.ns_to_stamp(since)
+                publish.publish(encode(sec, nanosec, (s.applied_v,)))
+            since = s.stamp_ns
+        self._held_since = since
 
     def _publish_batch(self, batch: list[ServoSample]) -> None:
         if self._peers is None:
@@ -362,7 +385,16 @@ class PlantNode(Node):
         if self.servo is not None:
             self.servo.stop()
             if self.servo.samples:
-                self._publish_batch(self.servo.drain())
+                batch = self.servo.drain()
+                self._publish_batch(batch)
+                self._publish_applied(batch)
+            if self._held_since is not None and self._applied_pub is not None \
+                    and self._peers is not None and self._applied_gate():
+                # the last sample's command, held until the stop drove the safe voltage (the
+                # plant alone does not know what it would have held next: left out)
+                sec, nanosec = wire.ns_to_stamp(self._held_since)
+                self._applied_pub.publish(self._applied_encoder.encode(
+                    sec, nanosec, (self.servo.held_v,)))
         self.logic.stop()
         self.publish_status()
         stats = self.stats()

@@ -222,6 +222,8 @@ class ServoLoop:
         self.done = False
         self.error: BaseException | None = None
         self.setup_report: dict[str, str] = {}
+        #: The voltage held after the last sample served (its command after the guard).
+        self.held_v = plant.safe_v
         # a bridge that owns the clock (UdpStreamBridge: the target paces, the host answers)
         self.bridge_clock: Any = plant.bridge if hasattr(plant.bridge, 'sample_index') \
             else None
@@ -250,6 +252,7 @@ class ServoLoop:
             u = out.voltage_v if out is not None else self.controller.safe_voltage_v
             applied = plant.applied_v
             plant.command(u, now_s)
+            self.held_v = plant.held_v
             sample = ServoSample(index, stamp, position_m, ref, vel, u, applied, lateness_ns,
                                  out.diagnostics if out else None)
         if self.samples.maxlen:
