@@ -327,6 +327,35 @@ def test_real_time_bag_with_most_commands_missing_is_analysed_with_a_warning(tmp
     assert math.isclose(summary['e_rms_all_m'], 1e-8, rel_tol=1e-9)
 
 
+def test_analysis_reports_the_plants_last_status(tmp_path):
+    from piezo_stage_ros.analysis.replay import analyze_bag
+    bag = tmp_path / 'status'
+    _write_graph_bag(bag, cmd_every=20, applied_missing=())
+    # a second bag layer: the plant's counters, twice (the last one holds the totals)
+    status = STORE.types['diagnostic_msgs/msg/DiagnosticStatus']
+    keyvalue = STORE.types['diagnostic_msgs/msg/KeyValue']
+    with_status = tmp_path / 'with_status'
+    with Reader(bag) as reader, Writer(with_status, version=9,
+                                       storage_plugin=StoragePlugin.MCAP) as writer:
+        conns = {c.topic: writer.add_connection(c.topic, c.msgtype, typestore=STORE)
+                 for c in reader.connections}
+        for c, log, data in reader.messages():
+            writer.write(conns[c.topic], log, data)
+        sconn = writer.add_connection('/stage/status', wire.STATUS_TYPE, typestore=STORE)
+        for log, late in ((1, '3'), (2, '7')):
+            msg = status(level=1, name='plant', message='', hardware_id='model',
+                         values=[keyvalue(key='late', value=late),
+                                 keyvalue(key='lateness_p99_us', value='12.0'),
+                                 keyvalue(key='other', value='x')])
+            writer.write(sconn, 1_800_000_000 * 10**9 + log,
+                         STORE.serialize_cdr(msg, wire.STATUS_TYPE))
+    assert bagread.read_status(bag) is None
+    assert bagread.read_status(with_status) == {'late': '7', 'lateness_p99_us': '12.0',
+                                                'other': 'x'}
+    notes = analyze_bag(with_status).notes
+    assert 'the plant at the end of the run (stage/status): late 7, lateness_p99_us 12.0' in notes
+
+
 @pytest.mark.parametrize('missing', [(), (5, 6, 399)])
 def test_real_time_bag_takes_the_applied_input_by_stamp(tmp_path, missing):
     # stage/applied: what the plant held over each sample, stamped; commands (sparse, no stamp)

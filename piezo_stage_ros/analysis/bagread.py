@@ -67,6 +67,7 @@ from piezo_stage_ros.core.wire import (
     normalize_namespace,
     REQUIRED_TOPICS,
     stamp_to_ns,
+    STATUS_TYPE,
     topic_names,
 )
 from rosbags.rosbag2 import Reader, ReaderError
@@ -416,6 +417,42 @@ def _scan_generic(info: BagInfo, wanted: Mapping[str, _TopicData],
         raise BagError(f'bag {info.path}: cannot read messages: {_describe(err)}') from None
     for topic in wanted.values():
         topic.flush()
+
+
+def read_status(path: str | Path, namespace: str | None = None) -> dict[str, str] | None:
+    """
+    Return the plant's last ``stage/status`` counters in a bag, or None if it has none.
+
+    The plant publishes them about once a second and at the end of a run (samples, late
+    commands, skipped samples, lateness p50/p99/max ...); the last message holds the run's totals.
+
+    Parameters
+    ----------
+    path : path-like
+        The bag.
+    namespace : str, optional
+        Topic namespace; found from the bag when it holds exactly one stage.
+
+    """
+    info = bag_info(path)
+    topic = f'{_find_namespace(info, namespace)}/status'
+    if topic not in info.topics:
+        return None
+    from rosbags.typesys import get_typestore, Stores
+    store = get_typestore(Stores.ROS2_JAZZY)
+    last: tuple[int, bytes] | None = None
+    try:
+        with Reader(info.path) as reader:
+            connections = [c for c in reader.connections if c.topic == topic]
+            for _, log_ns, data in reader.messages(connections=connections):
+                if last is None or log_ns >= last[0]:
+                    last = (log_ns, bytes(data))
+        if last is None:
+            return None
+        msg: Any = store.deserialize_cdr(last[1], STATUS_TYPE)
+    except Exception as err:  # noqa: BLE001 - storage plugins and decompressors vary
+        raise BagError(f'bag {info.path}: cannot read {topic}: {_describe(err)}') from None
+    return {str(kv.key): str(kv.value) for kv in msg.values}
 
 
 def _progress_ticker(progress: ProgressCallback | None, total: int) -> Callable[[int], None]:
