@@ -199,7 +199,9 @@ def test_lockstep_through_the_udp_bridge(context):
 
 def test_realtime_run_counts_late_samples_and_finishes(context):
     plant, nodes = loop(context, 'realtime', 0.2)
-    spin(context, nodes, plant.finished)
+    # after the run, until the probe has every position taken (or 10 s)
+    spin(context, nodes, plant.finished, until=lambda: len(nodes[1].positions)
+         >= plant.finished.result()['paced_samples'])
     stats = plant.finished.result()
     # sample 0 comes from the start, the others from the servo loop's clock; a loaded machine
     # may make it skip some (counted): taken and skipped make up the run

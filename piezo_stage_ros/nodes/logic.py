@@ -401,8 +401,10 @@ class ControllerLogic:
         self.diagnostics_every = max(1, diagnostics_every)
         self._rebuild = rebuild
         self.names, self._read = diagnostic_reader(controller)
-        self._pos: tuple[int, float] | None = None
-        # references by stamp: they may come ahead of their positions (lockstep_ahead)
+        # positions and references by stamp: a reference may come ahead of its position
+        # (lockstep_ahead), and in real time positions may come in a burst ahead of their
+        # references; each sample is stepped once it has both
+        self._positions: dict[int, float] = {}
         self._refs: dict[int, tuple[float, float]] = {}
         self._last_stamp: int | None = None
         self._pending: Any = None
@@ -438,35 +440,31 @@ class ControllerLogic:
         if self._safe:
             self._safe = False
             self._needs_reset = True
-        self._pos = (stamp_ns, position_m)
-        return self._try()
+        return self._try(stamp_ns, self._positions, position_m)
 
     def on_reference(self, stamp_ns: int, reference_m: float,
                      reference_velocity_mps: float) -> Command | None:
         """Take x_d and x_d' [m, m/s] for the sample stamped ``stamp_ns`` [ns]."""
-        self._refs[stamp_ns] = (reference_m, reference_velocity_mps)
-        if len(self._refs) > 100_000:
-            # references for positions that never came (a plant that stopped): keep the newest
-            for old in list(self._refs)[:50_000]:
-                del self._refs[old]
-        return self._try()
+        return self._try(stamp_ns, self._refs, (reference_m, reference_velocity_mps))
 
-    def _try(self) -> Command | None:
-        pos = self._pos
-        if pos is None:
-            return None
-        stamp = pos[0]
+    def _try(self, stamp: int, into: dict[int, Any], value: Any) -> Command | None:
+        into[stamp] = value
+        if len(into) > 100_000:
+            # halves that never found their other half (a node that stopped): keep the newest
+            for old in list(into)[:50_000]:
+                del into[old]
+        y = self._positions.get(stamp)
         ref = self._refs.get(stamp)
-        if ref is None:
+        if y is None or ref is None:
             return None
-        refs = self._refs
-        while True:
-            # references older than this sample are of no use any more (kept: this one, for a
-            # position sent again)
-            first = next(iter(refs))
-            if first >= stamp:
-                break
-            del refs[first]
+        for pending in (self._positions, self._refs):
+            while True:
+                # halves older than this sample are of no use any more (kept: this one, for a
+                # sample sent again)
+                first = next(iter(pending))
+                if first >= stamp:
+                    break
+                del pending[first]
         if stamp == self._last_stamp:
             # a sample published again (lockstep resend): its command is already out
             self.duplicates += 1
@@ -474,7 +472,7 @@ class ControllerLogic:
         if self._last_stamp is not None and stamp < self._last_stamp:
             self.duplicates += 1
             return None
-        y, xd, vd = pos[1], ref[0], ref[1]
+        xd, vd = ref
         if self._pending is not None:
             self._apply_pending(y, xd)
         if self._needs_reset:
