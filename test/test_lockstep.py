@@ -165,3 +165,14 @@ def test_references_streamed_ahead_give_the_same_run(ahead):
     np.testing.assert_array_equal(cmd, rec.command_v)
     # every stamp sent once, on the plant's grid, up to `ahead` past the last sample
     assert sent == [plant.stamp_ns(k) for k in range(537 + ahead)]
+
+
+def test_a_resent_sample_gets_its_reference_again_when_streamed_ahead():
+    # the first burst of references may be more than a subscriber's queue holds: the plant
+    # sends the waiting sample again after resend_s, and its reference goes again with it
+    trajectory = TrajectoryLogic(make_trajectory(TrajectoryParams.from_flat({'kind': 'sine'})),
+                                 sample_rate_hz=RATE)
+    first = trajectory.ahead(0, 3)
+    assert [s for s, _, _ in first] == [0, 100_000, 200_000, 300_000]
+    assert trajectory.ahead(0, 3) == first[:1]        # sample 0 sent again
+    assert [s for s, _, _ in trajectory.ahead(100_000, 3)] == [400_000]

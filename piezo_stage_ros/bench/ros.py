@@ -31,7 +31,7 @@ Run ``python3 -m piezo_stage_ros.bench.ros`` in a sourced Jazzy environment. Cas
   controller in its thread), nothing published (nobody outside listens);
 - ``cross-lockstep``: the plant here, controller and trajectory in a second process
   (``stage_servo --nodes controller,trajectory``), lockstep; once answering each position, once
-  with the reference streamed 100 samples ahead (``lockstep_ahead``);
+  with the reference streamed 50 samples ahead (``lockstep_ahead``);
 - ``three-lockstep``: the plant here, controller and trajectory each in a process of its own
   (as ``ros2 run`` of the three nodes), lockstep, both ways;
 - ``pingpong``: the yardstick of the machine's state: two nodes in this process bounce a
@@ -249,12 +249,12 @@ def run_ros_benchmark(cases: Sequence[str] = CASES, *, lockstep_s: float = 5.0,
             out[case] = _composed('realtime', realtime_s, False, direct=True)
         elif case == 'cross-lockstep':
             out[case] = _cross(lockstep_s, 'events')
-            out['cross-lockstep (reference 100 samples ahead)'] = _cross(lockstep_s, 'events',
-                                                                         ahead=100)
+            out['cross-lockstep (reference 50 samples ahead)'] = _cross(lockstep_s, 'events',
+                                                                        ahead=50)
         elif case == 'three-lockstep':
             out[case] = _cross(lockstep_s, 'events', three=True)
-            out['three-lockstep (reference 100 samples ahead)'] = _cross(
-                lockstep_s, 'events', three=True, ahead=100)
+            out['three-lockstep (reference 50 samples ahead)'] = _cross(
+                lockstep_s, 'events', three=True, ahead=50)
         else:
             raise ValueError(f'unknown case {case!r}; choose among {", ".join(CASES)}')
     return out

@@ -198,7 +198,8 @@ class TrajectoryNodeParams(_PeerNodeParams):
                                 'not depend on the position; the controller pairs by stamp), '
                                 'which takes the trajectory node out of the per-sample path; '
                                 'a start, stop or switch then takes effect after the samples '
-                                'already sent; 0: answer each position.', low=0, high=100000,
+                                'already sent; at most 99, below the depth of the loop '
+                                "topics' queues; 0: answer each position.", low=0, high=99,
                                 read_only=True)
 
 

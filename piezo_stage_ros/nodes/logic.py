@@ -261,6 +261,7 @@ class TrajectoryLogic:
         self.hold_m = float(first[0])
         self.answered = 0
         self._ahead_sent = -1
+        self._ahead_asked: int | None = None
 
     def start(self) -> None:
         """Stream from the next sample on, from t = 0."""
@@ -304,8 +305,13 @@ class TrajectoryLogic:
         if self._start_ns is None:
             out = [(stamp_ns, *self.on_position(stamp_ns))]
             self._ahead_sent = 0
+        elif stamp_ns == self._ahead_asked:
+            # the same sample again (a lockstep resend: something of it was lost, perhaps its
+            # reference): its reference goes again
+            out = [(stamp_ns, *self.on_position(stamp_ns))]
         else:
             out = []
+        self._ahead_asked = stamp_ns
         start = self._start_ns
         assert start is not None
         index = round((stamp_ns - start) * self.rate_hz / NS_PER_S)
