@@ -162,6 +162,9 @@ def _analyze(args: argparse.Namespace) -> int:
             failed += 1
             continue
         shown.end()
+        for text in analysis.record.meta.get('alignment', {}).get('warnings', ()):
+            # analysed all the same (e.g. a real-time run whose commands cannot be paired)
+            print(f'{PROG}: warning: bag {bag}: {text}', file=sys.stderr)
         if args.json:
             print(json.dumps(summary_json(analysis), sort_keys=False), flush=True)
         else:

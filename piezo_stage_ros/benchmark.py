@@ -19,7 +19,9 @@
 plant model, the per-sample cost split into stage / controller / loop, stage-steps per second
 of a batch of 1000 stages, controller step median and p99
 (:mod:`piezo_stage_ros.bench.sim`). ``--suite bags``: bag write / read / analysis throughput
-(:mod:`piezo_stage_ros.bench.bags`, when installed). ``--suite ros``: the nodes on a ROS 2 install
+(:mod:`piezo_stage_ros.bench.bags`, when installed). ``--suite servo``: how well the real-time
+servo loop and the target-paced UDP bridge hold 10 kHz here, without ROS
+(:mod:`piezo_stage_ros.bench.servo`). ``--suite ros``: the nodes on a ROS 2 install
 (:mod:`piezo_stage_ros.bench.ros`). ``--suite all``: every one available. ``--json`` prints
 one JSON object on stdout (the readable lines then go to stderr).
 """
@@ -56,8 +58,12 @@ def _positive(kind: type) -> Any:
 
 def _parser() -> argparse.ArgumentParser:
     p = cli.Parser(prog=PROG, description='Print speed figures of the simulation and bag tools.')
-    p.add_argument('--suite', choices=('sim', 'bags', 'ros', 'all'), default='sim',
+    p.add_argument('--suite', choices=('sim', 'bags', 'servo', 'ros', 'all'), default='sim',
                    help='What to measure (default sim).')
+    p.add_argument('--realtime-s', type=_positive(float), default=10.0, metavar='S',
+                   help='Wall time of each real-time run of the servo suite (default 10).')
+    p.add_argument('--fifo-priority', type=int, default=0, metavar='P',
+                   help='Servo suite: SCHED_FIFO priority of the loops (default 0: none).')
     p.add_argument('--duration', type=_positive(float), default=2.0, metavar='S',
                    help='Simulated seconds per closed-loop measurement (default 2).')
     p.add_argument('--batch', type=_positive(int), default=1000, metavar='N',
@@ -109,6 +115,11 @@ def _bench(args: argparse.Namespace) -> int:
                           file=sys.stderr)
                     return 1
                 result['bags'] = bags.run_bag_benchmark(args.bag_duration)
+            if args.suite in ('servo', 'all'):
+                from piezo_stage_ros.bench import servo
+                result['servo'] = servo.run_servo_benchmark(
+                    duration_s=args.realtime_s, fifo_priority=args.fifo_priority)
+                print(servo.format_table(result['servo']))
             if args.suite == 'ros' or (args.suite == 'all' and _rclpy_available()):
                 if not _rclpy_available():
                     print(f'{PROG}: error: the ROS benchmark needs rclpy (a sourced ROS 2 Jazzy '

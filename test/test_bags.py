@@ -14,6 +14,8 @@
 
 """Bags written with rosbags in tmp_path and read back: round trips, alignment, bad bags."""
 
+import json
+import math
 from pathlib import Path
 import shutil
 
@@ -237,14 +239,14 @@ def test_shared_jazzy_bags(name):
     assert all(d['bulk'] == d['messages'] == 3000 for d in rec.meta['decoding'].values())
 
 
-def _js(stamp_ns, position, velocity=(), frame_id='', names=('stage',)):
+def _js(stamp_ns, position, velocity=(), frame_id='', names=('stage',), effort=()):
     msg = STORE.types[JS](
         header=STORE.types['std_msgs/msg/Header'](
             stamp=STORE.types['builtin_interfaces/msg/Time'](sec=stamp_ns // 10**9,
                                                              nanosec=stamp_ns % 10**9),
             frame_id=frame_id),
         name=list(names), position=np.array(position, dtype=float),
-        velocity=np.array(velocity, dtype=float), effort=np.array([], dtype=float))
+        velocity=np.array(velocity, dtype=float), effort=np.array(effort, dtype=float))
     return STORE.serialize_cdr(msg, JS)
 
 
@@ -253,7 +255,7 @@ def _f64(value):
 
 
 def _write_graph_bag(bag, n=400, *, skip_cmd_start=0, extra_cmd_end=0, jitter_ns=3_000_000,
-                     frame_ids=('',), compression=None):
+                     frame_ids=('',), compression=None, cmd_every=1, applied_missing=None):
     """A bag as the ROS graph gives it: receive times jitter, ends a little ragged."""
     rng = np.random.default_rng(1)
     period = 1_000_000
@@ -263,9 +265,11 @@ def _write_graph_bag(bag, n=400, *, skip_cmd_start=0, extra_cmd_end=0, jitter_ns
     if compression:
         writer.set_compression(compression, CompressionFormat.ZSTD)
     with writer:
+        keys = ('position', 'reference', 'command') + (
+            ('applied',) if applied_missing is not None else ())
         conns = {key: writer.add_connection(f'/stage/{key}', wire.BAG_TOPICS[key],
                                             typestore=STORE)
-                 for key in ('position', 'reference', 'command')}
+                 for key in keys}
         # Bursty delivery: a receive time may lag by several periods, never reorders a topic.
         lag = np.maximum.accumulate(rng.uniform(0, jitter_ns, n + extra_cmd_end)
                                     + np.arange(n + extra_cmd_end) * period) - np.arange(
@@ -282,7 +286,11 @@ def _write_graph_bag(bag, n=400, *, skip_cmd_start=0, extra_cmd_end=0, jitter_ns
                                                           frame_id=frame))
                 writer.write(conns['reference'], log + 1000,
                              _js(t0 + k * period, [k * 1e-9 + 1e-8], [2.0], frame_id=frame))
-            if k >= skip_cmd_start:
+                if applied_missing is not None and k not in applied_missing:
+                    # what the plant held over sample k, published after it (as the node does)
+                    writer.write(conns['applied'], log + 2000,
+                                 _js(t0 + k * period, [], effort=[k * 0.002]))
+            if k >= skip_cmd_start and k % cmd_every == 0:
                 writer.write(conns['command'], int(cmd_logs[k]), _f64(k * 0.001))
 
 
@@ -298,6 +306,72 @@ def test_graph_bag_with_jitter_and_ragged_ends(tmp_path):
     np.testing.assert_allclose(rec.position_m - rec.reference_m, -1e-8, atol=1e-20)
     assert rec.meta['alignment']['command_offset'] == -3
     assert rec.meta['alignment']['dropped_command'] == 2
+
+
+def test_real_time_bag_with_most_commands_missing_is_analysed_with_a_warning(tmp_path, capsys):
+    # a real-time run through separate processes: one command recorded for 20 samples (late or
+    # lost); the commands carry no stamp, so they cannot be paired, but the tracking error can
+    bag = tmp_path / 'sparse'
+    _write_graph_bag(bag, cmd_every=20)
+    rec = read_run(bag)
+    assert len(rec) == 400 and np.isnan(rec.command_v).all()
+    np.testing.assert_allclose(rec.position_m - rec.reference_m, -1e-8, atol=1e-20)
+    align = rec.meta['alignment']
+    assert not align['commands_paired']
+    assert '20 commands for 400 positions' in align['warnings'][0]
+    from piezo_stage_ros import analyze
+    assert analyze.main([str(bag), '--json']) == 0
+    out = capsys.readouterr()
+    assert 'analyze: warning: bag' in out.err and 'cannot be paired' in out.err
+    summary = json.loads(out.out.splitlines()[-1])
+    assert summary['samples'] == 400 and summary['command_min_v'] is None
+    assert math.isclose(summary['e_rms_all_m'], 1e-8, rel_tol=1e-9)
+
+
+def test_analysis_reports_the_plants_last_status(tmp_path):
+    from piezo_stage_ros.analysis.replay import analyze_bag
+    bag = tmp_path / 'status'
+    _write_graph_bag(bag, cmd_every=20, applied_missing=())
+    # a second bag layer: the plant's counters, twice (the last one holds the totals)
+    status = STORE.types['diagnostic_msgs/msg/DiagnosticStatus']
+    keyvalue = STORE.types['diagnostic_msgs/msg/KeyValue']
+    with_status = tmp_path / 'with_status'
+    with Reader(bag) as reader, Writer(with_status, version=9,
+                                       storage_plugin=StoragePlugin.MCAP) as writer:
+        conns = {c.topic: writer.add_connection(c.topic, c.msgtype, typestore=STORE)
+                 for c in reader.connections}
+        for c, log, data in reader.messages():
+            writer.write(conns[c.topic], log, data)
+        sconn = writer.add_connection('/stage/status', wire.STATUS_TYPE, typestore=STORE)
+        for log, late in ((1, '3'), (2, '7')):
+            msg = status(level=1, name='plant', message='', hardware_id='model',
+                         values=[keyvalue(key='late', value=late),
+                                 keyvalue(key='lateness_p99_us', value='12.0'),
+                                 keyvalue(key='other', value='x')])
+            writer.write(sconn, 1_800_000_000 * 10**9 + log,
+                         STORE.serialize_cdr(msg, wire.STATUS_TYPE))
+    assert bagread.read_status(bag) is None
+    assert bagread.read_status(with_status) == {'late': '7', 'lateness_p99_us': '12.0',
+                                                'other': 'x'}
+    notes = analyze_bag(with_status).notes
+    assert 'the plant at the end of the run (stage/status): late 7, lateness_p99_us 12.0' in notes
+
+
+@pytest.mark.parametrize('missing', [(), (5, 6, 399)])
+def test_real_time_bag_takes_the_applied_input_by_stamp(tmp_path, missing):
+    # stage/applied: what the plant held over each sample, stamped; commands (sparse, no stamp)
+    # are not needed; a sample without its applied message gets NaN and a warning
+    bag = tmp_path / 'applied'
+    _write_graph_bag(bag, cmd_every=20, applied_missing=missing)
+    rec = read_run(bag)
+    assert len(rec) == 400
+    k = np.round((rec.time_s - 1.7e9) * 1e3).astype(int)
+    expected = np.where(np.isin(k, missing), np.nan, k * 0.002)
+    np.testing.assert_array_equal(rec.command_v, expected)
+    align = rec.meta['alignment']
+    assert align['command_source'] == 'applied'
+    assert align['warnings'] == (['3 of 400 samples have no applied input recorded '
+                                  '(stage/applied); their command is NaN'] if missing else [])
 
 
 def test_mixed_layouts_use_the_generic_decoder_where_needed(tmp_path):

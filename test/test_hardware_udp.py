@@ -348,3 +348,61 @@ def test_model_bridge_passes_commands_unclamped_to_its_own_chain():
     for u in (-2.5, 12.0, math.nan, 3.0):
         assert guard.step(u) == reference.step(u)
     assert guard.clamped == 0 and guard.bridge.stats()['faults'] == 1
+
+
+class HostPacedClock:
+    """
+    The emulator's clock in a test: it moves to the next due time only once the host is done.
+
+    The target's pacer sleeps on it; each sleep waits (at most 5 s) for the host to signal that
+    it answered (or chose not to answer) the sample, so the run is the same on any machine.
+    """
+
+    def __init__(self) -> None:
+        self.now = 0
+        self.host_done = threading.Event()
+        self.free = False  # at the end: run freely until the STOP arrives
+
+    def clock(self) -> int:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        if not self.free:
+            self.host_done.wait(5.0)
+            self.host_done.clear()
+        self.now += round(seconds * 1e9)
+
+
+@pytest.mark.parametrize('unanswered', [(), (3, 4)])
+def test_paced_target_holds_the_newest_command_and_counts_missing_ones(unanswered):
+    from piezo_stage_ros.hardware.pacing import Pacer
+    clock = HostPacedClock()
+    emu = TargetEmulator(PARAMS, idle_timeout_s=5.0)
+    target = threading.Thread(target=emu.serve_paced, daemon=True,
+                              args=(Pacer(100_000, clock=clock.clock, sleep=clock.sleep,
+                                          spin_ns=0),))
+    target.start()
+    bridge = udp.UdpStreamBridge('127.0.0.1', emu.port, timeout_s=5.0)
+    positions = [bridge.safe_start(0.0)]
+    indices = [bridge.sample_index]
+    applied, held = [], 0.0
+    for k in range(10):
+        if k not in unanswered:
+            held = 1.0 + 0.5 * k
+            bridge.write_voltage(held)
+        applied.append(held)  # what the target holds over the next sample
+        clock.host_done.set()
+        positions.append(bridge.read_position())
+        indices.append(bridge.sample_index)
+    # what the target reported with sample 10 (it keeps counting while it runs freely to STOP)
+    missing = bridge.stats()['target_missing']
+    clock.free = True
+    clock.host_done.set()
+    bridge.safe_stop(0.0)
+    target.join(5.0)
+    assert indices == list(range(11)) and emu.stop_reason == 'stop'
+    assert missing == len(unanswered) and bridge.stats()['gaps'] == 0
+    model = Stage(PARAMS)
+    expected = [model.reset()] + [model.step(v) for v in applied]
+    np.testing.assert_array_equal(positions, expected)
+    assert len(bridge.answer_ns) == 10 - len(unanswered)

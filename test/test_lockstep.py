@@ -140,3 +140,44 @@ def test_lockstep_run_of_a_tenth_of_a_second_has_1000_samples():
     stamps, *_ = lockstep(params, 'pi', tp, 0.1, 1.0)
     assert len(stamps) == 1000
     assert stamps[-1] == 999 * 100_000
+
+
+@pytest.mark.parametrize('ahead', [1, 64])
+def test_references_streamed_ahead_give_the_same_run(ahead):
+    # lockstep_ahead: the trajectory sends x_d for the next samples as soon as a position
+    # comes (it does not depend on it); the controller pairs by stamp, the run is unchanged
+    params = stage_params(1e-9, 'reduced')
+    tp = TrajectoryParams.from_flat({'kind': 'square'})
+    rec = offline(params, 'rac', tp, 0.0537, 0.01)
+    plant = PlantLogic(GuardedPlant(ModelBridge(params), params.chain), mode='lockstep',
+                       sample_rate_hz=RATE, duration_s=0.0537)
+    trajectory = TrajectoryLogic(make_trajectory(tp), sample_rate_hz=RATE, chunk_s=0.01)
+    ctrl = ControllerLogic(controller('rac'), mode='lockstep')
+    sample = plant.start(0.0)
+    pos, cmd, sent = [], [], []
+    while sample is not None:
+        batch = trajectory.ahead(sample.stamp_ns, ahead)
+        sent += [stamp for stamp, _, _ in batch]
+        for stamp, xd, vd in batch:
+            # the references come before their positions: nothing to pair yet
+            assert ctrl.on_reference(stamp, xd, vd) is None
+        out = ctrl.on_position(sample.stamp_ns, sample.position_m, 0.0)
+        assert out is not None and out.stamp_ns == sample.stamp_ns
+        pos.append(sample.position_m)
+        cmd.append(out.voltage_v)
+        sample = plant.on_command(out.voltage_v, 0.0)
+    np.testing.assert_array_equal(pos, rec.position_m)
+    np.testing.assert_array_equal(cmd, rec.command_v)
+    # every stamp sent once, on the plant's grid, up to `ahead` past the last sample
+    assert sent == [plant.stamp_ns(k) for k in range(537 + ahead)]
+
+
+def test_a_resent_sample_gets_its_reference_again_when_streamed_ahead():
+    # the first burst of references may be more than a subscriber's queue holds: the plant
+    # sends the waiting sample again after resend_s, and its reference goes again with it
+    trajectory = TrajectoryLogic(make_trajectory(TrajectoryParams.from_flat({'kind': 'sine'})),
+                                 sample_rate_hz=RATE)
+    first = trajectory.ahead(0, 3)
+    assert [s for s, _, _ in first] == [0, 100_000, 200_000, 300_000]
+    assert trajectory.ahead(0, 3) == first[:1]        # sample 0 sent again
+    assert [s for s, _, _ in trajectory.ahead(100_000, 3)] == [400_000]

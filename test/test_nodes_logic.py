@@ -16,7 +16,6 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
@@ -167,66 +166,8 @@ def test_lockstep_run_of_one_sample_is_done_at_start():
     assert logic.done and logic.on_command(0.0, 0.0) is None
 
 
-def test_realtime_plant_samples_on_its_clock_and_counts_late_commands():
-    logic = plant('realtime', max_catch_up=50)
-    assert logic.on_tick(0.0) == []  # not started
-    s0 = logic.start(100.0, start_ns=5_000_000_000)
-    assert s0.stamp_ns == 5_000_000_000
-    assert logic.on_tick(100.00005) == []           # sample 1 not due yet
-    logic.on_command(1.0, 100.00006)
-    out = logic.on_tick(100.0001)
-    assert [s.index for s in out] == [1] and out[0].stamp_ns == 5_000_100_000
-    assert logic.plant.late == 0
-    out = logic.on_tick(100.00031)                   # two samples overdue, no new command
-    assert [s.index for s in out] == [2, 3]
-    assert logic.plant.late == 2 and logic.catch_up == 2
-    assert logic.on_command(2.0, 100.00032) is None
-    assert math.isclose(logic.next_due_s(), 100.0004)
-    out = logic.on_tick(101.00002)                   # a long stall: no burst of 10 000
-    assert len(out) == 1 and logic.skipped == 10_000 - 4
-    assert out[0].index == 4
-    # the stamp says when the sample was taken: sample 10 000 of the original schedule
-    assert out[0].stamp_ns == 5_000_000_000 + 10_000 * 100_000
-    assert logic.on_tick(101.00009) == []
-    assert [s.index for s in logic.on_tick(101.0001)] == [5]
-
-
-def test_realtime_plant_with_an_in_process_controller_is_never_late():
-    logic = plant('realtime', duration_s=0.001)
-    seen = []
-
-    def command_for(sample):
-        seen.append(sample.index)
-        return 1.0 + sample.index
-
-    logic.start(0.0)
-    logic.on_command(1.0, 0.0)
-    out = logic.on_tick(0.00035, command_for)   # a catch-up of three samples
-    assert [s.index for s in out] == [1, 2, 3] and seen == [1, 2, 3]
-    assert logic.plant.late == 0 and logic.plant.held_v == 4.0
-    out = logic.on_tick(0.0011, command_for)
-    assert logic.done and out[-1].index == 9 and seen[-1] == 8  # no command after the last
-    assert logic.plant.late == 0
-
-
-def test_realtime_plant_drives_safe_voltage_when_commands_stop():
-    logic = plant('realtime')
-    logic.start(0.0)
-    logic.on_command(5.0, 0.0)
-    logic.on_tick(0.0001)
-    assert logic.plant.held_v == 5.0
-    logic.on_tick(0.0201)
-    assert logic.plant.safe_samples >= 1 and logic.plant.watchdog.trips == 1
-    stats = logic.stats()
-    assert stats['safe_samples'] >= 1 and stats['bridge_samples'] == logic.plant.samples
-
-
-def test_realtime_plant_stops_after_its_duration():
-    logic = plant('realtime', duration_s=0.0005)
-    logic.start(0.0)
-    out = logic.on_tick(0.00061)
-    assert logic.done and [s.index for s in out] == [1, 2, 3, 4]
-    assert logic.on_tick(2.0) == []
+def test_plant_refuses_an_unknown_mode():
+    # real-time sampling is the servo loop's (test/test_servo.py)
     with pytest.raises(ParameterError, match="'mode' = 'fast'"):
         plant('fast')
 

@@ -71,6 +71,18 @@ def test_benchmark_sim_suite_json(capsys: pytest.CaptureFixture[str]) -> None:
     assert 'stage-steps per wall s' in captured.err  # readable lines on stderr with --json
 
 
+def test_benchmark_servo_suite_reports_every_case(capsys: pytest.CaptureFixture[str]) -> None:
+    # a short real-time run of each case: the figures are there and add up (no timing asserted)
+    assert benchmark.main(['--suite', 'servo', '--realtime-s', '0.05', '--json']) == 0
+    d = json.loads(capsys.readouterr().out)['servo']
+    assert len(d) == 5 and 'bridge (paced emulator)' in d
+    for case in d.values():
+        assert 'error' not in case, case.get('error')
+        assert case['paced_samples'] + case['skipped'] == 500
+        assert case['lateness_max_us'] >= case['lateness_p99_us'] >= case['lateness_p50_us']
+        assert case['e_rms_nm'] > 0.0 and case['offline_e_rms_nm'] > 0.0
+
+
 @pytest.mark.parametrize('argv, match', [
     (['--suite', 'gpu'], 'invalid choice'),
     (['--duration', '-1'], "'-1' must be positive"),

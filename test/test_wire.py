@@ -37,7 +37,7 @@ def test_node_topics_resolve_to_the_bag_topics_under_the_root_namespace():
         relative = f'{wire.STAGE}/{key}'
         assert '/' + relative == bag[key]
         assert wire.TOPIC_TYPES[relative] == msgtype
-    assert (wire.POSITION, wire.REFERENCE, wire.COMMAND, wire.DIAGNOSTICS) == tuple(
+    assert (wire.POSITION, wire.REFERENCE, wire.COMMAND, wire.DIAGNOSTICS, wire.APPLIED) == tuple(
         f'{wire.STAGE}/{key}' for key in wire.BAG_TOPICS)
     assert all(not t.startswith('/') for t in wire.TOPIC_TYPES if t != wire.CLOCK)
     assert set(wire.RECORDED_TOPICS) == set(wire.TOPIC_TYPES) - {wire.CLOCK}

@@ -68,6 +68,7 @@ from piezo_stage_ros.core.wire import (
     normalize_namespace,
     REQUIRED_TOPICS,
     stamp_to_ns,
+    STATUS_TYPE,
     topic_names,
 )
 from rosbags.rosbag2 import Reader, ReaderError
@@ -310,7 +311,8 @@ class _TopicData:
             stamps = np.array([stamp_to_ns(msg.sec, msg.nanosec)], dtype=np.int64)
             names = msg.names
             arrays = {'position': msg.position.reshape(1, -1),
-                      'velocity': msg.velocity.reshape(1, -1)}
+                      'velocity': msg.velocity.reshape(1, -1),
+                      'effort': msg.effort.reshape(1, -1)}
         self._append(np.array([log_ns], dtype=np.int64), stamps, self._columns(arrays, names))
 
     def _columns(self, arrays: Mapping[str, FloatArray], names: tuple[str, ...]) -> FloatArray:
@@ -320,6 +322,12 @@ class _TopicData:
         n = 0 if position is None else position.shape[0]
         if self.names is None:
             self.names = names
+        if self.topic.endswith('/applied'):
+            # the amplifier input the plant applied, in the effort array
+            effort = arrays.get('effort')
+            if effort is None or effort.shape[1] < 1:
+                raise BagError(f'bag {self.bag}: a message on {self.topic} has an empty effort')
+            return effort[:, :1]
         if self.topic.endswith('/diagnostics'):
             if names != self.names:
                 raise BagError(f'bag {self.bag}: the names on {self.topic} change from '
@@ -346,7 +354,7 @@ class _TopicData:
         self.flush()
         log_ns = np.concatenate(self.log_ns) if self.log_ns else np.zeros(0, np.int64)
         width = len(self.names or ()) if self.topic.endswith('/diagnostics') else (
-            1 if self.msgtype == COMMAND_TYPE else 2)
+            1 if self.msgtype == COMMAND_TYPE or self.topic.endswith('/applied') else 2)
         values = np.concatenate(self.values) if self.values else np.zeros((0, width))
         stamps = None
         if self.msgtype != COMMAND_TYPE:
@@ -404,6 +412,42 @@ def _scan_generic(info: BagInfo, wanted: Mapping[str, _TopicData],
         raise BagError(f'bag {info.path}: cannot read messages: {_describe(err)}') from None
     for topic in wanted.values():
         topic.flush()
+
+
+def read_status(path: str | Path, namespace: str | None = None) -> dict[str, str] | None:
+    """
+    Return the plant's last ``stage/status`` counters in a bag, or None if it has none.
+
+    The plant publishes them about once a second and at the end of a run (samples, late
+    commands, skipped samples, lateness p50/p99/max ...); the last message holds the run's totals.
+
+    Parameters
+    ----------
+    path : path-like
+        The bag.
+    namespace : str, optional
+        Topic namespace; found from the bag when it holds exactly one stage.
+
+    """
+    info = bag_info(path)
+    topic = f'{_find_namespace(info, namespace)}/status'
+    if topic not in info.topics:
+        return None
+    from rosbags.typesys import get_typestore, Stores
+    store = get_typestore(Stores.ROS2_JAZZY)
+    last: tuple[int, bytes] | None = None
+    try:
+        with Reader(info.path) as reader:
+            connections = [c for c in reader.connections if c.topic == topic]
+            for _, log_ns, data in reader.messages(connections=connections):
+                if last is None or log_ns >= last[0]:
+                    last = (log_ns, bytes(data))
+        if last is None:
+            return None
+        msg: Any = store.deserialize_cdr(last[1], STATUS_TYPE)
+    except Exception as err:  # noqa: BLE001 - storage plugins and decompressors vary
+        raise BagError(f'bag {info.path}: cannot read {topic}: {_describe(err)}') from None
+    return {str(kv.key): str(kv.value) for kv in msg.values}
 
 
 def _progress_ticker(progress: ProgressCallback | None, total: int) -> Callable[[int], None]:
@@ -556,6 +600,17 @@ def _command_offset(position_log_ns: IntArray, command_log_ns: IntArray,
     return best[1], best[2]
 
 
+def _by_stamp(stamps: IntArray, values: FloatArray, wanted: IntArray) -> FloatArray:
+    """Return the value of the first message stamped each of ``wanted``, NaN where none is."""
+    first = _unique_first(stamps)
+    out = np.full(wanted.size, np.nan)
+    if first.size:
+        k = np.clip(np.searchsorted(stamps[first], wanted), 0, first.size - 1)
+        found = stamps[first][k] == wanted
+        out[found] = values[first[k[found]]]
+    return out
+
+
 def read_run(path: str | Path, *, namespace: str | None = None,
              progress: ProgressCallback | None = None, relative_time: bool = False) -> RunRecord:
     """
@@ -564,7 +619,12 @@ def read_run(path: str | Path, *, namespace: str | None = None,
     Alignment: position and reference are paired by equal header stamps; the command (no stamp)
     is paired by order, command i + offset with position message i, the offset found from the
     log times (:func:`_command_offset`); diagnostics are paired by stamp (NaN where missing).
-    Samples that cannot be paired are dropped and counted in ``meta['alignment']``.
+    Samples that cannot be paired are dropped and counted in ``meta['alignment']``. When far
+    fewer commands than positions were recorded (fewer than half: a real-time run whose commands
+    came late or not at all), or none pairs, the commands are left out (NaN) and every sample
+    with a position and a reference is kept, with a warning in ``meta['alignment']['warnings']``.
+    A bag with ``applied`` (real time: the amplifier input the plant held over each sample,
+    stamped) takes the command from it by stamp instead, NaN (with a warning) where missing.
 
     Parameters
     ----------
@@ -612,28 +672,54 @@ def read_run(path: str | Path, *, namespace: str | None = None,
     offset, residual_ns = _command_offset(pos_log[pi], cmd_log[order])
     idx = np.arange(pi.size) + offset
     has_cmd = (idx >= 0) & (idx < order.size)
-    pi, cmd_pick = pi[has_cmd], order[idx[has_cmd]]
-    common, ia, ib = np.intersect1d(pos_stamp[pi], ref_stamp[ri], assume_unique=True,
-                                    return_indices=True)
-    pi, ri, cmd_pick = pi[ia], ri[ib], cmd_pick[ia]
-    if common.size == 0:
-        raise BagError(f'bag {info.path}: no position, reference and command messages that '
-                       'belong to the same sample; nothing to align')
-    command = cmd_val[cmd_pick, 0]
+    warnings: list[str] = []
+    by_order = order.size >= pi.size // 2
+    if by_order:
+        pi_cmd, cmd_pick = pi[has_cmd], order[idx[has_cmd]]
+        common, ia, ib = np.intersect1d(pos_stamp[pi_cmd], ref_stamp[ri], assume_unique=True,
+                                        return_indices=True)
+    if 'applied' in topics:
+        # real time: what the plant applied over each sample, stamped with it; the command
+        # topic (no stamp) is not needed to pair anything
+        common, ia, ib = np.intersect1d(pos_stamp[pi], ref_stamp[ri], assume_unique=True,
+                                        return_indices=True)
+        if common.size == 0:
+            raise BagError(f'bag {info.path}: no position and reference messages that belong '
+                           'to the same sample; nothing to align')
+        pi, ri = pi[ia], ri[ib]
+        _, app_stamp, app_val = topics['applied']
+        assert app_stamp is not None
+        command = _by_stamp(app_stamp, app_val[:, 0], common)
+        missing = int(np.isnan(command).sum())
+        if missing:
+            warnings.append(f'{missing} of {common.size} samples have no applied input '
+                            'recorded (stage/applied); their command is NaN')
+        offset, residual_ns = 0, 0.0
+    elif not by_order or common.size == 0:
+        # Commands carry no stamp; when far fewer came than positions (a real-time run whose
+        # commands came late or not at all) they cannot be paired by order. The tracking error
+        # needs position and reference only: every sample that has both is kept, the command
+        # is NaN, and the bag is analysed with a warning instead of refused.
+        common, ia, ib = np.intersect1d(pos_stamp[pi], ref_stamp[ri], assume_unique=True,
+                                        return_indices=True)
+        if common.size == 0:
+            raise BagError(f'bag {info.path}: no position and reference messages that belong '
+                           'to the same sample; nothing to align')
+        warnings.append(f'{cmd_log.size} commands for {pi.size} positions: commands (no '
+                        'stamp) cannot be paired with their samples; the tracking error is over '
+                        f'all {common.size} samples, the command is left out (NaN)')
+        pi, ri = pi[ia], ri[ib]
+        command = np.full(common.size, np.nan)
+        offset, residual_ns = 0, 0.0
+    else:
+        pi, ri, cmd_pick = pi_cmd[ia], ri[ib], cmd_pick[ia]
+        command = cmd_val[cmd_pick, 0]
     diagnostics: dict[str, FloatArray] = {}
     if 'diagnostics' in topics:
         _, diag_stamp, diag_val = topics['diagnostics']
         assert diag_stamp is not None
-        di = _unique_first(diag_stamp)
-        k = np.searchsorted(diag_stamp[di], common)
-        k = np.clip(k, 0, max(di.size - 1, 0))
-        found = (di.size > 0) & (diag_stamp[di][k] == common) if di.size else np.zeros(
-            common.size, dtype=bool)
         for col, key in enumerate(names.get('diagnostics', ())):
-            column = np.full(common.size, np.nan)
-            if di.size:
-                column[found] = diag_val[di[k[found]], col]
-            diagnostics[key] = column
+            diagnostics[key] = _by_stamp(diag_stamp, diag_val[:, col], common)
     meta = dict(info.meta)
     origin_ns = int(common[0])
     meta.update({
@@ -651,6 +737,9 @@ def read_run(path: str | Path, *, namespace: str | None = None,
             'dropped_command': int(cmd_log.size - common.size),
             'command_offset': int(offset),
             'command_log_delay_median_s': float(residual_ns) / 1e9,
+            'commands_paired': bool(np.isfinite(command).any()),
+            'command_source': 'applied' if 'applied' in topics else 'command',
+            'warnings': warnings,
         },
         # How many messages the bulk decoder took (the rest went through rosbags one by one).
         'decoding': {topic: {'messages': count, 'bulk': fast}

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from piezo_stage_ros.analysis.bagread import ProgressCallback, read_run
+from piezo_stage_ros.analysis.bagread import ProgressCallback, read_run, read_status
 from piezo_stage_ros.analysis.spectral import BodeEstimate, estimate_bode, is_excitation_run
 from piezo_stage_ros.core.errors import PiezoStageError
 from piezo_stage_ros.core.record import RunRecord
@@ -248,6 +248,12 @@ def analyze_bag(path: str | Path, *, namespace: str | None = None,
     if dropped:
         notes.append('messages that could not be aligned were dropped: '
                      + ', '.join(f'{k[8:]} {v}' for k, v in dropped.items()))
+    notes += [f'warning: {text}' for text in align.get('warnings', ())]
+    status = read_status(path, namespace=record.meta.get('namespace'))
+    if status:
+        # the plant's own account of a real-time run: late commands, skipped samples, lateness
+        shown = [f'{k} {status[k]}' for k in STATUS_KEYS if k in status]
+        notes.append('the plant at the end of the run (stage/status): ' + ', '.join(shown))
     estimate = None
     if bode or (bode is None and is_excitation_run(record.meta)):
         try:
@@ -257,6 +263,12 @@ def analyze_bag(path: str | Path, *, namespace: str | None = None,
                 raise
             notes.append(f'no Bode estimate: {err}')
     return BagAnalysis(Path(path), rebased, origin, metrics, window, estimate, notes)
+
+
+#: The plant counters of stage/status an analysis reports (those present), in this order.
+STATUS_KEYS = ('index', 'paced_samples', 'late', 'skipped', 'late_half_period',
+               'lateness_p50_us', 'lateness_p99_us', 'lateness_max_us', 'watchdog_trips',
+               'safe_samples', 'queue_overruns', 'resends')
 
 
 #: The metrics a reader looks at first, in this order; the others (diagnostics) follow.

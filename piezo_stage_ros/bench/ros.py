@@ -23,11 +23,17 @@ Run ``python3 -m piezo_stage_ros.bench.ros`` in a sourced Jazzy environment. Cas
   nodes as the launch file sets it (every ``/clock`` message then also reaches their time
   sources), once without;
 - ``composed-realtime``: the same nodes in real time for ``--realtime-s`` of wall time: the
-  sample rate held and the share of late samples (no new command since the previous sample);
+  plant's servo loop samples on its clock and publishes each position at once, the controller
+  answers through the executor; the share of late samples (no new command since the previous
+  sample), the lateness of the clock, skipped samples;
 - ``direct-lockstep``, ``direct-realtime``: the same with the nodes handing each sample to each
-  other by call (``stage_servo --direct``), nothing published (nobody outside listens);
+  other by call (``stage_servo --direct``; in real time the servo loop runs trajectory and
+  controller in its thread), nothing published (nobody outside listens);
 - ``cross-lockstep``: the plant here, controller and trajectory in a second process
-  (``stage_servo --nodes controller,trajectory``), lockstep;
+  (``stage_servo --nodes controller,trajectory``), lockstep; once answering each position, once
+  with the reference streamed 50 samples ahead (``lockstep_ahead``);
+- ``three-lockstep``: the plant here, controller and trajectory each in a process of its own
+  (as ``ros2 run`` of the three nodes), lockstep, both ways;
 - ``pingpong``: the yardstick of the machine's state: two nodes in this process bounce a
   ``Float64`` (serialized) on one EventsExecutor; the median round trip in microseconds.
 
@@ -48,7 +54,7 @@ from typing import Any, Sequence
 __all__ = ['CASES', 'main', 'run_ros_benchmark']
 
 CASES = ('pingpong', 'composed-lockstep', 'composed-realtime', 'direct-lockstep',
-         'direct-realtime', 'cross-lockstep')
+         'direct-realtime', 'cross-lockstep', 'three-lockstep')
 STAGE = {'plant.model': 'reduced'}
 # in-process nodes get no parameter files: the controller is told the plant's model itself
 CONTROLLER = {'type': 'rac', 'stability.design_model': 'own',
@@ -100,18 +106,30 @@ def _composed(mode: str, duration_s: float, sim_time: bool, direct: bool = False
         rclpy.try_shutdown(context=context)
 
 
-def _cross(duration_s: float, executor: str) -> dict[str, Any]:
+def _helper(nodes: str, executor: str, params: dict[str, Any]) -> subprocess.Popen[str]:
+    args = [sys.executable, '-m', 'piezo_stage_ros.nodes.stage_servo', '--nodes', nodes,
+            '--executor', executor, '--ros-args']
+    for k, v in params.items():
+        args += ['-p', f'{k}:={v}']
+    return subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
+def _cross(duration_s: float, executor: str, three: bool = False, ahead: int = 0
+           ) -> dict[str, Any]:
     from piezo_stage_ros.nodes.plant_node import PlantNode
     from piezo_stage_ros.nodes.runner import make_executor
     import rclpy
     from rclpy.context import Context
 
-    args = [sys.executable, '-m', 'piezo_stage_ros.nodes.stage_servo', '--nodes',
-            'controller,trajectory', '--executor', executor, '--ros-args']
-    for k, v in {**CONTROLLER, 'mode': 'lockstep'}.items():
-        args += ['-p', f'{k}:={v}']
-    helper = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                              text=True)
+    if three:
+        # the plant here, the controller and the trajectory each in a process of its own
+        helpers = [_helper('controller', executor, {**CONTROLLER, 'mode': 'lockstep'}),
+                   _helper('trajectory', executor, {'mode': 'lockstep',
+                                                    'lockstep_ahead': ahead})]
+    else:
+        helpers = [_helper('controller,trajectory', executor,
+                           {**CONTROLLER, 'mode': 'lockstep', 'lockstep_ahead': ahead})]
+    helper = helpers[0]
     context = Context()
     rclpy.init(context=context)
     plant = None
@@ -123,9 +141,9 @@ def _cross(duration_s: float, executor: str) -> dict[str, Any]:
         ex.add_node(plant)
         ex.spin_until_future_complete(plant.finished, timeout_sec=duration_s * 50 + 60)
         if not plant.finished.done():
-            raise RuntimeError('cross-process run did not finish: '
-                               + (helper.stderr.read() if helper.stderr is not None
-                                  and helper.poll() is not None else ''))
+            raise RuntimeError('cross-process run did not finish: ' + ' '.join(
+                h.stderr.read() for h in helpers
+                if h.stderr is not None and h.poll() is not None))
         ex.remove_node(plant)
         ex.shutdown()
         return dict(plant.finished.result())
@@ -133,11 +151,12 @@ def _cross(duration_s: float, executor: str) -> dict[str, Any]:
         if plant is not None:
             plant.destroy_node()
         rclpy.try_shutdown(context=context)
-        helper.terminate()
-        try:
-            helper.wait(10)
-        except subprocess.TimeoutExpired:
-            helper.kill()
+        for helper in helpers:
+            helper.terminate()
+            try:
+                helper.wait(10)
+            except subprocess.TimeoutExpired:
+                helper.kill()
 
 
 def _pingpong(round_trips: int = 20000) -> dict[str, Any]:
@@ -230,6 +249,12 @@ def run_ros_benchmark(cases: Sequence[str] = CASES, *, lockstep_s: float = 5.0,
             out[case] = _composed('realtime', realtime_s, False, direct=True)
         elif case == 'cross-lockstep':
             out[case] = _cross(lockstep_s, 'events')
+            out['cross-lockstep (reference 50 samples ahead)'] = _cross(lockstep_s, 'events',
+                                                                        ahead=50)
+        elif case == 'three-lockstep':
+            out[case] = _cross(lockstep_s, 'events', three=True)
+            out['three-lockstep (reference 50 samples ahead)'] = _cross(
+                lockstep_s, 'events', three=True, ahead=50)
         else:
             raise ValueError(f'unknown case {case!r}; choose among {", ".join(CASES)}')
     return out
@@ -237,8 +262,9 @@ def run_ros_benchmark(cases: Sequence[str] = CASES, *, lockstep_s: float = 5.0,
 
 def format_table(result: dict[str, Any]) -> str:
     """Return the figures of :func:`run_ros_benchmark` as a Markdown table and notes."""
-    lines = ['| case | samples | wall [s] | samples/s | x real time | late [%] | skipped |',
-             '| --- | ---: | ---: | ---: | ---: | ---: | ---: |']
+    lines = ['| case | samples | wall [s] | samples/s | x real time | late [%] | skipped | '
+             'lateness p50 / p99 / max [us] | late > T/2 |',
+             '| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |']
     notes = []
     for case, s in result.items():
         if case == 'pingpong':
@@ -247,8 +273,11 @@ def format_table(result: dict[str, Any]) -> str:
             continue
         samples = s.get('index', -1) + 1
         late = 100.0 * s.get('late', 0) / samples if samples else 0.0
+        clock = (f'{s["lateness_p50_us"]} / {s["lateness_p99_us"]} / {s["lateness_max_us"]}'
+                 if 'lateness_p50_us' in s else '-')
         lines.append(f'| {case} | {samples} | {s["wall_s"]:.2f} | {s["samples_per_s"]:.0f} | '
-                     f'{s["real_time_factor"]:.3f} | {late:.3f} | {s.get("skipped", 0)} |')
+                     f'{s["real_time_factor"]:.3f} | {late:.3f} | {s.get("skipped", 0)} | '
+                     f'{clock} | {s.get("late_half_period", "-")} |')
     return '\n'.join(lines + [''] + notes)
 
 

@@ -276,18 +276,23 @@ class JointStateEncoder:
         Joint names (``['stage']``, or the controller's diagnostic keys).
     with_velocity : bool
         Whether a velocity array of the same length follows the positions.
+    effort : bool
+        Put the values in the effort array instead (position and velocity empty): an actuator
+        input, as ``stage/applied`` carries it.
 
     """
 
-    def __init__(self, names: Sequence[str], with_velocity: bool = False) -> None:
+    def __init__(self, names: Sequence[str], with_velocity: bool = False,
+                 effort: bool = False) -> None:
         n = len(names)
-        layout = joint_state_layout(names=names, n_position=n,
-                                    n_velocity=n if with_velocity else 0)
+        layout = joint_state_layout(names=names, n_position=0 if effort else n,
+                                    n_velocity=n if with_velocity else 0,
+                                    n_effort=n if effort else 0)
         self._template = bytearray(layout.template.tobytes())
         for off, count in layout.arrays.values():  # values not given are sent as 0.0
             self._template[off:off + 8 * count] = bytes(8 * count)
         self._values = struct.Struct(f'<{n}d')
-        self._pos_at = layout.arrays['position'][0] if n else -1
+        self._pos_at = layout.arrays['effort' if effort else 'position'][0] if n else -1
         self._vel_at = layout.arrays['velocity'][0] if n and with_velocity else -1
 
     def encode(self, sec: int, nanosec: int, position: Sequence[float],

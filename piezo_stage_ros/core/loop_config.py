@@ -68,7 +68,8 @@ from piezo_stage_ros.core.stage import PlantParams, StageParams
 from piezo_stage_ros.core.trajectories import TrajectoryParams
 
 __all__ = ['BridgeParams', 'ControllerNodeParams', 'Declaration', 'Group', 'LockstepParams',
-           'LoopConfig', 'MODES', 'NodeTable', 'PlantNodeParams', 'TrajectoryNodeParams',
+           'LoopConfig', 'MODES', 'NodeTable', 'PlantNodeParams', 'ServoParams',
+           'TrajectoryNodeParams',
            'TABLES', 'controller_table', 'design_plant', 'load_loop_config', 'plant_table',
            'trajectory_table']
 
@@ -110,13 +111,34 @@ class BridgeParams(Params):
 
 
 @dataclass(frozen=True)
+class ServoParams(Params):
+    """The paced servo loop of real-time mode (nodes/servo.py): its clock and its thread."""
+
+    spin_us: float = param(200.0, unit='us', description='Sleep until this close to each due '
+                           'time, then spin on the clock (above the period: always spin; with '
+                           'SCHED_FIFO, whose sleeps wake on time, 30 leaves the CPU idle in '
+                           'between).', low=0.0, high=1e6, read_only=True)
+    fifo_priority: int = param(0, unit='-', description='SCHED_FIFO priority of the servo '
+                               'thread (1..99; 0: the default scheduler); applied where '
+                               'permitted, else reported.', low=0, high=99, read_only=True)
+    cpu: int = param(-1, unit='-', description='CPU the servo thread runs on (-1: any).',
+                     low=-1, high=1023, read_only=True)
+    switch_interval_us: float = param(0.0, unit='us', description="The interpreter's switch "
+                                      'interval (sys.setswitchinterval; 0: unchanged, '
+                                      "CPython's default is 5000).", low=0.0, high=1e6,
+                                      read_only=True)
+
+
+@dataclass(frozen=True)
 class PlantNodeParams(Params):
     """Plant node parameters beyond the stage itself."""
 
     mode: str = param('lockstep', unit='-', description=_MODE_DOC, choices=MODES,
                       read_only=True)
-    backend: str = param('model', unit='-', description='The stage model of the core, or the '
-                         'UDP bridge to a real-time I/O target.', choices=('model', 'udp'),
+    backend: str = param('model', unit='-', description='The stage model of the core, the '
+                         'UDP bridge to a real-time I/O target (udp: one request per sample), '
+                         'or the same target streaming samples on its own clock (udp_stream: '
+                         'the host answers each).', choices=('model', 'udp', 'udp_stream'),
                          read_only=True)
     duration_s: float = param(0.0, unit='s', description='Stop after this much loop time '
                               '(round(duration_s * rate) samples); 0 runs until shut down.',
@@ -128,6 +150,12 @@ class PlantNodeParams(Params):
                                    'counters (wall time).', low=0.01, high=3600.0)
     lockstep: LockstepParams = group(LockstepParams, 'lockstep start-up')
     bridge: BridgeParams = group(BridgeParams, 'UDP bridge')
+    servo: ServoParams = group(ServoParams, 'real-time servo loop')
+
+    def _check(self) -> None:
+        if self.backend == 'udp_stream' and self.mode != 'realtime':
+            raise ParameterError('backend', self.backend, "'model' or 'udp' in lockstep",
+                                 'needs mode realtime (the target owns the clock)')
 
 
 @dataclass(frozen=True)
@@ -165,6 +193,14 @@ class TrajectoryNodeParams(_PeerNodeParams):
     chunk_s: float = param(1.0, unit='s', description='The reference is evaluated this much at '
                            'a time, aligned as the offline runner does (real time: at most '
                            '5 ms at a time).', low=1e-4, high=100.0, read_only=True)
+    lockstep_ahead: int = param(0, unit='samples', description='Lockstep: publish the reference '
+                                'this many samples ahead of the position it answers (it does '
+                                'not depend on the position; the controller pairs by stamp), '
+                                'which takes the trajectory node out of the per-sample path; '
+                                'a start, stop or switch then takes effect after the samples '
+                                'already sent; at most 99, below the depth of the loop '
+                                "topics' queues; 0: answer each position.", low=0, high=99,
+                                read_only=True)
 
 
 @dataclass(frozen=True)

@@ -47,7 +47,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 import math
-from typing import Any, ClassVar, Mapping, Sequence
+from typing import Any, Callable, ClassVar, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -523,6 +523,12 @@ def edge_metrics(time_s: FloatArray, position_m: FloatArray, reference_m: FloatA
         edges=len(rows))
 
 
+def _finite_extreme(values: FloatArray, pick: Callable[[FloatArray], Any]) -> float:
+    # commands a bag could not pair with their samples are NaN: the extremes of the others
+    finite = values[np.isfinite(values)]
+    return float(pick(finite)) if finite.size else math.nan
+
+
 def summarize(record: RunRecord, *, steady_state_start_s: float | None = None,
               period_s: float | None = None) -> TrackingMetrics:
     """
@@ -578,8 +584,8 @@ def summarize(record: RunRecord, *, steady_state_start_s: float | None = None,
         ranges[name] = ((float(np.min(finite)), float(np.max(finite))) if finite.size
                         else (math.nan, math.nan))
     return TrackingMetrics(samples=n, e_max_m=e_max, e_rms_m=e_rms, e_max_all_m=e_max_all,
-                           e_rms_all_m=e_rms_all, command_min_v=float(np.min(cmd)),
-                           command_max_v=float(np.max(cmd)), duration_s=float(n * dt),
+                           e_rms_all_m=e_rms_all, command_min_v=_finite_extreme(cmd, np.min),
+                           command_max_v=_finite_extreme(cmd, np.max), duration_s=float(n * dt),
                            steady_state_start_s=start_abs - float(t[0]),
                            steady_state_samples=window.stop - window.start,
                            loop_width_pct=width, diagnostic_ranges=ranges)

@@ -52,7 +52,7 @@ from piezo_stage_ros.core.interfaces import Controller
 
 __all__ = [
     'BAG_TOPICS', 'CLOCK', 'CLOCK_TYPE', 'COMMAND', 'COMMAND_TYPE', 'DEFAULT_NAMESPACE',
-    'DIAGNOSTICS', 'JOINT_NAME', 'JOINT_STATE_TYPE', 'META_KEY', 'NS_PER_S', 'POSITION',
+    'APPLIED', 'DIAGNOSTICS', 'JOINT_NAME', 'JOINT_STATE_TYPE', 'META_KEY', 'NS_PER_S', 'POSITION',
     'RECORDED_TOPICS', 'REFERENCE', 'REQUIRED_TOPICS', 'STAGE', 'STATUS', 'STATUS_TYPE',
     'TOPIC_TYPES', 'diagnostic_reader', 'normalize_namespace', 'ns_to_stamp', 'stamp_to_ns',
     'topic_names',
@@ -68,12 +68,13 @@ STAGE: Final = 'stage'
 JOINT_NAME: Final = STAGE
 
 #: The topics of a run in a bag: the last part of the name -> message type, in the order the
-#: nodes publish a sample (``diagnostics`` is optional, the others are required).
+#: nodes publish a sample (``diagnostics`` and ``applied`` are optional, the others required).
 BAG_TOPICS: Final[Mapping[str, str]] = {
     'position': JOINT_STATE_TYPE,
     'reference': JOINT_STATE_TYPE,
     'command': COMMAND_TYPE,
     'diagnostics': JOINT_STATE_TYPE,
+    'applied': JOINT_STATE_TYPE,
 }
 REQUIRED_TOPICS: Final = ('position', 'reference', 'command')
 
@@ -81,6 +82,9 @@ POSITION: Final = f'{STAGE}/position'
 REFERENCE: Final = f'{STAGE}/reference'
 COMMAND: Final = f'{STAGE}/command'
 DIAGNOSTICS: Final = f'{STAGE}/diagnostics'
+#: Real time: stamp t_k, name ['stage'], effort [the amplifier input the plant held over
+#: [t_k, t_k+1)] in V (what it applied, whatever command came), published after t_k+1.
+APPLIED: Final = f'{STAGE}/applied'
 #: Plant counters (late samples, resends, watchdog trips, bridge losses), about once a second.
 STATUS: Final = f'{STAGE}/status'
 CLOCK: Final = '/clock'
@@ -92,7 +96,7 @@ TOPIC_TYPES: Final[Mapping[str, str]] = {
     CLOCK: CLOCK_TYPE,
 }
 #: What ``ros2 bag record`` takes from a stage (relative to the launch namespace).
-RECORDED_TOPICS: Final = (POSITION, REFERENCE, COMMAND, DIAGNOSTICS, STATUS)
+RECORDED_TOPICS: Final = (POSITION, REFERENCE, COMMAND, DIAGNOSTICS, APPLIED, STATUS)
 
 #: The bag namespace of a stage launched in the root namespace.
 DEFAULT_NAMESPACE: Final = '/' + STAGE

@@ -130,6 +130,17 @@ class ModelBridge:
         self.steps += 1
         return self.stage.step(self._voltage_v)
 
+    def advance(self, samples: int) -> None:
+        """
+        Step the model ``samples`` times with the voltage held, measuring nothing.
+
+        For samples a paced loop skipped after a stall: a physical stage goes on under the held
+        voltage while nobody looks, so the model does too and stays in step with wall time.
+        """
+        for _ in range(samples):
+            self.steps += 1
+            self.stage.step(self._voltage_v)
+
     def step(self, voltage_v: float) -> float:
         """Write and read in one call (the hot path of the lockstep loop)."""
         self.steps += 1

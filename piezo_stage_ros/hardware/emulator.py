@@ -18,10 +18,16 @@ A real-time I/O target emulator on loopback: the stage model behind the UDP prot
 It speaks the protocol of :mod:`piezo_stage_ros.hardware.udp`, simulating the stage with the core
 model.
 
-It steps one :class:`~piezo_stage_ros.core.stage.Stage` per COMMAND request (so a lockstep run
-through it gives the samples of the model itself), binds to 127.0.0.1 only, and stops by itself:
-on STOP, after ``idle_timeout_s`` without a request, or after ``max_requests``. Run it as
-``stage_emulator --port 50000`` (console script) or in a thread from a test.
+Request-reply (:meth:`TargetEmulator.serve`): it steps one
+:class:`~piezo_stage_ros.core.stage.Stage` per COMMAND request (so a lockstep run through it
+gives the samples of the model itself). Target-paced (:meth:`TargetEmulator.serve_paced`,
+``stage_emulator --paced``): after a STREAM request it owns the sample clock as a real-time
+target does, paced like the servo loop (:class:`~piezo_stage_ros.hardware.pacing.Pacer`): at
+each sample it applies the newest command received, counts the sample missing when no command
+answered the previous one, steps the stage and sends the sample. It binds to 127.0.0.1 only and
+stops by itself: on STOP, after ``idle_timeout_s`` without a request, or after
+``max_requests``. Run it as ``stage_emulator --port 50000`` (console script) or in a thread
+from a test.
 """
 
 from __future__ import annotations
@@ -36,6 +42,7 @@ from typing import Sequence
 from piezo_stage_ros import cli
 from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
 from piezo_stage_ros.core.stage import Stage, StageParams
+from piezo_stage_ros.hardware.pacing import Pacer, realtime_setup
 from piezo_stage_ros.hardware.udp import (
     COMMAND,
     HELLO,
@@ -44,6 +51,7 @@ from piezo_stage_ros.hardware.udp import (
     STATUS_NOT_FINITE,
     STATUS_REFUSED,
     STOP,
+    STREAM,
     unpack_request,
 )
 
@@ -113,6 +121,8 @@ class TargetEmulator:
         self._position_m = self.stage.position_m
         self._thread: threading.Thread | None = None
         self._halt = threading.Event()
+        self._sent = 0
+        self.pacer: Pacer | None = None
 
     def _handle(self, data: bytes) -> tuple[bytes | None, bool]:
         """Return the reply to one datagram (None: no reply) and whether the session ends."""
@@ -192,6 +202,113 @@ class TargetEmulator:
         sock.close()
         return self.stop_reason
 
+    def serve_paced(self, pacer: Pacer | None = None) -> str:
+        """
+        Wait for STREAM, then sample on the own clock until STOP, idleness, limit or close.
+
+        Parameters
+        ----------
+        pacer : Pacer, optional
+            The clock; default a :class:`~piezo_stage_ros.hardware.pacing.Pacer` at the
+            stage's sample rate. Its statistics (:attr:`pacer`) are the target's own lateness.
+
+        Returns
+        -------
+        str
+            Why it stopped: ``'stop'``, ``'idle'``, ``'limit'`` or ``'closed'``.
+
+        """
+        self.pacer = pacer if pacer is not None else \
+            Pacer(round(1e9 / self.params.sample_rate_hz))
+        sock = self._sock
+        sock.settimeout(min(self.idle_timeout_s, 0.1))
+        peer = None
+        idle = 0.0
+        while peer is None and not self._halt.is_set():
+            try:
+                data, addr = sock.recvfrom(64)
+            except TimeoutError:
+                idle += sock.gettimeout() or 0.0
+                if idle >= self.idle_timeout_s:
+                    self.stop_reason = 'idle'
+                    sock.close()
+                    return self.stop_reason
+                continue
+            except OSError:
+                break
+            request = unpack_request(data)
+            if request is not None and request[0] == STREAM:
+                peer = addr
+                self._voltage_v = request[2]
+        if peer is None:
+            self.stop_reason = 'closed'
+            sock.close()
+            return self.stop_reason
+        self.requests += 1
+        self._position_m = self.stage.reset()
+        self.missing = 0
+        sock.setblocking(False)
+        pacer = self.pacer
+        pacer.start()
+        index, _ = pacer.wait()
+        sock.sendto(pack_reply(STREAM, index, self._position_m, 0, 0), peer)
+        last_request_ns = pacer.clock()
+        reason = ''
+        while not reason:
+            if self._halt.is_set():
+                reason = 'closed'
+                break
+            before = index
+            index, _ = pacer.wait()
+            for _ in range(index - before - 1):
+                # samples skipped after a stall: the stage went on under the held voltage
+                self.stage.step(self._voltage_v)
+            answered = False
+            while True:
+                try:
+                    data = sock.recv(64)
+                except (BlockingIOError, InterruptedError):
+                    break
+                except OSError:
+                    reason = 'closed'
+                    break
+                request = unpack_request(data)
+                if request is None:
+                    continue
+                kind, seq, value = request
+                self.requests += 1
+                last_request_ns = pacer.clock()
+                if kind == STOP:
+                    self._voltage_v = value
+                    sock.sendto(pack_reply(STOP, seq, self._position_m, 0, self.missing), peer)
+                    reason = 'stop'
+                    break
+                if kind == COMMAND:
+                    self.commands += 1
+                    # the newest command is held; it answers the previous sample, or is late
+                    self._voltage_v = value
+                    answered = answered or seq % 2 ** 32 == self._sent % 2 ** 32
+            if reason:
+                break
+            if not answered:
+                self.missing += 1
+            status = 0
+            value = self._voltage_v
+            if not math.isfinite(value):
+                status |= STATUS_NOT_FINITE
+            elif not self._low <= value <= self._high:
+                status |= STATUS_CLAMPED
+            self._position_m = self.stage.step(value)
+            self._sent = index
+            sock.sendto(pack_reply(STREAM, index, self._position_m, status, self.missing), peer)
+            if self.max_requests and self.requests >= self.max_requests:
+                reason = 'limit'
+            elif (pacer.clock() - last_request_ns) / 1e9 > self.idle_timeout_s:
+                reason = 'idle'
+        self.stop_reason = reason
+        sock.close()
+        return reason
+
     def start_thread(self) -> TargetEmulator:
         """Serve in a daemon thread; return self."""
         self._thread = threading.Thread(target=self.serve, name='stage_emulator', daemon=True)
@@ -240,6 +357,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help='stop after this long without a request [s]')
     parser.add_argument('--max-requests', type=int, default=0,
                         help='stop after this many requests (0: no limit)')
+    parser.add_argument('--paced', action='store_true',
+                        help='own the sample clock: stream samples after a STREAM request and '
+                        'hold the newest command (a real-time target)')
+    parser.add_argument('--spin-us', type=float, default=200.0,
+                        help='paced: sleep until this close to each due time, then spin')
+    parser.add_argument('--fifo-priority', type=int, default=0,
+                        help='paced: SCHED_FIFO priority (0: the default scheduler)')
+    parser.add_argument('--cpu', type=int, default=-1, help='paced: run on this CPU (-1: any)')
     args = parser.parse_args(argv)
     try:
         # the same loader as every command: the plant node's own settings (mode, backend ...)
@@ -252,11 +377,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     print(f'stage_emulator: listening on {LOOPBACK}:{emulator.port}', flush=True)
     try:
-        reason = emulator.serve()
+        if args.paced:
+            for key, text in realtime_setup(cpus=[args.cpu] if args.cpu >= 0 else [],
+                                            fifo_priority=args.fifo_priority).items():
+                print(f'stage_emulator: {key} {text}', flush=True)
+            reason = emulator.serve_paced(Pacer(round(1e9 / params.sample_rate_hz),
+                                                spin_ns=round(args.spin_us * 1000)))
+        else:
+            reason = emulator.serve()
     except KeyboardInterrupt:
         reason = 'interrupted'
     print(f'stage_emulator: stopped ({reason}) after {emulator.requests} requests, '
           f'{emulator.missing} missing', flush=True)
+    if emulator.pacer is not None:
+        print('stage_emulator: clock ' + ', '.join(
+            f'{k} {v}' for k, v in emulator.pacer.stats.summary().items()), flush=True)
     return 0
 
 

@@ -157,6 +157,8 @@ class GuardedPlant:
         self._clamp = not bool(getattr(bridge, 'clamps_itself', False))
         self._direct = getattr(bridge, 'step', None) if not self._clamp else None
         self.held_v = self.safe_v
+        # the voltage written with the last sample: held over the sample it measured
+        self.applied_v = self.safe_v
         self.started = False
         self.stopped = False
         self.commands = 0
@@ -232,8 +234,21 @@ class GuardedPlant:
             self.late += 1
         self._fresh = False
         self.samples += 1
+        self.applied_v = voltage
         self.bridge.write_voltage(voltage)
         return self.bridge.read_position()
+
+    def skipped(self, samples: int) -> None:
+        """
+        Let ``samples`` samples that were not taken pass (a paced loop's stall).
+
+        The voltage written last stays held over them; a simulated backend (one with
+        ``advance(n)``) steps through them so that it stays in step with wall time, a physical
+        one has done so by itself.
+        """
+        advance = getattr(self.bridge, 'advance', None)
+        if samples > 0 and callable(advance):
+            advance(samples)
 
     def step(self, command_v: float) -> float:
         """
@@ -253,9 +268,10 @@ class GuardedPlant:
         self.samples += 1
         if self._direct is not None:
             self.commands += 1
+            self.applied_v = command_v
             return float(self._direct(command_v))
         voltage = self._accept(command_v)
-        self.held_v = voltage
+        self.held_v = self.applied_v = voltage
         self.bridge.write_voltage(voltage)
         return self.bridge.read_position()
 

@@ -49,11 +49,21 @@ offset  bytes  type    field
 20      4      uint32  requests the target found missing so far (gaps in sequence numbers)
 ======  =====  ======  ===============================================================
 
-Timing and losses: the host waits for the reply with its own sequence number for at most
-``timeout_s``; a reply with an older number is stale (counted, dropped); no reply in time is a
-lost sample (counted; the last position is held). More than ``max_consecutive_losses`` lost
-samples in a row raise :class:`~piezo_stage_ros.hardware.bridge.BridgeError`, upon which the
-plant drives the safe voltage and stops. Nothing is retransmitted except HELLO: a sample that
+Target-paced streaming (kind 4, STREAM): the target owns the sample clock, as a real-time
+target does. The host sends STREAM with the safe voltage; the target resets, drives it, and from
+then on takes one sample every period on its own clock and sends it unasked as a reply of kind
+STREAM (sequence number = the sample's number k, from 0; position y_k; status; missing). The host
+answers each sample with a COMMAND whose sequence number is k and whose value is u_k. At its
+next sample the target applies the newest command it has received (zero-order hold) and counts
+the sample *missing* when no command answering the previous sample came in time. STOP ends the
+stream (replied with kind STOP). :class:`UdpStreamBridge` is the host side.
+
+Timing and losses (request-reply): the host waits for the reply with its own sequence number
+for at most ``timeout_s``; a reply with an older number is stale (counted, dropped); no reply in
+time is a lost sample (counted; the last position is held). More than
+``max_consecutive_losses`` lost samples in a row raise
+:class:`~piezo_stage_ros.hardware.bridge.BridgeError`, upon which the plant drives the safe
+voltage and stops. Nothing is retransmitted except HELLO: a sample that
 is late is worthless.
 """
 
@@ -63,19 +73,21 @@ import math
 import socket
 import struct
 import time
-from typing import Final, Mapping
+from typing import Callable, Final, Mapping
 
 from piezo_stage_ros.core.errors import ParameterError
 from piezo_stage_ros.hardware.bridge import BridgeError
 
-__all__ = ['HELLO', 'COMMAND', 'STOP', 'REPLY', 'REQUEST', 'VERSION', 'MAGIC', 'UdpBridge',
-           'pack_reply', 'pack_request', 'unpack_reply', 'unpack_request']
+__all__ = ['HELLO', 'COMMAND', 'STOP', 'STREAM', 'REPLY', 'REQUEST', 'VERSION', 'MAGIC',
+           'UdpBridge', 'UdpStreamBridge', 'pack_reply', 'pack_request', 'unpack_reply',
+           'unpack_request']
 
 MAGIC: Final = b'PZ'
 VERSION: Final = 1
 HELLO: Final = 1
 COMMAND: Final = 2
 STOP: Final = 3
+STREAM: Final = 4
 REPLY_FLAG: Final = 0x80
 STATUS_CLAMPED: Final = 1
 STATUS_NOT_FINITE: Final = 2
@@ -173,21 +185,29 @@ class UdpBridge:
                               f'({exc.strerror})') from None
         self._sock = sock
 
-    def _exchange(self, kind: int, value_v: float) -> float | None:
-        """Send one request and return the position of its reply, or None on timeout."""
+    def _send(self, kind: int, seq: int, value_v: float) -> None:
         sock = self._sock
         if sock is None:
             raise BridgeError('UDP bridge: not open')
-        self._seq = (self._seq + 1) % _SEQ_MOD
-        seq = self._seq
         try:
             sock.send(pack_request(kind, seq, value_v))
         except OSError as exc:
             raise BridgeError(f'UDP bridge: send to {self.address[0]}:{self.address[1]} '
                               f'failed ({exc.strerror})') from None
-        deadline = time.monotonic() + self.timeout_s
+
+    def _receive(self, kind: int, deadline_s: float,
+                 accept: Callable[[int], bool]) -> tuple[int, float] | None:
+        """
+        Return ``(seq, position)`` of the first reply of ``kind`` whose number ``accept`` takes.
+
+        Replies of another kind or malformed ones are counted and skipped, refused numbers
+        count as stale; None when nothing came before ``deadline_s`` (``time.monotonic``).
+        """
+        sock = self._sock
+        if sock is None:
+            raise BridgeError('UDP bridge: not open')
         while True:
-            remaining = deadline - time.monotonic()
+            remaining = deadline_s - time.monotonic()
             if remaining <= 0.0:
                 return None
             sock.settimeout(remaining)
@@ -203,7 +223,7 @@ class UdpBridge:
                 self.malformed += 1
                 continue
             _, rseq, position, status, missing = reply
-            if rseq != seq:
+            if not accept(rseq):
                 self.stale += 1
                 continue
             self.exchanges += 1
@@ -212,7 +232,15 @@ class UdpBridge:
                 self.target_clamped += 1
             if status & STATUS_REFUSED:
                 raise BridgeError(f'UDP bridge: target refused request kind {kind}')
-            return position
+            return rseq, position
+
+    def _exchange(self, kind: int, value_v: float) -> float | None:
+        """Send one request and return the position of its reply, or None on timeout."""
+        self._seq = (self._seq + 1) % _SEQ_MOD
+        seq = self._seq
+        self._send(kind, seq, value_v)
+        reply = self._receive(kind, time.monotonic() + self.timeout_s, lambda r: r == seq)
+        return None if reply is None else reply[1]
 
     def safe_start(self, safe_voltage_v: float) -> float:
         """Send HELLO (retried) with the safe voltage and return the first position [m]."""
@@ -232,9 +260,8 @@ class UdpBridge:
         """Set the voltage [V] the next :meth:`read_position` sends."""
         self._voltage_v = voltage_v
 
-    def read_position(self) -> float:
-        """Send the held voltage for one sample and return the position at its end [m]."""
-        position = self._exchange(COMMAND, self._voltage_v)
+    def _measured(self, position: float | None) -> float:
+        """Return ``position`` [m], or on a loss (None) the last one, counting losses in a row."""
         if position is None:
             self.lost += 1
             self._consecutive += 1
@@ -246,6 +273,10 @@ class UdpBridge:
         self._consecutive = 0
         self._position_m = position
         return position
+
+    def read_position(self) -> float:
+        """Send the held voltage for one sample and return the position at its end [m]."""
+        return self._measured(self._exchange(COMMAND, self._voltage_v))
 
     def safe_stop(self, safe_voltage_v: float) -> None:
         """Send STOP with the safe voltage (one attempt) and close the socket."""
@@ -264,3 +295,90 @@ class UdpBridge:
         return {'exchanges': self.exchanges, 'lost': self.lost, 'stale': self.stale,
                 'malformed': self.malformed, 'target_missing': self.target_missing,
                 'target_clamped': self.target_clamped}
+
+
+class UdpStreamBridge(UdpBridge):
+    """
+    The host side of target-paced streaming: the target owns the clock, the host answers.
+
+    A :class:`~piezo_stage_ros.hardware.bridge.Bridge` whose :meth:`read_position` waits for the
+    target's next sample (at most ``timeout_s``) and whose :meth:`write_voltage` sends the
+    command answering the sample received last at once. Driven by
+    :class:`~piezo_stage_ros.nodes.servo.ServoLoop` with ``clock='bridge'``: the loop takes
+    the sample's number (:attr:`sample_index`) and arrival time (:attr:`arrival_ns`) from here.
+
+    Parameters
+    ----------
+    host, port, timeout_s, max_consecutive_losses, hello_attempts
+        As :class:`UdpBridge`; ``timeout_s`` is the longest wait for the next sample.
+    clock : callable, optional
+        Monotonic clock [ns] of the arrival times; default :func:`time.monotonic_ns`.
+
+    """
+
+    def __init__(self, host: str, port: int, *, timeout_s: float = 0.002,
+                 max_consecutive_losses: int = 10, hello_attempts: int = 5,
+                 clock: Callable[[], int] = time.monotonic_ns) -> None:
+        super().__init__(host, port, timeout_s=timeout_s,
+                         max_consecutive_losses=max_consecutive_losses,
+                         hello_attempts=hello_attempts)
+        self.clock = clock
+        self.sample_index = -1
+        self.arrival_ns = 0
+        self._answered = True
+        self.answer_ns: list[int] = []
+        self.gaps = 0
+
+    def _newer(self, seq: int) -> bool:
+        # an older sample (reordered) is past already
+        return self.sample_index < 0 or (seq - self.sample_index) % _SEQ_MOD < 2 ** 31
+
+    def _next_sample(self, deadline_s: float) -> bool:
+        """Wait for a sample newer than the last one; return whether one came."""
+        reply = self._receive(STREAM, deadline_s, self._newer)
+        if reply is None:
+            return False
+        seq, self._position_m = reply
+        self.arrival_ns = self.clock()
+        if self.sample_index < 0:
+            self.sample_index = seq
+        else:
+            step = (seq - self.sample_index) % _SEQ_MOD
+            self.gaps += step - 1
+            self.sample_index += step
+        self._answered = False
+        return True
+
+    def safe_start(self, safe_voltage_v: float) -> float:
+        """Send STREAM (retried) with the safe voltage and return the position of sample 0."""
+        self.open()
+        for _ in range(self.hello_attempts):
+            self._send(STREAM, 0, safe_voltage_v)
+            self.sample_index = -1
+            if self._next_sample(time.monotonic() + max(self.timeout_s, 0.05)):
+                self._voltage_v = safe_voltage_v
+                self._consecutive = 0
+                return self._position_m
+        raise BridgeError(f'UDP bridge: no sample from the target at {self.address[0]}:'
+                          f'{self.address[1]} after {self.hello_attempts} STREAM requests')
+
+    def write_voltage(self, voltage_v: float) -> None:
+        """Send ``voltage_v`` [V] at once as the answer to the sample received last."""
+        self._voltage_v = voltage_v
+        if self._answered or self._sock is None:
+            return  # the sample has its answer already (or the stream is over)
+        self._send(COMMAND, self.sample_index, voltage_v)
+        self._answered = True
+        if len(self.answer_ns) < 10_000_000:
+            self.answer_ns.append(self.clock() - self.arrival_ns)
+
+    def read_position(self) -> float:
+        """Wait for the target's next sample and return its position [m] (held if lost)."""
+        came = self._next_sample(time.monotonic() + self.timeout_s)
+        return self._measured(self._position_m if came else None)
+
+    def stats(self) -> Mapping[str, int]:
+        """Return the counters, with the samples missing on the way (sequence gaps)."""
+        out = dict(super().stats())
+        out['gaps'] = self.gaps
+        return out

@@ -181,16 +181,21 @@ class ControllerNode(Node):
         self._matched = True
         self._cmd_gate = Gate(self._cmd_pub.get_subscription_count)
         self._diag_gate = Gate(self._diag_pub.get_subscription_count, every=100)
+        if self._watch is not None:
+            # positions come by call from the plant in this process (in real time from its
+            # servo loop, which owns the safety of the loop): no topic to fall silent
+            self._watch.cancel()
 
     def answer(self, stamp_ns: int, position_m: float, reference_m: float,
                reference_velocity_mps: float) -> float:
         """Return u_k for y_k and x_d(t_k) given by call (``stage_servo --direct``)."""
         self.logic.on_position(stamp_ns, position_m, time.monotonic())
         out = self.logic.on_reference(stamp_ns, reference_m, reference_velocity_mps)
-        self._publish(out)
+        self.publish(out)
         return self._last_u
 
-    def _publish(self, out: Command | None) -> None:
+    def publish(self, out: Command | None) -> None:
+        """Publish a command (and its diagnostics) computed by the logic; None: nothing."""
         if out is None:
             return
         self._last_u = out.voltage_v
@@ -229,7 +234,7 @@ class ControllerNode(Node):
         try:
             msg = self._decode(data, wire.REFERENCE)
             if msg is not None:
-                self._publish(self.logic.on_reference(wire.stamp_to_ns(msg[0], msg[1]), msg[2],
+                self.publish(self.logic.on_reference(wire.stamp_to_ns(msg[0], msg[1]), msg[2],
                                                       msg[3]))
         except KeyboardInterrupt:
             return
@@ -242,7 +247,7 @@ class ControllerNode(Node):
             self._matched = True
         msg = self._decode(data, wire.POSITION)
         if msg is not None:
-            self._publish(self.logic.on_position(wire.stamp_to_ns(msg[0], msg[1]), msg[2],
+            self.publish(self.logic.on_position(wire.stamp_to_ns(msg[0], msg[1]), msg[2],
                                                  time.monotonic()))
 
     def _check_watchdog(self) -> None:

@@ -79,7 +79,11 @@ class Sample:
 
 class PlantLogic:
     """
-    The plant node's behaviour: owns time in lockstep, samples on its clock in real time.
+    The plant node's behaviour in lockstep: owns simulation time, one sample per command.
+
+    In real time the plant node samples with the paced servo loop
+    (:class:`piezo_stage_ros.nodes.servo.ServoLoop`) instead; this object then only holds the
+    mode, the rate and the run length.
 
     Parameters
     ----------
@@ -93,15 +97,11 @@ class PlantLogic:
         Stop after ``round(duration_s * rate)`` samples; 0 runs on.
     resend_s : float
         Lockstep: publish the waiting sample again after this long without its command [s].
-    max_catch_up : int
-        Real time: at most this many overdue samples are taken at once; beyond that the
-        schedule restarts from now (counted in ``skipped``).
 
     """
 
     def __init__(self, plant: GuardedPlant, *, mode: str, sample_rate_hz: float,
-                 duration_s: float = 0.0, resend_s: float = 0.5,
-                 max_catch_up: int = 100) -> None:
+                 duration_s: float = 0.0, resend_s: float = 0.5) -> None:
         if mode not in ('lockstep', 'realtime'):
             raise ParameterError('mode', mode, "one of 'lockstep', 'realtime'")
         self.plant = plant
@@ -111,7 +111,6 @@ class PlantLogic:
         self.period_s = 1.0 / self.rate_hz
         self.total = sample_count(duration_s, self.rate_hz)
         self.resend_s = resend_s
-        self.max_catch_up = max(1, max_catch_up)
         self.start_ns = 0
         self.index = -1
         self.done = False
@@ -121,8 +120,6 @@ class PlantLogic:
         self._t0_s = 0.0
         self.resends = 0
         self.unexpected = 0
-        self.skipped = 0
-        self.catch_up = 0
 
     @property
     def last_sample(self) -> Sample | None:
@@ -210,56 +207,6 @@ class PlantLogic:
         self.resends += 1
         return self._last
 
-    def on_tick(self, now_s: float,
-                command_for: Callable[[Sample], float] | None = None) -> list[Sample]:
-        """
-        Real time: take every sample whose time has come and return them (usually one).
-
-        Parameters
-        ----------
-        now_s : float
-            Monotonic wall time [s]; sample k is due at start + k / rate.
-        command_for : callable, optional
-            ``command_for(sample) -> u_k``, called right after each sample (a controller
-            called in process): its command is held from the next sample on, also within a
-            catch-up.
-
-        Returns
-        -------
-        list of Sample
-            The samples to publish, oldest first.
-
-        """
-        if self.lockstep or self.done or self.index < 0:
-            return []
-        due = int((now_s - self._t0_s) * self.rate_hz)
-        behind = due - self.index
-        if behind > self.max_catch_up:
-            # a long stall (suspend, debugger): no burst; the samples missed are skipped, the
-            # schedule and the stamps move on by as many periods, so the next one is due now
-            skip = behind - 1
-            self.skipped += skip
-            self._t0_s += skip * self.period_s
-            self.start_ns += round(skip * NS_PER_S / self.rate_hz)
-            behind = 1
-        out: list[Sample] = []
-        for _ in range(max(behind, 0)):
-            if behind > 1:
-                self.catch_up += 1
-            position = self.plant.sample(now_s)
-            sample = self._sample(position)
-            out.append(sample)
-            if self.total and self.index + 1 >= self.total:
-                self.done = True
-                break
-            if command_for is not None:
-                self.plant.command(command_for(sample), now_s)
-        return out
-
-    def next_due_s(self) -> float:
-        """Real time: return the monotonic time [s] the next sample is due."""
-        return self._t0_s + (self.index + 1) * self.period_s
-
     def stop(self) -> None:
         """Drive the safe voltage and release the backend."""
         self.done = True
@@ -270,8 +217,7 @@ class PlantLogic:
         """Return the counters: samples, late, resends, watchdog trips, bridge losses."""
         out = self.plant.stats()
         out.update({'index': self.index, 'resends': self.resends,
-                    'unexpected_commands': self.unexpected, 'skipped': self.skipped,
-                    'catch_up': self.catch_up})
+                    'unexpected_commands': self.unexpected})
         return out
 
 
@@ -314,6 +260,8 @@ class TrajectoryLogic:
         first, _ = trajectory.evaluate(np.zeros(1))
         self.hold_m = float(first[0])
         self.answered = 0
+        self._ahead_sent = -1
+        self._ahead_asked: int | None = None
 
     def start(self) -> None:
         """Stream from the next sample on, from t = 0."""
@@ -339,6 +287,39 @@ class TrajectoryLogic:
             self._chunk_index = chunk
         i = index - chunk * self.chunk
         return self._ref[i], self._vel[i]
+
+    def ahead(self, stamp_ns: int, count: int) -> list[tuple[int, float, float]]:
+        """
+        Lockstep: return the references up to ``count`` samples after ``stamp_ns`` not sent yet.
+
+        The reference does not depend on the position, so it can go out ahead and the
+        controller pairs it with its position by stamp. The stamps are the plant's, computed by
+        the same rule (t_0 + round(k 10^9 / rate) ns) from the first position's stamp.
+
+        Returns
+        -------
+        list of (stamp_ns, position_m, velocity_mps)
+            Oldest first; the sample ``stamp_ns`` itself when it was not sent yet.
+
+        """
+        if self._start_ns is None:
+            out = [(stamp_ns, *self.on_position(stamp_ns))]
+            self._ahead_sent = 0
+        elif stamp_ns == self._ahead_asked:
+            # the same sample again (a lockstep resend: something of it was lost, perhaps its
+            # reference): its reference goes again
+            out = [(stamp_ns, *self.on_position(stamp_ns))]
+        else:
+            out = []
+        self._ahead_asked = stamp_ns
+        start = self._start_ns
+        assert start is not None
+        index = round((stamp_ns - start) * self.rate_hz / NS_PER_S)
+        for k in range(max(self._ahead_sent + 1, index), index + count + 1):
+            stamp = start + round(k * NS_PER_S / self.rate_hz)
+            out.append((stamp, *self.on_position(stamp)))
+            self._ahead_sent = k
+        return out
 
     def on_position(self, stamp_ns: int) -> tuple[float, float]:
         """
@@ -426,8 +407,11 @@ class ControllerLogic:
         self.diagnostics_every = max(1, diagnostics_every)
         self._rebuild = rebuild
         self.names, self._read = diagnostic_reader(controller)
-        self._pos: tuple[int, float] | None = None
-        self._ref: tuple[int, float, float] | None = None
+        # positions and references by stamp: a reference may come ahead of its position
+        # (lockstep_ahead), and in real time positions may come in a burst ahead of their
+        # references; each sample is stepped once it has both
+        self._positions: dict[int, float] = {}
+        self._refs: dict[int, tuple[float, float]] = {}
         self._last_stamp: int | None = None
         self._pending: Any = None
         self._needs_reset = True
@@ -462,20 +446,31 @@ class ControllerLogic:
         if self._safe:
             self._safe = False
             self._needs_reset = True
-        self._pos = (stamp_ns, position_m)
-        return self._try()
+        return self._try(stamp_ns, self._positions, position_m)
 
     def on_reference(self, stamp_ns: int, reference_m: float,
                      reference_velocity_mps: float) -> Command | None:
         """Take x_d and x_d' [m, m/s] for the sample stamped ``stamp_ns`` [ns]."""
-        self._ref = (stamp_ns, reference_m, reference_velocity_mps)
-        return self._try()
+        return self._try(stamp_ns, self._refs, (reference_m, reference_velocity_mps))
 
-    def _try(self) -> Command | None:
-        pos, ref = self._pos, self._ref
-        if pos is None or ref is None or pos[0] != ref[0]:
+    def _try(self, stamp: int, into: dict[int, Any], value: Any) -> Command | None:
+        into[stamp] = value
+        if len(into) > 100_000:
+            # halves that never found their other half (a node that stopped): keep the newest
+            for old in list(into)[:50_000]:
+                del into[old]
+        y = self._positions.get(stamp)
+        ref = self._refs.get(stamp)
+        if y is None or ref is None:
             return None
-        stamp = pos[0]
+        for pending in (self._positions, self._refs):
+            while True:
+                # halves older than this sample are of no use any more (kept: this one, for a
+                # sample sent again)
+                first = next(iter(pending))
+                if first >= stamp:
+                    break
+                del pending[first]
         if stamp == self._last_stamp:
             # a sample published again (lockstep resend): its command is already out
             self.duplicates += 1
@@ -483,7 +478,7 @@ class ControllerLogic:
         if self._last_stamp is not None and stamp < self._last_stamp:
             self.duplicates += 1
             return None
-        y, xd, vd = pos[1], ref[1], ref[2]
+        xd, vd = ref
         if self._pending is not None:
             self._apply_pending(y, xd)
         if self._needs_reset:

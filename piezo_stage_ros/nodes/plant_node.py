@@ -35,12 +35,20 @@ from piezo_stage_ros.core.cdr import CdrError, decode_float64, encode_clock, Joi
 from piezo_stage_ros.core.errors import PiezoStageError
 from piezo_stage_ros.core.stage import StageParams
 from piezo_stage_ros.hardware.bridge import Bridge, ModelBridge
+from piezo_stage_ros.hardware.pacing import Pacer, realtime_setup
 from piezo_stage_ros.hardware.safety import GuardedPlant
-from piezo_stage_ros.hardware.udp import UdpBridge
+from piezo_stage_ros.hardware.udp import UdpBridge, UdpStreamBridge
 from piezo_stage_ros.nodes import qos
-from piezo_stage_ros.nodes.logic import Gate, PlantLogic, Sample
+from piezo_stage_ros.nodes.logic import (
+    ControllerLogic,
+    Gate,
+    PlantLogic,
+    Sample,
+    TrajectoryLogic,
+)
 from piezo_stage_ros.nodes.parameters import ParameterBinding
 from piezo_stage_ros.nodes.runner import run
+from piezo_stage_ros.nodes.servo import ServoLoop, ServoSample
 from piezo_stage_ros.nodes.tables import plant_table, PlantNodeParams
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -54,9 +62,10 @@ __all__ = ['PlantNode', 'main']
 
 def make_bridge(stage: StageParams, opts: PlantNodeParams) -> Bridge:
     """Return the backend the node parameters name."""
-    if opts.backend == 'udp':
-        return UdpBridge(opts.bridge.host, opts.bridge.port, timeout_s=opts.bridge.timeout_s,
-                         max_consecutive_losses=opts.bridge.max_consecutive_losses)
+    if opts.backend in ('udp', 'udp_stream'):
+        kind = UdpStreamBridge if opts.backend == 'udp_stream' else UdpBridge
+        return kind(opts.bridge.host, opts.bridge.port, timeout_s=opts.bridge.timeout_s,
+                    max_consecutive_losses=opts.bridge.max_consecutive_losses)
     return ModelBridge(stage)
 
 
@@ -102,12 +111,28 @@ class PlantNode(Node):
                                                  qos.LOOP, raw=True)
         self._direct: Callable[[Sample], float] | None = None
         self._position_gate: Callable[[], bool] = lambda: True
+        self.servo: ServoLoop | None = None
+        self._peers: Callable[[list[ServoSample]], None] | None = None
+        self._servo_reported = False
+        # real time: what the plant held over each sample, stamped with it, for the bag
+        # (stage/applied, JointState effort; wire.APPLIED): published from the executor
+        self._applied_pub = None if self.logic.lockstep else self.create_publisher(
+            JointState, wire.APPLIED, qos.LOOP)
+        self._applied_encoder = JointStateEncoder([wire.JOINT_NAME], effort=True)
+        self._applied_gate: Callable[[], bool] = Gate(
+            self._applied_pub.get_subscription_count, every=50) \
+            if self._applied_pub is not None else (lambda: False)
+        self._held_since: int | None = None
         if self.logic.lockstep:
             # wall (steady) time: simulation time stands still while the plant waits
             self._timer = self.create_timer(0.005, self._lockstep_tick, clock=self._steady)
         else:
-            self._timer = self.create_timer(self.logic.period_s, self._realtime_tick,
-                                            clock=self._steady)
+            # real time: the servo loop's thread owns the sample clock (nodes/servo.py); the
+            # executor only starts it and publishes what it measured, in batches
+            # the plant alone: y_k goes out from the servo thread as soon as it is measured,
+            # for a controller in another node to answer before the next sample
+            self.servo = self._make_servo(None, None, self._publish_sample)
+            self._timer = self.create_timer(0.002, self._servo_tick, clock=self._steady)
         self._status_timer = self.create_timer(opts.status_period_s, self.publish_status,
                                                clock=self._steady)
         self._t_start = 0.0
@@ -151,6 +176,91 @@ class PlantNode(Node):
             self._timer.cancel()
             self._timer = self.create_timer(0.001, self._direct_lockstep_tick,
                                             clock=self._steady)
+
+    def _make_servo(self, trajectory: TrajectoryLogic | None,
+                    controller: ControllerLogic | None,
+                    on_sample: Callable[[ServoSample], None] | None = None) -> ServoLoop:
+        opts = self.opts
+        return ServoLoop(self.guard, trajectory, controller, sample_rate_hz=self.logic.rate_hz,
+                         duration_s=opts.duration_s,
+                         pacer=Pacer(round(1e9 / self.logic.rate_hz),
+                                     spin_ns=round(opts.servo.spin_us * 1000)),
+                         on_sample=on_sample)
+
+    def _publish_sample(self, s: ServoSample) -> None:
+        sec, nanosec = wire.ns_to_stamp(s.stamp_ns)
+        self._pub.publish(self._encoder.encode(sec, nanosec, (s.position_m,)))
+
+    def attach_servo(self, trajectory: TrajectoryLogic, controller: ControllerLogic,
+                     publish: Callable[[list[ServoSample]], None]) -> None:
+        """
+        Real time in one process (``--direct``): the servo loop runs trajectory and controller.
+
+        Each sample's y_k, x_d and u_k are computed in the servo thread, in the order of one
+        sample; ``publish(batch)`` publishes the reference, command and diagnostics of a batch
+        for outside subscribers, from the executor. Parameter changes reach the logic objects
+        as ever and apply at the next sample boundary.
+        """
+        self.destroy_subscription(self._cmd_sub)
+        self.servo = self._make_servo(trajectory, controller)
+        self._peers = publish
+        # looked at every 50 batches (0.1 s) as the per-sample gates look every 1000 samples
+        self._position_gate = Gate(self._pub.get_subscription_count, every=50)
+
+    def _servo_tick(self) -> None:
+        try:
+            servo = self.servo
+            assert servo is not None
+            if self._t_start == 0.0:
+                self._t_start = time.monotonic()
+                opts = self.opts.servo
+                servo.start_thread(self.get_clock().now().nanoseconds, lambda: realtime_setup(
+                    cpus=[opts.cpu] if opts.cpu >= 0 else [], fifo_priority=opts.fifo_priority,
+                    switch_interval_s=opts.switch_interval_us * 1e-6))
+                return
+            finished = servo.finished
+            batch = servo.drain()
+            if batch:
+                self._publish_batch(batch)
+                self._publish_applied(batch)
+            if not self._servo_reported and (servo.setup_report or finished):
+                self._servo_reported = True
+                for key, text in servo.setup_report.items():
+                    log = self.get_logger().info if text.startswith('applied') \
+                        else self.get_logger().warning
+                    log(f'servo {key}: {text}')
+            if finished:
+                if servo.error is not None:
+                    self._fault(servo.error)
+                else:
+                    self._finish()
+        except KeyboardInterrupt:
+            return
+        except Exception as exc:  # noqa: BLE001
+            self._fault(exc)
+
+    def _publish_applied(self, batch: list[ServoSample]) -> None:
+        # sample k's applied_v was held over the sample that ended at t_k: it goes out stamped
+        # with the sample taken before (the start of that hold), as stage/command is stamped
+        gate = self._applied_gate()
+        encode, publish = self._applied_encoder.encode, self._applied_pub
+        since = self._held_since
+        for s in batch:
+            if since is not None and gate and publish is not None:
+                sec, nanosec = wire.ns_to_stamp(since)
+                publish.publish(encode(sec, nanosec, (s.applied_v,)))
+            since = s.stamp_ns
+        self._held_since = since
+
+    def _publish_batch(self, batch: list[ServoSample]) -> None:
+        if self._peers is None:
+            return  # the plant alone published each sample from the servo thread
+        if self._position_gate():
+            publish, encode = self._pub.publish, self._encoder.encode
+            for s in batch:
+                sec, nanosec = wire.ns_to_stamp(s.stamp_ns)
+                publish(encode(sec, nanosec, (s.position_m,)))
+        self._peers(batch)
 
     def _start(self) -> None:
         now = time.monotonic()
@@ -213,24 +323,6 @@ class PlantNode(Node):
         except Exception as exc:  # noqa: BLE001
             self._fault(exc)
 
-    def _realtime_tick(self) -> None:
-        try:
-            if self.logic.index < 0:
-                self._start()
-                first = self.logic.last_sample
-                if self._direct is not None and first is not None:
-                    self.logic.on_command(self._direct(first), time.monotonic())
-                return
-            # in process (--direct) each sample's command is computed right after it
-            for sample in self.logic.on_tick(time.monotonic(), self._direct):
-                self._publish(sample)
-            if self.logic.done:
-                self._finish()
-        except KeyboardInterrupt:
-            return
-        except Exception as exc:  # noqa: BLE001
-            self._fault(exc)
-
     def _on_command(self, data: bytes) -> None:
         try:
             command_v = decode_float64(data)
@@ -239,6 +331,13 @@ class PlantNode(Node):
             self.get_logger().warning(f'{wire.COMMAND}: {exc}; dropped', throttle_duration_sec=1.0)
             return
         try:
+            if self.servo is not None:
+                # real time: held from the servo loop's next sample on
+                if self._t_start and not self.servo.done:
+                    self.guard.command(command_v, time.monotonic())
+                else:
+                    self.logic.unexpected += 1
+                return
             sample = self.logic.on_command(command_v, time.monotonic())
             if sample is not None:
                 self._publish(sample)
@@ -250,11 +349,16 @@ class PlantNode(Node):
             self._fault(exc)
 
     def stats(self) -> dict[str, Any]:
-        """Return the counters, with the loop rate reached so far."""
+        """Return the counters, with the loop rate reached so far (and the lateness)."""
         out = self.logic.stats()
+        index = self.logic.index
+        if self.servo is not None:
+            out.update(self.servo.stats())
+            index = self.servo.index
+            out['index'] = index
         out['malformed'] = self.malformed
         elapsed = time.monotonic() - self._t_start if self._t_start else 0.0
-        samples = max(self.logic.index + 1, 0)
+        samples = max(index + 1, 0)
         out['wall_s'] = round(elapsed, 6)
         out['samples_per_s'] = round(samples / elapsed, 1) if elapsed > 0 else 0.0
         out['real_time_factor'] = round(samples * self.logic.period_s / elapsed, 4) \
@@ -264,9 +368,10 @@ class PlantNode(Node):
     def publish_status(self) -> None:
         """Publish the counters on ``stage/status``."""
         stats = self.stats()
-        late = stats.get('late', 0)
-        level = DiagnosticStatus.OK if not (late or stats.get('watchdog_trips')) \
-            else DiagnosticStatus.WARN
+        # under load the loop degrades with counts: any of them makes the status a warning
+        worse = ('late', 'watchdog_trips', 'late_half_period', 'skipped', 'queue_overruns')
+        level = DiagnosticStatus.WARN if any(stats.get(k) for k in worse) \
+            else DiagnosticStatus.OK
         self._status_pub.publish(DiagnosticStatus(
             level=level, name=self.get_fully_qualified_name(),
             message=f'{self.opts.mode}: {stats["index"] + 1} samples',
@@ -277,6 +382,19 @@ class PlantNode(Node):
         if self.finished.done():
             return
         self._timer.cancel()
+        if self.servo is not None:
+            self.servo.stop()
+            if self.servo.samples:
+                batch = self.servo.drain()
+                self._publish_batch(batch)
+                self._publish_applied(batch)
+            if self._held_since is not None and self._applied_pub is not None \
+                    and self._peers is not None and self._applied_gate():
+                # the last sample's command, held until the stop drove the safe voltage (the
+                # plant alone does not know what it would have held next: left out)
+                sec, nanosec = wire.ns_to_stamp(self._held_since)
+                self._applied_pub.publish(self._applied_encoder.encode(
+                    sec, nanosec, (self.servo.held_v,)))
         self.logic.stop()
         self.publish_status()
         stats = self.stats()
@@ -285,6 +403,8 @@ class PlantNode(Node):
         self.finished.set_result(stats)
 
     def _fault(self, exc: BaseException) -> None:
+        if self.servo is not None:
+            self.servo.stop()
         self.guard.fault(exc)
         self.logic.done = True
         if not self.context.ok():
@@ -301,6 +421,8 @@ class PlantNode(Node):
     def destroy_node(self) -> None:
         """Drive the safe voltage, release the backend, then destroy the node."""
         try:
+            if self.servo is not None:
+                self.servo.stop()
             self.logic.stop()
         finally:
             super().destroy_node()

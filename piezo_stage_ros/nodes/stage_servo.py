@@ -30,9 +30,10 @@ from typing import Sequence
 
 from piezo_stage_ros.nodes.controller_node import ControllerNode
 from piezo_stage_ros.nodes.controller_node import factory as controller_factory
-from piezo_stage_ros.nodes.logic import Sample
+from piezo_stage_ros.nodes.logic import Command, Sample
 from piezo_stage_ros.nodes.plant_node import PlantNode
 from piezo_stage_ros.nodes.runner import run
+from piezo_stage_ros.nodes.servo import ServoSample
 from piezo_stage_ros.nodes.trajectory_node import TrajectoryNode
 
 __all__ = ['main']
@@ -47,10 +48,21 @@ def connect_direct(plant: PlantNode, controller: ControllerNode,
     plant: the loop of :mod:`piezo_stage_ros.core.interfaces`, without serializing anything the
     three nodes exchange among themselves. The topics are still published for any outside
     subscriber (a recorder, ``ros2 topic echo``); parameters and services work as ever, served
-    between batches of samples.
+    between batches of samples. In real time the plant's servo loop (``nodes/servo.py``) calls
+    the trajectory's and the controller's logic in its own thread, paced by its own clock.
     """
     controller.attach_direct()
     trajectory.attach_direct()
+    if plant.servo is not None:
+        # real time: the plant's servo thread runs trajectory and controller for each sample;
+        # the executor publishes what they computed, in batches, for outside subscribers
+        def publish(batch: list[ServoSample]) -> None:
+            for s in batch:
+                trajectory.publish(s.stamp_ns, s.reference_m, s.velocity_mps)
+                controller.publish(Command(s.stamp_ns, s.command_v, s.diagnostics))
+
+        plant.attach_servo(trajectory.logic, controller.logic, publish)
+        return
 
     def step(sample: Sample) -> float:
         ref, vel = trajectory.answer(sample.stamp_ns)

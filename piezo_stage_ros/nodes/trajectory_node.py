@@ -73,6 +73,7 @@ class TrajectoryNode(Node):
         self._sub = self.create_subscription(JointState, wire.POSITION, self._on_position,
                                              qos.LOOP, raw=True)
         self._gate: Callable[[], bool] = lambda: True
+        self._ahead = opts.lockstep_ahead if opts.mode == 'lockstep' else 0
         self.create_service(Trigger, '~/start', self._start)
         self.create_service(Trigger, '~/stop', self._stop)
         self.get_logger().info(f'trajectory {params.kind}, '
@@ -117,10 +118,15 @@ class TrajectoryNode(Node):
     def answer(self, stamp_ns: int) -> tuple[float, float]:
         """Return x_d [m] and x_d' [m/s] for the sample stamped ``stamp_ns`` [ns]."""
         ref, vel = self.logic.on_position(stamp_ns)
+        self.publish(stamp_ns, ref, vel)
+        return ref, vel
+
+    def publish(self, stamp_ns: int, reference_m: float, velocity_mps: float) -> None:
+        """Publish a reference computed by call, while an outside subscriber listens."""
         if self._gate():
             sec, nanosec = wire.ns_to_stamp(stamp_ns)
-            self._pub.publish(self._encoder.encode(sec, nanosec, (ref,), (vel,)))
-        return ref, vel
+            self._pub.publish(self._encoder.encode(sec, nanosec, (reference_m,),
+                                                   (velocity_mps,)))
 
     def _on_position(self, data: bytes) -> None:
         try:
@@ -136,8 +142,17 @@ class TrajectoryNode(Node):
             self.get_logger().warning(f'{wire.POSITION}: {exc}; dropped',
                                       throttle_duration_sec=1.0)
             return
-        ref, vel = self.logic.on_position(wire.stamp_to_ns(sec, nanosec))
+        stamp = wire.stamp_to_ns(sec, nanosec)
         try:
+            if self._ahead:
+                # lockstep_ahead: x_d goes out ahead of its position (it does not depend on
+                # it); the controller pairs by stamp, so this node leaves the critical path
+                encode, publish = self._encoder.encode, self._pub.publish
+                for k_stamp, ref, vel in self.logic.ahead(stamp, self._ahead):
+                    ksec, knsec = divmod(k_stamp, 1_000_000_000)
+                    publish(encode(ksec, knsec, (ref,), (vel,)))
+                return
+            ref, vel = self.logic.on_position(stamp)
             self._pub.publish(self._encoder.encode(sec, nanosec, (ref,), (vel,)))
         except Exception:
             if self.context.ok():

@@ -1,0 +1,340 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Real-time benchmark without ROS: how well the paced servo loop holds 10 kHz on this machine.
+
+Cases (each a run of ``duration_s`` wall seconds of ``config/table3_rac.yaml``: RAC, reduced
+plant, 100 Hz sine):
+
+- ``servo``: :class:`~piezo_stage_ros.nodes.servo.ServoLoop` on the core model in a thread, the
+  main thread playing the ROS side (every 5 ms it drains the queue and encodes each sample's
+  position, reference and command into CDR bytes, the work of publishing them), once with
+  CPython's default switch interval (5 ms) and once with it lowered to 50 us;
+- ``servo-alone``: the servo thread with nothing beside it (the bound of this machine);
+- ``servo-process``: the servo loop in a process of its own (spawned, no rclpy), handing each
+  sample over through shared memory (:class:`~piezo_stage_ros.nodes.servo.SampleRing`) to this
+  process, which does the same publishing work: no interpreter lock shared with it;
+- ``bridge``: the servo loop as the host of the UDP bridge against the emulator in its own
+  process, the emulator pacing its own 10 kHz clock (``stage_emulator --paced``): the host
+  answers each sample; reports the host's answer latency and the target's missing commands.
+
+Per case: lateness p50 / p99 / max [us], samples late by more than half a period, skipped
+samples, e_rms in the steady state beside that of the offline runner (lockstep) on the same
+configuration. Timings are those of a shared machine: compare them with each other.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from typing import Any, Callable
+
+import numpy as np
+from piezo_stage_ros import cli
+from piezo_stage_ros.core.cdr import encode_float64, JointStateEncoder
+from piezo_stage_ros.core.closed_loop import run
+from piezo_stage_ros.core.controllers import build_controller
+from piezo_stage_ros.core.loop_config import LoopConfig
+from piezo_stage_ros.core.metrics import error_metrics, steady_state_start
+from piezo_stage_ros.core.stage import linear_plant, Stage
+from piezo_stage_ros.core.trajectories import make_trajectory
+from piezo_stage_ros.hardware.bridge import Bridge, ModelBridge
+from piezo_stage_ros.hardware.pacing import realtime_setup
+from piezo_stage_ros.hardware.safety import GuardedPlant
+from piezo_stage_ros.hardware.udp import UdpStreamBridge
+from piezo_stage_ros.nodes.logic import ControllerLogic, TrajectoryLogic
+from piezo_stage_ros.nodes.servo import SampleRing, ServoLoop, ServoSample
+
+__all__ = ['CASES', 'loop_config', 'run_servo_benchmark', 'steady_e_rms']
+
+CASES = ('servo-alone', 'servo', 'servo-process', 'bridge')
+CONFIG = 'table3_rac.yaml'
+
+
+def loop_config() -> LoopConfig:
+    """Return the benchmark's loop: ``config/default.yaml`` + ``config/table3_rac.yaml``."""
+    return LoopConfig.from_config(cli.read_config([CONFIG]))
+
+
+def steady_e_rms(index: np.ndarray, position_m: np.ndarray, reference_m: np.ndarray,
+                 sample_time_s: float, period_s: float) -> float:
+    """Return e_rms [m] over the steady state (from the second period of the reference on)."""
+    time_s = index * sample_time_s
+    keep = time_s >= steady_state_start(time_s, period_s)
+    return error_metrics(position_m[keep] - reference_m[keep])[1]
+
+
+def make_servo(loop: LoopConfig, duration_s: float, bridge: Bridge | None = None, *,
+               capacity: int = 65536,
+               on_sample: Callable[[ServoSample], None] | None = None) -> ServoLoop:
+    """Return the servo loop of ``loop`` on the model (or on ``bridge``)."""
+    stage = loop.stage
+    period = 1.0 / stage.sample_rate_hz
+    ctrl = build_controller(loop.controller, period, linear_plant(loop.design_plant))
+    return ServoLoop(GuardedPlant(bridge if bridge is not None else ModelBridge(stage),
+                                  stage.chain, loop.plant_node.command_timeout_s),
+                     TrajectoryLogic(make_trajectory(loop.trajectory),
+                                     sample_rate_hz=stage.sample_rate_hz, chunk_s=0.005),
+                     ControllerLogic(ctrl, mode='realtime'),
+                     sample_rate_hz=stage.sample_rate_hz, duration_s=duration_s,
+                     capacity=capacity, on_sample=on_sample)
+
+
+def _ros_side_work(encoders: tuple[JointStateEncoder, JointStateEncoder]
+                   ) -> Callable[[list[ServoSample]], None]:
+    position, reference = encoders
+
+    def publish(batch: list[ServoSample]) -> None:
+        for s in batch:
+            sec, nanosec = divmod(s.stamp_ns, 1_000_000_000)
+            position.encode(sec, nanosec, (s.position_m,))
+            reference.encode(sec, nanosec, (s.reference_m,), (s.velocity_mps,))
+            encode_float64(s.command_v)
+    return publish
+
+
+def serve(servo: ServoLoop, *, ros_side: bool, switch_interval_s: float = 0.0,
+          fifo_priority: int = 0, cpus: tuple[int, ...] = (), spin_ns: int = 200_000
+          ) -> tuple[dict[str, Any], list[ServoSample]]:
+    """Run ``servo`` in a thread to its end, draining it here; return stats and samples."""
+    servo.pacer.spin_ns = spin_ns
+    old = sys.getswitchinterval()
+    report: dict[str, str] = {}
+    if switch_interval_s > 0.0:
+        sys.setswitchinterval(switch_interval_s)
+    publish = _ros_side_work((JointStateEncoder(['stage']),
+                              JointStateEncoder(['stage'], with_velocity=True)))
+    got: list[ServoSample] = []
+    try:
+        thread = servo.start_thread(setup=lambda: report.update(
+            realtime_setup(cpus=cpus, fifo_priority=fifo_priority)))
+        while thread.is_alive():
+            time.sleep(0.005)
+            batch = servo.drain()
+            if ros_side:
+                publish(batch)
+            got += batch
+        got += servo.drain()
+    finally:
+        sys.setswitchinterval(old)
+    stats = servo.stats()
+    stats.update(report)
+    return stats, got
+
+
+def _figures(stats: dict[str, Any], got: list[ServoSample], loop: LoopConfig,
+             offline_rms: float) -> dict[str, Any]:
+    return _array_figures(stats, np.array([s.k for s in got], dtype=np.float64),
+                          np.array([s.position_m for s in got]),
+                          np.array([s.reference_m for s in got]), loop, offline_rms)
+
+
+def _array_figures(stats: dict[str, Any], idx: np.ndarray, position_m: np.ndarray,
+                   reference_m: np.ndarray, loop: LoopConfig, offline_rms: float
+                   ) -> dict[str, Any]:
+    period = 1.0 / loop.stage.sample_rate_hz
+    rms = steady_e_rms(idx, position_m, reference_m, period,
+                       1.0 / loop.trajectory.sine.frequency_hz)
+    keys = ('paced_samples', 'lateness_p50_us', 'lateness_p99_us', 'lateness_max_us',
+            'late_half_period', 'skipped', 'queue_overruns', 'sched_fifo')
+    out = {k: stats.get(k) for k in keys}
+    out['e_rms_nm'] = round(rms * 1e9, 2)
+    out['offline_e_rms_nm'] = round(offline_rms * 1e9, 2)
+    if 'error' in stats:
+        out['error'] = stats['error']
+    return out
+
+
+def _servo_process(ring_name: str, duration_s: float, fifo_priority: int, spin_ns: int,
+                   results: Any) -> None:
+    # the servo loop in a process of its own (no rclpy, nothing else in its interpreter): the
+    # samples go to the parent through shared memory, the figures at the end through a queue
+    ring = SampleRing(name=ring_name)
+    try:
+        servo = make_servo(loop_config(), duration_s, capacity=0, on_sample=ring.append)
+        servo.pacer.spin_ns = spin_ns
+        servo.run(setup=lambda: realtime_setup(fifo_priority=fifo_priority))
+        stats = servo.stats()
+        stats.update(servo.setup_report)
+        results.put(stats)
+    finally:
+        ring.close()
+
+
+def serve_in_process(duration_s: float, *, fifo_priority: int = 0, spin_ns: int = 200_000
+                     ) -> tuple[dict[str, Any], np.ndarray, np.ndarray, int]:
+    """
+    Run the servo loop in a spawned process, playing the ROS side here on what it hands over.
+
+    Returns the loop's stats, the integer and float columns of every sample read from the
+    ring (:class:`~piezo_stage_ros.nodes.servo.SampleRing`), and the samples the reader missed.
+    """
+    import multiprocessing
+
+    ctx = multiprocessing.get_context('spawn')
+    ring = SampleRing()
+    results = ctx.Queue()
+    proc = ctx.Process(target=_servo_process, args=(ring.name, duration_s, fifo_priority,
+                                                    spin_ns, results), daemon=True)
+    position = JointStateEncoder(['stage'])
+    reference = JointStateEncoder(['stage'], with_velocity=True)
+    ints: list[np.ndarray] = []
+    floats: list[np.ndarray] = []
+    missed = 0
+    try:
+        proc.start()
+        while True:
+            alive = proc.is_alive()
+            time.sleep(0.005)
+            i, f, m = ring.take()
+            missed += m
+            for row, values in zip(i.tolist(), f.tolist()):
+                # the work of publishing each sample: its three messages as CDR bytes
+                sec, nanosec = divmod(row[1], 1_000_000_000)
+                position.encode(sec, nanosec, (values[0],))
+                reference.encode(sec, nanosec, (values[1],), (values[2],))
+                encode_float64(values[3])
+            ints.append(i)
+            floats.append(f)
+            if not alive:
+                break
+        stats = results.get(timeout=30)
+        proc.join(10)
+    finally:
+        if proc.is_alive():
+            proc.kill()
+        ring.close(unlink=True)
+    return stats, np.concatenate(ints), np.concatenate(floats), missed
+
+
+def run_bridge(loop: LoopConfig, duration_s: float, offline_rms: float, *,
+               fifo_priority: int = 0) -> dict[str, Any]:
+    """
+    Run the servo loop as the host of the UDP bridge against a target-paced emulator process.
+
+    The emulator (``stage_emulator --paced``) owns the 10 kHz clock in its own process, as a
+    real-time target would; the host answers each sample. Returns the host's figures (lateness:
+    arrival of each sample against the grid of the first), its answer latency (sample arrived to
+    command sent), and the target's: missing commands and its own clock's lateness.
+    """
+    args = [sys.executable, '-m', 'piezo_stage_ros.hardware.emulator', '--config', CONFIG,
+            '--paced', '--port', '0', '--idle-timeout-s', '5']
+    if fifo_priority:
+        args += ['--fifo-priority', str(fifo_priority), '--spin-us', '30']
+    target = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                              text=True)
+    lines: list[str] = []
+    try:
+        assert target.stdout is not None
+        while True:
+            line = target.stdout.readline()
+            if not line:
+                raise RuntimeError('stage_emulator ended: ' + ''.join(lines))
+            lines.append(line)
+            if 'listening on' in line:
+                port = int(line.rsplit(':', 1)[1])
+                break
+        # a generous wait: on a loaded machine the target process may stall; that is counted
+        bridge = UdpStreamBridge('127.0.0.1', port, timeout_s=1.0)
+        servo = make_servo(loop, duration_s, bridge)
+        stats, got = serve(servo, ros_side=True, fifo_priority=fifo_priority,
+                           spin_ns=30_000 if fifo_priority else 200_000)
+        lines += target.communicate(timeout=30)[0].splitlines(keepends=True)
+    finally:
+        if target.poll() is None:
+            target.kill()
+            target.wait()
+    out = _figures(stats, got, loop, offline_rms)
+    answer = np.array(bridge.answer_ns, dtype=np.float64) / 1e3
+    out['answer_p50_us'] = round(float(np.percentile(answer, 50)), 1) if answer.size else None
+    out['answer_p99_us'] = round(float(np.percentile(answer, 99)), 1) if answer.size else None
+    out['answer_max_us'] = round(float(answer.max()), 1) if answer.size else None
+    out['host_lost'] = stats.get('bridge_lost')
+    out['target_missing'] = stats.get('bridge_target_missing')
+    out['target'] = ' '.join(line.strip() for line in lines
+                             if 'clock' in line or 'stopped' in line or 'sched' in line)
+    return out
+
+
+def run_servo_benchmark(cases: tuple[str, ...] = CASES, duration_s: float = 10.0,
+                        fifo_priority: int = 0) -> dict[str, Any]:
+    """
+    Run the cases and return their figures (see the module docstring).
+
+    Parameters
+    ----------
+    cases : tuple of str
+        Among :data:`CASES`.
+    duration_s : float
+        Wall time of each run [s].
+    fifo_priority : int
+        SCHED_FIFO priority of the servo thread and the emulator (0: the default scheduler;
+        with it, the loops sleep to 30 us before each due time instead of spinning, as
+        real-time threads wake on time and a spinning one is throttled by the kernel).
+
+    """
+    loop = loop_config()
+    period = 1.0 / loop.stage.sample_rate_hz
+    ctrl = build_controller(loop.controller, period, linear_plant(loop.design_plant))
+    rec = run(Stage(loop.stage), ctrl, make_trajectory(loop.trajectory),
+              duration_s=duration_s, record_diagnostics=False)
+    offline_rms = steady_e_rms(np.arange(rec.position_m.size, dtype=np.float64),
+                               rec.position_m, rec.reference_m, period,
+                               1.0 / loop.trajectory.sine.frequency_hz)
+    out: dict[str, Any] = {}
+    spin = 30_000 if fifo_priority else 200_000
+    for case in cases:
+        if case == 'servo-alone':
+            out[case] = _figures(*serve(make_servo(loop, duration_s), ros_side=False,
+                                        fifo_priority=fifo_priority, spin_ns=spin),
+                                 loop, offline_rms)
+        elif case == 'servo':
+            for label, interval in (('5 ms', 0.0), ('50 us', 50e-6)):
+                out[f'servo + ROS side (switch interval {label})'] = _figures(
+                    *serve(make_servo(loop, duration_s), ros_side=True,
+                           switch_interval_s=interval, fifo_priority=fifo_priority,
+                           spin_ns=spin), loop, offline_rms)
+        elif case == 'servo-process':
+            stats, ints, floats, missed = serve_in_process(
+                duration_s, fifo_priority=fifo_priority, spin_ns=spin)
+            out['servo process + ROS side in another'] = _array_figures(
+                {**stats, 'ring_missed': missed}, ints[:, 0].astype(np.float64), floats[:, 0],
+                floats[:, 1], loop, offline_rms)
+            out['servo process + ROS side in another']['ring_missed'] = missed
+        elif case == 'bridge':
+            out['bridge (paced emulator)'] = run_bridge(loop, duration_s, offline_rms,
+                                                        fifo_priority=fifo_priority)
+        else:
+            raise ValueError(f'unknown case {case!r}; choose among {", ".join(CASES)}')
+    return out
+
+
+def format_table(result: dict[str, Any]) -> str:
+    """Return the figures of :func:`run_servo_benchmark` as a Markdown table."""
+    lines = ['| case | samples | p50 [us] | p99 [us] | max [us] | late > T/2 | skipped | '
+             'e_rms [nm] (offline) |',
+             '| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |']
+    notes = []
+    for case, s in result.items():
+        lines.append(f'| {case} | {s["paced_samples"]} | {s["lateness_p50_us"]} | '
+                     f'{s["lateness_p99_us"]} | {s["lateness_max_us"]} | '
+                     f'{s["late_half_period"]} | {s["skipped"]} | {s["e_rms_nm"]} '
+                     f'({s["offline_e_rms_nm"]}) |')
+        notes += [f'{case}: {k} = {v}' for k, v in s.items()
+                  if k not in ('paced_samples', 'lateness_p50_us', 'lateness_p99_us',
+                               'lateness_max_us', 'late_half_period', 'skipped', 'e_rms_nm',
+                               'offline_e_rms_nm')]
+    return '\n'.join(lines + [''] + notes)

@@ -1,0 +1,300 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""The paced servo loop and its clock, with an injected clock: no wall time, no sleeps."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+from piezo_stage_ros.core.closed_loop import run
+from piezo_stage_ros.core.controllers import build_controller, ControllerParams
+from piezo_stage_ros.core.errors import ParameterError
+from piezo_stage_ros.core.stage import Stage, StageParams
+from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.hardware.bridge import ModelBridge
+from piezo_stage_ros.hardware.pacing import LatenessStats, Pacer, realtime_setup
+from piezo_stage_ros.hardware.safety import GuardedPlant
+from piezo_stage_ros.nodes.logic import ControllerLogic, TrajectoryLogic
+from piezo_stage_ros.nodes.servo import ServoLoop
+import pytest
+
+PERIOD = 100_000  # ns, 10 kHz
+
+
+class FakeClock:
+    """A monotonic clock in ns that moves only when slept on, or by a scripted delay per read."""
+
+    def __init__(self, start: int = 10**9, per_read: int = 0) -> None:
+        self.now = start
+        self.per_read = per_read
+        self.sleeps: list[float] = []
+        self.stalls: dict[int, int] = {}  # read number -> extra ns added at that read
+        self.reads = 0
+
+    def __call__(self) -> int:
+        self.reads += 1
+        self.now += self.per_read + self.stalls.pop(self.reads, 0)
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.sleeps.append(seconds)
+        self.now += int(seconds * 1e9)
+
+
+# --- the clock -------------------------------------------------------------------------------
+
+def test_pacer_sleeps_far_from_the_due_time_and_spins_close_to_it():
+    clock = FakeClock(per_read=1_000)
+    pacer = Pacer(PERIOD, clock=clock, sleep=clock.sleep, spin_ns=20_000)
+    t0 = pacer.start()
+    assert pacer.wait()[0] == 0  # due at the start
+    for k in range(1, 6):
+        index, late = pacer.wait()
+        assert index == k
+        # the clock advances 1 us per read: the first read at or past the due time returns
+        assert 0 <= late < 1_000 and clock.now - late == t0 + k * PERIOD
+    # one sleep per period, each ending 20 us (the spin margin) before the due time
+    assert len(clock.sleeps) == 5
+    assert all(s <= (PERIOD - 20_000) / 1e9 for s in clock.sleeps)
+    assert pacer.stats.samples == 6 and pacer.stats.skipped == 0
+
+
+def test_pacer_skips_after_a_stall_instead_of_bursting():
+    clock = FakeClock(per_read=1_000)
+    pacer = Pacer(PERIOD, clock=clock, sleep=clock.sleep, spin_ns=0)
+    t0 = pacer.start()
+    assert [pacer.wait()[0] for _ in range(2)] == [0, 1]
+    # a stall: sample 2 is looked at 3.5 periods after its due time
+    clock.now = t0 + 2 * PERIOD + 3 * PERIOD + PERIOD // 2
+    index, late = pacer.wait()
+    # samples 2, 3, 4 are gone; 5 is taken half a period late (+ one clock read), no burst
+    assert (index, late) == (5, PERIOD // 2 + 1_000)
+    assert pacer.stats.skipped == 3 and pacer.stats.late_half == 1
+    assert pacer.wait()[0] == 6
+    assert pacer.stats.samples == 4
+
+
+def test_pacer_refuses_a_period_that_is_not_positive():
+    with pytest.raises(ParameterError, match='period_ns'):
+        Pacer(0)
+
+
+def test_lateness_statistics_from_the_histogram():
+    stats = LatenessStats(PERIOD, max_us=1000)
+    for lateness_us in range(100):  # 0 .. 99 us, one each
+        stats.add(lateness_us * 1000 + 500)
+    stats.add(70_000)  # > T/2
+    stats.add(5_000_000)  # beyond the histogram: the top bin, the maximum kept exactly
+    stats.skip(4)
+    s = stats.summary()
+    # later than T/2 = 50 us: 50.5 ... 99.5 us (50 samples) and the two added last
+    assert s['paced_samples'] == 102 and s['late_half_period'] == 52 and s['skipped'] == 4
+    # the 51st of 102 values is 50.5 us: the upper edge of its 1 us bin
+    assert s['lateness_p50_us'] == 51.0
+    assert s['lateness_max_us'] == 5000.0
+    assert stats.percentile_us(100.0) == 5000.0
+    with pytest.raises(ParameterError):
+        stats.percentile_us(101.0)
+
+
+def test_realtime_setup_reports_what_it_applied_or_was_refused():
+    # in a thread of its own: affinity and scheduler are the calling thread's (Linux), and the
+    # test process must not keep them (its children, the emulator of a benchmark, would)
+    out: dict = {}
+    worker = threading.Thread(target=lambda: out.update(realtime_setup(cpus=[0],
+                                                                       fifo_priority=1)))
+    worker.start()
+    worker.join()
+    report = out
+    assert set(report) == {'affinity', 'sched_fifo'}
+    assert all(v.startswith(('applied', 'refused')) for v in report.values())
+    assert realtime_setup() == {}
+
+
+# --- the servo loop --------------------------------------------------------------------------
+
+STAGE = {'plant.model': 'reduced', 'chain.sensor_noise_std_m': 1e-9, 'seed': 3}
+TRAJ = {'kind': 'sine', 'sine.frequency_hz': 50.0}
+
+
+def servo(clock: FakeClock, duration_s: float, kind: str = 'rac') -> ServoLoop:
+    params = StageParams.from_flat(STAGE)
+    ctrl = build_controller(ControllerParams.from_flat({'type': kind}), 1e-4)
+    return ServoLoop(GuardedPlant(ModelBridge(params), params.chain, 0.01),
+                     TrajectoryLogic(make_trajectory(TrajectoryParams.from_flat(TRAJ)),
+                                     sample_rate_hz=1e4, chunk_s=1.0),
+                     ControllerLogic(ctrl, mode='realtime'), sample_rate_hz=1e4,
+                     duration_s=duration_s,
+                     pacer=Pacer(PERIOD, clock=clock, sleep=clock.sleep))
+
+
+@pytest.mark.parametrize('kind', ['rac', 'pi'])
+def test_servo_loop_on_time_equals_the_offline_runner(kind):
+    loop = servo(FakeClock(per_read=300), 0.05, kind)
+    loop.run(start_ns=7 * PERIOD)
+    assert loop.error is None and loop.done
+    got = loop.drain()
+    params = StageParams.from_flat(STAGE)
+    rec = run(Stage(params), build_controller(ControllerParams.from_flat({'type': kind}), 1e-4),
+              make_trajectory(TrajectoryParams.from_flat(TRAJ)), duration_s=0.05,
+              record_diagnostics=False)
+    assert [s.k for s in got] == list(range(500))
+    assert [s.stamp_ns for s in got] == [(7 + k) * PERIOD for k in range(500)]
+    np.testing.assert_array_equal([s.position_m for s in got], rec.position_m)
+    np.testing.assert_array_equal([s.reference_m for s in got], rec.reference_m)
+    np.testing.assert_array_equal([s.command_v for s in got], rec.command_v)
+    stats = loop.stats()
+    assert stats['skipped'] == 0 and stats['late'] == 0 and stats['queue_overruns'] == 0
+    assert stats['paced_samples'] == 500 and stats['late_half_period'] == 0
+    # the stage held each command over the next sample: 499 samples after the start
+    assert stats['samples'] == 499 and stats['commands'] == 500
+
+
+def test_servo_loop_after_a_stall_skips_and_counts_never_bursts():
+    clock = FakeClock(per_read=300)
+    loop = servo(clock, 0.01)
+    loop.start()
+    for _ in range(3):
+        loop.step()
+    # samples 0 .. 3 taken; a stall of 5.2 periods: sample 4 is looked at 4.2 periods late
+    clock.now += 5 * PERIOD + 20_000
+    while loop.step():
+        pass
+    got = loop.drain()
+    indices = [s.k for s in got]
+    stats = loop.stats()
+    # samples 4 .. 7 are skipped, 8 is taken 0.2 periods late (no burst), then the grid goes on
+    assert indices == [0, 1, 2, 3] + list(range(8, 100))
+    assert stats['skipped'] == 4 and stats['late_half_period'] == 0
+    assert got[4].lateness_ns >= 20_000
+    # and the stamps stay on the grid
+    assert all(s.stamp_ns == s.k * PERIOD for s in got)
+
+
+def test_servo_loop_queue_drops_the_oldest_and_counts_it():
+    loop = servo(FakeClock(per_read=300), 0.01)
+    loop.samples = type(loop.samples)(maxlen=30)
+    loop.run()
+    got = loop.drain(limit=10)
+    rest = loop.drain()
+    assert [s.k for s in got + rest] == list(range(70, 100))
+    assert loop.stats()['queue_overruns'] == 70
+
+
+def test_servo_loop_fault_drives_the_safe_voltage_and_keeps_the_error():
+    loop = servo(FakeClock(per_read=300), 0.01)
+
+    def broken(stamp_ns: int) -> tuple[float, float]:
+        raise RuntimeError('trajectory broke')
+
+    loop.trajectory.on_position = broken  # type: ignore[method-assign]
+    loop.run()
+    assert isinstance(loop.error, RuntimeError) and loop.plant.stopped
+    assert 'trajectory broke' in loop.stats()['error']
+
+
+def test_servo_loop_records_what_the_plant_applied_with_each_sample():
+    loop = servo(FakeClock(per_read=300), 0.01)
+    loop.run()
+    got = loop.drain()
+    safe = loop.plant.safe_v
+    # y_0 was measured at the safe voltage; y_k at the command of sample k-1 (the model backend
+    # clamps in its own chain, so the guard passes the command through)
+    assert got[0].applied_v == safe
+    assert [s.applied_v for s in got[1:]] == [s.command_v for s in got[:-1]]
+
+
+def plant_alone(clock: FakeClock, duration_s: float) -> ServoLoop:
+    params = StageParams.from_flat(STAGE)
+    return ServoLoop(GuardedPlant(ModelBridge(params), params.chain, 0.01), None, None,
+                     sample_rate_hz=1e4, duration_s=duration_s,
+                     pacer=Pacer(PERIOD, clock=clock, sleep=clock.sleep))
+
+
+def test_servo_loop_of_the_plant_alone_holds_what_it_was_given_and_counts_late():
+    clock = FakeClock(per_read=300)
+    loop = plant_alone(clock, 0.001)
+    guard = loop.plant
+    loop.start()
+    loop.step()  # sample 1: no command yet (the guard counts lateness from sample 2 on)
+    guard.command(1.5, clock.now / 1e9)  # a command from another node
+    loop.step()
+    loop.step()  # sample 3: the same command held, late again
+    got = loop.drain()
+    assert [s.applied_v for s in got] == [guard.safe_v, guard.safe_v, 1.5, 1.5]
+    assert np.isnan(got[1].command_v) and loop.stats()['late'] == 1
+
+
+def test_servo_loop_stalled_past_its_end_counts_only_the_samples_of_the_run():
+    clock = FakeClock(per_read=300)
+    loop = servo(clock, 0.001)  # 10 samples
+    loop.start()
+    for _ in range(5):
+        loop.step()
+    clock.now += 20 * PERIOD  # samples 6 .. 9 skipped, and the run is over
+    assert not loop.step()
+    stats = loop.stats()
+    assert stats['paced_samples'] == 6 and stats['skipped'] == 4 and loop.done
+
+
+def test_sample_ring_hands_samples_to_another_reader_and_counts_what_it_missed():
+    from piezo_stage_ros.nodes.servo import SampleRing, ServoSample
+    ring = SampleRing(capacity=8)
+    reader = SampleRing(capacity=8, name=ring.name)
+    try:
+        stamp = 1_700_000_000_123_456_789  # since the epoch: must stay an exact integer
+        for k in range(5):
+            ring.append(ServoSample(k, stamp + k, 1.0 * k, 2.0, 3.0, 4.0, 5.0, 10 * k, None))
+        ints, floats, missed = reader.take()
+        assert missed == 0 and ints[:, 0].tolist() == list(range(5))
+        assert ints[:, 1].tolist() == [stamp + k for k in range(5)]
+        assert floats[:, 0].tolist() == [0.0, 1.0, 2.0, 3.0, 4.0]
+        for k in range(5, 20):  # 15 more into 8 rows: the reader misses 7
+            ring.append(ServoSample(k, stamp + k, 1.0 * k, 2.0, 3.0, 4.0, 5.0, 0, None))
+        ints, _, missed = reader.take()
+        assert missed == 7 and ints[:, 0].tolist() == list(range(12, 20))
+        assert reader.take()[0].shape == (0, 3)
+    finally:
+        reader.close()
+        ring.close(unlink=True)
+
+
+def test_servo_loop_of_the_plant_alone_drives_the_safe_voltage_when_commands_stop():
+    clock = FakeClock(per_read=300)
+    loop = plant_alone(clock, 0.03)
+    guard = loop.plant
+    loop.start()
+    command_s = clock.now / 1e9
+    guard.command(5.0, command_s)  # the only command from the controller, then silence
+    while loop.step():
+        pass
+    got = loop.drain()
+    applied = [s.applied_v for s in got]
+    first_safe = applied.index(guard.safe_v, 1)
+    # held while the silence is within the 10 ms timeout, then the safe voltage to the end
+    assert set(applied[1:first_safe]) == {5.0} and set(applied[first_safe:]) == {guard.safe_v}
+    taken_s = [(loop.pacer.due_ns(s.k) + s.lateness_ns) / 1e9 for s in got]
+    assert taken_s[first_safe] - command_s > 0.01 >= taken_s[first_safe - 1] - command_s
+    stats = loop.stats()
+    assert stats['watchdog_trips'] == 1 and stats['safe_samples'] == len(got) - first_safe
+
+
+def test_servo_loop_keeps_the_voltage_held_after_the_last_sample():
+    loop = servo(FakeClock(per_read=300), 0.001)
+    loop.run()
+    got = loop.drain()
+    # held over the sample after the last one (the plant's stop then drives the safe voltage)
+    assert loop.held_v == got[-1].command_v and loop.plant.held_v == loop.plant.safe_v
