@@ -377,6 +377,7 @@ def test_servo_process_applies_a_change_at_a_sample_and_stops_on_request():
         proc.start()
         _wait_for(lambda: served() > 10, 'first samples')
         proc.change('active', False)
+        _wait_for(lambda: served() and proc.ring.get('applied') == 1, 'the change applied')
         at = served()
         _wait_for(lambda: served() > at + 200, 'samples after the change')
         stats = proc.stop()

@@ -386,9 +386,6 @@ class PlantNode(Node):
             if batch:
                 self._publish_batch(batch)
                 self._publish_applied(batch)
-            for key, text in self.servo.setup_report.items():
-                if not self._servo_reported:
-                    self.get_logger().info(f'servo {key}: {text}')
             if self._held_since is not None and self._applied_pub is not None \
                     and self._peers is not None and self._applied_gate():
                 # the last sample's command, held until the stop drove the safe voltage (the

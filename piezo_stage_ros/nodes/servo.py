@@ -115,8 +115,9 @@ class SampleRing:
     A header of int64 words beside the count carries the control of the process that writes
     (:data:`HEADER`): ``halt`` (set by the parent: stop after the current sample), ``posted``
     (changes put in the queue of :class:`ServoProcess`, so that the servo looks at the queue
-    only when something is in it) and the live counters of the servo's clock, written by the
-    servo every :data:`ServoProcess.LIVE_EVERY` samples for the parent's status.
+    only when something is in it), ``applied`` (changes the servo has applied) and the live
+    counters of the servo's clock, written by the servo every
+    :data:`ServoProcess.LIVE_EVERY` samples for the parent's status.
 
     Parameters
     ----------
@@ -128,8 +129,8 @@ class SampleRing:
     """
 
     FLOATS = ('position_m', 'reference_m', 'velocity_mps', 'command_v', 'applied_v')
-    HEADER = ('count', 'halt', 'posted', 'index', 'paced_samples', 'late_half_period',
-              'skipped', 'lateness_max_ns')
+    HEADER = ('count', 'halt', 'posted', 'applied', 'index', 'paced_samples',
+              'late_half_period', 'skipped', 'lateness_max_ns')
 
     def __init__(self, capacity: int = 65536, name: str | None = None) -> None:
         self.capacity = int(capacity)
@@ -540,6 +541,7 @@ def _servo_main(loop: LoopConfig, design_plant: PlantParams | None, duration_s: 
                         kind, value = changes.get_nowait()
                         applied += 1
                         apply_change(servo, kind, value)
+                        ring.set('applied', applied)
                 except queue.Empty:
                     pass  # the rest is still in the queue's pipe: taken at a later sample
             if served % every == 0:
@@ -716,7 +718,7 @@ class ServoProcess:
     @property
     def setup_report(self) -> dict[str, str]:
         """Return what the process's real-time setup applied or was refused (at the end)."""
-        return dict((self.result or {}).get('setup', {}))
+        return dict((self.poll() or {}).get('setup', {}))
 
     @property
     def held_v(self) -> float:
