@@ -420,7 +420,12 @@ class PlantNode(Node):
         """Drive the safe voltage, release the backend, then destroy the node."""
         try:
             if isinstance(self.servo, ServoProcess):
+                stopped = self.servo.started and not self.finished.done()
                 self.servo.close()  # the process drives the safe voltage of its backend
+                if stopped:
+                    # stopped before its end (Ctrl-C, shutdown): its counters still go out
+                    self.get_logger().info('servo process stopped: ' + ', '.join(
+                        f'{k}={v}' for k, v in self.stats().items()))
             elif self.servo is not None:
                 self.servo.stop()
             self.logic.stop()
