@@ -286,3 +286,21 @@ def test_executable_prints_one_line_and_exits_2_on_a_bad_parameter(capsys):
     assert code == 2
     assert err[-1].startswith('stage_servo: ') and "'seed' = -1" in err[-1]
     assert stage_servo.main(['stage_servo', '--nodes', 'plant,nothing']) == 2
+
+
+@pytest.mark.parametrize('process', [True, False])
+def test_direct_realtime_takes_a_parameter_change_in_the_servo(context, process):
+    # servo.process true: the trajectory node forwards the change to the servo process, which
+    # applies it at a sample boundary; false: the servo thread reads the same logic object.
+    # Stopped before the run starts: the process takes it at one of its first sample boundaries
+    # (when the queue's pipe delivers it), the thread at sample 0; the reference is held from
+    # there (an active 100 Hz sine would move over the second half of the 50 ms run)
+    plant, nodes = loop(context, 'realtime', 0.05, {'servo.process': process})
+    stage_servo.connect_direct(plant, nodes[3], nodes[2])
+    assert nodes[2].set_parameters([Parameter('active', value=False)])[0].successful
+    probe = nodes[1]
+    spin(context, nodes, plant.finished)
+    stats = plant.finished.result()
+    assert 'error' not in stats and stats['paced_samples'] + stats['skipped'] == 500
+    refs = probe.references
+    assert len(refs) > 100 and np.ptp(refs[len(refs) // 2:]) == 0.0

@@ -28,7 +28,7 @@ from piezo_stage_ros.hardware.bridge import ModelBridge
 from piezo_stage_ros.hardware.pacing import LatenessStats, Pacer, realtime_setup
 from piezo_stage_ros.hardware.safety import GuardedPlant
 from piezo_stage_ros.nodes.logic import ControllerLogic, TrajectoryLogic
-from piezo_stage_ros.nodes.servo import ServoLoop
+from piezo_stage_ros.nodes.servo import apply_change, servo_from_config, ServoLoop, ServoProcess
 import pytest
 
 PERIOD = 100_000  # ns, 10 kHz
@@ -298,3 +298,109 @@ def test_servo_loop_keeps_the_voltage_held_after_the_last_sample():
     got = loop.drain()
     # held over the sample after the last one (the plant's stop then drives the safe voltage)
     assert loop.held_v == got[-1].command_v and loop.plant.held_v == loop.plant.safe_v
+
+
+# --- the servo loop in a process of its own (spawned: no rclpy there) ------------------------
+
+def _loop_config():
+    from piezo_stage_ros.bench.servo import loop_config
+    return loop_config()
+
+
+def _wait_for(condition, what: str, limit_s: float = 120.0) -> None:
+    # a bound on a wait for a spawned process, not a timing figure: the test asserts nothing
+    # on how long it took
+    import time
+    end = time.monotonic() + limit_s
+    while not condition():
+        if time.monotonic() > end:
+            raise AssertionError(f'{what}: not within {limit_s:g} s')
+        time.sleep(0.01)
+
+
+def test_apply_change_reaches_the_logic_and_names_a_bad_change():
+    servo = servo_from_config(_loop_config(), 0.01)
+    apply_change(servo, 'active', False)
+    assert servo.trajectory is not None and not servo.trajectory.active
+    apply_change(servo, 'set', ('controller.watchdog.timeout_s', 0.5))
+    assert servo.controller is not None and servo.controller.watchdog.timeout_s == 0.5
+    with pytest.raises(ValueError, match='nope'):
+        apply_change(servo, 'nope', 1)
+    with pytest.raises(ValueError, match='stage.x'):
+        apply_change(servo, 'set', ('stage.x', 1))
+    with pytest.raises(ValueError, match='controller.no_such'):
+        apply_change(servo, 'set', ('controller.no_such', 1))
+
+
+def test_servo_process_refuses_fork_and_an_unknown_change():
+    with pytest.raises(ValueError, match="'fork'"):
+        ServoProcess(_loop_config(), 0.01, context='fork')
+    proc = ServoProcess(_loop_config(), 0.01)
+    try:
+        with pytest.raises(ValueError, match='gains'):
+            proc.change('gains', 1)
+    finally:
+        proc.close()
+
+
+def test_servo_process_runs_its_samples_and_hands_over_every_one():
+    loop = _loop_config()
+    proc = ServoProcess(loop, 0.05)  # 500 samples of the grid
+    try:
+        proc.start(7_000)
+        got = []
+        _wait_for(lambda: got.append(proc.take()[0]) or proc.finished, 'run of 500 samples')
+        got.append(proc.take()[0])
+        stats = proc.stats()
+    finally:
+        proc.close()
+    ints = np.concatenate(got)
+    assert 'error' not in stats
+    # every sample served went through the ring; a stall skips samples, never repeats one
+    assert ints.shape[0] == stats['paced_samples'] == stats['controller_steps']
+    assert stats['ring_missed'] == 0
+    assert np.all(np.diff(ints[:, 0]) > 0) and ints[0, 0] == 0 and ints[-1, 0] <= 499
+    assert ints[:, 0].size + stats['skipped'] == 500
+    period = round(1e9 / loop.stage.sample_rate_hz)
+    assert np.array_equal(ints[:, 1], 7_000 + ints[:, 0] * period)
+
+
+def test_servo_process_applies_a_change_at_a_sample_and_stops_on_request():
+    proc = ServoProcess(_loop_config(), 0.0)  # on until stopped
+    taken = []
+
+    def served() -> int:
+        taken.append(proc.take())
+        return sum(t[0].shape[0] for t in taken)
+
+    try:
+        proc.start()
+        _wait_for(lambda: served() > 10, 'first samples')
+        proc.change('active', False)
+        _wait_for(lambda: served() and proc.ring.get('applied') == 1, 'the change applied')
+        at = served()
+        _wait_for(lambda: served() > at + 200, 'samples after the change')
+        stats = proc.stop()
+        served()
+    finally:
+        proc.close()
+    assert 'error' not in stats and proc.finished
+    assert stats['stopped_at_v'] == _loop_config().stage.chain.safe_voltage_v
+    floats = np.concatenate([t[1] for t in taken])
+    # stopped: the reference is held, with zero velocity, from a sample on
+    assert floats[-1, 2] == 0.0 and floats[-1, 1] == floats[-100, 1]
+    assert np.any(floats[:, 2] != 0.0)
+
+
+def test_servo_process_error_drives_the_safe_voltage_and_is_reported():
+    proc = ServoProcess(_loop_config(), 0.0)
+    try:
+        proc.start()
+        _wait_for(lambda: proc.ring.get('count') > 10, 'first samples')
+        proc.change('set', ('controller.no_such', 1.0))
+        _wait_for(lambda: proc.finished, 'the end after the error')
+        stats = proc.stats()
+    finally:
+        proc.close()
+    assert 'controller.no_such' in stats['error']
+    assert stats['stopped_at_v'] == _loop_config().stage.chain.safe_voltage_v

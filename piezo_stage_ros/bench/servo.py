@@ -51,12 +51,10 @@ from piezo_stage_ros.core.loop_config import LoopConfig
 from piezo_stage_ros.core.metrics import error_metrics, steady_state_start
 from piezo_stage_ros.core.stage import linear_plant, Stage
 from piezo_stage_ros.core.trajectories import make_trajectory
-from piezo_stage_ros.hardware.bridge import Bridge, ModelBridge
+from piezo_stage_ros.hardware.bridge import Bridge
 from piezo_stage_ros.hardware.pacing import realtime_setup
-from piezo_stage_ros.hardware.safety import GuardedPlant
 from piezo_stage_ros.hardware.udp import UdpStreamBridge
-from piezo_stage_ros.nodes.logic import ControllerLogic, TrajectoryLogic
-from piezo_stage_ros.nodes.servo import SampleRing, ServoLoop, ServoSample
+from piezo_stage_ros.nodes.servo import SampleRing, servo_from_config, ServoLoop, ServoSample
 
 __all__ = ['CASES', 'loop_config', 'run_servo_benchmark', 'steady_e_rms']
 
@@ -81,16 +79,7 @@ def make_servo(loop: LoopConfig, duration_s: float, bridge: Bridge | None = None
                capacity: int = 65536,
                on_sample: Callable[[ServoSample], None] | None = None) -> ServoLoop:
     """Return the servo loop of ``loop`` on the model (or on ``bridge``)."""
-    stage = loop.stage
-    period = 1.0 / stage.sample_rate_hz
-    ctrl = build_controller(loop.controller, period, linear_plant(loop.design_plant))
-    return ServoLoop(GuardedPlant(bridge if bridge is not None else ModelBridge(stage),
-                                  stage.chain, loop.plant_node.command_timeout_s),
-                     TrajectoryLogic(make_trajectory(loop.trajectory),
-                                     sample_rate_hz=stage.sample_rate_hz, chunk_s=0.005),
-                     ControllerLogic(ctrl, mode='realtime'),
-                     sample_rate_hz=stage.sample_rate_hz, duration_s=duration_s,
-                     capacity=capacity, on_sample=on_sample)
+    return servo_from_config(loop, duration_s, bridge, capacity=capacity, on_sample=on_sample)
 
 
 def _ros_side_work(encoders: tuple[JointStateEncoder, JointStateEncoder]

@@ -114,6 +114,10 @@ class BridgeParams(Params):
 class ServoParams(Params):
     """The paced servo loop of real-time mode (nodes/servo.py): its clock and its thread."""
 
+    process: bool = param(True, unit='-', description='stage_servo --direct in real time: run '
+                          'the servo loop in a process of its own (multiprocessing spawn, '
+                          'samples through shared memory); false: a thread beside the ROS '
+                          'executor (the plant alone always uses a thread).', read_only=True)
     spin_us: float = param(200.0, unit='us', description='Sleep until this close to each due '
                            'time, then spin on the clock (above the period: always spin; with '
                            'SCHED_FIFO, whose sleeps wake on time, 30 leaves the CPU idle in '

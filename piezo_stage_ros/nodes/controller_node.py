@@ -105,6 +105,9 @@ class ControllerNode(Node):
                                      diagnostics_every=opts.diagnostics_every,
                                      rebuild=self._rebuild)
         self._stability = stability
+        #: Where changes go besides ``logic``: a servo process that runs its own copy of it
+        #: (``ServoProcess.change``; stage_servo --direct in real time).
+        self.forward: Callable[[str, Any], None] | None = None
         # CDR bytes in and out (core/cdr.py): rclpy message objects cost more than a sample
         self._diag_names = self.logic.names
         self._diag = JointStateEncoder(self._diag_names)
@@ -163,9 +166,16 @@ class ControllerNode(Node):
             self._stability = stability
             if params is not old[0]:
                 self.logic.request_change(params)
+                if self.forward is not None:
+                    self.forward('controller', params)
         self.logic.safe_voltage_v = opts.safe_voltage_v
         self.logic.watchdog.timeout_s = opts.position_timeout_s
         self.logic.diagnostics_every = opts.diagnostics_every
+        if self.forward is not None:
+            for path, value in (('safe_voltage_v', opts.safe_voltage_v),
+                                ('watchdog.timeout_s', opts.position_timeout_s),
+                                ('diagnostics_every', max(1, opts.diagnostics_every))):
+                self.forward('set', ('controller.' + path, value))
         self.opts = opts
 
     def attach_direct(self) -> None:

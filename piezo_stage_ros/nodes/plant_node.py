@@ -33,11 +33,8 @@ from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from piezo_stage_ros.core import wire
 from piezo_stage_ros.core.cdr import CdrError, decode_float64, encode_clock, JointStateEncoder
 from piezo_stage_ros.core.errors import PiezoStageError
-from piezo_stage_ros.core.stage import StageParams
-from piezo_stage_ros.hardware.bridge import Bridge, ModelBridge
 from piezo_stage_ros.hardware.pacing import Pacer, realtime_setup
 from piezo_stage_ros.hardware.safety import GuardedPlant
-from piezo_stage_ros.hardware.udp import UdpBridge, UdpStreamBridge
 from piezo_stage_ros.nodes import qos
 from piezo_stage_ros.nodes.logic import (
     ControllerLogic,
@@ -48,7 +45,7 @@ from piezo_stage_ros.nodes.logic import (
 )
 from piezo_stage_ros.nodes.parameters import ParameterBinding
 from piezo_stage_ros.nodes.runner import run
-from piezo_stage_ros.nodes.servo import ServoLoop, ServoSample
+from piezo_stage_ros.nodes.servo import make_bridge, ServoLoop, ServoProcess, ServoSample
 from piezo_stage_ros.nodes.tables import plant_table, PlantNodeParams
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -58,15 +55,6 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 
 __all__ = ['PlantNode', 'main']
-
-
-def make_bridge(stage: StageParams, opts: PlantNodeParams) -> Bridge:
-    """Return the backend the node parameters name."""
-    if opts.backend in ('udp', 'udp_stream'):
-        kind = UdpStreamBridge if opts.backend == 'udp_stream' else UdpBridge
-        return kind(opts.bridge.host, opts.bridge.port, timeout_s=opts.bridge.timeout_s,
-                    max_consecutive_losses=opts.bridge.max_consecutive_losses)
-    return ModelBridge(stage)
 
 
 class PlantNode(Node):
@@ -111,7 +99,7 @@ class PlantNode(Node):
                                                  qos.LOOP, raw=True)
         self._direct: Callable[[Sample], float] | None = None
         self._position_gate: Callable[[], bool] = lambda: True
-        self.servo: ServoLoop | None = None
+        self.servo: ServoLoop | ServoProcess | None = None
         self._peers: Callable[[list[ServoSample]], None] | None = None
         self._servo_reported = False
         # real time: what the plant held over each sample, stamped with it, for the bag
@@ -147,6 +135,8 @@ class PlantNode(Node):
         opts: PlantNodeParams = new[1]
         # applied between two samples: every callback of this node runs on one executor thread
         self.guard.watchdog.timeout_s = opts.command_timeout_s
+        if isinstance(self.servo, ServoProcess):
+            self.servo.change('set', ('plant.watchdog.timeout_s', opts.command_timeout_s))
         self.logic.resend_s = opts.lockstep.resend_s
         if opts.status_period_s != self.opts.status_period_s:
             self._status_timer.cancel()
@@ -192,17 +182,21 @@ class PlantNode(Node):
         self._pub.publish(self._encoder.encode(sec, nanosec, (s.position_m,)))
 
     def attach_servo(self, trajectory: TrajectoryLogic, controller: ControllerLogic,
-                     publish: Callable[[list[ServoSample]], None]) -> None:
+                     publish: Callable[[list[ServoSample]], None],
+                     process: ServoProcess | None = None) -> None:
         """
         Real time in one process (``--direct``): the servo loop runs trajectory and controller.
 
         Each sample's y_k, x_d and u_k are computed in the servo thread, in the order of one
         sample; ``publish(batch)`` publishes the reference, command and diagnostics of a batch
         for outside subscribers, from the executor. Parameter changes reach the logic objects
-        as ever and apply at the next sample boundary.
+        as ever and apply at the next sample boundary. With ``process`` (``servo.process``),
+        that process runs the loop on its own copies of the logic (built from the same
+        parameters) and the peers forward their changes to it.
         """
         self.destroy_subscription(self._cmd_sub)
-        self.servo = self._make_servo(trajectory, controller)
+        self.servo = process if process is not None else \
+            self._make_servo(trajectory, controller)
         self._peers = publish
         # looked at every 50 batches (0.1 s) as the per-sample gates look every 1000 samples
         self._position_gate = Gate(self._pub.get_subscription_count, every=50)
@@ -214,7 +208,11 @@ class PlantNode(Node):
             if self._t_start == 0.0:
                 self._t_start = time.monotonic()
                 opts = self.opts.servo
-                servo.start_thread(self.get_clock().now().nanoseconds, lambda: realtime_setup(
+                start_ns = self.get_clock().now().nanoseconds
+                if isinstance(servo, ServoProcess):
+                    servo.start(start_ns)  # sets its own scheduling up, in its process
+                    return
+                servo.start_thread(start_ns, lambda: realtime_setup(
                     cpus=[opts.cpu] if opts.cpu >= 0 else [], fifo_priority=opts.fifo_priority,
                     switch_interval_s=opts.switch_interval_us * 1e-6))
                 return
@@ -384,8 +382,8 @@ class PlantNode(Node):
         self._timer.cancel()
         if self.servo is not None:
             self.servo.stop()
-            if self.servo.samples:
-                batch = self.servo.drain()
+            batch = self.servo.drain()
+            if batch:
                 self._publish_batch(batch)
                 self._publish_applied(batch)
             if self._held_since is not None and self._applied_pub is not None \
@@ -421,7 +419,14 @@ class PlantNode(Node):
     def destroy_node(self) -> None:
         """Drive the safe voltage, release the backend, then destroy the node."""
         try:
-            if self.servo is not None:
+            if isinstance(self.servo, ServoProcess):
+                stopped = self.servo.started and not self.finished.done()
+                self.servo.close()  # the process drives the safe voltage of its backend
+                if stopped:
+                    # stopped before its end (Ctrl-C, shutdown): its counters still go out
+                    self.get_logger().info('servo process stopped: ' + ', '.join(
+                        f'{k}={v}' for k, v in self.stats().items()))
+            elif self.servo is not None:
                 self.servo.stop()
             self.logic.stop()
         finally:

@@ -38,18 +38,30 @@ from __future__ import annotations
 
 from collections import deque
 import math
+import multiprocessing
 from multiprocessing import shared_memory
+import os
+import queue
+import signal
 import threading
 import time
 from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
+from piezo_stage_ros.core.controllers import build_controller
+from piezo_stage_ros.core.errors import PiezoStageError
+from piezo_stage_ros.core.loop_config import LoopConfig, PlantNodeParams
+from piezo_stage_ros.core.stage import linear_plant, PlantParams, StageParams
+from piezo_stage_ros.core.trajectories import make_trajectory
 from piezo_stage_ros.core.wire import NS_PER_S
-from piezo_stage_ros.hardware.pacing import Pacer
+from piezo_stage_ros.hardware.bridge import Bridge, ModelBridge
+from piezo_stage_ros.hardware.pacing import Pacer, realtime_setup
 from piezo_stage_ros.hardware.safety import GuardedPlant
+from piezo_stage_ros.hardware.udp import UdpBridge, UdpStreamBridge
 from piezo_stage_ros.nodes.logic import ControllerLogic, sample_count, TrajectoryLogic
 
-__all__ = ['SampleRing', 'ServoLoop', 'ServoSample']
+__all__ = ['apply_change', 'make_bridge', 'SampleRing', 'servo_from_config', 'ServoLoop',
+           'ServoProcess', 'ServoSample']
 
 
 class ServoSample(NamedTuple):
@@ -100,6 +112,13 @@ class SampleRing:
     count is written after its row (x86 and ARM64 keep the order of these two stores as seen
     from Python), and a reader only copies. Stamps stay integers (int64 [ns]).
 
+    A header of int64 words beside the count carries the control of the process that writes
+    (:data:`HEADER`): ``halt`` (set by the parent: stop after the current sample), ``posted``
+    (changes put in the queue of :class:`ServoProcess`, so that the servo looks at the queue
+    only when something is in it), ``applied`` (changes the servo has applied) and the live
+    counters of the servo's clock, written by the servo every
+    :data:`ServoProcess.LIVE_EVERY` samples for the parent's status.
+
     Parameters
     ----------
     capacity : int
@@ -110,24 +129,37 @@ class SampleRing:
     """
 
     FLOATS = ('position_m', 'reference_m', 'velocity_mps', 'command_v', 'applied_v')
+    HEADER = ('count', 'halt', 'posted', 'applied', 'index', 'paced_samples',
+              'late_half_period', 'skipped', 'lateness_max_ns')
 
     def __init__(self, capacity: int = 65536, name: str | None = None) -> None:
         self.capacity = int(capacity)
-        size = 8 + self.capacity * 8 * (3 + len(self.FLOATS))
+        head = 8 * len(self.HEADER)
+        size = head + self.capacity * 8 * (3 + len(self.FLOATS))
         self.shm = shared_memory.SharedMemory(name=name, create=name is None, size=size)
         buf = self.shm.buf
-        self._count = np.ndarray((1,), dtype=np.int64, buffer=buf)
-        self._ints = np.ndarray((self.capacity, 3), dtype=np.int64, buffer=buf, offset=8)
+        self.header = np.ndarray((len(self.HEADER),), dtype=np.int64, buffer=buf)
+        self._count = self.header[0:1]
+        self._ints = np.ndarray((self.capacity, 3), dtype=np.int64, buffer=buf, offset=head)
         self._floats = np.ndarray((self.capacity, len(self.FLOATS)), dtype=np.float64,
-                                  buffer=buf, offset=8 + self.capacity * 24)
+                                  buffer=buf, offset=head + self.capacity * 24)
         if name is None:
-            self._count[0] = 0
+            self.header[:] = 0
+            self.header[self.HEADER.index('index')] = -1
         self.read = 0
 
     @property
     def name(self) -> str:
         """Return the name another process attaches with."""
         return str(self.shm.name)
+
+    def get(self, key: str) -> int:
+        """Return the header word ``key`` (one of :data:`HEADER`)."""
+        return int(self.header[self.HEADER.index(key)])
+
+    def set(self, key: str, value: int) -> None:
+        """Set the header word ``key`` (one of :data:`HEADER`)."""
+        self.header[self.HEADER.index(key)] = value
 
     def append(self, s: ServoSample) -> None:
         """Store one sample (the writer's side; never waits)."""
@@ -161,7 +193,7 @@ class SampleRing:
 
     def close(self, unlink: bool = False) -> None:
         """Detach (and remove, by the creator)."""
-        del self._count, self._ints, self._floats
+        del self._count, self._ints, self._floats, self.header
         self.shm.close()
         if unlink:
             self.shm.unlink()
@@ -229,6 +261,8 @@ class ServoLoop:
             else None
         self._t0_arrival = 0
         self.on_sample = on_sample
+        #: Called after each sample served (a sample boundary); returning False ends the run.
+        self.boundary: Callable[[], bool] | None = None
         self._halt = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -338,9 +372,10 @@ class ServoLoop:
             if setup is not None:
                 self.setup_report = dict(setup() or {})
             self.start(start_ns)
-            halt = self._halt
+            halt, boundary = self._halt, self.boundary
             while not halt.is_set() and self.step():
-                pass
+                if boundary is not None and not boundary():
+                    break
         except BaseException as exc:  # noqa: BLE001 -- any fault: safe voltage, then report
             self.error = exc
             self.plant.fault(exc)
@@ -391,3 +426,312 @@ class ServoLoop:
             out['error'] = repr(self.error)
         return out
 
+
+
+def make_bridge(stage: StageParams, opts: PlantNodeParams) -> Bridge:
+    """Return the backend the plant node parameters name."""
+    if opts.backend in ('udp', 'udp_stream'):
+        kind = UdpStreamBridge if opts.backend == 'udp_stream' else UdpBridge
+        return kind(opts.bridge.host, opts.bridge.port, timeout_s=opts.bridge.timeout_s,
+                    max_consecutive_losses=opts.bridge.max_consecutive_losses)
+    return ModelBridge(stage)
+
+
+def servo_from_config(loop: LoopConfig, duration_s: float, bridge: Bridge | None = None, *,
+                      capacity: int = 65536,
+                      on_sample: Callable[[ServoSample], None] | None = None,
+                      design_plant: PlantParams | None = None) -> ServoLoop:
+    """
+    Return the servo loop of plant, controller and trajectory as ``loop`` configures them.
+
+    What the three nodes of ``stage_servo --direct`` build from the same parameters: the
+    backend of ``plant_node`` (``bridge`` if given), the controller on the design model
+    (rebuilt for a structural change), the trajectory evaluated in real-time chunks.
+    ``design_plant``: the controller node's design model, if not ``loop.design_plant`` (an
+    identified model read from a file).
+    """
+    stage = loop.stage
+    period = 1.0 / stage.sample_rate_hz
+    design = linear_plant(design_plant if design_plant is not None else loop.design_plant)
+    cn, tn = loop.controller_node, loop.trajectory_node
+    controller = ControllerLogic(
+        build_controller(loop.controller, period, design), mode='realtime',
+        safe_voltage_v=cn.safe_voltage_v, position_timeout_s=cn.position_timeout_s,
+        diagnostics_every=cn.diagnostics_every,
+        rebuild=lambda params: build_controller(params, period, design))
+    trajectory = TrajectoryLogic(make_trajectory(loop.trajectory),
+                                 sample_rate_hz=stage.sample_rate_hz,
+                                 chunk_s=min(tn.chunk_s, 0.005), active=tn.active)
+    opts = loop.plant_node
+    plant = GuardedPlant(bridge if bridge is not None else make_bridge(stage, opts),
+                         stage.chain, opts.command_timeout_s)
+    return ServoLoop(plant, trajectory, controller, sample_rate_hz=stage.sample_rate_hz,
+                     duration_s=duration_s,
+                     pacer=Pacer(round(NS_PER_S / stage.sample_rate_hz),
+                                 spin_ns=round(opts.servo.spin_us * 1000)),
+                     capacity=capacity, on_sample=on_sample)
+
+
+def apply_change(servo: ServoLoop, kind: str, value: Any) -> None:
+    """
+    Apply one change of :meth:`ServoProcess.change` to the loop (in the servo's process).
+
+    ``kind``: ``'controller'`` (ControllerParams, applied by the controller at its next
+    sample), ``'trajectory'`` (TrajectoryParams: the new trajectory starts at the next
+    sample), ``'active'`` (bool: start or stop the trajectory) or ``'set'`` (``(path, value)``,
+    an attribute under ``controller``, ``trajectory`` or ``plant``, e.g.
+    ``('controller.watchdog.timeout_s', 0.02)``).
+    """
+    if kind == 'controller':
+        assert servo.controller is not None
+        servo.controller.request_change(value)
+    elif kind == 'trajectory':
+        assert servo.trajectory is not None
+        servo.trajectory.switch(make_trajectory(value))
+    elif kind == 'active':
+        assert servo.trajectory is not None
+        if value:
+            servo.trajectory.start()
+        else:
+            servo.trajectory.stop()
+    elif kind == 'set':
+        path, new = value
+        names = str(path).split('.')
+        if names[0] not in ('controller', 'trajectory', 'plant'):
+            raise ValueError(f'servo change: path {path!r} must start with controller, '
+                             'trajectory or plant')
+        target: Any = servo
+        for name in names[:-1]:
+            target = getattr(target, name)
+        if not hasattr(target, names[-1]):
+            raise ValueError(f'servo change: no attribute {path!r}')
+        setattr(target, names[-1], new)
+    else:
+        raise ValueError(f'servo change: kind {kind!r}; allowed: controller, trajectory, '
+                         'active, set')
+
+
+def _servo_main(loop: LoopConfig, design_plant: PlantParams | None, duration_s: float,
+                ring_name: str, start_ns: int, changes: Any, results: Any) -> None:
+    # the servo process: no rclpy here, nothing else in this interpreter. Ctrl-C reaches the
+    # whole process group: the parent stops this process (halt word), so SIGINT is ignored;
+    # SIGTERM (the parent's last resort) and a parent that vanished end the run the same way
+    # as a halt: safe voltage, backend stopped (ServoLoop.run)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    ring = SampleRing(name=ring_name)
+    parent = os.getppid()
+    stop = [False]
+    signal.signal(signal.SIGTERM, lambda *_: stop.__setitem__(0, True))
+    try:
+        servo = servo_from_config(loop, duration_s, capacity=0, on_sample=ring.append,
+                                  design_plant=design_plant)
+        header = ring.header
+        halt, posted = SampleRing.HEADER.index('halt'), SampleRing.HEADER.index('posted')
+        applied = 0
+        served = 0
+        stats = servo.pacer.stats
+        every = ServoProcess.LIVE_EVERY
+
+        def boundary() -> bool:
+            nonlocal applied, served
+            served += 1
+            if header[posted] != applied:
+                try:
+                    while True:
+                        kind, value = changes.get_nowait()
+                        applied += 1
+                        apply_change(servo, kind, value)
+                        ring.set('applied', applied)
+                except queue.Empty:
+                    pass  # the rest is still in the queue's pipe: taken at a later sample
+            if served % every == 0:
+                ring.set('index', servo.index)
+                ring.set('paced_samples', stats.samples)
+                ring.set('late_half_period', stats.late_half)
+                ring.set('skipped', stats.skipped)
+                ring.set('lateness_max_ns', stats.max_ns)
+                if os.getppid() != parent:
+                    return False
+            return not (header[halt] or stop[0])
+
+        servo.boundary = boundary
+        opts = loop.plant_node.servo
+        servo.run(start_ns, setup=lambda: realtime_setup(
+            cpus=[opts.cpu] if opts.cpu >= 0 else [], fifo_priority=opts.fifo_priority,
+            switch_interval_s=opts.switch_interval_us * 1e-6))
+        ring.set('index', servo.index)
+        out = servo.stats()
+        out['held_v'] = servo.held_v
+        # what the backend holds now: the safe voltage the stop or the fault drove
+        out['stopped_at_v'] = servo.plant.held_v
+        out['setup'] = servo.setup_report
+        results.put(out)
+    except BaseException as exc:  # noqa: BLE001 -- reported to the parent, which faults
+        results.put({'error': repr(exc)})
+    finally:
+        ring.close()
+
+
+class ServoProcess:
+    """
+    The servo loop of ``loop`` in a process of its own, started with ``spawn`` (no rclpy).
+
+    The process builds plant, controller and trajectory from ``loop``
+    (:func:`servo_from_config`), owns the backend and runs :meth:`ServoLoop.run`: its
+    interpreter does nothing else, so the executor of the ROS side never holds a lock the
+    servo waits for. The samples come back through a :class:`SampleRing` (:meth:`take`),
+    changes go to it through a queue (:meth:`change`, applied at the next sample boundary),
+    and its figures come back at the end (:meth:`stop`). Any error in the process drives the
+    safe voltage there (the process owns the backend) and is reported in ``stats()['error']``.
+
+    Parameters
+    ----------
+    loop : LoopConfig
+        Stage, plant node, controller and trajectory parameters (picklable).
+    duration_s : float
+        As :class:`ServoLoop` (0: until :meth:`stop`).
+    capacity : int
+        Samples the ring holds (65536: 6.5 s at 10 kHz).
+    design_plant : PlantParams, optional
+        The controller's design model, if not ``loop.design_plant``.
+    context : str
+        The multiprocessing start method, ``'spawn'`` or ``'forkserver'`` (not ``'fork'``: a
+        fork of a process with rclpy's threads is not safe).
+
+    """
+
+    #: Samples between two updates of the live counters in the ring's header.
+    LIVE_EVERY = 1000
+
+    def __init__(self, loop: LoopConfig, duration_s: float = 0.0, *, capacity: int = 65536,
+                 design_plant: PlantParams | None = None, context: str = 'spawn') -> None:
+        if context not in ('spawn', 'forkserver'):
+            raise ValueError(f"servo process: context {context!r}; allowed: 'spawn', "
+                             "'forkserver'")
+        self.loop = loop
+        self.design_plant = design_plant
+        self.duration_s = float(duration_s)
+        self._ctx: Any = multiprocessing.get_context(context)
+        self.ring = SampleRing(capacity)
+        self._changes = self._ctx.Queue()
+        self._results = self._ctx.Queue()
+        self._proc: Any = None
+        self.result: dict[str, Any] | None = None
+        self.missed = 0
+
+    def start(self, start_ns: int = 0) -> None:
+        """Start the process; sample 0 is stamped ``start_ns`` [ns]."""
+        self._proc = self._ctx.Process(
+            target=_servo_main, args=(self.loop, self.design_plant, self.duration_s,
+                                      self.ring.name,
+                                      int(start_ns), self._changes, self._results),
+            name='servo', daemon=True)
+        self._proc.start()
+
+    @property
+    def started(self) -> bool:
+        """Return whether :meth:`start` was called."""
+        return self._proc is not None
+
+    @property
+    def finished(self) -> bool:
+        """Return whether the process has ended (its run complete, stopped or failed)."""
+        return self._proc is not None and not self._proc.is_alive()
+
+    def change(self, kind: str, value: Any) -> None:
+        """Send a change (see :func:`apply_change`), applied at the servo's next sample."""
+        if kind not in ('controller', 'trajectory', 'active', 'set'):
+            raise ValueError(f'servo change: kind {kind!r}; allowed: controller, trajectory, '
+                             'active, set')
+        self._changes.put((kind, value))
+        self.ring.set('posted', self.ring.get('posted') + 1)
+
+    def take(self) -> tuple[Any, Any, int]:
+        """Return the samples handed over since the last call (:meth:`SampleRing.take`)."""
+        ints, floats, missed = self.ring.take()
+        self.missed += missed
+        return ints, floats, missed
+
+    def stop(self, timeout_s: float = 5.0) -> dict[str, Any]:
+        """
+        Stop the process after its current sample, wait for it and return its figures.
+
+        The process drives the safe voltage and stops its backend itself; if it does not end
+        within ``timeout_s`` it is terminated (SIGTERM: the same path), then killed.
+        """
+        if self._proc is None:
+            return {}
+        if self.result is None:
+            self.ring.set('halt', 1)
+            try:
+                self.result = self._results.get(timeout=timeout_s)
+            except queue.Empty:
+                self.result = {'error': f'servo process gave no figures in {timeout_s:g} s'}
+            self._proc.join(timeout_s)
+            if self._proc.is_alive():
+                self._proc.terminate()
+                self._proc.join(timeout_s)
+            if self._proc.is_alive():
+                self._proc.kill()
+                self._proc.join()
+        return self.result
+
+    def poll(self) -> dict[str, Any] | None:
+        """Return the figures of a run that has ended (``None`` while it goes on)."""
+        if self.result is None and self.finished:
+            return self.stop()
+        return self.result
+
+    def stats(self) -> dict[str, Any]:
+        """Return the final figures, or the live counters of a run in progress."""
+        out: dict[str, Any]
+        if self.poll() is not None:
+            assert self.result is not None
+            out = {k: v for k, v in self.result.items() if k != 'setup'}
+        else:
+            ring = self.ring
+            out = {k: ring.get(k) for k in ('index', 'paced_samples', 'late_half_period',
+                                            'skipped')}
+            out['lateness_max_us'] = round(ring.get('lateness_max_ns') / 1e3, 1)
+        out['ring_missed'] = self.missed
+        return out
+
+    # the interface of ServoLoop the plant node uses, so that it drives either
+
+    @property
+    def done(self) -> bool:
+        """Return whether the run has ended."""
+        return self.finished
+
+    @property
+    def index(self) -> int:
+        """Return the grid number of the last sample served (-1 before the first)."""
+        return int(self.result['index']) if self.result and 'index' in self.result \
+            else self.ring.get('index')
+
+    @property
+    def error(self) -> BaseException | None:
+        """Return the error the run ended with (as a PiezoStageError), or None."""
+        text = (self.poll() or {}).get('error')
+        return PiezoStageError(f'servo process: {text}') if text else None
+
+    @property
+    def setup_report(self) -> dict[str, str]:
+        """Return what the process's real-time setup applied or was refused (at the end)."""
+        return dict((self.poll() or {}).get('setup', {}))
+
+    @property
+    def held_v(self) -> float:
+        """Return the voltage held after the last sample (NaN before the end)."""
+        return float((self.result or {}).get('held_v', math.nan))
+
+    def drain(self, limit: int = 0) -> list[ServoSample]:
+        """Return the samples handed over since the last call, as :class:`ServoSample`."""
+        ints, floats, _ = self.take()
+        return [ServoSample(k, stamp, p, r, v, c, a, late, None) for (k, stamp, late),
+                (p, r, v, c, a) in zip(ints.tolist(), floats.tolist())]
+
+    def close(self) -> None:
+        """Stop the process if it runs and remove the ring."""
+        self.stop()
+        self.ring.close(unlink=True)

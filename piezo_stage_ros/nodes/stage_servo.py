@@ -28,12 +28,13 @@ from __future__ import annotations
 
 from typing import Sequence
 
+from piezo_stage_ros.core.loop_config import LoopConfig
 from piezo_stage_ros.nodes.controller_node import ControllerNode
 from piezo_stage_ros.nodes.controller_node import factory as controller_factory
 from piezo_stage_ros.nodes.logic import Command, Sample
 from piezo_stage_ros.nodes.plant_node import PlantNode
 from piezo_stage_ros.nodes.runner import run
-from piezo_stage_ros.nodes.servo import ServoSample
+from piezo_stage_ros.nodes.servo import ServoProcess, ServoSample
 from piezo_stage_ros.nodes.trajectory_node import TrajectoryNode
 
 __all__ = ['main']
@@ -61,7 +62,21 @@ def connect_direct(plant: PlantNode, controller: ControllerNode,
                 trajectory.publish(s.stamp_ns, s.reference_m, s.velocity_mps)
                 controller.publish(Command(s.stamp_ns, s.command_v, s.diagnostics))
 
-        plant.attach_servo(trajectory.logic, controller.logic, publish)
+        process = None
+        if plant.opts.servo.process:
+            # the servo loop in a process of its own (no interpreter lock shared with this
+            # executor), on copies of the logic built from the same parameters; the peer
+            # nodes forward their parameter changes to it
+            stage, plant_opts = plant.binding.objects
+            params, stability, controller_opts = controller.binding.objects
+            traj_params, traj_opts = trajectory.binding.objects
+            loop = LoopConfig(stage=stage, plant_node=plant_opts, controller=params,
+                              stability=stability, controller_node=controller_opts,
+                              trajectory=traj_params, trajectory_node=traj_opts)
+            process = ServoProcess(loop, plant_opts.duration_s,
+                                   design_plant=controller.design_plant)
+            controller.forward = trajectory.forward = process.change
+        plant.attach_servo(trajectory.logic, controller.logic, publish, process)
         return
 
     def step(sample: Sample) -> float:

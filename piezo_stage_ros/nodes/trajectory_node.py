@@ -74,6 +74,9 @@ class TrajectoryNode(Node):
                                              qos.LOOP, raw=True)
         self._gate: Callable[[], bool] = lambda: True
         self._ahead = opts.lockstep_ahead if opts.mode == 'lockstep' else 0
+        #: Where changes go besides ``logic``: a servo process that runs its own copy of it
+        #: (``ServoProcess.change``; stage_servo --direct in real time).
+        self.forward: Callable[[str, Any], None] | None = None
         self.create_service(Trigger, '~/start', self._start)
         self.create_service(Trigger, '~/stop', self._stop)
         self.get_logger().info(f'trajectory {params.kind}, '
@@ -84,12 +87,16 @@ class TrajectoryNode(Node):
         if params is not old[0]:
             # builds (and so checks) the new trajectory before accepting the change
             self.logic.switch(make_trajectory(params))
+            if self.forward is not None:
+                self.forward('trajectory', params)
             self.get_logger().info(f'trajectory switched to {params.kind} at the next sample')
         if opts.active != self.opts.active:
             if opts.active:
                 self.logic.start()
             else:
                 self.logic.stop()
+            if self.forward is not None:
+                self.forward('active', opts.active)
         self.opts = opts
 
     def _set_active(self, active: bool, response: Trigger.Response) -> Trigger.Response:
