@@ -54,12 +54,11 @@ from piezo_stage_ros.core.hysteresis import HysteresisParams
 from piezo_stage_ros.core.loop_config import LoopConfig
 from piezo_stage_ros.core.stage import PlantParams
 from piezo_stage_ros.core.trajectories import TrajectoryParams
+from piezo_stage_ros.core.wire import STORAGE_IDS
 
 __all__ = ['build_parser', 'load_loop', 'main']
 
 PROG = 'simulate'
-#: Bag storage plugins (rosbag2 names); the bag writer refuses any other.
-STORAGES = ('mcap', 'sqlite3')
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -99,7 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--json', action='store_true',
                    help='Print one JSON object on stdout instead of the readable summary.')
     p.add_argument('--bag', metavar='DIR', help='Write the run as a rosbag2 bag.')
-    p.add_argument('--storage', choices=STORAGES, default='mcap',
+    p.add_argument('--storage', choices=STORAGE_IDS, default=STORAGE_IDS[0],
                    help='Bag storage plugin (default mcap).')
     p.add_argument('--overwrite', action='store_true', help='Replace an existing bag.')
     return p

@@ -43,7 +43,7 @@ from piezo_stage_ros import cli
 from piezo_stage_ros.core.controllers import ControllerParams
 from piezo_stage_ros.core.stage import PlantParams
 from piezo_stage_ros.core.trajectories import TrajectoryParams
-from piezo_stage_ros.simulate import STORAGES
+from piezo_stage_ros.core.wire import STORAGE_IDS
 
 __all__ = ['main', 'rss_mb']
 
@@ -112,7 +112,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument('--seed', type=int, metavar='N', help='Seed of the sensor noise.')
     p.add_argument('--noise', type=float, metavar='M', help='Sensor noise std [m].')
     p.add_argument('--bag', metavar='DIR', help='Stream the whole run into a rosbag2 bag.')
-    p.add_argument('--storage', choices=STORAGES, default='mcap')
+    p.add_argument('--storage', choices=STORAGE_IDS, default=STORAGE_IDS[0])
     p.add_argument('--overwrite', action='store_true', help='Replace an existing bag.')
     p.add_argument('--json', action='store_true', help='Print one JSON object on stdout.')
     return p

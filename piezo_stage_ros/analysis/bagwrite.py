@@ -56,6 +56,7 @@ from piezo_stage_ros.core.wire import (
     META_KEY,
     NS_PER_S,
     REQUIRED_TOPICS,
+    STORAGE_IDS,
     topic_names,
 )
 from rosbags.interfaces import (
@@ -75,9 +76,7 @@ __all__ = ['OFFERED_QOS', 'STORAGES', 'RunBagWriter', 'write_run']
 
 
 STORAGES: Final[Mapping[str, StoragePlugin]] = {
-    'mcap': StoragePlugin.MCAP,
-    'sqlite3': StoragePlugin.SQLITE3,
-}
+    storage: StoragePlugin[storage.upper()] for storage in STORAGE_IDS}
 
 # What the recorder needs to replay a topic faithfully: reliable, volatile, a deep queue (the
 # Jazzy recorder stores the same profile for the publishers it saw). "Infinite" durations are

@@ -38,6 +38,7 @@ from piezo_stage_ros.analysis.bagread import read_run
 from piezo_stage_ros.analysis.bagwrite import write_run
 from piezo_stage_ros.analysis.replay import analyze_bag
 from piezo_stage_ros.core.record import RunRecord
+from piezo_stage_ros.core.wire import STORAGE_IDS
 
 __all__ = ['run_bag_benchmark', 'synthetic_record']
 
@@ -118,7 +119,7 @@ def _size(path: Path) -> int:
 
 
 def run_bag_benchmark(duration_s: float = 60.0, tmpdir: str | Path | None = None, *,
-                      diagnostics: bool = False, storages: Sequence[str] = ('mcap', 'sqlite3'),
+                      diagnostics: bool = False, storages: Sequence[str] = STORAGE_IDS,
                       baseline: bool = True, echo: bool = True) -> dict[str, float]:
     """
     Write a synthetic 10 kHz run as bags and time writing, reading and analysing them.

@@ -54,6 +54,7 @@ __all__ = [
     'BAG_TOPICS', 'CLOCK', 'CLOCK_TYPE', 'COMMAND', 'COMMAND_TYPE', 'DEFAULT_NAMESPACE',
     'APPLIED', 'DIAGNOSTICS', 'JOINT_NAME', 'JOINT_STATE_TYPE', 'META_KEY', 'NS_PER_S', 'POSITION',
     'RECORDED_TOPICS', 'REFERENCE', 'REQUIRED_TOPICS', 'STAGE', 'STATUS', 'STATUS_TYPE',
+    'STORAGE_IDS',
     'TOPIC_TYPES', 'diagnostic_reader', 'normalize_namespace', 'ns_to_stamp', 'stamp_to_ns',
     'topic_names',
 ]
@@ -77,6 +78,8 @@ BAG_TOPICS: Final[Mapping[str, str]] = {
     'applied': JOINT_STATE_TYPE,
 }
 REQUIRED_TOPICS: Final = ('position', 'reference', 'command')
+#: The rosbag2 storage plugins a run's bag can be written in (the first is the default).
+STORAGE_IDS: Final = ('mcap', 'sqlite3')
 
 POSITION: Final = f'{STAGE}/position'
 REFERENCE: Final = f'{STAGE}/reference'
