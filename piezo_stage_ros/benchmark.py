@@ -64,6 +64,9 @@ def _parser() -> argparse.ArgumentParser:
                    help='Wall time of each real-time run of the servo suite (default 10).')
     p.add_argument('--fifo-priority', type=int, default=0, metavar='P',
                    help='Servo suite: SCHED_FIFO priority of the loops (default 0: none).')
+    p.add_argument('--nice', type=int, default=None, metavar='N',
+                   help='Servo suite: nice value of the loops (default: servo.nice as '
+                   'configured, -20).')
     p.add_argument('--duration', type=_positive(float), default=2.0, metavar='S',
                    help='Simulated seconds per closed-loop measurement (default 2).')
     p.add_argument('--batch', type=_positive(int), default=1000, metavar='N',
@@ -118,7 +121,8 @@ def _bench(args: argparse.Namespace) -> int:
             if args.suite in ('servo', 'all'):
                 from piezo_stage_ros.bench import servo
                 result['servo'] = servo.run_servo_benchmark(
-                    duration_s=args.realtime_s, fifo_priority=args.fifo_priority)
+                    duration_s=args.realtime_s, fifo_priority=args.fifo_priority,
+                    nice=args.nice)
                 print(servo.format_table(result['servo']))
             if args.suite == 'ros' or (args.suite == 'all' and _rclpy_available()):
                 if not _rclpy_available():

@@ -16,16 +16,19 @@
 
 from __future__ import annotations
 
+import os
 import threading
 
 import numpy as np
 from piezo_stage_ros.core.closed_loop import run
 from piezo_stage_ros.core.controllers import build_controller, ControllerParams
 from piezo_stage_ros.core.errors import ParameterError
+from piezo_stage_ros.core.loop_config import ServoParams
 from piezo_stage_ros.core.stage import Stage, StageParams
 from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.hardware import pacing
 from piezo_stage_ros.hardware.bridge import ModelBridge
-from piezo_stage_ros.hardware.pacing import LatenessStats, Pacer, realtime_setup
+from piezo_stage_ros.hardware.pacing import LatenessStats, Pacer, realtime_setup, servo_setup
 from piezo_stage_ros.hardware.safety import GuardedPlant
 from piezo_stage_ros.nodes.logic import ControllerLogic, TrajectoryLogic
 from piezo_stage_ros.nodes.servo import apply_change, servo_from_config, ServoLoop, ServoProcess
@@ -122,6 +125,60 @@ def test_realtime_setup_reports_what_it_applied_or_was_refused():
     assert set(report) == {'affinity', 'sched_fifo'}
     assert all(v.startswith(('applied', 'refused')) for v in report.values())
     assert realtime_setup() == {}
+
+
+def test_realtime_setup_sets_the_nice_value_of_the_calling_thread_only():
+    out: dict = {}
+    before = os.getpriority(os.PRIO_PROCESS, 0)
+    # one step up is permitted to anyone; the worker's value must not reach this thread
+    worker = threading.Thread(target=lambda: out.update(
+        realtime_setup(nice=min(before + 1, 19)),
+        seen=os.getpriority(os.PRIO_PROCESS, 0)))
+    worker.start()
+    worker.join()
+    assert out['nice'] == f'applied: {min(before + 1, 19)}' and out['seen'] == min(before + 1, 19)
+    assert os.getpriority(os.PRIO_PROCESS, 0) == before
+
+
+@pytest.mark.parametrize('spin_us, fifo, throttle, warned', [
+    (200.0, 'applied: priority 1', (950_000, 1_000_000), True),
+    (100.0, 'applied: priority 1', (950_000, 1_000_000), True),   # spins the whole period
+    (30.0, 'applied: priority 1', (950_000, 1_000_000), False),   # sleeps most of it
+    (200.0, 'refused: [Errno 1] Operation not permitted', (950_000, 1_000_000), False),
+    (200.0, 'applied: priority 1', None, False),                  # throttling off (-1)
+])
+def test_servo_setup_warns_of_a_fifo_loop_the_kernel_will_throttle(monkeypatch, spin_us, fifo,
+                                                                   throttle, warned):
+    asked: dict = {}
+
+    def fake_setup(**kwargs):
+        asked.update(kwargs)
+        return {'sched_fifo': fifo}
+
+    monkeypatch.setattr(pacing, 'realtime_setup', fake_setup)
+    monkeypatch.setattr(pacing, 'rt_throttling', lambda: throttle)
+    opts = ServoParams(spin_us=spin_us, fifo_priority=1, cpu=1, nice=-5,
+                       switch_interval_us=50.0)
+    out = servo_setup(opts, PERIOD)
+    # every option of servo.* reaches realtime_setup
+    # us -> s is one multiplication: within half an ulp of 50e-6
+    assert asked.pop('switch_interval_s') == pytest.approx(50e-6, rel=1e-15, abs=0.0)
+    assert asked == {'cpus': [1], 'fifo_priority': 1, 'nice': -5}
+    assert ('rt_throttling' in out) == warned
+    if warned:
+        assert out['rt_throttling'].startswith('warning') and 'stall of 50 ms every 1 s' in \
+            out['rt_throttling'] and f'servo.spin_us = {spin_us:g}' in out['rt_throttling']
+
+
+def test_rt_throttling_reads_the_kernel_settings():
+    got = pacing.rt_throttling()
+    try:
+        with open('/proc/sys/kernel/sched_rt_runtime_us', encoding='ascii') as stream:
+            runtime = int(stream.read())
+    except OSError:
+        assert got is None
+        return
+    assert got is None if runtime < 0 else (got is not None and got[0] == runtime)
 
 
 # --- the servo loop --------------------------------------------------------------------------

@@ -37,6 +37,7 @@ configuration. Timings are those of a shared machine: compare them with each oth
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 import time
@@ -47,12 +48,12 @@ from piezo_stage_ros import cli
 from piezo_stage_ros.core.cdr import encode_float64, JointStateEncoder
 from piezo_stage_ros.core.closed_loop import run
 from piezo_stage_ros.core.controllers import build_controller
-from piezo_stage_ros.core.loop_config import LoopConfig
+from piezo_stage_ros.core.loop_config import LoopConfig, ServoParams
 from piezo_stage_ros.core.metrics import error_metrics, steady_state_start
 from piezo_stage_ros.core.stage import linear_plant, Stage
 from piezo_stage_ros.core.trajectories import make_trajectory
 from piezo_stage_ros.hardware.bridge import Bridge
-from piezo_stage_ros.hardware.pacing import realtime_setup
+from piezo_stage_ros.hardware.pacing import servo_setup
 from piezo_stage_ros.hardware.udp import UdpStreamBridge
 from piezo_stage_ros.nodes.servo import SampleRing, servo_from_config, ServoLoop, ServoSample
 
@@ -95,21 +96,23 @@ def _ros_side_work(encoders: tuple[JointStateEncoder, JointStateEncoder]
     return publish
 
 
-def serve(servo: ServoLoop, *, ros_side: bool, switch_interval_s: float = 0.0,
-          fifo_priority: int = 0, cpus: tuple[int, ...] = (), spin_ns: int = 200_000
+def serve(servo: ServoLoop, *, ros_side: bool, opts: ServoParams
           ) -> tuple[dict[str, Any], list[ServoSample]]:
-    """Run ``servo`` in a thread to its end, draining it here; return stats and samples."""
-    servo.pacer.spin_ns = spin_ns
+    """
+    Run ``servo`` in a thread to its end, draining it here; return stats and samples.
+
+    ``opts``: the servo thread's options (:func:`~piezo_stage_ros.hardware.pacing.servo_setup`,
+    as the plant node applies them); the switch interval is restored at the end.
+    """
+    servo.pacer.spin_ns = round(opts.spin_us * 1000)
     old = sys.getswitchinterval()
     report: dict[str, str] = {}
-    if switch_interval_s > 0.0:
-        sys.setswitchinterval(switch_interval_s)
     publish = _ros_side_work((JointStateEncoder(['stage']),
                               JointStateEncoder(['stage'], with_velocity=True)))
     got: list[ServoSample] = []
     try:
         thread = servo.start_thread(setup=lambda: report.update(
-            realtime_setup(cpus=cpus, fifo_priority=fifo_priority)))
+            servo_setup(opts, servo.pacer.period_ns)))
         while thread.is_alive():
             time.sleep(0.005)
             batch = servo.drain()
@@ -138,7 +141,8 @@ def _array_figures(stats: dict[str, Any], idx: np.ndarray, position_m: np.ndarra
     rms = steady_e_rms(idx, position_m, reference_m, period,
                        1.0 / loop.trajectory.sine.frequency_hz)
     keys = ('paced_samples', 'lateness_p50_us', 'lateness_p99_us', 'lateness_max_us',
-            'late_half_period', 'skipped', 'queue_overruns', 'sched_fifo')
+            'late_half_period', 'skipped', 'queue_overruns', 'sched_fifo', 'nice',
+            'rt_throttling')
     out = {k: stats.get(k) for k in keys}
     out['e_rms_nm'] = round(rms * 1e9, 2)
     out['offline_e_rms_nm'] = round(offline_rms * 1e9, 2)
@@ -147,15 +151,15 @@ def _array_figures(stats: dict[str, Any], idx: np.ndarray, position_m: np.ndarra
     return out
 
 
-def _servo_process(ring_name: str, duration_s: float, fifo_priority: int, spin_ns: int,
+def _servo_process(ring_name: str, duration_s: float, opts: ServoParams,
                    results: Any) -> None:
     # the servo loop in a process of its own (no rclpy, nothing else in its interpreter): the
     # samples go to the parent through shared memory, the figures at the end through a queue
     ring = SampleRing(name=ring_name)
     try:
         servo = make_servo(loop_config(), duration_s, capacity=0, on_sample=ring.append)
-        servo.pacer.spin_ns = spin_ns
-        servo.run(setup=lambda: realtime_setup(fifo_priority=fifo_priority))
+        servo.pacer.spin_ns = round(opts.spin_us * 1000)
+        servo.run(setup=lambda: servo_setup(opts, servo.pacer.period_ns))
         stats = servo.stats()
         stats.update(servo.setup_report)
         results.put(stats)
@@ -163,7 +167,7 @@ def _servo_process(ring_name: str, duration_s: float, fifo_priority: int, spin_n
         ring.close()
 
 
-def serve_in_process(duration_s: float, *, fifo_priority: int = 0, spin_ns: int = 200_000
+def serve_in_process(duration_s: float, opts: ServoParams
                      ) -> tuple[dict[str, Any], np.ndarray, np.ndarray, int]:
     """
     Run the servo loop in a spawned process, playing the ROS side here on what it hands over.
@@ -176,8 +180,8 @@ def serve_in_process(duration_s: float, *, fifo_priority: int = 0, spin_ns: int 
     ctx = multiprocessing.get_context('spawn')
     ring = SampleRing()
     results = ctx.Queue()
-    proc = ctx.Process(target=_servo_process, args=(ring.name, duration_s, fifo_priority,
-                                                    spin_ns, results), daemon=True)
+    proc = ctx.Process(target=_servo_process, args=(ring.name, duration_s, opts, results),
+                       daemon=True)
     position = JointStateEncoder(['stage'])
     reference = JointStateEncoder(['stage'], with_velocity=True)
     ints: list[np.ndarray] = []
@@ -209,20 +213,21 @@ def serve_in_process(duration_s: float, *, fifo_priority: int = 0, spin_ns: int 
     return stats, np.concatenate(ints), np.concatenate(floats), missed
 
 
-def run_bridge(loop: LoopConfig, duration_s: float, offline_rms: float, *,
-               fifo_priority: int = 0) -> dict[str, Any]:
+def run_bridge(loop: LoopConfig, duration_s: float, offline_rms: float, opts: ServoParams
+               ) -> dict[str, Any]:
     """
     Run the servo loop as the host of the UDP bridge against a target-paced emulator process.
 
     The emulator (``stage_emulator --paced``) owns the 10 kHz clock in its own process, as a
     real-time target would; the host answers each sample. Returns the host's figures (lateness:
     arrival of each sample against the grid of the first), its answer latency (sample arrived to
-    command sent), and the target's: missing commands and its own clock's lateness.
+    command sent), and the target's: missing commands and its own clock's lateness. The
+    target's clock gets the same options ``opts`` as the host's servo loop.
     """
     args = [sys.executable, '-m', 'piezo_stage_ros.hardware.emulator', '--config', CONFIG,
-            '--paced', '--port', '0', '--idle-timeout-s', '5']
-    if fifo_priority:
-        args += ['--fifo-priority', str(fifo_priority), '--spin-us', '30']
+            '--paced', '--port', '0', '--idle-timeout-s', '5',
+            '--fifo-priority', str(opts.fifo_priority), '--spin-us', f'{opts.spin_us:g}',
+            '--nice', str(opts.nice)]
     target = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                               text=True)
     lines: list[str] = []
@@ -239,8 +244,7 @@ def run_bridge(loop: LoopConfig, duration_s: float, offline_rms: float, *,
         # a generous wait: on a loaded machine the target process may stall; that is counted
         bridge = UdpStreamBridge('127.0.0.1', port, timeout_s=1.0)
         servo = make_servo(loop, duration_s, bridge)
-        stats, got = serve(servo, ros_side=True, fifo_priority=fifo_priority,
-                           spin_ns=30_000 if fifo_priority else 200_000)
+        stats, got = serve(servo, ros_side=True, opts=opts)
         lines += target.communicate(timeout=30)[0].splitlines(keepends=True)
     finally:
         if target.poll() is None:
@@ -254,12 +258,13 @@ def run_bridge(loop: LoopConfig, duration_s: float, offline_rms: float, *,
     out['host_lost'] = stats.get('bridge_lost')
     out['target_missing'] = stats.get('bridge_target_missing')
     out['target'] = ' '.join(line.strip() for line in lines
-                             if 'clock' in line or 'stopped' in line or 'sched' in line)
+                             if 'clock' in line or 'stopped' in line or 'sched' in line
+                             or 'nice' in line or 'throttling' in line)
     return out
 
 
 def run_servo_benchmark(cases: tuple[str, ...] = CASES, duration_s: float = 10.0,
-                        fifo_priority: int = 0) -> dict[str, Any]:
+                        fifo_priority: int = 0, nice: int | None = None) -> dict[str, Any]:
     """
     Run the cases and return their figures (see the module docstring).
 
@@ -273,6 +278,9 @@ def run_servo_benchmark(cases: tuple[str, ...] = CASES, duration_s: float = 10.0
         SCHED_FIFO priority of the servo thread and the emulator (0: the default scheduler;
         with it, the loops sleep to 30 us before each due time instead of spinning, as
         real-time threads wake on time and a spinning one is throttled by the kernel).
+    nice : int, optional
+        Nice value of the servo thread and the emulator; default ``servo.nice`` as
+        configured (-20).
 
     """
     loop = loop_config()
@@ -284,31 +292,36 @@ def run_servo_benchmark(cases: tuple[str, ...] = CASES, duration_s: float = 10.0
                                rec.position_m, rec.reference_m, period,
                                1.0 / loop.trajectory.sine.frequency_hz)
     out: dict[str, Any] = {}
-    spin = 30_000 if fifo_priority else 200_000
+    opts = dataclasses.replace(loop.plant_node.servo, fifo_priority=fifo_priority,
+                               nice=loop.plant_node.servo.nice if nice is None else nice)
+    if fifo_priority:
+        opts = dataclasses.replace(opts, spin_us=30.0)
     for case in cases:
         if case == 'servo-alone':
             out[case] = _figures(*serve(make_servo(loop, duration_s), ros_side=False,
-                                        fifo_priority=fifo_priority, spin_ns=spin),
-                                 loop, offline_rms)
+                                        opts=opts), loop, offline_rms)
         elif case == 'servo':
-            for label, interval in (('5 ms', 0.0), ('50 us', 50e-6)):
+            for label, interval in (('5 ms', 0.0), ('50 us', 50.0)):
                 out[f'servo + ROS side (switch interval {label})'] = _figures(
                     *serve(make_servo(loop, duration_s), ros_side=True,
-                           switch_interval_s=interval, fifo_priority=fifo_priority,
-                           spin_ns=spin), loop, offline_rms)
+                           opts=dataclasses.replace(opts, switch_interval_us=interval)),
+                    loop, offline_rms)
         elif case == 'servo-process':
-            stats, ints, floats, missed = serve_in_process(
-                duration_s, fifo_priority=fifo_priority, spin_ns=spin)
+            stats, ints, floats, missed = serve_in_process(duration_s, opts)
             out['servo process + ROS side in another'] = _array_figures(
                 {**stats, 'ring_missed': missed}, ints[:, 0].astype(np.float64), floats[:, 0],
                 floats[:, 1], loop, offline_rms)
             out['servo process + ROS side in another']['ring_missed'] = missed
         elif case == 'bridge':
-            out['bridge (paced emulator)'] = run_bridge(loop, duration_s, offline_rms,
-                                                        fifo_priority=fifo_priority)
+            out['bridge (paced emulator)'] = run_bridge(loop, duration_s, offline_rms, opts)
         else:
             raise ValueError(f'unknown case {case!r}; choose among {", ".join(CASES)}')
     return out
+
+
+#: Figures in the columns of :func:`format_table` (the others go into notes below it).
+TABLE_KEYS = ('paced_samples', 'lateness_p50_us', 'lateness_p99_us', 'lateness_max_us',
+              'late_half_period', 'skipped', 'e_rms_nm', 'offline_e_rms_nm')
 
 
 def format_table(result: dict[str, Any]) -> str:
@@ -323,7 +336,5 @@ def format_table(result: dict[str, Any]) -> str:
                      f'{s["late_half_period"]} | {s["skipped"]} | {s["e_rms_nm"]} '
                      f'({s["offline_e_rms_nm"]}) |')
         notes += [f'{case}: {k} = {v}' for k, v in s.items()
-                  if k not in ('paced_samples', 'lateness_p50_us', 'lateness_p99_us',
-                               'lateness_max_us', 'late_half_period', 'skipped', 'e_rms_nm',
-                               'offline_e_rms_nm')]
+                  if v is not None and k not in TABLE_KEYS]
     return '\n'.join(lines + [''] + notes)

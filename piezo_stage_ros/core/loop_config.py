@@ -125,6 +125,10 @@ class ServoParams(Params):
     fifo_priority: int = param(0, unit='-', description='SCHED_FIFO priority of the servo '
                                'thread (1..99; 0: the default scheduler); applied where '
                                'permitted, else reported.', low=0, high=99, read_only=True)
+    nice: int = param(-20, unit='-', description='Nice value of the servo thread under the '
+                      'default scheduler (-20: the highest priority; others get only short '
+                      'slices of its CPU); applied where permitted (CAP_SYS_NICE, '
+                      'RLIMIT_NICE), else reported.', low=-20, high=19, read_only=True)
     cpu: int = param(-1, unit='-', description='CPU the servo thread runs on (-1: any).',
                      low=-1, high=1023, read_only=True)
     switch_interval_us: float = param(0.0, unit='us', description="The interpreter's switch "

@@ -41,8 +41,9 @@ from typing import Sequence
 
 from piezo_stage_ros import cli
 from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
+from piezo_stage_ros.core.loop_config import ServoParams
 from piezo_stage_ros.core.stage import Stage, StageParams
-from piezo_stage_ros.hardware.pacing import Pacer, realtime_setup
+from piezo_stage_ros.hardware.pacing import Pacer, servo_setup
 from piezo_stage_ros.hardware.udp import (
     COMMAND,
     HELLO,
@@ -365,11 +366,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--fifo-priority', type=int, default=0,
                         help='paced: SCHED_FIFO priority (0: the default scheduler)')
     parser.add_argument('--cpu', type=int, default=-1, help='paced: run on this CPU (-1: any)')
+    parser.add_argument('--nice', type=int, default=-20,
+                        help='paced: nice value of the clock under the default scheduler '
+                        '(-20 .. 19; applied where permitted)')
     args = parser.parse_args(argv)
     try:
         # the same loader as every command: the plant node's own settings (mode, backend ...)
         # are validated beside the stage, and noted when the emulator cannot honour them
         params = cli.offline_loop('stage_emulator', cli.read_config(args.config)).stage
+        # the clock's options are those of the host's servo loop (servo.*), validated alike
+        clock = ServoParams(spin_us=args.spin_us, fifo_priority=args.fifo_priority,
+                            cpu=args.cpu, nice=args.nice)
         emulator = TargetEmulator(params, port=args.port, idle_timeout_s=args.idle_timeout_s,
                                   max_requests=args.max_requests)
     except PiezoStageError as exc:
@@ -378,11 +385,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f'stage_emulator: listening on {LOOPBACK}:{emulator.port}', flush=True)
     try:
         if args.paced:
-            for key, text in realtime_setup(cpus=[args.cpu] if args.cpu >= 0 else [],
-                                            fifo_priority=args.fifo_priority).items():
+            period_ns = round(1e9 / params.sample_rate_hz)
+            for key, text in servo_setup(clock, period_ns).items():
                 print(f'stage_emulator: {key} {text}', flush=True)
-            reason = emulator.serve_paced(Pacer(round(1e9 / params.sample_rate_hz),
-                                                spin_ns=round(args.spin_us * 1000)))
+            reason = emulator.serve_paced(Pacer(period_ns, spin_ns=round(args.spin_us * 1000)))
         else:
             reason = emulator.serve()
     except KeyboardInterrupt:

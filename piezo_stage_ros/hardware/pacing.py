@@ -40,8 +40,9 @@ import time
 from typing import Any, Callable, Sequence
 
 from piezo_stage_ros.core.errors import ParameterError
+from piezo_stage_ros.core.loop_config import ServoParams
 
-__all__ = ['LatenessStats', 'Pacer', 'realtime_setup']
+__all__ = ['LatenessStats', 'Pacer', 'realtime_setup', 'rt_throttling', 'servo_setup']
 
 NS_PER_US = 1000
 
@@ -197,7 +198,7 @@ class Pacer:
 
 
 def realtime_setup(*, cpus: Sequence[int] = (), fifo_priority: int = 0,
-                   switch_interval_s: float = 0.0) -> dict[str, str]:
+                   switch_interval_s: float = 0.0, nice: int | None = None) -> dict[str, str]:
     """
     Apply real-time options to the calling thread/process where permitted.
 
@@ -211,6 +212,11 @@ def realtime_setup(*, cpus: Sequence[int] = (), fifo_priority: int = 0,
         The interpreter's switch interval (:func:`sys.setswitchinterval`, process-wide): how
         long a thread holding the GIL runs before it is asked to let another one in; 0:
         unchanged (CPython's default is 5 ms, long against a 100 us period).
+    nice : int, optional
+        Nice value (-20 .. 19) of the calling thread (``os.setpriority``; on Linux a thread's
+        own), for the default scheduler: at -20 the scheduler lets other work take only short
+        slices of the CPU the loop spins on; None: unchanged. Lowering it needs
+        ``CAP_SYS_NICE`` or an ``RLIMIT_NICE`` (``nice`` in ``/etc/security/limits.conf``).
 
     Returns
     -------
@@ -231,7 +237,57 @@ def realtime_setup(*, cpus: Sequence[int] = (), fifo_priority: int = 0,
             out['sched_fifo'] = f'applied: priority {int(fifo_priority)}'
         except (OSError, AttributeError, ValueError) as exc:
             out['sched_fifo'] = f'refused: {exc}'
+    if nice is not None:
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, int(nice))
+            out['nice'] = f'applied: {os.getpriority(os.PRIO_PROCESS, 0)}'
+        except (OSError, AttributeError, ValueError) as exc:
+            out['nice'] = f'refused: {exc} (needs CAP_SYS_NICE or RLIMIT_NICE)'
     if switch_interval_s > 0.0:
         sys.setswitchinterval(switch_interval_s)
         out['switch_interval'] = f'applied: {sys.getswitchinterval() * 1e6:g} us'
+    return out
+
+
+def rt_throttling() -> tuple[int, int] | None:
+    """
+    Return the kernel's real-time throttling ``(runtime_us, period_us)``, None when off.
+
+    Linux lets ``SCHED_FIFO`` threads run ``sched_rt_runtime_us`` of every
+    ``sched_rt_period_us`` (950 000 of 1 000 000 by default), then stops them for the rest:
+    a FIFO loop that never sleeps stalls for 50 ms every second. None also where the files
+    cannot be read (not Linux).
+    """
+    try:
+        with open('/proc/sys/kernel/sched_rt_runtime_us', encoding='ascii') as stream:
+            runtime = int(stream.read())
+        with open('/proc/sys/kernel/sched_rt_period_us', encoding='ascii') as stream:
+            period = int(stream.read())
+    except (OSError, ValueError):
+        return None
+    return None if runtime < 0 else (runtime, period)
+
+
+def servo_setup(opts: ServoParams, period_ns: int) -> dict[str, str]:
+    """
+    Apply the ``servo.*`` options to the calling thread (the servo loop's) and report them.
+
+    :func:`realtime_setup` of ``cpu``, ``fifo_priority``, ``nice`` and
+    ``switch_interval_us``; and a warning (key ``rt_throttling``) when ``SCHED_FIFO`` was
+    applied to a loop that always spins (``spin_us`` at or above the period) on a kernel that
+    throttles real-time threads: it would stall for the throttled part of every second.
+    """
+    out = realtime_setup(cpus=[opts.cpu] if opts.cpu >= 0 else [],
+                         fifo_priority=opts.fifo_priority,
+                         switch_interval_s=opts.switch_interval_us * 1e-6, nice=opts.nice)
+    throttle = rt_throttling()
+    if out.get('sched_fifo', '').startswith('applied') and \
+            opts.spin_us * NS_PER_US >= period_ns and throttle is not None:
+        runtime, period = throttle
+        out['rt_throttling'] = (
+            f'warning: SCHED_FIFO with servo.spin_us = {opts.spin_us:g} (>= the period, '
+            f'{period_ns / NS_PER_US:g} us) never sleeps, and the kernel stops real-time '
+            f'threads after {runtime} us of every {period} us (sched_rt_runtime_us): expect a '
+            f'stall of {(period - runtime) / 1000:g} ms every {period / 1e6:g} s; set '
+            'servo.spin_us below the period (30 sleeps most of it)')
     return out

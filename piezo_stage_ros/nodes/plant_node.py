@@ -33,7 +33,7 @@ from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from piezo_stage_ros.core import wire
 from piezo_stage_ros.core.cdr import CdrError, decode_float64, encode_clock, JointStateEncoder
 from piezo_stage_ros.core.errors import PiezoStageError
-from piezo_stage_ros.hardware.pacing import Pacer, realtime_setup
+from piezo_stage_ros.hardware.pacing import Pacer, servo_setup
 from piezo_stage_ros.hardware.safety import GuardedPlant
 from piezo_stage_ros.nodes import qos
 from piezo_stage_ros.nodes.logic import (
@@ -212,9 +212,7 @@ class PlantNode(Node):
                 if isinstance(servo, ServoProcess):
                     servo.start(start_ns)  # sets its own scheduling up, in its process
                     return
-                servo.start_thread(start_ns, lambda: realtime_setup(
-                    cpus=[opts.cpu] if opts.cpu >= 0 else [], fifo_priority=opts.fifo_priority,
-                    switch_interval_s=opts.switch_interval_us * 1e-6))
+                servo.start_thread(start_ns, lambda: servo_setup(opts, servo.pacer.period_ns))
                 return
             finished = servo.finished
             batch = servo.drain()

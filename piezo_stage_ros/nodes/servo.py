@@ -55,7 +55,7 @@ from piezo_stage_ros.core.stage import linear_plant, PlantParams, StageParams
 from piezo_stage_ros.core.trajectories import make_trajectory
 from piezo_stage_ros.core.wire import NS_PER_S
 from piezo_stage_ros.hardware.bridge import Bridge, ModelBridge
-from piezo_stage_ros.hardware.pacing import Pacer, realtime_setup
+from piezo_stage_ros.hardware.pacing import Pacer, servo_setup
 from piezo_stage_ros.hardware.safety import GuardedPlant
 from piezo_stage_ros.hardware.udp import UdpBridge, UdpStreamBridge
 from piezo_stage_ros.nodes.logic import ControllerLogic, sample_count, TrajectoryLogic
@@ -555,10 +555,8 @@ def _servo_main(loop: LoopConfig, design_plant: PlantParams | None, duration_s: 
             return not (header[halt] or stop[0])
 
         servo.boundary = boundary
-        opts = loop.plant_node.servo
-        servo.run(start_ns, setup=lambda: realtime_setup(
-            cpus=[opts.cpu] if opts.cpu >= 0 else [], fifo_priority=opts.fifo_priority,
-            switch_interval_s=opts.switch_interval_us * 1e-6))
+        servo.run(start_ns, setup=lambda: servo_setup(loop.plant_node.servo,
+                                                      servo.pacer.period_ns))
         ring.set('index', servo.index)
         out = servo.stats()
         out['held_v'] = servo.held_v
