@@ -373,8 +373,9 @@ class HostPacedClock:
         self.now += round(seconds * 1e9)
 
 
+@pytest.mark.parametrize('spin', [False, True])
 @pytest.mark.parametrize('unanswered', [(), (3, 4)])
-def test_paced_target_holds_the_newest_command_and_counts_missing_ones(unanswered):
+def test_paced_target_holds_the_newest_command_and_counts_missing_ones(unanswered, spin):
     from piezo_stage_ros.hardware.pacing import Pacer
     clock = HostPacedClock()
     emu = TargetEmulator(PARAMS, idle_timeout_s=5.0)
@@ -382,7 +383,8 @@ def test_paced_target_holds_the_newest_command_and_counts_missing_ones(unanswere
                               args=(Pacer(100_000, clock=clock.clock, sleep=clock.sleep,
                                           spin_ns=0),))
     target.start()
-    bridge = udp.UdpStreamBridge('127.0.0.1', emu.port, timeout_s=5.0)
+    # spin: the host polls its socket without blocking (as the servo loop's host does)
+    bridge = udp.UdpStreamBridge('127.0.0.1', emu.port, timeout_s=5.0, spin=spin)
     positions = [bridge.safe_start(0.0)]
     indices = [bridge.sample_index]
     applied, held = [], 0.0
@@ -405,4 +407,6 @@ def test_paced_target_holds_the_newest_command_and_counts_missing_ones(unanswere
     model = Stage(PARAMS)
     expected = [model.reset()] + [model.step(v) for v in applied]
     np.testing.assert_array_equal(positions, expected)
-    assert len(bridge.answer_ns) == 10 - len(unanswered)
+    # each answered sample's answer latency is counted once
+    assert bridge.answer.samples == 10 - len(unanswered)
+    assert bridge.stats()['answer_max_us'] == round(bridge.answer.max_ns / 1000, 1)

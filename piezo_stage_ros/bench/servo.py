@@ -23,12 +23,14 @@ plant, 100 Hz sine):
   position, reference and command into CDR bytes, the work of publishing them), once with
   CPython's default switch interval (5 ms) and once with it lowered to 50 us;
 - ``servo-alone``: the servo thread with nothing beside it (the bound of this machine);
-- ``servo-process``: the servo loop in a process of its own (spawned, no rclpy), handing each
-  sample over through shared memory (:class:`~piezo_stage_ros.nodes.servo.SampleRing`) to this
-  process, which does the same publishing work: no interpreter lock shared with it;
-- ``bridge``: the servo loop as the host of the UDP bridge against the emulator in its own
-  process, the emulator pacing its own 10 kHz clock (``stage_emulator --paced``): the host
-  answers each sample; reports the host's answer latency and the target's missing commands.
+- ``servo-process``: the servo loop in a process of its own, as ``stage_servo --direct`` runs
+  it (:class:`~piezo_stage_ros.nodes.servo.ServoProcess`: spawned, no rclpy), handing each
+  sample over through shared memory to this process, which does the same publishing work: no
+  interpreter lock shared with it;
+- ``bridge``: the servo process as the host of the UDP bridge (``backend: udp_stream``)
+  against the emulator in its own process, the emulator pacing its own 10 kHz clock
+  (``stage_emulator --paced``): the host answers each sample; reports the host's answer
+  latency and the target's missing commands.
 
 Per case: lateness p50 / p99 / max [us], samples late by more than half a period, skipped
 samples, e_rms in the steady state beside that of the offline runner (lockstep) on the same
@@ -54,8 +56,7 @@ from piezo_stage_ros.core.stage import linear_plant, Stage
 from piezo_stage_ros.core.trajectories import make_trajectory
 from piezo_stage_ros.hardware.bridge import Bridge
 from piezo_stage_ros.hardware.pacing import servo_setup
-from piezo_stage_ros.hardware.udp import UdpStreamBridge
-from piezo_stage_ros.nodes.servo import SampleRing, servo_from_config, ServoLoop, ServoSample
+from piezo_stage_ros.nodes.servo import servo_from_config, ServoLoop, ServoProcess, ServoSample
 
 __all__ = ['CASES', 'loop_config', 'run_servo_benchmark', 'steady_e_rms']
 
@@ -151,51 +152,32 @@ def _array_figures(stats: dict[str, Any], idx: np.ndarray, position_m: np.ndarra
     return out
 
 
-def _servo_process(ring_name: str, duration_s: float, opts: ServoParams,
-                   results: Any) -> None:
-    # the servo loop in a process of its own (no rclpy, nothing else in its interpreter): the
-    # samples go to the parent through shared memory, the figures at the end through a queue
-    ring = SampleRing(name=ring_name)
-    try:
-        servo = make_servo(loop_config(), duration_s, capacity=0, on_sample=ring.append)
-        servo.pacer.spin_ns = round(opts.spin_us * 1000)
-        servo.run(setup=lambda: servo_setup(opts, servo.pacer.period_ns))
-        stats = servo.stats()
-        stats.update(servo.setup_report)
-        results.put(stats)
-    finally:
-        ring.close()
-
-
-def serve_in_process(duration_s: float, opts: ServoParams
-                     ) -> tuple[dict[str, Any], np.ndarray, np.ndarray, int]:
+def serve_process(loop: LoopConfig, duration_s: float
+                  ) -> tuple[dict[str, Any], np.ndarray, np.ndarray, int]:
     """
-    Run the servo loop in a spawned process, playing the ROS side here on what it hands over.
+    Run the servo loop of ``loop`` in a process, as ``stage_servo --direct`` does.
 
-    Returns the loop's stats, the integer and float columns of every sample read from the
-    ring (:class:`~piezo_stage_ros.nodes.servo.SampleRing`), and the samples the reader missed.
+    A :class:`~piezo_stage_ros.nodes.servo.ServoProcess`; this process plays the ROS side on
+    what it hands over.
+
+    Returns the loop's figures (with its real-time setup), the integer and float columns of
+    every sample read from the ring, and the samples the reader missed.
     """
-    import multiprocessing
-
-    ctx = multiprocessing.get_context('spawn')
-    ring = SampleRing()
-    results = ctx.Queue()
-    proc = ctx.Process(target=_servo_process, args=(ring.name, duration_s, opts, results),
-                       daemon=True)
     position = JointStateEncoder(['stage'])
     reference = JointStateEncoder(['stage'], with_velocity=True)
     ints: list[np.ndarray] = []
     floats: list[np.ndarray] = []
     missed = 0
+    process = ServoProcess(loop, duration_s)
     try:
-        proc.start()
+        process.start()
         while True:
-            alive = proc.is_alive()
+            alive = not process.finished
             time.sleep(0.005)
-            i, f, m = ring.take()
+            i, f, m = process.take()
             missed += m
             for row, values in zip(i.tolist(), f.tolist()):
-                # the work of publishing each sample: its three messages as CDR bytes
+                # the work of publishing each sample: its messages as CDR bytes
                 sec, nanosec = divmod(row[1], 1_000_000_000)
                 position.encode(sec, nanosec, (values[0],))
                 reference.encode(sec, nanosec, (values[1],), (values[2],))
@@ -204,26 +186,35 @@ def serve_in_process(duration_s: float, opts: ServoParams
             floats.append(f)
             if not alive:
                 break
-        stats = results.get(timeout=30)
-        proc.join(10)
+        stats = dict(process.stop(timeout_s=30.0))
+        stats.update(process.setup_report)
     finally:
-        if proc.is_alive():
-            proc.kill()
-        ring.close(unlink=True)
+        process.close()
     return stats, np.concatenate(ints), np.concatenate(floats), missed
 
 
-def run_bridge(loop: LoopConfig, duration_s: float, offline_rms: float, opts: ServoParams
-               ) -> dict[str, Any]:
+def _process_figures(loop: LoopConfig, duration_s: float, offline_rms: float
+                     ) -> dict[str, Any]:
+    stats, ints, floats, missed = serve_process(loop, duration_s)
+    out = _array_figures(stats, ints[:, 0].astype(np.float64), floats[:, 0], floats[:, 1],
+                         loop, offline_rms)
+    out['ring_missed'] = missed
+    return out
+
+
+def run_bridge(loop: LoopConfig, duration_s: float, offline_rms: float) -> dict[str, Any]:
     """
-    Run the servo loop as the host of the UDP bridge against a target-paced emulator process.
+    Run the servo process as the host of the UDP bridge against a target-paced emulator.
 
     The emulator (``stage_emulator --paced``) owns the 10 kHz clock in its own process, as a
-    real-time target would; the host answers each sample. Returns the host's figures (lateness:
-    arrival of each sample against the grid of the first), its answer latency (sample arrived to
-    command sent), and the target's: missing commands and its own clock's lateness. The
-    target's clock gets the same options ``opts`` as the host's servo loop.
+    real-time target would; the host is the servo loop of ``stage_servo --direct`` with
+    ``backend: udp_stream`` in its own process (:func:`serve_process`), answering each sample.
+    Returns the host's figures (lateness: arrival of each sample against the grid of the
+    first), its answer latency (sample arrived to command sent), and the target's: missing
+    commands and its own clock's lateness. The target's clock gets the same ``servo.*``
+    options as the host's loop.
     """
+    opts = loop.plant_node.servo
     args = [sys.executable, '-m', 'piezo_stage_ros.hardware.emulator', '--config', CONFIG,
             '--paced', '--port', '0', '--idle-timeout-s', '5',
             '--fifo-priority', str(opts.fifo_priority), '--spin-us', f'{opts.spin_us:g}',
@@ -242,21 +233,21 @@ def run_bridge(loop: LoopConfig, duration_s: float, offline_rms: float, opts: Se
                 port = int(line.rsplit(':', 1)[1])
                 break
         # a generous wait: on a loaded machine the target process may stall; that is counted
-        bridge = UdpStreamBridge('127.0.0.1', port, timeout_s=1.0)
-        servo = make_servo(loop, duration_s, bridge)
-        stats, got = serve(servo, ros_side=True, opts=opts)
+        node = dataclasses.replace(
+            loop.plant_node, mode='realtime', backend='udp_stream',
+            bridge=dataclasses.replace(loop.plant_node.bridge, port=port, timeout_s=1.0))
+        stats, ints, floats, missed = serve_process(
+            dataclasses.replace(loop, plant_node=node), duration_s)
         lines += target.communicate(timeout=30)[0].splitlines(keepends=True)
     finally:
         if target.poll() is None:
             target.kill()
             target.wait()
-    out = _figures(stats, got, loop, offline_rms)
-    answer = np.array(bridge.answer_ns, dtype=np.float64) / 1e3
-    out['answer_p50_us'] = round(float(np.percentile(answer, 50)), 1) if answer.size else None
-    out['answer_p99_us'] = round(float(np.percentile(answer, 99)), 1) if answer.size else None
-    out['answer_max_us'] = round(float(answer.max()), 1) if answer.size else None
-    out['host_lost'] = stats.get('bridge_lost')
-    out['target_missing'] = stats.get('bridge_target_missing')
+    out = _array_figures(stats, ints[:, 0].astype(np.float64), floats[:, 0], floats[:, 1],
+                         loop, offline_rms)
+    out['ring_missed'] = missed
+    for key in ('answer_p50_us', 'answer_p99_us', 'answer_max_us', 'lost', 'target_missing'):
+        out[f'host_{key}' if key == 'lost' else key] = stats.get(f'bridge_{key}')
     out['target'] = ' '.join(line.strip() for line in lines
                              if 'clock' in line or 'stopped' in line or 'sched' in line
                              or 'nice' in line or 'throttling' in line)
@@ -296,6 +287,8 @@ def run_servo_benchmark(cases: tuple[str, ...] = CASES, duration_s: float = 10.0
                                nice=loop.plant_node.servo.nice if nice is None else nice)
     if fifo_priority:
         opts = dataclasses.replace(opts, spin_us=30.0)
+    loop = dataclasses.replace(loop, plant_node=dataclasses.replace(loop.plant_node,
+                                                                    servo=opts))
     for case in cases:
         if case == 'servo-alone':
             out[case] = _figures(*serve(make_servo(loop, duration_s), ros_side=False,
@@ -307,13 +300,11 @@ def run_servo_benchmark(cases: tuple[str, ...] = CASES, duration_s: float = 10.0
                            opts=dataclasses.replace(opts, switch_interval_us=interval)),
                     loop, offline_rms)
         elif case == 'servo-process':
-            stats, ints, floats, missed = serve_in_process(duration_s, opts)
-            out['servo process + ROS side in another'] = _array_figures(
-                {**stats, 'ring_missed': missed}, ints[:, 0].astype(np.float64), floats[:, 0],
-                floats[:, 1], loop, offline_rms)
-            out['servo process + ROS side in another']['ring_missed'] = missed
+            out['servo process + ROS side in another'] = _process_figures(loop, duration_s,
+                                                                          offline_rms)
         elif case == 'bridge':
-            out['bridge (paced emulator)'] = run_bridge(loop, duration_s, offline_rms, opts)
+            out['bridge (paced emulator, host servo process)'] = run_bridge(
+                loop, duration_s, offline_rms)
         else:
             raise ValueError(f'unknown case {case!r}; choose among {", ".join(CASES)}')
     return out

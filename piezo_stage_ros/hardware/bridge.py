@@ -75,7 +75,7 @@ class Bridge(Protocol):
         """Drive ``safe_voltage_v`` [V] and release the device; safe to call more than once."""
         ...
 
-    def stats(self) -> Mapping[str, int]:
+    def stats(self) -> Mapping[str, float]:
         """Return counters worth reporting (losses, timeouts, faults)."""
         ...
 

@@ -77,6 +77,7 @@ from typing import Callable, Final, Mapping
 
 from piezo_stage_ros.core.errors import ParameterError
 from piezo_stage_ros.hardware.bridge import BridgeError
+from piezo_stage_ros.hardware.pacing import LatenessStats
 
 __all__ = ['HELLO', 'COMMAND', 'STOP', 'STREAM', 'REPLY', 'REQUEST', 'VERSION', 'MAGIC',
            'UdpBridge', 'UdpStreamBridge', 'pack_reply', 'pack_request', 'unpack_reply',
@@ -171,6 +172,9 @@ class UdpBridge:
         self.target_missing = 0
         self.target_clamped = 0
         self.exchanges = 0
+        #: Poll the socket without blocking while waiting for a reply (a thread that spins
+        #: anyway, the servo loop's) instead of sleeping in ``recv``.
+        self.spin = False
 
     def open(self) -> None:
         """Create the socket, connected to the target so that only its datagrams arrive."""
@@ -206,13 +210,18 @@ class UdpBridge:
         sock = self._sock
         if sock is None:
             raise BridgeError('UDP bridge: not open')
+        spin = self.spin
         while True:
             remaining = deadline_s - time.monotonic()
             if remaining <= 0.0:
                 return None
-            sock.settimeout(remaining)
+            # spinning: poll without blocking until the deadline (no wake-up of a sleeping
+            # thread between the datagram and its reader); else block with a timeout
+            sock.settimeout(0.0 if spin else remaining)
             try:
                 data = sock.recv(64)
+            except BlockingIOError:
+                continue  # spinning, nothing yet
             except TimeoutError:
                 return None
             except ConnectionRefusedError:
@@ -290,7 +299,7 @@ class UdpBridge:
             self._sock.close()
             self._sock = None
 
-    def stats(self) -> Mapping[str, int]:
+    def stats(self) -> Mapping[str, float]:
         """Return the loss and error counters."""
         return {'exchanges': self.exchanges, 'lost': self.lost, 'stale': self.stale,
                 'malformed': self.malformed, 'target_missing': self.target_missing,
@@ -313,20 +322,34 @@ class UdpStreamBridge(UdpBridge):
         As :class:`UdpBridge`; ``timeout_s`` is the longest wait for the next sample.
     clock : callable, optional
         Monotonic clock [ns] of the arrival times; default :func:`time.monotonic_ns`.
+    spin : bool
+        Poll for the next sample without blocking (:attr:`UdpBridge.spin`): the servo loop's
+        choice when it spins on its clock anyway (``servo.spin_us`` at or above the period).
+    period_ns : int
+        The target's sample period [ns]: an answer later than half of it counts in
+        ``answer_late_half_period``.
+
+    Attributes
+    ----------
+    answer : LatenessStats
+        Time from each sample's arrival to its answer sent [ns] (a histogram; ``stats()``
+        gives its p50 / p99 / max).
 
     """
 
     def __init__(self, host: str, port: int, *, timeout_s: float = 0.002,
                  max_consecutive_losses: int = 10, hello_attempts: int = 5,
-                 clock: Callable[[], int] = time.monotonic_ns) -> None:
+                 clock: Callable[[], int] = time.monotonic_ns, spin: bool = False,
+                 period_ns: int = 100_000) -> None:
         super().__init__(host, port, timeout_s=timeout_s,
                          max_consecutive_losses=max_consecutive_losses,
                          hello_attempts=hello_attempts)
         self.clock = clock
+        self.spin = spin
         self.sample_index = -1
         self.arrival_ns = 0
         self._answered = True
-        self.answer_ns: list[int] = []
+        self.answer = LatenessStats(period_ns)
         self.gaps = 0
 
     def _newer(self, seq: int) -> bool:
@@ -369,16 +392,20 @@ class UdpStreamBridge(UdpBridge):
             return  # the sample has its answer already (or the stream is over)
         self._send(COMMAND, self.sample_index, voltage_v)
         self._answered = True
-        if len(self.answer_ns) < 10_000_000:
-            self.answer_ns.append(self.clock() - self.arrival_ns)
+        self.answer.add(self.clock() - self.arrival_ns)
 
     def read_position(self) -> float:
         """Wait for the target's next sample and return its position [m] (held if lost)."""
         came = self._next_sample(time.monotonic() + self.timeout_s)
         return self._measured(self._position_m if came else None)
 
-    def stats(self) -> Mapping[str, int]:
-        """Return the counters, with the samples missing on the way (sequence gaps)."""
-        out = dict(super().stats())
+    def stats(self) -> Mapping[str, float]:
+        """Return the counters, the sequence gaps and the answer latency [us]."""
+        out: dict[str, float] = dict(super().stats())
         out['gaps'] = self.gaps
+        answer = self.answer
+        out.update({'answer_p50_us': answer.percentile_us(50.0),
+                    'answer_p99_us': answer.percentile_us(99.0),
+                    'answer_max_us': round(answer.max_ns / 1000, 1),
+                    'answer_late_half_period': answer.late_half})
         return out

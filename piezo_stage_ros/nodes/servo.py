@@ -429,11 +429,22 @@ class ServoLoop:
 
 
 def make_bridge(stage: StageParams, opts: PlantNodeParams) -> Bridge:
-    """Return the backend the plant node parameters name."""
-    if opts.backend in ('udp', 'udp_stream'):
-        kind = UdpStreamBridge if opts.backend == 'udp_stream' else UdpBridge
-        return kind(opts.bridge.host, opts.bridge.port, timeout_s=opts.bridge.timeout_s,
-                    max_consecutive_losses=opts.bridge.max_consecutive_losses)
+    """
+    Return the backend the plant node parameters name.
+
+    The host of a target-paced stream (``udp_stream``) polls its socket without blocking when
+    the servo loop spins anyway (``servo.spin_us`` at or above the period): a thread asleep in
+    ``recv`` wakes tens of microseconds after its datagram on a virtual machine.
+    """
+    bridge = opts.bridge
+    if opts.backend == 'udp_stream':
+        period_ns = round(NS_PER_S / stage.sample_rate_hz)
+        return UdpStreamBridge(bridge.host, bridge.port, timeout_s=bridge.timeout_s,
+                               max_consecutive_losses=bridge.max_consecutive_losses,
+                               spin=opts.servo.spin_us * 1000 >= period_ns, period_ns=period_ns)
+    if opts.backend == 'udp':
+        return UdpBridge(bridge.host, bridge.port, timeout_s=bridge.timeout_s,
+                         max_consecutive_losses=bridge.max_consecutive_losses)
     return ModelBridge(stage)
 
 
