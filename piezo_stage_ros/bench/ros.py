@@ -35,7 +35,15 @@ Run ``python3 -m piezo_stage_ros.bench.ros`` in a sourced Jazzy environment. Cas
 - ``three-lockstep``: the plant here, controller and trajectory each in a process of its own
   (as ``ros2 run`` of the three nodes), lockstep, both ways;
 - ``pingpong``: the yardstick of the machine's state: two nodes in this process bounce a
-  ``Float64`` (serialized) on one EventsExecutor; the median round trip in microseconds.
+  ``Float64`` (serialized) on one EventsExecutor; the median round trip in microseconds;
+- ``recorded-realtime``: issue 12's target run, as a user runs it: ``ros2 launch piezo_stage_ros
+  closed_loop.launch.py mode:=realtime direct:=true record:=true scenario:=table3_rac.yaml
+  duration_s:=<--realtime-s>`` (``stage_servo --direct``, the servo loop as a process of its
+  own, ``ros2 bag record`` of every stage topic), then the bag analysed as ``analyze`` does:
+  the servo's counters (end-of-run log), the samples in the bag, e_rms over the whole run beside
+  the offline runner's (lockstep) on the same configuration and length; once on the idle
+  machine and once with ``--load`` CPU-bound processes beside it
+  (``recorded-realtime-loaded``).
 
 The runs use a ROS domain of their own (``--domain-id``) and localhost discovery, so that they
 neither see nor disturb other ROS graphs on the machine. Timings are those of a shared machine:
@@ -54,7 +62,10 @@ from typing import Any, Sequence
 __all__ = ['CASES', 'main', 'run_ros_benchmark']
 
 CASES = ('pingpong', 'composed-lockstep', 'composed-realtime', 'direct-lockstep',
-         'direct-realtime', 'cross-lockstep', 'three-lockstep')
+         'direct-realtime', 'cross-lockstep', 'three-lockstep', 'recorded-realtime',
+         'recorded-realtime-loaded')
+#: The scenario of the recorded run (RAC, reduced plant, 100 Hz sine).
+RECORDED_SCENARIO = 'table3_rac.yaml'
 STAGE = {'plant.model': 'reduced'}
 # in-process nodes get no parameter files: the controller is told the plant's model itself
 CONTROLLER = {'type': 'rac', 'stability.design_model': 'own',
@@ -207,9 +218,73 @@ def _pingpong(round_trips: int = 20000) -> dict[str, Any]:
         rclpy.try_shutdown(context=context)
 
 
+def _burn() -> None:
+    while True:
+        pass
+
+
+def _recorded(duration_s: float, load: int = 0) -> dict[str, Any]:
+    import multiprocessing
+    import re
+    import tempfile
+
+    from piezo_stage_ros import cli
+    from piezo_stage_ros.analysis.replay import analyze_bag
+    from piezo_stage_ros.core.closed_loop import run
+    from piezo_stage_ros.core.controllers import build_controller
+    from piezo_stage_ros.core.loop_config import LoopConfig
+    from piezo_stage_ros.core.metrics import error_metrics
+    from piezo_stage_ros.core.stage import linear_plant, Stage
+    from piezo_stage_ros.core.trajectories import make_trajectory
+
+    burners = [multiprocessing.get_context('spawn').Process(target=_burn, daemon=True)
+               for _ in range(load)]
+    with tempfile.TemporaryDirectory(prefix='pz_recorded_') as tmp:
+        bag = os.path.join(tmp, 'bag')
+        cmd = ['ros2', 'launch', 'piezo_stage_ros', 'closed_loop.launch.py', 'mode:=realtime',
+               'direct:=true', 'record:=true', f'scenario:={RECORDED_SCENARIO}',
+               f'duration_s:={duration_s:g}', f'bag:={bag}']
+        for burner in burners:
+            burner.start()
+        try:
+            done = subprocess.run(cmd, capture_output=True, text=True,
+                                  timeout=duration_s * 3 + 120)
+        finally:
+            for burner in burners:
+                burner.kill()
+        log = done.stdout + done.stderr
+        found = re.search(r'run complete: (.*)', log)
+        if found is None:
+            raise RuntimeError('recorded run: no end-of-run line from the plant; the launch '
+                               'printed:\n' + log[-3000:])
+        out: dict[str, Any] = {}
+        for item in found.group(1).split(', '):
+            key, _, value = item.partition('=')
+            try:
+                out[key] = float(value) if '.' in value else int(value)
+            except ValueError:
+                out[key] = value
+        out['setup'] = '; '.join(re.findall(r'servo (\w+: [^\n]*)', log))
+        result = analyze_bag(bag, steady_state_start_s=0.0)
+        out['bag_samples'] = result.samples
+        out['e_rms_nm'] = round(result.metrics['e_rms_m'] * 1e9, 2)
+        out['e_max_nm'] = round(result.metrics['e_max_m'] * 1e9, 1)
+        out['analysis_notes'] = ' | '.join(result.notes)
+    loop = LoopConfig.from_config(cli.read_config([RECORDED_SCENARIO]))
+    period = 1.0 / loop.stage.sample_rate_hz
+    rec = run(Stage(loop.stage),
+              build_controller(loop.controller, period, linear_plant(loop.design_plant)),
+              make_trajectory(loop.trajectory), duration_s=duration_s,
+              record_diagnostics=False)
+    out['offline_e_rms_nm'] = round(error_metrics(rec.position_m - rec.reference_m)[1] * 1e9,
+                                    2)
+    out['load'] = load
+    return out
+
+
 def run_ros_benchmark(cases: Sequence[str] = CASES, *, lockstep_s: float = 5.0,
-                      realtime_s: float = 60.0, domain_id: int | None = None
-                      ) -> dict[str, Any]:
+                      realtime_s: float = 60.0, domain_id: int | None = None,
+                      load: int = 2) -> dict[str, Any]:
     """
     Run the ROS benchmark cases and return their figures.
 
@@ -223,6 +298,8 @@ def run_ros_benchmark(cases: Sequence[str] = CASES, *, lockstep_s: float = 5.0,
         Wall time of the real-time run [s].
     domain_id : int, optional
         ROS domain of the runs; default 100 + pid % 100.
+    load : int
+        CPU-bound processes beside ``recorded-realtime-loaded``.
 
     Returns
     -------
@@ -255,6 +332,11 @@ def run_ros_benchmark(cases: Sequence[str] = CASES, *, lockstep_s: float = 5.0,
             out[case] = _cross(lockstep_s, 'events', three=True)
             out['three-lockstep (reference 50 samples ahead)'] = _cross(
                 lockstep_s, 'events', three=True, ahead=50)
+        elif case == 'recorded-realtime':
+            out[case] = _recorded(realtime_s)
+        elif case == 'recorded-realtime-loaded':
+            out[f'recorded-realtime, {load} CPU-bound processes beside'] = _recorded(
+                realtime_s, load)
         else:
             raise ValueError(f'unknown case {case!r}; choose among {", ".join(CASES)}')
     return out
@@ -265,12 +347,19 @@ def format_table(result: dict[str, Any]) -> str:
     lines = ['| case | samples | wall [s] | samples/s | x real time | late [%] | skipped | '
              'lateness p50 / p99 / max [us] | late > T/2 |',
              '| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |']
-    notes = []
+    notes: list[str] = []
     for case, s in result.items():
         if case == 'pingpong':
             notes.append(f'ping-pong in one process (EventsExecutor): median {s["median_us"]} us, '
                          f'p99 {s["p99_us"]} us per round trip ({s["round_trips"]} round trips)')
             continue
+        if 'bag_samples' in s:
+            notes.append(f'{case}: {s["paced_samples"]} samples taken, {s["bag_samples"]} in '
+                         f'the bag, ring_missed {s.get("ring_missed")}, queue_overruns '
+                         f'{s.get("queue_overruns")}, watchdog_trips {s.get("watchdog_trips")}; '
+                         f'e_rms {s["e_rms_nm"]} nm over the whole run (offline, lockstep: '
+                         f'{s["offline_e_rms_nm"]} nm), e_max {s["e_max_nm"]} nm; '
+                         f'setup: {s["setup"]}')
         samples = s.get('index', -1) + 1
         late = 100.0 * s.get('late', 0) / samples if samples else 0.0
         clock = (f'{s["lateness_p50_us"]} / {s["lateness_p99_us"]} / {s["lateness_max_us"]}'
@@ -305,6 +394,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--realtime-s', type=float, default=60.0,
                         help='wall time of the real-time run [s] (default 60)')
     parser.add_argument('--domain-id', type=int, default=None, help='ROS domain of the runs')
+    parser.add_argument('--load', type=int, default=2,
+                        help='CPU-bound processes beside recorded-realtime-loaded (default 2)')
     parser.add_argument('--json', action='store_true', help='print JSON instead of a table')
     args = parser.parse_args(argv)
     try:
@@ -316,7 +407,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     cases = [c.strip() for c in args.cases.split(',') if c.strip()]
     try:
         result = run_ros_benchmark(cases, lockstep_s=args.lockstep_s,
-                                   realtime_s=args.realtime_s, domain_id=args.domain_id)
+                                   realtime_s=args.realtime_s, domain_id=args.domain_id,
+                                   load=args.load)
     except Exception as exc:  # noqa: BLE001 -- a benchmark reports any failure in one line
         print(f'bench.ros: {type(exc).__name__}: {exc}', file=sys.stderr)
         return 1

@@ -32,6 +32,11 @@ plant, 100 Hz sine):
   (``stage_emulator --paced``): the host answers each sample; reports the host's answer
   latency and the target's missing commands.
 
+- ``stall``: no wall time: the servo loop on a scripted clock that stalls once, skipping 1, 2,
+  5, 10 or 20 samples, where the sine is steepest (t = 0.5 s); the largest error over the 300
+  samples after the stall, and after those (the controller's recovery), beside the same run
+  without a stall: what a stall costs when the amplifier holds the last command.
+
 Per case: lateness p50 / p99 / max [us], samples late by more than half a period, skipped
 samples, e_rms in the steady state beside that of the offline runner (lockstep) on the same
 configuration. Timings are those of a shared machine: compare them with each other.
@@ -55,12 +60,12 @@ from piezo_stage_ros.core.metrics import error_metrics, steady_state_start
 from piezo_stage_ros.core.stage import linear_plant, Stage
 from piezo_stage_ros.core.trajectories import make_trajectory
 from piezo_stage_ros.hardware.bridge import Bridge
-from piezo_stage_ros.hardware.pacing import servo_setup
+from piezo_stage_ros.hardware.pacing import Pacer, servo_setup
 from piezo_stage_ros.nodes.servo import servo_from_config, ServoLoop, ServoProcess, ServoSample
 
 __all__ = ['CASES', 'loop_config', 'run_servo_benchmark', 'steady_e_rms']
 
-CASES = ('servo-alone', 'servo', 'servo-process', 'bridge')
+CASES = ('servo-alone', 'servo', 'servo-process', 'bridge', 'stall')
 CONFIG = 'table3_rac.yaml'
 
 
@@ -254,6 +259,53 @@ def run_bridge(loop: LoopConfig, duration_s: float, offline_rms: float) -> dict[
     return out
 
 
+class _ScriptedClock:
+    """A monotonic clock [ns] that advances a little per read and by what sleeps ask."""
+
+    def __init__(self, per_read_ns: int = 300) -> None:
+        self.now = 10**9
+        self.per_read_ns = per_read_ns
+
+    def __call__(self) -> int:
+        self.now += self.per_read_ns
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.now += round(seconds * 1e9)
+
+
+def stall_response(loop: LoopConfig, skips: tuple[int, ...] = (1, 2, 5, 10, 20),
+                   at_s: float = 0.5, duration_s: float = 0.8) -> dict[str, Any]:
+    """
+    Return the error after one stall of the servo loop, on a scripted clock (no wall time).
+
+    At ``at_s`` the clock jumps so that the loop skips ``n`` samples (for each ``n`` of
+    ``skips``; 0: no stall), the amplifier holding the last command meanwhile. Per ``n``:
+    ``skipped`` (as counted by the loop), ``e_max_nm`` over the 300 samples after the stall
+    and ``after_nm`` from then to the end (the controller's recovery).
+    """
+    period_ns = round(1e9 / loop.stage.sample_rate_hz)
+    at = round(at_s * loop.stage.sample_rate_hz)
+    out: dict[str, Any] = {}
+    for skip in (0, *skips):
+        clock = _ScriptedClock()
+        servo = make_servo(loop, duration_s)
+        servo.pacer = Pacer(period_ns, clock=clock, sleep=clock.sleep)
+        servo.start()
+        while servo.step():
+            if servo.index == at and skip:
+                # sample at + 1 is then taken (skip + 0.2) periods late: skip samples pass
+                clock.now += (skip + 1) * period_ns + period_ns // 5
+        got = servo.drain()
+        k = np.array([x.k for x in got])
+        err = np.abs(np.array([x.position_m - x.reference_m for x in got]))
+        near, later = (k > at) & (k <= at + 300), k > at + 300
+        out[str(skip)] = {'skipped': servo.pacer.stats.skipped,
+                          'e_max_nm': round(float(err[near].max()) * 1e9, 1),
+                          'after_nm': round(float(err[later].max()) * 1e9, 1)}
+    return out
+
+
 def run_servo_benchmark(cases: tuple[str, ...] = CASES, duration_s: float = 10.0,
                         fifo_priority: int = 0, nice: int | None = None) -> dict[str, Any]:
     """
@@ -305,6 +357,8 @@ def run_servo_benchmark(cases: tuple[str, ...] = CASES, duration_s: float = 10.0
         elif case == 'bridge':
             out['bridge (paced emulator, host servo process)'] = run_bridge(
                 loop, duration_s, offline_rms)
+        elif case == 'stall':
+            out['stall (scripted clock)'] = {'stalls': stall_response(loop)}
         else:
             raise ValueError(f'unknown case {case!r}; choose among {", ".join(CASES)}')
     return out
@@ -322,6 +376,11 @@ def format_table(result: dict[str, Any]) -> str:
              '| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |']
     notes = []
     for case, s in result.items():
+        if 'stalls' in s:
+            notes += [f'{case}: {v["skipped"]} samples skipped: e_max {v["e_max_nm"]} nm over '
+                      f'the 300 samples after, {v["after_nm"]} nm after those'
+                      for v in s['stalls'].values()]
+            continue
         lines.append(f'| {case} | {s["paced_samples"]} | {s["lateness_p50_us"]} | '
                      f'{s["lateness_p99_us"]} | {s["lateness_max_us"]} | '
                      f'{s["late_half_period"]} | {s["skipped"]} | {s["e_rms_nm"]} '
