@@ -299,7 +299,10 @@ def test_direct_realtime_takes_a_parameter_change_in_the_servo(context, process)
     stage_servo.connect_direct(plant, nodes[3], nodes[2])
     assert nodes[2].set_parameters([Parameter('active', value=False)])[0].successful
     probe = nodes[1]
-    spin(context, nodes, plant.finished)
+    # the servo (nice -20) may finish before the executor has delivered what it published:
+    # spin on until the probe has a reference for every sample taken (at most 10 s more)
+    spin(context, nodes, plant.finished, until=lambda: len(probe.references) >=
+         plant.finished.result()['paced_samples'])
     stats = plant.finished.result()
     assert 'error' not in stats and stats['paced_samples'] + stats['skipped'] == 500
     refs = probe.references

@@ -115,8 +115,8 @@ class ControllerNode(Node):
         self._references = JointStateDecoder([wire.JOINT_NAME], with_velocity=True)
         self._matched = False
         self.malformed = 0
-        self._cmd_pub = self.create_publisher(Float64, wire.COMMAND, qos.LOOP)
-        self._diag_pub = self.create_publisher(JointState, wire.DIAGNOSTICS, qos.LOOP)
+        self._cmd_pub = self.create_publisher(Float64, wire.COMMAND, qos.LOOP_OUT)
+        self._diag_pub = self.create_publisher(JointState, wire.DIAGNOSTICS, qos.LOOP_OUT)
         self._subs = [
             self.create_subscription(JointState, wire.POSITION, self._on_position, qos.LOOP,
                                      raw=True),

@@ -88,7 +88,7 @@ class PlantNode(Node):
         # cost more than the whole sample
         self._encoder = JointStateEncoder([wire.JOINT_NAME])
         self.malformed = 0
-        self._pub = self.create_publisher(JointState, wire.POSITION, qos.LOOP)
+        self._pub = self.create_publisher(JointState, wire.POSITION, qos.LOOP_OUT)
         self._clock_pub = self.create_publisher(ClockMsg, wire.CLOCK, qos.CLOCK) \
             if self.logic.lockstep else None
         # /clock goes out only while someone listens (looked at every 1000 samples)
@@ -105,7 +105,7 @@ class PlantNode(Node):
         # real time: what the plant held over each sample, stamped with it, for the bag
         # (stage/applied, JointState effort; wire.APPLIED): published from the executor
         self._applied_pub = None if self.logic.lockstep else self.create_publisher(
-            JointState, wire.APPLIED, qos.LOOP)
+            JointState, wire.APPLIED, qos.LOOP_OUT)
         self._applied_encoder = JointStateEncoder([wire.JOINT_NAME], effort=True)
         self._applied_gate: Callable[[], bool] = Gate(
             self._applied_pub.get_subscription_count, every=50) \

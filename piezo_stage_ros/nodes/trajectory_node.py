@@ -69,7 +69,7 @@ class TrajectoryNode(Node):
         self._encoder = JointStateEncoder([wire.JOINT_NAME], with_velocity=True)
         self._decoder = JointStateDecoder([wire.JOINT_NAME])
         self.malformed = 0
-        self._pub = self.create_publisher(JointState, wire.REFERENCE, qos.LOOP)
+        self._pub = self.create_publisher(JointState, wire.REFERENCE, qos.LOOP_OUT)
         self._sub = self.create_subscription(JointState, wire.POSITION, self._on_position,
                                              qos.LOOP, raw=True)
         self._gate: Callable[[], bool] = lambda: True
