@@ -328,7 +328,9 @@ def test_real_time_bag_with_most_commands_missing_is_analysed_with_a_warning(tmp
     assert math.isclose(summary['e_rms_all_m'], 1e-8, rel_tol=1e-9)
 
 
-def test_analysis_reports_the_plants_last_status(tmp_path):
+@pytest.mark.parametrize('taken', [400, 410])
+def test_analysis_reports_the_plants_last_status(tmp_path, taken):
+    # the bag holds 400 samples; a plant that took 410 lost 10 on the way, and the analysis says
     from piezo_stage_ros.analysis.replay import analyze_bag
     bag = tmp_path / 'status'
     _write_graph_bag(bag, cmd_every=20, applied_missing=())
@@ -346,15 +348,22 @@ def test_analysis_reports_the_plants_last_status(tmp_path):
         for log, late in ((1, '3'), (2, '7')):
             msg = status(level=1, name='plant', message='', hardware_id='model',
                          values=[keyvalue(key='late', value=late),
+                                 keyvalue(key='paced_samples', value=str(taken)),
                                  keyvalue(key='lateness_p99_us', value='12.0'),
                                  keyvalue(key='other', value='x')])
             writer.write(sconn, 1_800_000_000 * 10**9 + log,
                          STORE.serialize_cdr(msg, wire.STATUS_TYPE))
     assert bagread.read_status(bag) is None
-    assert bagread.read_status(with_status) == {'late': '7', 'lateness_p99_us': '12.0',
-                                                'other': 'x'}
+    assert bagread.read_status(with_status) == {'late': '7', 'paced_samples': str(taken),
+                                                'lateness_p99_us': '12.0', 'other': 'x'}
     notes = analyze_bag(with_status).notes
-    assert 'the plant at the end of the run (stage/status): late 7, lateness_p99_us 12.0' in notes
+    assert (f'the plant at the end of the run (stage/status): paced_samples {taken}, late 7, '
+            'lateness_p99_us 12.0') in notes
+    lost = [n for n in notes if 'were lost between the plant and the recorder' in n]
+    assert lost == ([] if taken == 400 else
+                    ['warning: the plant took 410 samples, the bag holds 400 of them: 10 were '
+                     'lost between the plant and the recorder, or recorded before the first or '
+                     'after the last message of this bag'])
 
 
 @pytest.mark.parametrize('missing', [(), (5, 6, 399)])

@@ -254,6 +254,13 @@ def analyze_bag(path: str | Path, *, namespace: str | None = None,
         # the plant's own account of a real-time run: late commands, skipped samples, lateness
         shown = [f'{k} {status[k]}' for k in STATUS_KEYS if k in status]
         notes.append('the plant at the end of the run (stage/status): ' + ', '.join(shown))
+        taken = status.get('paced_samples', '')
+        held = len(record.time_s)
+        if taken.isdigit() and held < int(taken):
+            notes.append(f'warning: the plant took {int(taken)} samples, the bag holds {held} '
+                         f'of them: {int(taken) - held} were lost between the plant and the '
+                         'recorder, or recorded before the first or after the last message '
+                         'of this bag')
     estimate = None
     if bode or (bode is None and is_excitation_run(record.meta)):
         try:
@@ -268,7 +275,7 @@ def analyze_bag(path: str | Path, *, namespace: str | None = None,
 #: The plant counters of stage/status an analysis reports (those present), in this order.
 STATUS_KEYS = ('index', 'paced_samples', 'late', 'skipped', 'late_half_period',
                'lateness_p50_us', 'lateness_p99_us', 'lateness_max_us', 'watchdog_trips',
-               'safe_samples', 'queue_overruns', 'resends')
+               'safe_samples', 'queue_overruns', 'ring_missed', 'resends')
 
 
 #: The metrics a reader looks at first, in this order; the others (diagnostics) follow.
