@@ -16,7 +16,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import threading
 
 import numpy as np
@@ -25,7 +24,6 @@ from piezo_stage_ros.core.controllers import build_controller, ControllerParams
 from piezo_stage_ros.core.errors import ParameterError
 from piezo_stage_ros.core.stage import Stage, StageParams
 from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
-from piezo_stage_ros.core.wire import diagnostic_reader
 from piezo_stage_ros.hardware.bridge import ModelBridge
 from piezo_stage_ros.hardware.pacing import LatenessStats, Pacer, realtime_setup
 from piezo_stage_ros.hardware.safety import GuardedPlant
@@ -464,6 +462,7 @@ def test_servo_process_names_the_diagnostics_of_a_rebuilt_controller():
                                ControllerParams.from_flat({'type': 'pi'}))
     assert 'error' not in stats
     names = [s.diagnostic_names for s in got if s.diagnostics is not None]
+    from piezo_stage_ros.core.wire import diagnostic_reader
     rac = servo_from_config(loop, 0.01).controller.names
     pi = diagnostic_reader(build_controller(ControllerParams.from_flat({'type': 'pi'}),
                                             1e-4))[0]
@@ -478,6 +477,7 @@ def test_servo_process_reports_its_setup_while_it_runs():
     # the report of the real-time setup comes as soon as the setup ran, not with the figures:
     # a CPU that does not exist is refused (EINVAL), the interpreter's switch interval applied
     # (5000 us: CPython's default, nothing changes in the process)
+    import dataclasses
     base = _loop_config()
     servo = dataclasses.replace(base.plant_node.servo, cpu=1000, switch_interval_us=5000.0)
     loop = dataclasses.replace(base, plant_node=dataclasses.replace(base.plant_node,
