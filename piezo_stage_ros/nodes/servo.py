@@ -578,12 +578,19 @@ def _servo_main(loop: LoopConfig, design_plant: PlantParams | None, duration_s: 
     parent = os.getppid()
     stop = [False]
     signal.signal(signal.SIGTERM, lambda *_: stop.__setitem__(0, True))
+
+    def send(message: tuple[str, Any]) -> None:
+        try:
+            results.send(message)
+        except OSError:
+            pass  # the parent is gone (its end of the pipe closed): nobody to tell
+
     try:
         servo = servo_from_config(loop, duration_s, capacity=0, on_sample=ring.append,
                                   design_plant=design_plant)
         # the real-time setup's report goes out as soon as it has run, not with the figures
-        servo.on_setup = lambda report: results.send(('setup', report))
-        ring.on_layout = lambda number, names: results.send(('layout', (number, names)))
+        servo.on_setup = lambda report: send(('setup', report))
+        ring.on_layout = lambda number, names: send(('layout', (number, names)))
         header = ring.header
         halt, posted = SampleRing.HEADER.index('halt'), SampleRing.HEADER.index('posted')
         applied = 0
@@ -625,9 +632,9 @@ def _servo_main(loop: LoopConfig, design_plant: PlantParams | None, duration_s: 
         out['stopped_at_v'] = servo.plant.held_v
         out['setup'] = servo.setup_report
         out['diagnostics_dropped'] = ring.dropped
-        results.send(('final', out))
+        send(('final', out))
     except BaseException as exc:  # noqa: BLE001 -- reported to the parent, which faults
-        results.send(('final', {'error': repr(exc)}))
+        send(('final', {'error': repr(exc)}))
     finally:
         ring.close()
         results.close()
