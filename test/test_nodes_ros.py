@@ -41,6 +41,7 @@ from piezo_stage_ros.nodes.controller_node import ControllerNode  # noqa: E402
 from piezo_stage_ros.nodes.plant_node import PlantNode  # noqa: E402
 from piezo_stage_ros.nodes.runner import make_executor  # noqa: E402
 from piezo_stage_ros.nodes.trajectory_node import TrajectoryNode  # noqa: E402
+from rcl_interfaces.msg import Log  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
@@ -88,7 +89,11 @@ class Probe(Node):
         self.positions: list[tuple[int, float]] = []
         self.references: list[float] = []
         self.commands: list[float] = []
+        self.diagnostics: list[JointState] = []
+        self.logs: list[Log] = []
         self.create_subscription(JointState, wire.POSITION, self._pos, RECORD)
+        self.create_subscription(JointState, wire.DIAGNOSTICS, self.diagnostics.append, RECORD)
+        self.create_subscription(Log, '/rosout', self.logs.append, RECORD)
         self.create_subscription(JointState, wire.REFERENCE,
                                  lambda m: self.references.append(m.position[0]), RECORD)
         self.create_subscription(Float64, wire.COMMAND,
@@ -307,3 +312,57 @@ def test_direct_realtime_takes_a_parameter_change_in_the_servo(context, process)
     assert 'error' not in stats and stats['paced_samples'] + stats['skipped'] == 500
     refs = probe.references
     assert len(refs) > 100 and np.ptp(refs[len(refs) // 2:]) == 0.0
+
+
+@pytest.mark.parametrize('process', [True, False])
+def test_direct_realtime_publishes_the_controller_diagnostics(context, process):
+    # the controller's internals of every diagnostics_every-th step, as in thread mode: from
+    # the servo process they come through its ring, named by its controller
+    plant, nodes = loop(context, 'realtime', 0.1, {'servo.process': process})
+    stage_servo.connect_direct(plant, nodes[3], nodes[2])
+    probe = nodes[1]
+    every = nodes[3].opts.diagnostics_every
+    spin(context, nodes, plant.finished, until=lambda: len(probe.diagnostics) >= -(
+        -plant.finished.result()['controller_steps'] // every))
+    stats = plant.finished.result()
+    assert 'error' not in stats and stats['paced_samples'] + stats['skipped'] == 1000
+    steps = stats['controller_steps']
+    names = nodes[3].logic.names
+    assert len(probe.diagnostics) == -(-steps // every) and len(names) > 1
+    assert all(tuple(m.name) == names and len(m.position) == len(names)
+               for m in probe.diagnostics)
+    # on the sample grid, every-th controller step apart (more than that after a skip)
+    stamps = np.array([m.header.stamp.sec * 10 ** 9 + m.header.stamp.nanosec
+                       for m in probe.diagnostics])
+    assert np.all(np.diff(stamps) >= every * 100_000) and np.all(np.diff(stamps) % 100_000 == 0)
+    # the first step is the first sample taken
+    assert stamps[0] == probe.positions[0][0]
+
+
+@pytest.mark.parametrize('process', [True, False])
+def test_direct_realtime_reports_an_applied_and_a_refused_option(context, process):
+    # a CPU that does not exist is refused (EINVAL), the switch interval applied (5000 us:
+    # CPython's default, nothing changes): the plant node logs one as a warning and the other
+    # as information (rclpy refuses two severities at one call site: the node faulted) and
+    # carries both in its status
+    plant, nodes = loop(context, 'realtime', 0.05, {'servo.process': process,
+                                                    'servo.cpu': 1000,
+                                                    'servo.switch_interval_us': 5000.0})
+    stage_servo.connect_direct(plant, nodes[3], nodes[2])
+    probe = nodes[1]
+
+    def logged(level: int, start: str) -> bool:
+        return any(m.name == 'plant_node' and m.level == level and m.msg.startswith(start)
+                   for m in probe.logs)
+
+    spin(context, nodes, plant.finished,
+         until=lambda: logged(Log.WARN, 'servo affinity: refused')
+         and logged(Log.INFO, 'servo switch_interval: applied'))
+    assert plant.finished.exception() is None
+    stats = plant.finished.result()
+    assert 'error' not in stats and stats['paced_samples'] + stats['skipped'] == 500
+    assert stats['servo_affinity'].startswith('refused') and 'Invalid argument' in \
+        stats['servo_affinity']
+    assert stats['servo_switch_interval'].startswith('applied')
+    assert logged(Log.WARN, 'servo affinity: refused')
+    assert logged(Log.INFO, 'servo switch_interval: applied')

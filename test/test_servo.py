@@ -323,10 +323,36 @@ def test_sample_ring_hands_samples_to_another_reader_and_counts_what_it_missed()
             ring.append(ServoSample(k, stamp + k, 1.0 * k, 2.0, 3.0, 4.0, 5.0, 0, None))
         ints, _, missed = reader.take()
         assert missed == 7 and ints[:, 0].tolist() == list(range(12, 20))
-        assert reader.take()[0].shape == (0, 3)
+        assert reader.take()[0].shape == (0, len(SampleRing.INTS))
     finally:
         reader.close()
         ring.close(unlink=True)
+
+
+def test_sample_ring_carries_diagnostics_with_their_layout_and_counts_what_does_not_fit():
+    from piezo_stage_ros.nodes.servo import SampleRing, ServoSample
+    ring = SampleRing(capacity=8, diagnostics=3)
+    reader = SampleRing(capacity=8, name=ring.name, diagnostics=3)
+    layouts: list = []
+    ring.on_layout = lambda number, names: layouts.append((number, names, ring.get('count')))
+    rac, pi, wide = ('a', 'b', 'c'), ('e',), ('1', '2', '3', '4')
+    rows = [(None, None), ((1.0, 2.0, 3.0), rac), (None, None), ((4.0, 5.0, 6.0), rac),
+            ((7.0,), pi), ((1.0, 2.0, 3.0, 4.0), wide), ((8.0, 9.0, 10.0), tuple(rac))]
+    try:
+        for k, (values, names) in enumerate(rows):
+            ring.append(ServoSample(k, k, 0.0, 0.0, 0.0, 0.0, 0.0, 0, values, names))
+        ints, floats, _ = reader.take()
+    finally:
+        reader.close()
+        ring.close(unlink=True)
+    # each new set of names is handed on once, before the first row that carries it (the
+    # count of rows written then); equal names again are a new layout only after others
+    assert layouts == [(0, rac, 1), (1, pi, 4), (2, wide, 5), (3, rac, 6)]
+    assert ints[:, 3].tolist() == [-1, 0, 0, 0, 1, 2, 3]
+    # four values do not fit in three columns: stored without them, counted
+    assert ints[:, 4].tolist() == [0, 3, 0, 3, 1, 0, 3] and ring.dropped == 1
+    assert floats[1, 5:].tolist() == [1.0, 2.0, 3.0] and floats[4, 5] == 7.0
+    assert floats[6, 5:].tolist() == [8.0, 9.0, 10.0]
 
 
 def test_servo_loop_of_the_plant_alone_drives_the_safe_voltage_when_commands_stop():
@@ -373,6 +399,23 @@ def _wait_for(condition, what: str, limit_s: float = 120.0) -> None:
         if time.monotonic() > end:
             raise AssertionError(f'{what}: not within {limit_s:g} s')
         time.sleep(0.01)
+
+
+def _run_with_a_change(proc, served, kind: str, value) -> dict:
+    # start, send one change after the first samples, serve 200 samples after it is applied,
+    # stop; ``served()`` takes what the process handed over and returns how many so far
+    try:
+        proc.start()
+        _wait_for(lambda: served() > 10, 'first samples')
+        proc.change(kind, value)
+        _wait_for(lambda: served() and proc.ring.get('applied') == 1, 'the change applied')
+        at = served()
+        _wait_for(lambda: served() > at + 200, 'samples after the change')
+        stats = proc.stop()
+        served()
+    finally:
+        proc.close()
+    return stats
 
 
 def test_apply_change_reaches_the_logic_and_names_a_bad_change():
@@ -422,6 +465,95 @@ def test_servo_process_runs_its_samples_and_hands_over_every_one():
     assert np.array_equal(ints[:, 1], 7_000 + ints[:, 0] * period)
 
 
+def test_servo_process_hands_over_the_diagnostics_of_the_same_loop_in_a_thread():
+    # the process and a thread-mode loop on the same configuration give the same samples with
+    # the same diagnostics (every diagnostics_every-th controller step, named as in thread
+    # mode): the thread's clock replays the process's, so that it serves the same grid samples
+    # (a loaded machine makes the process skip some) at the same lateness
+    loop = _loop_config()
+    proc = ServoProcess(loop, 0.05)  # 500 samples of the grid
+    got: list = []
+    try:
+        proc.start(7_000)
+        _wait_for(lambda: got.extend(proc.drain()) or proc.finished, 'run of 500 samples')
+        got.extend(proc.drain())
+        stats = proc.stats()
+    finally:
+        proc.close()
+    assert 'error' not in stats and len(got) == stats['paced_samples']
+    period = round(1e9 / loop.stage.sample_rate_hz)
+    t0 = 10**12
+    times = iter([t0] + [t0 + s.k * period + s.lateness_ns for s in got])
+    thread = servo_from_config(loop, 0.05)
+    # after the process's last sample (which a loaded machine may have skipped): the end of
+    # the run's grid, as a stall past it ends the run
+    end = t0 + thread.total * period
+    thread.pacer = Pacer(period, clock=lambda: next(times, end), sleep=None)
+    thread.run(start_ns=7_000)
+    want = thread.drain()
+    assert thread.error is None
+    assert [s.k for s in got] == [s.k for s in want]
+    np.testing.assert_array_equal([s.command_v for s in got], [s.command_v for s in want])
+    carried = [i for i, s in enumerate(want) if s.diagnostics is not None]
+    every = loop.controller_node.diagnostics_every
+    assert carried == list(range(0, len(want), every)) and len(carried) > 1
+    assert [i for i, s in enumerate(got) if s.diagnostics is not None] == carried
+    assert all(got[i].diagnostic_names == want[i].diagnostic_names
+               == thread.controller.names for i in carried)
+    np.testing.assert_array_equal([got[i].diagnostics for i in carried],
+                                  [want[i].diagnostics for i in carried])
+
+
+def test_servo_process_names_the_diagnostics_of_a_rebuilt_controller():
+    # a structural change (another controller type) rebuilds the controller in the process,
+    # with other diagnostics: the samples after it carry the new names and values
+    loop = _loop_config()
+    proc = ServoProcess(loop, 0.0)  # on until stopped
+    got: list = []
+
+    def served() -> int:
+        got.extend(proc.drain())
+        return len(got)
+
+    stats = _run_with_a_change(proc, served, 'controller',
+                               ControllerParams.from_flat({'type': 'pi'}))
+    assert 'error' not in stats
+    names = [s.diagnostic_names for s in got if s.diagnostics is not None]
+    from piezo_stage_ros.core.wire import diagnostic_reader
+    rac = servo_from_config(loop, 0.01).controller.names
+    pi = diagnostic_reader(build_controller(ControllerParams.from_flat({'type': 'pi'}),
+                                            1e-4))[0]
+    assert rac != pi
+    first_pi = names.index(pi)
+    assert set(names[:first_pi]) == {rac} and first_pi > 0
+    assert set(names[first_pi:]) == {pi}
+    assert all(len(s.diagnostics) == len(s.diagnostic_names) for s in got if s.diagnostics)
+
+
+def test_servo_process_reports_its_setup_while_it_runs():
+    # the report of the real-time setup comes as soon as the setup ran, not with the figures:
+    # a CPU that does not exist is refused (EINVAL), the interpreter's switch interval applied
+    # (5000 us: CPython's default, nothing changes in the process)
+    import dataclasses
+    base = _loop_config()
+    servo = dataclasses.replace(base.plant_node.servo, cpu=1000, switch_interval_us=5000.0)
+    loop = dataclasses.replace(base, plant_node=dataclasses.replace(base.plant_node,
+                                                                     servo=servo))
+    proc = ServoProcess(loop, 0.0)  # on until stopped
+    try:
+        proc.start()
+        _wait_for(lambda: proc.setup_report, 'the setup report')
+        report = proc.setup_report
+        running = not proc.finished
+        stats = proc.stop()
+    finally:
+        proc.close()
+    assert running and 'error' not in stats
+    assert report['affinity'].startswith('refused') and 'Invalid argument' in report['affinity']
+    assert report['switch_interval'].startswith('applied')
+    assert proc.setup_report == report
+
+
 def test_servo_process_applies_a_change_at_a_sample_and_stops_on_request():
     proc = ServoProcess(_loop_config(), 0.0)  # on until stopped
     taken = []
@@ -430,17 +562,7 @@ def test_servo_process_applies_a_change_at_a_sample_and_stops_on_request():
         taken.append(proc.take())
         return sum(t[0].shape[0] for t in taken)
 
-    try:
-        proc.start()
-        _wait_for(lambda: served() > 10, 'first samples')
-        proc.change('active', False)
-        _wait_for(lambda: served() and proc.ring.get('applied') == 1, 'the change applied')
-        at = served()
-        _wait_for(lambda: served() > at + 200, 'samples after the change')
-        stats = proc.stop()
-        served()
-    finally:
-        proc.close()
+    stats = _run_with_a_change(proc, served, 'active', False)
     assert 'error' not in stats and proc.finished
     assert stats['stopped_at_v'] == _loop_config().stage.chain.safe_voltage_v
     floats = np.concatenate([t[1] for t in taken])

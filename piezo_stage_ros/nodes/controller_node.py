@@ -217,10 +217,15 @@ class ControllerNode(Node):
                 raise
             return  # Ctrl-C shut the context down while this callback ran: nothing to send
         if out.diagnostics is not None and self._diag_gate():
-            if self.logic.names != self._diag_names:
+            # the names the command came with: those of the controller that computed it (a
+            # servo process runs its own copy of the logic, whose names this node's copy
+            # does not follow)
+            names = out.diagnostic_names if out.diagnostic_names is not None \
+                else self.logic.names
+            if names != self._diag_names:
                 # a rebuilt controller of another kind reports other internals
-                self._diag_names = self.logic.names
-                self._diag = JointStateEncoder(self._diag_names)
+                self._diag_names = names
+                self._diag = JointStateEncoder(names)
             sec, nanosec = wire.ns_to_stamp(out.stamp_ns)
             self._diag_pub.publish(self._diag.encode(sec, nanosec, out.diagnostics))
 

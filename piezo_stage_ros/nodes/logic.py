@@ -364,12 +364,17 @@ class Command:
         u_k [V].
     diagnostics : tuple of float or None
         Controller internals to publish with it (every ``diagnostics_every`` samples).
+    diagnostic_names : tuple of str or None
+        The names of ``diagnostics`` (those of the controller that computed them: a structural
+        change rebuilds it, possibly of another kind with other names); None: the names the
+        publisher knows.
 
     """
 
     stamp_ns: int
     voltage_v: float
     diagnostics: Sequence[float] | None = None
+    diagnostic_names: tuple[str, ...] | None = None
 
 
 class ControllerLogic:
@@ -490,7 +495,7 @@ class ControllerLogic:
         if self.steps % self.diagnostics_every == 0 and self.names:
             diagnostics = self._read()
         self.steps += 1
-        return Command(stamp, u, diagnostics)
+        return Command(stamp, u, diagnostics, self.names if diagnostics is not None else None)
 
     def on_check(self, now_s: float) -> Command | None:
         """

@@ -222,9 +222,11 @@ class PlantNode(Node):
             if not self._servo_reported and (servo.setup_report or finished):
                 self._servo_reported = True
                 for key, text in servo.setup_report.items():
-                    log = self.get_logger().info if text.startswith('applied') \
-                        else self.get_logger().warning
-                    log(f'servo {key}: {text}')
+                    # one call site per severity: rclpy refuses a second severity at a site
+                    if text.startswith('applied'):
+                        self.get_logger().info(f'servo {key}: {text}')
+                    else:
+                        self.get_logger().warning(f'servo {key}: {text}')
             if finished:
                 if servo.error is not None:
                     self._fault(servo.error)
@@ -352,6 +354,8 @@ class PlantNode(Node):
             out.update(self.servo.stats())
             index = self.servo.index
             out['index'] = index
+            # what the real-time setup applied or was refused, e.g. servo_affinity
+            out.update({f'servo_{k}': v for k, v in self.servo.setup_report.items()})
         out['malformed'] = self.malformed
         elapsed = time.monotonic() - self._t_start if self._t_start else 0.0
         samples = max(index + 1, 0)

@@ -88,6 +88,8 @@ class ServoSample(NamedTuple):
         Time the sample was taken minus its due time [ns].
     diagnostics : sequence of float or None
         Controller internals (every ``diagnostics_every`` samples).
+    diagnostic_names : tuple of str or None
+        Their names (those of the controller that computed them; None without diagnostics).
 
     """
 
@@ -100,6 +102,7 @@ class ServoSample(NamedTuple):
     applied_v: float
     lateness_ns: int
     diagnostics: Sequence[float] | None
+    diagnostic_names: tuple[str, ...] | None = None
 
 
 class SampleRing:
@@ -111,6 +114,17 @@ class SampleRing:
     from the count how many it missed (overwritten before it came). No lock: one writer, the
     count is written after its row (x86 and ARM64 keep the order of these two stores as seen
     from Python), and a reader only copies. Stamps stay integers (int64 [ns]).
+
+    Each row has the integer columns :data:`INTS` and the float columns :data:`FLOATS`, then
+    ``diagnostics`` float columns for the controller internals of the samples that carry them
+    (every ``diagnostics_every``-th): a row stores how many it filled (0: none) and the number
+    of their layout (their names). The names do not go through the ring: a writer that meets
+    names it has not passed on yet numbers them (0, 1 ...: a structural change of the
+    controller may rebuild it of another kind, with other names) and hands them to
+    :attr:`on_layout` before it writes the row, so that a reader has them (through a pipe that
+    keeps the order, :class:`ServoProcess`) before it can read a row of that layout. A sample
+    with more internals than ``diagnostics`` columns is stored without them and counted in
+    :attr:`dropped` (the writer's side).
 
     A header of int64 words beside the count carries the control of the process that writes
     (:data:`HEADER`): ``halt`` (set by the parent: stop after the current sample), ``posted``
@@ -125,28 +139,44 @@ class SampleRing:
         Rows (samples) the ring holds.
     name : str, optional
         Attach to an existing ring of that name (the other process); default: create one.
+    diagnostics : int
+        Columns for controller internals (the same on both sides; the controllers of the core
+        report at most 8: the RAC).
 
     """
 
+    INTS = ('k', 'stamp_ns', 'lateness_ns', 'layout', 'diagnostics')
     FLOATS = ('position_m', 'reference_m', 'velocity_mps', 'command_v', 'applied_v')
     HEADER = ('count', 'halt', 'posted', 'applied', 'index', 'paced_samples',
               'late_half_period', 'skipped', 'lateness_max_ns')
 
-    def __init__(self, capacity: int = 65536, name: str | None = None) -> None:
+    def __init__(self, capacity: int = 65536, name: str | None = None, *,
+                 diagnostics: int = 16) -> None:
         self.capacity = int(capacity)
+        self.width = int(diagnostics)
         head = 8 * len(self.HEADER)
-        size = head + self.capacity * 8 * (3 + len(self.FLOATS))
+        n_ints, n_floats = len(self.INTS), len(self.FLOATS) + self.width
+        size = head + self.capacity * 8 * (n_ints + n_floats)
         self.shm = shared_memory.SharedMemory(name=name, create=name is None, size=size)
         buf = self.shm.buf
         self.header = np.ndarray((len(self.HEADER),), dtype=np.int64, buffer=buf)
         self._count = self.header[0:1]
-        self._ints = np.ndarray((self.capacity, 3), dtype=np.int64, buffer=buf, offset=head)
-        self._floats = np.ndarray((self.capacity, len(self.FLOATS)), dtype=np.float64,
-                                  buffer=buf, offset=head + self.capacity * 24)
+        self._ints = np.ndarray((self.capacity, n_ints), dtype=np.int64, buffer=buf,
+                                offset=head)
+        self._floats = np.ndarray((self.capacity, n_floats), dtype=np.float64, buffer=buf,
+                                  offset=head + self.capacity * 8 * n_ints)
         if name is None:
             self.header[:] = 0
             self.header[self.HEADER.index('index')] = -1
         self.read = 0
+        #: The writer's side: ``on_layout(number, names)`` is called with diagnostic names not
+        #: passed on before, before the first row that carries them is written.
+        self.on_layout: Callable[[int, tuple[str, ...]], None] | None = None
+        #: The writer's side: the number of the current layout (-1: none yet).
+        self.layout = -1
+        self._names: tuple[str, ...] | None = None
+        #: The writer's side: samples stored without their internals (more than the columns).
+        self.dropped = 0
 
     @property
     def name(self) -> str:
@@ -162,12 +192,28 @@ class SampleRing:
         self.header[self.HEADER.index(key)] = value
 
     def append(self, s: ServoSample) -> None:
-        """Store one sample (the writer's side; never waits)."""
+        """Store one sample (the writer's side; never waits but for :attr:`on_layout`)."""
         n = int(self._count[0])
         row = n % self.capacity
-        self._ints[row] = (s.k, s.stamp_ns, s.lateness_ns)
-        self._floats[row] = (s.position_m, s.reference_m, s.velocity_mps, s.command_v,
-                             s.applied_v)
+        floats = self._floats[row]
+        values = s.diagnostics
+        width = 0
+        if values is not None:
+            names = s.diagnostic_names
+            if names is not self._names and names != self._names:
+                # names not passed on yet: the reader gets them before it can read the row
+                self.layout += 1
+                self._names = names
+                if self.on_layout is not None and names is not None:
+                    self.on_layout(self.layout, names)
+            width = len(values)
+            if width > self.width:
+                self.dropped += 1
+                width = 0
+            else:
+                floats[5:5 + width] = values
+        self._ints[row] = (s.k, s.stamp_ns, s.lateness_ns, self.layout, width)
+        floats[:5] = (s.position_m, s.reference_m, s.velocity_mps, s.command_v, s.applied_v)
         self._count[0] = n + 1
 
     def take(self) -> tuple[Any, Any, int]:
@@ -176,10 +222,12 @@ class SampleRing:
 
         Returns
         -------
-        ints : ndarray of int64, shape (n, 3)
-            k, stamp [ns], lateness [ns] per sample.
-        floats : ndarray of float64, shape (n, 5)
-            Columns :attr:`FLOATS`.
+        ints : ndarray of int64, shape (n, 5)
+            Columns :attr:`INTS`: k, stamp [ns], lateness [ns], the layout of the
+            diagnostics and how many the row carries (0: none).
+        floats : ndarray of float64, shape (n, 5 + diagnostics)
+            Columns :attr:`FLOATS`, then the diagnostics (the first as many as the row
+            carries).
         missed : int
             Samples overwritten before they were read.
 
@@ -263,6 +311,8 @@ class ServoLoop:
         self.on_sample = on_sample
         #: Called after each sample served (a sample boundary); returning False ends the run.
         self.boundary: Callable[[], bool] | None = None
+        #: Called with :attr:`setup_report` as soon as the setup of :meth:`run` has run.
+        self.on_setup: Callable[[dict[str, str]], None] | None = None
         self._halt = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -277,7 +327,7 @@ class ServoLoop:
         if self.controller is None or self.trajectory is None:
             # the plant alone: the command comes from elsewhere (another node), held as is
             sample = ServoSample(index, stamp, position_m, math.nan, math.nan, math.nan,
-                                 plant.applied_v, lateness_ns, None)
+                                 plant.applied_v, lateness_ns, None, None)
         else:
             now_s = now_ns / NS_PER_S
             ref, vel = self.trajectory.on_position(stamp)
@@ -288,7 +338,8 @@ class ServoLoop:
             plant.command(u, now_s)
             self.held_v = plant.held_v
             sample = ServoSample(index, stamp, position_m, ref, vel, u, applied, lateness_ns,
-                                 out.diagnostics if out else None)
+                                 out.diagnostics if out else None,
+                                 out.diagnostic_names if out else None)
         if self.samples.maxlen:
             self.samples.append(sample)
             self.pushed += 1
@@ -371,6 +422,8 @@ class ServoLoop:
         try:
             if setup is not None:
                 self.setup_report = dict(setup() or {})
+                if self.on_setup is not None:
+                    self.on_setup(self.setup_report)
             self.start(start_ns)
             halt, boundary = self._halt, self.boundary
             while not halt.is_set() and self.step():
@@ -523,19 +576,32 @@ def apply_change(servo: ServoLoop, kind: str, value: Any) -> None:
 
 
 def _servo_main(loop: LoopConfig, design_plant: PlantParams | None, duration_s: float,
-                ring_name: str, start_ns: int, changes: Any, results: Any) -> None:
+                ring_name: str, diagnostics: int, start_ns: int, changes: Any,
+                results: Any) -> None:
     # the servo process: no rclpy here, nothing else in this interpreter. Ctrl-C reaches the
     # whole process group: the parent stops this process (halt word), so SIGINT is ignored;
     # SIGTERM (the parent's last resort) and a parent that vanished end the run the same way
-    # as a halt: safe voltage, backend stopped (ServoLoop.run)
+    # as a halt: safe voltage, backend stopped (ServoLoop.run). ``results`` is the sending end
+    # of a pipe: messages go out in order and at once (no feeder thread), so that the parent
+    # has a layout of diagnostic names before it can read a row of it
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    ring = SampleRing(name=ring_name)
+    ring = SampleRing(name=ring_name, diagnostics=diagnostics)
     parent = os.getppid()
     stop = [False]
     signal.signal(signal.SIGTERM, lambda *_: stop.__setitem__(0, True))
+
+    def send(message: tuple[str, Any]) -> None:
+        try:
+            results.send(message)
+        except OSError:
+            pass  # the parent is gone (its end of the pipe closed): nobody to tell
+
     try:
         servo = servo_from_config(loop, duration_s, capacity=0, on_sample=ring.append,
                                   design_plant=design_plant)
+        # the real-time setup's report goes out as soon as it has run, not with the figures
+        servo.on_setup = lambda report: send(('setup', report))
+        ring.on_layout = lambda number, names: send(('layout', (number, names)))
         header = ring.header
         halt, posted = SampleRing.HEADER.index('halt'), SampleRing.HEADER.index('posted')
         applied = 0
@@ -574,11 +640,13 @@ def _servo_main(loop: LoopConfig, design_plant: PlantParams | None, duration_s: 
         # what the backend holds now: the safe voltage the stop or the fault drove
         out['stopped_at_v'] = servo.plant.held_v
         out['setup'] = servo.setup_report
-        results.put(out)
+        out['diagnostics_dropped'] = ring.dropped
+        send(('final', out))
     except BaseException as exc:  # noqa: BLE001 -- reported to the parent, which faults
-        results.put({'error': repr(exc)})
+        send(('final', {'error': repr(exc)}))
     finally:
         ring.close()
+        results.close()
 
 
 class ServoProcess:
@@ -589,9 +657,12 @@ class ServoProcess:
     (:func:`servo_from_config`), owns the backend and runs :meth:`ServoLoop.run`: its
     interpreter does nothing else, so the executor of the ROS side never holds a lock the
     servo waits for. The samples come back through a :class:`SampleRing` (:meth:`take`),
-    changes go to it through a queue (:meth:`change`, applied at the next sample boundary),
-    and its figures come back at the end (:meth:`stop`). Any error in the process drives the
-    safe voltage there (the process owns the backend) and is reported in ``stats()['error']``.
+    changes go to it through a queue (:meth:`change`, applied at the next sample boundary).
+    Messages come back through a pipe, in the order sent: the report of the real-time setup
+    as soon as it has run (:attr:`setup_report`), the names of the controller's diagnostics
+    before the first sample that carries them (:meth:`drain`), and the figures at the end
+    (:meth:`stop`). Any error in the process drives the safe voltage there (the process owns
+    the backend) and is reported in ``stats()['error']``.
 
     Parameters
     ----------
@@ -601,6 +672,8 @@ class ServoProcess:
         As :class:`ServoLoop` (0: until :meth:`stop`).
     capacity : int
         Samples the ring holds (65536: 6.5 s at 10 kHz).
+    diagnostics : int
+        Columns for the controller's diagnostics in the ring (:class:`SampleRing`).
     design_plant : PlantParams, optional
         The controller's design model, if not ``loop.design_plant``.
     context : str
@@ -613,7 +686,8 @@ class ServoProcess:
     LIVE_EVERY = 1000
 
     def __init__(self, loop: LoopConfig, duration_s: float = 0.0, *, capacity: int = 65536,
-                 design_plant: PlantParams | None = None, context: str = 'spawn') -> None:
+                 diagnostics: int = 16, design_plant: PlantParams | None = None,
+                 context: str = 'spawn') -> None:
         if context not in ('spawn', 'forkserver'):
             raise ValueError(f"servo process: context {context!r}; allowed: 'spawn', "
                              "'forkserver'")
@@ -621,21 +695,46 @@ class ServoProcess:
         self.design_plant = design_plant
         self.duration_s = float(duration_s)
         self._ctx: Any = multiprocessing.get_context(context)
-        self.ring = SampleRing(capacity)
+        self.ring = SampleRing(capacity, diagnostics=diagnostics)
         self._changes = self._ctx.Queue()
-        self._results = self._ctx.Queue()
+        self._results, self._sender = self._ctx.Pipe(duplex=False)
         self._proc: Any = None
         self.result: dict[str, Any] | None = None
         self.missed = 0
+        self._setup: dict[str, str] = {}
+        self._layouts: dict[int, tuple[str, ...]] = {}
+        self._ended = False  # the process closed its end of the pipe
+        self._joined = False
 
     def start(self, start_ns: int = 0) -> None:
         """Start the process; sample 0 is stamped ``start_ns`` [ns]."""
         self._proc = self._ctx.Process(
             target=_servo_main, args=(self.loop, self.design_plant, self.duration_s,
-                                      self.ring.name,
-                                      int(start_ns), self._changes, self._results),
+                                      self.ring.name, self.ring.width,
+                                      int(start_ns), self._changes, self._sender),
             name='servo', daemon=True)
         self._proc.start()
+        # the child has its copy: with this one closed, the pipe ends when the process does
+        self._sender.close()
+
+    def _receive(self, timeout_s: float = 0.0) -> None:
+        # take the messages sent so far (waiting up to timeout_s for the first one)
+        reader = self._results
+        wait = timeout_s
+        try:
+            while not self._ended and not reader.closed and reader.poll(wait):
+                kind, payload = reader.recv()
+                wait = 0.0
+                if kind == 'setup':
+                    self._setup = dict(payload)
+                elif kind == 'layout':
+                    number, names = payload
+                    self._layouts[int(number)] = tuple(names)
+                else:
+                    self.result = dict(payload)
+                    self._setup = self._setup or dict(self.result.get('setup', {}))
+        except (EOFError, OSError):
+            self._ended = True
 
     @property
     def started(self) -> bool:
@@ -672,10 +771,16 @@ class ServoProcess:
             return {}
         if self.result is None:
             self.ring.set('halt', 1)
-            try:
-                self.result = self._results.get(timeout=timeout_s)
-            except queue.Empty:
-                self.result = {'error': f'servo process gave no figures in {timeout_s:g} s'}
+            end = time.monotonic() + timeout_s
+            while self.result is None and not self._ended and time.monotonic() < end:
+                self._receive(end - time.monotonic())
+            if self.result is None:
+                self.result = {'error': 'servo process ended without its figures'
+                               if self._ended else
+                               f'servo process gave no figures in {timeout_s:g} s'}
+        if not self._joined:
+            # the figures may have come with a drain, just before the process ended
+            self._joined = True
             self._proc.join(timeout_s)
             if self._proc.is_alive():
                 self._proc.terminate()
@@ -726,8 +831,10 @@ class ServoProcess:
 
     @property
     def setup_report(self) -> dict[str, str]:
-        """Return what the process's real-time setup applied or was refused (at the end)."""
-        return dict((self.poll() or {}).get('setup', {}))
+        """Return what the process's real-time setup applied or was refused (once it ran)."""
+        if not self._setup and self._proc is not None:
+            self._receive()
+        return dict(self._setup)
 
     @property
     def held_v(self) -> float:
@@ -735,12 +842,32 @@ class ServoProcess:
         return float((self.result or {}).get('held_v', math.nan))
 
     def drain(self, limit: int = 0) -> list[ServoSample]:
-        """Return the samples handed over since the last call, as :class:`ServoSample`."""
+        """
+        Return the samples handed over since the last call, as :class:`ServoSample`.
+
+        With the controller's diagnostics on the samples that carry them, named as the
+        controller that computed them named them (a layout sent before the first of its rows
+        was written: received here after the rows were taken, it is always in).
+        """
         ints, floats, _ = self.take()
-        return [ServoSample(k, stamp, p, r, v, c, a, late, None) for (k, stamp, late),
-                (p, r, v, c, a) in zip(ints.tolist(), floats.tolist())]
+        self._receive()
+        layouts = self._layouts
+        diagnostics = floats[:, len(SampleRing.FLOATS):]
+        out = []
+        for i, ((k, stamp, late, layout, n), (p, r, v, c, a)) in enumerate(zip(
+                ints.tolist(), floats[:, :len(SampleRing.FLOATS)].tolist())):
+            if n:
+                # no layout: names the writer did not have (the publisher uses its own)
+                out.append(ServoSample(k, stamp, p, r, v, c, a, late,
+                                       tuple(diagnostics[i, :n].tolist()),
+                                       layouts.get(layout)))
+            else:
+                out.append(ServoSample(k, stamp, p, r, v, c, a, late, None, None))
+        return out
 
     def close(self) -> None:
-        """Stop the process if it runs and remove the ring."""
+        """Stop the process if it runs, remove the ring and close the pipe."""
         self.stop()
         self.ring.close(unlink=True)
+        self._results.close()
+        self._sender.close()

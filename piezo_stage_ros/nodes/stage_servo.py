@@ -60,7 +60,8 @@ def connect_direct(plant: PlantNode, controller: ControllerNode,
         def publish(batch: list[ServoSample]) -> None:
             for s in batch:
                 trajectory.publish(s.stamp_ns, s.reference_m, s.velocity_mps)
-                controller.publish(Command(s.stamp_ns, s.command_v, s.diagnostics))
+                controller.publish(Command(s.stamp_ns, s.command_v, s.diagnostics,
+                                           s.diagnostic_names))
 
         process = None
         if plant.opts.servo.process:
