@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import os
 import threading
+import time
 
 import numpy as np
 from piezo_stage_ros.core.closed_loop import run
@@ -447,10 +448,12 @@ def test_servo_process_runs_its_samples_and_hands_over_every_one():
     loop = _loop_config()
     proc = ServoProcess(loop, 0.05)  # 500 samples of the grid
     try:
+        called = time.monotonic_ns()
         proc.start(7_000)
         got = []
         _wait_for(lambda: got.append(proc.take()[0]) or proc.finished, 'run of 500 samples')
         got.append(proc.take()[0])
+        ended = time.monotonic_ns()
         stats = proc.stats()
     finally:
         proc.close()
@@ -462,7 +465,11 @@ def test_servo_process_runs_its_samples_and_hands_over_every_one():
     assert np.all(np.diff(ints[:, 0]) > 0) and ints[0, 0] == 0 and ints[-1, 0] <= 499
     assert ints[:, 0].size + stats['skipped'] == 500
     period = round(1e9 / loop.stage.sample_rate_hz)
-    assert np.array_equal(ints[:, 1], 7_000 + ints[:, 0] * period)
+    # stamps on the grid, from the ROS time given plus the time the process took to start
+    # (its imports: more than nothing, less than the whole call)
+    origin = ints[0, 1]
+    assert 7_000 < origin < 7_000 + ended - called
+    assert np.array_equal(ints[:, 1], origin + ints[:, 0] * period)
 
 
 def test_servo_process_hands_over_the_diagnostics_of_the_same_loop_in_a_thread():

@@ -212,7 +212,8 @@ class PlantNode(Node):
                 if isinstance(servo, ServoProcess):
                     servo.start(start_ns)  # sets its own scheduling up, in its process
                     return
-                servo.start_thread(start_ns, lambda: servo_setup(opts, servo.pacer.period_ns))
+                servo.start_thread(start_ns, lambda: servo_setup(opts, servo.pacer.period_ns),
+                                   since_ns=time.monotonic_ns())
                 return
             finished = servo.finished
             batch = servo.drain()

@@ -348,7 +348,7 @@ class ServoLoop:
         if self.total and index + 1 >= self.total:
             self.done = True
 
-    def start(self, start_ns: int = 0) -> None:
+    def start(self, start_ns: int = 0, since_ns: int | None = None) -> None:
         """
         Start the backend and serve sample 0 now.
 
@@ -356,20 +356,29 @@ class ServoLoop:
         ----------
         start_ns : int
             t_0 [ns] of the stamps (the ROS time of the start).
+        since_ns : int, optional
+            The monotonic time [ns] at which ``start_ns`` was read (in another process: the
+            clock is system-wide); sample 0 is then stamped ``start_ns`` plus the time since,
+            so that the stamps stay on the ROS clock however long the start took (a spawned
+            process imports for a second or two). None: ``start_ns`` as given.
 
         """
-        self.start_ns = int(start_ns)
         if self.bridge_clock is not None:
             y0 = self.plant.start(time.monotonic())
             bridge = self.bridge_clock
             self._t0_arrival = bridge.arrival_ns - bridge.sample_index * self.pacer.period_ns
+            self._set_origin(start_ns, since_ns, bridge.arrival_ns)
             self.pacer.stats.add(0)
             self._serve(bridge.sample_index, y0, bridge.arrival_ns, 0)
             return
         self.pacer.start()
         index, lateness = self.pacer.wait()  # sample 0, due now
         now = self.pacer.due_ns(index) + lateness
+        self._set_origin(start_ns, since_ns, now)
         self._serve(index, self.plant.start(now / NS_PER_S), now, lateness)
+
+    def _set_origin(self, start_ns: int, since_ns: int | None, now_ns: int) -> None:
+        self.start_ns = int(start_ns) + (now_ns - since_ns if since_ns is not None else 0)
 
     def step(self) -> bool:
         """Wait for the next sample, serve it, and return whether the run goes on."""
@@ -412,9 +421,11 @@ class ServoLoop:
         return not self.done
 
     def run(self, start_ns: int = 0,
-            setup: Callable[[], Any] | None = None) -> None:
+            setup: Callable[[], Any] | None = None, since_ns: int | None = None) -> None:
         """
         Start and serve samples until the run is complete, :meth:`stop`, or an error.
+
+        ``start_ns``, ``since_ns``: as :meth:`start`; ``setup`` runs first, in this thread.
 
         An error drives the safe voltage (:meth:`GuardedPlant.fault`) and is kept in
         :attr:`error` for the caller to report; the backend is stopped at the end either way.
@@ -424,7 +435,7 @@ class ServoLoop:
                 self.setup_report = dict(setup() or {})
                 if self.on_setup is not None:
                     self.on_setup(self.setup_report)
-            self.start(start_ns)
+            self.start(start_ns, since_ns)
             halt, boundary = self._halt, self.boundary
             while not halt.is_set() and self.step():
                 if boundary is not None and not boundary():
@@ -437,9 +448,9 @@ class ServoLoop:
             self.plant.stop()
 
     def start_thread(self, start_ns: int = 0, setup: Callable[[], Any] | None = None,
-                     ) -> threading.Thread:
+                     since_ns: int | None = None) -> threading.Thread:
         """Run :meth:`run` in a daemon thread (``setup`` runs first, in that thread)."""
-        self._thread = threading.Thread(target=self.run, args=(start_ns, setup),
+        self._thread = threading.Thread(target=self.run, args=(start_ns, setup, since_ns),
                                         name='servo', daemon=True)
         self._thread.start()
         return self._thread
@@ -576,7 +587,7 @@ def apply_change(servo: ServoLoop, kind: str, value: Any) -> None:
 
 
 def _servo_main(loop: LoopConfig, design_plant: PlantParams | None, duration_s: float,
-                ring_name: str, diagnostics: int, start_ns: int, changes: Any,
+                ring_name: str, diagnostics: int, start_ns: int, since_ns: int, changes: Any,
                 results: Any) -> None:
     # the servo process: no rclpy here, nothing else in this interpreter. Ctrl-C reaches the
     # whole process group: the parent stops this process (halt word), so SIGINT is ignored;
@@ -633,7 +644,8 @@ def _servo_main(loop: LoopConfig, design_plant: PlantParams | None, duration_s: 
 
         servo.boundary = boundary
         servo.run(start_ns, setup=lambda: servo_setup(loop.plant_node.servo,
-                                                      servo.pacer.period_ns))
+                                                      servo.pacer.period_ns),
+                  since_ns=since_ns)
         ring.set('index', servo.index)
         out = servo.stats()
         out['held_v'] = servo.held_v
@@ -707,11 +719,17 @@ class ServoProcess:
         self._joined = False
 
     def start(self, start_ns: int = 0) -> None:
-        """Start the process; sample 0 is stamped ``start_ns`` [ns]."""
+        """
+        Start the process; ``start_ns`` [ns] is the ROS time now.
+
+        Sample 0 is stamped ``start_ns`` plus the time the process took to start (its
+        imports), measured on the monotonic clock: the stamps are the ROS time of each sample.
+        """
         self._proc = self._ctx.Process(
             target=_servo_main, args=(self.loop, self.design_plant, self.duration_s,
                                       self.ring.name, self.ring.width,
-                                      int(start_ns), self._changes, self._sender),
+                                      int(start_ns), time.monotonic_ns(), self._changes,
+                                      self._sender),
             name='servo', daemon=True)
         self._proc.start()
         # the child has its copy: with this one closed, the pipe ends when the process does
