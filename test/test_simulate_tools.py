@@ -76,13 +76,16 @@ def test_benchmark_servo_suite_reports_every_case(capsys: pytest.CaptureFixture[
     assert benchmark.main(['--suite', 'servo', '--realtime-s', '0.05', '--json']) == 0
     d = json.loads(capsys.readouterr().out)['servo']
     bridge = d['bridge (paced emulator, host servo process)']
-    assert len(d) == 6
+    assert len(d) == 7
     # the host's answers are counted: one per sample it took (a spinning host answers each)
     assert bridge['answer_max_us'] >= bridge['answer_p99_us'] >= bridge['answer_p50_us'] > 0
     # the scripted stalls skip as many samples as scripted, and the loop recovers: 300 samples
     # after the stall the error is back within 10 % of the undisturbed run's (the slowest pole
     # of the certified loops has radius 0.926, the stability check of table3_rac: 300 samples
     # leave 0.926^300 ~ 1e-10 of the disturbance; the 10 % is the claim, not a numerical bound)
+    floor = d.pop('machine floor (bare spin)')['floor']
+    assert floor['periods_lost'] >= floor['gaps'] >= 0 and floor['nice'].startswith(('applied',
+                                                                                    'refused'))
     stalls = d.pop('stall (scripted clock)')['stalls']
     assert {int(n): v['skipped'] for n, v in stalls.items()} == {0: 0, 1: 1, 2: 2, 5: 5, 10: 10,
                                                                  20: 20}

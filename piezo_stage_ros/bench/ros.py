@@ -41,7 +41,9 @@ Run ``python3 -m piezo_stage_ros.bench.ros`` in a sourced Jazzy environment. Cas
   duration_s:=<--realtime-s>`` (``stage_servo --direct``, the servo loop as a process of its
   own, ``ros2 bag record`` of every stage topic), then the bag analysed as ``analyze`` does:
   the servo's counters (end-of-run log), the samples in the bag, e_rms over the whole run beside
-  the offline runner's (lockstep) on the same configuration and length; once on the idle
+  the offline runner's (lockstep) on the same configuration and length, and the machine's
+  floor measured just before (``bench.servo.machine_floor``: a bare spin as long, the periods
+  a loop would lose to the machine alone); once on the idle
   machine and once with ``--load`` CPU-bound processes beside it
   (``recorded-realtime-loaded``).
 
@@ -228,8 +230,10 @@ def _recorded(duration_s: float, load: int = 0) -> dict[str, Any]:
     import re
     import tempfile
 
+    import numpy as np
     from piezo_stage_ros import cli
     from piezo_stage_ros.analysis.replay import analyze_bag
+    from piezo_stage_ros.bench.servo import machine_floor
     from piezo_stage_ros.core.closed_loop import run
     from piezo_stage_ros.core.controllers import build_controller
     from piezo_stage_ros.core.loop_config import LoopConfig
@@ -237,6 +241,8 @@ def _recorded(duration_s: float, load: int = 0) -> dict[str, Any]:
     from piezo_stage_ros.core.stage import linear_plant, Stage
     from piezo_stage_ros.core.trajectories import make_trajectory
 
+    loop = LoopConfig.from_config(cli.read_config([RECORDED_SCENARIO]))
+    period = 1.0 / loop.stage.sample_rate_hz
     burners = [multiprocessing.get_context('spawn').Process(target=_burn, daemon=True)
                for _ in range(load)]
     with tempfile.TemporaryDirectory(prefix='pz_recorded_') as tmp:
@@ -247,6 +253,8 @@ def _recorded(duration_s: float, load: int = 0) -> dict[str, Any]:
         for burner in burners:
             burner.start()
         try:
+            # the machine's bound under the same conditions: a bare spin as long as the run
+            floor = machine_floor(duration_s, loop.plant_node.servo, round(period * 1e9))
             done = subprocess.run(cmd, capture_output=True, text=True,
                                   timeout=duration_s * 3 + 120)
         finally:
@@ -265,13 +273,23 @@ def _recorded(duration_s: float, load: int = 0) -> dict[str, Any]:
             except ValueError:
                 out[key] = value
         out['setup'] = '; '.join(re.findall(r'servo (\w+: [^\n]*)', log))
+        out['floor_periods_lost'] = floor['periods_lost']
+        out['floor_gaps'] = floor['gaps']
         result = analyze_bag(bag, steady_state_start_s=0.0)
         out['bag_samples'] = result.samples
         out['e_rms_nm'] = round(result.metrics['e_rms_m'] * 1e9, 2)
         out['e_max_nm'] = round(result.metrics['e_max_m'] * 1e9, 1)
+        # what the stalls cost: the same e_rms without the 300 samples after each gap in the
+        # stamps (a diagnostic, not the figure: the stalls are part of the run)
+        record = result.record
+        gaps = np.flatnonzero(np.diff(record.time_s) > 1.5 * period) + 1
+        keep = np.ones(record.time_s.size, dtype=bool)
+        for start in gaps:
+            keep[start:start + 300] = False
+        error = record.position_m[keep] - record.reference_m[keep]
+        out['stalls_in_bag'] = int(gaps.size)
+        out['e_rms_away_from_stalls_nm'] = round(error_metrics(error)[1] * 1e9, 2)
         out['analysis_notes'] = ' | '.join(result.notes)
-    loop = LoopConfig.from_config(cli.read_config([RECORDED_SCENARIO]))
-    period = 1.0 / loop.stage.sample_rate_hz
     rec = run(Stage(loop.stage),
               build_controller(loop.controller, period, linear_plant(loop.design_plant)),
               make_trajectory(loop.trajectory), duration_s=duration_s,
@@ -359,6 +377,10 @@ def format_table(result: dict[str, Any]) -> str:
                          f'{s.get("queue_overruns")}, watchdog_trips {s.get("watchdog_trips")}; '
                          f'e_rms {s["e_rms_nm"]} nm over the whole run (offline, lockstep: '
                          f'{s["offline_e_rms_nm"]} nm), e_max {s["e_max_nm"]} nm; '
+                         f'{s["stalls_in_bag"]} stalls in the stamps, e_rms without the 300 '
+                         f'samples after each: {s["e_rms_away_from_stalls_nm"]} nm; the '
+                         f'machine floor just before (a bare spin as long): '
+                         f'{s["floor_periods_lost"]} periods lost in {s["floor_gaps"]} gaps; '
                          f'setup: {s["setup"]}')
         samples = s.get('index', -1) + 1
         late = 100.0 * s.get('late', 0) / samples if samples else 0.0

@@ -18,6 +18,10 @@ Real-time benchmark without ROS: how well the paced servo loop holds 10 kHz on t
 Cases (each a run of ``duration_s`` wall seconds of ``config/table3_rac.yaml``: RAC, reduced
 plant, 100 Hz sine):
 
+- ``floor``: the bound of the machine: a thread that does nothing but read the monotonic clock
+  (with the ``servo.*`` options applied), counting the gaps between two reads longer than a
+  period and the periods they span. A loop that must take a sample every period skips at least
+  that many on this machine in the same time;
 - ``servo``: :class:`~piezo_stage_ros.nodes.servo.ServoLoop` on the core model in a thread, the
   main thread playing the ROS side (every 5 ms it drains the queue and encodes each sample's
   position, reference and command into CDR bytes, the work of publishing them), once with
@@ -47,6 +51,7 @@ from __future__ import annotations
 import dataclasses
 import subprocess
 import sys
+import threading
 import time
 from typing import Any, Callable
 
@@ -65,7 +70,7 @@ from piezo_stage_ros.nodes.servo import servo_from_config, ServoLoop, ServoProce
 
 __all__ = ['CASES', 'loop_config', 'run_servo_benchmark', 'steady_e_rms']
 
-CASES = ('servo-alone', 'servo', 'servo-process', 'bridge', 'stall')
+CASES = ('floor', 'servo-alone', 'servo', 'servo-process', 'bridge', 'stall')
 CONFIG = 'table3_rac.yaml'
 
 
@@ -259,6 +264,34 @@ def run_bridge(loop: LoopConfig, duration_s: float, offline_rms: float) -> dict[
     return out
 
 
+def machine_floor(duration_s: float, opts: ServoParams, period_ns: int) -> dict[str, Any]:
+    """
+    Spin on the monotonic clock for ``duration_s`` in a thread set up as the servo's; count gaps.
+
+    Returns ``gaps`` (reads more than a period apart), ``periods_lost`` (the whole periods
+    inside them: samples a paced loop would have skipped), ``max_gap_us`` and the setup report.
+    """
+    out: dict[str, Any] = {}
+
+    def spin() -> None:
+        out.update(servo_setup(opts, period_ns))
+        clock = time.monotonic_ns
+        gaps: list[int] = []
+        now = clock()
+        end = now + round(duration_s * 1e9)
+        while now < end:
+            then, now = now, clock()
+            if now - then > period_ns:
+                gaps.append(now - then)
+        out.update({'gaps': len(gaps), 'periods_lost': sum(g // period_ns for g in gaps),
+                    'max_gap_us': round(max(gaps, default=0) / 1000, 1)})
+
+    worker = threading.Thread(target=spin, name='floor')
+    worker.start()
+    worker.join()
+    return out
+
+
 class _ScriptedClock:
     """A monotonic clock [ns] that advances a little per read and by what sleeps ask."""
 
@@ -342,7 +375,10 @@ def run_servo_benchmark(cases: tuple[str, ...] = CASES, duration_s: float = 10.0
     loop = dataclasses.replace(loop, plant_node=dataclasses.replace(loop.plant_node,
                                                                     servo=opts))
     for case in cases:
-        if case == 'servo-alone':
+        if case == 'floor':
+            out['machine floor (bare spin)'] = {'floor': machine_floor(
+                duration_s, opts, round(period * 1e9))}
+        elif case == 'servo-alone':
             out[case] = _figures(*serve(make_servo(loop, duration_s), ros_side=False,
                                         opts=opts), loop, offline_rms)
         elif case == 'servo':
@@ -376,6 +412,12 @@ def format_table(result: dict[str, Any]) -> str:
              '| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |']
     notes = []
     for case, s in result.items():
+        if 'floor' in s:
+            f = s['floor']
+            notes.append(f'{case}: {f["gaps"]} gaps longer than a period in the clock reads, '
+                         f'{f["periods_lost"]} periods inside them, the longest '
+                         f'{f["max_gap_us"]} us')
+            continue
         if 'stalls' in s:
             notes += [f'{case}: {v["skipped"]} samples skipped: e_max {v["e_max_nm"]} nm over '
                       f'the 300 samples after, {v["after_nm"]} nm after those'
