@@ -16,6 +16,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import threading
 import time
@@ -391,6 +392,21 @@ def _loop_config():
     return loop_config()
 
 
+@pytest.mark.parametrize('spin_us, spins', [(200.0, True), (100.0, True), (30.0, False)])
+def test_the_stream_host_polls_its_socket_only_when_the_servo_spins(spin_us, spins):
+    from piezo_stage_ros.hardware.udp import UdpBridge, UdpStreamBridge
+    from piezo_stage_ros.nodes.servo import make_bridge
+    loop = _loop_config()
+    node = dataclasses.replace(loop.plant_node, mode='realtime', backend='udp_stream',
+                               servo=dataclasses.replace(loop.plant_node.servo,
+                                                         spin_us=spin_us))
+    bridge = make_bridge(loop.stage, node)  # nothing opened before start
+    assert isinstance(bridge, UdpStreamBridge) and bridge.spin is spins
+    assert bridge.answer.period_ns == 100_000
+    lockstep = make_bridge(loop.stage, dataclasses.replace(node, mode='lockstep', backend='udp'))
+    assert type(lockstep) is UdpBridge and lockstep.spin is False
+
+
 def _wait_for(condition, what: str, limit_s: float = 120.0) -> None:
     # a bound on a wait for a spawned process, not a timing figure: the test asserts nothing
     # on how long it took
@@ -541,7 +557,6 @@ def test_servo_process_reports_its_setup_while_it_runs():
     # the report of the real-time setup comes as soon as the setup ran, not with the figures:
     # a CPU that does not exist is refused (EINVAL), the interpreter's switch interval applied
     # (5000 us: CPython's default, nothing changes in the process)
-    import dataclasses
     base = _loop_config()
     servo = dataclasses.replace(base.plant_node.servo, cpu=1000, switch_interval_us=5000.0)
     loop = dataclasses.replace(base, plant_node=dataclasses.replace(base.plant_node,
