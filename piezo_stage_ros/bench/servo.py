@@ -140,20 +140,15 @@ def serve(servo: ServoLoop, *, ros_side: bool, opts: ServoParams
 
 def _figures(stats: dict[str, Any], got: list[ServoSample], loop: LoopConfig,
              offline_rms: float) -> dict[str, Any]:
-    return _array_figures(stats, np.array([s.k for s in got], dtype=np.float64),
-                          np.array([s.position_m for s in got]),
-                          np.array([s.reference_m for s in got]), loop, offline_rms)
-
-
-def _array_figures(stats: dict[str, Any], idx: np.ndarray, position_m: np.ndarray,
-                   reference_m: np.ndarray, loop: LoopConfig, offline_rms: float
-                   ) -> dict[str, Any]:
+    idx = np.array([x.k for x in got], dtype=np.float64)
+    position_m = np.array([x.position_m for x in got])
+    reference_m = np.array([x.reference_m for x in got])
     period = 1.0 / loop.stage.sample_rate_hz
     rms = steady_e_rms(idx, position_m, reference_m, period,
                        1.0 / loop.trajectory.sine.frequency_hz)
     keys = ('paced_samples', 'lateness_p50_us', 'lateness_p99_us', 'lateness_max_us',
-            'late_half_period', 'skipped', 'queue_overruns', 'sched_fifo', 'nice',
-            'rt_throttling')
+            'late_half_period', 'skipped', 'queue_overruns', 'ring_missed', 'sched_fifo',
+            'nice', 'rt_throttling')
     out = {k: stats.get(k) for k in keys}
     out['e_rms_nm'] = round(rms * 1e9, 2)
     out['offline_e_rms_nm'] = round(offline_rms * 1e9, 2)
@@ -163,53 +158,35 @@ def _array_figures(stats: dict[str, Any], idx: np.ndarray, position_m: np.ndarra
 
 
 def serve_process(loop: LoopConfig, duration_s: float
-                  ) -> tuple[dict[str, Any], np.ndarray, np.ndarray, int]:
+                  ) -> tuple[dict[str, Any], list[ServoSample]]:
     """
     Run the servo loop of ``loop`` in a process, as ``stage_servo --direct`` does.
 
     A :class:`~piezo_stage_ros.nodes.servo.ServoProcess`; this process plays the ROS side on
-    what it hands over.
-
-    Returns the loop's figures (with its real-time setup), the integer and float columns of
-    every sample read from the ring, and the samples the reader missed.
+    what it hands over (:meth:`~piezo_stage_ros.nodes.servo.ServoProcess.drain`, as the plant
+    node does, then the publishing work of :func:`serve`). Returns the loop's figures (with
+    its real-time setup and ``ring_missed``) and every sample read from the ring.
     """
-    position = JointStateEncoder(['stage'])
-    reference = JointStateEncoder(['stage'], with_velocity=True)
-    ints: list[np.ndarray] = []
-    floats: list[np.ndarray] = []
-    missed = 0
+    publish = _ros_side_work((JointStateEncoder(['stage']),
+                              JointStateEncoder(['stage'], with_velocity=True)))
+    got: list[ServoSample] = []
     process = ServoProcess(loop, duration_s)
     try:
         process.start()
         while True:
             alive = not process.finished
             time.sleep(0.005)
-            i, f, m = process.take()
-            missed += m
-            for row, values in zip(i.tolist(), f.tolist()):
-                # the work of publishing each sample: its messages as CDR bytes
-                sec, nanosec = divmod(row[1], 1_000_000_000)
-                position.encode(sec, nanosec, (values[0],))
-                reference.encode(sec, nanosec, (values[1],), (values[2],))
-                encode_float64(values[3])
-            ints.append(i)
-            floats.append(f)
+            batch = process.drain()
+            publish(batch)
+            got += batch
             if not alive:
                 break
         stats = dict(process.stop(timeout_s=30.0))
         stats.update(process.setup_report)
+        stats['ring_missed'] = process.missed
     finally:
         process.close()
-    return stats, np.concatenate(ints), np.concatenate(floats), missed
-
-
-def _process_figures(loop: LoopConfig, duration_s: float, offline_rms: float
-                     ) -> dict[str, Any]:
-    stats, ints, floats, missed = serve_process(loop, duration_s)
-    out = _array_figures(stats, ints[:, 0].astype(np.float64), floats[:, 0], floats[:, 1],
-                         loop, offline_rms)
-    out['ring_missed'] = missed
-    return out
+    return stats, got
 
 
 def run_bridge(loop: LoopConfig, duration_s: float, offline_rms: float) -> dict[str, Any]:
@@ -246,16 +223,13 @@ def run_bridge(loop: LoopConfig, duration_s: float, offline_rms: float) -> dict[
         node = dataclasses.replace(
             loop.plant_node, mode='realtime', backend='udp_stream',
             bridge=dataclasses.replace(loop.plant_node.bridge, port=port, timeout_s=1.0))
-        stats, ints, floats, missed = serve_process(
-            dataclasses.replace(loop, plant_node=node), duration_s)
+        stats, got = serve_process(dataclasses.replace(loop, plant_node=node), duration_s)
         lines += target.communicate(timeout=30)[0].splitlines(keepends=True)
     finally:
         if target.poll() is None:
             target.kill()
             target.wait()
-    out = _array_figures(stats, ints[:, 0].astype(np.float64), floats[:, 0], floats[:, 1],
-                         loop, offline_rms)
-    out['ring_missed'] = missed
+    out = _figures(stats, got, loop, offline_rms)
     for key in ('answer_p50_us', 'answer_p99_us', 'answer_max_us', 'lost', 'target_missing'):
         out[f'host_{key}' if key == 'lost' else key] = stats.get(f'bridge_{key}')
     out['target'] = ' '.join(line.strip() for line in lines
@@ -391,8 +365,8 @@ def run_servo_benchmark(cases: tuple[str, ...] = CASES, duration_s: float = 10.0
                            opts=dataclasses.replace(opts, switch_interval_us=interval)),
                     loop, offline_rms)
         elif case == 'servo-process':
-            out['servo process + ROS side in another'] = _process_figures(loop, duration_s,
-                                                                          offline_rms)
+            out['servo process + ROS side in another'] = _figures(
+                *serve_process(loop, duration_s), loop, offline_rms)
         elif case == 'bridge':
             out['bridge (paced emulator, host servo process)'] = run_bridge(
                 loop, duration_s, offline_rms)

@@ -211,13 +211,16 @@ class UdpBridge:
         if sock is None:
             raise BridgeError('UDP bridge: not open')
         spin = self.spin
+        if spin:
+            # poll without blocking until the deadline: no wake-up of a sleeping thread
+            # between the datagram and its reader; else block with a timeout
+            sock.settimeout(0.0)
         while True:
             remaining = deadline_s - time.monotonic()
             if remaining <= 0.0:
                 return None
-            # spinning: poll without blocking until the deadline (no wake-up of a sleeping
-            # thread between the datagram and its reader); else block with a timeout
-            sock.settimeout(0.0 if spin else remaining)
+            if not spin:
+                sock.settimeout(remaining)
             try:
                 data = sock.recv(64)
             except BlockingIOError:
