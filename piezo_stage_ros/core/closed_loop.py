@@ -142,6 +142,9 @@ def run(stage: Plant, controller: Controller, trajectory: Trajectory, *, duratio
     if isinstance(period, float) and period > 0.0:
         run_meta.setdefault('trajectory_period_s', period)
 
+    bind = getattr(controller, 'bind', None)
+    if callable(bind):
+        bind(trajectory)  # a feed-forward reads the reference ahead from the trajectory
     y = float(stage.reset(initial_position_m))
     xd0, _ = trajectory.evaluate(np.zeros(1))
     controller.reset(y, float(xd0[0]))

@@ -99,6 +99,8 @@ from typing import Mapping
 
 import numpy as np
 from piezo_stage_ros.core.errors import ParameterError
+from piezo_stage_ros.core.feedforward import FeedForwardController, FeedForwardParams
+from piezo_stage_ros.core.hysteresis import HysteresisModel, HysteresisParams, make_hysteresis
 from piezo_stage_ros.core.linear import LinearPlant
 from piezo_stage_ros.core.params import group, param, Params
 
@@ -312,6 +314,8 @@ class ControllerParams(Params):
     pi: PIParams = group(PIParams, 'PI baseline')
     open_loop: OpenLoopParams = group(OpenLoopParams, 'open-loop command')
     notch: NotchParams = group(NotchParams, 'notch filter on the command')
+    feedforward: FeedForwardParams = group(FeedForwardParams, 'feed-forward from the reference: '
+                                           'model inverse and learning across periods')
 
     def _check(self) -> None:
         if not self.output_min_v < self.output_max_v:
@@ -1063,8 +1067,10 @@ def _check_sample_time(sample_time_s: float) -> None:
 
 
 def build_controller(params: ControllerParams, sample_time_s: float,
-                     plant: LinearPlant | None = None
-                     ) -> RACController | PIController | OpenLoopController | NotchedController:
+                     plant: LinearPlant | None = None,
+                     hysteresis: HysteresisModel | None = None
+                     ) -> RACController | PIController | OpenLoopController | NotchedController \
+        | FeedForwardController:
     """
     Build the controller ``params.type`` names, with its notch filter if enabled.
 
@@ -1075,17 +1081,23 @@ def build_controller(params: ControllerParams, sample_time_s: float,
     sample_time_s : float
         Sample period T [s], > 0.
     plant : LinearPlant, optional
-        Model the notch is designed from when ``notch.mode == 'model'``.
+        Model the notch is designed from when ``notch.mode == 'model'``, and the feed-forward
+        inverts (required when ``feedforward.mode`` is not ``none``).
+    hysteresis : HysteresisModel, optional
+        Design hysteresis the feed-forward inverts; default the paper's stage.
 
     Returns
     -------
     Controller
-        An object implementing :class:`piezo_stage_ros.core.interfaces.Controller`.
+        An object implementing :class:`piezo_stage_ros.core.interfaces.Controller`; with
+        feed-forward a :class:`~piezo_stage_ros.core.feedforward.FeedForwardController` that
+        must be bound to the trajectory (``bind``) before it adds anything.
 
     Raises
     ------
     ParameterError
-        On a bad sample time, or a notch in ``model`` mode without a plant with a resonance.
+        On a bad sample time, a notch in ``model`` mode without a plant with a resonance, or
+        feed-forward without a plant model.
 
     """
     limits = {'output_min_v': params.output_min_v, 'output_max_v': params.output_max_v}
@@ -1101,9 +1113,18 @@ def build_controller(params: ControllerParams, sample_time_s: float,
     # what update_params compares a run-time change with
     inner._built = params
     coeffs = notch_design(params.notch, sample_time_s, plant)
-    if coeffs is None:
-        return inner
-    return NotchedController(inner, NotchFilter(*coeffs), **limits)
+    fb: RACController | PIController | OpenLoopController | NotchedController = inner
+    if coeffs is not None:
+        fb = NotchedController(inner, NotchFilter(*coeffs), **limits)
+    if params.feedforward.mode == 'none':
+        return fb
+    if plant is None:
+        raise ParameterError('feedforward.mode', params.feedforward.mode, "'none' without a "
+                             'plant model', 'needs the design model it inverts')
+    if hysteresis is None:
+        hysteresis = make_hysteresis(HysteresisParams())
+    return FeedForwardController(fb, params.feedforward, plant, hysteresis,
+                                 sensor_gain_v_per_m=params.sensor_gain_v_per_m, **limits)
 
 
 def notch_design(params: NotchParams, sample_time_s: float, plant: LinearPlant | None = None

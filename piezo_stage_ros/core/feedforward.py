@@ -1,0 +1,848 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+r"""
+Feed-forward from the known reference: inverse hysteresis, preview plant inversion, learning.
+
+A two-degree-of-freedom structure around any controller of
+:mod:`piezo_stage_ros.core.controllers` (RAC or PI, notched or not)::
+
+    v_lin,k = C(y_k, r_k) - N(s_k) + u_ff,k + L[k mod N]          (volts, "linear" input)
+    v_k     = H^-1(c v_lin,k)   clipped to the amplifier range
+
+- **u_ff** (``inverse``): the input the design model needs to follow the reference exactly,
+  w = G^-1 x_d, computed ahead of time from the reference (the trajectory is known). G(z) is the
+  zero-order-hold model from the hysteresis output w [V] to x [m]; its zeros outside the unit
+  circle are inverted anti-causally (stable inversion with a preview of a few samples), the
+  others causally. For a periodic reference with a whole number of samples per period the
+  inverse is taken exactly on the period's harmonics (W = X / G(e^{j w T})).
+- **s_k**, the feed-forward share of the inner controller: the RAC already contains a first-
+  order inverse, theta_hat y + phi_hat dy_d/dt (eq. (36)); at perfect tracking it would double
+  u_ff. Its share at the initial estimates, s = k (theta_0 x_d + phi_0 dx_d/dt), is subtracted
+  (through a copy of the notch when there is one): on the design model the RAC then adds
+  nothing at perfect tracking, and on another stage its adaptation still works on top of the
+  model inverse, (theta_hat - theta_0) y + (phi_hat - phi_0) dy_d/dt making up a gain or lag the
+  model lacks. The feedback part is untouched: (theta_hat - phi_hat lambda) e - k_d s - k*
+  sat(s/eps), the terms the stability check linearizes. A PI has no share (s = 0).
+- **H^-1** (``inverse``): the inverse of the design hysteresis w = H(v), applied to the whole
+  command, so that the plant seen from v_lin is c G with no hysteresis (c the model's slope,
+  which keeps the RAC's estimates at their model values). Exact for backlash-like hysteresis
+  (Newton on its closed-form jump solution, to 1e-12 V) and solved to the same tolerance by
+  safeguarded secant steps for the other models.
+- **L** (``learning``): iterative learning across periods of a periodic reference. After each
+  period j the table is updated on the harmonics: L_{j+1} = Q (L_j - gamma E_j / P_s), with E_j
+  the measured error of that period and P_s = c G / (1 + N C k c G) the closed-loop process
+  sensitivity of the design model (the controller linearized as the stability check does).
+  Q keeps the harmonics below ``learning_bandwidth_hz``; on the design model each kept harmonic
+  converges monotonically with ratio |1 - gamma|; on another stage the ratio is
+  |1 - gamma P_true / P_s| (:func:`learning_convergence`).
+- **Jumps** (``inverse`` modes): an ideal jump cannot be followed; each jump of the reference is
+  replaced by the quintic S-curve of ``transition_s`` starting at it (nothing moves before the
+  jump is due), and the inner controller tracks that path.
+
+The reference comes from the trajectory object the wrapper is bound to
+(:meth:`FeedForwardController.bind`): the offline runner and the nodes hold the same one, and
+the reference each step receives is checked against it (a mismatch, a trajectory changed
+elsewhere, turns the feed-forward off until the next bind, counted in ``ff_mismatches``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+from typing import Any, Callable, Mapping
+
+import numpy as np
+from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
+from piezo_stage_ros.core.hysteresis import BacklashLike, HysteresisModel, NoHysteresis
+from piezo_stage_ros.core.interfaces import Trajectory
+from piezo_stage_ros.core.linear import LinearPlant
+from piezo_stage_ros.core.params import param, Params
+from piezo_stage_ros.core.trajectories import s_curve
+from piezo_stage_ros.core.types import ComplexArray, FloatArray
+
+__all__ = ['FeedForwardController', 'FeedForwardParams', 'HysteresisInverse', 'MODES',
+           'PreviewInverse', 'feedback_gains', 'learning_convergence', 'make_hysteresis_inverse',
+           'process_sensitivity', 'shape_jumps']
+
+#: The feed-forward modes.
+MODES = ('none', 'inverse', 'learning', 'inverse_learning')
+
+
+@dataclass(frozen=True)
+class FeedForwardParams(Params):
+    """Feed-forward from the reference: model inverse and learning across periods."""
+
+    mode: str = param('none', unit='-', description='none: feedback only (the paper); inverse: '
+                      'inverse hysteresis and preview inversion of the design model; '
+                      'learning: iterative learning across periods of a periodic reference; '
+                      'inverse_learning: both.', choices=MODES, read_only=True)
+    preview_samples: int = param(40, unit='samples', description='Length of the anti-causal '
+                                 'part of the stable inverse (zeros of the sampled model '
+                                 'outside the unit circle); the reference is read this many '
+                                 'samples (plus the model delay) ahead.', low=1, high=1000)
+    block_samples: int = param(256, unit='samples', description='Aperiodic references: the '
+                               'feed-forward is computed this many samples at a time.', low=16,
+                               high=100000)
+    transition_s: float = param(1e-3, unit='s', description='Inverse modes: each ideal jump of '
+                                'the reference is replaced by a quintic S-curve of this '
+                                'duration starting at it (0: jumps are passed on as they are).',
+                                low=0.0, high=0.1)
+    learning_gain: float = param(0.5, unit='-', description='Learning gain gamma: the share of '
+                                 "a period's error removed at the next period on the design "
+                                 'model.', low=0.0, low_open=True, high=1.0)
+    learning_bandwidth_hz: float = param(1500.0, unit='Hz', description='Robustness filter Q: '
+                                         'harmonics of the period above this frequency are '
+                                         'not learned.', low=0.0, low_open=True)
+    learning_start_periods: int = param(1, unit='periods', description='Whole periods run '
+                                        'before the first update (the start transient is not '
+                                        'periodic).', low=0, high=1000)
+    learning_limit_v: float = param(3.0, unit='V', description='Bound on every entry of the '
+                                    'learned table.', low=0.0, low_open=True)
+    period_s: float = param(0.0, unit='s', description='Period learned over (0: the '
+                            "trajectory's own period).", low=0.0)
+
+    @property
+    def inverse(self) -> bool:
+        """Return whether the model inverse is on."""
+        return self.mode in ('inverse', 'inverse_learning')
+
+    @property
+    def learning(self) -> bool:
+        """Return whether learning is on."""
+        return self.mode in ('learning', 'inverse_learning')
+
+
+# --------------------------------------------------------------------------------------------
+# Inverse hysteresis
+
+
+class HysteresisInverse:
+    """
+    The inverse of a hysteresis model w = H(v), stepped with the commands actually applied.
+
+    :meth:`invert` returns the input whose output, from the present state, is the target;
+    :meth:`commit` advances the state with the input that was applied (clipped).
+
+    Parameters
+    ----------
+    model : HysteresisModel
+        The design model.
+    tolerance_v : float
+        Output tolerance of the solve [V].
+
+    """
+
+    def __init__(self, model: HysteresisModel, tolerance_v: float = 1e-12) -> None:
+        self.model = model
+        self.tolerance_v = tolerance_v
+        self.slope = float(model.slope)
+        self._state: Any = None
+        self._w = 0.0
+        self.iterations = 0
+        self.reset(0.0)
+
+    def reset(self, v0: float) -> None:
+        """Start at rest at input ``v0`` [V] (the stage's own rest state)."""
+        self._state = self.model.rest_state(float(v0))
+        _, w = self.model.step(self._state, float(v0))
+        self._v = float(v0)
+        self._w = float(w)
+
+    @property
+    def output_v(self) -> float:
+        """Return the model output w at the last committed input [V]."""
+        return self._w
+
+    def output_at(self, v: float) -> float:
+        """Return the output w the model would give for input ``v`` now [V]."""
+        return float(self.model.step(self._state, float(v))[1])
+
+    def invert(self, w_target: float) -> float:
+        """Return v with H(v) = ``w_target`` from the present state (safeguarded secant)."""
+        w0 = self._w
+        if w_target == w0:
+            return self._v
+        f = self.output_at
+        slope = self.slope if self.slope > 0.0 else 1.0
+        # bracket: the output is increasing in the input
+        lo, hi = self._v, self._v + (w_target - w0) / slope
+        f_lo, f_hi = w0 - w_target, f(hi) - w_target
+        grow = (w_target - w0) / slope
+        while f_hi * f_lo > 0.0:
+            lo, f_lo = hi, f_hi
+            grow *= 2.0
+            hi = hi + grow
+            f_hi = f(hi) - w_target
+            if abs(grow) > 1e6:
+                raise PiezoStageError(f'inverse hysteresis: no input gives w = {w_target:g} V')
+        side = 0
+        for _ in range(200):
+            self.iterations += 1
+            # regula falsi, Illinois variant: superlinear and never leaves the bracket
+            x = hi - f_hi * (hi - lo) / (f_hi - f_lo)
+            fx = f(x) - w_target
+            if abs(fx) <= self.tolerance_v or x in (lo, hi):
+                return x
+            if fx * f_hi < 0.0:
+                lo, f_lo = hi, f_hi
+                if side == -1:
+                    f_lo *= 0.5
+                side = -1
+            else:
+                if side == 1:
+                    f_lo *= 0.5
+                side = 1
+            hi, f_hi = x, fx
+        return hi
+
+    def commit(self, v: float) -> None:
+        """Advance the model with the input that was applied [V]."""
+        self._state, w = self.model.step(self._state, float(v))
+        self._v = float(v)
+        self._w = float(w)
+
+
+class BacklashInverse(HysteresisInverse):
+    """
+    The exact inverse of dynamic backlash-like hysteresis, eq. (21).
+
+    Across a jump dv from the state (v0, e0): w(dv) = c (v0 + dv) + e0 exp(-alpha |dv|) +
+    sign(dv) (B1 - c)/alpha (1 - exp(-alpha |dv|)), increasing in dv (its slope is at least
+    B1 - alpha rho > 0), smooth on each side of 0: the side is the sign of w_target - w0, and
+    Newton's method on that branch converges to machine precision in a few steps.
+    """
+
+    def __init__(self, model: BacklashLike, tolerance_v: float = 1e-12) -> None:
+        p = model.params
+        self._alpha = p.alpha
+        self._c = p.c
+        self._shift = (p.b1 - p.c) / p.alpha
+        self._e = 0.0
+        super().__init__(model, tolerance_v)
+
+    def reset(self, v0: float) -> None:
+        """Start at rest at ``v0`` with e = 0 (the stage's rest state)."""
+        self._v = float(v0)
+        self._e = 0.0
+        self._w = self._c * self._v
+
+    def output_at(self, v: float) -> float:
+        """Return w for input ``v`` now [V]."""
+        dv = v - self._v
+        decay = math.exp(-self._alpha * abs(dv))
+        return self._c * v + self._e * decay + self._shift * math.copysign(1.0 - decay, dv)
+
+    def invert(self, w_target: float) -> float:
+        """Return v with H(v) = ``w_target`` (Newton on the branch of the jump's sign)."""
+        c, alpha, shift, e0, v0 = self._c, self._alpha, self._shift, self._e, self._v
+        dw = w_target - (c * v0 + e0)
+        if dw == 0.0:
+            return v0
+        sgn = 1.0 if dw > 0.0 else -1.0
+        a = sgn * shift - e0
+        # w(dv) - w0 = c dv + a (1 - exp(-alpha |dv|)) for dv of sign sgn
+        dv = dw / (c + alpha * a) if c + alpha * a > 0.0 else dw / c
+        if dv * sgn < 0.0:
+            dv = 0.0
+        exp = math.exp
+        for _ in range(30):
+            self.iterations += 1
+            decay = exp(-alpha * sgn * dv)
+            g = c * dv + a * (1.0 - decay) - dw
+            step = g / (c + alpha * a * decay)
+            dv -= step
+            if dv * sgn < 0.0:
+                dv = 0.0
+            if abs(step) <= 1e-15 * (1.0 + abs(dv)):
+                break
+        return v0 + dv
+
+    def commit(self, v: float) -> None:
+        """Advance the state across the jump to the applied input ``v`` [V]."""
+        dv = v - self._v
+        decay = math.exp(-self._alpha * abs(dv))
+        self._e = self._e * decay + self._shift * math.copysign(1.0 - decay, dv)
+        self._v = v
+        self._w = self._c * v + self._e
+
+
+class _Identity(HysteresisInverse):
+    """No hysteresis: v = w."""
+
+    def invert(self, w_target: float) -> float:
+        return w_target
+
+    def commit(self, v: float) -> None:
+        self._v = self._w = v
+
+
+def make_hysteresis_inverse(model: HysteresisModel) -> HysteresisInverse:
+    """Return the inverse of ``model`` (exact for backlash-like, solved for the others)."""
+    if isinstance(model, BacklashLike):
+        return BacklashInverse(model)
+    if isinstance(model, NoHysteresis):
+        return _Identity(model)
+    return HysteresisInverse(model)
+
+
+# --------------------------------------------------------------------------------------------
+# Stable inversion of the sampled linear model
+
+
+def _zoh_tf(plant: LinearPlant, sample_time_s: float) -> tuple[FloatArray, FloatArray]:
+    """Return (num, den) of the ZOH G(z) from w [V] to x [m], powers of z, highest first."""
+    from scipy.signal import ss2tf
+    d = plant.discretize(sample_time_s)
+    num, den = ss2tf(d.ad, d.bd[:, :1], d.c[None, :], np.zeros((1, 1)))
+    num = np.asarray(num, dtype=np.float64).ravel()
+    den = np.asarray(den, dtype=np.float64).ravel()
+    # ss2tf pads the numerator to the denominator's length: drop its leading (near) zeros
+    scale = float(np.max(np.abs(num)))
+    first = int(np.argmax(np.abs(num) > 1e-9 * scale))
+    return num[first:], den
+
+
+class PreviewInverse:
+    """
+    A stable inverse of the sampled model G(z) from w [V] to x [m], with preview.
+
+    With G(z) = b0 prod(z - z_i) / A(z) of relative degree d, the input that makes x follow
+    x_d is w = A(z) / (b0 prod(z - z_i)) x_d: a causal filter for the zeros inside the unit
+    circle, an anti-causal one (a power series in z, truncated after ``preview`` terms) for
+    those outside. w_k needs x_d up to k + :attr:`lead`.
+
+    Parameters
+    ----------
+    plant : LinearPlant
+        The design model.
+    sample_time_s : float
+        T [s].
+    preview : int
+        Terms of the anti-causal series.
+
+    """
+
+    def __init__(self, plant: LinearPlant, sample_time_s: float, preview: int = 40) -> None:
+        from scipy.signal import lfilter_zi
+        num, den = _zoh_tf(plant, sample_time_s)
+        self.num, self.den = num, den
+        self.sample_time_s = sample_time_s
+        zeros = np.asarray(np.roots(num) if len(num) > 1 else np.zeros(0), dtype=np.complex128)
+        inside: ComplexArray = zeros[np.abs(zeros) < 1.0]
+        outside: ComplexArray = zeros[np.abs(zeros) >= 1.0]
+        self.zeros_inside = inside
+        self.zeros_outside = outside
+        n = len(den) - 1
+        m_in = len(inside)
+        self.delay = n - len(zeros)
+        # anti-causal series of 1/prod(q - z_o) in powers of the forward shift q
+        p_asc = np.real(np.poly(outside))[::-1] if len(outside) else np.ones(1)
+        series = np.zeros(preview if len(outside) else 1)
+        series[0] = 1.0 / p_asc[0]
+        for j in range(1, len(series)):
+            acc = sum(p_asc[i] * series[j - i] for i in range(1, min(j, len(p_asc) - 1) + 1))
+            series[j] = -acc / p_asc[0]
+        self.truncation = float(abs(series[-1]) / max(abs(series[0]), 1e-300)) \
+            if len(outside) else 0.0
+        # one FIR on the reference ahead: taps h_j on x_{k - m_in + j}, j = 0 .. n + P - 1
+        # (the denominator A(q) = sum a_i q^(n - i) applied first, then the series)
+        a_fwd = den[::-1]  # a_fwd[j] multiplies x_{k + j}
+        self.taps = np.convolve(series, a_fwd) / num[0]
+        self.iir = np.real(np.poly(inside)) if m_in else np.ones(1)
+        self._zi_unit = lfilter_zi(np.ones(1), self.iir) if m_in else np.zeros(0)
+        self.back = m_in
+        #: Samples of the reference ahead of k that w_k needs.
+        self.lead = len(self.taps) - 1 - m_in
+        self.dc_gain = float(np.sum(num) / np.sum(den))
+
+    def frequency_response(self, z: ComplexArray) -> ComplexArray:
+        """Return G(z) [m/V]."""
+        return np.asarray(np.polyval(self.num, z) / np.polyval(self.den, z),
+                          dtype=np.complex128)
+
+    def start(self, x0: float) -> Any:
+        """Return the filter state of a reference at rest at ``x0`` before the start."""
+        fir_rest = float(np.sum(self.taps)) * x0
+        return self._zi_unit * fir_rest
+
+    def block(self, x: FloatArray, state: Any) -> tuple[FloatArray, Any]:
+        """
+        Return w for the samples x[back : len(x) - lead] and the new state.
+
+        ``x`` holds the reference from ``back`` samples before the first output to ``lead``
+        samples after the last one.
+        """
+        from scipy.signal import lfilter
+        fir = np.correlate(x, self.taps, mode='valid')
+        if self.back:
+            out, state = lfilter(np.ones(1), self.iir, fir, zi=state)
+            return np.asarray(out, dtype=np.float64), state
+        return fir, state
+
+    def periodic(self, x: FloatArray) -> FloatArray:
+        """Return the exact periodic inverse of one period ``x`` (harmonic by harmonic)."""
+        n = len(x)
+        spectrum = np.fft.rfft(x)
+        z = np.exp(2j * math.pi * np.arange(len(spectrum)) / n)
+        g = self.frequency_response(z)
+        tiny = 1e-9 * abs(self.dc_gain)
+        w = np.where(np.abs(g) > tiny, spectrum / np.where(np.abs(g) > tiny, g, 1.0), 0.0)
+        return np.asarray(np.fft.irfft(w, n), dtype=np.float64)
+
+
+# --------------------------------------------------------------------------------------------
+# Learning
+
+
+def feedback_gains(controller: Any) -> tuple[float, float]:
+    """
+    Return (k_p [V/V], k_i [1/s]) of the controller linearized at its present state.
+
+    The RAC inside its boundary layer: k_p = k_d + k*/eps + phi_hat lambda - theta_hat,
+    k_i = (k_d + k*/eps) lambda, on the sensor-volt error, as the stability check linearizes
+    it; the PI: its gains; open loop: none.
+    """
+    inner = getattr(controller, 'inner', controller)
+    p = getattr(inner, 'params', None)
+    if p is None:
+        return 0.0, 0.0
+    if hasattr(p, 'k_star_v'):
+        k = p.k_d + p.k_star_v / p.epsilon_v
+        return k + inner._phi * p.lambda_per_s - inner._theta, k * p.lambda_per_s
+    if hasattr(p, 'k_p'):
+        return p.k_p, p.k_i
+    return 0.0, 0.0
+
+
+def process_sensitivity(g: ComplexArray, z: ComplexArray, k_p: float, k_i: float,
+                        sensor_gain_v_per_m: float, sample_time_s: float,
+                        notch: tuple[Any, Any] | None = None) -> ComplexArray:
+    """
+    Return P_s(z) = G / (1 + N C k G): from a voltage added to the command to the position.
+
+    Parameters
+    ----------
+    g : ndarray
+        The plant seen from that voltage, c G(z) [m/V], at ``z``.
+    z : ndarray
+        Points on the unit circle.
+    k_p, k_i : float
+        Linearized controller C(z) = k_p + k_i T z/(z - 1) on the sensor-volt error.
+    sensor_gain_v_per_m : float
+        k [V/m].
+    sample_time_s : float
+        T [s].
+    notch : tuple, optional
+        ``(num, den)`` of the notch on the controller's output.
+
+    """
+    with np.errstate(divide='ignore', invalid='ignore'):
+        c = k_p + (k_i * sample_time_s * z / (z - 1.0) if k_i else 0.0)
+        if notch is not None:
+            c = c * np.polyval(notch[0], z) / np.polyval(notch[1], z)
+        loop = c * sensor_gain_v_per_m * g
+        ps = g / (1.0 + loop)
+    return np.asarray(np.where(np.isfinite(ps), ps, 0.0), dtype=np.complex128)
+
+
+def learning_convergence(design_ps: ComplexArray, true_ps: ComplexArray, gain: float,
+                         kept: FloatArray) -> float:
+    """
+    Return the largest per-period contraction max |Q (1 - gamma P_true / P_design)|.
+
+    Below 1, every learned harmonic converges monotonically on the true stage; the design
+    model itself gives |1 - gamma|.
+    """
+    with np.errstate(divide='ignore', invalid='ignore'):
+        ratio = np.abs(kept * (1.0 - gain * true_ps / design_ps))
+    ratio = ratio[kept > 0.0]
+    return float(np.max(ratio)) if ratio.size else 0.0
+
+
+# --------------------------------------------------------------------------------------------
+# Jumps
+
+
+def shape_jumps(x: FloatArray, v: FloatArray, sample_time_s: float, transition_s: float,
+                tolerance_m: float = 1e-9) -> tuple[FloatArray, FloatArray, int]:
+    """
+    Replace each ideal jump of a sampled reference by a quintic S-curve starting at it.
+
+    A jump is a step x_{k+1} - x_k that its velocity does not explain by more than
+    ``tolerance_m``. Returns the shaped position and velocity and the number of jumps; the
+    reference is unchanged outside [t_jump, t_jump + transition_s] of each jump.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
+    if transition_s <= 0.0 or len(x) < 2:
+        return x, v, 0
+    explained = 0.5 * sample_time_s * (v[1:] + v[:-1])
+    jump = np.diff(x) - explained
+    where = np.flatnonzero(np.abs(jump) > tolerance_m)
+    if where.size == 0:
+        return x, v, 0
+    xs, vs = x.copy(), v.copy()
+    idx = np.arange(len(x), dtype=np.float64)
+    width = transition_s / sample_time_s
+    for j in where:
+        size = jump[j]
+        start = j + 0.5  # halfway between the two samples the ideal jump falls between
+        q, dq = s_curve((idx - start) / width)
+        step = (idx > start).astype(np.float64)
+        xs += size * (q - step)
+        vs += size * dq / transition_s
+    return xs, vs, int(where.size)
+
+
+# --------------------------------------------------------------------------------------------
+# The wrapper
+
+
+class FeedForwardController:
+    """
+    Feed-forward (model inverse, learning) around a feedback controller; see the module doc.
+
+    Parameters
+    ----------
+    inner : Controller
+        The feedback controller (RAC, PI, notched or not) as :func:`build_controller` builds it.
+    params : FeedForwardParams
+        Mode and settings.
+    plant : LinearPlant
+        Design model of the linear part (w [V] to x [m]).
+    hysteresis : HysteresisModel
+        Design model of the hysteresis.
+    sensor_gain_v_per_m : float
+        k of the controller [V/m].
+    output_min_v, output_max_v : float
+        Amplifier input range [V].
+
+    """
+
+    def __init__(self, inner: Any, params: FeedForwardParams, plant: LinearPlant,
+                 hysteresis: HysteresisModel, *, sensor_gain_v_per_m: float,
+                 output_min_v: float, output_max_v: float) -> None:
+        if params.mode == 'none':
+            raise ParameterError('feedforward.mode', 'none', str(MODES[1:]),
+                                 'builds no feed-forward wrapper')
+        self.inner = inner
+        self.params = params
+        self._t = float(inner.sample_time_s)
+        self._ksens = float(sensor_gain_v_per_m)
+        self._vmin = float(output_min_v)
+        self._vmax = float(output_max_v)
+        self._inverse_on = params.inverse
+        self._learning_on = params.learning
+        self.plant_inverse = PreviewInverse(plant, self._t, params.preview_samples)
+        # the plant seen from v_lin: c G with the compensator (inverse modes), about c G
+        # (hysteresis slope) without
+        self.slope = float(hysteresis.slope) if not isinstance(hysteresis, NoHysteresis) \
+            else 1.0
+        self.hysteresis_inverse: HysteresisInverse | None = \
+            make_hysteresis_inverse(hysteresis) if self._inverse_on else None
+        rac = getattr(getattr(inner, 'inner', inner), 'params', None)
+        self._rac = getattr(inner, 'inner', inner) if hasattr(rac, 'k_star_v') else None
+        self._theta0 = self._phi0 = 0.0
+        self._set_share()
+        notch = getattr(inner, 'notch', None)
+        self._notch_coeffs = None if notch is None else (notch.num, notch.den)
+        self._share_notch: Any = None
+        if notch is not None:
+            self._share_notch = type(notch)(notch.num, notch.den)
+        self._share_fresh = True
+        self._trajectory: Trajectory | None = None
+        self.mismatches = 0
+        self.periods_learned = 0
+        self.jumps = 0
+        self.last_period_rms_m = math.nan
+        self._period_n = 0
+        self._table_x: FloatArray = np.zeros(0)
+        self._table_x_raw: FloatArray = np.zeros(0)
+        self._table_v: FloatArray = np.zeros(0)
+        self._table_w: FloatArray = np.zeros(0)
+        self._learned: FloatArray = np.zeros(0)
+        self._errors: FloatArray = np.zeros(0)
+        self._ps: ComplexArray = np.zeros(0, dtype=np.complex128)
+        self._kept: FloatArray = np.zeros(0)
+        self._ps_n = 0
+        self._block_start = 0
+        self._filter_state: Any = None
+        self._k = 0
+        self._active = False
+        self._matched = False
+        self._u = 0.0
+        self._fresh = True
+
+    # -- the Controller interface --------------------------------------------------------
+
+    @property
+    def sample_time_s(self) -> float:
+        """Return the sample period [s]."""
+        return self._t
+
+    def bind(self, trajectory: Trajectory) -> None:
+        """
+        Take the reference ahead from ``trajectory`` (t = 0 at the first step after reset).
+
+        A new trajectory starts the learned table afresh.
+        """
+        self._trajectory = trajectory
+        period = self.params.period_s or getattr(trajectory, 'period_s', None) or 0.0
+        n = int(round(period / self._t)) if period > 0.0 else 0
+        exact = n >= 4 and abs(n * self._t - period) <= 1e-9 * period
+        if self._learning_on and not exact:
+            raise ParameterError('feedforward.period_s', period,
+                                 'a period of a whole number (>= 4) of samples',
+                                 'learning needs a periodic reference')
+        self._period_n = n if exact else 0
+        self._learned = np.zeros(self._period_n)
+        self._errors = np.zeros(self._period_n)
+        self.periods_learned = 0
+        self._prepare_tables()
+
+    def reset(self, position_m: float, reference_m: float,
+              output_v: float | None = None) -> None:
+        """Reset the inner controller and restart the feed-forward at sample 0."""
+        self.inner.reset(position_m, reference_m, output_v)
+        self._u = self.inner._u
+        self._k = 0
+        self._fresh = True
+        self._share_fresh = True
+        self._active = self._trajectory is not None
+        if self.hysteresis_inverse is not None:
+            # the stage rests with w = c v: the compensator starts where the stage does
+            hyst = self.hysteresis_inverse
+            hyst.reset(position_m / (self.plant_inverse.dc_gain * hyst.slope)
+                       if hyst.slope > 0 else 0.0)
+        if self._trajectory is not None and self._period_n == 0:
+            self._prepare_tables()
+
+    def step(self, position_m: float, reference_m: float, reference_velocity_mps: float,
+             dt_s: float | None = None) -> float:
+        """Return the command [V]: feedback plus feed-forward, through the inverse hysteresis."""
+        k = self._k
+        if dt_s is not None and dt_s > 0.0:
+            # real time: a skipped sample advances the reference index too
+            k += max(int(round(dt_s / self._t)) - 1, 0) if not self._fresh else 0
+        self._fresh = False
+        self._k = k + 1
+        if not self._active:
+            return self._plain(position_m, reference_m, reference_velocity_mps, dt_s)
+        n = self._period_n
+        i = k % n if n else k - self._block_start
+        if not n and i >= len(self._table_x):
+            self._next_block(k)
+            i = k - self._block_start
+        xd = self._table_x_raw[i]
+        if abs(reference_m - xd) > 1e-12 + 1e-9 * abs(xd):
+            # not the reference bound (a periodic trajectory's first period that is not yet
+            # periodic, or a trajectory changed elsewhere): feedback alone for this sample
+            self.mismatches += 1
+            self._matched = False
+            return self._plain(position_m, reference_m, reference_velocity_mps, dt_s)
+        self._matched = True
+        x_ref = self._table_x[i]
+        v_ref = self._table_v[i]
+        inner = self.inner
+        u = inner.step(position_m, x_ref, v_ref, dt_s)
+        if self._inverse_on:
+            share = (self._theta0 * x_ref + self._phi0 * v_ref) * self._ksens \
+                if self._rac is not None else 0.0
+            notch = self._share_notch
+            if notch is not None:
+                if self._share_fresh:
+                    notch.reset(share)
+                    self._share_fresh = False
+                share = notch.step(share)
+            u = u - share + self._table_w[i]
+        if self._learning_on:
+            u += self._learned[i]
+            err = self._errors
+            err[i] = position_m - xd
+            if i == n - 1:
+                self._learn(k)
+        hyst = self.hysteresis_inverse
+        if hyst is not None:
+            v = hyst.invert(self.slope * u)
+            v = self._vmax if v > self._vmax else (self._vmin if v < self._vmin else v)
+            hyst.commit(v)
+        else:
+            v = self._vmax if u > self._vmax else (self._vmin if u < self._vmin else u)
+        self._u = v
+        return v
+
+    def _set_share(self) -> None:
+        """Take the RAC's initial estimates as the share the model inverse replaces."""
+        if self._rac is not None:
+            self._theta0 = self._rac.params.theta_init
+            self._phi0 = self._rac.params.phi_init
+
+    def _plain(self, position_m: float, reference_m: float, reference_velocity_mps: float,
+               dt_s: float | None) -> float:
+        """Feedback alone (still through the hysteresis compensator: no jump of the command)."""
+        u = float(self.inner.step(position_m, reference_m, reference_velocity_mps, dt_s))
+        hyst = self.hysteresis_inverse
+        if hyst is not None:
+            u = hyst.invert(self.slope * u)
+            u = self._vmax if u > self._vmax else (self._vmin if u < self._vmin else u)
+            hyst.commit(u)
+        self._share_fresh = True
+        self._u = u
+        return u
+
+    # -- tables ----------------------------------------------------------------------------
+
+    def _evaluate(self, first: int, count: int) -> tuple[FloatArray, FloatArray]:
+        """Return x_d, x_d' at samples first .. first + count - 1 (held at t = 0 before it)."""
+        assert self._trajectory is not None
+        idx = np.arange(first, first + count, dtype=np.float64)
+        t = np.maximum(idx, 0.0) * self._t
+        x, v = self._trajectory.evaluate(t)
+        x = np.asarray(x, dtype=np.float64).copy()
+        v = np.asarray(v, dtype=np.float64).copy()
+        v[idx < 0.0] = 0.0
+        return x, v
+
+    def _shape(self, x: FloatArray, v: FloatArray) -> tuple[FloatArray, FloatArray]:
+        if not self._inverse_on:
+            return x, v
+        xs, vs, jumps = shape_jumps(x, v, self._t, self.params.transition_s)
+        self.jumps += jumps
+        return xs, vs
+
+    def _prepare_tables(self) -> None:
+        self._share_fresh = True
+        n = self._period_n
+        if n:
+            # one period taken from the second: a trajectory may start with a first period
+            # that is not yet periodic (a square wave's first transition); those samples are
+            # told apart by the reference check in step
+            x, v = self._evaluate(n, n)
+            # a jump across the period's end is a jump too: shape on three periods, keep the
+            # middle one
+            x3, v3 = self._shape(np.tile(x, 3), np.tile(v, 3))
+            self._table_x_raw = x
+            self._table_x = np.ascontiguousarray(x3[n:2 * n])
+            self._table_v = np.ascontiguousarray(v3[n:2 * n])
+            self._table_w = self.plant_inverse.periodic(self._table_x) / self.slope \
+                if self._inverse_on else np.zeros(n)
+            return
+        self._block_start = 0
+        self._filter_state = None
+        self._table_x = np.zeros(0)
+        self._table_x_raw = np.zeros(0)
+
+    def _next_block(self, k: int) -> None:
+        """Compute the feed-forward of samples k .. k + block - 1 (aperiodic references)."""
+        inv = self.plant_inverse
+        size = self.params.block_samples
+        half = int(math.ceil(self.params.transition_s / self._t)) + 2 \
+            if self._inverse_on else 0
+        first = k - inv.back - half
+        raw_x, raw_v = self._evaluate(first, size + inv.back + inv.lead + 2 * half)
+        xs, vs = self._shape(raw_x, raw_v)
+        core = slice(inv.back + half, inv.back + half + size)
+        self._table_x_raw = raw_x[core]
+        self._table_x = xs[core]
+        self._table_v = vs[core]
+        if self._inverse_on:
+            seq = xs[half:len(xs) - half]
+            if self._filter_state is None:
+                self._filter_state = inv.start(float(seq[0]))
+            w, self._filter_state = inv.block(seq, self._filter_state)
+            self._table_w = w / self.slope
+        else:
+            self._table_w = np.zeros(size)
+        self._block_start = k
+
+    # -- learning ----------------------------------------------------------------------------
+
+    def _design_ps(self) -> tuple[ComplexArray, FloatArray]:
+        n = self._period_n
+        harmonics = np.arange(n // 2 + 1)
+        z = np.exp(2j * math.pi * harmonics / n)
+        g = self.slope * self.plant_inverse.frequency_response(z) if self._inverse_on else \
+            self.slope * self.plant_inverse.frequency_response(z)
+        k_p, k_i = feedback_gains(self.inner)
+        ps = process_sensitivity(g, z, k_p, k_i, self._ksens, self._t, self._notch_coeffs)
+        freq = harmonics / (n * self._t)
+        kept = ((freq > 0.0) & (freq <= self.params.learning_bandwidth_hz)
+                & (np.abs(ps) > 0.0)).astype(np.float64)
+        return ps, kept
+
+    def _learn(self, k: int) -> None:
+        """End of a period: update the learned table from the period's errors."""
+        n = self._period_n
+        period = k // n
+        err = self._errors
+        self.last_period_rms_m = float(np.sqrt(np.mean(err * err)))
+        if period < self.params.learning_start_periods:
+            return
+        if self._ps_n != n:
+            self._ps, self._kept = self._design_ps()
+            self._ps_n = n
+        e_hat = np.fft.rfft(err)
+        with np.errstate(divide='ignore', invalid='ignore'):
+            update = np.where(self._kept > 0.0, e_hat / np.where(self._kept > 0.0, self._ps, 1.0),
+                              0.0)
+        spectrum = np.fft.rfft(self._learned) * self._kept - self.params.learning_gain * update
+        table = np.fft.irfft(spectrum, n)
+        limit = self.params.learning_limit_v
+        self._learned = np.clip(table, -limit, limit)
+        self.periods_learned += 1
+
+    # -- tables for others ---------------------------------------------------------------------
+
+    def learned_table(self) -> FloatArray:
+        """Return a copy of the learned table (one period) [V]."""
+        return self._learned.copy()
+
+    def load_table(self, table: FloatArray) -> None:
+        """Start from a saved learned table (same period) [V]."""
+        table = np.asarray(table, dtype=np.float64)
+        if table.shape != (self._period_n,):
+            raise ParameterError('learned table', f'{table.shape[0]} samples',
+                                 f'{self._period_n} samples (one period)', 'has the wrong length')
+        self._learned = np.clip(table, -self.params.learning_limit_v,
+                                self.params.learning_limit_v)
+
+    # -- diagnostics -----------------------------------------------------------------------
+
+    @property
+    def diagnostic_names(self) -> tuple[str, ...]:
+        """Return the inner controller's names and the feed-forward's."""
+        return tuple(getattr(self.inner, 'diagnostic_names', ())) + (
+            'ff_active', 'ff_mismatches', 'ff_periods_learned', 'ff_period_rms_m')
+
+    def diagnostic_values(self) -> tuple[float, ...]:
+        """Return the values of :attr:`diagnostic_names`."""
+        return tuple(self.inner.diagnostic_values()) + (
+            1.0 if self._active and self._matched else 0.0, float(self.mismatches),
+            float(self.periods_learned), self.last_period_rms_m)
+
+    def diagnostics(self) -> Mapping[str, float]:
+        """Return the diagnostics as a mapping."""
+        return dict(zip(self.diagnostic_names, self.diagnostic_values()))
+
+    def update_params(self, params: Any) -> bool:
+        """Pass gains to the inner controller when the feed-forward settings stay."""
+        ff = getattr(params, 'feedforward', None)
+        if ff is not None and ff != self.params:
+            return False
+        update: Callable[[Any], bool] | None = getattr(self.inner, 'update_params', None)
+        applied = bool(update(params)) if update is not None else False
+        if applied:
+            self._set_share()
+        return applied
