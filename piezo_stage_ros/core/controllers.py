@@ -95,7 +95,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import math
-from typing import Mapping
+from typing import Any, Mapping
 
 import numpy as np
 from piezo_stage_ros.core.errors import ParameterError
@@ -1125,6 +1125,23 @@ def build_controller(params: ControllerParams, sample_time_s: float,
         hysteresis = make_hysteresis(HysteresisParams())
     return FeedForwardController(fb, params.feedforward, plant, hysteresis,
                                  sensor_gain_v_per_m=params.sensor_gain_v_per_m, **limits)
+
+
+def bound_controller(params: ControllerParams, sample_time_s: float, plant: LinearPlant,
+                     hysteresis: HysteresisModel, trajectory: Any
+                     ) -> RACController | PIController | OpenLoopController | NotchedController \
+        | FeedForwardController:
+    """
+    Return :func:`build_controller`'s controller, a feed-forward bound to ``trajectory``.
+
+    What the nodes build: the reference ahead comes from the same trajectory parameters the
+    trajectory node plays (a reference that differs from it, a trajectory switched at run time,
+    gets feedback alone, counted in the ``ff_mismatches`` diagnostic).
+    """
+    ctrl = build_controller(params, sample_time_s, plant, hysteresis)
+    if isinstance(ctrl, FeedForwardController):
+        ctrl.bind(trajectory)
+    return ctrl
 
 
 def notch_design(params: NotchParams, sample_time_s: float, plant: LinearPlant | None = None

@@ -564,6 +564,7 @@ class FeedForwardController:
         self._share_fresh = True
         self._trajectory: Trajectory | None = None
         self.mismatches = 0
+        self.skipped = 0
         self.periods_learned = 0
         self.jumps = 0
         self.last_period_rms_m = math.nan
@@ -682,6 +683,12 @@ class FeedForwardController:
             v = self._vmax if u > self._vmax else (self._vmin if u < self._vmin else u)
         self._u = v
         return v
+
+    def skip(self, samples: int) -> None:
+        """Advance the reference index over ``samples`` samples the caller did not step."""
+        if samples > 0:
+            self._k += int(samples)
+            self.skipped += int(samples)
 
     def _set_share(self) -> None:
         """Take the RAC's initial estimates as the share the model inverse replaces."""

@@ -412,12 +412,14 @@ class ControllerLogic:
         self.diagnostics_every = max(1, diagnostics_every)
         self._rebuild = rebuild
         self.names, self._read = diagnostic_reader(controller)
+        self._bind_skip()
         # positions and references by stamp: a reference may come ahead of its position
         # (lockstep_ahead), and in real time positions may come in a burst ahead of their
         # references; each sample is stepped once it has both
         self._positions: dict[int, float] = {}
         self._refs: dict[int, tuple[float, float]] = {}
         self._last_stamp: int | None = None
+        self._index = 0  # samples since the first, skipped ones included
         self._pending: Any = None
         self._needs_reset = True
         self._safe = False
@@ -425,6 +427,10 @@ class ControllerLogic:
         self.duplicates = 0
         self.safe_commands = 0
         self.changes = 0
+
+    def _bind_skip(self) -> None:
+        self._skip: Callable[[int], None] | None = getattr(self.controller, 'skip', None)
+        self._period_ns = max(1, round(self.controller.sample_time_s * NS_PER_S))
 
     def request_change(self, params: Any) -> None:
         """Apply validated new controller parameters at the next sample boundary."""
@@ -439,7 +445,10 @@ class ControllerLogic:
             # a structural change (type, notch, limits): a new controller, started afresh
             self.controller = self._rebuild(params)
             self.names, self._read = diagnostic_reader(self.controller)
+            self._bind_skip()
             self.controller.reset(position_m, reference_m)
+            if self._skip is not None:
+                self._skip(self._index)  # a feed-forward goes on at this sample's reference
         else:
             raise PiezoStageError('controller: a parameter change needs update_params() or a '
                                   'rebuild function')
@@ -484,12 +493,20 @@ class ControllerLogic:
             self.duplicates += 1
             return None
         xd, vd = ref
+        if self._last_stamp is not None:
+            # real time: samples the servo skipped; a feed-forward keeps its reference index
+            gap = round((stamp - self._last_stamp) / self._period_ns) - 1
+            if gap > 0:
+                self._index += gap
+                if self._skip is not None:
+                    self._skip(gap)
         if self._pending is not None:
             self._apply_pending(y, xd)
         if self._needs_reset:
             self.controller.reset(y, xd)
             self._needs_reset = False
         u = self.controller.step(y, xd, vd)
+        self._index += 1
         self._last_stamp = stamp
         diagnostics = None
         if self.steps % self.diagnostics_every == 0 and self.names:

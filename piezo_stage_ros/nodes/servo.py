@@ -48,8 +48,10 @@ import time
 from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
-from piezo_stage_ros.core.controllers import build_controller
+from piezo_stage_ros.core.controllers import bound_controller, ControllerParams
 from piezo_stage_ros.core.errors import PiezoStageError
+from piezo_stage_ros.core.hysteresis import make_hysteresis
+from piezo_stage_ros.core.interfaces import Controller
 from piezo_stage_ros.core.loop_config import LoopConfig, PlantNodeParams
 from piezo_stage_ros.core.stage import linear_plant, PlantParams, StageParams
 from piezo_stage_ros.core.trajectories import make_trajectory
@@ -529,11 +531,15 @@ def servo_from_config(loop: LoopConfig, duration_s: float, bridge: Bridge | None
     period = 1.0 / stage.sample_rate_hz
     design = linear_plant(design_plant if design_plant is not None else loop.design_plant)
     cn, tn = loop.controller_node, loop.trajectory_node
+    hysteresis = make_hysteresis(stage.hysteresis)
+    reference = make_trajectory(loop.trajectory)
+
+    def build(params: ControllerParams) -> Controller:
+        return bound_controller(params, period, design, hysteresis, reference)
     controller = ControllerLogic(
-        build_controller(loop.controller, period, design), mode='realtime',
+        build(loop.controller), mode='realtime',
         safe_voltage_v=cn.safe_voltage_v, position_timeout_s=cn.position_timeout_s,
-        diagnostics_every=cn.diagnostics_every,
-        rebuild=lambda params: build_controller(params, period, design))
+        diagnostics_every=cn.diagnostics_every, rebuild=build)
     trajectory = TrajectoryLogic(make_trajectory(loop.trajectory),
                                  sample_rate_hz=stage.sample_rate_hz,
                                  chunk_s=min(tn.chunk_s, 0.005), active=tn.active)

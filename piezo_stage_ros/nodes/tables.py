@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from typing import Sequence
 
+from piezo_stage_ros.core.hysteresis import HysteresisModel, make_hysteresis
 from piezo_stage_ros.core.loop_config import (
     BridgeParams,
     controller_table,
@@ -46,6 +47,7 @@ from piezo_stage_ros.core.loop_config import (
 )
 from piezo_stage_ros.core.stability import StabilityParams
 from piezo_stage_ros.core.stage import PlantParams
+from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryBase
 
 __all__ = ['BridgeParams', 'ControllerNodeParams', 'Declaration', 'Group', 'LockstepParams',
            'MODES', 'NodeTable', 'PlantNodeParams', 'TrajectoryNodeParams', 'controller_table',
@@ -128,6 +130,18 @@ def design_model(stability: StabilityParams, files: Sequence[str]
     plant = design_plant(stability, load_loop_config(files).stage.plant)
     return plant, (f"the plant node's {plant.model} model (plant_node plant.* of "
                    + ', '.join(files) + ')')
+
+
+def feedforward_context(files: Sequence[str]) -> tuple[HysteresisModel, TrajectoryBase]:
+    """
+    Return the design hysteresis and the trajectory a controller node's feed-forward uses.
+
+    Read from the same parameter files as :func:`design_model` (the plant_node and
+    trajectory_node sections the other two nodes read; their defaults without a file), so that
+    the reference ahead is the one the trajectory node will play.
+    """
+    loop = load_loop_config(files)
+    return make_hysteresis(loop.stage.hysteresis), make_trajectory(loop.trajectory)
 
 
 def main() -> int:
