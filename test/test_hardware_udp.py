@@ -306,10 +306,12 @@ class RecordingBridge:
         return {'n': len(self.written)}
 
 
-def test_guard_drives_safe_voltage_at_start_on_silence_and_at_stop():
+def test_guard_drives_safe_voltage_at_start_ramps_to_it_on_silence_and_at_stop():
     chain = StageParams.from_flat({'chain.safe_voltage_v': 1.5}).chain
     bridge = RecordingBridge()
-    guard = GuardedPlant(bridge, chain, command_timeout_s=0.01)
+    # 2 V a sample at most while the watchdog drives (2e4 V/s x 0.1 ms)
+    guard = GuardedPlant(bridge, chain, command_timeout_s=0.01, slew_v_per_s=2e4,
+                         sample_period_s=1e-4)
     assert guard.start(0.0) == 1e-6 and bridge.started_with == 1.5
     guard.sample(0.0001)
     guard.command(4.0, 0.0002)
@@ -317,14 +319,24 @@ def test_guard_drives_safe_voltage_at_start_on_silence_and_at_stop():
     guard.command(40.0, 0.0003)
     guard.sample(0.0003)
     guard.sample(0.0004)       # no new command: held, counted late
-    guard.sample(0.0104)       # silent for > 10 ms: safe voltage
-    guard.sample(0.02)
-    guard.command(3.0, 0.021)  # commands are back
-    guard.sample(0.021)
-    assert bridge.written == [1.5, 4.0, 10.0, 10.0, 1.5, 1.5, 3.0]
+    for k in range(6):         # silent for > 10 ms: ramp to the safe voltage, then stay
+        guard.sample(0.0104 + k * 1e-4)
+    guard.command(9.0, 0.011)  # commands are back: followed from 1.5 V at the same rate
+    for k in range(4):
+        guard.sample(0.011 + k * 1e-4)
+    assert guard.trip is None and guard.phase == 'recover'  # reached on the last one
+    guard.command(3.0, 0.0114)  # from then on each command as it comes
+    guard.sample(0.0114)
+    assert bridge.written == pytest.approx([1.5, 4.0, 10.0, 10.0, 8.0, 6.0, 4.0, 2.0, 1.5, 1.5,
+                                            3.5, 5.5, 7.5, 9.0, 3.0])
     stats = guard.stats()
-    assert stats['late'] == 3 and stats['safe_samples'] == 2 and stats['watchdog_trips'] == 1
-    assert stats['clamped'] == 1 and stats['bridge_n'] == 7
+    assert stats['late'] == 10 and stats['watchdog_trips'] == 1
+    assert (stats['ramp_samples'], stats['safe_samples'], stats['recovery_samples']) == (5, 1, 4)
+    assert stats['watchdog_max_step_v'] == pytest.approx(2.0)
+    assert stats['clamped'] == 1 and stats['bridge_n'] == 15
+    (trip,) = guard.ended_trips
+    assert trip.ended == 'commands' and trip.samples == 10 and trip.from_v == 10.0
+    assert trip.silence_s == pytest.approx(0.0101) and trip.duration_s == pytest.approx(0.0009)
     guard.stop()
     guard.stop()
     assert bridge.stopped_with == [1.5]

@@ -381,3 +381,61 @@ def test_gate_looks_every_n_calls():
     gate = Gate(count, every=3)
     assert [gate() for _ in range(9)] == [False] * 3 + [True] * 3 + [False] * 3
     assert len(looked) == 3
+
+
+# --- what the plant node says to the user (it only logs at the severity returned) ------------
+
+def test_real_time_by_messages_warns_at_once_and_names_the_direct_composition():
+    from piezo_stage_ros.nodes.logic import realtime_warning
+    assert realtime_warning('lockstep', False, 1e4) is None
+    assert realtime_warning('realtime', True, 1e4) is None
+    text = realtime_warning('realtime', False, 1e4)
+    assert text is not None and 'direct:=true' in text and 'stage_servo --direct' in text
+    assert '10000 Hz' in text
+
+
+def test_the_end_of_run_line_is_a_warning_past_the_thresholds():
+    from piezo_stage_ros.nodes.logic import LATE_HALF_LIMIT, run_verdict
+    clean = {'paced_samples': 600_000, 'samples': 599_999, 'late': 0, 'late_half_period': 600,
+             'skipped': 0, 'ring_missed': 0, 'queue_overruns': 0, 'watchdog_trips': 0}
+    assert 600 <= LATE_HALF_LIMIT * 600_000 and run_verdict(clean) == ('info', [])
+    assert run_verdict({'samples': 5000, 'index': 4999, 'watchdog_trips': 0}) == ('info', [])
+    level, why = run_verdict(dict(clean, late_half_period=601))
+    assert level == 'warn' and why == ['601 samples (0.1 %) late by more than T/2 (threshold '
+                                       '0.1 %)']
+    level, why = run_verdict(dict(clean, late=522_000, skipped=3, ring_missed=1,
+                                  watchdog_trips=773))
+    assert level == 'warn' and len(why) == 4
+    assert why[0].startswith('522000 samples (87 %) served with the previous command')
+    assert why[1:] == ['3 skipped', '1 lost between the servo process and the node '
+                       '(ring_missed)', '773 watchdog trips']
+    assert run_verdict(dict(clean, bridge_lost=2))[0] == 'warn'
+
+
+def test_each_trip_is_logged_with_its_length_and_largest_step_at_most_once_a_second():
+    from piezo_stage_ros.hardware.safety import Trip
+    from piezo_stage_ros.nodes.logic import TripLog
+
+    def trip(n, step=0.01):
+        return Trip(start_s=0.0, silence_s=0.0123, start_sample=0, from_v=4.0, samples=n,
+                    ramp_samples=n - 1, safe_samples=0, recovery_samples=1, max_step_v=step,
+                    duration_s=n * 1e-4, ended='commands')
+
+    log = TripLog(0.0)
+    kw = {'slew_v_per_s': 100.0, 'period_s': 1e-4}
+    (line,) = log.lines([trip(41)], 10.0, **kw)
+    assert line == ('watchdog trip: no command for 12.3 ms; 41 samples over 4.1 ms: 40 ramping '
+                    'from 4 V toward the safe 0 V, 0 at it, 1 following the commands back; '
+                    'largest step 0.01 V (watchdog.slew_v_per_s 100 allows 0.01 V a sample); '
+                    'ended: the commands reached again')
+    # within the second: counted, said with the next line
+    assert log.lines([trip(5), trip(7, 0.002)], 10.5, **kw) == []
+    assert log.lines([], 10.9, **kw) == []
+    (line,) = log.lines([trip(3)], 11.2, **kw)
+    assert line.endswith('(and 2 more trips since the last line: 12 samples, largest step '
+                         '0.01 V)')
+    assert log.lines([trip(2)], 11.3, **kw) == []
+    assert log.lines([], 12.4, **kw) == ['watchdog: 1 more trips since the last line: 2 '
+                                         'samples, largest step 0.01 V']
+    assert log.lines([trip(2)], 12.5, **kw) == []
+    assert len(log.lines([], 12.6, final=True, **kw)) == 1

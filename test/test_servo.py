@@ -357,24 +357,38 @@ def test_sample_ring_carries_diagnostics_with_their_layout_and_counts_what_does_
     assert floats[6, 5:].tolist() == [8.0, 9.0, 10.0]
 
 
-def test_servo_loop_of_the_plant_alone_drives_the_safe_voltage_when_commands_stop():
+def test_servo_loop_of_the_plant_alone_ramps_to_the_safe_voltage_when_commands_stop():
     clock = FakeClock(per_read=300)
     loop = plant_alone(clock, 0.03)
     guard = loop.plant
+    guard.slew_v_per_s = 500.0  # 0.05 V a sample: from 5 V to the safe 0 V in 100 samples
     loop.start()
     command_s = clock.now / 1e9
     guard.command(5.0, command_s)  # the only command from the controller, then silence
     while loop.step():
         pass
     got = loop.drain()
-    applied = [s.applied_v for s in got]
-    first_safe = applied.index(guard.safe_v, 1)
-    # held while the silence is within the 10 ms timeout, then the safe voltage to the end
-    assert set(applied[1:first_safe]) == {5.0} and set(applied[first_safe:]) == {guard.safe_v}
+    applied = np.array([s.applied_v for s in got])
+    first_trip = int(np.argmax(applied[1:] < 5.0)) + 1
+    # held while the silence is within the 10 ms timeout, then a ramp of 0.05 V a sample down
+    # to the safe voltage, no step larger, and the safe voltage to the end
+    assert set(applied[1:first_trip]) == {5.0}
     taken_s = [(loop.pacer.due_ns(s.k) + s.lateness_ns) / 1e9 for s in got]
-    assert taken_s[first_safe] - command_s > 0.01 >= taken_s[first_safe - 1] - command_s
+    assert taken_s[first_trip] - command_s > 0.01 >= taken_s[first_trip - 1] - command_s
+    steps = np.diff(applied[first_trip - 1:])
+    assert np.all(steps <= 0.0) and np.all(steps >= -0.05 - 1e-12)
+    at_safe = first_trip + int(np.argmax(applied[first_trip:] == guard.safe_v))
+    assert at_safe - first_trip == 99 and set(applied[at_safe:]) == {guard.safe_v}
     stats = loop.stats()
-    assert stats['watchdog_trips'] == 1 and stats['safe_samples'] == len(got) - first_safe
+    assert stats['watchdog_trips'] == 1 and stats['ramp_samples'] == 100
+    assert stats['safe_samples'] == len(got) - at_safe - 1
+    assert stats['watchdog_max_step_v'] == pytest.approx(0.05)
+    # the trip goes on to the end of the run: it ends with the stop, and is taken once
+    assert not loop.take_trips() and guard.trip is not None
+    guard.stop()
+    (trip,) = loop.take_trips()
+    assert trip.ended == 'stop' and trip.samples == len(got) - first_trip
+    assert trip.ramp_samples == 100 and trip.from_v == 5.0 and not loop.take_trips()
 
 
 def test_servo_loop_keeps_the_voltage_held_after_the_last_sample():

@@ -69,7 +69,7 @@ from piezo_stage_ros.core.trajectories import TrajectoryParams
 
 __all__ = ['BridgeParams', 'ControllerNodeParams', 'Declaration', 'Group', 'LockstepParams',
            'LoopConfig', 'MODES', 'NodeTable', 'PlantNodeParams', 'ServoParams',
-           'TrajectoryNodeParams',
+           'TrajectoryNodeParams', 'WatchdogParams',
            'TABLES', 'controller_table', 'design_plant', 'load_loop_config', 'plant_table',
            'trajectory_table']
 
@@ -138,6 +138,18 @@ class ServoParams(Params):
 
 
 @dataclass(frozen=True)
+class WatchdogParams(Params):
+    """What the plant drives once commands have stopped (real time; hardware/safety.py)."""
+
+    slew_v_per_s: float = param(100.0, unit='V/s', description='After command_timeout_s '
+                                'without a command, ramp the amplifier input to the safe '
+                                'voltage at this rate, and follow the commands that come back '
+                                'at this rate until they are reached (100: the whole -2..10 V '
+                                'input in 0.12 s, 10 mV a sample at 10 kHz).', low=0.0,
+                                low_open=True, high=1e6)
+
+
+@dataclass(frozen=True)
 class PlantNodeParams(Params):
     """Plant node parameters beyond the stage itself."""
 
@@ -151,9 +163,11 @@ class PlantNodeParams(Params):
     duration_s: float = param(0.0, unit='s', description='Stop after this much loop time '
                               '(round(duration_s * rate) samples); 0 runs until shut down.',
                               low=0.0, read_only=True)
-    command_timeout_s: float = param(0.01, unit='s', description='Drive the safe voltage when '
-                                     'commands stop for longer than this (realtime).',
+    command_timeout_s: float = param(0.01, unit='s', description='Hold the last command this '
+                                     'long when commands stop, then ramp to the safe voltage '
+                                     '(watchdog.slew_v_per_s; realtime).',
                                      low=0.0, low_open=True, high=10.0)
+    watchdog: WatchdogParams = group(WatchdogParams, 'command watchdog')
     status_period_s: float = param(1.0, unit='s', description='Period of the stage/status '
                                    'counters (wall time).', low=0.01, high=3600.0)
     lockstep: LockstepParams = group(LockstepParams, 'lockstep start-up')

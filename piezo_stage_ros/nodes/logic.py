@@ -37,15 +37,158 @@ twice for one stamp, so the plant receives exactly one command per sample.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
 from piezo_stage_ros.core.interfaces import Controller, Trajectory
 from piezo_stage_ros.core.wire import diagnostic_reader, NS_PER_S
-from piezo_stage_ros.hardware.safety import GuardedPlant, Watchdog
+from piezo_stage_ros.hardware.safety import GuardedPlant, Trip, Watchdog
 
-__all__ = ['ControllerLogic', 'Gate', 'PlantLogic', 'Sample', 'TrajectoryLogic', 'sample_count']
+__all__ = ['ControllerLogic', 'Gate', 'LATE_COMMAND_LIMIT', 'LATE_HALF_LIMIT', 'PlantLogic',
+           'Sample', 'TrajectoryLogic', 'TripLog', 'realtime_warning', 'run_verdict',
+           'sample_count']
+
+#: End of a run: more than this fraction of the samples taken late by more than T/2 makes the
+#: end-of-run line a warning (docs/nodes.md, "Warnings").
+LATE_HALF_LIMIT = 0.001
+#: End of a run: more than this fraction of the samples served with the previous command (no
+#: new one had come: a controller in another node that answers late) makes it a warning.
+LATE_COMMAND_LIMIT = 0.001
+#: Counters of which any at all makes the end-of-run line a warning: samples the servo never
+#: took, samples taken but lost on the way to the ROS side, samples the UDP bridge or its
+#: target lost, and watchdog trips.
+ANY_COUNTS = (('skipped', 'skipped'), ('ring_missed', 'lost between the servo process and '
+                                                     'the node (ring_missed)'),
+              ('queue_overruns', 'lost in the servo queue (queue_overruns)'),
+              ('bridge_lost', 'replies lost by the UDP bridge'),
+              ('bridge_target_missing', 'commands the target found missing'),
+              ('watchdog_trips', 'watchdog trips'))
+
+
+def realtime_warning(mode: str, direct: bool, sample_rate_hz: float) -> str | None:
+    """
+    Return the warning for a real-time plant without the direct composition, else None.
+
+    Parameters
+    ----------
+    mode : str
+        The plant node's ``mode``.
+    direct : bool
+        Whether the plant's servo loop runs trajectory and controller itself
+        (``stage_servo --direct``); otherwise each command comes by message.
+    sample_rate_hz : float
+        The loop's rate [Hz].
+
+    """
+    if mode != 'realtime' or direct:
+        return None
+    return (f'real time at {sample_rate_hz:g} Hz with the commands coming by message: a '
+            'message between nodes (separate processes, or stage_servo without --direct) '
+            'cannot make the period (measured on a 2-core machine at 10 kHz: 87 % of the '
+            'samples served with the previous command, 773 watchdog trips a minute); for real '
+            'time run the loop in one process with samples handed on by call: '
+            '`ros2 launch piezo_stage_ros closed_loop.launch.py mode:=realtime direct:=true` '
+            'or `ros2 run piezo_stage_ros stage_servo --direct`')
+
+
+def run_verdict(stats: Mapping[str, Any]) -> tuple[str, list[str]]:
+    """
+    Return how the end-of-run line is logged, and why: ``('warn', reasons)`` or ``('info', [])``.
+
+    A warning when more than :data:`LATE_HALF_LIMIT` of the samples taken were late by more
+    than half a period, more than :data:`LATE_COMMAND_LIMIT` of them were served with the
+    previous command, or any count of :data:`ANY_COUNTS` is not zero (a lockstep run has none
+    of these). The reasons name each figure against its threshold.
+    """
+    reasons = []
+    taken = int(stats.get('paced_samples') or 0)
+    late_half = int(stats.get('late_half_period') or 0)
+    if taken and late_half > LATE_HALF_LIMIT * taken:
+        reasons.append(f'{late_half} samples ({100.0 * late_half / taken:.2g} %) late by more '
+                       f'than T/2 (threshold {100.0 * LATE_HALF_LIMIT:g} %)')
+    served = int(stats.get('samples') or 0)
+    late = int(stats.get('late') or 0)
+    if served and late > LATE_COMMAND_LIMIT * served:
+        reasons.append(f'{late} samples ({100.0 * late / served:.3g} %) served with the '
+                       f'previous command (threshold {100.0 * LATE_COMMAND_LIMIT:g} %)')
+    for key, what in ANY_COUNTS:
+        count = stats.get(key) or 0
+        if count:
+            reasons.append(f'{count} {what}')
+    if stats.get('error'):
+        reasons.append(f'error {stats["error"]}')
+    return ('warn', reasons) if reasons else ('info', [])
+
+
+class TripLog:
+    """
+    The log lines about the plant's watchdog trips: each trip, at most one line per interval.
+
+    A trip that ends within ``interval_s`` of the last line is counted, and the counts go out
+    with the next line (a loop whose commands come late can trip many times a second; the
+    counters on ``stage/status`` have every one).
+
+    Parameters
+    ----------
+    safe_v : float
+        The safe voltage [V] (named in the lines).
+    interval_s : float
+        Least time between two lines [s].
+
+    """
+
+    def __init__(self, safe_v: float, interval_s: float = 1.0) -> None:
+        self.safe_v = safe_v
+        self.interval_s = interval_s
+        self._last_s: float | None = None
+        self._held = 0
+        self._held_samples = 0
+        self._held_step_v = 0.0
+
+    def describe(self, trip: Trip, slew_v_per_s: float, period_s: float) -> str:
+        """Return the line of one trip (its length in samples and time, its largest step)."""
+        ended = {'commands': 'the commands reached again',
+                 'tripped again': 'commands stopped again while being followed back',
+                 'stop': 'the run stopped during it'}.get(trip.ended, trip.ended or 'going on')
+        return (f'watchdog trip: no command for {trip.silence_s * 1e3:.3g} ms; '
+                f'{trip.samples} samples over {trip.duration_s * 1e3:.4g} ms: '
+                f'{trip.ramp_samples} ramping from {trip.from_v:.4g} V toward the safe '
+                f'{self.safe_v:g} V, {trip.safe_samples} at it, {trip.recovery_samples} '
+                f'following the commands back; largest step {trip.max_step_v:.4g} V '
+                f'(watchdog.slew_v_per_s {slew_v_per_s:g} allows '
+                f'{slew_v_per_s * period_s:.4g} V a sample); ended: {ended}')
+
+    def _held_back(self) -> str:
+        text = (f'{self._held} more trips since the last line: {self._held_samples} samples, '
+                f'largest step {self._held_step_v:.4g} V')
+        self._held = self._held_samples = 0
+        self._held_step_v = 0.0
+        return text
+
+    def lines(self, trips: Sequence[Trip], now_s: float, *, slew_v_per_s: float,
+              period_s: float, final: bool = False) -> list[str]:
+        """
+        Return the lines to log now for the trips that ended since the last call.
+
+        ``now_s``: any monotonic clock [s]; ``final``: the run is over, the counts held back
+        go out now.
+        """
+        out = []
+        for trip in trips:
+            if self._last_s is None or now_s - self._last_s >= self.interval_s:
+                line = self.describe(trip, slew_v_per_s, period_s)
+                out.append(f'{line} (and {self._held_back()})' if self._held else line)
+                self._last_s = now_s
+            else:
+                self._held += 1
+                self._held_samples += trip.samples
+                self._held_step_v = max(self._held_step_v, trip.max_step_v)
+        if self._held and (final or self._last_s is None
+                           or now_s - self._last_s >= self.interval_s):
+            out.append(f'watchdog: {self._held_back()}')
+            self._last_s = now_s
+        return out
 
 
 def sample_count(duration_s: float, sample_rate_hz: float) -> int:

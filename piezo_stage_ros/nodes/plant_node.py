@@ -34,14 +34,17 @@ from piezo_stage_ros.core import wire
 from piezo_stage_ros.core.cdr import CdrError, decode_float64, encode_clock, JointStateEncoder
 from piezo_stage_ros.core.errors import PiezoStageError
 from piezo_stage_ros.hardware.pacing import Pacer, servo_setup
-from piezo_stage_ros.hardware.safety import GuardedPlant
+from piezo_stage_ros.hardware.safety import GuardedPlant, Trip
 from piezo_stage_ros.nodes import qos
 from piezo_stage_ros.nodes.logic import (
     ControllerLogic,
     Gate,
     PlantLogic,
+    realtime_warning,
+    run_verdict,
     Sample,
     TrajectoryLogic,
+    TripLog,
 )
 from piezo_stage_ros.nodes.parameters import ParameterBinding
 from piezo_stage_ros.nodes.runner import run
@@ -79,7 +82,10 @@ class PlantNode(Node):
         self.binding = ParameterBinding(self, plant_table(), self._on_change)
         stage, opts = self.binding.objects
         self.opts: PlantNodeParams = opts
-        self.guard = GuardedPlant(make_bridge(stage, opts), stage.chain, opts.command_timeout_s)
+        self.guard = GuardedPlant(make_bridge(stage, opts), stage.chain, opts.command_timeout_s,
+                                  slew_v_per_s=opts.watchdog.slew_v_per_s,
+                                  sample_period_s=1.0 / stage.sample_rate_hz)
+        self._trip_log = TripLog(stage.chain.safe_voltage_v)
         self.logic = PlantLogic(self.guard, mode=opts.mode, sample_rate_hz=stage.sample_rate_hz,
                                 duration_s=opts.duration_s, resend_s=opts.lockstep.resend_s)
         self.finished = Future()
@@ -135,8 +141,10 @@ class PlantNode(Node):
         opts: PlantNodeParams = new[1]
         # applied between two samples: every callback of this node runs on one executor thread
         self.guard.watchdog.timeout_s = opts.command_timeout_s
+        self.guard.slew_v_per_s = opts.watchdog.slew_v_per_s
         if isinstance(self.servo, ServoProcess):
             self.servo.change('set', ('plant.watchdog.timeout_s', opts.command_timeout_s))
+            self.servo.change('set', ('plant.slew_v_per_s', opts.watchdog.slew_v_per_s))
         self.logic.resend_s = opts.lockstep.resend_s
         if opts.status_period_s != self.opts.status_period_s:
             self._status_timer.cancel()
@@ -207,6 +215,11 @@ class PlantNode(Node):
             assert servo is not None
             if self._t_start == 0.0:
                 self._t_start = time.monotonic()
+                # at once, before the first sample: real time by messages cannot hold the rate
+                advice = realtime_warning(self.opts.mode, self._peers is not None,
+                                          self.logic.rate_hz)
+                if advice is not None:
+                    self.get_logger().warning(advice)
                 opts = self.opts.servo
                 start_ns = self.get_clock().now().nanoseconds
                 if isinstance(servo, ServoProcess):
@@ -220,6 +233,7 @@ class PlantNode(Node):
             if batch:
                 self._publish_batch(batch)
                 self._publish_applied(batch)
+            self._log_trips(servo.take_trips())
             if not self._servo_reported and (servo.setup_report or finished):
                 self._servo_reported = True
                 for key, text in servo.setup_report.items():
@@ -237,6 +251,23 @@ class PlantNode(Node):
             return
         except Exception as exc:  # noqa: BLE001
             self._fault(exc)
+
+    def _log_trips(self, trips: list[Trip], final: bool = False) -> None:
+        # every trip line is a warning (one call site, one severity)
+        for line in self._trip_log.lines(trips, time.monotonic(), final=final,
+                                         slew_v_per_s=self.opts.watchdog.slew_v_per_s,
+                                         period_s=self.logic.period_s):
+            self.get_logger().warning(line)
+
+    def _log_figures(self, head: str, stats: dict[str, Any]) -> None:
+        # the severity comes from run_verdict; one call site per severity (rclpy refuses a
+        # second severity at one call site)
+        level, reasons = run_verdict(stats)
+        figures = ', '.join(f'{k}={v}' for k, v in stats.items())
+        if level == 'warn':
+            self.get_logger().warning(f'{head}, degraded ({"; ".join(reasons)}): {figures}')
+        else:
+            self.get_logger().info(f'{head}: {figures}')
 
     def _publish_applied(self, batch: list[ServoSample]) -> None:
         # sample k's applied_v was held over the sample that ended at t_k: it goes out stamped
@@ -397,10 +428,11 @@ class PlantNode(Node):
                 self._applied_pub.publish(self._applied_encoder.encode(
                     sec, nanosec, (self.servo.held_v,)))
         self.logic.stop()
+        if self.servo is not None:
+            self._log_trips(self.servo.take_trips(), final=True)
         self.publish_status()
         stats = self.stats()
-        self.get_logger().info('run complete: ' + ', '.join(f'{k}={v}' for k, v in
-                                                              stats.items()))
+        self._log_figures('run complete', stats)
         self.finished.set_result(stats)
 
     def _fault(self, exc: BaseException) -> None:
@@ -427,8 +459,8 @@ class PlantNode(Node):
                 self.servo.close()  # the process drives the safe voltage of its backend
                 if stopped:
                     # stopped before its end (Ctrl-C, shutdown): its counters still go out
-                    self.get_logger().info('servo process stopped: ' + ', '.join(
-                        f'{k}={v}' for k, v in self.stats().items()))
+                    self._log_trips(self.servo.take_trips(), final=True)
+                    self._log_figures('servo process stopped', self.stats())
             elif self.servo is not None:
                 self.servo.stop()
             self.logic.stop()

@@ -58,7 +58,7 @@ from piezo_stage_ros.core.trajectories import make_trajectory
 from piezo_stage_ros.core.wire import NS_PER_S
 from piezo_stage_ros.hardware.bridge import Bridge, ModelBridge
 from piezo_stage_ros.hardware.pacing import Pacer, servo_setup
-from piezo_stage_ros.hardware.safety import GuardedPlant
+from piezo_stage_ros.hardware.safety import GuardedPlant, Trip
 from piezo_stage_ros.hardware.udp import UdpBridge, UdpStreamBridge
 from piezo_stage_ros.nodes.logic import ControllerLogic, sample_count, TrajectoryLogic
 
@@ -150,7 +150,11 @@ class SampleRing:
     INTS = ('k', 'stamp_ns', 'lateness_ns', 'layout', 'diagnostics')
     FLOATS = ('position_m', 'reference_m', 'velocity_mps', 'command_v', 'applied_v')
     HEADER = ('count', 'halt', 'posted', 'applied', 'index', 'paced_samples',
-              'late_half_period', 'skipped', 'lateness_max_ns')
+              'late_half_period', 'skipped', 'lateness_max_ns', 'watchdog_trips',
+              'ramp_samples', 'safe_samples', 'recovery_samples')
+    #: The header words :meth:`ServoProcess.stats` reports while the run goes on.
+    LIVE = ('index', 'paced_samples', 'late_half_period', 'skipped', 'watchdog_trips',
+            'ramp_samples', 'safe_samples', 'recovery_samples')
 
     def __init__(self, capacity: int = 65536, name: str | None = None, *,
                  diagnostics: int = 16) -> None:
@@ -481,6 +485,14 @@ class ServoLoop:
         self.drained += len(out)
         return out
 
+    def take_trips(self) -> list[Trip]:
+        """Return the watchdog trips that ended since the last call, oldest first."""
+        trips = self.plant.ended_trips
+        out: list[Trip] = []
+        while trips:
+            out.append(trips.popleft())
+        return out
+
     def stats(self) -> dict[str, Any]:
         """Return the plant counters, the lateness figures and the queue overruns."""
         out = self.plant.stats()
@@ -545,7 +557,8 @@ def servo_from_config(loop: LoopConfig, duration_s: float, bridge: Bridge | None
                                  chunk_s=min(tn.chunk_s, 0.005), active=tn.active)
     opts = loop.plant_node
     plant = GuardedPlant(bridge if bridge is not None else make_bridge(stage, opts),
-                         stage.chain, opts.command_timeout_s)
+                         stage.chain, opts.command_timeout_s,
+                         slew_v_per_s=opts.watchdog.slew_v_per_s, sample_period_s=period)
     return ServoLoop(plant, trajectory, controller, sample_rate_hz=stage.sample_rate_hz,
                      duration_s=duration_s,
                      pacer=Pacer(round(NS_PER_S / stage.sample_rate_hz),
@@ -619,11 +632,14 @@ def _servo_main(loop: LoopConfig, design_plant: PlantParams | None, duration_s: 
         # the real-time setup's report goes out as soon as it has run, not with the figures
         servo.on_setup = lambda report: send(('setup', report))
         ring.on_layout = lambda number, names: send(('layout', (number, names)))
+        # each watchdog trip as it ends, for the parent to log (rare: a pipe message is fine)
+        servo.plant.on_trip = lambda trip: send(('trip', trip))
         header = ring.header
         halt, posted = SampleRing.HEADER.index('halt'), SampleRing.HEADER.index('posted')
         applied = 0
         served = 0
         stats = servo.pacer.stats
+        guard = servo.plant
         every = ServoProcess.LIVE_EVERY
 
         def boundary() -> bool:
@@ -644,6 +660,10 @@ def _servo_main(loop: LoopConfig, design_plant: PlantParams | None, duration_s: 
                 ring.set('late_half_period', stats.late_half)
                 ring.set('skipped', stats.skipped)
                 ring.set('lateness_max_ns', stats.max_ns)
+                ring.set('watchdog_trips', guard.watchdog.trips)
+                ring.set('ramp_samples', guard.ramp_samples)
+                ring.set('safe_samples', guard.safe_samples)
+                ring.set('recovery_samples', guard.recovery_samples)
                 if os.getppid() != parent:
                     return False
             return not (header[halt] or stop[0])
@@ -721,6 +741,7 @@ class ServoProcess:
         self.missed = 0
         self._setup: dict[str, str] = {}
         self._layouts: dict[int, tuple[str, ...]] = {}
+        self._trips: list[Trip] = []
         self._ended = False  # the process closed its end of the pipe
         self._joined = False
 
@@ -754,6 +775,8 @@ class ServoProcess:
                 elif kind == 'layout':
                     number, names = payload
                     self._layouts[int(number)] = tuple(names)
+                elif kind == 'trip':
+                    self._trips.append(payload)
                 else:
                     self.result = dict(payload)
                     self._setup = self._setup or dict(self.result.get('setup', {}))
@@ -828,8 +851,7 @@ class ServoProcess:
             out = {k: v for k, v in self.result.items() if k != 'setup'}
         else:
             ring = self.ring
-            out = {k: ring.get(k) for k in ('index', 'paced_samples', 'late_half_period',
-                                            'skipped')}
+            out = {k: ring.get(k) for k in SampleRing.LIVE}
             out['lateness_max_us'] = round(ring.get('lateness_max_ns') / 1e3, 1)
         out['ring_missed'] = self.missed
         return out
@@ -864,6 +886,12 @@ class ServoProcess:
     def held_v(self) -> float:
         """Return the voltage held after the last sample (NaN before the end)."""
         return float((self.result or {}).get('held_v', math.nan))
+
+    def take_trips(self) -> list[Trip]:
+        """Return the watchdog trips the process reported since the last call, oldest first."""
+        self._receive()
+        out, self._trips = self._trips, []
+        return out
 
     def drain(self, limit: int = 0) -> list[ServoSample]:
         """
