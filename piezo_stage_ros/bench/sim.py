@@ -46,9 +46,10 @@ from typing import Any
 import numpy as np
 from piezo_stage_ros.core import closed_loop
 from piezo_stage_ros.core.batch import run_batch, StageFamilyBatch
-from piezo_stage_ros.core.controllers import build_controller, ControllerParams
+from piezo_stage_ros.core.controllers import bound_controller, build_controller, ControllerParams
 from piezo_stage_ros.core.family import member_params, sample_family
-from piezo_stage_ros.core.stage import Stage, StageBatch, StageParams
+from piezo_stage_ros.core.hysteresis import make_hysteresis
+from piezo_stage_ros.core.stage import linear_plant, Stage, StageBatch, StageParams
 from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
 
 __all__ = ['batch_loop_speed', 'batch_speed', 'closed_loop_speed', 'controller_step_times',
@@ -233,8 +234,8 @@ def batch_loop_speed(n: int = 1000, steps: int = 5000, *, controller: str = 'rac
     return n * steps / _best(once, repeats)
 
 
-def controller_step_times(controller: str = 'rac', *, steps: int = 200_000
-                          ) -> dict[str, float]:
+def controller_step_times(controller: str = 'rac', *, steps: int = 200_000,
+                          feedforward: str = 'none') -> dict[str, float]:
     """
     Return the median and 99th percentile of one controller step [ns].
 
@@ -244,6 +245,9 @@ def controller_step_times(controller: str = 'rac', *, steps: int = 200_000
         Controller type.
     steps : int
         Steps timed one by one.
+    feedforward : str
+        ``feedforward.mode`` (the feed-forward bound to the 100 Hz sine timed: its learning
+        update runs at the end of every period, inside the timed steps).
 
     Returns
     -------
@@ -252,7 +256,11 @@ def controller_step_times(controller: str = 'rac', *, steps: int = 200_000
         empty timed call (already included in the step figures).
 
     """
-    ctrl = build_controller(ControllerParams(type=controller), 1e-4)
+    sp = StageParams()
+    cp = ControllerParams(type=controller).with_flat({'feedforward.mode': feedforward})
+    ctrl = bound_controller(cp, 1e-4, linear_plant(sp.plant), make_hysteresis(sp.hysteresis),
+                            make_trajectory(TrajectoryParams.from_flat(
+                                {'kind': 'sine', 'sine.frequency_hz': 100.0})))
     ctrl.reset(3.8e-6, 3.8e-6)
     step = ctrl.step
     clock = time.perf_counter_ns
@@ -350,5 +358,14 @@ def run_sim_benchmark(*, duration_s: float = 2.0, batch: int = 1000, batch_steps
         say(f'  {ctype.upper():3s} step: median {st["median_ns"]:.0f} ns, p99 '
             f'{st["p99_ns"]:.0f} ns, max {st["max_ns"]:.0f} ns (timer alone '
             f'{st["timer_ns"]:.0f} ns, included)')
+    base = out['rac_step']['median_ns']
+    for mode in ('inverse', 'inverse_learning'):
+        st = controller_step_times('rac', steps=controller_steps, feedforward=mode)
+        out[f'rac_{mode}_step'] = st
+        ratio = st['median_ns'] / base
+        say(f'  RAC + notch + feed-forward {mode}: median {st["median_ns"]:.0f} ns '
+            f'({ratio:.2f}x the RAC step; target <= 2x: {"met" if ratio <= 2.0 else "NOT met"}),'
+            f' p99 {st["p99_ns"]:.0f} ns, max {st["max_ns"]:.0f} ns (the period-end learning '
+            'update inside)')
     return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
             for k, v in out.items()}

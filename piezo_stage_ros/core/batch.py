@@ -634,6 +634,11 @@ def run_batch(stages: Sequence[StageParams] | StageFamilyBatch, controller: Cont
         If a command or a measurement is not finite (the batch has no per-sample fallback).
 
     """
+    if controller.feedforward.mode != 'none':
+        raise ParameterError('feedforward.mode', controller.feedforward.mode,
+                             "'none' in the batched loop",
+                             'is not vectorized yet: run one closed loop per stage '
+                             '(robustness --single)')
     if not (duration_s > 0.0 and math.isfinite(duration_s)):
         raise ParameterError('duration_s', duration_s, '(0, inf)')
     if not (chunk_s > 0.0 and math.isfinite(chunk_s)):

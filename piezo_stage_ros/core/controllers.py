@@ -107,8 +107,8 @@ from piezo_stage_ros.core.params import group, param, Params
 __all__ = [
     'ControllerParams', 'NotchFilter', 'NotchParams', 'NotchedController', 'OpenLoopController',
     'OpenLoopParams', 'PIController', 'PIParams', 'RACController', 'RACParams',
-    'SENSOR_GAIN_V_PER_M', 'build_controller', 'notch_coefficients', 'notch_design',
-    'plant_resonance', 'proj', 'sat',
+    'SENSOR_GAIN_V_PER_M', 'bound_controller', 'build_controller', 'notch_coefficients',
+    'notch_design', 'plant_resonance', 'proj', 'sat',
 ]
 
 #: K_PSCM of eq. (15), 10 V over 38 um [V/m] (same value as the stage's sensor).

@@ -38,8 +38,8 @@ A two-degree-of-freedom structure around any controller of
 - **H^-1** (``inverse``): the inverse of the design hysteresis w = H(v), applied to the whole
   command, so that the plant seen from v_lin is c G with no hysteresis (c the model's slope,
   which keeps the RAC's estimates at their model values). Exact for backlash-like hysteresis
-  (Newton on its closed-form jump solution, to 1e-12 V) and solved to the same tolerance by
-  safeguarded secant steps for the other models.
+  (Newton on its closed-form jump solution) and solved by safeguarded secant steps for the
+  other models, both to 1e-10 V (the DAC's step is 1.8e-4 V).
 - **L** (``learning``): iterative learning across periods of a periodic reference. After each
   period j the table is updated on the harmonics: L_{j+1} = Q (L_j - gamma E_j / P_s), with E_j
   the measured error of that period and P_s = c G / (1 + N C k c G) the closed-loop process
@@ -144,7 +144,7 @@ class HysteresisInverse:
 
     """
 
-    def __init__(self, model: HysteresisModel, tolerance_v: float = 1e-12) -> None:
+    def __init__(self, model: HysteresisModel, tolerance_v: float = 1e-10) -> None:
         self.model = model
         self.tolerance_v = tolerance_v
         self.slope = float(model.slope)
@@ -224,7 +224,7 @@ class BacklashInverse(HysteresisInverse):
     Newton's method on that branch converges to machine precision in a few steps.
     """
 
-    def __init__(self, model: BacklashLike, tolerance_v: float = 1e-12) -> None:
+    def __init__(self, model: BacklashLike, tolerance_v: float = 1e-10) -> None:
         p = model.params
         self._alpha = p.alpha
         self._c = p.c
@@ -257,16 +257,16 @@ class BacklashInverse(HysteresisInverse):
         if dv * sgn < 0.0:
             dv = 0.0
         exp = math.exp
+        tol = self.tolerance_v
         for _ in range(30):
-            self.iterations += 1
             decay = exp(-alpha * sgn * dv)
             g = c * dv + a * (1.0 - decay) - dw
-            step = g / (c + alpha * a * decay)
-            dv -= step
+            if -tol <= g <= tol:
+                break
+            self.iterations += 1
+            dv -= g / (c + alpha * a * decay)
             if dv * sgn < 0.0:
                 dv = 0.0
-            if abs(step) <= 1e-15 * (1.0 + abs(dv)):
-                break
         return v0 + dv
 
     def commit(self, v: float) -> None:
@@ -574,10 +574,16 @@ class FeedForwardController:
         self._table_v: FloatArray = np.zeros(0)
         self._table_w: FloatArray = np.zeros(0)
         self._learned: FloatArray = np.zeros(0)
-        self._errors: FloatArray = np.zeros(0)
+        self._ll: list[float] = []
+        self._le: list[float] = []
+        self._lx_raw: list[float] = []
+        self._lx: list[float] = []
+        self._lv: list[float] = []
+        self._lw: list[float] = []
         self._ps: ComplexArray = np.zeros(0, dtype=np.complex128)
         self._kept: FloatArray = np.zeros(0)
         self._ps_n = 0
+        self._filter: ComplexArray = np.zeros(0, dtype=np.complex128)
         self._block_start = 0
         self._filter_state: Any = None
         self._k = 0
@@ -609,7 +615,8 @@ class FeedForwardController:
                                  'learning needs a periodic reference')
         self._period_n = n if exact else 0
         self._learned = np.zeros(self._period_n)
-        self._errors = np.zeros(self._period_n)
+        self._ll = self._learned.tolist()
+        self._le = [0.0] * self._period_n
         self.periods_learned = 0
         self._prepare_tables()
 
@@ -643,10 +650,10 @@ class FeedForwardController:
             return self._plain(position_m, reference_m, reference_velocity_mps, dt_s)
         n = self._period_n
         i = k % n if n else k - self._block_start
-        if not n and i >= len(self._table_x):
+        if not n and i >= len(self._lx):
             self._next_block(k)
             i = k - self._block_start
-        xd = self._table_x_raw[i]
+        xd = self._lx_raw[i]
         if abs(reference_m - xd) > 1e-12 + 1e-9 * abs(xd):
             # not the reference bound (a periodic trajectory's first period that is not yet
             # periodic, or a trajectory changed elsewhere): feedback alone for this sample
@@ -654,8 +661,8 @@ class FeedForwardController:
             self._matched = False
             return self._plain(position_m, reference_m, reference_velocity_mps, dt_s)
         self._matched = True
-        x_ref = self._table_x[i]
-        v_ref = self._table_v[i]
+        x_ref = self._lx[i]
+        v_ref = self._lv[i]
         inner = self.inner
         u = inner.step(position_m, x_ref, v_ref, dt_s)
         if self._inverse_on:
@@ -667,11 +674,10 @@ class FeedForwardController:
                     notch.reset(share)
                     self._share_fresh = False
                 share = notch.step(share)
-            u = u - share + self._table_w[i]
+            u = u - share + self._lw[i]
         if self._learning_on:
-            u += self._learned[i]
-            err = self._errors
-            err[i] = position_m - xd
+            u += self._ll[i]
+            self._le[i] = position_m - xd
             if i == n - 1:
                 self._learn(k)
         hyst = self.hysteresis_inverse
@@ -745,11 +751,13 @@ class FeedForwardController:
             self._table_v = np.ascontiguousarray(v3[n:2 * n])
             self._table_w = self.plant_inverse.periodic(self._table_x) / self.slope \
                 if self._inverse_on else np.zeros(n)
+            self._lists()
             return
         self._block_start = 0
         self._filter_state = None
         self._table_x = np.zeros(0)
         self._table_x_raw = np.zeros(0)
+        self._lx = []
 
     def _next_block(self, k: int) -> None:
         """Compute the feed-forward of samples k .. k + block - 1 (aperiodic references)."""
@@ -772,7 +780,15 @@ class FeedForwardController:
             self._table_w = w / self.slope
         else:
             self._table_w = np.zeros(size)
+        self._lists()
         self._block_start = k
+
+    def _lists(self) -> None:
+        """Plain-float copies of the tables for the step (numpy scalars cost more per use)."""
+        self._lx_raw = self._table_x_raw.tolist()
+        self._lx = self._table_x.tolist()
+        self._lv = self._table_v.tolist()
+        self._lw = self._table_w.tolist()
 
     # -- learning ----------------------------------------------------------------------------
 
@@ -793,21 +809,22 @@ class FeedForwardController:
         """End of a period: update the learned table from the period's errors."""
         n = self._period_n
         period = k // n
-        err = self._errors
-        self.last_period_rms_m = float(np.sqrt(np.mean(err * err)))
+        err = np.asarray(self._le, dtype=np.float64)
+        self.last_period_rms_m = math.sqrt(float(err.dot(err)) / n)
         if period < self.params.learning_start_periods:
             return
         if self._ps_n != n:
             self._ps, self._kept = self._design_ps()
             self._ps_n = n
-        e_hat = np.fft.rfft(err)
-        with np.errstate(divide='ignore', invalid='ignore'):
-            update = np.where(self._kept > 0.0, e_hat / np.where(self._kept > 0.0, self._ps, 1.0),
-                              0.0)
-        spectrum = np.fft.rfft(self._learned) * self._kept - self.params.learning_gain * update
-        table = np.fft.irfft(spectrum, n)
+            # the learning filter, once: gamma Q / P_s on the kept harmonics, 0 elsewhere
+            safe = np.where(self._kept > 0.0, self._ps, 1.0)
+            self._filter = np.asarray(self._kept * self.params.learning_gain / safe,
+                                      dtype=np.complex128)
+        # the table stays inside Q's band (every update is), so Q L = L: one FFT pair a period
+        table = self._learned - np.fft.irfft(np.fft.rfft(err) * self._filter, n)
         limit = self.params.learning_limit_v
         self._learned = np.clip(table, -limit, limit)
+        self._ll = self._learned.tolist()
         self.periods_learned += 1
 
     # -- tables for others ---------------------------------------------------------------------
@@ -824,6 +841,7 @@ class FeedForwardController:
                                  f'{self._period_n} samples (one period)', 'has the wrong length')
         self._learned = np.clip(table, -self.params.learning_limit_v,
                                 self.params.learning_limit_v)
+        self._ll = self._learned.tolist()
 
     # -- diagnostics -----------------------------------------------------------------------
 

@@ -301,6 +301,10 @@ def run_study(stage: StageParams, controller: ControllerParams, trajectory: Traj
                               'listed': traced is None or m.name in traced})
     nominal_plant = linear_plant(stage.plant)
     dt = stage.sample_time_s
+    if controller.feedforward.mode != 'none' and batch:
+        # the batched loop has no feed-forward yet: the reference path, one run per member
+        batch = False
+        result.meta['path'] = 'single (feed-forward is not in the batched loop)'
     for case in cases:
         tp = case_trajectory(case, trajectory, duration_s)
         for g0 in range(0, len(members), BATCH_MEMBERS if batch else 1):
