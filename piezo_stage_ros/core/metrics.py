@@ -64,8 +64,9 @@ from piezo_stage_ros.core.record import RunRecord
 from piezo_stage_ros.core.types import FloatArray
 
 __all__ = ['EdgeMetrics', 'PeriodErrors', 'StepMetrics', 'TRANSIENT_PERIODS', 'TRANSIENT_S',
-           'TrackingMetrics', 'edge_metrics', 'error_metrics', 'loop_width', 'per_period_error',
-           'square_wave_metrics', 'steady_state_start', 'step_response', 'summarize']
+           'TrackingMetrics', 'edge_metrics', 'error_metrics', 'loop_width', 'meta_period',
+           'per_period_error', 'square_wave_metrics', 'steady_state_start', 'step_response',
+           'summarize']
 
 
 #: Whole periods of a periodic reference skipped before the steady-state window.
@@ -575,7 +576,7 @@ def summarize(record: RunRecord, *, steady_state_start_s: float | None = None,
     """
     t = _f64(record.time_s)
     n = t.size
-    period = period_s if period_s is not None else _meta_period(record.meta)
+    period = period_s if period_s is not None else meta_period(record.meta)
     if n == 0:
         nan = math.nan
         return TrackingMetrics(samples=0, e_max_m=nan, e_rms_m=nan, e_max_all_m=nan,
@@ -709,7 +710,21 @@ def per_period_error(record: RunRecord, period_s: float) -> PeriodErrors:
     return PeriodErrors(float(period_s), starts, counts, e_rms, e_max, t_rms, t_max)
 
 
-def _meta_period(meta: Mapping[str, Any]) -> float | None:
+def meta_period(meta: Mapping[str, Any]) -> float | None:
+    """
+    Return the reference period a run's description holds, if it is a usable one.
+
+    Parameters
+    ----------
+    meta : Mapping
+        ``RunRecord.meta`` (offline, or read from a bag).
+
+    Returns
+    -------
+    float or None
+        ``meta['trajectory_period_s']`` when it is a positive finite number [s], else None.
+
+    """
     value = meta.get(PERIOD_KEY)
     try:
         period = float(value) if value is not None else None
