@@ -31,6 +31,7 @@ Examples::
     simulate --trajectory multisine --frequency 10 --frequency 100 --amplitude 1.9e-6
     simulate --experiment table3          # the paper's Table III, project beside paper
     simulate --bag run1 --duration 2      # write the run as a rosbag2 bag (MCAP)
+    simulate --feedforward learning --duration 10 --steady-state-start 9   # a late window
 
 Exit status: 0 on success, 1 on a bad parameter, configuration or refused run, 2 on bad
 command-line usage; the error is one line on stderr.
@@ -47,18 +48,36 @@ from typing import Any, Sequence
 import warnings
 
 from piezo_stage_ros import cli
+from piezo_stage_ros.core.config import Config
 from piezo_stage_ros.core.controllers import ControllerParams
 from piezo_stage_ros.core.errors import ConfigError, ParameterError
 from piezo_stage_ros.core.experiments import EXPERIMENTS
 from piezo_stage_ros.core.hysteresis import HysteresisParams
-from piezo_stage_ros.core.loop_config import LoopConfig
+from piezo_stage_ros.core.loop_config import controller_table, LoopConfig
+from piezo_stage_ros.core.params import ParamSpec
 from piezo_stage_ros.core.stage import PlantParams
 from piezo_stage_ros.core.trajectories import TrajectoryParams
 from piezo_stage_ros.core.wire import STORAGE_IDS
 
-__all__ = ['build_parser', 'load_loop', 'main']
+__all__ = ['FEEDFORWARD_MODES', 'build_config', 'build_parser', 'feedforward_override',
+           'load_loop', 'main']
 
 PROG = 'simulate'
+
+#: The modes of ``controller_node`` ``feedforward.mode`` (issue 16's interface); ``--feedforward``
+#: offers the declared choices once the controller node declares the parameter, these until then.
+FEEDFORWARD_MODES = ('none', 'inverse', 'learning', 'inverse_learning')
+FEEDFORWARD_PARAM = 'feedforward.mode'
+
+
+def _feedforward_spec() -> ParamSpec | None:
+    """Return the declaration of ``feedforward.mode`` in the controller node, if there is one."""
+    return next((s for s in controller_table().specs() if s.name == FEEDFORWARD_PARAM), None)
+
+
+def _feedforward_choices() -> tuple[str, ...]:
+    spec = _feedforward_spec()
+    return spec.choices if spec is not None and spec.choices else FEEDFORWARD_MODES
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -72,6 +91,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help='Hysteresis model (plant_node hysteresis.model).')
     p.add_argument('--controller', choices=cli.choices(ControllerParams, 'type'),
                    help='Controller (controller_node type).')
+    p.add_argument('--feedforward', choices=_feedforward_choices(), metavar='MODE',
+                   help='Feed-forward mode (controller_node feedforward.mode): '
+                   + ', '.join(_feedforward_choices()) + '.')
     p.add_argument('--trajectory', choices=cli.choices(TrajectoryParams, 'kind'),
                    help='Desired trajectory (trajectory_node kind).')
     p.add_argument('--frequency', action='append', type=float, metavar='HZ',
@@ -86,6 +108,10 @@ def build_parser() -> argparse.ArgumentParser:
                    '(columns time_s, position_m).')
     p.add_argument('--duration', type=float, metavar='S',
                    help='Simulated time [s] (default: transient plus two periods, >= 1 s).')
+    p.add_argument('--steady-state-start', type=float, metavar='S', dest='steady_state_start_s',
+                   help='Start of the steady-state window of e_m and e_rms, seconds after the '
+                   'first sample, in [0, duration) (default: the reference period decides; '
+                   'see docs/simulate.md). Stored in a bag, so analyze uses the same window.')
     p.add_argument('--seed', type=int, metavar='N', help='Seed of the sensor noise.')
     p.add_argument('--noise', type=float, metavar='M',
                    help='Sensor noise standard deviation [m] (plant_node '
@@ -104,6 +130,28 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def build_config(args: argparse.Namespace) -> Config:
+    """
+    Return the parameters of the run: files, then ``--param``, then the short flags.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed command line of ``simulate``.
+
+    Returns
+    -------
+    Config
+
+    """
+    config = cli.loop_overrides(
+        cli.read_config(args.config, args.param), plant=args.plant, hysteresis=args.hysteresis,
+        controller=args.controller, trajectory=args.trajectory, frequencies=args.frequency,
+        amplitude=args.amplitude, offset=args.offset, csv=args.csv, seed=args.seed,
+        noise=args.noise)
+    return feedforward_override(config, args.feedforward)
+
+
 def load_loop(args: argparse.Namespace) -> LoopConfig:
     """
     Build the loop configuration from files, ``--param`` and the short flags.
@@ -119,15 +167,52 @@ def load_loop(args: argparse.Namespace) -> LoopConfig:
         With ``stability.action`` set to ``'refuse'`` by ``--refuse-unstable``.
 
     """
-    config = cli.loop_overrides(
-        cli.read_config(args.config, args.param), plant=args.plant, hysteresis=args.hysteresis,
-        controller=args.controller, trajectory=args.trajectory, frequencies=args.frequency,
-        amplitude=args.amplitude, offset=args.offset, csv=args.csv, seed=args.seed,
-        noise=args.noise)
-    loop = cli.offline_loop(PROG, config)
+    loop = cli.offline_loop(PROG, build_config(args))
     if args.refuse_unstable:
         loop = loop.replace(stability=loop.stability.replace(action='refuse'))
     return loop
+
+
+def feedforward_override(config: Config, mode: str | None) -> Config:
+    """
+    Return the configuration with ``--feedforward MODE`` applied.
+
+    Exactly what ``--param controller_node:feedforward.mode=MODE`` does, after the files and
+    ``--param`` (a short flag wins, as the others do).
+
+    Parameters
+    ----------
+    config : Config
+        Files, ``--param`` and the other short flags.
+    mode : str or None
+        The mode; None leaves the configuration as it is.
+
+    Returns
+    -------
+    Config
+
+    Raises
+    ------
+    ConfigError
+        If the controller node does not declare ``feedforward.mode`` (a version without the
+        feed-forward): the value would be ignored.
+
+    """
+    if mode is None:
+        return config
+    if _feedforward_spec() is None:
+        # without the declaration the node table would leave the name to ROS (ignored): the run
+        # would silently have no feed-forward
+        raise ConfigError(f'--feedforward {mode}: controller_node does not declare '
+                          f'{FEEDFORWARD_PARAM} in this version, so the run would have no '
+                          'feed-forward; refused')
+    return config.with_overrides('controller_node', {FEEDFORWARD_PARAM: mode})
+
+
+def _check_window(start_s: float | None, duration_s: float) -> None:
+    if start_s is not None and not (0.0 <= start_s < duration_s):
+        raise ParameterError('--steady-state-start', start_s, f'[0, {duration_s:g}) s',
+                             'is outside the run')
 
 
 def _clean(value: Any) -> Any:
@@ -167,8 +252,13 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
                                                                                   traj)
     if not (duration > 0.0 and math.isfinite(duration)):
         raise ParameterError('--duration', duration, '(0, inf) s')
-    meta = {'stable': bool(report.stable), 'stability': text,
-            'config_files': [str(p) for p in loop.sources]}
+    window = args.steady_state_start_s
+    _check_window(window, duration)
+    meta: dict[str, Any] = {'stable': bool(report.stable), 'stability': text,
+                            'config_files': [str(p) for p in loop.sources]}
+    if window is not None:
+        # analyze of the bag takes the window from here
+        meta['steady_state_start_s'] = window
     start = time.perf_counter()
     if args.bag is not None:
         from piezo_stage_ros.analysis.bagwrite import RunBagWriter
@@ -182,7 +272,7 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
         record = run_one(stage, ctrl, traj, duration_s=duration, meta=meta,
                          design_plant=loop.design_plant)
     wall = time.perf_counter() - start
-    summary = metrics.summarize(record)
+    summary = metrics.summarize(record, steady_state_start_s=window)
     sim = float(record.meta['duration_s'])
     out: dict[str, Any] = summary.as_dict()
     out.update({'sim_seconds': sim, 'wall_seconds': wall,
@@ -206,6 +296,9 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
           f'({summary.steady_state_samples} samples):')
     print(f'  e_m   = {summary.e_max_m * 1e9:10.2f} nm')
     print(f'  e_rms = {summary.e_rms_m * 1e9:10.2f} nm')
+    if summary.e_rms_true_m is not None and summary.e_max_true_m is not None:
+        print(f'  true position (no sensor noise, no ADC): e_m = '
+              f'{summary.e_max_true_m * 1e9:.2f} nm, e_rms = {summary.e_rms_true_m * 1e9:.2f} nm')
     if math.isfinite(summary.loop_width_pct):
         print(f'  loop width (x vs x_d) = {summary.loop_width_pct:.2f} % of range')
     print(f'whole run: e_m = {summary.e_max_all_m * 1e9:.2f} nm, e_rms = '
@@ -289,6 +382,9 @@ def _main(args: argparse.Namespace) -> int:
     if args.experiment is not None:
         if args.bag is not None:
             raise ConfigError('--bag records one run; it cannot be used with --experiment')
+        if args.steady_state_start_s is not None:
+            raise ConfigError('--steady-state-start measures one run; each experiment has its '
+                              "own window (the paper's); it cannot be used with --experiment")
         return _run_experiments(args, loop)
     return _run_single(args, loop)
 

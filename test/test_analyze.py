@@ -239,8 +239,9 @@ def test_plots_and_report_of_one_sine_bag(tmp_path):
     png, rep = tmp_path / 'png', tmp_path / 'r'
     assert analyze.main(['-q', '--plots', str(png), '--report', str(rep), str(bag)]) == 0
     names = sorted(p.name for p in png.iterdir())
-    # A sine has no step to zoom on and is no excitation run: no zoom, no Bode.
-    assert names == ['error.png', 'io_curves.png', 'tracking.png']
+    # A sine has no step to zoom on and is no excitation run: no zoom, no Bode; it is periodic
+    # (0.3 s of 10 ms periods): a learning curve.
+    assert names == ['error.png', 'io_curves.png', 'learning_curve.png', 'tracking.png']
     for name in names:
         width, height = _png_size(png / name)
         assert width >= 600 and height >= 300
@@ -248,6 +249,7 @@ def test_plots_and_report_of_one_sine_bag(tmp_path):
     assert text.startswith('# Run report: rac')
     # Figures outside the report directory are linked by relative path.
     assert '](../png/tracking.png)' in text and '"trajectory_period_s": 0.01' in text
+    assert '](../png/learning_curve.png)' in text and '*Learning curve: e_rms' in text
 
 
 # --- bad input: one clear line naming the bag, exit status != 0, no traceback ----------------
@@ -365,3 +367,20 @@ def test_progress_line():
     assert text.endswith('\ranalyze: [2/3] rac 100.0% (1800/1800 messages)')
     show.end()
     assert stream.getvalue().endswith('\r\033[K')
+
+
+@pytest.mark.parametrize('period_s, drawn', [(None, False), (0.02, False), (0.01, True)])
+def test_learning_curve_only_with_a_period_and_two_whole_periods(tmp_path, period_s, drawn):
+    from piezo_stage_ros.analysis.plots import plot_run
+    n = 300  # 30 ms: one whole period of 20 ms, three of 10 ms
+    t = np.arange(n) * 1e-4
+    xd = 1e-6 * np.sin(2 * np.pi * 100 * t)
+    meta = {} if period_s is None else {'trajectory_period_s': period_s}
+    record = RunRecord(t, xd + 1e-9, xd, np.zeros(n), np.zeros(n), {}, meta,
+                       true_position_m=xd + 1e-10)
+    files = plot_run(record, tmp_path)
+    assert ('learning_curve' in files) == drawn
+    assert (tmp_path / 'learning_curve.png').exists() == drawn
+    if drawn:
+        width, height = _png_size(files['learning_curve'])
+        assert width >= 600 and height >= 300

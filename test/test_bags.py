@@ -21,7 +21,7 @@ import shutil
 
 import numpy as np
 from piezo_stage_ros.analysis import bagread
-from piezo_stage_ros.analysis.bagread import read_run, read_topics
+from piezo_stage_ros.analysis.bagread import bag_info, read_run, read_topics
 from piezo_stage_ros.analysis.bagwrite import RunBagWriter, write_run
 from piezo_stage_ros.core import wire
 from piezo_stage_ros.core.errors import BagError
@@ -38,7 +38,7 @@ JS = 'sensor_msgs/msg/JointState'
 F64 = 'std_msgs/msg/Float64'
 
 
-def make_record(n=2000, start_s=0.0, diagnostics=True):
+def make_record(n=2000, start_s=0.0, diagnostics=True, true_position=False):
     k = np.arange(n)
     t = start_s + k * 1e-4
     rng = np.random.default_rng(7)
@@ -47,8 +47,10 @@ def make_record(n=2000, start_s=0.0, diagnostics=True):
         diag = {'theta_hat': 1.29 + 1e-3 * np.sin(k / 50.0),
                 'phi_hat': 3.2e-4 + 1e-6 * k,
                 'saturated': (k % 7 == 0).astype(float)}
+    true = 10e-6 + 5e-6 * np.sin(2 * np.pi * 5 * t) + rng.normal(0, 1e-10, n)
     return RunRecord(
         time_s=t,
+        true_position_m=true if true_position else None,
         position_m=10e-6 + 5e-6 * np.sin(2 * np.pi * 5 * t) + rng.normal(0, 1e-9, n),
         reference_m=10e-6 + 5e-6 * np.sin(2 * np.pi * 5 * t),
         reference_velocity_mps=5e-6 * 2 * np.pi * 5 * np.cos(2 * np.pi * 5 * t),
@@ -63,6 +65,9 @@ def assert_same_run(a, b):
     # bit for bit: a bag round trip stores the float64 samples as they are (no arithmetic)
     for name in ('position_m', 'reference_m', 'reference_velocity_mps', 'command_v'):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert (a.true_position_m is None) == (b.true_position_m is None)
+    if a.true_position_m is not None:
+        np.testing.assert_array_equal(a.true_position_m, b.true_position_m)
     assert sorted(a.diagnostics) == sorted(b.diagnostics)
     for key in a.diagnostics:
         np.testing.assert_array_equal(a.diagnostics[key], b.diagnostics[key], err_msg=key)
@@ -122,6 +127,39 @@ def test_messages_decode_with_the_generic_rosbags_deserializer(tmp_path, storage
         msg = seen['diagnostics'][k][1]
         assert list(msg.name) == ['phi_hat', 'saturated', 'theta_hat']
         assert msg.position[2] == rec.diagnostics['theta_hat'][k]
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+def test_true_position_round_trip(tmp_path, storage):
+    # a simulation's true position goes on stage/true_position (stamp t_k, name ['stage']) and
+    # comes back bit for bit; rosbags' own deserializer reads the same values
+    rec = make_record(n=300, true_position=True)
+    bag = tmp_path / 'run'
+    write_run(rec, bag, storage=storage)
+    back = read_run(bag)
+    assert_same_run(rec, back)
+    values = []
+    with Reader(bag) as reader:
+        conns = [c for c in reader.connections if c.topic == '/stage/true_position']
+        assert [c.msgtype for c in conns] == [JS]
+        for _, log_ns, raw in reader.messages(connections=conns):
+            msg = STORE.deserialize_cdr(raw, JS)
+            assert list(msg.name) == ['stage']
+            assert wire.stamp_to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec) == log_ns
+            values.append(msg.position[0])
+    np.testing.assert_array_equal(values, rec.true_position_m)
+    # a bag of a record without one has no such topic, and reads back without one
+    write_run(make_record(n=300), tmp_path / 'bare', storage=storage)
+    assert '/stage/true_position' not in bag_info(tmp_path / 'bare').topics
+    assert read_run(tmp_path / 'bare').true_position_m is None
+
+
+def test_streaming_writer_refuses_a_true_position_in_some_chunks_only(tmp_path):
+    with pytest.raises(BagError, match='true position is given in some chunks only'):
+        with RunBagWriter(tmp_path / 'b') as writer:
+            writer.write_chunk(make_record(n=100, true_position=True))
+            writer.write_chunk(make_record(n=100, start_s=1.0))
+    assert not (tmp_path / 'b').exists()
 
 
 def test_streaming_writer_equals_write_run(tmp_path):
@@ -550,14 +588,16 @@ def test_single_storage_file_is_accepted(tmp_path):
     assert len(rec) == 10
 
 
-@pytest.mark.parametrize('diagnostics', [False, True])
+@pytest.mark.parametrize('diagnostics, true_position', [(False, False), (True, False),
+                                                        (True, True)])
 @pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
-def test_bulk_writing_gives_the_same_bag_as_writer_write(tmp_path, storage, diagnostics):
+def test_bulk_writing_gives_the_same_bag_as_writer_write(tmp_path, storage, diagnostics,
+                                                         true_position):
     # The bulk path appends to rosbags' storage writer itself; it must produce exactly what
     # one Writer.write per message produces (same chunks, same index, same bytes).
     # MCAP: enough samples for several 1 MiB chunks; sqlite3 has no chunks.
     n = 16000 if storage == 'mcap' else 2000
-    rec = make_record(n=n, diagnostics=diagnostics)
+    rec = make_record(n=n, diagnostics=diagnostics, true_position=true_position)
     files = []
     for bulk in (True, False):
         bag = tmp_path / ('bulk' if bulk else 'each') / 'run'
@@ -565,9 +605,11 @@ def test_bulk_writing_gives_the_same_bag_as_writer_write(tmp_path, storage, diag
             # Uneven pieces: chunk boundaries fall inside pieces and inside samples.
             for lo, hi in ((0, 777), (777, n // 2), (n // 2, n // 2 + 1), (n // 2 + 1, n)):
                 sl = slice(lo, hi)
+                true = rec.true_position_m
                 writer.write_samples(rec.time_s[sl], rec.position_m[sl], rec.reference_m[sl],
                                      rec.reference_velocity_mps[sl], rec.command_v[sl],
-                                     diagnostics={k: v[sl] for k, v in rec.diagnostics.items()})
+                                     diagnostics={k: v[sl] for k, v in rec.diagnostics.items()},
+                                     true_position_m=None if true is None else true[sl])
         files.append(_storage_file(bag))
         assert_same_run(rec, read_run(bag))
     if storage == 'mcap':
@@ -662,11 +704,13 @@ def test_random_damage_gives_a_bag_error_or_a_run(tmp_path, storage):
 
 def test_record_qos_file_covers_every_topic():
     # config/record_qos.yaml is what `ros2 bag record` (and the launch file) use: it must name
-    # every topic a run is stored on, reliably and with at least 0.1 s of queue at 10 kHz.
+    # every topic the nodes store a run on (not the simulation-only ones, which only the
+    # offline runner writes), reliably and with at least 0.1 s of queue at 10 kHz.
     import yaml
     path = Path(__file__).resolve().parents[1] / 'config' / 'record_qos.yaml'
     profiles = yaml.safe_load(path.read_text())
-    assert set(profiles) == set(wire.topic_names('/stage').values())
+    assert set(profiles) == {topic for key, topic in wire.topic_names('/stage').items()
+                             if key not in wire.SIMULATION_TOPICS}
     for profile in profiles.values():
         assert profile['reliability'] == 'reliable'
         assert profile['history'] == 'keep_last' and profile['depth'] >= 1000

@@ -125,7 +125,68 @@ def test_same_samples_as_a_hand_written_loop_on_the_real_stage() -> None:
         u = ctrl.step(y, float(xd[0]), float(vd[0]))
         assert rec.position_m[k] == y
         assert rec.command_v[k] == u
+        # x(t_k), the state behind y_k: read before the stage steps (same kernel, same bits)
+        assert rec.true_position_m is not None
+        assert rec.true_position_m[k] == stage.position_m
         y = stage.step(u)
+
+
+class TruthStage(FakeStage):
+    """FakeStage whose true position is the last command * 1e-9 m plus 1 nm of offset."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.position_m = 4e-6
+
+    def step(self, command_v: float) -> float:
+        self.position_m = command_v * 1e-9 + 1e-9
+        return super().step(command_v)
+
+
+@pytest.mark.parametrize('every', [None, 3])
+def test_true_position_recorded_beside_y_k(every: int | None) -> None:
+    # a plain attribute position_m (no read_position_m) is read each sample, before the step
+    chunks: list[RunRecord] = []
+    rec = closed_loop.run(TruthStage(), Echo(), Ramp(), duration_s=10 * T, chunk_s=4 * T,
+                          record_diagnostics=every is not None, diagnostics_every=every or 1,
+                          chunk_callback=chunks.append)
+    assert rec.true_position_m is not None
+    # x_0 = the position at reset, x_k = u_k-1 * 1e-9 + 1e-9 with u_k-1 = k
+    np.testing.assert_array_equal(rec.true_position_m,
+                                  [4e-6] + [k * 1e-9 + 1e-9 for k in range(1, 10)])
+    assert [len(c.true_position_m) for c in chunks  # type: ignore[arg-type]
+            ] == [4, 4, 2]
+    np.testing.assert_array_equal(rec.true_error_m, rec.true_position_m - rec.reference_m)
+
+
+def test_no_true_position_without_one_or_when_not_asked() -> None:
+    rec = closed_loop.run(FakeStage(), Echo(), Ramp(), duration_s=5 * T)
+    assert rec.true_position_m is None and rec.true_error_m is None
+    rec = closed_loop.run(TruthStage(), Echo(), Ramp(), duration_s=5 * T,
+                          record_true_position=False)
+    assert rec.true_position_m is None
+
+
+def test_concatenate_keeps_the_true_position_only_when_every_chunk_has_it() -> None:
+    chunks: list[RunRecord] = []
+    closed_loop.run(TruthStage(), Echo(), Ramp(), duration_s=9 * T, chunk_s=4 * T,
+                    chunk_callback=chunks.append)
+    joined = closed_loop.concatenate(chunks)
+    assert joined.true_position_m is not None
+    np.testing.assert_array_equal(joined.true_position_m, np.concatenate(
+        [c.true_position_m for c in chunks]))  # type: ignore[misc]
+    assert closed_loop.concatenate(chunks[:1]).true_position_m is chunks[0].true_position_m
+    bare = RunRecord(chunks[1].time_s, chunks[1].position_m, chunks[1].reference_m,
+                     chunks[1].reference_velocity_mps, chunks[1].command_v,
+                     chunks[1].diagnostics)
+    assert closed_loop.concatenate([chunks[0], bare]).true_position_m is None
+
+
+def test_record_refuses_a_true_position_of_another_length() -> None:
+    from piezo_stage_ros.core.errors import PiezoStageError
+    z = np.zeros(3)
+    with pytest.raises(PiezoStageError, match='true_position_m has 2 samples, time_s has 3'):
+        RunRecord(z, z, z, z, z, true_position_m=np.zeros(2))
 
 
 @pytest.mark.parametrize('kwargs, name', [

@@ -207,3 +207,97 @@ def test_records_give_the_json_field_names_in_order() -> None:
                                      'settling_time_max_s', 'settle_band_m', 'ss_e_max_m',
                                      'ss_e_rms_m', 'edges']
     assert edges.edges == 7 and edges.as_dict()['edges'] == 7.0
+
+
+# Dyadic signals: the reference is a multiple of 2^-40 m (~1e-12 m) below 2^-17 m and every
+# error a multiple of 2^-33 m, so x = x_d + e and x - x_d are exact, and so are e^2, a sum of up
+# to 2^20 equal squares, the mean and its square root: the metrics below are exact, compared
+# with == on purpose (no rounding anywhere, on any machine).
+_Q = 2.0 ** -40
+
+
+def _dyadic_sine(n: int, samples_per_period: int) -> np.ndarray:
+    k = np.arange(n)
+    return np.round(3.8e-6 * (1 + np.sin(2 * np.pi * k / samples_per_period)) / _Q) * _Q
+
+
+def _alternating(n: int) -> np.ndarray:
+    return np.where(np.arange(n) % 2 == 0, 1.0, -1.0)
+
+
+def test_true_position_error_over_the_steady_state_window() -> None:
+    t_s, per = 1e-4, 500  # a 20 Hz reference sampled at 10 kHz: 0.05 s per period
+    n = 6 * per
+    xd = _dyadic_sine(n, per)
+    # the true error is 2^-28 m during the first two periods (the transient the window skips:
+    # max(2 periods, 0.1 s) = 0.1 s) and 2^-31 m (0.47 nm) after, alternating in sign; the
+    # measured position carries 3 nm of sensor noise on top
+    amplitude = np.where(np.arange(n) < 2 * per, 2.0 ** -28, 2.0 ** -31)
+    true = xd + amplitude * _alternating(n)
+    measured = true + 3e-9 * np.random.default_rng(1).standard_normal(n)
+    rec = RunRecord(np.arange(n) * t_s, measured, xd, np.zeros(n), np.zeros(n),
+                    meta={'trajectory_period_s': per * t_s}, true_position_m=true)
+    s = metrics.summarize(rec)
+    assert s.steady_state_samples == 4 * per
+    assert s.e_rms_true_m == 2.0 ** -31 and s.e_max_true_m == 2.0 ** -31
+    # the measured error is the noise: 3 nm rms, far above the true 0.47 nm (2000 samples of a
+    # unit normal: the sample rms is within 10 % of 1 with overwhelming probability)
+    assert s.e_rms_m == pytest.approx(3e-9, rel=0.1)
+    d = s.as_dict()
+    assert (d['e_max_true_m'], d['e_rms_true_m']) == (2.0 ** -31, 2.0 ** -31)
+    # the true fields follow the declared ones; a run without a true position has none of them
+    assert list(d)[list(d).index('loop_width_pct') + 1:] == ['e_max_true_m', 'e_rms_true_m']
+    bare = metrics.summarize(RunRecord(rec.time_s, measured, xd, rec.reference_velocity_mps,
+                                       rec.command_v, meta=rec.meta))
+    assert bare.e_rms_true_m is None and bare.e_max_true_m is None
+    assert 'e_rms_true_m' not in bare.as_dict()
+    assert {k: v for k, v in d.items() if 'true' not in k} == bare.as_dict()
+
+
+@pytest.mark.parametrize('with_true', [False, True])
+def test_per_period_error_of_a_known_error(with_true: bool) -> None:
+    # period j has error +-(j + 1) 2^-30 m (measured) and +-(j + 1) 2^-33 m (true): its rms and
+    # its max are exactly those amplitudes; 5.5 periods give 5 rows (the half period dropped)
+    t_s, per = 1e-4, 100
+    n = 11 * per // 2
+    k = np.arange(n)
+    xd = _dyadic_sine(n, per)
+    j = k // per
+    measured = xd + (j + 1) * 2.0 ** -30 * _alternating(n)
+    true = xd + (j + 1) * 2.0 ** -33 * _alternating(n) if with_true else None
+    rec = RunRecord(k * t_s, measured, xd, np.zeros(n), np.zeros(n), true_position_m=true)
+    rows = metrics.per_period_error(rec, per * t_s)
+    assert len(rows) == 5
+    amplitude = np.arange(1, 6) * 2.0 ** -30
+    np.testing.assert_array_equal(rows.e_rms_m, amplitude)
+    np.testing.assert_array_equal(rows.e_max_m, amplitude)
+    np.testing.assert_array_equal(rows.samples, [per] * 5)
+    np.testing.assert_allclose(rows.start_s, np.arange(5) * per * t_s, rtol=1e-15)
+    if with_true:
+        assert rows.e_rms_true_m is not None and rows.e_max_true_m is not None
+        np.testing.assert_array_equal(rows.e_rms_true_m, amplitude / 8)
+        np.testing.assert_array_equal(rows.e_max_true_m, amplitude / 8)
+    else:
+        assert rows.e_rms_true_m is None and rows.e_max_true_m is None
+
+
+def test_per_period_error_of_a_period_that_is_not_a_whole_number_of_samples() -> None:
+    # P = 12.3 samples: each period holds 12 or 13 samples, all of them counted once, and the
+    # error of a constant-amplitude run is that amplitude in every period
+    n = 1000
+    xd = np.zeros(n)
+    rec = RunRecord(np.arange(n) * 1e-4, xd + 2.0 ** -30 * _alternating(n), xd, xd, xd)
+    rows = metrics.per_period_error(rec, 12.3e-4)
+    assert len(rows) == math.floor(n / 12.3)
+    assert set(rows.samples.tolist()) == {12, 13}
+    assert int(rows.samples.sum()) in range(n - 13, n + 1)
+    np.testing.assert_array_equal(rows.e_max_m, np.full(len(rows), 2.0 ** -30))
+    np.testing.assert_array_equal(rows.e_rms_m, np.full(len(rows), 2.0 ** -30))
+
+
+def test_per_period_error_edge_cases() -> None:
+    short = _record(np.arange(50) * 1e-4, np.ones(50), np.zeros(50))
+    assert len(metrics.per_period_error(short, 0.01)) == 0  # shorter than one period
+    for bad in (0.0, -1.0, math.nan, math.inf):
+        with pytest.raises(PiezoStageError, match='allowed: a finite number > 0 s'):
+            metrics.per_period_error(short, bad)

@@ -203,3 +203,89 @@ def test_param_values_read_as_ros_yaml(capsys: pytest.CaptureFixture[str]) -> No
     assert cli.parse_param('controller_node:notch.mode=off')[2] == 'off'
     assert cli.parse_param('plant_node:chain.sensor_noise_std_m=1e-9')[2] == 1e-9
     assert cli.parse_param('plant_node:chain.quantize=false')[2] is False
+
+
+def test_true_position_error_in_json_and_summary(capsys: pytest.CaptureFixture[str]) -> None:
+    # the simulated stage knows x(t_k): the JSON has e_max_true_m and e_rms_true_m beside the
+    # measured figures, equal to summarize of the same run through the core
+    argv = ['--plant', 'reduced', '--duration', '0.3', '--noise', '3e-9', '--seed', '2']
+    d = run_json(capsys, *argv)
+    sp = StageParams().with_flat({'plant.model': 'reduced', 'chain.sensor_noise_std_m': 3e-9,
+                                  'seed': 2})
+    rec = ex.run_one(sp, ControllerParams(), TrajectoryParams(), duration_s=0.3)
+    s = metrics.summarize(rec)
+    assert s.e_rms_true_m is not None
+    assert (d['e_rms_true_m'], d['e_max_true_m']) == (s.e_rms_true_m, s.e_max_true_m)
+    assert simulate.main(argv) == 0
+    assert 'true position (no sensor noise, no ADC): e_m =' in capsys.readouterr().out
+
+
+def test_steady_state_start_sets_the_window(tmp_path: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip('rosbags')
+    from piezo_stage_ros.analysis.replay import analyze_bag
+    bag = tmp_path / 'run'
+    d = run_json(capsys, '--plant', 'reduced', '--duration', '0.3', '--steady-state-start',
+                 '0.25', '--bag', str(bag))
+    assert d['steady_state_start_s'] == 0.25
+    # 0.25 s to the end of the last whole 10 ms period: 5 periods of 100 samples
+    assert d['steady_state_samples'] == 500
+    sp = StageParams().with_flat({'plant.model': 'reduced'})
+    rec = ex.run_one(sp, ControllerParams(), TrajectoryParams(), duration_s=0.3)
+    s = metrics.summarize(rec, steady_state_start_s=0.25)
+    assert (d['e_rms_m'], d['e_max_m']) == (s.e_rms_m, s.e_max_m)
+    assert d['e_rms_true_m'] == s.e_rms_true_m
+    # the bag keeps the window: analyze measures the same samples without being told
+    analysis = analyze_bag(bag)
+    assert analysis.metrics['steady_state_samples'] == 500
+    assert analysis.metrics['e_rms_m'] == d['e_rms_m']
+    assert analysis.metrics['e_rms_true_m'] == d['e_rms_true_m']
+
+
+@pytest.mark.parametrize('argv, match', [
+    (['--steady-state-start', '0.3'], "'--steady-state-start' = 0.3 is outside the run; "
+     'allowed: [0, 0.3) s'),
+    (['--steady-state-start', '-0.1'], "'--steady-state-start' = -0.1 is outside the run"),
+    (['--steady-state-start', 'nan'], "'--steady-state-start' = nan is outside the run"),
+    (['--experiment', 'table3', '--steady-state-start', '0.1'],
+     '--steady-state-start measures one run'),
+])
+def test_bad_steady_state_start(argv: list[str], match: str,
+                                capsys: pytest.CaptureFixture[str]) -> None:
+    assert simulate.main(['--duration', '0.3', *argv]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith('simulate: error: ') and match in err
+
+
+def test_feedforward_flag_is_the_feedforward_mode_parameter(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # What this covers: the override --feedforward produces (the configuration), not a run with
+    # feed-forward; the parameter itself is declared by the feed-forward work of issue 16.
+    # Declared or not, the flag must set exactly what --param sets, and win over it.
+    from piezo_stage_ros.core.params import ParamSpec
+    spec = ParamSpec(name='feedforward.mode', type_name='string', default='none', unit='',
+                     description='feed-forward', choices=simulate.FEEDFORWARD_MODES)
+    monkeypatch.setattr(simulate, '_feedforward_spec', lambda: spec)
+    parser = simulate.build_parser()
+    for mode in simulate.FEEDFORWARD_MODES:
+        by_flag = simulate.build_config(parser.parse_args(['--feedforward', mode]))
+        by_param = simulate.build_config(parser.parse_args(
+            ['--param', f'controller_node:feedforward.mode={mode}']))
+        assert by_flag.node('controller_node')['feedforward.mode'] == mode
+        assert by_flag.sections == by_param.sections
+    other = 'learning' if mode != 'learning' else 'inverse'
+    both = simulate.build_config(parser.parse_args(
+        ['--param', f'controller_node:feedforward.mode={other}', '--feedforward', mode]))
+    assert both.node('controller_node')['feedforward.mode'] == mode
+    with pytest.raises(cli.UsageError, match="invalid choice: 'bogus'"):
+        parser.parse_args(['--feedforward', 'bogus'])
+
+
+def test_feedforward_flag_refused_while_the_parameter_is_not_declared(
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    # a node table that does not know feedforward.* leaves it to ROS, which ignores it: the
+    # flag must not run a loop without the feed-forward it asked for
+    monkeypatch.setattr(simulate, '_feedforward_spec', lambda: None)
+    assert simulate.main(['--feedforward', 'inverse', '--duration', '0.01']) == 1
+    err = capsys.readouterr().err
+    assert 'controller_node does not declare feedforward.mode' in err

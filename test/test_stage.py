@@ -19,7 +19,7 @@ import math
 import numpy as np
 from piezo_stage_ros.core.hysteresis import BacklashLikeParams
 from piezo_stage_ros.core.linear import ElectromechanicalParams
-from piezo_stage_ros.core.stage import quantize, Stage, StageBatch, StageParams
+from piezo_stage_ros.core.stage import _dot, quantize, Stage, StageBatch, StageParams
 import pytest
 from scipy.integrate import solve_ivp
 from tolerances import EPS, lti_rounding_bound
@@ -220,3 +220,12 @@ def test_fused_kernel_computes_exactly_what_the_generic_one_does(flat):
     assert fused.position_m == generic.position_m
     assert fused.reset(2e-6) == generic.reset(2e-6)
     assert fused.time_s == 0.0
+    # the true position read every sample (what the closed loop records), bit for bit against
+    # the generic kernel and against c x summed left to right from the kernel's state
+    c = [float(v) for v in fused._core.discrete.c]
+    for u in commands.tolist():
+        fused.step(u)
+        generic.step(u)
+        true = fused.read_position_m()
+        assert true == generic.read_position_m() == _dot(c, fused._kernel.get().x)
+        assert true == fused.position_m

@@ -37,10 +37,14 @@ def test_node_topics_resolve_to_the_bag_topics_under_the_root_namespace():
         relative = f'{wire.STAGE}/{key}'
         assert '/' + relative == bag[key]
         assert wire.TOPIC_TYPES[relative] == msgtype
-    assert (wire.POSITION, wire.REFERENCE, wire.COMMAND, wire.DIAGNOSTICS, wire.APPLIED) == tuple(
-        f'{wire.STAGE}/{key}' for key in wire.BAG_TOPICS)
+    assert (wire.POSITION, wire.REFERENCE, wire.COMMAND, wire.DIAGNOSTICS, wire.APPLIED,
+            wire.TRUE_POSITION) == tuple(f'{wire.STAGE}/{key}' for key in wire.BAG_TOPICS)
     assert all(not t.startswith('/') for t in wire.TOPIC_TYPES if t != wire.CLOCK)
-    assert set(wire.RECORDED_TOPICS) == set(wire.TOPIC_TYPES) - {wire.CLOCK}
+    # the recorder takes what the nodes publish: every topic but the clock and the ones only a
+    # simulation knows (the offline runner writes those into its bags)
+    simulated = {f'{wire.STAGE}/{key}' for key in wire.SIMULATION_TOPICS}
+    assert simulated < set(wire.TOPIC_TYPES)
+    assert set(wire.RECORDED_TOPICS) == set(wire.TOPIC_TYPES) - {wire.CLOCK} - simulated
     assert set(wire.REQUIRED_TOPICS) < set(wire.BAG_TOPICS)
 
 

@@ -31,7 +31,8 @@ stopped early) are dropped. The command has no stamp; receive times jitter by mo
 sample period in real recordings, so commands are paired by order: command i + offset with
 position message i, the offset (a recorder that caught a few more or fewer commands at the
 start) being the one that minimises the median log-time difference. Diagnostics are paired by
-stamp and are NaN where missing. The counts of dropped messages are in
+stamp and are NaN where missing, and so is the true position of a simulation's bag
+(``true_position``). The counts of dropped messages are in
 ``record.meta['alignment']``.
 """
 
@@ -618,7 +619,8 @@ def read_run(path: str | Path, *, namespace: str | None = None,
 
     Alignment: position and reference are paired by equal header stamps; the command (no stamp)
     is paired by order, command i + offset with position message i, the offset found from the
-    log times (:func:`_command_offset`); diagnostics are paired by stamp (NaN where missing).
+    log times (:func:`_command_offset`); diagnostics and the true position (a simulation's
+    ``true_position``) are paired by stamp (NaN where missing).
     Samples that cannot be paired are dropped and counted in ``meta['alignment']``. When far
     fewer commands than positions were recorded (fewer than half: a real-time run whose commands
     came late or not at all), or none pairs, the commands are left out (NaN) and every sample
@@ -643,7 +645,8 @@ def read_run(path: str | Path, *, namespace: str | None = None,
     RunRecord
         ``time_s`` are the header stamps [s] (from the first one with ``relative_time``);
         ``meta`` is the run description stored in the bag plus ``bag``, ``namespace``,
-        ``storage``, ``alignment`` and ``time_origin_ns`` (the first aligned stamp).
+        ``storage``, ``alignment`` and ``time_origin_ns`` (the first aligned stamp);
+        ``true_position_m`` when the bag has ``true_position``, else None.
 
     Raises
     ------
@@ -714,6 +717,11 @@ def read_run(path: str | Path, *, namespace: str | None = None,
     else:
         pi, ri, cmd_pick = pi_cmd[ia], ri[ib], cmd_pick[ia]
         command = cmd_val[cmd_pick, 0]
+    true_position: FloatArray | None = None
+    if 'true_position' in topics:
+        _, true_stamp, true_val = topics['true_position']
+        assert true_stamp is not None
+        true_position = _by_stamp(true_stamp, true_val[:, 0], common)
     diagnostics: dict[str, FloatArray] = {}
     if 'diagnostics' in topics:
         _, diag_stamp, diag_val = topics['diagnostics']
@@ -753,6 +761,7 @@ def read_run(path: str | Path, *, namespace: str | None = None,
         command_v=command,
         diagnostics=diagnostics,
         meta=meta,
+        true_position_m=true_position,
     )
 
 

@@ -23,7 +23,10 @@ A run is stored on the topics of :mod:`piezo_stage_ros.core.wire` under one name
   position [x_d] m, velocity [dx_d/dt] m/s;
 - ``<ns>/command``: ``std_msgs/msg/Float64``, data u_k V (no stamp);
 - ``<ns>/diagnostics``: ``sensor_msgs/msg/JointState``, stamp t_k, name [keys, sorted],
-  position [values].
+  position [values];
+- ``<ns>/true_position``: ``sensor_msgs/msg/JointState``, stamp t_k, name ['stage'],
+  position [x(t_k)] m: the true position behind y_k, only for a record that has one (a
+  simulation); a bag of a record without one is what it always was.
 
 Bags written here have message log time = header stamp = sample time. The run's ``meta`` dict is
 kept as JSON in the bag's ``custom_data`` under :data:`~piezo_stage_ros.core.wire.META_KEY`.
@@ -161,6 +164,7 @@ class RunBagWriter:
         self._writer: Writer | None = None
         self._connections: dict[str, Connection] = {}
         self._diagnostic_keys: tuple[str, ...] | None = None
+        self._has_true: bool | None = None
         self._layouts: dict[str, Layout] = {}
         self._last_ns = -1
         self.samples_written = 0
@@ -205,14 +209,23 @@ class RunBagWriter:
                                                         n_velocity=1)
         self._layouts['command'] = float64_layout()
 
-    def _add_diagnostics(self, keys: tuple[str, ...]) -> None:
+    def _add_joint_states(self, key: str, names: Sequence[str]) -> None:
+        """Add an optional JointState topic whose messages carry one position per name."""
         assert self._writer is not None
+        self._connections[key] = self._writer.add_connection(
+            self.topics[key], JOINT_STATE_TYPE, typestore=_typestore(),
+            offered_qos_profiles=[OFFERED_QOS])
+        self._layouts[key] = joint_state_layout(names=names, n_position=len(names))
+
+    def _add_diagnostics(self, keys: tuple[str, ...]) -> None:
         self._diagnostic_keys = keys
         if keys:
-            self._connections['diagnostics'] = self._writer.add_connection(
-                self.topics['diagnostics'], JOINT_STATE_TYPE, typestore=_typestore(),
-                offered_qos_profiles=[OFFERED_QOS])
-            self._layouts['diagnostics'] = joint_state_layout(names=keys, n_position=len(keys))
+            self._add_joint_states('diagnostics', keys)
+
+    def _add_true_position(self, present: bool) -> None:
+        self._has_true = present
+        if present:
+            self._add_joint_states('true_position', [JOINT_NAME])
 
     def set_meta(self, meta: Mapping[str, Any]) -> None:
         """
@@ -238,11 +251,13 @@ class RunBagWriter:
         """
         self.write_samples(record.time_s, record.position_m, record.reference_m,
                            record.reference_velocity_mps, record.command_v,
-                           diagnostics=record.diagnostics)
+                           diagnostics=record.diagnostics,
+                           true_position_m=record.true_position_m)
 
     def write_samples(self, time_s: ArrayLike, position_m: ArrayLike, reference_m: ArrayLike,
                       reference_velocity_mps: ArrayLike, command_v: ArrayLike, *,
-                      diagnostics: Mapping[str, ArrayLike] | None = None) -> None:
+                      diagnostics: Mapping[str, ArrayLike] | None = None,
+                      true_position_m: ArrayLike | None = None) -> None:
         """
         Append samples given as parallel arrays.
 
@@ -261,11 +276,15 @@ class RunBagWriter:
             Amplifier input voltage u_k [V].
         diagnostics : dict of str to array_like, optional
             Controller internals per sample; the same keys in every call.
+        true_position_m : array_like, optional
+            True position x(t_k) [m] (simulation only), on ``true_position``; given in every
+            call or in none.
 
         Raises
         ------
         BagError
-            Bag not open, arrays of different lengths, bad times, changed diagnostic keys.
+            Bag not open, arrays of different lengths, bad times, changed diagnostic keys, a
+            true position in some calls only.
 
         """
         if self._writer is None:
@@ -296,6 +315,14 @@ class RunBagWriter:
             values = np.column_stack([_as_float(diagnostics[k], n, f'diagnostic {k}', self.path)
                                       for k in keys])
             columns['diagnostics'] = {'position': values}
+        present = true_position_m is not None
+        if self._has_true is None:
+            self._add_true_position(present)
+        elif present != self._has_true:
+            raise BagError(f'bag {self.path}: the true position is given in some chunks only')
+        if true_position_m is not None:
+            columns['true_position'] = {
+                'position': _as_float(true_position_m, n, 'true_position_m', self.path)}
         if n == 0:
             return
         order = [key for key in BAG_TOPICS if key in columns]

@@ -20,6 +20,9 @@ PNG figures of a run in the style of the paper's Figs. 4, 10 and 11.
 - ``io_curves.png``: x versus x_d and x versus v_in (Fig. 11(c), Fig. 6);
 - ``step_zoom.png``: zoom on the largest reference step (Fig. 10(b)), when there is a step;
 - ``bode.png``: frequency response estimated from v_in to x (Fig. 4), for noise or sweep runs;
+- ``learning_curve.png``: e_rms and e_m of each whole period of a periodic reference
+  (:func:`~piezo_stage_ros.core.metrics.per_period_error`), measured and, for a simulation,
+  true; when the run has a period and at least two whole periods;
 - ``comparison_error.png``: the tracking errors of several runs over each other.
 
 matplotlib is imported here only, with the non-interactive Agg backend, so nothing needs a display.
@@ -40,6 +43,7 @@ from matplotlib.axes import Axes  # noqa: E402 - the backend must be chosen firs
 from matplotlib.figure import Figure  # noqa: E402
 import numpy as np  # noqa: E402
 from piezo_stage_ros.analysis.spectral import BodeEstimate  # noqa: E402
+from piezo_stage_ros.core.metrics import meta_period, per_period_error, PeriodErrors  # noqa: E402
 from piezo_stage_ros.core.record import RunRecord  # noqa: E402
 from piezo_stage_ros.core.types import FloatArray
 
@@ -50,6 +54,7 @@ __all__ = [
     'plot_comparison',
     'plot_error',
     'plot_io_curves',
+    'plot_learning_curve',
     'plot_run',
     'plot_step_zoom',
     'plot_tracking',
@@ -341,6 +346,46 @@ def plot_bode(estimate: BodeEstimate, path: Path, title: str = '') -> Path:
     return _save(fig, path)
 
 
+def plot_learning_curve(rows: PeriodErrors, path: Path, title: str = '') -> Path:
+    """
+    Draw e_rms and e_m of every period against the period number (the learning curve).
+
+    Parameters
+    ----------
+    rows : PeriodErrors
+        :func:`~piezo_stage_ros.core.metrics.per_period_error` of the run.
+    path : Path
+        PNG file to write.
+    title : str
+        Figure title.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    """
+    fig, (ax,) = _new()
+    index = np.arange(len(rows), dtype=np.float64)
+    curves = [(rows.e_rms_m, rows.e_max_m, 'tab:red', 'measured')]
+    if rows.e_rms_true_m is not None and rows.e_max_true_m is not None:
+        curves.append((rows.e_rms_true_m, rows.e_max_true_m, 'tab:blue', 'true position'))
+    for rms, top, color, label in curves:
+        ax.plot(*_stride(index, rms * 1e9), color=color, lw=1.2, label=f'{label}: $e_{{rms}}$')
+        ax.plot(*_stride(index, top * 1e9), color=color, lw=0.8, ls='--',
+                label=f'{label}: $e_m$')
+    finite = np.concatenate([c[0] for c in curves] + [c[1] for c in curves])
+    finite = finite[np.isfinite(finite) & (finite > 0)]
+    if finite.size:
+        ax.set_yscale('log')
+    ax.set_xlabel(f'period (of {rows.period_s * 1e3:g} ms)')
+    ax.set_ylabel('error per period [nm]')
+    ax.set_title(title or 'Learning curve: error per period')
+    ax.grid(True, which='both', alpha=0.3)
+    ax.legend(loc='upper right')
+    return _save(fig, path)
+
+
 def error_trace(record: RunRecord) -> tuple[FloatArray, FloatArray]:
     """
     Return the tracking error reduced for drawing: time from the first sample [s], error [m].
@@ -412,8 +457,10 @@ def plot_run(record: RunRecord, outdir: Path, *, title: str = '',
     Returns
     -------
     dict of str to Path
-        Figure name (``tracking``, ``error``, ``io_curves``, ``step_zoom``, ``bode``) -> file;
-        ``step_zoom`` only when the reference has a step, ``bode`` only with an estimate.
+        Figure name (``tracking``, ``error``, ``io_curves``, ``step_zoom``, ``bode``,
+        ``learning_curve``) -> file; ``step_zoom`` only when the reference has a step, ``bode``
+        only with an estimate, ``learning_curve`` only when ``record.meta`` gives the reference
+        period and the run holds at least two whole periods.
 
     """
     outdir.mkdir(parents=True, exist_ok=True)
@@ -434,4 +481,10 @@ def plot_run(record: RunRecord, outdir: Path, *, title: str = '',
     if bode is not None:
         files['bode'] = plot_bode(bode, outdir / 'bode.png', prefix + f'frequency response '
                                   f'estimate ({bode.label})')
+    period = meta_period(record.meta)
+    if period is not None:
+        rows = per_period_error(record, period)
+        if len(rows) >= 2:
+            files['learning_curve'] = plot_learning_curve(
+                rows, outdir / 'learning_curve.png', prefix + 'learning curve: error per period')
     return files

@@ -279,7 +279,8 @@ STATUS_KEYS = ('index', 'paced_samples', 'late', 'skipped', 'late_half_period',
 
 
 #: The metrics a reader looks at first, in this order; the others (diagnostics) follow.
-HEADLINE = ('e_max_m', 'e_rms_m', 'e_max_all_m', 'e_rms_all_m', 'loop_width_pct', 'rise_time_s',
+HEADLINE = ('e_max_m', 'e_rms_m', 'e_max_all_m', 'e_rms_all_m', 'e_max_true_m', 'e_rms_true_m',
+            'loop_width_pct', 'rise_time_s',
             'overshoot_pct', 'settling_time_s', 'settling_time_max_s', 'ss_e_max_m',
             'ss_e_rms_m', 'command_min_v', 'command_max_v', 'samples', 'duration_s',
             'steady_state_start_s', 'steady_state_samples', 'edges', 'settle_band_m')

@@ -40,6 +40,8 @@ _CAPTIONS = {
     'io_curves': 'Input-output curves: x versus x_d and x versus v_in (as Fig. 11(c), Fig. 6)',
     'step_zoom': 'Zoom on the largest reference step (as Fig. 10(b))',
     'bode': 'Frequency response estimated from v_in to x (as Fig. 4)',
+    'learning_curve': 'Learning curve: e_rms (solid) and e_m (dashed) of each period, measured '
+                      'and, for a simulation, of the true position',
 }
 
 

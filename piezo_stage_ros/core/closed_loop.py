@@ -21,7 +21,7 @@ follows the same order, so both give the same samples)::
     t_k = k T
     x_d, x_d' = trajectory(t_k)                    (precomputed per chunk, vectorized)
     u_k = controller.step(y_k, x_d, x_d')
-    record (t_k, y_k, x_d, x_d', u_k)
+    record (t_k, y_k, x_d, x_d', u_k)  and x(t_k), the true position, when the stage has one
     y_k+1 = stage.step(u_k)
 
 y_0 comes from ``stage.reset()``, and ``controller.reset(y_0, x_d(0))`` is called before the first
@@ -33,6 +33,11 @@ memory stays flat however long the run.
 Controller diagnostics are read by :func:`piezo_stage_ros.core.wire.diagnostic_reader`, the
 reader the controller node uses too (names in sorted order), every ``diagnostics_every``
 samples and held in between (zero-order), which keeps the per-sample cost of the loop low.
+
+A simulated stage also knows its true position x(t_k) behind y_k (before sensor noise and ADC):
+the loop records it as ``true_position_m`` when the plant offers it (:func:`true_position_reader`:
+:class:`~piezo_stage_ros.core.stage.Stage`'s plain function ``read_position_m``, else a
+``position_m`` attribute), so that metrics can show the tracking error below the sensor noise.
 """
 
 from __future__ import annotations
@@ -47,7 +52,7 @@ from piezo_stage_ros.core.record import RunRecord
 from piezo_stage_ros.core.types import FloatArray
 from piezo_stage_ros.core.wire import diagnostic_reader
 
-__all__ = ['ChunkCallback', 'Plant', 'concatenate', 'run']
+__all__ = ['ChunkCallback', 'Plant', 'concatenate', 'run', 'true_position_reader']
 
 
 #: Receives every chunk of a run as it is produced.
@@ -71,11 +76,36 @@ class Plant(Protocol):
         ...
 
 
+def true_position_reader(stage: object) -> Callable[[], float] | None:
+    """
+    Return a function reading a plant's true position now [m], or None if it has none.
+
+    Parameters
+    ----------
+    stage : object
+        The plant: a ``read_position_m()`` function is used as it is (the cheap path of
+        :class:`~piezo_stage_ros.core.stage.Stage`); else a ``position_m`` attribute or
+        property is read on each call; else there is no true position (a real stage).
+
+    Returns
+    -------
+    callable or None
+
+    """
+    read = getattr(stage, 'read_position_m', None)
+    if callable(read):
+        return read  # type: ignore[no-any-return]
+    if hasattr(stage, 'position_m'):
+        return lambda: float(stage.position_m)  # type: ignore[attr-defined]
+    return None
+
+
 def run(stage: Plant, controller: Controller, trajectory: Trajectory, *, duration_s: float,
         initial_position_m: float | None = None, record_diagnostics: bool = True,
         diagnostics_every: int = 10, chunk_s: float = 1.0,
         chunk_callback: ChunkCallback | None = None, keep: bool = True,
-        meta: Mapping[str, Any] | None = None) -> RunRecord:
+        meta: Mapping[str, Any] | None = None, record_true_position: bool = True
+        ) -> RunRecord:
     """
     Run the closed loop for ``duration_s`` and return the record of every sample.
 
@@ -108,6 +138,9 @@ def run(stage: Plant, controller: Controller, trajectory: Trajectory, *, duratio
         Description of the run, copied into the record's ``meta`` (``sample_time_s``,
         ``duration_s`` and, when the trajectory has ``period_s``, ``trajectory_period_s`` are
         added).
+    record_true_position : bool
+        Record the stage's true position x(t_k) as ``true_position_m`` when it has one
+        (:func:`true_position_reader`); False leaves it None.
 
     Returns
     -------
@@ -157,6 +190,35 @@ def run(stage: Plant, controller: Controller, trajectory: Trajectory, *, duratio
     last: RunRecord | None = None
     ctrl_step = controller.step
     plant_step = stage.step
+    read_true = true_position_reader(stage) if record_true_position else None
+    pos_out: list[float] = []
+    cmd_out: list[float] = []
+    true_out: list[float] = []
+    pos_append = pos_out.append
+    cmd_append = cmd_out.append
+    true_append = true_out.append
+
+    # The hot loop over consecutive samples: plain floats, bound methods, no allocation per
+    # sample. The true position x(t_k) is read before the plant steps, beside y_k.
+    def span(y: float, refs: Sequence[float], vels: Sequence[float]) -> float:
+        for xd, vd in zip(refs, vels):
+            u = ctrl_step(y, xd, vd)
+            pos_append(y)
+            cmd_append(u)
+            y = plant_step(u)
+        return y
+
+    def span_true(y: float, refs: Sequence[float], vels: Sequence[float]) -> float:
+        assert read_true is not None
+        for xd, vd in zip(refs, vels):
+            u = ctrl_step(y, xd, vd)
+            pos_append(y)
+            true_append(read_true())
+            cmd_append(u)
+            y = plant_step(u)
+        return y
+    steps = span if read_true is None else span_true
+
     k0 = 0
     while k0 < total:
         n = min(per_chunk, total - k0)
@@ -167,20 +229,11 @@ def run(stage: Plant, controller: Controller, trajectory: Trajectory, *, duratio
         if ref.shape != time_s.shape or vel.shape != time_s.shape:
             raise PiezoStageError('trajectory.evaluate returned arrays of shape '
                                   f'{ref.shape} and {vel.shape}, expected {time_s.shape}')
-        pos_out: list[float] = []
-        cmd_out: list[float] = []
-        pos_append = pos_out.append
-        cmd_append = cmd_out.append
         diag_rows: list[Sequence[float]] = []
         ref_l = ref.tolist()
         vel_l = vel.tolist()
         if read_diag is None:
-            # the hot loop: plain floats, bound methods in locals, no allocation per sample
-            for xd, vd in zip(ref_l, vel_l):
-                u = ctrl_step(y, xd, vd)
-                pos_append(y)
-                cmd_append(u)
-                y = plant_step(u)
+            y = steps(y, ref_l, vel_l)
         else:
             # blocks of `every` samples: the diagnostics are read after the first step of each
             # block (and held over it), the rest of the block runs the plain loop
@@ -189,14 +242,12 @@ def run(stage: Plant, controller: Controller, trajectory: Trajectory, *, duratio
             for b0 in range(0, n, every):
                 u = ctrl_step(y, ref_l[b0], vel_l[b0])
                 pos_append(y)
+                if read_true is not None:
+                    true_append(read_true())
                 cmd_append(u)
                 diag_append(read_diag())
                 y = plant_step(u)
-                for xd, vd in zip(ref_l[b0 + 1:b0 + every], vel_l[b0 + 1:b0 + every]):
-                    u = ctrl_step(y, xd, vd)
-                    pos_append(y)
-                    cmd_append(u)
-                    y = plant_step(u)
+                y = steps(y, ref_l[b0 + 1:b0 + every], vel_l[b0 + 1:b0 + every])
         diagnostics: dict[str, FloatArray] = {}
         if names:
             table = np.asarray(diag_rows, dtype=np.float64).reshape(len(diag_rows), len(names))
@@ -206,7 +257,12 @@ def run(stage: Plant, controller: Controller, trajectory: Trajectory, *, duratio
         chunk = RunRecord(time_s=time_s, position_m=np.asarray(pos_out, dtype=np.float64),
                           reference_m=ref, reference_velocity_mps=vel,
                           command_v=np.asarray(cmd_out, dtype=np.float64),
-                          diagnostics=diagnostics, meta=run_meta)
+                          diagnostics=diagnostics, meta=run_meta,
+                          true_position_m=(np.asarray(true_out, dtype=np.float64)
+                                           if read_true is not None else None))
+        pos_out.clear()
+        cmd_out.clear()
+        true_out.clear()
         if chunk_callback is not None:
             chunk_callback(chunk)
         if keep:
@@ -225,7 +281,8 @@ def concatenate(records: Sequence[RunRecord], *, meta: Mapping[str, Any] | None 
     Parameters
     ----------
     records : sequence of RunRecord
-        Chunks in time order with the same diagnostic names.
+        Chunks in time order with the same diagnostic names; the result has a true position
+        when every chunk has one.
     meta : Mapping, optional
         Meta of the result; default the first record's.
 
@@ -240,12 +297,15 @@ def concatenate(records: Sequence[RunRecord], *, meta: Mapping[str, Any] | None 
         only = records[0]
         return RunRecord(only.time_s, only.position_m, only.reference_m,
                          only.reference_velocity_mps, only.command_v, dict(only.diagnostics),
-                         dict(meta if meta is not None else only.meta))
+                         dict(meta if meta is not None else only.meta), only.true_position_m)
 
     def cat(name: str) -> FloatArray:
         return np.concatenate([getattr(r, name) for r in records])
     names = list(records[0].diagnostics)
     diagnostics = {k: np.concatenate([r.diagnostics[k] for r in records]) for k in names}
+    # the true position is kept only when every chunk has it
+    true = (cat('true_position_m') if all(r.true_position_m is not None for r in records)
+            else None)
     return RunRecord(cat('time_s'), cat('position_m'), cat('reference_m'),
                      cat('reference_velocity_mps'), cat('command_v'), diagnostics,
-                     dict(meta if meta is not None else records[0].meta))
+                     dict(meta if meta is not None else records[0].meta), true)

@@ -301,7 +301,8 @@ def _head(record: RunRecord, n: int) -> RunRecord:
         return record
     return RunRecord(record.time_s[:n], record.position_m[:n], record.reference_m[:n],
                      record.reference_velocity_mps[:n], record.command_v[:n],
-                     {k: v[:n] for k, v in record.diagnostics.items()}, record.meta)
+                     {k: v[:n] for k, v in record.diagnostics.items()}, record.meta,
+                     None if record.true_position_m is None else record.true_position_m[:n])
 
 
 def _name(record: RunRecord) -> str:

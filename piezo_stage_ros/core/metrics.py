@@ -19,6 +19,10 @@ Definitions (section V of the paper and this package's choices, stated once here
 
 - (D1) e_m = max |x - x_d| and (D2) e_rms = sqrt(mean (x - x_d)^2), over the samples of a
   window; x is the *measured* position y_k (what the paper's dSPACE saw), x_d = x_d(t_k).
+- **True-position error**: a simulated run also records the true position x(t_k) behind y_k
+  (before sensor noise and ADC); e_m and e_rms of x(t_k) - x_d(t_k) over the same window are
+  ``e_max_true_m`` and ``e_rms_true_m`` (absent, None, when the run has no true position): with
+  sensor noise the measured error cannot show nanometre tracking, the true one can.
 - **Steady-state window** (:func:`steady_state_start`): for a periodic reference of period P,
   the first ``TRANSIENT_PERIODS`` periods or ``TRANSIENT_S`` seconds, whichever is longer,
   rounded *up* to a whole number of periods, are skipped, and the window is the whole periods
@@ -30,6 +34,10 @@ Definitions (section V of the paper and this package's choices, stated once here
   the descending branch of y plotted against x, in % of the range of y. Each monotone piece of x
   is interpolated onto one grid of x levels; the branches are the mean over the ascending and
   the descending pieces at each level (so cycle-to-cycle jitter and quantization average out).
+- **Per-period error** (:func:`per_period_error`, the learning curve of a periodic reference):
+  e_rms and e_m of each whole period counted from the first sample, period j being the samples
+  with t_0 + j P <= t_k < t_0 + (j + 1) P (half a sample of tolerance); a trailing partial
+  period is dropped.
 - **Step response** (:func:`step_response`): rise time 10-90 % of the step, overshoot in % of
   the step, settling time into a band of ``max(2 % of the step, settle_band_m)`` that the
   response never leaves again, steady-state e_m and e_rms over the last ``plateau_fraction`` of
@@ -50,14 +58,15 @@ import math
 from typing import Any, Callable, ClassVar, Mapping, Sequence
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 from piezo_stage_ros.core.errors import PiezoStageError
 from piezo_stage_ros.core.record import RunRecord
 from piezo_stage_ros.core.types import FloatArray
 
-__all__ = ['EdgeMetrics', 'StepMetrics', 'TRANSIENT_PERIODS', 'TRANSIENT_S', 'TrackingMetrics',
-           'edge_metrics', 'error_metrics', 'loop_width', 'square_wave_metrics',
-           'steady_state_start', 'step_response', 'summarize']
+__all__ = ['EdgeMetrics', 'PeriodErrors', 'StepMetrics', 'TRANSIENT_PERIODS', 'TRANSIENT_S',
+           'TrackingMetrics', 'edge_metrics', 'error_metrics', 'loop_width', 'meta_period',
+           'per_period_error', 'square_wave_metrics', 'steady_state_start', 'step_response',
+           'summarize']
 
 
 #: Whole periods of a periodic reference skipped before the steady-state window.
@@ -173,6 +182,9 @@ class TrackingMetrics(_Record):
     diagnostic_ranges : mapping of str to (float, float)
         Finite minimum and maximum of each diagnostic, by name (NaN, NaN when none is finite);
         the JSON fields ``<name>_min`` and ``<name>_max``.
+    e_max_true_m, e_rms_true_m : float or None
+        (D1), (D2) of the true position x(t_k) - x_d(t_k) over the steady-state window [m];
+        None when the run has no true position (then they are not in the JSON object).
 
     """
 
@@ -190,6 +202,8 @@ class TrackingMetrics(_Record):
     # left out of the hash (a dict has none), so the record hashes like its float fields
     diagnostic_ranges: Mapping[str, tuple[float, float]] = field(
         default_factory=dict, hash=False, metadata={'json': False})
+    e_max_true_m: float | None = field(default=None, metadata={'json': False})
+    e_rms_true_m: float | None = field(default=None, metadata={'json': False})
 
     def as_dict(self) -> dict[str, float]:
         """
@@ -198,12 +212,16 @@ class TrackingMetrics(_Record):
         Returns
         -------
         dict of str to float
-            The fields in declaration order, then ``<name>_min``, ``<name>_max`` of each
-            diagnostic in name order: the objects ``simulate --json`` and ``analyze --json``
-            print.
+            The fields in declaration order, then ``e_max_true_m``, ``e_rms_true_m`` when the
+            run has a true position (left out otherwise, so the object of a run without one is
+            what it always was), then ``<name>_min``, ``<name>_max`` of each diagnostic in name
+            order: the objects ``simulate --json`` and ``analyze --json`` print.
 
         """
         out = super().as_dict()
+        if self.e_max_true_m is not None and self.e_rms_true_m is not None:
+            out['e_max_true_m'] = float(self.e_max_true_m)
+            out['e_rms_true_m'] = float(self.e_rms_true_m)
         for name, (low, high) in sorted(self.diagnostic_ranges.items()):
             out[f'{name}_min'] = low
             out[f'{name}_max'] = high
@@ -551,13 +569,14 @@ def summarize(record: RunRecord, *, steady_state_start_s: float | None = None,
         ``e_max_m``, ``e_rms_m`` (steady-state window), ``e_max_all_m``, ``e_rms_all_m`` (whole
         run), ``command_min_v``, ``command_max_v`` (whole run), ``samples``, ``duration_s``,
         ``steady_state_start_s`` (since the first sample), ``steady_state_samples``,
-        ``loop_width_pct`` (x vs x_d over the window; NaN when x_d is constant), and the
-        finite range of each diagnostic; ``as_dict()`` gives the JSON object.
+        ``loop_width_pct`` (x vs x_d over the window; NaN when x_d is constant), the
+        finite range of each diagnostic, and ``e_max_true_m``, ``e_rms_true_m`` over the window
+        when the record has a true position (else None); ``as_dict()`` gives the JSON object.
 
     """
     t = _f64(record.time_s)
     n = t.size
-    period = period_s if period_s is not None else _meta_period(record.meta)
+    period = period_s if period_s is not None else meta_period(record.meta)
     if n == 0:
         nan = math.nan
         return TrackingMetrics(samples=0, e_max_m=nan, e_rms_m=nan, e_max_all_m=nan,
@@ -573,6 +592,11 @@ def summarize(record: RunRecord, *, steady_state_start_s: float | None = None,
     err = _f64(record.position_m) - _f64(record.reference_m)
     e_max, e_rms = error_metrics(err[window])
     e_max_all, e_rms_all = error_metrics(err)
+    e_max_true: float | None = None
+    e_rms_true: float | None = None
+    if record.true_position_m is not None:
+        true_err = _f64(record.true_position_m) - _f64(record.reference_m)
+        e_max_true, e_rms_true = error_metrics(true_err[window])
     cmd = _f64(record.command_v)
     ref = _f64(record.reference_m)[window]
     pos = _f64(record.position_m)[window]
@@ -588,10 +612,119 @@ def summarize(record: RunRecord, *, steady_state_start_s: float | None = None,
                            command_max_v=_finite_extreme(cmd, np.max), duration_s=float(n * dt),
                            steady_state_start_s=start_abs - float(t[0]),
                            steady_state_samples=window.stop - window.start,
-                           loop_width_pct=width, diagnostic_ranges=ranges)
+                           loop_width_pct=width, diagnostic_ranges=ranges,
+                           e_max_true_m=e_max_true, e_rms_true_m=e_rms_true)
 
 
-def _meta_period(meta: Mapping[str, Any]) -> float | None:
+@dataclass(frozen=True)
+class PeriodErrors:
+    """
+    The error of each whole period of a run (:func:`per_period_error`): the learning curve.
+
+    Attributes
+    ----------
+    period_s : float
+        The period [s].
+    start_s : ndarray
+        Start of each period since the first sample [s] (j P).
+    samples : ndarray of int
+        Samples in each period.
+    e_rms_m, e_max_m : ndarray
+        (D2), (D1) of the measured error y_k - x_d(t_k) in each period [m].
+    e_rms_true_m, e_max_true_m : ndarray or None
+        The same of the true error x(t_k) - x_d(t_k) [m]; None without a true position.
+
+    """
+
+    period_s: float
+    start_s: FloatArray
+    samples: NDArray[np.int64]
+    e_rms_m: FloatArray
+    e_max_m: FloatArray
+    e_rms_true_m: FloatArray | None = None
+    e_max_true_m: FloatArray | None = None
+
+    def __len__(self) -> int:
+        return int(self.start_s.size)
+
+
+def per_period_error(record: RunRecord, period_s: float) -> PeriodErrors:
+    """
+    Return e_rms and e_m of every whole period of a run, measured and (when known) true.
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run (offline or read from a bag).
+    period_s : float
+        The reference period [s], > 0 and finite.
+
+    Returns
+    -------
+    PeriodErrors
+        One row per whole period counted from the first sample (period j: the samples with
+        ``t_0 + j P <= t_k < t_0 + (j + 1) P``, half a sample of tolerance); a trailing
+        partial period is dropped, so a run shorter than one period has no row.
+
+    Raises
+    ------
+    PiezoStageError
+        If ``period_s`` is not a positive finite number.
+
+    """
+    if not (math.isfinite(period_s) and period_s > 0.0):
+        raise PiezoStageError(f'per_period_error: period_s = {period_s!r}; allowed: a finite '
+                              'number > 0 s')
+    t = _f64(record.time_s)
+    n = t.size
+    empty = np.zeros(0)
+    has_true = record.true_position_m is not None
+    if n == 0:
+        return PeriodErrors(period_s, empty, np.zeros(0, np.int64), empty, empty,
+                            empty if has_true else None, empty if has_true else None)
+    dt = (t[-1] - t[0]) / (n - 1) if n > 1 else 0.0
+    whole = math.floor(((t[-1] - t[0]) + dt) / period_s + 1e-9) if n > 1 else 0
+    starts = np.arange(whole, dtype=np.float64) * period_s
+    edges = np.searchsorted(t - t[0], np.arange(whole + 1) * period_s - 0.5 * dt)
+    counts = np.diff(edges).astype(np.int64)
+    keep = counts > 0
+
+    def rows(error: FloatArray) -> tuple[FloatArray, FloatArray]:
+        if whole == 0:
+            return empty, empty
+        lo = edges[:-1][keep]
+        e = error[:edges[-1]]
+        sq = np.add.reduceat(e * e, lo)
+        peak = np.maximum.reduceat(np.abs(e), lo)
+        rms = np.full(whole, np.nan)
+        top = np.full(whole, np.nan)
+        rms[keep] = np.sqrt(sq / counts[keep])
+        top[keep] = peak
+        return rms, top
+    ref = _f64(record.reference_m)
+    e_rms, e_max = rows(_f64(record.position_m) - ref)
+    t_rms: FloatArray | None = None
+    t_max: FloatArray | None = None
+    if record.true_position_m is not None:
+        t_rms, t_max = rows(_f64(record.true_position_m) - ref)
+    return PeriodErrors(float(period_s), starts, counts, e_rms, e_max, t_rms, t_max)
+
+
+def meta_period(meta: Mapping[str, Any]) -> float | None:
+    """
+    Return the reference period a run's description holds, if it is a usable one.
+
+    Parameters
+    ----------
+    meta : Mapping
+        ``RunRecord.meta`` (offline, or read from a bag).
+
+    Returns
+    -------
+    float or None
+        ``meta['trajectory_period_s']`` when it is a positive finite number [s], else None.
+
+    """
     value = meta.get(PERIOD_KEY)
     try:
         period = float(value) if value is not None else None

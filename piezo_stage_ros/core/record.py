@@ -17,7 +17,9 @@ The record of one closed-loop run: the samples every bag, metric and plot is mad
 
 Row k holds what happened at sample time t_k: the measured position y_k the plant published, the
 reference x_d(t_k) and its derivative, and the command u_k the controller computed from them (held
-by the plant over [t_k, t_k+1)). The same structure comes out of the offline runner and out of a
+by the plant over [t_k, t_k+1)). A simulated run also knows the true position x(t_k) behind y_k
+(before sensor noise and ADC): ``true_position_m``, None where it is not known (a real stage, a
+bag without it). The same structure comes out of the offline runner and out of a
 bag read back, so metrics of a run and of its bag compare one to one.
 """
 
@@ -54,6 +56,9 @@ class RunRecord:
         Controller internals per sample (e.g. ``theta_hat``, ``phi_hat``, ``s_v``, ``saturated``).
     meta : dict
         Free-form description of the run (controller, plant, trajectory, seed, parameters).
+    true_position_m : ndarray or None
+        True position x(t_k) [m] behind y_k (no noise, no quantization); simulation only,
+        None when unknown.
 
     """
 
@@ -64,11 +69,13 @@ class RunRecord:
     command_v: FloatArray
     diagnostics: dict[str, FloatArray] = field(default_factory=dict)
     meta: dict[str, Any] = field(default_factory=dict)
+    true_position_m: FloatArray | None = None
 
     def __post_init__(self) -> None:
         n = len(self.time_s)
-        for name in ('position_m', 'reference_m', 'reference_velocity_mps', 'command_v'):
-            if len(getattr(self, name)) != n:
+        for name in ('position_m', 'reference_m', 'reference_velocity_mps', 'command_v',
+                     'true_position_m'):
+            if getattr(self, name) is not None and len(getattr(self, name)) != n:
                 raise PiezoStageError(
                     f'run record: {name} has {len(getattr(self, name))} samples, time_s has {n}')
         for name, values in self.diagnostics.items():
@@ -83,3 +90,10 @@ class RunRecord:
     def error_m(self) -> FloatArray:
         """Tracking error x - x_d [m] per sample."""
         return np.asarray(self.position_m - self.reference_m, dtype=np.float64)
+
+    @property
+    def true_error_m(self) -> FloatArray | None:
+        """True tracking error x(t_k) - x_d(t_k) [m] per sample; None without the true position."""
+        if self.true_position_m is None:
+            return None
+        return np.asarray(self.true_position_m - self.reference_m, dtype=np.float64)

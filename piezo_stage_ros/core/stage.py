@@ -346,6 +346,8 @@ class _Kernel:
     step: Callable[[float], float]
     get: Callable[[], _KernelState]
     set: Callable[[_KernelState], None]
+    #: the true position c x [m] now, the same sum as :func:`_dot` of c and the state
+    true_position: Callable[[], float]
 
 
 def _dot(coefficients: Sequence[float], values: Sequence[float]) -> float:
@@ -416,7 +418,10 @@ def _generic_kernel(core: _StageCore, rng: np.random.Generator) -> _Kernel:
             setattr(st, f.name, getattr(new, f.name))
         st.x = list(new.x)
 
-    return _Kernel(step, get, set_)
+    def true_position() -> float:
+        return _dot(c, st.x)
+
+    return _Kernel(step, get, set_, true_position)
 
 
 @dataclass(frozen=True)
@@ -589,7 +594,15 @@ def _fused_kernel(core: _StageCore, rng: np.random.Generator) -> _Kernel | None:
             v_last, e = (float(new.h[0]), float(new.h[1]))
         v_held, w, steps, faults = new.v, new.w, new.steps, new.faults
 
-    return _Kernel(step, get, set_)
+    if order == 3:
+        def true_position() -> float:
+            # _dot's left-to-right sum (0.0 + a is a): the bits of Stage.position_m
+            return c0 * x0 + c1 * x1 + c2 * x2
+    else:
+        def true_position() -> float:
+            return c0 * x0
+
+    return _Kernel(step, get, set_, true_position)
 
 
 class Stage:
@@ -610,6 +623,9 @@ class Stage:
         (quantized by the DAC, clamped to the amplifier range; a non-finite command applies
         ``chain.safe_voltage_v`` and counts a fault) and return the measured position at its
         end [m]. A plain function, not a method, for speed.
+    read_position_m : callable
+        ``read_position_m() -> float``: the true position now [m], what :attr:`position_m`
+        returns; a plain function, so that the closed loop can record it every sample.
 
     Notes
     -----
@@ -620,6 +636,7 @@ class Stage:
     """
 
     step: Callable[[float], float]
+    read_position_m: Callable[[], float]
 
     def __init__(self, params: StageParams, rng: np.random.Generator | None = None,
                  *, fused: bool = True) -> None:
@@ -629,6 +646,7 @@ class Stage:
         kernel = _fused_kernel(self._core, self.rng) if fused else None
         self._kernel = kernel if kernel is not None else _generic_kernel(self._core, self.rng)
         self.step = self._kernel.step
+        self.read_position_m = self._kernel.true_position
         self.reset()
 
     @property
@@ -639,7 +657,7 @@ class Stage:
     @property
     def position_m(self) -> float:
         """Return the true position x [m] (no noise, no quantization)."""
-        return _dot([float(c) for c in self._core.discrete.c], self._kernel.get().x)
+        return self._kernel.true_position()
 
     @property
     def applied_voltage_v(self) -> float:

@@ -32,6 +32,9 @@ prefix ``stage/``; under the root namespace the bag of a run has them as ``/stag
 - ``stage/diagnostics``, ``sensor_msgs/msg/JointState``: stamp t_k, name [keys],
   position [values]: the controller's internals, keys in sorted order
   (:func:`diagnostic_reader`);
+- ``stage/true_position``, ``sensor_msgs/msg/JointState``: stamp t_k, name ['stage'],
+  position [x(t_k)] m, the true position behind y_k (no noise, no ADC): simulation only, written
+  by the offline runner's bags (:data:`SIMULATION_TOPICS`; no node publishes it);
 - ``stage/status``, ``diagnostic_msgs/msg/DiagnosticStatus``: plant counters, about once a second;
 - ``/clock``, ``rosgraph_msgs/msg/Clock``: t_k, lockstep only (absolute: one clock per graph).
 
@@ -53,8 +56,8 @@ from piezo_stage_ros.core.interfaces import Controller
 __all__ = [
     'BAG_TOPICS', 'CLOCK', 'CLOCK_TYPE', 'COMMAND', 'COMMAND_TYPE', 'DEFAULT_NAMESPACE',
     'APPLIED', 'DIAGNOSTICS', 'JOINT_NAME', 'JOINT_STATE_TYPE', 'META_KEY', 'NS_PER_S', 'POSITION',
-    'RECORDED_TOPICS', 'REFERENCE', 'REQUIRED_TOPICS', 'STAGE', 'STATUS', 'STATUS_TYPE',
-    'STORAGE_IDS',
+    'RECORDED_TOPICS', 'REFERENCE', 'REQUIRED_TOPICS', 'SIMULATION_TOPICS', 'STAGE', 'STATUS',
+    'STATUS_TYPE', 'STORAGE_IDS', 'TRUE_POSITION',
     'TOPIC_TYPES', 'diagnostic_reader', 'normalize_namespace', 'ns_to_stamp', 'stamp_to_ns',
     'topic_names',
 ]
@@ -69,15 +72,19 @@ STAGE: Final = 'stage'
 JOINT_NAME: Final = STAGE
 
 #: The topics of a run in a bag: the last part of the name -> message type, in the order the
-#: nodes publish a sample (``diagnostics`` and ``applied`` are optional, the others required).
+#: nodes publish a sample (``diagnostics``, ``applied`` and ``true_position`` are optional, the
+#: others required).
 BAG_TOPICS: Final[Mapping[str, str]] = {
     'position': JOINT_STATE_TYPE,
     'reference': JOINT_STATE_TYPE,
     'command': COMMAND_TYPE,
     'diagnostics': JOINT_STATE_TYPE,
     'applied': JOINT_STATE_TYPE,
+    'true_position': JOINT_STATE_TYPE,
 }
 REQUIRED_TOPICS: Final = ('position', 'reference', 'command')
+#: Bag topics only a simulation knows (the offline runner writes them; no node publishes them).
+SIMULATION_TOPICS: Final = ('true_position',)
 #: The rosbag2 storage plugins a run's bag can be written in (the first is the default).
 STORAGE_IDS: Final = ('mcap', 'sqlite3')
 
@@ -88,6 +95,8 @@ DIAGNOSTICS: Final = f'{STAGE}/diagnostics'
 #: Real time: stamp t_k, name ['stage'], effort [the amplifier input the plant held over
 #: [t_k, t_k+1)] in V (what it applied, whatever command came), published after t_k+1.
 APPLIED: Final = f'{STAGE}/applied'
+#: Simulation only: stamp t_k, name ['stage'], position [x(t_k)], the true position behind y_k.
+TRUE_POSITION: Final = f'{STAGE}/true_position'
 #: Plant counters (late samples, resends, watchdog trips, bridge losses), about once a second.
 STATUS: Final = f'{STAGE}/status'
 CLOCK: Final = '/clock'
@@ -98,7 +107,8 @@ TOPIC_TYPES: Final[Mapping[str, str]] = {
     STATUS: STATUS_TYPE,
     CLOCK: CLOCK_TYPE,
 }
-#: What ``ros2 bag record`` takes from a stage (relative to the launch namespace).
+#: What ``ros2 bag record`` takes from a stage (relative to the launch namespace): what the
+#: nodes publish, so not the :data:`SIMULATION_TOPICS`.
 RECORDED_TOPICS: Final = (POSITION, REFERENCE, COMMAND, DIAGNOSTICS, APPLIED, STATUS)
 
 #: The bag namespace of a stage launched in the root namespace.
