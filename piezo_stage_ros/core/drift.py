@@ -39,6 +39,7 @@ import math
 import numpy as np
 from piezo_stage_ros.core.hysteresis import make_hysteresis
 from piezo_stage_ros.core.identification import (
+    _unit_filter,
     applied_voltage,
     discrete_frequency_response,
     factors_of,
@@ -114,16 +115,6 @@ class DriftReport:
         return abs(self.gain_change) > self.threshold
 
 
-def _unit_filter(shape: LinearFactors, t: float) -> tuple[FloatArray, FloatArray]:
-    from piezo_stage_ros.core.linear import third_order_plant
-    unit = LinearFactors(1.0, shape.omega_n_rad_s, shape.zeta, shape.tau_s)
-    d = third_order_plant(third_order_of(unit)).discretize(t)
-    num, den = signal.ss2tf(d.ad, d.bd, d.c[None, :], np.zeros((1, 1)))
-    num = np.asarray(num[0], dtype=np.float64)
-    den = np.asarray(den, dtype=np.float64)
-    return num / (num.sum() / den.sum()), den
-
-
 def _reference_hz(r: FloatArray, t: float) -> float:
     x = r - float(np.mean(r))
     power = np.abs(np.fft.rfft(x)) ** 2
@@ -187,8 +178,8 @@ def estimate_drift(record: RunRecord, base: StageParams, *, window_s: float = 0.
 
     def solve(tau: float) -> tuple[FloatArray, FloatArray, FloatArray]:
         cols = columns(tau)
-        coef, *_ = np.linalg.lstsq(cols.T, y, rcond=None)
-        coef = np.asarray(coef, dtype=np.float64)
+        sol, *_ = np.linalg.lstsq(cols.T, y, rcond=None)
+        coef = np.asarray(sol, dtype=np.float64)
         return coef, np.asarray(y - coef @ cols, dtype=np.float64), cols
 
     def cost(log_tau: float) -> float:

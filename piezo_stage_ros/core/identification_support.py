@@ -265,7 +265,7 @@ class RunSupport:
         ``'open'`` or ``'closed'``.
     loop_reason : str
     saturated_fraction : float
-        Fraction of commands outside the amplifier range.
+        Fraction of commands at or beyond a limit of the amplifier range.
     input_range_v : float
         Peak-to-peak applied input over the part a hysteresis fit uses (the first
         ``head_s``) [V].
@@ -319,7 +319,8 @@ def analyse_run(record: RunRecord, chain: SignalChainParams, role: str,
     u = applied_voltage(record, chain)
     y = np.asarray(record.position_m, dtype=np.float64)
     r = np.asarray(record.reference_m, dtype=np.float64)
-    outside = ~((cmd >= chain.amplifier_min_v) & (cmd <= chain.amplifier_max_v))
+    # at or beyond a limit: a controller clips its output to the range itself
+    outside = ~((cmd > chain.amplifier_min_v) & (cmd < chain.amplifier_max_v))
     sat = float(np.mean(outside)) if cmd.size else 0.0
     ref_const = not float(np.ptp(r)) > 0.0
     closed = loop[0] == 'closed'
@@ -392,6 +393,8 @@ def _region(run: RunSupport, params: IdentificationParams, support: SupportParam
         return None
     what = (f'the {run.role} run {run.name!r} excites {_describe(f)} above the noise '
             f'(signal-to-noise >= {support.snr_min:g})')
+    if need_high <= need_low:
+        return f'{what}; needs {count} or more below {_hz(need_low)}'
     return f'{what}; needs {count} or more from {_hz(need_low)} to {_hz(need_high)}'
 
 
@@ -439,8 +442,8 @@ def refusals(runs: Sequence[RunSupport], base: StageParams, params: Identificati
             continue
         if run.saturated_fraction > support.saturation_max:
             out.append(f'{names}: run {run.name!r} ({run.role}) is saturated: '
-                       f'{100.0 * run.saturated_fraction:.1f} % of its commands lie outside '
-                       'the amplifier range; identification needs an unsaturated run')
+                       f'{100.0 * run.saturated_fraction:.1f} % of its commands lie at or '
+                       'outside the amplifier range; identification needs an unsaturated run')
             continue
         if run.role == 'frequency':
             out += _frequency_refusals(run, uses['frequency'], params, support, fn, fc)
