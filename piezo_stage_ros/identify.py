@@ -379,6 +379,10 @@ def _run(args: argparse.Namespace) -> int:
                                                     else args.argv),
               f'Hysteresis slope convention: {slope:g} (only k_p times the slope is '
               'identifiable, see docs/identification.md).']
+    if result.loop == 'closed':
+        header.append('Closed-loop data: frequency response averaged over whole periods of the '
+                      'reference; 95 % bounds: ' + ', '.join(
+                          f'{k} {lo:.6g} ... {hi:.6g}' for k, (lo, hi) in result.bounds.items()))
     text = parameter_file_text(stage, header=header, reference=loop.controller.to_flat(),
                                reference_stage=base)
     Path(args.output).write_text(text, encoding='utf-8')
