@@ -75,6 +75,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help='Bag of a step run (transient response).')
     p.add_argument('--sine', action='append', default=[], metavar='BAG',
                    help='Bag of a sine run (hysteresis).')
+    p.add_argument('--closed-loop', action='store_true',
+                   help='The frequency runs were recorded in closed loop (detected otherwise): '
+                   'estimate the response averaged over whole periods of the periodic '
+                   'reference; an open-loop run is refused.')
+    p.add_argument('--drift', action='append', default=[], metavar='BAG',
+                   help='Operation bag (ordinary tracking, no added excitation): report the DC '
+                   'gain and the lag at the reference frequency against the configured model '
+                   '(--config); writes no parameter file.')
+    p.add_argument('--drift-threshold', type=float, default=0.05, metavar='FRACTION',
+                   help='Relative DC-gain change reported as a change (default 0.05).')
     p.add_argument('--config', action='append', default=[], metavar='FILE',
                    help='Parameter file on top of config/default.yaml: the signal chain of the '
                    'recordings and the values that are not identified.')
@@ -297,11 +307,40 @@ def _summary_lines(result: IdentificationResult) -> list[str]:
     return lines
 
 
+def _bound_lines(result: IdentificationResult) -> list[str]:
+    if not result.bounds:
+        return []
+    names = {'static_gain_m_per_v': 'static gain k_p c [m/V]', 'omega_n_rad_s': 'w_n [rad/s]',
+             'zeta': 'zeta', 'tau_s': 'tau [s]', 'alpha': 'alpha [1/V]', 'b1_over_c': 'B1/c'}
+    out = []
+    for key, label in names.items():
+        if key in result.bounds:
+            lo, hi = result.bounds[key]
+            out.append(f'{label}: {lo:.6g} ... {hi:.6g}')
+    return ['95 % bounds: ' + '; '.join(out)]
+
+
+def _run_drift(args: argparse.Namespace, base: StageParams) -> int:
+    from piezo_stage_ros.core.drift import drift_lines, estimate_drift
+    loaded = _read_bags([(b, None) for b in args.drift])
+    status = 0
+    for rec, _ in loaded:
+        report = estimate_drift(rec, base, threshold=args.drift_threshold)
+        for line in drift_lines(report):
+            print(line)
+    return status
+
+
 def _run(args: argparse.Namespace) -> int:
-    from piezo_stage_ros.core.identification import identify
+    from piezo_stage_ros.core.identification_support import identify_checked, RefusedError
     config = cli.read_config(args.config)
     loop = cli.offline_loop(PROG, config)
     base = loop.stage
+    if args.drift:
+        if args.bags or args.noise or args.step or args.sine or args.simulate:
+            raise cli.UsageError('--drift takes operation bags only (no other bag or '
+                                 '--simulate)')
+        return _run_drift(args, base)
     inputs: list[tuple[str, str | None]] = [(b, None) for b in args.bags]
     inputs += [(b, 'frequency') for b in args.noise] + [(b, 'step') for b in args.step]
     inputs += [(b, 'hysteresis') for b in args.sine]
@@ -322,7 +361,15 @@ def _run(args: argparse.Namespace) -> int:
         slope = _model_slope(base, args.model)
     params = IdentificationParams(hysteresis_model=args.model, hysteresis_slope=slope,
                                   step_fixes_omega=not args.free_omega)
-    result = identify(records, base, params, roles=[role for _, role in loaded])
+    try:
+        checked = identify_checked(records, base, params, roles=[role for _, role in loaded],
+                                   closed_loop=True if args.closed_loop else None)
+    except RefusedError as exc:
+        # one line per parameter the data cannot support; no parameter file
+        for line in exc.lines:
+            cli.error(PROG, line)
+        return 1
+    result = checked.result
     stage = result.stage
     if args.pscm is not None:
         x0, x10 = args.pscm
@@ -332,11 +379,17 @@ def _run(args: argparse.Namespace) -> int:
                                                     else args.argv),
               f'Hysteresis slope convention: {slope:g} (only k_p times the slope is '
               'identifiable, see docs/identification.md).']
+    if result.loop == 'closed':
+        header.append('Closed-loop data: frequency response averaged over whole periods of the '
+                      'reference; 95 % bounds: ' + ', '.join(
+                          f'{k} {lo:.6g} ... {hi:.6g}' for k, (lo, hi) in result.bounds.items()))
     text = parameter_file_text(stage, header=header, reference=loop.controller.to_flat(),
                                reference_stage=base)
     Path(args.output).write_text(text, encoding='utf-8')
-    for line in _summary_lines(result):
+    for line in _summary_lines(result) + _bound_lines(result):
         print(line)
+    for warning in checked.warnings:
+        print(f'warning: {warning}')
     for note in result.notes:
         print(f'note: {note}')
     print(f'parameter file: {args.output}')

@@ -1095,6 +1095,11 @@ class IdentificationResult:
         Which run was used for what.
     notes : list of str
         What was assumed where a run was missing, and other caveats.
+    bounds : dict of str to (float, float)
+        Confidence bounds of the parameters that carry them (filled by
+        :func:`piezo_stage_ros.core.identification_support.identify_checked`).
+    loop : str
+        ``'open'``, or ``'closed'`` when the frequency response came from closed-loop data.
 
     """
 
@@ -1107,6 +1112,8 @@ class IdentificationResult:
     hysteresis: HysteresisFit | None
     roles: dict[str, list[str]] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
+    loop: str = 'open'
 
     def summary(self) -> dict[str, float]:
         """Return the headline numbers by name (SI units)."""
@@ -1127,7 +1134,8 @@ class IdentificationResult:
 
 def identify(records: Sequence[RunRecord], base: StageParams | None = None,
              params: IdentificationParams | None = None,
-             roles: Sequence[str | None] | None = None) -> IdentificationResult:
+             roles: Sequence[str | None] | None = None, *,
+             frequency_fit: FrequencyFit | None = None) -> IdentificationResult:
     """
     Run the procedure of section III-D on recorded runs and return the identified stage.
 
@@ -1142,6 +1150,9 @@ def identify(records: Sequence[RunRecord], base: StageParams | None = None,
         Settings; default :class:`IdentificationParams`.
     roles : sequence of str or None, optional
         One per record, one of :data:`ROLES` or None (classify).
+    frequency_fit : FrequencyFit, optional
+        A frequency-response fit made elsewhere (closed-loop data averaged over periods);
+        used in place of the estimate from runs of role ``'frequency'``.
 
     Returns
     -------
@@ -1167,13 +1178,15 @@ def identify(records: Sequence[RunRecord], base: StageParams | None = None,
         by_role[role].append(rec)
         names[role].append(_name(rec))
     notes: list[str] = []
-    if not by_role['frequency'] and not by_role['step']:
+    if not by_role['frequency'] and not by_role['step'] and frequency_fit is None:
         raise IdentificationError('need a noise (or chirp) run or a step run for the linear '
                                   'part; got ' + (', '.join(
                                       f'{len(v)} {k}' for k, v in by_role.items()) or 'none'))
     prior = factors_of(base.plant.third_order)
-    freq_fit = None
-    if by_role['frequency']:
+    freq_fit = frequency_fit
+    if freq_fit is not None:
+        shape = freq_fit.factors
+    elif by_role['frequency']:
         data = estimate_frequency_response(by_role['frequency'], chain,
                                            segment_s=params.segment_s)
         freq_fit = fit_frequency_response(data, params)

@@ -32,25 +32,33 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import math
-from typing import Any
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from piezo_stage_ros.core.closed_loop import run
-from piezo_stage_ros.core.controllers import OpenLoopController, OpenLoopParams
+from piezo_stage_ros.core.controllers import (
+    build_controller,
+    ControllerParams,
+    OpenLoopController,
+    OpenLoopParams,
+)
 from piezo_stage_ros.core.excitation import NoiseExcitation, NoiseParams
 from piezo_stage_ros.core.identification import factors_of, LinearFactors, third_order_of
 from piezo_stage_ros.core.interfaces import Trajectory
 from piezo_stage_ros.core.params import param, Params
 from piezo_stage_ros.core.record import RunRecord
-from piezo_stage_ros.core.stage import Stage, StageParams
+from piezo_stage_ros.core.stage import linear_plant, Stage, StageParams
 from piezo_stage_ros.core.trajectories import (
     make_trajectory,
     SineParams,
     SquareParams,
     TrajectoryParams,
 )
+from piezo_stage_ros.core.types import FloatArray
 
-__all__ = ['ExperimentPlan', 'perturbed_stage', 'run_experiments']
+__all__ = ['ClosedLoopPlan', 'ExperimentPlan', 'FeedforwardIntegralController', 'SumTrajectory',
+           'perturbed_stage', 'run_closed_loop_experiment', 'run_experiments',
+           'run_tracking']
 
 
 @dataclass(frozen=True)
@@ -213,3 +221,226 @@ def perturbed_stage(seed: int | None, *, spread: float = 0.3,
         alpha=alpha, c=c, b1=b1))
     plant = base.plant.replace(model='third_order', third_order=third, reduced=third.reduced())
     return base.replace(plant=plant, hysteresis=hyst), pert
+
+
+# --------------------------------------------------------------------------------------------
+# Closed-loop runs: a controller the package did not write, a periodic excitation on the
+# reference, and ordinary tracking (operation) runs
+
+
+class FeedforwardIntegralController:
+    """
+    A plain feed-forward plus integral position loop: v = g x_d + k_i int(x_d - y) dt.
+
+    Not one of the package's controllers: the "foreign controller" of the closed-loop
+    identification tests (the identification must not rely on knowing it).
+
+    Parameters
+    ----------
+    feedforward_v_per_m : float
+        g, the static inverse of the stage [V/m].
+    integral_v_per_m_s : float
+        k_i [V/(m s)]; the loop crosses over near k_i g_stage / (2 pi) Hz.
+    sample_time_s : float
+        Sample period [s].
+    output_min_v, output_max_v : float
+        Command limits [V].
+
+    """
+
+    def __init__(self, feedforward_v_per_m: float, integral_v_per_m_s: float,
+                 sample_time_s: float, *, output_min_v: float = -2.0,
+                 output_max_v: float = 10.0) -> None:
+        self._g = float(feedforward_v_per_m)
+        self._ki = float(integral_v_per_m_s)
+        self._t = float(sample_time_s)
+        self._lo, self._hi = float(output_min_v), float(output_max_v)
+        self._i = 0.0
+
+    @property
+    def sample_time_s(self) -> float:
+        """Return the sample period [s]."""
+        return self._t
+
+    def reset(self, position_m: float, reference_m: float) -> None:
+        """Start with an empty integral."""
+        self._i = 0.0
+
+    def step(self, position_m: float, reference_m: float,
+             reference_velocity_mps: float) -> float:
+        """Return the command for one sample (backward-rectangle integral, clipped)."""
+        self._i += self._t * (reference_m - position_m)
+        u = self._g * reference_m + self._ki * self._i
+        return min(max(u, self._lo), self._hi)
+
+    def diagnostics(self) -> Mapping[str, float]:
+        """Return the integral state [m s]."""
+        return {'integral_m_s': self._i}
+
+
+class SumTrajectory:
+    """
+    A hold position plus the sum of other signals (each evaluated without its offset).
+
+    Parameters
+    ----------
+    hold_m : float
+        Constant part [m].
+    parts : sequence of Trajectory
+        Signals added to it (their own offsets should be 0).
+    period_s : float, optional
+        Common period of the sum, if any (recorded in the run's meta).
+
+    """
+
+    kind = 'sum'
+
+    def __init__(self, hold_m: float, parts: Sequence[Trajectory],
+                 period_s: float | None = None) -> None:
+        self.hold_m = float(hold_m)
+        self.parts = tuple(parts)
+        self.period_s = period_s
+
+    def evaluate(self, time_s: Any) -> tuple[FloatArray, FloatArray]:
+        """Return the sum and its derivative at ``time_s``."""
+        t = np.asarray(time_s, dtype=np.float64)
+        pos = np.full(t.shape, self.hold_m)
+        vel = np.zeros(t.shape)
+        for part in self.parts:
+            p, v = part.evaluate(t)
+            pos = pos + p
+            vel = vel + v
+        return pos, vel
+
+
+@dataclass(frozen=True)
+class ClosedLoopPlan:
+    """
+    A closed-loop identification run: hold, periodic multisine and a slow sine on the reference.
+
+    Attributes
+    ----------
+    sample_rate_hz : float
+    hold_m : float
+        Position held [m].
+    multisine_rms_m : float
+        Rms of the multisine added to the reference [m].
+    multisine_band_hz : tuple of float
+        Its flat band [Hz].
+    multisine_period_s : float
+        Its period [s]; the slow sine's period should be a multiple of it.
+    slow_amplitude_m, slow_frequency_hz : float
+        A slow sine on the reference (for the hysteresis) [m], [Hz]; amplitude 0 for none.
+    duration_s : float
+    crossover_hz : float
+        Crossover of the foreign feed-forward + integral loop [Hz].
+    seed : int
+        Seed of the multisine phases.
+
+    """
+
+    sample_rate_hz: float = 10000.0
+    hold_m: float = 5e-6
+    multisine_rms_m: float = 0.12e-6
+    multisine_band_hz: tuple[float, float] = (20.0, 4500.0)
+    multisine_period_s: float = 0.1
+    slow_amplitude_m: float = 3e-6
+    slow_frequency_hz: float = 5.0
+    duration_s: float = 2.0
+    crossover_hz: float = 100.0
+    seed: int = 3
+
+
+class _Sine:
+    def __init__(self, amplitude_m: float, frequency_hz: float) -> None:
+        self.a, self.w = amplitude_m, 2.0 * math.pi * frequency_hz
+
+    def evaluate(self, time_s: Any) -> tuple[FloatArray, FloatArray]:
+        t = np.asarray(time_s, dtype=np.float64)
+        return self.a * np.sin(self.w * t), self.a * self.w * np.cos(self.w * t)
+
+
+def run_closed_loop_experiment(stage_params: StageParams, plan: ClosedLoopPlan | None = None, *,
+                               nominal_gain_m_per_v: float = 2.843e-6 * 1.0341,
+                               meta: Mapping[str, Any] | None = None) -> RunRecord:
+    """
+    Run a stage in closed loop under :class:`FeedforwardIntegralController` with excitation.
+
+    Parameters
+    ----------
+    stage_params : StageParams
+        The (true) stage; its rate is replaced by the plan's.
+    plan : ClosedLoopPlan, optional
+        Excitation, loop and length; default :class:`ClosedLoopPlan`.
+    nominal_gain_m_per_v : float
+        The static gain the foreign controller assumes (its feed-forward is the inverse).
+    meta : Mapping, optional
+        Added to the record's meta (``true_stage`` is always added).
+
+    Returns
+    -------
+    RunRecord
+        Reference = hold + multisine + slow sine; period in ``meta['trajectory_period_s']``.
+
+    """
+    plan = plan or ClosedLoopPlan()
+    params = stage_params.replace(sample_rate_hz=plan.sample_rate_hz)
+    grid = 2.0 * plan.sample_rate_hz
+    parts: list[Trajectory] = [NoiseExcitation(NoiseParams(
+        offset_m=0.0, amplitude_m=plan.multisine_rms_m, band_low_hz=plan.multisine_band_hz[0],
+        band_high_hz=plan.multisine_band_hz[1], period_s=plan.multisine_period_s,
+        grid_rate_hz=grid, seed=plan.seed))]
+    period = plan.multisine_period_s
+    if plan.slow_amplitude_m > 0.0:
+        parts.append(_Sine(plan.slow_amplitude_m, plan.slow_frequency_hz))
+        period = max(period, 1.0 / plan.slow_frequency_hz)
+    traj = SumTrajectory(plan.hold_m, parts, period_s=period)
+    g = nominal_gain_m_per_v
+    ctrl = FeedforwardIntegralController(1.0 / g, 2.0 * math.pi * plan.crossover_hz / g,
+                                         params.sample_time_s)
+    info: dict[str, Any] = {'name': 'closed_loop_multisine', 'experiment': 'closed_loop',
+                            'controller': 'feedforward_integral', 'true_stage': params.to_flat()}
+    info.update(meta or {})
+    return run(Stage(params), ctrl, traj, duration_s=plan.duration_s,
+               initial_position_m=plan.hold_m, record_diagnostics=False, meta=info)
+
+
+def run_tracking(stage_params: StageParams, controller: ControllerParams, *,
+                 design_stage: StageParams | None = None, frequency_hz: float = 100.0,
+                 duration_s: float = 0.2, sample_rate_hz: float = 10000.0,
+                 meta: Mapping[str, Any] | None = None) -> RunRecord:
+    """
+    Run an ordinary tracking run (the Table III sine, no added excitation) in closed loop.
+
+    Parameters
+    ----------
+    stage_params : StageParams
+        The (true) stage.
+    controller : ControllerParams
+        The configured controller.
+    design_stage : StageParams, optional
+        The model the controller's notch is designed on; default ``stage_params``.
+    frequency_hz : float
+        Frequency of the sine 3.8 + 3.8 sin(2 pi f t) um.
+    duration_s : float
+        Length of the run [s].
+    sample_rate_hz : float
+        Loop rate [Hz].
+    meta : Mapping, optional
+        Added to the record's meta.
+
+    Returns
+    -------
+    RunRecord
+
+    """
+    params = stage_params.replace(sample_rate_hz=sample_rate_hz)
+    design = design_stage or stage_params
+    ctrl = build_controller(controller, params.sample_time_s, linear_plant(design.plant))
+    traj = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine',
+                                                       'sine.frequency_hz': frequency_hz}))
+    info: dict[str, Any] = {'name': f'tracking_{frequency_hz:g}hz', 'experiment': 'tracking',
+                            'true_stage': params.to_flat()}
+    info.update(meta or {})
+    return run(Stage(params), ctrl, traj, duration_s=duration_s, record_diagnostics=False,
+               meta=info)

@@ -1,0 +1,854 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+What recorded data can support, closed-loop identification on purpose, and refusals.
+
+:func:`identify_checked` wraps :func:`piezo_stage_ros.core.identification.identify`:
+
+1. **Loop.** Each run is open loop when its command is a fixed function of its reference (the
+   ``open_loop`` controller: v = g x_d + offset) or when the command's innovations do not
+   follow the position's (:func:`loop_kind`); otherwise closed loop: the sensor noise enters
+   the command through the controller, and the H1 estimate S_uy / S_uu is biased toward -1/C
+   wherever that noise dominates.
+2. **Excitation per line** (:func:`analyse_run`). The excitation is the reference (closed
+   loop), or the reference / command (open loop). When it repeats over at least two whole
+   periods, the DFT of every period gives the lines the excitation drives and, from the scatter
+   over the periods, the signal-to-noise ratio of the applied input and of the position on
+   each line (:mod:`piezo_stage_ros.core.periodic`); otherwise Welch spectra give the excited
+   bins and the coherence gives the signal-to-noise ratio (open loop only). The fraction of
+   commands outside the amplifier range (saturation) is counted.
+3. **Support rules** (:func:`refusals`). For each parameter the procedure would take from a
+   run: w_n and zeta need good lines across the resonance region of the configured model,
+   tau across the corner 1/(2 pi tau), the small-signal gain below the resonance; the step fit
+   needs plateaus after the jumps; alpha needs an input range of about 1/alpha and a whole
+   cycle; a saturated run supports nothing; ``closed_loop=True`` on an open-loop run is
+   refused. A refused parameter gives one line naming it and the reason
+   (:class:`RefusedError`); nothing is fitted.
+4. **Closed loop** (:func:`fit_periodic_response`). The frequency response from the applied
+   input to the position averaged over whole periods of the periodic reference, with a
+   variance per line (noise from the scatter over periods, nonlinear distortion from the lines
+   the excitation leaves out), fitted by weighted least squares with a frequency-independent
+   complex factor for the hysteresis (its describing function: a gain and a phase lag that do
+   not depend on frequency, which a linear model would otherwise absorb into tau). The
+   hysteresis is fitted in the time domain on the applied input, which stays consistent in
+   closed loop (the position noise at sample k is independent of the inputs before k).
+5. **Bounds.** Every parameter gets 95 % bounds, +-1.96 sigma from the Jacobian of its fit
+   (the frequency fit's covariance scaled up by chi^2/dof when the residuals exceed the
+   variance per line).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import math
+from typing import Any, Sequence
+
+import numpy as np
+from piezo_stage_ros.core.identification import (
+    applied_voltage,
+    classify_run,
+    discrete_frequency_response,
+    factors_of,
+    fit_hysteresis,
+    FrequencyFit,
+    FrequencyResponse,
+    IdentificationError,
+    IdentificationParams,
+    IdentificationResult,
+    identify,
+    LinearFactors,
+    ROLES,
+    sample_time_of,
+    third_order_of,
+)
+from piezo_stage_ros.core.params import param, Params
+from piezo_stage_ros.core.periodic import (
+    detect_period,
+    excited_lines,
+    periodic_spectra,
+    PeriodicSpectra,
+)
+from piezo_stage_ros.core.record import RunRecord
+from piezo_stage_ros.core.stage import SignalChainParams, StageParams
+from piezo_stage_ros.core.types import BoolArray, FloatArray
+from scipy import optimize, signal
+
+__all__ = ['CheckedIdentification', 'LineAnalysis', 'RefusedError', 'RunSupport', 'SupportParams',
+           'analyse_run', 'fit_periodic_response', 'identify_checked', 'loop_kind',
+           'refusals']
+
+#: 95 % two-sided normal quantile: the bounds are +- this many standard deviations.
+Z95 = 1.959964
+
+
+class RefusedError(IdentificationError):
+    """The data cannot support one or more parameters; ``lines`` has one reason each."""
+
+    def __init__(self, lines: Sequence[str]) -> None:
+        self.lines = list(lines)
+        super().__init__('; '.join(self.lines))
+
+
+@dataclass(frozen=True)
+class SupportParams(Params):
+    """Thresholds of what a run must show to support a parameter."""
+
+    snr_min: float = param(4.0, unit='-', description='Power signal-to-noise ratio a line '
+                           'needs to count (4: the coherence 0.8 of the frequency fit).',
+                           low=0.0, low_open=True)
+    saturation_max: float = param(0.01, unit='-', description='Largest fraction of commands '
+                                  'outside the amplifier range.', low=0.0, high=1.0)
+    resonance_lines_min: int = param(8, unit='-', description='Good lines the resonance region '
+                                     'needs (w_n, zeta).', low=1, high=100000)
+    corner_lines_min: int = param(8, unit='-', description='Good lines the corner region needs '
+                                  '(tau).', low=1, high=100000)
+    gain_lines_min: int = param(3, unit='-', description='Good lines below the resonance the '
+                                'small-signal gain needs.', low=1, high=100000)
+    alpha_range_fraction: float = param(0.5, unit='-', description='Input range a hysteresis run '
+                                        'needs, as a fraction of 1/alpha of the configured '
+                                        'model.', low=0.0)
+    alpha_rel_std_max: float = param(0.25, unit='-', description='Largest relative standard '
+                                     'deviation of alpha accepted from the hysteresis fit.',
+                                     low=0.0, low_open=True)
+    innovation_corr_min: float = param(0.2, unit='-', description='Correlation of the command '
+                                       'and position innovations above which a run is closed '
+                                       'loop.', low=0.0, high=1.0)
+
+
+# --------------------------------------------------------------------------------------------
+# Loop and excitation
+
+
+def _name(record: RunRecord) -> str:
+    return str(record.meta.get('bag', record.meta.get('name', '<record>')))
+
+
+def _lagged(x: FloatArray, lags: Sequence[int], n0: int) -> FloatArray:
+    """Return columns x[k - lag] for k = n0 ... len(x) - 1."""
+    return np.stack([x[n0 - lag:x.size - lag] for lag in lags], axis=1)
+
+
+def _residual(target: FloatArray, cols: FloatArray) -> FloatArray:
+    a = np.column_stack([np.ones(target.size), cols])
+    scale = np.maximum(np.abs(a).max(axis=0), 1e-300)
+    coef, *_ = np.linalg.lstsq(a / scale, target, rcond=None)
+    return np.asarray(target - (a / scale) @ coef, dtype=np.float64)
+
+
+def loop_kind(record: RunRecord, chain: SignalChainParams, *, order: int = 8,
+              corr_min: float = 0.2) -> tuple[str, str]:
+    """
+    Say whether a run was recorded in open or closed loop, and why.
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run.
+    chain : SignalChainParams
+        Signal chain giving the applied voltage.
+    order : int
+        Lags of the innovation regressions.
+    corr_min : float
+        Largest |correlation| of the innovations (lags 0 to 2) still taken as open loop.
+
+    Returns
+    -------
+    kind : str
+        ``'open'`` or ``'closed'``.
+    reason : str
+        What decided it.
+
+    Notes
+    -----
+    Open loop when the command is an affine function of the reference and its velocity (rms
+    residual below 1e-6 of the command's). Otherwise the innovations are compared: the
+    position's (y_k less its prediction from past inputs and positions: the sensor noise) and
+    the command's (u_k less its prediction from past commands and the reference). A controller
+    puts the current or a recent position into the command, so in closed loop they correlate
+    at lag 0 to 2; in open loop the command does not see the sensor noise.
+
+    """
+    u = applied_voltage(record, chain)
+    su = float(np.std(u))
+    if not su > 0.0:
+        return 'open', 'the command never changes'
+    r = np.asarray(record.reference_m, dtype=np.float64)
+    rv = np.asarray(record.reference_velocity_mps, dtype=np.float64)
+    res = _residual(u, np.column_stack([r, rv]))
+    rel = float(np.std(res)) / su
+    if rel < 1e-6:
+        return 'open', 'the command is a fixed function of the reference (open-loop controller)'
+    y = np.asarray(record.position_m, dtype=np.float64)
+    n0 = order + 2
+    if y.size < 10 * (n0 + 2 * order):
+        return 'open', 'too short to test for feedback'
+    past = list(range(1, order + 1))
+    ey = _residual(y[n0:], np.column_stack([_lagged(u, past, n0), _lagged(y, past, n0)]))
+    cols = [_lagged(u, past, n0)]
+    if float(np.std(r)) > 0.0:
+        cols.append(_lagged(r, [0] + past, n0))
+    eu = _residual(u[n0:], np.column_stack(cols))
+    best = 0.0
+    for lag in (0, 1, 2):
+        a, b = eu[lag:], ey[:ey.size - lag]
+        den = float(np.std(a) * np.std(b))
+        if den > 0.0:
+            best = max(best, abs(float(np.mean((a - a.mean()) * (b - b.mean())))) / den)
+    if best > corr_min:
+        return 'closed', (f'the command follows the position noise (innovation correlation '
+                          f'{best:.2f})')
+    return 'open', f'the command does not follow the position noise (correlation {best:.2f})'
+
+
+@dataclass(frozen=True)
+class LineAnalysis:
+    """
+    Which frequency lines a run excites, and their signal-to-noise ratios.
+
+    Attributes
+    ----------
+    frequency_hz : ndarray
+        Lines (periodic: k / (N T); Welch: the bins) [Hz].
+    excited : ndarray of bool
+        Lines the excitation drives.
+    snr_u, snr_y : ndarray
+        Power signal-to-noise ratio of the applied input and of the position per line
+        (periodic: |mean|^2 / variance of the mean; Welch, open loop: gamma^2 / (1 - gamma^2)
+        for the position, infinite for the input).
+    method : str
+        ``'periodic'``, ``'welch'`` or ``'none'`` (no excitation).
+    period_samples : int or None
+    periods : int
+        Whole periods averaged (periodic).
+    spectra : PeriodicSpectra or None
+
+    """
+
+    frequency_hz: FloatArray
+    excited: BoolArray
+    snr_u: FloatArray
+    snr_y: FloatArray
+    method: str
+    period_samples: int | None = None
+    periods: int = 0
+    spectra: PeriodicSpectra | None = None
+
+    def good(self, snr_min: float) -> BoolArray:
+        """Return the excited lines whose input and position both pass ``snr_min``."""
+        return np.asarray(self.excited & (self.snr_u >= snr_min) & (self.snr_y >= snr_min),
+                          dtype=bool)
+
+
+@dataclass(frozen=True)
+class RunSupport:
+    """
+    What one run shows: its loop, saturation, excitation and input range.
+
+    Attributes
+    ----------
+    name : str
+    role : str
+        What it is used for (one of :data:`~piezo_stage_ros.core.identification.ROLES`).
+    loop : str
+        ``'open'`` or ``'closed'``.
+    loop_reason : str
+    saturated_fraction : float
+        Fraction of commands at or beyond a limit of the amplifier range.
+    input_range_v : float
+        Peak-to-peak applied input over the part a hysteresis fit uses (the first
+        ``head_s``) [V].
+    reference_constant : bool
+        True when the reference never changes.
+    lines : LineAnalysis
+    sample_time_s : float
+
+    """
+
+    name: str
+    role: str
+    loop: str
+    loop_reason: str
+    saturated_fraction: float
+    input_range_v: float
+    reference_constant: bool
+    lines: LineAnalysis
+    sample_time_s: float
+
+
+def analyse_run(record: RunRecord, chain: SignalChainParams, role: str,
+                loop: tuple[str, str], *, segment_s: float = 0.05,
+                head_s: float = 0.2) -> RunSupport:
+    """
+    Return what a run shows: saturation, input range and its excitation line by line.
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run.
+    chain : SignalChainParams
+        Signal chain (amplifier range, DAC).
+    role : str
+        What it is to be used for.
+    loop : (str, str)
+        Loop kind and reason from :func:`loop_kind`.
+    segment_s : float
+        Welch segment length when the excitation is not periodic [s].
+    head_s : float
+        Length from the start over which the input range is measured [s] (what the
+        hysteresis fit uses).
+
+    Returns
+    -------
+    RunSupport
+
+    """
+    t = sample_time_of(record)
+    cmd = np.asarray(record.command_v, dtype=np.float64)
+    u = applied_voltage(record, chain)
+    y = np.asarray(record.position_m, dtype=np.float64)
+    r = np.asarray(record.reference_m, dtype=np.float64)
+    # at or beyond a limit: a controller clips its output to the range itself
+    outside = ~((cmd > chain.amplifier_min_v) & (cmd < chain.amplifier_max_v))
+    sat = float(np.mean(outside)) if cmd.size else 0.0
+    ref_const = not float(np.ptp(r)) > 0.0
+    closed = loop[0] == 'closed'
+    excitation = r if (closed or not ref_const) else u
+    empty = np.zeros(0)
+    if closed and ref_const or not float(np.ptp(excitation)) > 0.0:
+        lines = LineAnalysis(empty, np.zeros(0, dtype=bool), empty, empty, 'none')
+    else:
+        hint = record.meta.get('trajectory_period_s')
+        hint_n = int(round(float(hint) / t)) if isinstance(hint, (int, float)) and hint > 0 \
+            else None
+        period = detect_period(excitation, hint_samples=hint_n)
+        if period is not None and len(u) // period >= 2:
+            spec = periodic_spectra(u, y, excitation, period, t)
+            exc = excited_lines(spec.r)
+            snr_u = spec.snr_u if closed else np.full(exc.size, np.inf)
+            lines = LineAnalysis(spec.frequency_hz, exc, snr_u, spec.snr_y, 'periodic',
+                                 period, spec.periods, spec)
+        elif closed:
+            lines = LineAnalysis(empty, np.zeros(0, dtype=bool), empty, empty, 'welch')
+        else:
+            nper = max(min(int(round(segment_s / t)), len(u) // 2), 16)
+            kw: dict[str, Any] = {'fs': 1.0 / t, 'window': 'hann', 'nperseg': nper,
+                                  'detrend': 'constant'}
+            f, pee = signal.welch(excitation, **kw)
+            _, coh = signal.coherence(u, y, **kw)
+            top = float(pee[1:].max()) if pee.size > 1 else 0.0
+            exc = (pee > 1e-8 * top) & (f > 0.0)
+            coh = np.minimum(coh, 1.0 - 1e-12)
+            lines = LineAnalysis(np.asarray(f, dtype=np.float64), np.asarray(exc, dtype=bool),
+                                 np.full(f.size, np.inf), coh / (1.0 - coh), 'welch')
+    return RunSupport(name=_name(record), role=role, loop=loop[0], loop_reason=loop[1],
+                      saturated_fraction=sat,
+                      input_range_v=float(np.ptp(u[:max(int(round(head_s / t)), 2)])),
+                      reference_constant=ref_const, lines=lines, sample_time_s=t)
+
+
+# --------------------------------------------------------------------------------------------
+# Support rules
+
+
+def _hz(f: float) -> str:
+    return f'{f / 1000.0:.3g} kHz' if f >= 1000.0 else f'{f:.3g} Hz'
+
+
+def _describe(freqs: FloatArray) -> str:
+    n = int(freqs.size)
+    if n == 0:
+        return 'no line'
+    if n <= 3:
+        return f'{n} line{"s" if n > 1 else ""} (' + ', '.join(_hz(float(f)) for f in freqs) + ')'
+    return f'{n} lines from {_hz(float(freqs[0]))} to {_hz(float(freqs[-1]))}'
+
+
+def _region(run: RunSupport, params: IdentificationParams, support: SupportParams,
+            low: float, high: float, need_low: float, need_high: float, count: int
+            ) -> str | None:
+    """Return why the good lines of ``run`` do not cover [need_low, need_high], or None."""
+    la = run.lines
+    nyq = 0.5 / run.sample_time_s
+    top = params.band_high_fraction * nyq
+    if la.frequency_hz.size == 0:
+        return None
+    usable = la.good(support.snr_min) & (la.frequency_hz >= params.band_low_hz) & \
+        (la.frequency_hz <= top)
+    f = la.frequency_hz[usable]
+    inside = f[(f >= low) & (f <= min(high, top))]
+    need_high = min(need_high, 0.98 * top)
+    if inside.size >= count and inside[0] <= need_low and inside[-1] >= need_high:
+        return None
+    what = (f'the {run.role} run {run.name!r} excites {_describe(f)} above the noise '
+            f'(signal-to-noise >= {support.snr_min:g})')
+    if need_high <= need_low:
+        return f'{what}; needs {count} or more below {_hz(need_low)}'
+    return f'{what}; needs {count} or more from {_hz(need_low)} to {_hz(need_high)}'
+
+
+def refusals(runs: Sequence[RunSupport], base: StageParams, params: IdentificationParams,
+             support: SupportParams | None = None, *,
+             closed_loop: bool | None = None) -> list[str]:
+    """
+    Return one line per parameter the runs cannot support (empty when all are supported).
+
+    Parameters
+    ----------
+    runs : sequence of RunSupport
+        Every run with its role.
+    base : StageParams
+        The configured stage: where the resonance, the corner and 1/alpha are expected.
+    params : IdentificationParams
+        Band of the frequency fit, step window, hysteresis length.
+    support : SupportParams, optional
+        Thresholds.
+    closed_loop : bool, optional
+        True when the user said the data are closed loop.
+
+    Returns
+    -------
+    list of str
+
+    """
+    support = support or SupportParams()
+    out: list[str] = []
+    prior = factors_of(base.plant.third_order)
+    fn = prior.omega_n_rad_s / (2.0 * math.pi)
+    fc = 1.0 / (2.0 * math.pi * prior.tau_s)
+    has = {role: [r for r in runs if r.role == role] for role in ROLES}
+    uses: dict[str, list[str]] = {
+        'frequency': ['omega_n'] + ([] if has['step'] else ['zeta', 'tau'])
+        + ([] if has['hysteresis'] or has['step'] else ['gain']),
+        'step': ['zeta', 'tau'] + ([] if has['frequency'] else ['omega_n']),
+        'hysteresis': ['alpha', 'static gain'],
+    }
+    for run in runs:
+        names = ', '.join(uses[run.role])
+        if closed_loop and run.loop == 'open' and run.role == 'frequency':
+            out.append(f'closed loop: run {run.name!r} is open loop ({run.loop_reason}); drop '
+                       '--closed-loop, or record it under feedback')
+            continue
+        if run.saturated_fraction > support.saturation_max:
+            out.append(f'{names}: run {run.name!r} ({run.role}) is saturated: '
+                       f'{100.0 * run.saturated_fraction:.1f} % of its commands lie at or '
+                       'outside the amplifier range; identification needs an unsaturated run')
+            continue
+        if run.role == 'frequency':
+            out += _frequency_refusals(run, uses['frequency'], params, support, fn, fc)
+        if run.role == 'hysteresis' or (run.role == 'frequency' and run.loop == 'closed'
+                                        and not has['hysteresis']):
+            # a closed-loop run without a sine run gives the hysteresis too
+            bl = base.hysteresis.backlash_like
+            need = support.alpha_range_fraction / bl.alpha if params.hysteresis_model == \
+                'backlash_like' and bl.alpha > 0.0 else 0.0
+            if run.input_range_v < need:
+                out.append(f'alpha: the {run.role} run {run.name!r} spans '
+                           f'{run.input_range_v:.3g} V of input; the curvature of the loop '
+                           f'needs about {need:.3g} V or more (1/alpha = '
+                           f'{1.0 / bl.alpha:.3g} V for the configured stage)')
+    return out
+
+
+def _frequency_refusals(run: RunSupport, names: list[str], params: IdentificationParams,
+                        support: SupportParams, fn: float, fc: float) -> list[str]:
+    la = run.lines
+    if la.method == 'none':
+        if run.loop == 'closed':
+            why = (f'the closed-loop run {run.name!r} has no excitation on its reference (it '
+                   'is constant); its command only carries the sensor noise fed back, whose '
+                   'ratio to the position is the controller (-1/C), not the stage')
+        else:
+            why = f'the run {run.name!r} has no excitation (its command never changes)'
+        return [f'{", ".join(names)}: {why}']
+    if la.method == 'welch' and run.loop == 'closed':
+        return [f'{", ".join(names)}: the closed-loop run {run.name!r} has a reference that '
+                'does not repeat over two or more whole periods; closed-loop identification '
+                'averages over whole periods of a periodic excitation (e.g. trajectory kind '
+                'noise, whose period_s is a whole number of samples)']
+    out = []
+    res = _region(run, params, support, 0.5 * fn, 1.5 * fn, 0.8 * fn, 1.2 * fn,
+                  support.resonance_lines_min)
+    if res is not None:
+        for name in ('omega_n', 'zeta'):
+            if name in names:
+                out.append(f'{name}: {res} (the resonance near {_hz(fn)})')
+    if 'tau' in names:
+        res = _region(run, params, support, 0.25 * fc, 4.0 * fc, 0.5 * fc, 2.0 * fc,
+                      support.corner_lines_min)
+        if res is not None:
+            out.append(f'tau: {res} (the corner 1/(2 pi tau) near {_hz(fc)})')
+    if 'gain' in names:
+        res = _region(run, params, support, 0.0, fn / 3.0, fn / 3.0, 0.0,
+                      support.gain_lines_min)
+        if res is not None:
+            out.append(f'gain: {res} (below the resonance)')
+    return out
+
+
+def _plateau_refusal(record: RunRecord, run: RunSupport, names: str, chain: SignalChainParams,
+                     params: IdentificationParams) -> str | None:
+    v = applied_voltage(record, chain)
+    edges = np.flatnonzero(np.diff(v)) + 1
+    if edges.size == 0:
+        return None
+    edges = edges[:params.step_max_jumps + 1]
+    plateaus = np.diff(np.concatenate([edges, [v.size]]))
+    need = params.step_window_s / run.sample_time_s
+    median = float(np.median(plateaus))
+    if median >= 0.5 * need:
+        return None
+    return (f'{names}: the step run {run.name!r} has input jumps with plateaus of '
+            f'{median:g} samples (median); the step fit needs about '
+            f'{params.step_window_s * 1e3:g} ms ({need:.0f} samples) after each jump')
+
+
+# --------------------------------------------------------------------------------------------
+# Closed loop: the periodic frequency response and its fit
+
+
+@dataclass(frozen=True)
+class PeriodicFit:
+    """
+    The discrete-time model fitted to a periodic (e.g. closed-loop) frequency response.
+
+    Attributes
+    ----------
+    fit : FrequencyFit
+        In the form the report draws (``data.coherence`` is SNR / (1 + SNR) per line).
+    phase_rad : float
+        Frequency-independent phase lag of the hysteresis' describing function [rad].
+    chi2_per_dof : float
+        Weighted residual per degree of freedom (about 1 when the variances per line hold).
+    relative_std_noise, relative_std_distortion : float
+        Median relative standard deviation of G per line from noise and from distortion.
+    h1_deviation : float
+        Median |H1 / G - 1| over the excited lines: how far the usual H1 estimate of the same
+        data is from the periodic one (the feedback bias of H1 in closed loop).
+    feedback_bias : float
+        Largest |cov(Y, U) / (P |U|^2)| / |G| over the used lines: the order of the bias the
+        fed-back noise leaves in the averaged estimate.
+
+    """
+
+    fit: FrequencyFit
+    phase_rad: float
+    chi2_per_dof: float
+    relative_std_noise: float
+    relative_std_distortion: float
+    h1_deviation: float
+    feedback_bias: float
+
+
+def fit_periodic_response(spectra: PeriodicSpectra, params: IdentificationParams,
+                          initial: LinearFactors, *, u: FloatArray | None = None,
+                          y: FloatArray | None = None) -> PeriodicFit:
+    """
+    Fit k_p, w_n, zeta, tau and a constant phase to the averaged frequency response.
+
+    Parameters
+    ----------
+    spectra : PeriodicSpectra
+        Averages over whole periods.
+    params : IdentificationParams
+        Band of the fit (``band_low_hz``, ``band_high_fraction``).
+    initial : LinearFactors
+        Start of the search (the configured model).
+    u, y : ndarray, optional
+        The applied input and position of the run, to compare with the H1 estimate.
+
+    Returns
+    -------
+    PeriodicFit
+
+    Raises
+    ------
+    IdentificationError
+        If fewer than 8 excited lines lie in the band.
+
+    """
+    g, var_n, var_d = spectra.response()
+    f = spectra.frequency_hz
+    t = spectra.sample_time_s
+    nyq = 0.5 / t
+    exc = excited_lines(spectra.r)
+    used = exc & (f >= params.band_low_hz) & (f <= params.band_high_fraction * nyq)
+    if int(used.sum()) < 8:
+        raise IdentificationError(f'closed-loop frequency response: {int(used.sum())} excited '
+                                  'lines in the band, need 8')
+    var = var_n + var_d
+    sig = np.sqrt(np.maximum(var, 1e-300)) / np.abs(g)
+    fu, gu, su = f[used], g[used], np.maximum(sig[used], 1e-6)
+
+    def residual(x: FloatArray) -> FloatArray:
+        fac = LinearFactors(*(float(v) for v in np.exp(x[:4])))
+        model = discrete_frequency_response(third_order_of(fac), t, fu) * np.exp(-1j * x[4])
+        r = np.log(model / gu) / su
+        return np.asarray(np.concatenate([r.real, r.imag]), dtype=np.float64)
+
+    x0 = np.append(np.log([initial.gain_m_per_v, initial.omega_n_rad_s, initial.zeta,
+                           initial.tau_s]), 0.0)
+    sol = optimize.least_squares(residual, x0, method='lm')
+    dof = max(sol.fun.size - x0.size, 1)
+    chi2 = float(sol.fun @ sol.fun) / dof
+    jac = np.asarray(sol.jac, dtype=np.float64)
+    cov = np.linalg.pinv(jac.T @ jac) * max(chi2, 1.0)
+    # model-structure term: the same fit without the hysteresis phase (a purely linear model)
+    # brackets how much the describing-function assumption moves each parameter
+    alt = optimize.least_squares(lambda x: residual(np.append(x, 0.0)), sol.x[:4], method='lm')
+    structure = np.append(np.abs(alt.x - sol.x[:4]), 0.0)
+    rel = np.sqrt(np.maximum(np.diag(cov), 0.0) + structure ** 2)
+    fac = LinearFactors(*(float(v) for v in np.exp(sol.x[:4])))
+    std = LinearFactors(fac.gain_m_per_v * rel[0], fac.omega_n_rad_s * rel[1],
+                        fac.zeta * rel[2], fac.tau_s * rel[3])
+    model = discrete_frequency_response(third_order_of(fac), t, f) * np.exp(-1j * sol.x[4])
+    snr = np.abs(g) ** 2 / np.maximum(var, 1e-300)
+    data = FrequencyResponse(frequency_hz=f, response=g, coherence=snr / (1.0 + snr),
+                             sample_time_s=t, segments=spectra.periods)
+    err = np.log(model[used] / gu)
+    ffit = FrequencyFit(factors=fac, std=std, data=data, used=used, model=model,
+                        rms_log_error=float(np.sqrt(np.mean(np.abs(err) ** 2))))
+    h1_dev = float('nan')
+    if u is not None and y is not None:
+        n = spectra.period_samples
+        _, puy = signal.csd(u, y, fs=1.0 / t, window='boxcar', nperseg=n, noverlap=0,
+                            detrend='constant')
+        _, puu = signal.welch(u, fs=1.0 / t, window='boxcar', nperseg=n, noverlap=0,
+                              detrend='constant')
+        h1 = puy[1:n // 2 + 1] / np.maximum(puu[1:n // 2 + 1], 1e-300)
+        h1_dev = float(np.median(np.abs(h1[used] / gu - 1.0)))
+    bias = np.abs(spectra.cov_yu / np.abs(spectra.u) ** 2) / np.abs(g)
+    return PeriodicFit(fit=ffit, phase_rad=float(sol.x[4]), chi2_per_dof=chi2,
+                       relative_std_noise=float(np.median(np.sqrt(var_n[used]) / np.abs(gu))),
+                       relative_std_distortion=float(np.median(np.sqrt(var_d[used])
+                                                               / np.abs(gu))),
+                       h1_deviation=h1_dev, feedback_bias=float(np.max(bias[used])))
+
+
+# --------------------------------------------------------------------------------------------
+# The checked procedure
+
+
+@dataclass
+class CheckedIdentification:
+    """
+    An identification with what the data supported and the warnings.
+
+    Attributes
+    ----------
+    result : IdentificationResult
+        With ``bounds`` (95 %) and ``loop``.
+    runs : list of RunSupport
+    periodic : PeriodicFit or None
+        The closed-loop frequency fit, when the data were closed loop.
+    warnings : list of str
+
+    """
+
+    result: IdentificationResult
+    runs: list[RunSupport]
+    periodic: PeriodicFit | None = None
+    warnings: list[str] = field(default_factory=list)
+
+
+def _bounds(value: float, std: float) -> tuple[float, float]:
+    return value - Z95 * std, value + Z95 * std
+
+
+def identify_checked(records: Sequence[RunRecord], base: StageParams | None = None,
+                     params: IdentificationParams | None = None,
+                     roles: Sequence[str | None] | None = None, *,
+                     closed_loop: bool | None = None,
+                     support: SupportParams | None = None) -> CheckedIdentification:
+    """
+    Check what the runs support, refuse what they cannot, then identify (open or closed loop).
+
+    Parameters
+    ----------
+    records : sequence of RunRecord
+        The runs.
+    base : StageParams, optional
+        The configured stage (signal chain; where the resonance and corner are expected).
+    params : IdentificationParams, optional
+        Settings of the procedure.
+    roles : sequence of str or None, optional
+        Forced roles, one per record (None: classify).
+    closed_loop : bool, optional
+        True: the frequency runs are closed loop (an open-loop one is refused); None: detect.
+    support : SupportParams, optional
+        Thresholds of the support rules.
+
+    Returns
+    -------
+    CheckedIdentification
+
+    Raises
+    ------
+    RefusedError
+        One line per parameter the data cannot support; nothing is fitted.
+
+    """
+    base = base or StageParams()
+    params = params or IdentificationParams()
+    support = support or SupportParams()
+    chain = base.chain
+    runs: list[RunSupport] = []
+    resolved: list[str] = []
+    loops = []
+    for i, rec in enumerate(records):
+        forced = roles[i] if roles is not None and i < len(roles) else None
+        loop = loop_kind(rec, chain, corr_min=support.innovation_corr_min)
+        if closed_loop and forced in (None, 'frequency') and loop[0] == 'open' and \
+                forced is None:
+            forced = 'frequency'
+        if loop[0] == 'closed' and forced is None:
+            # a closed-loop command is not a designed input: its role comes from the reference
+            role = 'frequency'
+        else:
+            role = forced if forced is not None else classify_run(rec, chain)
+        if role not in ROLES:
+            raise IdentificationError(f'role {role!r} is not one of {ROLES}')
+        if closed_loop and role == 'frequency' and loop[0] == 'closed':
+            loop = ('closed', loop[1])
+        resolved.append(role)
+        loops.append(loop)
+        runs.append(analyse_run(rec, chain, role, loop, segment_s=params.segment_s,
+                                head_s=params.hysteresis_max_s))
+    lines = refusals(runs, base, params, support, closed_loop=closed_loop)
+    by = {role: [r for r in runs if r.role == role] for role in ROLES}
+    for rec, run in zip(records, runs):
+        if run.role == 'step':
+            names = 'zeta, tau' + ('' if by['frequency'] else ', omega_n')
+            why = _plateau_refusal(rec, run, names, chain, params)
+            if why is not None:
+                lines.append(why)
+    if lines:
+        raise RefusedError(lines)
+    warnings: list[str] = []
+    closed = [(rec, run) for rec, run in zip(records, runs)
+              if run.role == 'frequency' and run.loop == 'closed']
+    periodic = None
+    if closed:
+        rec, run = closed[0]
+        spec = run.lines.spectra
+        assert spec is not None
+        u = applied_voltage(rec, chain)
+        y = np.asarray(rec.position_m, dtype=np.float64)
+        periodic = fit_periodic_response(spec, params, factors_of(base.plant.third_order),
+                                         u=u, y=y)
+        warnings.append(
+            f'run {run.name!r} is closed loop ({run.loop_reason}): the usual H1 = S_uy/S_uu '
+            'of these data differs from the periodic estimate by '
+            f'{100 * periodic.h1_deviation:.1f} % '
+            '(median over the excited lines; feedback bias toward -1/C where the fed-back noise '
+            f'dominates); used instead: {spec.periods} whole periods of '
+            f'{spec.period_samples * run.sample_time_s:g} s averaged, remaining bias of the '
+            f'order of {100 * periodic.feedback_bias:.2g} %')
+        if len(closed) > 1:
+            warnings.append('only the first closed-loop frequency run is used: '
+                            + ', '.join(repr(r.name) for _, r in closed[1:]) + ' left out')
+        use_roles: list[str | None] = []
+        keep: list[RunRecord] = []
+        hyst_given = bool(by['hysteresis'])
+        for rec2, run2 in zip(records, runs):
+            if run2.role == 'frequency' and run2.loop == 'closed':
+                # the same closed-loop run gives the hysteresis when no sine run is given
+                if not hyst_given and rec2 is rec:
+                    keep.append(rec2)
+                    use_roles.append('hysteresis')
+                continue
+            keep.append(rec2)
+            use_roles.append(run2.role)
+        result = identify(keep, base, params, use_roles, frequency_fit=periodic.fit)
+        result.loop = 'closed'
+        if not hyst_given:
+            result.notes.append(f'hysteresis fitted on the closed-loop run {run.name!r} '
+                                f'(its first {params.hysteresis_max_s:g} s)')
+    else:
+        result = identify(records, base, params, resolved)
+    _fill_bounds(result)
+    if periodic is not None:
+        _widen_for_shape(result, base, params)
+    post = _post_fit_refusals(result, support)
+    if post:
+        raise RefusedError(post)
+    return CheckedIdentification(result=result, runs=runs, periodic=periodic,
+                                 warnings=warnings)
+
+
+def _fill_bounds(result: IdentificationResult) -> None:
+    """Put 95 % bounds of every parameter with a standard deviation into ``result.bounds``."""
+    b: dict[str, tuple[float, float]] = {}
+    fr, st, hy = result.frequency, result.step, result.hysteresis
+    f = result.factors
+    if fr is not None:
+        b['omega_n_rad_s'] = _bounds(f.omega_n_rad_s, fr.std.omega_n_rad_s)
+    if st is not None:
+        if st.std.omega_n_rad_s > 0.0:
+            b['omega_n_rad_s'] = _bounds(f.omega_n_rad_s, st.std.omega_n_rad_s)
+        b['zeta'] = _bounds(f.zeta, st.std.zeta)
+        b['tau_s'] = _bounds(f.tau_s, st.std.tau_s)
+    elif fr is not None:
+        b['zeta'] = _bounds(f.zeta, fr.std.zeta)
+        b['tau_s'] = _bounds(f.tau_s, fr.std.tau_s)
+    if hy is not None:
+        for name, value in hy.estimates.items():
+            if name in hy.std:
+                b[name] = _bounds(value, hy.std[name])
+    result.bounds = b
+
+
+def _widen_for_shape(result: IdentificationResult, base: StageParams,
+                     params: IdentificationParams) -> None:
+    """
+    Widen the hysteresis bounds by what the uncertainty of the linear shape moves them.
+
+    The hysteresis fit holds w_n, zeta and tau fixed; its own standard deviations do not carry
+    their uncertainty. It is refitted with tau (the shape parameter it depends on most) at
+    both ends of its bounds, and the largest change of each estimate is added in quadrature to
+    its half-width.
+    """
+    hy = result.hysteresis
+    if hy is None or 'tau_s' not in result.bounds or hy.model == 'bouc_wen':
+        return
+    f = result.factors
+    moved: dict[str, float] = {}
+    for tau in result.bounds['tau_s']:
+        if not tau > 0.0:
+            continue
+        alt = fit_hysteresis(hy.records, base.chain, params,
+                             LinearFactors(f.gain_m_per_v, f.omega_n_rad_s, f.zeta, tau),
+                             base.hysteresis)
+        for name, value in alt.estimates.items():
+            if name in hy.estimates:
+                moved[name] = max(moved.get(name, 0.0), abs(value - hy.estimates[name]))
+    for name, delta in moved.items():
+        if name in result.bounds:
+            lo, hi = result.bounds[name]
+            mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+            half = math.hypot(half, delta)
+            result.bounds[name] = (mid - half, mid + half)
+
+
+def _post_fit_refusals(result: IdentificationResult, support: SupportParams) -> list[str]:
+    hy = result.hysteresis
+    if hy is None or 'alpha' not in hy.estimates:
+        return []
+    alpha, sd = hy.estimates['alpha'], hy.std.get('alpha', 0.0)
+    if alpha > 0.0 and sd / alpha > support.alpha_rel_std_max:
+        names = ', '.join(repr(getattr(r, 'meta', {}).get('name', '?')) for r in hy.records)
+        return [f'alpha: the hysteresis run {names} determines it only to +-'
+                f'{100 * sd / alpha:.0f} % (1 sigma; at most {100 * support.alpha_rel_std_max:g} '
+                '%): a larger input range or a longer run is needed']
+    return []
