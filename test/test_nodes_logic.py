@@ -261,6 +261,33 @@ def test_controller_watchdog_realtime_only_and_reset_after_silence():
     assert ls.on_check(100.0) is None
 
 
+def test_a_feedforward_keeps_its_reference_index_over_skips_and_resets():
+    # real time: the servo skips samples (stamps jump) and a silence resets the controller; the
+    # feed-forward must stay on the reference of each stamp (a wrong index is a mismatch)
+    from piezo_stage_ros.core.feedforward import FeedForwardController
+    from piezo_stage_ros.core.hysteresis import HysteresisParams, make_hysteresis
+    from piezo_stage_ros.core.stage import linear_plant
+    params = ControllerParams().with_flat({'feedforward.mode': 'inverse'})
+    sine = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine'}))
+    ctrl = build_controller(params, 1e-4, linear_plant(StageParams().plant),
+                            make_hysteresis(HysteresisParams()))
+    assert isinstance(ctrl, FeedForwardController)
+    ctrl.bind(sine)
+    logic = ControllerLogic(ctrl, mode='realtime', position_timeout_s=0.01)
+    xd, vd = sine.evaluate(np.arange(400) * 1e-4)
+
+    def sample(k: int, now_s: float) -> None:
+        logic.on_position(k * 100_000, 3.8e-6, now_s)
+        assert logic.on_reference(k * 100_000, float(xd[k]), float(vd[k])) is not None
+
+    for k in (0, 1, 2, 7, 8, 30):                    # 4 and 21 samples skipped
+        sample(k, 1.0)
+    assert logic.on_check(1.02) is not None          # silence: the safe command, then a reset
+    for k in (250, 251, 399):
+        sample(k, 1.03)
+    assert ctrl.mismatches == 0 and ctrl.diagnostics()['ff_active'] == 1.0
+
+
 def test_gain_changes_apply_at_the_next_sample():
     built = []
 

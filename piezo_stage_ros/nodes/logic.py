@@ -574,6 +574,13 @@ class ControllerLogic:
     def _bind_skip(self) -> None:
         self._skip: Callable[[int], None] | None = getattr(self.controller, 'skip', None)
         self._period_ns = max(1, round(self.controller.sample_time_s * NS_PER_S))
+        self._gap_ns = self._period_ns * 3 // 2  # consecutive samples are one period apart
+
+    def _restart(self, position_m: float, reference_m: float) -> None:
+        """Reset the controller at this sample; a feed-forward goes on at its reference."""
+        self.controller.reset(position_m, reference_m)
+        if self._skip is not None:
+            self._skip(self._index)
 
     def request_change(self, params: Any) -> None:
         """Apply validated new controller parameters at the next sample boundary."""
@@ -589,9 +596,7 @@ class ControllerLogic:
             self.controller = self._rebuild(params)
             self.names, self._read = diagnostic_reader(self.controller)
             self._bind_skip()
-            self.controller.reset(position_m, reference_m)
-            if self._skip is not None:
-                self._skip(self._index)  # a feed-forward goes on at this sample's reference
+            self._restart(position_m, reference_m)
         else:
             raise PiezoStageError('controller: a parameter change needs update_params() or a '
                                   'rebuild function')
@@ -636,17 +641,16 @@ class ControllerLogic:
             self.duplicates += 1
             return None
         xd, vd = ref
-        if self._last_stamp is not None:
+        if self._last_stamp is not None and stamp - self._last_stamp > self._gap_ns:
             # real time: samples the servo skipped; a feed-forward keeps its reference index
             gap = round((stamp - self._last_stamp) / self._period_ns) - 1
-            if gap > 0:
-                self._index += gap
-                if self._skip is not None:
-                    self._skip(gap)
+            self._index += gap
+            if self._skip is not None:
+                self._skip(gap)
         if self._pending is not None:
             self._apply_pending(y, xd)
         if self._needs_reset:
-            self.controller.reset(y, xd)
+            self._restart(y, xd)
             self._needs_reset = False
         u = self.controller.step(y, xd, vd)
         self._index += 1
