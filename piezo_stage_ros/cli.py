@@ -152,6 +152,15 @@ def add_config_options(parser: argparse.ArgumentParser) -> None:
                         '(VALUE is YAML; repeatable).')
 
 
+def add_feedforward_option(parser: argparse.ArgumentParser) -> None:
+    """Add ``--feedforward MODE`` (controller_node ``feedforward.mode``)."""
+    from piezo_stage_ros.core.controllers import ControllerParams
+    modes = choices(ControllerParams, 'feedforward.mode')
+    parser.add_argument('--feedforward', choices=modes, metavar='MODE',
+                        help='Feed-forward mode (controller_node feedforward.mode): '
+                        + ', '.join(modes) + '.')
+
+
 def parse_param(text: str) -> tuple[str, str, Any]:
     """
     Split ``NODE:NAME=VALUE``, VALUE read as ROS 2 reads YAML.
@@ -227,7 +236,7 @@ def loop_overrides(config: Config, *, plant: str | None = None, hysteresis: str 
                    controller: str | None = None, trajectory: str | None = None,
                    frequencies: Sequence[float] | None = None, amplitude: float | None = None,
                    offset: float | None = None, csv: str | None = None, seed: int | None = None,
-                   noise: float | None = None) -> Config:
+                   noise: float | None = None, feedforward: str | None = None) -> Config:
     """
     Apply the short flags of the commands on top of the configuration.
 
@@ -249,6 +258,8 @@ def loop_overrides(config: Config, *, plant: str | None = None, hysteresis: str 
         Sensor-noise seed.
     noise : float, optional
         Sensor noise standard deviation [m].
+    feedforward : str, optional
+        ``feedforward.mode`` (controller_node).
 
     Returns
     -------
@@ -267,8 +278,11 @@ def loop_overrides(config: Config, *, plant: str | None = None, hysteresis: str 
             stage[name] = value
     if stage:
         config = config.with_overrides('plant_node', stage)
-    if controller is not None:
-        config = config.with_overrides('controller_node', {'type': controller})
+    ctrl = {name: value for name, value in (('type', controller),
+                                            ('feedforward.mode', feedforward))
+            if value is not None}
+    if ctrl:
+        config = config.with_overrides('controller_node', ctrl)
     traj: dict[str, Any] = {}
     if trajectory is not None:
         traj['kind'] = trajectory

@@ -55,6 +55,7 @@ def _parser() -> argparse.ArgumentParser:
     cli.add_config_options(p)
     p.add_argument('--controller', choices=cli.choices(ControllerParams, 'type'),
                    help='Controller (default: the configured one).')
+    cli.add_feedforward_option(p)
     p.add_argument('--cases', metavar='A,B,...',
                    help='Cases to run (default all): sine_1, sine_10, sine_50, sine_100, '
                    'multisine, square, square_2ms, staircase.')
@@ -102,7 +103,8 @@ def _run(args: argparse.Namespace) -> int:
             print(f'{m.name:24s} {m.describe()}')
         return 0
     loop = cli.offline_loop(PROG, cli.loop_overrides(
-        cli.read_config(args.config, args.param), controller=args.controller))
+        cli.read_config(args.config, args.param), controller=args.controller,
+        feedforward=args.feedforward))
     by_name = {m.name: m for m in family}
     stages = [by_name[n] for n in _pick(args.stages, list(by_name), '--stages')]
     named = {m.name for m in stages}

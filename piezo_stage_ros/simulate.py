@@ -53,32 +53,14 @@ from piezo_stage_ros.core.controllers import ControllerParams
 from piezo_stage_ros.core.errors import ConfigError, ParameterError
 from piezo_stage_ros.core.experiments import EXPERIMENTS
 from piezo_stage_ros.core.hysteresis import HysteresisParams
-from piezo_stage_ros.core.loop_config import controller_table, LoopConfig
-from piezo_stage_ros.core.params import ParamSpec
+from piezo_stage_ros.core.loop_config import LoopConfig
 from piezo_stage_ros.core.stage import PlantParams
 from piezo_stage_ros.core.trajectories import TrajectoryParams
 from piezo_stage_ros.core.wire import STORAGE_IDS
 
-__all__ = ['FEEDFORWARD_MODES', 'build_config', 'build_parser', 'feedforward_override',
-           'load_loop', 'main']
+__all__ = ['build_config', 'build_parser', 'load_loop', 'main']
 
 PROG = 'simulate'
-
-#: The modes of ``controller_node`` ``feedforward.mode`` (issue 16's interface); ``--feedforward``
-#: offers the declared choices once the controller node declares the parameter, these until then.
-FEEDFORWARD_MODES = ('none', 'inverse', 'learning', 'inverse_learning')
-FEEDFORWARD_PARAM = 'feedforward.mode'
-
-
-def _feedforward_spec() -> ParamSpec | None:
-    """Return the declaration of ``feedforward.mode`` in the controller node, if there is one."""
-    return next((s for s in controller_table().specs() if s.name == FEEDFORWARD_PARAM), None)
-
-
-def _feedforward_choices() -> tuple[str, ...]:
-    spec = _feedforward_spec()
-    return spec.choices if spec is not None and spec.choices else FEEDFORWARD_MODES
-
 
 def build_parser() -> argparse.ArgumentParser:
     """Return the command-line parser of ``simulate``."""
@@ -91,9 +73,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='Hysteresis model (plant_node hysteresis.model).')
     p.add_argument('--controller', choices=cli.choices(ControllerParams, 'type'),
                    help='Controller (controller_node type).')
-    p.add_argument('--feedforward', choices=_feedforward_choices(), metavar='MODE',
-                   help='Feed-forward mode (controller_node feedforward.mode): '
-                   + ', '.join(_feedforward_choices()) + '.')
+    cli.add_feedforward_option(p)
     p.add_argument('--trajectory', choices=cli.choices(TrajectoryParams, 'kind'),
                    help='Desired trajectory (trajectory_node kind).')
     p.add_argument('--frequency', action='append', type=float, metavar='HZ',
@@ -144,12 +124,11 @@ def build_config(args: argparse.Namespace) -> Config:
     Config
 
     """
-    config = cli.loop_overrides(
+    return cli.loop_overrides(
         cli.read_config(args.config, args.param), plant=args.plant, hysteresis=args.hysteresis,
         controller=args.controller, trajectory=args.trajectory, frequencies=args.frequency,
         amplitude=args.amplitude, offset=args.offset, csv=args.csv, seed=args.seed,
-        noise=args.noise)
-    return feedforward_override(config, args.feedforward)
+        noise=args.noise, feedforward=args.feedforward)
 
 
 def load_loop(args: argparse.Namespace) -> LoopConfig:
@@ -171,42 +150,6 @@ def load_loop(args: argparse.Namespace) -> LoopConfig:
     if args.refuse_unstable:
         loop = loop.replace(stability=loop.stability.replace(action='refuse'))
     return loop
-
-
-def feedforward_override(config: Config, mode: str | None) -> Config:
-    """
-    Return the configuration with ``--feedforward MODE`` applied.
-
-    Exactly what ``--param controller_node:feedforward.mode=MODE`` does, after the files and
-    ``--param`` (a short flag wins, as the others do).
-
-    Parameters
-    ----------
-    config : Config
-        Files, ``--param`` and the other short flags.
-    mode : str or None
-        The mode; None leaves the configuration as it is.
-
-    Returns
-    -------
-    Config
-
-    Raises
-    ------
-    ConfigError
-        If the controller node does not declare ``feedforward.mode`` (a version without the
-        feed-forward): the value would be ignored.
-
-    """
-    if mode is None:
-        return config
-    if _feedforward_spec() is None:
-        # without the declaration the node table would leave the name to ROS (ignored): the run
-        # would silently have no feed-forward
-        raise ConfigError(f'--feedforward {mode}: controller_node does not declare '
-                          f'{FEEDFORWARD_PARAM} in this version, so the run would have no '
-                          'feed-forward; refused')
-    return config.with_overrides('controller_node', {FEEDFORWARD_PARAM: mode})
 
 
 def _check_window(start_s: float | None, duration_s: float) -> None:

@@ -107,6 +107,7 @@ def _parser() -> argparse.ArgumentParser:
                    help='Plant model (default: the configured one).')
     p.add_argument('--controller', choices=cli.choices(ControllerParams, 'type'), default='rac',
                    help='Controller (default rac).')
+    cli.add_feedforward_option(p)
     p.add_argument('--trajectory', choices=cli.choices(TrajectoryParams, 'kind'),
                    default='multisine', help='Trajectory (default multisine).')
     p.add_argument('--seed', type=int, metavar='N', help='Seed of the sensor noise.')
@@ -128,7 +129,8 @@ def _soak(args: argparse.Namespace) -> int:
         raise ParameterError('--minutes', args.minutes, '(0, inf)')
     loop = cli.offline_loop(PROG, cli.loop_overrides(
         cli.read_config(args.config, args.param), plant=args.plant, controller=args.controller,
-        trajectory=args.trajectory, seed=args.seed, noise=args.noise))
+        trajectory=args.trajectory, seed=args.seed, noise=args.noise,
+        feedforward=args.feedforward))
     stage, ctrl, traj = loop.stage, loop.controller, loop.trajectory
     report = check_stability(ctrl, loop.design_plant, stage.sample_time_s,
                              options=loop.stability)

@@ -257,17 +257,12 @@ def test_bad_steady_state_start(argv: list[str], match: str,
     assert err.startswith('simulate: error: ') and match in err
 
 
-def test_feedforward_flag_is_the_feedforward_mode_parameter(
-        monkeypatch: pytest.MonkeyPatch) -> None:
-    # What this covers: the override --feedforward produces (the configuration), not a run with
-    # feed-forward; the parameter itself is declared by the feed-forward work of issue 16.
-    # Declared or not, the flag must set exactly what --param sets, and win over it.
-    from piezo_stage_ros.core.params import ParamSpec
-    spec = ParamSpec(name='feedforward.mode', type_name='string', default='none', unit='',
-                     description='feed-forward', choices=simulate.FEEDFORWARD_MODES)
-    monkeypatch.setattr(simulate, '_feedforward_spec', lambda: spec)
+def test_feedforward_flag_is_the_feedforward_mode_parameter() -> None:
+    # the flag must set exactly what --param sets, and win over it
     parser = simulate.build_parser()
-    for mode in simulate.FEEDFORWARD_MODES:
+    modes = cli.choices(ControllerParams, 'feedforward.mode')
+    assert modes == ('none', 'inverse', 'learning', 'inverse_learning')
+    for mode in modes:
         by_flag = simulate.build_config(parser.parse_args(['--feedforward', mode]))
         by_param = simulate.build_config(parser.parse_args(
             ['--param', f'controller_node:feedforward.mode={mode}']))
@@ -280,12 +275,3 @@ def test_feedforward_flag_is_the_feedforward_mode_parameter(
     with pytest.raises(cli.UsageError, match="invalid choice: 'bogus'"):
         parser.parse_args(['--feedforward', 'bogus'])
 
-
-def test_feedforward_flag_refused_while_the_parameter_is_not_declared(
-        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
-    # a node table that does not know feedforward.* leaves it to ROS, which ignores it: the
-    # flag must not run a loop without the feed-forward it asked for
-    monkeypatch.setattr(simulate, '_feedforward_spec', lambda: None)
-    assert simulate.main(['--feedforward', 'inverse', '--duration', '0.01']) == 1
-    err = capsys.readouterr().err
-    assert 'controller_node does not declare feedforward.mode' in err

@@ -108,11 +108,23 @@ __all__ = [
     'ControllerParams', 'NotchFilter', 'NotchParams', 'NotchedController', 'OpenLoopController',
     'OpenLoopParams', 'PIController', 'PIParams', 'RACController', 'RACParams',
     'SENSOR_GAIN_V_PER_M', 'bound_controller', 'build_controller', 'notch_coefficients',
-    'notch_design', 'plant_resonance', 'proj', 'sat',
+    'notch_design', 'plant_resonance', 'proj', 'rac_linear_gains', 'sat',
 ]
 
 #: K_PSCM of eq. (15), 10 V over 38 um [V/m] (same value as the stage's sensor).
 SENSOR_GAIN_V_PER_M = 10.0 / 38e-6
+
+
+def rac_linear_gains(k: float, lambda_per_s: float, theta: float, phi: float
+                     ) -> tuple[float, float]:
+    """
+    Return (k_p [V/V], k_i [1/s]) of the RAC as a PI on the sensor-volt error.
+
+    With a feedback gain k on s (k_d + k*/epsilon inside the boundary layer, k_d outside) and
+    the estimates theta_hat, phi_hat: v = -(k + phi lambda - theta) e - k lambda int(e) + terms
+    in y_d only. The stability check and the feed-forward's learning filter both linearize so.
+    """
+    return k + phi * lambda_per_s - theta, k * lambda_per_s
 
 
 def sat(z: float) -> float:
@@ -508,6 +520,12 @@ class RACController:
         return (self._theta, self._phi, self._s, self._i, self._e, self._saturated,
                 float(self.nonfinite_inputs), float(self.bad_dt))
 
+    def linear_gains(self) -> tuple[float, float]:
+        """Return (k_p, k_i) inside the boundary layer at the present estimates."""
+        p = self.params
+        return rac_linear_gains(p.k_d + p.k_star_v / p.epsilon_v, p.lambda_per_s, self._theta,
+                                self._phi)
+
     def update_params(self, params: ControllerParams) -> bool:
         """
         Take new RAC gains between two samples, keeping the state (integral, estimates).
@@ -696,6 +714,10 @@ class PIController:
         return (self._e, self._i, self._saturated, float(self.nonfinite_inputs),
                 float(self.bad_dt))
 
+    def linear_gains(self) -> tuple[float, float]:
+        """Return (k_p, k_i) on the sensor-volt error."""
+        return self.params.k_p, self.params.k_i
+
     def update_params(self, params: ControllerParams) -> bool:
         """
         Take new PI gains between two samples without a bump in the command.
@@ -827,6 +849,10 @@ class OpenLoopController:
     def diagnostic_values(self) -> tuple[float, ...]:
         """Return the values of :attr:`diagnostic_names`."""
         return (float(self.nonfinite_inputs), float(self.bad_dt))
+
+    def linear_gains(self) -> tuple[float, float]:
+        """Return (0, 0): no feedback."""
+        return 0.0, 0.0
 
     def update_params(self, params: ControllerParams) -> bool:
         """Return False: an open-loop gain change rebuilds the controller (it has no state)."""
@@ -1026,6 +1052,10 @@ class NotchedController:
     def diagnostic_values(self) -> tuple[float, ...]:
         """Return the inner controller's diagnostic values."""
         return self.inner.diagnostic_values()
+
+    def linear_gains(self) -> tuple[float, float]:
+        """Return the inner controller's (k_p, k_i) (the notch is not in them)."""
+        return self.inner.linear_gains()
 
     def update_params(self, params: ControllerParams) -> bool:
         """

@@ -73,7 +73,7 @@ from piezo_stage_ros.core.trajectories import s_curve
 from piezo_stage_ros.core.types import ComplexArray, FloatArray
 
 __all__ = ['FeedForwardController', 'FeedForwardParams', 'HysteresisInverse', 'MODES',
-           'PreviewInverse', 'feedback_gains', 'learning_convergence', 'make_hysteresis_inverse',
+           'PreviewInverse', 'learning_convergence', 'make_hysteresis_inverse',
            'process_sensitivity', 'shape_jumps']
 
 #: The feed-forward modes.
@@ -303,12 +303,8 @@ def make_hysteresis_inverse(model: HysteresisModel) -> HysteresisInverse:
 
 def _zoh_tf(plant: LinearPlant, sample_time_s: float) -> tuple[FloatArray, FloatArray]:
     """Return (num, den) of the ZOH G(z) from w [V] to x [m], powers of z, highest first."""
-    from scipy.signal import ss2tf
-    d = plant.discretize(sample_time_s)
-    num, den = ss2tf(d.ad, d.bd[:, :1], d.c[None, :], np.zeros((1, 1)))
-    num = np.asarray(num, dtype=np.float64).ravel()
-    den = np.asarray(den, dtype=np.float64).ravel()
-    # ss2tf pads the numerator to the denominator's length: drop its leading (near) zeros
+    num, den = plant.discretize(sample_time_s).transfer_function()
+    # the numerator is padded to the denominator's length: drop its leading (near) zeros
     scale = float(np.max(np.abs(num)))
     first = int(np.argmax(np.abs(num) > 1e-9 * scale))
     return num[first:], den
@@ -406,26 +402,6 @@ class PreviewInverse:
 # Learning
 
 
-def feedback_gains(controller: Any) -> tuple[float, float]:
-    """
-    Return (k_p [V/V], k_i [1/s]) of the controller linearized at its present state.
-
-    The RAC inside its boundary layer: k_p = k_d + k*/eps + phi_hat lambda - theta_hat,
-    k_i = (k_d + k*/eps) lambda, on the sensor-volt error, as the stability check linearizes
-    it; the PI: its gains; open loop: none.
-    """
-    inner = getattr(controller, 'inner', controller)
-    p = getattr(inner, 'params', None)
-    if p is None:
-        return 0.0, 0.0
-    if hasattr(p, 'k_star_v'):
-        k = p.k_d + p.k_star_v / p.epsilon_v
-        return k + inner._phi * p.lambda_per_s - inner._theta, k * p.lambda_per_s
-    if hasattr(p, 'k_p'):
-        return p.k_p, p.k_i
-    return 0.0, 0.0
-
-
 def process_sensitivity(g: ComplexArray, z: ComplexArray, k_p: float, k_i: float,
                         sensor_gain_v_per_m: float, sample_time_s: float,
                         notch: tuple[Any, Any] | None = None) -> ComplexArray:
@@ -439,7 +415,8 @@ def process_sensitivity(g: ComplexArray, z: ComplexArray, k_p: float, k_i: float
     z : ndarray
         Points on the unit circle.
     k_p, k_i : float
-        Linearized controller C(z) = k_p + k_i T z/(z - 1) on the sensor-volt error.
+        Linearized controller C(z) = k_p + k_i T z/(z - 1) on the sensor-volt error (the
+        controller's ``linear_gains()``).
     sensor_gain_v_per_m : float
         k [V/m].
     sample_time_s : float
@@ -552,8 +529,6 @@ class FeedForwardController:
             else 1.0
         self.hysteresis_inverse: HysteresisInverse | None = \
             make_hysteresis_inverse(hysteresis) if self._inverse_on else None
-        rac = getattr(getattr(inner, 'inner', inner), 'params', None)
-        self._rac = getattr(inner, 'inner', inner) if hasattr(rac, 'k_star_v') else None
         self._theta0 = self._phi0 = 0.0
         self._set_share()
         notch = getattr(inner, 'notch', None)
@@ -564,15 +539,9 @@ class FeedForwardController:
         self._share_fresh = True
         self._trajectory: Trajectory | None = None
         self.mismatches = 0
-        self.skipped = 0
         self.periods_learned = 0
-        self.jumps = 0
         self.last_period_rms_m = math.nan
         self._period_n = 0
-        self._table_x: FloatArray = np.zeros(0)
-        self._table_x_raw: FloatArray = np.zeros(0)
-        self._table_v: FloatArray = np.zeros(0)
-        self._table_w: FloatArray = np.zeros(0)
         self._learned: FloatArray = np.zeros(0)
         self._ll: list[float] = []
         self._le: list[float] = []
@@ -580,17 +549,12 @@ class FeedForwardController:
         self._lx: list[float] = []
         self._lv: list[float] = []
         self._lw: list[float] = []
-        self._ps: ComplexArray = np.zeros(0, dtype=np.complex128)
-        self._kept: FloatArray = np.zeros(0)
-        self._ps_n = 0
         self._filter: ComplexArray = np.zeros(0, dtype=np.complex128)
         self._block_start = 0
         self._filter_state: Any = None
         self._k = 0
-        self._active = False
         self._matched = False
         self._u = 0.0
-        self._fresh = True
 
     # -- the Controller interface --------------------------------------------------------
 
@@ -626,9 +590,7 @@ class FeedForwardController:
         self.inner.reset(position_m, reference_m, output_v)
         self._u = self.inner._u
         self._k = 0
-        self._fresh = True
         self._share_fresh = True
-        self._active = self._trajectory is not None
         if self.hysteresis_inverse is not None:
             # the stage rests with w = c v: the compensator starts where the stage does
             hyst = self.hysteresis_inverse
@@ -639,14 +601,16 @@ class FeedForwardController:
 
     def step(self, position_m: float, reference_m: float, reference_velocity_mps: float,
              dt_s: float | None = None) -> float:
-        """Return the command [V]: feedback plus feed-forward, through the inverse hysteresis."""
+        """
+        Return the command [V]: feedback plus feed-forward, through the inverse hysteresis.
+
+        Each call is the next sample of the bound reference; a caller that let samples pass
+        without a step (a stalled real-time loop) says so with :meth:`skip`. ``dt_s`` goes to
+        the feedback controller.
+        """
         k = self._k
-        if dt_s is not None and dt_s > 0.0:
-            # real time: a skipped sample advances the reference index too
-            k += max(int(round(dt_s / self._t)) - 1, 0) if not self._fresh else 0
-        self._fresh = False
         self._k = k + 1
-        if not self._active:
+        if self._trajectory is None:
             return self._plain(position_m, reference_m, reference_velocity_mps, dt_s)
         n = self._period_n
         i = k % n if n else k - self._block_start
@@ -666,8 +630,7 @@ class FeedForwardController:
         inner = self.inner
         u = inner.step(position_m, x_ref, v_ref, dt_s)
         if self._inverse_on:
-            share = (self._theta0 * x_ref + self._phi0 * v_ref) * self._ksens \
-                if self._rac is not None else 0.0
+            share = (self._theta0 * x_ref + self._phi0 * v_ref) * self._ksens
             notch = self._share_notch
             if notch is not None:
                 if self._share_fresh:
@@ -680,13 +643,16 @@ class FeedForwardController:
             self._le[i] = position_m - xd
             if i == n - 1:
                 self._learn(k)
+        return self._output(u)
+
+    def _output(self, u: float) -> float:
+        """Return the command for the linear input ``u``: inverse hysteresis, then the range."""
         hyst = self.hysteresis_inverse
         if hyst is not None:
-            v = hyst.invert(self.slope * u)
-            v = self._vmax if v > self._vmax else (self._vmin if v < self._vmin else v)
+            u = hyst.invert(self.slope * u)
+        v = self._vmax if u > self._vmax else (self._vmin if u < self._vmin else u)
+        if hyst is not None:
             hyst.commit(v)
-        else:
-            v = self._vmax if u > self._vmax else (self._vmin if u < self._vmin else u)
         self._u = v
         return v
 
@@ -694,26 +660,19 @@ class FeedForwardController:
         """Advance the reference index over ``samples`` samples the caller did not step."""
         if samples > 0:
             self._k += int(samples)
-            self.skipped += int(samples)
 
     def _set_share(self) -> None:
-        """Take the RAC's initial estimates as the share the model inverse replaces."""
-        if self._rac is not None:
-            self._theta0 = self._rac.params.theta_init
-            self._phi0 = self._rac.params.phi_init
+        """Take the RAC's initial estimates as the share the model inverse replaces (PI: 0)."""
+        params = getattr(self.inner, 'inner', self.inner).params
+        self._theta0 = getattr(params, 'theta_init', 0.0)
+        self._phi0 = getattr(params, 'phi_init', 0.0)
 
     def _plain(self, position_m: float, reference_m: float, reference_velocity_mps: float,
                dt_s: float | None) -> float:
         """Feedback alone (still through the hysteresis compensator: no jump of the command)."""
-        u = float(self.inner.step(position_m, reference_m, reference_velocity_mps, dt_s))
-        hyst = self.hysteresis_inverse
-        if hyst is not None:
-            u = hyst.invert(self.slope * u)
-            u = self._vmax if u > self._vmax else (self._vmin if u < self._vmin else u)
-            hyst.commit(u)
         self._share_fresh = True
-        self._u = u
-        return u
+        return self._output(float(self.inner.step(position_m, reference_m,
+                                                  reference_velocity_mps, dt_s)))
 
     # -- tables ----------------------------------------------------------------------------
 
@@ -731,8 +690,7 @@ class FeedForwardController:
     def _shape(self, x: FloatArray, v: FloatArray) -> tuple[FloatArray, FloatArray]:
         if not self._inverse_on:
             return x, v
-        xs, vs, jumps = shape_jumps(x, v, self._t, self.params.transition_s)
-        self.jumps += jumps
+        xs, vs, _ = shape_jumps(x, v, self._t, self.params.transition_s)
         return xs, vs
 
     def _prepare_tables(self) -> None:
@@ -746,17 +704,13 @@ class FeedForwardController:
             # a jump across the period's end is a jump too: shape on three periods, keep the
             # middle one
             x3, v3 = self._shape(np.tile(x, 3), np.tile(v, 3))
-            self._table_x_raw = x
-            self._table_x = np.ascontiguousarray(x3[n:2 * n])
-            self._table_v = np.ascontiguousarray(v3[n:2 * n])
-            self._table_w = self.plant_inverse.periodic(self._table_x) / self.slope \
-                if self._inverse_on else np.zeros(n)
-            self._lists()
+            xs = x3[n:2 * n]
+            w = self.plant_inverse.periodic(xs) / self.slope if self._inverse_on \
+                else np.zeros(n)
+            self._set_tables(x, xs, v3[n:2 * n], w)
             return
         self._block_start = 0
         self._filter_state = None
-        self._table_x = np.zeros(0)
-        self._table_x_raw = np.zeros(0)
         self._lx = []
 
     def _next_block(self, k: int) -> None:
@@ -769,41 +723,40 @@ class FeedForwardController:
         raw_x, raw_v = self._evaluate(first, size + inv.back + inv.lead + 2 * half)
         xs, vs = self._shape(raw_x, raw_v)
         core = slice(inv.back + half, inv.back + half + size)
-        self._table_x_raw = raw_x[core]
-        self._table_x = xs[core]
-        self._table_v = vs[core]
+        w = np.zeros(size)
         if self._inverse_on:
             seq = xs[half:len(xs) - half]
             if self._filter_state is None:
                 self._filter_state = inv.start(float(seq[0]))
             w, self._filter_state = inv.block(seq, self._filter_state)
-            self._table_w = w / self.slope
-        else:
-            self._table_w = np.zeros(size)
-        self._lists()
+            w = w / self.slope
+        self._set_tables(raw_x[core], xs[core], vs[core], w)
         self._block_start = k
 
-    def _lists(self) -> None:
-        """Plain-float copies of the tables for the step (numpy scalars cost more per use)."""
-        self._lx_raw = self._table_x_raw.tolist()
-        self._lx = self._table_x.tolist()
-        self._lv = self._table_v.tolist()
-        self._lw = self._table_w.tolist()
+    def _set_tables(self, x_raw: FloatArray, x: FloatArray, v: FloatArray,
+                    w: FloatArray) -> None:
+        """Keep the tables as plain-float lists: numpy scalars cost more per use in the step."""
+        self._lx_raw = x_raw.tolist()
+        self._lx = x.tolist()
+        self._lv = v.tolist()
+        self._lw = w.tolist()
 
     # -- learning ----------------------------------------------------------------------------
 
-    def _design_ps(self) -> tuple[ComplexArray, FloatArray]:
+    def _learning_filter(self) -> ComplexArray:
+        """Return gamma Q / P_s on the period's harmonics (0 on those Q drops)."""
         n = self._period_n
         harmonics = np.arange(n // 2 + 1)
         z = np.exp(2j * math.pi * harmonics / n)
-        g = self.slope * self.plant_inverse.frequency_response(z) if self._inverse_on else \
-            self.slope * self.plant_inverse.frequency_response(z)
-        k_p, k_i = feedback_gains(self.inner)
+        # the plant seen from v_lin: c G (the compensator removes the hysteresis; without it,
+        # the hysteresis slope c is its gain)
+        g = self.slope * self.plant_inverse.frequency_response(z)
+        k_p, k_i = self.inner.linear_gains()
         ps = process_sensitivity(g, z, k_p, k_i, self._ksens, self._t, self._notch_coeffs)
         freq = harmonics / (n * self._t)
-        kept = ((freq > 0.0) & (freq <= self.params.learning_bandwidth_hz)
-                & (np.abs(ps) > 0.0)).astype(np.float64)
-        return ps, kept
+        kept = (freq > 0.0) & (freq <= self.params.learning_bandwidth_hz) & (np.abs(ps) > 0.0)
+        return np.asarray(np.where(kept, self.params.learning_gain / np.where(kept, ps, 1.0),
+                                   0.0), dtype=np.complex128)
 
     def _learn(self, k: int) -> None:
         """End of a period: update the learned table from the period's errors."""
@@ -813,13 +766,8 @@ class FeedForwardController:
         self.last_period_rms_m = math.sqrt(float(err.dot(err)) / n)
         if period < self.params.learning_start_periods:
             return
-        if self._ps_n != n:
-            self._ps, self._kept = self._design_ps()
-            self._ps_n = n
-            # the learning filter, once: gamma Q / P_s on the kept harmonics, 0 elsewhere
-            safe = np.where(self._kept > 0.0, self._ps, 1.0)
-            self._filter = np.asarray(self._kept * self.params.learning_gain / safe,
-                                      dtype=np.complex128)
+        if len(self._filter) != n // 2 + 1:
+            self._filter = self._learning_filter()  # once per period length
         # the table stays inside Q's band (every update is), so Q L = L: one FFT pair a period
         table = self._learned - np.fft.irfft(np.fft.rfft(err) * self._filter, n)
         limit = self.params.learning_limit_v
@@ -854,7 +802,7 @@ class FeedForwardController:
     def diagnostic_values(self) -> tuple[float, ...]:
         """Return the values of :attr:`diagnostic_names`."""
         return tuple(self.inner.diagnostic_values()) + (
-            1.0 if self._active and self._matched else 0.0, float(self.mismatches),
+            1.0 if self._matched else 0.0, float(self.mismatches),
             float(self.periods_learned), self.last_period_rms_m)
 
     def diagnostics(self) -> Mapping[str, float]:

@@ -178,6 +178,18 @@ class DiscreteLinearPlant:
         """Return the eigenvalues of Ad (discrete-time poles)."""
         return np.asarray(np.linalg.eigvals(self.ad), dtype=np.complex128)
 
+    def transfer_function(self) -> tuple[FloatArray, FloatArray]:
+        """
+        Return (num, den) of G(z) from the first input to position, powers of z, highest first.
+
+        ``scipy.signal.ss2tf`` of (Ad, Bd[:, 0], C): the numerator is padded to the
+        denominator's length (leading zeros, one at least: the zero-order hold delays a sample).
+        """
+        from scipy.signal import ss2tf
+        num, den = ss2tf(self.ad, self.bd[:, :1], self.c[None, :], np.zeros((1, 1)))
+        return (np.asarray(num, dtype=np.float64).ravel(),
+                np.asarray(den, dtype=np.float64).ravel())
+
 
 @dataclass(frozen=True)
 class LinearPlant:

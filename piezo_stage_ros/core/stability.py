@@ -78,7 +78,12 @@ from typing import Callable, Sequence
 import warnings
 
 import numpy as np
-from piezo_stage_ros.core.controllers import ControllerParams, notch_design, RACParams
+from piezo_stage_ros.core.controllers import (
+    ControllerParams,
+    notch_design,
+    rac_linear_gains,
+    RACParams,
+)
 from piezo_stage_ros.core.errors import ParameterError, StabilityError
 from piezo_stage_ros.core.linear import LinearPlant, third_order_plant
 from piezo_stage_ros.core.params import group, param, Params
@@ -482,11 +487,7 @@ def stability_plant(plant_params: PlantParams) -> LinearPlant:
 
 def _plant_tf(plant: LinearPlant, sample_time_s: float) -> tuple[FloatArray, FloatArray]:
     """Return (num, den) of the ZOH G(z) from w [V] to x [m], powers of z, highest first."""
-    from scipy.signal import ss2tf
-    d = plant.discretize(sample_time_s)
-    num, den = ss2tf(d.ad, d.bd[:, :1], d.c[None, :], np.zeros((1, 1)))
-    num = np.asarray(num, dtype=np.float64).ravel()
-    return num, np.asarray(den, dtype=np.float64).ravel()
+    return plant.discretize(sample_time_s).transfer_function()
 
 
 def _rac_pairs(r: RACParams, estimates: str) -> list[tuple[float, float]]:
@@ -520,7 +521,8 @@ def _controller_families(params: ControllerParams, estimates: str
     for region, k in (('inside', r.k_d + r.k_star_v / r.epsilon_v), ('outside', r.k_d)):
         head = f'RAC {region} boundary layer (k={k:g})'
         cases = [(f'{head}, theta_hat={theta:g}, phi_hat={phi:g}',
-                  k + phi * r.lambda_per_s - theta) for theta, phi in _rac_pairs(r, estimates)]
+                  rac_linear_gains(k, r.lambda_per_s, theta, phi)[0])
+                 for theta, phi in _rac_pairs(r, estimates)]
         out.append((head, k * r.lambda_per_s, cases))
     return out
 

@@ -41,7 +41,7 @@ from piezo_stage_ros.core.cdr import (
     JointStateDecoder,
     JointStateEncoder,
 )
-from piezo_stage_ros.core.controllers import bound_controller, ControllerParams
+from piezo_stage_ros.core.controllers import bound_controller, build_controller, ControllerParams
 from piezo_stage_ros.core.errors import StabilityError
 from piezo_stage_ros.core.interfaces import Controller
 from piezo_stage_ros.core.stability import check_stability, StabilityParams
@@ -98,8 +98,10 @@ class ControllerNode(Node):
         self.opts: ControllerNodeParams = opts
         self.sample_time_s = 1.0 / opts.sample_rate_hz
         self.design_plant, source = self._design(stability)
-        # the feed-forward's design hysteresis and reference ahead, from the same files
-        self._ff_context = feedforward_context(self._files)
+        # the feed-forward's design hysteresis and reference ahead, from the same files; read
+        # only when one is configured (feedforward.mode is read-only: no change turns it on)
+        self._ff_context = feedforward_context(self._files) \
+            if params.feedforward.mode != 'none' else None
         self.get_logger().info(f'design model: {source}')
         self.verdict = self._check(params, stability)
         self.logic = ControllerLogic(self._build(params, stability), mode=opts.mode,
@@ -155,8 +157,10 @@ class ControllerNode(Node):
 
     def _build(self, params: ControllerParams, stability: StabilityParams) -> Controller:
         # the plant a 'model' notch is designed from, built as the offline runner builds it
-        return bound_controller(params, self.sample_time_s, linear_plant(self.design_plant),
-                                *self._ff_context)
+        plant = linear_plant(self.design_plant)
+        if self._ff_context is None:
+            return build_controller(params, self.sample_time_s, plant)
+        return bound_controller(params, self.sample_time_s, plant, *self._ff_context)
 
     def _rebuild(self, params: ControllerParams) -> Controller:
         return self._build(params, self._stability)

@@ -544,6 +544,8 @@ def servo_from_config(loop: LoopConfig, duration_s: float, bridge: Bridge | None
     design = linear_plant(design_plant if design_plant is not None else loop.design_plant)
     cn, tn = loop.controller_node, loop.trajectory_node
     hysteresis = make_hysteresis(stage.hysteresis)
+    # one trajectory object (its evaluation is pure): played by the trajectory logic, read
+    # ahead by a feed-forward
     reference = make_trajectory(loop.trajectory)
 
     def build(params: ControllerParams) -> Controller:
@@ -552,8 +554,7 @@ def servo_from_config(loop: LoopConfig, duration_s: float, bridge: Bridge | None
         build(loop.controller), mode='realtime',
         safe_voltage_v=cn.safe_voltage_v, position_timeout_s=cn.position_timeout_s,
         diagnostics_every=cn.diagnostics_every, rebuild=build)
-    trajectory = TrajectoryLogic(make_trajectory(loop.trajectory),
-                                 sample_rate_hz=stage.sample_rate_hz,
+    trajectory = TrajectoryLogic(reference, sample_rate_hz=stage.sample_rate_hz,
                                  chunk_s=min(tn.chunk_s, 0.005), active=tn.active)
     opts = loop.plant_node
     plant = GuardedPlant(bridge if bridge is not None else make_bridge(stage, opts),
