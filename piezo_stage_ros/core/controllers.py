@@ -382,6 +382,7 @@ class RACController:
         self._kstar = p.k_star_v
         self._gamma = p.gamma
         self._eta = p.eta
+        self._held = False
         self._set_adaptation(p)
         self.nonfinite_inputs = 0
         self.bad_dt = 0
@@ -520,6 +521,19 @@ class RACController:
         return (self._theta, self._phi, self._s, self._i, self._e, self._saturated,
                 float(self.nonfinite_inputs), float(self.bad_dt))
 
+    def hold_estimates(self, hold: bool) -> None:
+        """
+        Stop (True) or resume (False) the adaptation of theta_hat and phi_hat.
+
+        For a learning feed-forward: both would learn the same periodic error, and the estimates
+        then drift along the direction where their effect and the learned table's cancel, to
+        their bounds (measured on a 50 Hz triangle: phi_hat to 9e-4, and the learning, whose
+        filter assumes the loop gain at the estimates, diverged). Held, the updates are exact
+        zeros: the estimates keep their values bit for bit.
+        """
+        self._held = hold
+        self._gamma, self._eta = (0.0, 0.0) if hold else (self.params.gamma, self.params.eta)
+
     def linear_gains(self) -> tuple[float, float]:
         """Return (k_p, k_i) inside the boundary layer at the present estimates."""
         p = self.params
@@ -552,7 +566,8 @@ class RACController:
         self.params = p
         self._kd, self._lam, self._eps = p.k_d, p.lambda_per_s, p.epsilon_v
         self._inv_eps = 1.0 / p.epsilon_v
-        self._kstar, self._gamma, self._eta = p.k_star_v, p.gamma, p.eta
+        self._kstar = p.k_star_v
+        self._gamma, self._eta = (0.0, 0.0) if self._held else (p.gamma, p.eta)
         self._set_adaptation(p)
         self._theta = min(max(self._theta, p.theta_min), p.theta_max)
         self._phi = min(max(self._phi, p.phi_min), p.phi_max)

@@ -46,7 +46,9 @@ A two-degree-of-freedom structure around any controller of
   sensitivity of the design model (the controller linearized as the stability check does).
   Q keeps the harmonics below ``learning_bandwidth_hz``; on the design model each kept harmonic
   converges monotonically with ratio |1 - gamma|; on another stage the ratio is
-  |1 - gamma P_true / P_s| (:func:`learning_convergence`).
+  |1 - gamma P_true / P_s| (:func:`learning_convergence`). The update is summed sample by sample
+  (no FFT at the period's end), and the RAC's estimates are held while the table learns: both
+  would chase the same periodic error and drift.
 - **Jumps** (``inverse`` modes): an ideal jump cannot be followed; each jump of the reference is
   replaced by the quintic S-curve of ``transition_s`` starting at it (nothing moves before the
   jump is due), and the inner controller tracks that path.
@@ -544,12 +546,17 @@ class FeedForwardController:
         self._period_n = 0
         self._learned: FloatArray = np.zeros(0)
         self._ll: list[float] = []
-        self._le: list[float] = []
+        # learning, spread over the period: each sample adds its error times its column of the
+        # circulant learning operator (a slice of _kernel2) to _delta; the period's end applies it
+        self._kernel2: FloatArray = np.zeros(0)
+        self._delta: FloatArray = np.zeros(0)
+        self._term: FloatArray = np.zeros(0)
+        self._sq = 0.0
+        self._holding = False
         self._lx_raw: list[float] = []
         self._lx: list[float] = []
         self._lv: list[float] = []
         self._lw: list[float] = []
-        self._filter: ComplexArray = np.zeros(0, dtype=np.complex128)
         self._block_start = 0
         self._filter_state: Any = None
         self._k = 0
@@ -580,7 +587,13 @@ class FeedForwardController:
         self._period_n = n if exact else 0
         self._learned = np.zeros(self._period_n)
         self._ll = self._learned.tolist()
-        self._le = [0.0] * self._period_n
+        self._delta = np.zeros(self._period_n)
+        self._term = np.zeros(self._period_n)
+        self._sq = 0.0
+        if self._learning_on:
+            # designed here, on the controller's initial estimates: nothing of it in the loop
+            kernel = np.fft.irfft(self._learning_filter(), n)
+            self._kernel2 = np.concatenate([kernel, kernel])
         self.periods_learned = 0
         self._prepare_tables()
 
@@ -591,6 +604,7 @@ class FeedForwardController:
         self._u = self.inner._u
         self._k = 0
         self._share_fresh = True
+        self._hold(False)
         if self.hysteresis_inverse is not None:
             # the stage rests with w = c v: the compensator starts where the stage does
             hyst = self.hysteresis_inverse
@@ -640,7 +654,14 @@ class FeedForwardController:
             u = u - share + self._lw[i]
         if self._learning_on:
             u += self._ll[i]
-            self._le[i] = position_m - xd
+            e = position_m - xd
+            self._sq += e * e
+            if k >= self._learn_from:
+                if not self._holding:
+                    self._hold(True)
+                # delta_j += e_i h_((j - i) mod n): column i of the circulant operator
+                np.multiply(self._kernel2[n - i:2 * n - i], e, out=self._term)
+                self._delta += self._term
             if i == n - 1:
                 self._learn(k)
         return self._output(u)
@@ -743,6 +764,19 @@ class FeedForwardController:
 
     # -- learning ----------------------------------------------------------------------------
 
+    def _hold(self, hold: bool) -> None:
+        """Hold the RAC's estimates while the table learns (see ``hold_estimates``)."""
+        self._holding = hold
+        hold_estimates = getattr(getattr(self.inner, 'inner', self.inner), 'hold_estimates',
+                                 None)
+        if hold_estimates is not None:
+            hold_estimates(hold)
+
+    @property
+    def _learn_from(self) -> int:
+        """Return the first sample whose error is learned (after the start periods)."""
+        return self.params.learning_start_periods * self._period_n
+
     def _learning_filter(self) -> ComplexArray:
         """Return gamma Q / P_s on the period's harmonics (0 on those Q drops)."""
         n = self._period_n
@@ -759,20 +793,24 @@ class FeedForwardController:
                                    0.0), dtype=np.complex128)
 
     def _learn(self, k: int) -> None:
-        """End of a period: update the learned table from the period's errors."""
-        n = self._period_n
-        period = k // n
-        err = np.asarray(self._le, dtype=np.float64)
-        self.last_period_rms_m = math.sqrt(float(err.dot(err)) / n)
-        if period < self.params.learning_start_periods:
+        """
+        End of a period: apply the update accumulated over it, L <- L - gamma Q E / P_s.
+
+        The update is the period's error through the learning filter, a circular convolution
+        with its impulse response, summed sample by sample as the errors came (no FFT at the
+        period's end: the real-time step stays even). The table stays inside Q's band (every
+        update is), so Q L = L.
+        """
+        self.last_period_rms_m = math.sqrt(self._sq / self._period_n)
+        self._sq = 0.0
+        if k < self._learn_from:
             return
-        if len(self._filter) != n // 2 + 1:
-            self._filter = self._learning_filter()  # once per period length
-        # the table stays inside Q's band (every update is), so Q L = L: one FFT pair a period
-        table = self._learned - np.fft.irfft(np.fft.rfft(err) * self._filter, n)
         limit = self.params.learning_limit_v
-        self._learned = np.clip(table, -limit, limit)
-        self._ll = self._learned.tolist()
+        learned = self._learned
+        learned -= self._delta
+        np.clip(learned, -limit, limit, out=learned)
+        self._delta.fill(0.0)
+        self._ll = learned.tolist()
         self.periods_learned += 1
 
     # -- tables for others ---------------------------------------------------------------------
