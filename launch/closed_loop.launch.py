@@ -36,9 +36,9 @@ Arguments (``ros2 launch piezo_stage_ros closed_loop.launch.py --show-args``):
   plant owns simulation time and keeps its own clock either way.
 
 The files are read and validated once here by the loader every command uses
-(:class:`piezo_stage_ros.core.loop_config.LoopConfig`): a bad value stops the launch before any
-process starts. The controller's stability check runs against the plant model the plant node
-runs, as ``simulate`` does: all three nodes get one merged parameter file, and the controller
+(:class:`piezo_stage_ros.core.contracts.loop_config.LoopConfig`): a bad value stops the launch
+before any process starts. The controller's stability check runs against the plant model the plant
+node runs, as ``simulate`` does: all three nodes get one merged parameter file, and the controller
 takes the design model from its plant_node section (``stability.design_model: plant``, the
 default; docs/nodes.md). When the plant ends its run the launch ends.
 """
@@ -65,10 +65,10 @@ from launch.events import Shutdown
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 from piezo_stage_ros.cli import choices
-from piezo_stage_ros.core.config import Config, find_config, load_config
-from piezo_stage_ros.core.controllers import ControllerParams
-from piezo_stage_ros.core.loop_config import LoopConfig, MODES
-from piezo_stage_ros.core.wire import RECORDED_TOPICS
+from piezo_stage_ros.core.contracts.config import Config, find_config, load_config
+from piezo_stage_ros.core.control.controllers import ControllerParams
+from piezo_stage_ros.core.contracts.loop_config import LoopConfig, MODES
+from piezo_stage_ros.core.contracts.wire import RECORDED_TOPICS
 import yaml
 
 ARGUMENTS = {

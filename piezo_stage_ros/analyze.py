@@ -122,7 +122,7 @@ def _analyze(args: argparse.Namespace) -> int:
     try:
         from piezo_stage_ros.analysis.replay import analyze_bag, format_summary, summary_json
         from piezo_stage_ros.analysis.report import ReportEntry, unique_names, write_report
-        from piezo_stage_ros.core.errors import PiezoStageError
+        from piezo_stage_ros.core.contracts.errors import PiezoStageError
         if figure_root is not None:
             from piezo_stage_ros.analysis.plots import error_trace, plot_comparison, plot_run
     except ImportError as err:

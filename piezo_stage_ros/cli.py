@@ -27,7 +27,7 @@ What every command-line program shares: parser, exit status, configuration, prog
 - :func:`add_config_options` and :func:`read_config`: ``--config FILE`` on top of
   ``config/default.yaml`` and ``--param NODE:NAME=VALUE``, and :func:`loop_overrides`, the short
   flags (``--plant``, ``--controller``, ``--trajectory`` ...) as parameter values; the objects
-  come from :class:`piezo_stage_ros.core.loop_config.LoopConfig`, as everywhere else;
+  come from :class:`piezo_stage_ros.core.contracts.loop_config.LoopConfig`, as everywhere else;
 - :class:`Progress`: one progress display on stderr (elapsed-time lines, or a percentage that
   rewrites itself on a terminal).
 """
@@ -41,10 +41,10 @@ import sys
 import time
 from typing import Any, Callable, NoReturn, Sequence, TextIO
 
-from piezo_stage_ros.core.config import Config, find_config, load_config
-from piezo_stage_ros.core.errors import ConfigError, ParameterError, PiezoStageError
-from piezo_stage_ros.core.loop_config import LoopConfig
-from piezo_stage_ros.core.params import Params, ParamSpec
+from piezo_stage_ros.core.contracts.config import Config, find_config, load_config
+from piezo_stage_ros.core.contracts.errors import ConfigError, ParameterError, PiezoStageError
+from piezo_stage_ros.core.contracts.loop_config import LoopConfig
+from piezo_stage_ros.core.contracts.params import Params, ParamSpec
 import yaml
 
 __all__ = ['Parser', 'Progress', 'UsageError', 'add_config_options', 'choices', 'error',
@@ -122,7 +122,7 @@ def choices(cls: type[Params], name: str) -> tuple[str, ...]:
     Parameters
     ----------
     cls : type
-        A :class:`~piezo_stage_ros.core.params.Params` group.
+        A :class:`~piezo_stage_ros.core.contracts.params.Params` group.
     name : str
         Dotted name inside the group, e.g. ``'model'`` or ``'notch.mode'``.
 
@@ -154,7 +154,7 @@ def add_config_options(parser: argparse.ArgumentParser) -> None:
 
 def add_feedforward_option(parser: argparse.ArgumentParser) -> None:
     """Add ``--feedforward MODE`` (controller_node ``feedforward.mode``)."""
-    from piezo_stage_ros.core.controllers import ControllerParams
+    from piezo_stage_ros.core.control.controllers import ControllerParams
     modes = choices(ControllerParams, 'feedforward.mode')
     parser.add_argument('--feedforward', choices=modes, metavar='MODE',
                         help='Feed-forward mode (controller_node feedforward.mode): '
@@ -212,7 +212,7 @@ def read_config(files: Sequence[str], params: Sequence[str] = ()) -> Config:
     ----------
     files : sequence of str
         ``--config`` files, in order: paths, or names of files in the package's ``config/``
-        (:func:`~piezo_stage_ros.core.config.find_config`).
+        (:func:`~piezo_stage_ros.core.contracts.config.find_config`).
     params : sequence of str
         ``--param`` texts, in order.
 

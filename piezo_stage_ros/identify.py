@@ -17,7 +17,8 @@
 
 Reads one or more bags (a small-amplitude noise or chirp run, a small step run, a sine run such
 as 1 + sin(2 pi 100 t) V), decides what each is for from its command signal (or from
-``--noise/--step/--sine``), runs :func:`piezo_stage_ros.core.identification.identify` and writes
+``--noise/--step/--sine``), runs :func:`piezo_stage_ros.core.identification.fit.identify` and
+writes
 
 - a ROS 2 parameter file (``--output``, default ``identified.yaml``) with a ``plant_node``
   section (every stage parameter, dotted names as :meth:`StageParams.to_flat` gives them, the
@@ -46,15 +47,15 @@ import sys
 from typing import Any, Mapping, Sequence
 
 from piezo_stage_ros import cli
-from piezo_stage_ros.core.errors import ConfigError, PiezoStageError
-from piezo_stage_ros.core.identification import (
+from piezo_stage_ros.core.contracts.errors import ConfigError, PiezoStageError
+from piezo_stage_ros.core.identification.fit import (
     factors_of,
     IdentificationParams,
     IdentificationResult,
     pscm_gain,
 )
-from piezo_stage_ros.core.record import RunRecord
-from piezo_stage_ros.core.stage import StageParams
+from piezo_stage_ros.core.loop.record import RunRecord
+from piezo_stage_ros.core.model.stage import StageParams
 import yaml
 
 __all__ = ['build_parser', 'controller_values', 'main', 'parameter_file_text']
@@ -222,8 +223,8 @@ def parameter_file_text(stage: StageParams, *, header: Sequence[str] = (),
     Returns
     -------
     str
-        YAML text; :func:`piezo_stage_ros.core.loop_config.load_loop_config` reads it and its
-        ``stage`` is ``stage`` (the loop rate aside).
+        YAML text; :func:`piezo_stage_ros.core.contracts.loop_config.load_loop_config` reads it
+        and its ``stage`` is ``stage`` (the loop rate aside).
 
     """
     flat = {k: v for k, v in stage.to_flat().items() if k != 'sample_rate_hz'}
@@ -246,7 +247,7 @@ def _read_bags(paths: Sequence[tuple[str, str | None]]) -> list[tuple[RunRecord,
 
 def _simulate(args: argparse.Namespace, base: StageParams) -> tuple[list[str], StageParams]:
     from piezo_stage_ros.analysis.bagwrite import write_run
-    from piezo_stage_ros.core.identification_experiments import (
+    from piezo_stage_ros.core.identification.experiments import (
         ExperimentPlan,
         perturbed_stage,
         run_experiments,
@@ -321,7 +322,7 @@ def _bound_lines(result: IdentificationResult) -> list[str]:
 
 
 def _run_drift(args: argparse.Namespace, base: StageParams) -> int:
-    from piezo_stage_ros.core.drift import drift_lines, estimate_drift
+    from piezo_stage_ros.core.identification.drift import drift_lines, estimate_drift
     loaded = _read_bags([(b, None) for b in args.drift])
     status = 0
     for rec, _ in loaded:
@@ -332,7 +333,7 @@ def _run_drift(args: argparse.Namespace, base: StageParams) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from piezo_stage_ros.core.identification_support import identify_checked, RefusedError
+    from piezo_stage_ros.core.identification.support import identify_checked, RefusedError
     config = cli.read_config(args.config)
     loop = cli.offline_loop(PROG, config)
     base = loop.stage

@@ -15,10 +15,10 @@
 """
 ``robustness``: one controller configuration, unchanged, on a family of stages unlike the model.
 
-The family (:mod:`piezo_stage_ros.core.family`) varies the configured third-order stage: gain
+The family (:mod:`piezo_stage_ros.core.model.family`) varies the configured third-order stage: gain
 0.7-1.4x, omega_n +-10 %, zeta 0.7-1.5x, tau +-30 %, alpha +-30 %, B1 +-3 %, sensor noise
 0-3 nm, one at a time and in corner combinations. The cases and what is measured:
-:mod:`piezo_stage_ros.core.robustness`. Parameters come from files and ``--param`` exactly as
+:mod:`piezo_stage_ros.core.loop.robustness`. Parameters come from files and ``--param`` exactly as
 for ``simulate`` (its loader).
 
 Examples::
@@ -40,8 +40,8 @@ import sys
 from typing import Sequence
 
 from piezo_stage_ros import cli
-from piezo_stage_ros.core.controllers import ControllerParams
-from piezo_stage_ros.core.errors import ParameterError
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.control.controllers import ControllerParams
 
 __all__ = ['main']
 
@@ -94,8 +94,8 @@ def _pick(text: str | None, known: Sequence[str], what: str) -> list[str]:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from piezo_stage_ros.core.family import default_family, sample_family
-    from piezo_stage_ros.core.robustness import CASES, format_result, run_study
+    from piezo_stage_ros.core.loop.robustness import CASES, format_result, run_study
+    from piezo_stage_ros.core.model.family import default_family, sample_family
 
     family = default_family()
     if args.list_stages:

@@ -21,8 +21,8 @@ then every ``--config FILE``, then ``--param NODE:NAME=VALUE``, then the short f
 the ROS nodes (``plant_node``, ``controller_node``, ``trajectory_node`` sections).
 
 Before every closed-loop run the controller's stability on the configured plant model is
-checked (:mod:`piezo_stage_ros.core.stability`): an unstable verdict is printed loudly, or the
-run is refused with ``--refuse-unstable`` (or ``controller_node: stability.action: refuse``).
+checked (:mod:`piezo_stage_ros.core.control.stability`): an unstable verdict is printed loudly, or
+the run is refused with ``--refuse-unstable`` (or ``controller_node: stability.action: refuse``).
 
 Examples::
 
@@ -48,15 +48,15 @@ from typing import Any, Sequence
 import warnings
 
 from piezo_stage_ros import cli
-from piezo_stage_ros.core.config import Config
-from piezo_stage_ros.core.controllers import ControllerParams
-from piezo_stage_ros.core.errors import ConfigError, ParameterError
-from piezo_stage_ros.core.experiments import EXPERIMENTS
-from piezo_stage_ros.core.hysteresis import HysteresisParams
-from piezo_stage_ros.core.loop_config import LoopConfig
-from piezo_stage_ros.core.stage import PlantParams
-from piezo_stage_ros.core.trajectories import TrajectoryParams
-from piezo_stage_ros.core.wire import STORAGE_IDS
+from piezo_stage_ros.core.contracts.config import Config
+from piezo_stage_ros.core.contracts.errors import ConfigError, ParameterError
+from piezo_stage_ros.core.contracts.loop_config import LoopConfig
+from piezo_stage_ros.core.contracts.wire import STORAGE_IDS
+from piezo_stage_ros.core.control.controllers import ControllerParams
+from piezo_stage_ros.core.loop.experiments import EXPERIMENTS
+from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
+from piezo_stage_ros.core.model.hysteresis import HysteresisParams
+from piezo_stage_ros.core.model.stage import PlantParams
 
 __all__ = ['build_config', 'build_parser', 'load_loop', 'main']
 
@@ -166,7 +166,7 @@ def _clean(value: Any) -> Any:
 
 def _enforce(report: Any, action: str) -> None:
     """Warn loudly on stderr or refuse (raises StabilityError)."""
-    from piezo_stage_ros.core.stability import enforce
+    from piezo_stage_ros.core.control.stability import enforce
     with warnings.catch_warnings():
         # the warning is printed here, once, as a readable line instead of a Python warning
         warnings.simplefilter('ignore')
@@ -180,10 +180,10 @@ def _enforce(report: Any, action: str) -> None:
 
 
 def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
-    from piezo_stage_ros.core import metrics
-    from piezo_stage_ros.core.experiments import default_duration_s, run_one
-    from piezo_stage_ros.core.stability import check_stability
-    from piezo_stage_ros.core.trajectories import make_trajectory
+    from piezo_stage_ros.core.control.stability import check_stability
+    from piezo_stage_ros.core.loop import metrics
+    from piezo_stage_ros.core.loop.experiments import default_duration_s, run_one
+    from piezo_stage_ros.core.loop.trajectories import make_trajectory
 
     stage, ctrl, traj = loop.stage, loop.controller, loop.trajectory
     report = check_stability(ctrl, loop.design_plant, stage.sample_time_s,
@@ -257,9 +257,9 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
 
 
 def _run_experiments(args: argparse.Namespace, loop: LoopConfig) -> int:
-    from piezo_stage_ros.core import experiments as ex
-    from piezo_stage_ros.core.loop_config import design_plant
-    from piezo_stage_ros.core.stability import check_stability
+    from piezo_stage_ros.core.contracts.loop_config import design_plant
+    from piezo_stage_ros.core.control.stability import check_stability
+    from piezo_stage_ros.core.loop import experiments as ex
 
     stage, ctrl, opts = loop.stage, loop.controller, loop.stability
     plants: tuple[str, ...] = (args.plant,) if args.plant else ('reduced', 'third_order')

@@ -16,7 +16,7 @@
 ``soak``: a long closed-loop run (default one simulated hour at 10 kHz, 36 M samples).
 
 The RAC tracks the configured multi-sine (``trajectory_node multisine.*``, 10 + 100 Hz) in
-chunks of one second (:func:`piezo_stage_ros.core.closed_loop.run` with ``keep=False``), so
+chunks of one second (:func:`piezo_stage_ros.core.loop.closed_loop.run` with ``keep=False``), so
 memory stays flat; each chunk is reduced at once to per-minute statistics:
 
 - e_m and e_rms of the minute (is the error bounded and stationary?);
@@ -40,10 +40,10 @@ from typing import Any, Sequence
 
 import numpy as np
 from piezo_stage_ros import cli
-from piezo_stage_ros.core.controllers import ControllerParams
-from piezo_stage_ros.core.stage import PlantParams
-from piezo_stage_ros.core.trajectories import TrajectoryParams
-from piezo_stage_ros.core.wire import STORAGE_IDS
+from piezo_stage_ros.core.contracts.wire import STORAGE_IDS
+from piezo_stage_ros.core.control.controllers import ControllerParams
+from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
+from piezo_stage_ros.core.model.stage import PlantParams
 
 __all__ = ['main', 'rss_mb']
 
@@ -120,12 +120,12 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _soak(args: argparse.Namespace) -> int:
-    from piezo_stage_ros.core.experiments import run_one
-    from piezo_stage_ros.core.record import RunRecord
-    from piezo_stage_ros.core.stability import check_stability
+    from piezo_stage_ros.core.control.stability import check_stability
+    from piezo_stage_ros.core.loop.experiments import run_one
+    from piezo_stage_ros.core.loop.record import RunRecord
 
     if not (args.minutes > 0 and math.isfinite(args.minutes)):
-        from piezo_stage_ros.core.errors import ParameterError
+        from piezo_stage_ros.core.contracts.errors import ParameterError
         raise ParameterError('--minutes', args.minutes, '(0, inf)')
     loop = cli.offline_loop(PROG, cli.loop_overrides(
         cli.read_config(args.config, args.param), plant=args.plant, controller=args.controller,

@@ -20,7 +20,7 @@ um at 1, 10, 50 and 100 Hz, on the default stage (10 kHz, 16-bit converters, bac
 hysteresis) with the reduced plant (25) and the third-order plant (20), for
 
 1. the stability verdict of the paper's gains and of the default tuning (every linearized loop of
-   :mod:`piezo_stage_ros.core.stability`);
+   :mod:`piezo_stage_ros.core.control.stability`);
 2. a sweep of the boundary layer epsilon with the other default gains (no notch, reduced plant);
 3. a small (k_d, lambda) grid with the notch;
 4. a sweep of the initial estimate phi_hat(0) (in steady state the estimates sit still inside
@@ -29,15 +29,15 @@ hysteresis) with the reduced plant (25) and the third-order plant (20), for
 6. Table III: e_rms and e_max of the paper's PI, the paper's RAC and the default RAC on both
    plants, with and without the notch;
 7. the same with one sample of computational delay, and a tuning that tolerates it;
-8. the discrete adaptation loop: the bound of :func:`piezo_stage_ros.core.stability.
+8. the discrete adaptation loop: the bound of :func:`piezo_stage_ros.core.control.stability.
    adaptation_bound` per model, and the square-wave steady state (Fig. 10, and a 3.8 -> 28 um
    square wave near the top of the reachable range) against the adaptation rates gamma, eta;
-9. the stage family (issue 10, :mod:`piezo_stage_ros.core.family`): the worst stage of each
+9. the stage family (issue 10, :mod:`piezo_stage_ros.core.model.family`): the worst stage of each
    case for the default, for the old default, for the issue's reference and for one change at
    a time from the default (``--family`` runs only this section, about 3 minutes).
 
-Errors are those of :func:`piezo_stage_ros.core.metrics.summarize` (measured position, steady-state
-window after max(2 periods, 0.1 s)). The default run takes about a minute.
+Errors are those of :func:`piezo_stage_ros.core.loop.metrics.summarize` (measured position,
+steady-state window after max(2 periods, 0.1 s)). The default run takes about a minute.
 """
 
 from __future__ import annotations
@@ -49,26 +49,26 @@ from typing import Mapping, Sequence
 
 import numpy as np
 from piezo_stage_ros import cli
-from piezo_stage_ros.core.closed_loop import run
-from piezo_stage_ros.core.controllers import (
+from piezo_stage_ros.core.contracts.interfaces import Controller
+from piezo_stage_ros.core.control.controllers import (
     build_controller,
     ControllerParams,
     NotchParams,
     PIParams,
     RACParams,
 )
-from piezo_stage_ros.core.experiments import run_one, square_edge_metrics
-from piezo_stage_ros.core.interfaces import Controller
-from piezo_stage_ros.core.linear import ReducedParams
-from piezo_stage_ros.core.metrics import summarize
-from piezo_stage_ros.core.stability import (
+from piezo_stage_ros.core.control.stability import (
     adaptation_bound,
     check_stability,
     stability_plant,
     StabilityParams,
 )
-from piezo_stage_ros.core.stage import PlantParams, Stage, StageParams
-from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.loop.closed_loop import run
+from piezo_stage_ros.core.loop.experiments import run_one, square_edge_metrics
+from piezo_stage_ros.core.loop.metrics import summarize
+from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.model.linear import ReducedParams
+from piezo_stage_ros.core.model.stage import PlantParams, Stage, StageParams
 
 PROG = 'tune'
 FREQUENCIES_HZ = (1.0, 10.0, 50.0, 100.0)
@@ -108,7 +108,7 @@ WITHOUT_NOTCH = OLD_DEFAULT.replace(k_d=0.4, lambda_per_s=2000.0, epsilon_v=0.6,
 ISSUE_REFERENCE = OLD_DEFAULT.replace(gamma=300.0, eta=1e-4, adaptation_dead_zone_v=0.002,
                                       theta_max=2.0, phi_min=2e-4, phi_max=6e-4)
 
-#: Cases of section 9 (keys of :data:`piezo_stage_ros.core.robustness.CASES`), with the sensor
+#: Cases of section 9 (keys of :data:`piezo_stage_ros.core.loop.robustness.CASES`), with the sensor
 #: noise they run with: None keeps each stage's own (0 or 3 nm), a number sets it on every
 #: stage [m rms].
 FAMILY_CASES: tuple[tuple[str, str, float | None], ...] = (
@@ -139,8 +139,8 @@ def family_worst(params: ControllerParams, *, duration_s: float = 2.0
     """
     from dataclasses import replace as dc_replace
 
-    from piezo_stage_ros.core.family import default_family
-    from piezo_stage_ros.core.robustness import run_study
+    from piezo_stage_ros.core.loop.robustness import run_study
+    from piezo_stage_ros.core.model.family import default_family
 
     stage = StageParams.from_flat({'plant.model': 'third_order'})
     family = default_family()
@@ -298,7 +298,7 @@ def track(params: ControllerParams, model: str, frequency_hz: float,
     Returns
     -------
     e_rms_m, e_max_m : float
-        Over the steady-state window of :func:`piezo_stage_ros.core.metrics.summarize` [m].
+        Over the steady-state window of :func:`piezo_stage_ros.core.loop.metrics.summarize` [m].
 
     """
     stage_params = StageParams.from_flat({
@@ -417,7 +417,7 @@ def _study(args: argparse.Namespace) -> int:
     """Print the study's tables (or the parameter table)."""
     if args.params_table:
         # the node's own table (docs/parameters.md is generated from the same declarations)
-        from piezo_stage_ros.core.loop_config import controller_table
+        from piezo_stage_ros.core.contracts.loop_config import controller_table
         print(controller_table().markdown())
         return 0
     start = time.monotonic()

@@ -26,11 +26,8 @@ import math
 import warnings
 
 import numpy as np
-from piezo_stage_ros.core import metrics
-from piezo_stage_ros.core.controllers import ControllerParams, NotchParams
-from piezo_stage_ros.core.experiments import run_one
-from piezo_stage_ros.core.linear import ReducedParams
-from piezo_stage_ros.core.stability import (
+from piezo_stage_ros.core.control.controllers import ControllerParams, NotchParams
+from piezo_stage_ros.core.control.stability import (
     adaptation_bound,
     ADAPTATION_MARGIN,
     check_stability,
@@ -38,8 +35,11 @@ from piezo_stage_ros.core.stability import (
     StabilityParams,
     StabilityWarning,
 )
-from piezo_stage_ros.core.stage import PlantParams, StageParams
-from piezo_stage_ros.core.trajectories import TrajectoryParams
+from piezo_stage_ros.core.loop import metrics
+from piezo_stage_ros.core.loop.experiments import run_one
+from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
+from piezo_stage_ros.core.model.linear import ReducedParams
+from piezo_stage_ros.core.model.stage import PlantParams, StageParams
 import pytest
 
 T = 1e-4
@@ -238,8 +238,8 @@ def _family_case(stage_name, case, *, noise_m=None, changes=None):
     """Run the default RAC (or with ``changes``) on one stage of the family; e_rms after 1 s."""
     from dataclasses import replace
 
-    from piezo_stage_ros.core.family import default_family
-    from piezo_stage_ros.core.robustness import run_study
+    from piezo_stage_ros.core.loop.robustness import run_study
+    from piezo_stage_ros.core.model.family import default_family
     member = next(m for m in default_family() if m.name == stage_name)
     if noise_m is not None:
         member = replace(member, noise_m=noise_m)

@@ -24,12 +24,12 @@ import numpy as np
 from piezo_stage_ros import analyze
 from piezo_stage_ros.analysis.bagwrite import RunBagWriter, write_run
 from piezo_stage_ros.analysis.replay import analyze_bag
-from piezo_stage_ros.core.closed_loop import run
-from piezo_stage_ros.core.controllers import build_controller, ControllerParams
-from piezo_stage_ros.core.metrics import square_wave_metrics, summarize
-from piezo_stage_ros.core.record import RunRecord
-from piezo_stage_ros.core.stage import Stage, StageParams
-from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
+from piezo_stage_ros.core.loop.closed_loop import run
+from piezo_stage_ros.core.loop.metrics import square_wave_metrics, summarize
+from piezo_stage_ros.core.loop.record import RunRecord
+from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.model.stage import Stage, StageParams
 import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import get_typestore, Stores

@@ -23,9 +23,9 @@ import numpy as np
 from piezo_stage_ros.analysis import bagread
 from piezo_stage_ros.analysis.bagread import bag_info, read_run, read_topics
 from piezo_stage_ros.analysis.bagwrite import RunBagWriter, write_run
-from piezo_stage_ros.core import wire
-from piezo_stage_ros.core.errors import BagError
-from piezo_stage_ros.core.record import RunRecord
+from piezo_stage_ros.core.contracts import wire
+from piezo_stage_ros.core.contracts.errors import BagError
+from piezo_stage_ros.core.loop.record import RunRecord
 import pytest
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
 from rosbags.typesys import get_typestore, Stores

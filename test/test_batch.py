@@ -19,13 +19,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from piezo_stage_ros.core import closed_loop
-from piezo_stage_ros.core.batch import libm_exp, run_batch, StageFamilyBatch
-from piezo_stage_ros.core.controllers import build_controller, ControllerParams
-from piezo_stage_ros.core.errors import ParameterError
-from piezo_stage_ros.core.family import default_family, member_params
-from piezo_stage_ros.core.stage import linear_plant, Stage, StageParams
-from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
+from piezo_stage_ros.core.loop import closed_loop
+from piezo_stage_ros.core.loop.batch import libm_exp, run_batch, StageFamilyBatch
+from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.model.family import default_family, member_params
+from piezo_stage_ros.core.model.stage import linear_plant, Stage, StageParams
 import pytest
 
 BASE = StageParams()
@@ -49,7 +49,7 @@ def _singles(stages, cp, tp, duration_s):
 def _assert_same(batch, singles):
     # Bit for bit, not "to 1e-12": with the 16-bit ADC any rounding difference becomes a whole
     # LSB (1.16 nm, 1e-4 of the signal) within a few hundred samples, so a tolerance would hide
-    # nothing and prove nothing (core/batch.py says how the two stay identical).
+    # nothing and prove nothing (core/loop/batch.py says how the two stay identical).
     assert len(batch) == len(singles)
     for b, s in zip(batch, singles):
         np.testing.assert_array_equal(b.time_s, s.time_s)

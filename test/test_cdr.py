@@ -12,13 +12,13 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""The CDR codec (core/cdr.py), byte for byte against the serializer of rosbags."""
+"""The CDR codec (core/contracts/cdr.py), byte for byte against the serializer of rosbags."""
 
 from __future__ import annotations
 
 import math
 
-from piezo_stage_ros.core import cdr
+from piezo_stage_ros.core.contracts import cdr
 import pytest
 
 typesys = pytest.importorskip('rosbags.typesys', reason='rosbags is the reference serializer')

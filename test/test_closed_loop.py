@@ -20,10 +20,10 @@ from typing import Mapping
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from piezo_stage_ros.core import closed_loop
-from piezo_stage_ros.core.errors import ParameterError
-from piezo_stage_ros.core.record import RunRecord
-from piezo_stage_ros.core.stage import Stage, StageParams
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.loop import closed_loop
+from piezo_stage_ros.core.loop.record import RunRecord
+from piezo_stage_ros.core.model.stage import Stage, StageParams
 import pytest
 
 T = 1e-4
@@ -183,7 +183,7 @@ def test_concatenate_keeps_the_true_position_only_when_every_chunk_has_it() -> N
 
 
 def test_record_refuses_a_true_position_of_another_length() -> None:
-    from piezo_stage_ros.core.errors import PiezoStageError
+    from piezo_stage_ros.core.contracts.errors import PiezoStageError
     z = np.zeros(3)
     with pytest.raises(PiezoStageError, match='true_position_m has 2 samples, time_s has 3'):
         RunRecord(z, z, z, z, z, true_position_m=np.zeros(2))

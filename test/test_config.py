@@ -14,9 +14,9 @@
 
 """ROS 2 parameter files map onto the parameter groups."""
 
-from piezo_stage_ros.core.config import find_config, flatten, load_config
-from piezo_stage_ros.core.errors import ConfigError
-from piezo_stage_ros.core.stage import StageParams
+from piezo_stage_ros.core.contracts.config import find_config, flatten, load_config
+from piezo_stage_ros.core.contracts.errors import ConfigError
+from piezo_stage_ros.core.model.stage import StageParams
 import pytest
 
 

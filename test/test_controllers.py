@@ -19,7 +19,9 @@ import math
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from piezo_stage_ros.core.controllers import (
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.contracts.interfaces import Controller
+from piezo_stage_ros.core.control.controllers import (
     build_controller,
     ControllerParams,
     notch_coefficients,
@@ -36,9 +38,7 @@ from piezo_stage_ros.core.controllers import (
     sat,
     SENSOR_GAIN_V_PER_M,
 )
-from piezo_stage_ros.core.errors import ParameterError
-from piezo_stage_ros.core.interfaces import Controller
-from piezo_stage_ros.core.linear import (
+from piezo_stage_ros.core.model.linear import (
     reduced_plant,
     ReducedParams,
     third_order_plant,
@@ -529,7 +529,7 @@ def test_rac_adaptation_is_frozen_while_the_command_saturates():
 
 
 def test_rac_gain_change_keeps_its_state_and_bounds():
-    from piezo_stage_ros.core.controllers import build_controller, ControllerParams
+    from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
     base = ControllerParams.from_flat({'type': 'rac', 'notch.mode': 'off',
                                        'rac.gamma': 1e6})
     ctrl = build_controller(base, 1e-4)
@@ -550,7 +550,7 @@ def test_rac_gain_change_keeps_its_state_and_bounds():
 
 
 def test_pi_gain_change_is_bumpless_in_its_integral():
-    from piezo_stage_ros.core.controllers import build_controller, ControllerParams
+    from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
     base = ControllerParams.from_flat({'type': 'pi', 'notch.mode': 'off'})
     ctrl = build_controller(base, 1e-4)
     ctrl.reset(3.8e-6, 3.8e-6, output_v=1.3)        # holding the stage at rest
@@ -562,7 +562,7 @@ def test_pi_gain_change_is_bumpless_in_its_integral():
 
 
 def test_notched_controller_rebuilds_when_the_notch_changes():
-    from piezo_stage_ros.core.controllers import build_controller, ControllerParams
+    from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
     base = ControllerParams.from_flat({'type': 'rac'})
     ctrl = build_controller(base, 1e-4)
     assert ctrl.update_params(base.with_flat({'rac.k_d': 0.8}))

@@ -15,11 +15,11 @@
 """
 Closed-loop Table III sines on the default stage (10 kHz, 16-bit converters, backlash-like).
 
-Short runs: the steady-state window of core.metrics (after max(2 periods, 0.1 s)) plus one
+Short runs: the steady-state window of core.loop.metrics (after max(2 periods, 0.1 s)) plus one
 period or 0.1 s, as ``python3 -m piezo_stage_ros.tune`` does.
 """
 
-from piezo_stage_ros.core.controllers import ControllerParams, NotchParams
+from piezo_stage_ros.core.control.controllers import ControllerParams, NotchParams
 from piezo_stage_ros.tune import PAPER_PIC_NM, PAPER_RAC_NM, track
 import pytest
 

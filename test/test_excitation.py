@@ -19,15 +19,15 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from piezo_stage_ros.core.errors import ParameterError
-from piezo_stage_ros.core.excitation import (
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.contracts.interfaces import Trajectory
+from piezo_stage_ros.core.identification.excitation import (
     ChirpExcitation,
     ChirpParams,
     make_excitation,
     NoiseExcitation,
     NoiseParams,
 )
-from piezo_stage_ros.core.interfaces import Trajectory
 import pytest
 
 FS = 20000.0
@@ -129,7 +129,7 @@ def test_chirp_bad_method_and_kind_mismatch_are_refused() -> None:
 
 
 def test_kinds_noise_and_chirp_are_trajectories_of_the_trajectory_node() -> None:
-    from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+    from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
     for kind in ('noise', 'chirp'):
         params = TrajectoryParams.from_flat({'kind': kind})
         traj = make_trajectory(params)

@@ -19,11 +19,11 @@ from __future__ import annotations
 import json
 import math
 
-from piezo_stage_ros.core import experiments as ex
-from piezo_stage_ros.core import metrics
-from piezo_stage_ros.core.controllers import ControllerParams
-from piezo_stage_ros.core.stage import StageParams
-from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.control.controllers import ControllerParams
+from piezo_stage_ros.core.loop import experiments as ex
+from piezo_stage_ros.core.loop import metrics
+from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.model.stage import StageParams
 import pytest
 
 

@@ -13,8 +13,8 @@
 # limitations under the License.
 
 """
-Feed-forward (core/feedforward.py): exact inverses, the stable preview inversion, jump shaping,
-learning, and the issue-16 targets on the default stage in the offline closed loop.
+Feed-forward (core/control/feedforward.py): exact inverses, the stable preview inversion, jump
+shaping, learning, and the issue-16 targets on the default stage in the offline closed loop.
 """
 
 from __future__ import annotations
@@ -24,24 +24,28 @@ import math
 from hypothesis import given, settings
 from hypothesis import strategies as st
 import numpy as np
-from piezo_stage_ros.core import closed_loop, experiments
-from piezo_stage_ros.core.controllers import build_controller, ControllerParams, RACController
-from piezo_stage_ros.core.errors import ParameterError
-from piezo_stage_ros.core.feedforward import (
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.contracts.loop_config import load_loop_config
+from piezo_stage_ros.core.control.controllers import (
+    build_controller,
+    ControllerParams,
+    RACController,
+)
+from piezo_stage_ros.core.control.feedforward import (
     FeedForwardController,
     make_hysteresis_inverse,
     PreviewInverse,
     shape_jumps,
 )
-from piezo_stage_ros.core.hysteresis import (
+from piezo_stage_ros.core.loop import closed_loop, experiments
+from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.model.hysteresis import (
     BacklashLike,
     BacklashLikeParams,
     HysteresisParams,
     make_hysteresis,
 )
-from piezo_stage_ros.core.loop_config import load_loop_config
-from piezo_stage_ros.core.stage import linear_plant, Stage, StageParams
-from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.model.stage import linear_plant, Stage, StageParams
 import pytest
 from scipy.signal import lfilter
 from tolerances import EPS

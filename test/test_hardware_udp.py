@@ -23,11 +23,11 @@ import sys
 import threading
 
 import numpy as np
-from piezo_stage_ros.core.closed_loop import run
-from piezo_stage_ros.core.controllers import build_controller, ControllerParams
-from piezo_stage_ros.core.errors import ParameterError
-from piezo_stage_ros.core.stage import Stage, StageParams
-from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
+from piezo_stage_ros.core.loop.closed_loop import run
+from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.model.stage import Stage, StageParams
 from piezo_stage_ros.hardware import udp
 from piezo_stage_ros.hardware.bridge import BridgeError, ModelBridge
 from piezo_stage_ros.hardware.emulator import main as emulator_main

@@ -15,8 +15,8 @@
 """Hysteresis operators: exact stepping, bounds, loop closure, rate independence."""
 
 import numpy as np
-from piezo_stage_ros.core.errors import ParameterError
-from piezo_stage_ros.core.hysteresis import (
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.model.hysteresis import (
     BacklashLike,
     BacklashLikeParams,
     BoucWen,

@@ -21,12 +21,12 @@ import re
 
 import numpy as np
 from piezo_stage_ros.analysis.bagwrite import write_run
-from piezo_stage_ros.core.config import load_config
-from piezo_stage_ros.core.identification import factors_of
-from piezo_stage_ros.core.identification_experiments import perturbed_stage, run_experiments
-from piezo_stage_ros.core.loop_config import LoopConfig
-from piezo_stage_ros.core.record import RunRecord
-from piezo_stage_ros.core.stage import StageParams
+from piezo_stage_ros.core.contracts.config import load_config
+from piezo_stage_ros.core.contracts.loop_config import LoopConfig
+from piezo_stage_ros.core.identification.experiments import perturbed_stage, run_experiments
+from piezo_stage_ros.core.identification.fit import factors_of
+from piezo_stage_ros.core.loop.record import RunRecord
+from piezo_stage_ros.core.model.stage import StageParams
 from piezo_stage_ros.identify import main, parameter_file_text
 from piezo_stage_ros.simulate import main as simulate_main
 import pytest
@@ -181,7 +181,7 @@ def test_report_without_a_sine_run_has_no_fig6(bags: tuple[dict[str, Path], Stag
                                                tmp_path: Path) -> None:
     from piezo_stage_ros.analysis.bagread import read_run
     from piezo_stage_ros.analysis.identification_report import write_report
-    from piezo_stage_ros.core.identification import identify
+    from piezo_stage_ros.core.identification.fit import identify
     paths, _ = bags
     result = identify([read_run(paths['noise']), read_run(paths['step'])])
     files = write_report(result, tmp_path / 'rep')

@@ -15,8 +15,8 @@
 """Linear models against the paper's numbers and analytic responses."""
 
 import numpy as np
-from piezo_stage_ros.core.errors import ParameterError
-from piezo_stage_ros.core.linear import (
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.model.linear import (
     electromechanical_plant,
     ElectromechanicalParams,
     reduced_plant,

@@ -17,10 +17,10 @@
 from __future__ import annotations
 
 import numpy as np
-from piezo_stage_ros.core.closed_loop import run
-from piezo_stage_ros.core.controllers import build_controller, ControllerParams
-from piezo_stage_ros.core.stage import Stage, StageParams
-from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
+from piezo_stage_ros.core.loop.closed_loop import run
+from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.model.stage import Stage, StageParams
 from piezo_stage_ros.hardware.bridge import ModelBridge
 from piezo_stage_ros.hardware.safety import GuardedPlant
 from piezo_stage_ros.nodes.logic import ControllerLogic, PlantLogic, TrajectoryLogic

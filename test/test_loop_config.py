@@ -21,12 +21,12 @@ import argparse
 from pathlib import Path
 
 from piezo_stage_ros import cli, identify, simulate, soak
-from piezo_stage_ros.core.config import find_config, load_config
-from piezo_stage_ros.core.controllers import ControllerParams
-from piezo_stage_ros.core.errors import ConfigError, ParameterError
-from piezo_stage_ros.core.loop_config import load_loop_config, LoopConfig
-from piezo_stage_ros.core.stage import PlantParams
-from piezo_stage_ros.core.trajectories import TrajectoryParams
+from piezo_stage_ros.core.contracts.config import find_config, load_config
+from piezo_stage_ros.core.contracts.errors import ConfigError, ParameterError
+from piezo_stage_ros.core.contracts.loop_config import load_loop_config, LoopConfig
+from piezo_stage_ros.core.control.controllers import ControllerParams
+from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
+from piezo_stage_ros.core.model.stage import PlantParams
 from piezo_stage_ros.hardware.emulator import main as emulator_main
 from piezo_stage_ros.nodes.tables import design_model, params_files
 import pytest

@@ -19,9 +19,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from piezo_stage_ros.core import metrics
-from piezo_stage_ros.core.errors import PiezoStageError
-from piezo_stage_ros.core.record import RunRecord
+from piezo_stage_ros.core.contracts.errors import PiezoStageError
+from piezo_stage_ros.core.loop import metrics
+from piezo_stage_ros.core.loop.record import RunRecord
 import pytest
 
 

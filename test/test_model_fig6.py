@@ -28,12 +28,12 @@ from __future__ import annotations
 
 import math
 
-from piezo_stage_ros.core.experiments import (
+from piezo_stage_ros.core.loop.experiments import (
     linear_lag_width_pct,
     open_loop_sine_width,
     run_fig6,
 )
-from piezo_stage_ros.core.stage import StageParams
+from piezo_stage_ros.core.model.stage import StageParams
 import pytest
 
 LINEAR = {'hysteresis.model': 'none', 'chain.quantize': False}

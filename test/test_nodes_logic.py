@@ -19,12 +19,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from piezo_stage_ros.core.config import load_config
-from piezo_stage_ros.core.controllers import build_controller, ControllerParams
-from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
-from piezo_stage_ros.core.params import param, Params
-from piezo_stage_ros.core.stage import StageParams
-from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.contracts.config import load_config
+from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
+from piezo_stage_ros.core.contracts.params import param, Params
+from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
+from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.model.stage import StageParams
 from piezo_stage_ros.hardware.bridge import ModelBridge
 from piezo_stage_ros.hardware.safety import GuardedPlant
 from piezo_stage_ros.nodes.logic import (
@@ -264,9 +264,9 @@ def test_controller_watchdog_realtime_only_and_reset_after_silence():
 def test_a_feedforward_keeps_its_reference_index_over_skips_and_resets():
     # real time: the servo skips samples (stamps jump) and a silence resets the controller; the
     # feed-forward must stay on the reference of each stamp (a wrong index is a mismatch)
-    from piezo_stage_ros.core.feedforward import FeedForwardController
-    from piezo_stage_ros.core.hysteresis import HysteresisParams, make_hysteresis
-    from piezo_stage_ros.core.stage import linear_plant
+    from piezo_stage_ros.core.control.feedforward import FeedForwardController
+    from piezo_stage_ros.core.model.hysteresis import HysteresisParams, make_hysteresis
+    from piezo_stage_ros.core.model.stage import linear_plant
     params = ControllerParams().with_flat({'feedforward.mode': 'inverse'})
     sine = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine'}))
     ctrl = build_controller(params, 1e-4, linear_plant(StageParams().plant),
@@ -355,7 +355,7 @@ ROS_ROOTS = {'rclpy', 'rcl_interfaces', 'sensor_msgs', 'std_msgs', 'rosgraph_msg
              'builtin_interfaces', 'diagnostic_msgs', 'std_srvs', 'launch', 'launch_ros'}
 PACKAGE = Path(__file__).resolve().parents[1] / 'piezo_stage_ros'
 RCLPY_FREE = sorted([PACKAGE / 'nodes' / f'{m}.py' for m in ('logic', 'tables')]
-                    + [PACKAGE / 'core' / f'{m}.py' for m in ('wire', 'cdr')]
+                    + [PACKAGE / 'core' / 'contracts' / f'{m}.py' for m in ('wire', 'cdr')]
                     + list((PACKAGE / 'hardware').glob('*.py')))
 
 
@@ -386,7 +386,7 @@ def test_the_testable_node_modules_import_with_ros_blocked():
         '            raise ImportError("blocked: " + name)\n'
         'sys.meta_path.insert(0, Block())\n'
         'import piezo_stage_ros.nodes.logic, piezo_stage_ros.nodes.tables\n'
-        'import piezo_stage_ros.core.wire, piezo_stage_ros.core.cdr\n'
+        'import piezo_stage_ros.core.contracts.wire, piezo_stage_ros.core.contracts.cdr\n'
         'import piezo_stage_ros.hardware.emulator, piezo_stage_ros.hardware.udp\n'
         'import piezo_stage_ros.bench.ros\n'
         'print("ok")\n')

@@ -29,12 +29,12 @@ import pytest
 rclpy = pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not importable here; '
                                             'the node logic is tested without it elsewhere')
 
-from piezo_stage_ros.core import wire  # noqa: E402
-from piezo_stage_ros.core.closed_loop import run  # noqa: E402
-from piezo_stage_ros.core.controllers import build_controller, ControllerParams  # noqa: E402
-from piezo_stage_ros.core.errors import ParameterError  # noqa: E402
-from piezo_stage_ros.core.stage import linear_plant, Stage, StageParams  # noqa: E402
-from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams  # noqa: E402
+from piezo_stage_ros.core.contracts import wire  # noqa: E402
+from piezo_stage_ros.core.contracts.errors import ParameterError  # noqa: E402
+from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams  # noqa: E402
+from piezo_stage_ros.core.loop.closed_loop import run  # noqa: E402
+from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams  # noqa: E402
+from piezo_stage_ros.core.model.stage import linear_plant, Stage, StageParams  # noqa: E402
 from piezo_stage_ros.hardware.emulator import TargetEmulator  # noqa: E402
 from piezo_stage_ros.nodes import stage_servo  # noqa: E402
 from piezo_stage_ros.nodes.controller_node import ControllerNode  # noqa: E402

@@ -16,10 +16,10 @@
 
 import math
 
-from piezo_stage_ros.core.errors import ParameterError
-from piezo_stage_ros.core.hysteresis import BacklashLikeParams, PrandtlIshlinskiiParams
-from piezo_stage_ros.core.linear import ThirdOrderParams
-from piezo_stage_ros.core.stage import SignalChainParams, StageParams
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.model.hysteresis import BacklashLikeParams, PrandtlIshlinskiiParams
+from piezo_stage_ros.core.model.linear import ThirdOrderParams
+from piezo_stage_ros.core.model.stage import SignalChainParams, StageParams
 import pytest
 
 

@@ -21,11 +21,13 @@ import math
 
 import numpy as np
 from piezo_stage_ros import robustness
-from piezo_stage_ros.core import metrics
-from piezo_stage_ros.core.controllers import ControllerParams, plant_resonance
-from piezo_stage_ros.core.errors import ParameterError
-from piezo_stage_ros.core.experiments import run_one
-from piezo_stage_ros.core.family import (
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.control.controllers import ControllerParams, plant_resonance
+from piezo_stage_ros.core.identification.fit import factors_of
+from piezo_stage_ros.core.loop import metrics
+from piezo_stage_ros.core.loop.experiments import run_one
+from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.model.family import (
     default_family,
     member_params,
     RANGES,
@@ -33,9 +35,7 @@ from piezo_stage_ros.core.family import (
     StageVariation,
     true_estimates,
 )
-from piezo_stage_ros.core.identification import factors_of
-from piezo_stage_ros.core.stage import linear_plant, StageParams
-from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.model.stage import linear_plant, StageParams
 import pytest
 
 BASE = StageParams()
@@ -238,8 +238,8 @@ def test_drawn_members_stay_inside_the_declared_ranges():
 def test_case_metrics_take_the_plateau_tails_after_the_settle_time(case):
     # a record whose error is 2 nm on the last half of every plateau after 1 s and large
     # everywhere else: the steady state must see exactly the 2 nm
-    from piezo_stage_ros.core.record import RunRecord
-    from piezo_stage_ros.core.robustness import case_metrics, case_trajectory
+    from piezo_stage_ros.core.loop.record import RunRecord
+    from piezo_stage_ros.core.loop.robustness import case_metrics, case_trajectory
     tp = case_trajectory(case, TrajectoryParams(), 2.0)
     t = np.arange(20000) * 1e-4
     ref, vel = make_trajectory(tp).evaluate(t)

@@ -21,10 +21,10 @@ import math
 from hypothesis import given, settings
 from hypothesis import strategies as st
 import numpy as np
-from piezo_stage_ros.core.controllers import build_controller, ControllerParams
-from piezo_stage_ros.core.errors import ParameterError
-from piezo_stage_ros.core.stage import StageParams
-from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
+from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.model.stage import StageParams
 from piezo_stage_ros.hardware.bridge import ModelBridge
 from piezo_stage_ros.hardware.pacing import Pacer
 from piezo_stage_ros.hardware.safety import clamp_command, GuardedPlant, slew_toward, Trip

@@ -22,12 +22,12 @@ import threading
 import time
 
 import numpy as np
-from piezo_stage_ros.core.closed_loop import run
-from piezo_stage_ros.core.controllers import build_controller, ControllerParams
-from piezo_stage_ros.core.errors import ParameterError
-from piezo_stage_ros.core.loop_config import ServoParams
-from piezo_stage_ros.core.stage import Stage, StageParams
-from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.contracts.loop_config import ServoParams
+from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
+from piezo_stage_ros.core.loop.closed_loop import run
+from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.model.stage import Stage, StageParams
 from piezo_stage_ros.hardware import pacing
 from piezo_stage_ros.hardware.bridge import ModelBridge
 from piezo_stage_ros.hardware.pacing import LatenessStats, Pacer, realtime_setup, servo_setup
@@ -556,7 +556,7 @@ def test_servo_process_names_the_diagnostics_of_a_rebuilt_controller():
                                ControllerParams.from_flat({'type': 'pi'}))
     assert 'error' not in stats
     names = [s.diagnostic_names for s in got if s.diagnostics is not None]
-    from piezo_stage_ros.core.wire import diagnostic_reader
+    from piezo_stage_ros.core.contracts.wire import diagnostic_reader
     rac = servo_from_config(loop, 0.01).controller.names
     pi = diagnostic_reader(build_controller(ControllerParams.from_flat({'type': 'pi'}),
                                             1e-4))[0]

@@ -21,11 +21,11 @@ from pathlib import Path
 from typing import Any
 
 from piezo_stage_ros import cli, simulate
-from piezo_stage_ros.core import experiments as ex
-from piezo_stage_ros.core import metrics
-from piezo_stage_ros.core.controllers import ControllerParams
-from piezo_stage_ros.core.stage import StageParams
-from piezo_stage_ros.core.trajectories import TrajectoryParams
+from piezo_stage_ros.core.control.controllers import ControllerParams
+from piezo_stage_ros.core.loop import experiments as ex
+from piezo_stage_ros.core.loop import metrics
+from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
+from piezo_stage_ros.core.model.stage import StageParams
 import pytest
 
 REQUIRED = ('e_max_m', 'e_rms_m', 'command_min_v', 'command_max_v', 'samples', 'sim_seconds',

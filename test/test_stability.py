@@ -18,10 +18,14 @@ import math
 import warnings
 
 import numpy as np
-from piezo_stage_ros.core.controllers import ControllerParams, NotchParams, PIParams, RACParams
-from piezo_stage_ros.core.errors import ParameterError, StabilityError
-from piezo_stage_ros.core.linear import reduced_plant, ReducedParams
-from piezo_stage_ros.core.stability import (
+from piezo_stage_ros.core.contracts.errors import ParameterError, StabilityError
+from piezo_stage_ros.core.control.controllers import (
+    ControllerParams,
+    NotchParams,
+    PIParams,
+    RACParams,
+)
+from piezo_stage_ros.core.control.stability import (
     _edge_crossing,
     _polytope_failure,
     check_stability,
@@ -29,7 +33,8 @@ from piezo_stage_ros.core.stability import (
     StabilityParams,
     StabilityWarning,
 )
-from piezo_stage_ros.core.stage import PlantParams
+from piezo_stage_ros.core.model.linear import reduced_plant, ReducedParams
+from piezo_stage_ros.core.model.stage import PlantParams
 from piezo_stage_ros.tune import PAPER_RAC
 import pytest
 
@@ -230,7 +235,7 @@ def test_the_paper_rac_on_model_20_is_refused_and_names_the_binding_constraint()
 
 
 def test_config_rac_paper_is_the_paper_law_and_is_refused_on_model_20():
-    from piezo_stage_ros.core.config import find_config, load_config
+    from piezo_stage_ros.core.contracts.config import find_config, load_config
     config = load_config([find_config('default.yaml'), find_config('rac_paper.yaml')])
     flat = {k: v for k, v in config.node('controller_node').items()
             if k.split('.')[0] in ('type', 'rac', 'notch')}

@@ -17,9 +17,9 @@
 import math
 
 import numpy as np
-from piezo_stage_ros.core.hysteresis import BacklashLikeParams
-from piezo_stage_ros.core.linear import ElectromechanicalParams
-from piezo_stage_ros.core.stage import _dot, quantize, Stage, StageBatch, StageParams
+from piezo_stage_ros.core.model.hysteresis import BacklashLikeParams
+from piezo_stage_ros.core.model.linear import ElectromechanicalParams
+from piezo_stage_ros.core.model.stage import _dot, quantize, Stage, StageBatch, StageParams
 import pytest
 from scipy.integrate import solve_ivp
 from tolerances import EPS, lti_rounding_bound

@@ -20,9 +20,9 @@ import math
 from pathlib import Path
 
 import numpy as np
-from piezo_stage_ros.core.errors import ConfigError, ParameterError
-from piezo_stage_ros.core.interfaces import Trajectory
-from piezo_stage_ros.core.trajectories import (
+from piezo_stage_ros.core.contracts.errors import ConfigError, ParameterError
+from piezo_stage_ros.core.contracts.interfaces import Trajectory
+from piezo_stage_ros.core.loop.trajectories import (
     load_table,
     make_trajectory,
     s_curve,

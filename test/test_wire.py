@@ -12,19 +12,19 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""The wire contract (core/wire.py): topics, stamps and the one diagnostics order."""
+"""The wire contract (core/contracts/wire.py): topics, stamps and the one diagnostics order."""
 
 import ast
 import math
 from pathlib import Path
 
 import numpy as np
-from piezo_stage_ros.core import wire
-from piezo_stage_ros.core.closed_loop import run
-from piezo_stage_ros.core.controllers import build_controller, ControllerParams
-from piezo_stage_ros.core.errors import BagError
-from piezo_stage_ros.core.stage import Stage, StageParams
-from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.contracts import wire
+from piezo_stage_ros.core.contracts.errors import BagError
+from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
+from piezo_stage_ros.core.loop.closed_loop import run
+from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.model.stage import Stage, StageParams
 from piezo_stage_ros.nodes.logic import ControllerLogic
 import pytest
 
@@ -65,7 +65,7 @@ def test_launch_file_takes_the_recorded_topics_from_the_contract():
     source = (ROOT / 'launch' / 'closed_loop.launch.py').read_text(encoding='utf8')
     tree = ast.parse(source)
     imported = {alias.name for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)
-                and node.module == 'piezo_stage_ros.core.wire' for alias in node.names}
+                and node.module == 'piezo_stage_ros.core.contracts.wire' for alias in node.names}
     assert 'RECORDED_TOPICS' in imported
     literals = [node.value for node in ast.walk(tree)
                 if isinstance(node, ast.Constant) and isinstance(node.value, str)]

@@ -25,7 +25,7 @@ import math
 
 import numpy as np
 from numpy.typing import ArrayLike
-from piezo_stage_ros.core.types import FloatArray
+from piezo_stage_ros.core.contracts.types import FloatArray
 
 EPS = float(np.finfo(np.float64).eps)  # 2.2e-16, unit roundoff u = EPS / 2
 

@@ -60,8 +60,8 @@ from typing import BinaryIO, Final, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
-from piezo_stage_ros.core.errors import BagError
-from piezo_stage_ros.core.types import ByteMatrix, IntArray
+from piezo_stage_ros.core.contracts.errors import BagError
+from piezo_stage_ros.core.contracts.types import ByteMatrix, IntArray
 from rosbags.interfaces import Connection
 from rosbags.rosbag2 import CompressionMode, ReaderError, Writer
 from rosbags.rosbag2.storage_mcap import decompress as mcap_decompress

@@ -18,8 +18,8 @@ Read rosbag2 bags of runs in bulk with numpy, and align their topics by time.
 Reading does not build a Python message object per message. The messages of one topic have the
 same CDR layout (a 1-element array and a fixed name list), so each storage chunk is cut into a
 ``(messages, bytes)`` uint8 matrix, every byte that must be constant is compared with a template
-(:class:`~piezo_stage_ros.core.cdr.Layout`, the codec the nodes use), and the stamps and values
-are taken out as numpy views. A message that does not match the template (another layout,
+(:class:`~piezo_stage_ros.core.contracts.cdr.Layout`, the codec the nodes use), and the stamps and
+values are taken out as numpy views. A message that does not match the template (another layout,
 big-endian CDR, a changed frame_id) is decoded by the codec's generic decoder instead, so the
 fast path is an optimisation, never a guess. MCAP files are scanned by
 :class:`~.bagfast.McapScanner`, sqlite3 files with one query per topic, anything else
@@ -50,7 +50,7 @@ import numpy as np
 from numpy.typing import NDArray
 from piezo_stage_ros.analysis.bagfast import describe as _describe
 from piezo_stage_ros.analysis.bagfast import McapScanner
-from piezo_stage_ros.core.cdr import (
+from piezo_stage_ros.core.contracts.cdr import (
     CdrError,
     decode_float64,
     decode_joint_state_message,
@@ -59,10 +59,9 @@ from piezo_stage_ros.core.cdr import (
     JointStateMessage,
     Layout,
 )
-from piezo_stage_ros.core.errors import BagError
-from piezo_stage_ros.core.record import RunRecord
-from piezo_stage_ros.core.types import ByteMatrix, FloatArray, IntArray
-from piezo_stage_ros.core.wire import (
+from piezo_stage_ros.core.contracts.errors import BagError
+from piezo_stage_ros.core.contracts.types import ByteMatrix, FloatArray, IntArray
+from piezo_stage_ros.core.contracts.wire import (
     BAG_TOPICS,
     COMMAND_TYPE,
     META_KEY,
@@ -72,6 +71,7 @@ from piezo_stage_ros.core.wire import (
     STATUS_TYPE,
     topic_names,
 )
+from piezo_stage_ros.core.loop.record import RunRecord
 from rosbags.rosbag2 import Reader, ReaderError
 import yaml
 

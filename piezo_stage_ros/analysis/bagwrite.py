@@ -15,8 +15,8 @@
 """
 Write run records as rosbag2 bags with rosbags, chunk by chunk.
 
-A run is stored on the topics of :mod:`piezo_stage_ros.core.wire` under one namespace (default
-``/stage``), each message serialized by :mod:`piezo_stage_ros.core.cdr`:
+A run is stored on the topics of :mod:`piezo_stage_ros.core.contracts.wire` under one namespace
+(default ``/stage``), each message serialized by :mod:`piezo_stage_ros.core.contracts.cdr`:
 
 - ``<ns>/position``: ``sensor_msgs/msg/JointState``, stamp t_k, name ['stage'], position [y_k] m;
 - ``<ns>/reference``: ``sensor_msgs/msg/JointState``, stamp t_k, name ['stage'],
@@ -29,8 +29,9 @@ A run is stored on the topics of :mod:`piezo_stage_ros.core.wire` under one name
   simulation); a bag of a record without one is what it always was.
 
 Bags written here have message log time = header stamp = sample time. The run's ``meta`` dict is
-kept as JSON in the bag's ``custom_data`` under :data:`~piezo_stage_ros.core.wire.META_KEY`.
-Many messages go into the storage at once through :class:`~.bagfast.BulkWriter`.
+kept as JSON in the bag's ``custom_data`` under
+:data:`~piezo_stage_ros.core.contracts.wire.META_KEY`. Many messages go into the storage at once
+through :class:`~.bagfast.BulkWriter`.
 """
 
 from __future__ import annotations
@@ -47,11 +48,10 @@ from typing import Any, Final, Literal
 import numpy as np
 from numpy.typing import ArrayLike
 from piezo_stage_ros.analysis.bagfast import BulkWriter, WRITE_BATCH
-from piezo_stage_ros.core.cdr import float64_layout, joint_state_layout, Layout
-from piezo_stage_ros.core.errors import BagError
-from piezo_stage_ros.core.record import RunRecord
-from piezo_stage_ros.core.types import ByteMatrix, FloatArray, IntArray
-from piezo_stage_ros.core.wire import (
+from piezo_stage_ros.core.contracts.cdr import float64_layout, joint_state_layout, Layout
+from piezo_stage_ros.core.contracts.errors import BagError
+from piezo_stage_ros.core.contracts.types import ByteMatrix, FloatArray, IntArray
+from piezo_stage_ros.core.contracts.wire import (
     BAG_TOPICS,
     DEFAULT_NAMESPACE,
     JOINT_NAME,
@@ -62,6 +62,7 @@ from piezo_stage_ros.core.wire import (
     STORAGE_IDS,
     topic_names,
 )
+from piezo_stage_ros.core.loop.record import RunRecord
 from rosbags.interfaces import (
     Connection,
     Qos,

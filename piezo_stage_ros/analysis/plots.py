@@ -21,7 +21,7 @@ PNG figures of a run in the style of the paper's Figs. 4, 10 and 11.
 - ``step_zoom.png``: zoom on the largest reference step (Fig. 10(b)), when there is a step;
 - ``bode.png``: frequency response estimated from v_in to x (Fig. 4), for noise or sweep runs;
 - ``learning_curve.png``: e_rms and e_m of each whole period of a periodic reference
-  (:func:`~piezo_stage_ros.core.metrics.per_period_error`), measured and, for a simulation,
+  (:func:`~piezo_stage_ros.core.loop.metrics.per_period_error`), measured and, for a simulation,
   true; when the run has a period and at least two whole periods;
 - ``comparison_error.png``: the tracking errors of several runs over each other.
 
@@ -43,9 +43,9 @@ from matplotlib.axes import Axes  # noqa: E402 - the backend must be chosen firs
 from matplotlib.figure import Figure  # noqa: E402
 import numpy as np  # noqa: E402
 from piezo_stage_ros.analysis.spectral import BodeEstimate  # noqa: E402
-from piezo_stage_ros.core.metrics import meta_period, per_period_error, PeriodErrors  # noqa: E402
-from piezo_stage_ros.core.record import RunRecord  # noqa: E402
-from piezo_stage_ros.core.types import FloatArray
+from piezo_stage_ros.core.contracts.types import FloatArray
+from piezo_stage_ros.core.loop.metrics import meta_period, per_period_error, PeriodErrors  # noqa: E402
+from piezo_stage_ros.core.loop.record import RunRecord  # noqa: E402
 
 __all__ = [
     'error_trace',
@@ -353,7 +353,7 @@ def plot_learning_curve(rows: PeriodErrors, path: Path, title: str = '') -> Path
     Parameters
     ----------
     rows : PeriodErrors
-        :func:`~piezo_stage_ros.core.metrics.per_period_error` of the run.
+        :func:`~piezo_stage_ros.core.loop.metrics.per_period_error` of the run.
     path : Path
         PNG file to write.
     title : str

@@ -15,7 +15,7 @@
 """
 Replay of one bag: read it, compute the metrics of the control issue, summarise.
 
-The metrics are those of :func:`piezo_stage_ros.core.metrics.summarize`, the function the
+The metrics are those of :func:`piezo_stage_ros.core.loop.metrics.summarize`, the function the
 offline runner uses, with the same field names, so ``analyze --json`` of a bag and
 ``simulate --json`` of the run that wrote it compare one to one. Times are taken relative to
 the first aligned sample (the offline runner starts at t = 0, so its bags are unchanged; a
@@ -32,8 +32,8 @@ from typing import Any
 import numpy as np
 from piezo_stage_ros.analysis.bagread import ProgressCallback, read_run, read_status
 from piezo_stage_ros.analysis.spectral import BodeEstimate, estimate_bode, is_excitation_run
-from piezo_stage_ros.core.errors import PiezoStageError
-from piezo_stage_ros.core.record import RunRecord
+from piezo_stage_ros.core.contracts.errors import PiezoStageError
+from piezo_stage_ros.core.loop.record import RunRecord
 
 __all__ = ['BagAnalysis', 'HEADLINE', 'analyze_bag', 'compute_metrics', 'estimate_period',
            'format_metric', 'format_summary', 'ordered_keys', 'summary_json']
@@ -56,7 +56,7 @@ class BagAnalysis:
     time_origin_s : float
         Header stamp of the first sample [s] (0 for bags of the offline runner).
     metrics : dict of str to float
-        :func:`~piezo_stage_ros.core.metrics.summarize` of the run.
+        :func:`~piezo_stage_ros.core.loop.metrics.summarize` of the run.
     steady_state_start_s : float or None
         Start of the metrics window used [s] (None: summarize's default).
     bode : BodeEstimate or None
@@ -111,13 +111,13 @@ def compute_metrics(record: RunRecord,
     Returns
     -------
     dict of str to float
-        ``e_max_m``, ``e_rms_m``, ... as :func:`piezo_stage_ros.core.metrics.summarize` names
+        ``e_max_m``, ``e_rms_m``, ... as :func:`piezo_stage_ros.core.loop.metrics.summarize` names
         them; when the reference is piecewise constant (steps, square wave) also the step
-        figures of :func:`~piezo_stage_ros.core.metrics.square_wave_metrics` (``rise_time_s``,
+        figures of :func:`~piezo_stage_ros.core.loop.metrics.square_wave_metrics` (``rise_time_s``,
         ``overshoot_pct``, ``settling_time_s``, ``ss_e_max_m``, ``ss_e_rms_m``, ...).
 
     """
-    from piezo_stage_ros.core.metrics import square_wave_metrics, summarize
+    from piezo_stage_ros.core.loop.metrics import square_wave_metrics, summarize
     out = summarize(record, steady_state_start_s=steady_state_start_s).as_dict()
     if _is_piecewise_constant(record.reference_m):
         period = record.meta.get('trajectory_period_s')
@@ -139,7 +139,7 @@ def _is_piecewise_constant(reference_m: Any) -> bool:
     return bool(0 < changes <= 0.01 * len(reference_m))
 
 
-#: Meta key of the reference period (written by the closed loop; see core/metrics.py).
+#: Meta key of the reference period (written by the closed loop; see core/loop/metrics.py).
 PERIOD_META_KEY = 'trajectory_period_s'
 # Longest period looked for when a bag does not say [samples]: 2 s at 10 kHz.
 _MAX_PERIOD_SAMPLES = 20000

@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-PNG figures of a robustness study (:mod:`piezo_stage_ros.core.robustness`).
+PNG figures of a robustness study (:mod:`piezo_stage_ros.core.loop.robustness`).
 
 - ``robustness_errors.png``: per case, steady-state e_rms of every stage as bars, the nominal
   stage's value as a vertical line;
@@ -29,7 +29,7 @@ from pathlib import Path
 from matplotlib.figure import Figure
 import numpy as np
 from piezo_stage_ros.analysis.plots import _DPI, _save
-from piezo_stage_ros.core.robustness import RobustnessResult
+from piezo_stage_ros.core.loop.robustness import RobustnessResult
 
 __all__ = ['plot_errors', 'plot_estimates', 'save_plots']
 

@@ -30,11 +30,14 @@ import re
 from typing import Any
 
 import numpy as np
-from piezo_stage_ros.core.errors import PiezoStageError
-from piezo_stage_ros.core.identification import estimate_frequency_response, IdentificationError
-from piezo_stage_ros.core.record import RunRecord
-from piezo_stage_ros.core.stage import StageParams
-from piezo_stage_ros.core.types import ComplexArray, FloatArray
+from piezo_stage_ros.core.contracts.errors import PiezoStageError
+from piezo_stage_ros.core.contracts.types import ComplexArray, FloatArray
+from piezo_stage_ros.core.identification.fit import (
+    estimate_frequency_response,
+    IdentificationError,
+)
+from piezo_stage_ros.core.loop.record import RunRecord
+from piezo_stage_ros.core.model.stage import StageParams
 
 __all__ = ['BodeEstimate', 'estimate_bode', 'is_excitation_run']
 

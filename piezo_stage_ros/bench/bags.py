@@ -37,8 +37,8 @@ import numpy as np
 from piezo_stage_ros.analysis.bagread import read_run
 from piezo_stage_ros.analysis.bagwrite import write_run
 from piezo_stage_ros.analysis.replay import analyze_bag
-from piezo_stage_ros.core.record import RunRecord
-from piezo_stage_ros.core.wire import STORAGE_IDS
+from piezo_stage_ros.core.contracts.wire import STORAGE_IDS
+from piezo_stage_ros.core.loop.record import RunRecord
 
 __all__ = ['run_bag_benchmark', 'synthetic_record']
 

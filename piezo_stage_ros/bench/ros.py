@@ -175,7 +175,7 @@ def _cross(duration_s: float, executor: str, three: bool = False, ahead: int = 0
 def _pingpong(round_trips: int = 20000) -> dict[str, Any]:
     import time
 
-    from piezo_stage_ros.core.cdr import encode_float64
+    from piezo_stage_ros.core.contracts.cdr import encode_float64
     from piezo_stage_ros.nodes import qos
     from piezo_stage_ros.nodes.runner import make_executor
     import rclpy
@@ -234,12 +234,12 @@ def _recorded(duration_s: float, load: int = 0) -> dict[str, Any]:
     from piezo_stage_ros import cli
     from piezo_stage_ros.analysis.replay import analyze_bag
     from piezo_stage_ros.bench.servo import machine_floor
-    from piezo_stage_ros.core.closed_loop import run
-    from piezo_stage_ros.core.controllers import build_controller
-    from piezo_stage_ros.core.loop_config import LoopConfig
-    from piezo_stage_ros.core.metrics import error_metrics
-    from piezo_stage_ros.core.stage import linear_plant, Stage
-    from piezo_stage_ros.core.trajectories import make_trajectory
+    from piezo_stage_ros.core.contracts.loop_config import LoopConfig
+    from piezo_stage_ros.core.control.controllers import build_controller
+    from piezo_stage_ros.core.loop.closed_loop import run
+    from piezo_stage_ros.core.loop.metrics import error_metrics
+    from piezo_stage_ros.core.loop.trajectories import make_trajectory
+    from piezo_stage_ros.core.model.stage import linear_plant, Stage
 
     loop = LoopConfig.from_config(cli.read_config([RECORDED_SCENARIO]))
     period = 1.0 / loop.stage.sample_rate_hz

@@ -57,13 +57,13 @@ from typing import Any, Callable
 
 import numpy as np
 from piezo_stage_ros import cli
-from piezo_stage_ros.core.cdr import encode_float64, JointStateEncoder
-from piezo_stage_ros.core.closed_loop import run
-from piezo_stage_ros.core.controllers import build_controller
-from piezo_stage_ros.core.loop_config import LoopConfig, ServoParams
-from piezo_stage_ros.core.metrics import error_metrics, steady_state_start
-from piezo_stage_ros.core.stage import linear_plant, Stage
-from piezo_stage_ros.core.trajectories import make_trajectory
+from piezo_stage_ros.core.contracts.cdr import encode_float64, JointStateEncoder
+from piezo_stage_ros.core.contracts.loop_config import LoopConfig, ServoParams
+from piezo_stage_ros.core.control.controllers import build_controller
+from piezo_stage_ros.core.loop.closed_loop import run
+from piezo_stage_ros.core.loop.metrics import error_metrics, steady_state_start
+from piezo_stage_ros.core.loop.trajectories import make_trajectory
+from piezo_stage_ros.core.model.stage import linear_plant, Stage
 from piezo_stage_ros.hardware.bridge import Bridge
 from piezo_stage_ros.hardware.pacing import Pacer, servo_setup
 from piezo_stage_ros.nodes.servo import servo_from_config, ServoLoop, ServoProcess, ServoSample

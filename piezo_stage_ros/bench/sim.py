@@ -18,12 +18,13 @@ Simulation benchmark: how fast the offline closed loop, the batch stage and a co
 Figures (the issue's targets in brackets):
 
 - simulated seconds per wall second of one stage + RAC at 10 kHz through
-  :func:`piezo_stage_ros.core.closed_loop.run`, per plant model (>= 20, aim 100);
+  :func:`piezo_stage_ros.core.loop.closed_loop.run`, per plant model (>= 20, aim 100);
 - the same loop split into its parts: stage step, controller step, loop overhead [us/sample],
   so that a shortfall names what dominates;
-- stage-steps per second of a :class:`~piezo_stage_ros.core.stage.StageBatch` of 1000 stages
+- stage-steps per second of a :class:`~piezo_stage_ros.core.model.stage.StageBatch` of 1000 stages
   (>= 1e7);
-- stage-steps per second of the batched closed loop (:func:`piezo_stage_ros.core.batch.run_batch`:
+- stage-steps per second of the batched closed loop
+(:func:`piezo_stage_ros.core.loop.batch.run_batch`:
   RAC with the notch and 1000 stages, each its own member of the stage family, 16-bit
   converters and sensor noise on) (>= 1e7);
 - median and 99th percentile of one controller step, timed one by one with
@@ -44,13 +45,17 @@ import time
 from typing import Any
 
 import numpy as np
-from piezo_stage_ros.core import closed_loop
-from piezo_stage_ros.core.batch import run_batch, StageFamilyBatch
-from piezo_stage_ros.core.controllers import bound_controller, build_controller, ControllerParams
-from piezo_stage_ros.core.family import member_params, sample_family
-from piezo_stage_ros.core.hysteresis import make_hysteresis
-from piezo_stage_ros.core.stage import linear_plant, Stage, StageBatch, StageParams
-from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.control.controllers import (
+    bound_controller,
+    build_controller,
+    ControllerParams,
+)
+from piezo_stage_ros.core.loop import closed_loop
+from piezo_stage_ros.core.loop.batch import run_batch, StageFamilyBatch
+from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.model.family import member_params, sample_family
+from piezo_stage_ros.core.model.hysteresis import make_hysteresis
+from piezo_stage_ros.core.model.stage import linear_plant, Stage, StageBatch, StageParams
 
 __all__ = ['batch_loop_speed', 'batch_speed', 'closed_loop_speed', 'controller_step_times',
            'loop_breakdown', 'run_sim_benchmark']
@@ -201,7 +206,7 @@ def batch_loop_speed(n: int = 1000, steps: int = 5000, *, controller: str = 'rac
     Parameters
     ----------
     n : int
-        Stages: members drawn from the stage family (:func:`piezo_stage_ros.core.family.
+        Stages: members drawn from the stage family (:func:`piezo_stage_ros.core.model.family.
         sample_family`, seed 0), each with its own gain, resonance, lag, hysteresis and sensor
         noise, on the configured third-order stage.
     steps : int

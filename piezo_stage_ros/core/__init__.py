@@ -15,8 +15,19 @@
 """
 ROS-free core: models, hysteresis, signal chain, controllers, trajectories, metrics, the wire.
 
-Imports numpy and scipy only (PyYAML in :mod:`piezo_stage_ros.core.config`); never rclpy,
-rosbags or matplotlib. A test enforces this. The wire contract (topics, stamps, diagnostics
-layout: :mod:`~piezo_stage_ros.core.wire`) and the CDR codec (:mod:`~piezo_stage_ros.core.cdr`)
-live here because both the nodes and the bag tools need them without rclpy or rosbags.
+Grouped by job, one folder each:
+
+- ``model``: linear dynamics, hysteresis, the stage with its signal chain, a family of stages;
+- ``control``: the RAC, PI and open loop, the feed-forward, the stability check;
+- ``loop``: trajectories, the scalar and batched closed loops, the paper's experiments, the run
+  record and its metrics, the robustness study;
+- ``identification``: excitation, the paper's procedure (``fit``), what closed-loop and operation
+  data support, drift;
+- ``contracts``: parameters and their YAML, the wire and its CDR codec, interfaces, types, errors.
+
+Imports numpy and scipy only (PyYAML in :mod:`piezo_stage_ros.core.contracts.config`); never
+rclpy, rosbags or matplotlib. A test enforces this. The wire contract (topics, stamps,
+diagnostics layout: :mod:`~piezo_stage_ros.core.contracts.wire`) and the CDR codec
+(:mod:`~piezo_stage_ros.core.contracts.cdr`) live here because both the nodes and the bag tools
+need them without rclpy or rosbags.
 """

@@ -28,8 +28,8 @@ from __future__ import annotations
 from typing import Mapping, Protocol, runtime_checkable
 
 import numpy as np
-from piezo_stage_ros.core.errors import PiezoStageError
-from piezo_stage_ros.core.stage import Stage, StageParams
+from piezo_stage_ros.core.contracts.errors import PiezoStageError
+from piezo_stage_ros.core.model.stage import Stage, StageParams
 
 __all__ = ['Bridge', 'BridgeError', 'ModelBridge']
 
@@ -94,7 +94,7 @@ class ModelBridge:
     Notes
     -----
     :meth:`safe_start` puts the model at rest at ``initial_position_m`` (that is what
-    :meth:`~piezo_stage_ros.core.stage.Stage.reset` means) rather than at the safe voltage: a
+    :meth:`~piezo_stage_ros.core.model.stage.Stage.reset` means) rather than at the safe voltage: a
     model has nothing to protect, and starting where the offline runner starts is what makes a
     lockstep run equal to ``simulate``. Each :meth:`read_position` steps the model once with the
     voltage written last (a physical stage would have moved on by itself).

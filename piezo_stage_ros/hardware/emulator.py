@@ -19,7 +19,7 @@ It speaks the protocol of :mod:`piezo_stage_ros.hardware.udp`, simulating the st
 model.
 
 Request-reply (:meth:`TargetEmulator.serve`): it steps one
-:class:`~piezo_stage_ros.core.stage.Stage` per COMMAND request (so a lockstep run through it
+:class:`~piezo_stage_ros.core.model.stage.Stage` per COMMAND request (so a lockstep run through it
 gives the samples of the model itself). Target-paced (:meth:`TargetEmulator.serve_paced`,
 ``stage_emulator --paced``): after a STREAM request it owns the sample clock as a real-time
 target does, paced like the servo loop (:class:`~piezo_stage_ros.hardware.pacing.Pacer`): at
@@ -40,9 +40,9 @@ import threading
 from typing import Sequence
 
 from piezo_stage_ros import cli
-from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
-from piezo_stage_ros.core.loop_config import ServoParams
-from piezo_stage_ros.core.stage import Stage, StageParams
+from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
+from piezo_stage_ros.core.contracts.loop_config import ServoParams
+from piezo_stage_ros.core.model.stage import Stage, StageParams
 from piezo_stage_ros.hardware.pacing import Pacer, servo_setup
 from piezo_stage_ros.hardware.udp import (
     COMMAND,

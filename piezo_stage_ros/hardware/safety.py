@@ -37,9 +37,9 @@ from dataclasses import dataclass
 import math
 from typing import Any, Callable
 
-from piezo_stage_ros.core.errors import ParameterError
-from piezo_stage_ros.core.loop_config import WatchdogParams
-from piezo_stage_ros.core.stage import SignalChainParams
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.contracts.loop_config import WatchdogParams
+from piezo_stage_ros.core.model.stage import SignalChainParams
 from piezo_stage_ros.hardware.bridge import Bridge
 
 __all__ = ['GuardedPlant', 'Trip', 'Watchdog', 'clamp_command', 'slew_toward']

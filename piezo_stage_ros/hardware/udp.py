@@ -75,7 +75,7 @@ import struct
 import time
 from typing import Callable, Final, Mapping
 
-from piezo_stage_ros.core.errors import ParameterError
+from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.hardware.bridge import BridgeError
 from piezo_stage_ros.hardware.pacing import LatenessStats
 

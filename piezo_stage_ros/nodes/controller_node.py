@@ -34,18 +34,22 @@ import sys
 import time
 from typing import Any, Callable, Sequence
 
-from piezo_stage_ros.core import wire
-from piezo_stage_ros.core.cdr import (
+from piezo_stage_ros.core.contracts import wire
+from piezo_stage_ros.core.contracts.cdr import (
     CdrError,
     encode_float64,
     JointStateDecoder,
     JointStateEncoder,
 )
-from piezo_stage_ros.core.controllers import bound_controller, build_controller, ControllerParams
-from piezo_stage_ros.core.errors import StabilityError
-from piezo_stage_ros.core.interfaces import Controller
-from piezo_stage_ros.core.stability import check_stability, StabilityParams
-from piezo_stage_ros.core.stage import linear_plant, PlantParams
+from piezo_stage_ros.core.contracts.errors import StabilityError
+from piezo_stage_ros.core.contracts.interfaces import Controller
+from piezo_stage_ros.core.control.controllers import (
+    bound_controller,
+    build_controller,
+    ControllerParams,
+)
+from piezo_stage_ros.core.control.stability import check_stability, StabilityParams
+from piezo_stage_ros.core.model.stage import linear_plant, PlantParams
 from piezo_stage_ros.nodes import qos
 from piezo_stage_ros.nodes.logic import (
     Command,
@@ -113,7 +117,8 @@ class ControllerNode(Node):
         #: Where changes go besides ``logic``: a servo process that runs its own copy of it
         #: (``ServoProcess.change``; stage_servo --direct in real time).
         self.forward: Callable[[str, Any], None] | None = None
-        # CDR bytes in and out (core/cdr.py): rclpy message objects cost more than a sample
+        # CDR bytes in and out (core/contracts/cdr.py): rclpy message objects cost more than a
+        # sample
         self._diag_names = self.logic.names
         self._diag = JointStateEncoder(self._diag_names)
         self._positions = JointStateDecoder([wire.JOINT_NAME])

@@ -17,8 +17,8 @@ What the nodes do, without rclpy: lockstep sequencing, real-time sampling, pairi
 
 Each class here is the whole behaviour of one node in plain values (nanosecond stamps, floats);
 the rclpy node only turns messages into calls and return values into messages. The loop order
-is the one of :mod:`piezo_stage_ros.core.interfaces`, as in
-:func:`piezo_stage_ros.core.closed_loop.run`:
+is the one of :mod:`piezo_stage_ros.core.contracts.interfaces`, as in
+:func:`piezo_stage_ros.core.loop.closed_loop.run`:
 
 1. :class:`PlantLogic` publishes y_k stamped t_k (and ``/clock`` = t_k in lockstep);
 2. :class:`TrajectoryLogic` answers x_d(t_k), x_d'(t_k) with the same stamp;
@@ -40,9 +40,9 @@ from dataclasses import dataclass
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
-from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
-from piezo_stage_ros.core.interfaces import Controller, Trajectory
-from piezo_stage_ros.core.wire import diagnostic_reader, NS_PER_S
+from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
+from piezo_stage_ros.core.contracts.interfaces import Controller, Trajectory
+from piezo_stage_ros.core.contracts.wire import diagnostic_reader, NS_PER_S
 from piezo_stage_ros.hardware.safety import GuardedPlant, Trip, Watchdog
 
 __all__ = ['ControllerLogic', 'Gate', 'LATE_COMMAND_LIMIT', 'LATE_HALF_LIMIT', 'PlantLogic',

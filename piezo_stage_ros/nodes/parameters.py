@@ -25,7 +25,7 @@ from __future__ import annotations
 import array
 from typing import Any, Callable, Sequence
 
-from piezo_stage_ros.core.errors import PiezoStageError
+from piezo_stage_ros.core.contracts.errors import PiezoStageError
 from piezo_stage_ros.nodes.tables import Declaration, NodeTable
 from rcl_interfaces.msg import (
     FloatingPointRange,
@@ -77,8 +77,8 @@ class ParameterBinding:
         Its parameter table.
     on_change : callable
         ``on_change(old, new)`` with the tuples of group objects, called for a change that
-        validated; it may raise :class:`~piezo_stage_ros.core.errors.PiezoStageError` to refuse
-        it (the reason goes back to the caller and nothing changes).
+        validated; it may raise :class:`~piezo_stage_ros.core.contracts.errors.PiezoStageError` to
+        refuse it (the reason goes back to the caller and nothing changes).
 
     Raises
     ------

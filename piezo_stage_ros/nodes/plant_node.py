@@ -30,9 +30,14 @@ import time
 from typing import Any, Callable, Sequence
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from piezo_stage_ros.core import wire
-from piezo_stage_ros.core.cdr import CdrError, decode_float64, encode_clock, JointStateEncoder
-from piezo_stage_ros.core.errors import PiezoStageError
+from piezo_stage_ros.core.contracts import wire
+from piezo_stage_ros.core.contracts.cdr import (
+    CdrError,
+    decode_float64,
+    encode_clock,
+    JointStateEncoder,
+)
+from piezo_stage_ros.core.contracts.errors import PiezoStageError
 from piezo_stage_ros.hardware.pacing import Pacer, servo_setup
 from piezo_stage_ros.hardware.safety import GuardedPlant, Trip
 from piezo_stage_ros.nodes import qos
@@ -90,7 +95,7 @@ class PlantNode(Node):
                                 duration_s=opts.duration_s, resend_s=opts.lockstep.resend_s)
         self.finished = Future()
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
-        # messages go out and come in as CDR bytes (core/cdr.py): rclpy message objects
+        # messages go out and come in as CDR bytes (core/contracts/cdr.py): rclpy message objects
         # cost more than the whole sample
         self._encoder = JointStateEncoder([wire.JOINT_NAME])
         self.malformed = 0

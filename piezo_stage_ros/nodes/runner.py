@@ -28,7 +28,7 @@ import argparse
 import sys
 from typing import Callable, Sequence
 
-from piezo_stage_ros.core.errors import PiezoStageError
+from piezo_stage_ros.core.contracts.errors import PiezoStageError
 import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor

@@ -16,13 +16,13 @@
 The paced servo loop of real-time mode, without rclpy: one owner of the sample clock.
 
 One :class:`ServoLoop` runs the whole sample in one place, in the order of
-:mod:`piezo_stage_ros.core.interfaces`: wait for the due time (:class:`~piezo_stage_ros.hardware.
-pacing.Pacer`), measure y_k through the guarded backend (which holds u_k-1 over the sample that
-just ended), x_d(t_k) from the trajectory (evaluated ahead in chunks), u_k from the controller,
-and hand u_k to the backend to hold from now on. Nothing in that path waits for ROS: each
-sample goes as a tuple into a bounded queue (:attr:`ServoLoop.samples`) that the ROS side
-drains and publishes in batches; a full queue drops its oldest entries and counts them
-(``queue_overruns``), the servo never blocks.
+:mod:`piezo_stage_ros.core.contracts.interfaces`: wait for the due time
+(:class:`~piezo_stage_ros.hardware. pacing.Pacer`), measure y_k through the guarded backend (which
+holds u_k-1 over the sample that just ended), x_d(t_k) from the trajectory (evaluated ahead in
+chunks), u_k from the controller, and hand u_k to the backend to hold from now on. Nothing in that
+path waits for ROS: each sample goes as a tuple into a bounded queue (:attr:`ServoLoop.samples`)
+that the ROS side drains and publishes in batches; a full queue drops its oldest entries and
+counts them (``queue_overruns``), the servo never blocks.
 
 Parameters changed through ROS reach the loop as they reach the logic objects
 (:meth:`~piezo_stage_ros.nodes.logic.ControllerLogic.request_change`,
@@ -48,14 +48,14 @@ import time
 from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
-from piezo_stage_ros.core.controllers import bound_controller, ControllerParams
-from piezo_stage_ros.core.errors import PiezoStageError
-from piezo_stage_ros.core.hysteresis import make_hysteresis
-from piezo_stage_ros.core.interfaces import Controller
-from piezo_stage_ros.core.loop_config import LoopConfig, PlantNodeParams
-from piezo_stage_ros.core.stage import linear_plant, PlantParams, StageParams
-from piezo_stage_ros.core.trajectories import make_trajectory
-from piezo_stage_ros.core.wire import NS_PER_S
+from piezo_stage_ros.core.contracts.errors import PiezoStageError
+from piezo_stage_ros.core.contracts.interfaces import Controller
+from piezo_stage_ros.core.contracts.loop_config import LoopConfig, PlantNodeParams
+from piezo_stage_ros.core.contracts.wire import NS_PER_S
+from piezo_stage_ros.core.control.controllers import bound_controller, ControllerParams
+from piezo_stage_ros.core.loop.trajectories import make_trajectory
+from piezo_stage_ros.core.model.hysteresis import make_hysteresis
+from piezo_stage_ros.core.model.stage import linear_plant, PlantParams, StageParams
 from piezo_stage_ros.hardware.bridge import Bridge, ModelBridge
 from piezo_stage_ros.hardware.pacing import Pacer, servo_setup
 from piezo_stage_ros.hardware.safety import GuardedPlant, Trip

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 from typing import Sequence
 
-from piezo_stage_ros.core.loop_config import LoopConfig
+from piezo_stage_ros.core.contracts.loop_config import LoopConfig
 from piezo_stage_ros.nodes.controller_node import ControllerNode
 from piezo_stage_ros.nodes.controller_node import factory as controller_factory
 from piezo_stage_ros.nodes.logic import Command, Sample
@@ -46,11 +46,11 @@ def connect_direct(plant: PlantNode, controller: ControllerNode,
     Hand each sample from node to node by call (``--direct``), in the order of one sample.
 
     y_k goes to the trajectory node, (y_k, x_d, x_d') to the controller node, u_k back to the
-    plant: the loop of :mod:`piezo_stage_ros.core.interfaces`, without serializing anything the
-    three nodes exchange among themselves. The topics are still published for any outside
-    subscriber (a recorder, ``ros2 topic echo``); parameters and services work as ever, served
-    between batches of samples. In real time the plant's servo loop (``nodes/servo.py``) calls
-    the trajectory's and the controller's logic in its own thread, paced by its own clock.
+    plant: the loop of :mod:`piezo_stage_ros.core.contracts.interfaces`, without serializing
+    anything the three nodes exchange among themselves. The topics are still published for any
+    outside subscriber (a recorder, ``ros2 topic echo``); parameters and services work as ever,
+    served between batches of samples. In real time the plant's servo loop (``nodes/servo.py``)
+    calls the trajectory's and the controller's logic in its own thread, paced by its own clock.
     """
     controller.attach_direct()
     trajectory.attach_direct()

@@ -16,7 +16,7 @@
 """
 The node side of the loop configuration (rclpy-free): the tables, and the files a node was given.
 
-The parameter tables and the typed loader live in :mod:`piezo_stage_ros.core.loop_config`
+The parameter tables and the typed loader live in :mod:`piezo_stage_ros.core.contracts.loop_config`
 (every command, the emulator, the launch file and the nodes build their objects there); this
 module names them for the nodes and adds what only a node needs: the parameter files on its
 command line (:func:`params_files`), from which the controller node takes the plant node's
@@ -27,8 +27,7 @@ from __future__ import annotations
 
 from typing import Sequence
 
-from piezo_stage_ros.core.hysteresis import HysteresisModel, make_hysteresis
-from piezo_stage_ros.core.loop_config import (
+from piezo_stage_ros.core.contracts.loop_config import (
     BridgeParams,
     controller_table,
     ControllerNodeParams,
@@ -45,9 +44,10 @@ from piezo_stage_ros.core.loop_config import (
     trajectory_table,
     TrajectoryNodeParams,
 )
-from piezo_stage_ros.core.stability import StabilityParams
-from piezo_stage_ros.core.stage import PlantParams
-from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryBase
+from piezo_stage_ros.core.control.stability import StabilityParams
+from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryBase
+from piezo_stage_ros.core.model.hysteresis import HysteresisModel, make_hysteresis
+from piezo_stage_ros.core.model.stage import PlantParams
 
 __all__ = ['BridgeParams', 'ControllerNodeParams', 'Declaration', 'Group', 'LockstepParams',
            'MODES', 'NodeTable', 'PlantNodeParams', 'TrajectoryNodeParams', 'controller_table',
@@ -92,8 +92,8 @@ def design_model(stability: StabilityParams, files: Sequence[str]
     """
     Return the controller node's design model and, in words, where it comes from.
 
-    The rule of :attr:`piezo_stage_ros.core.loop_config.LoopConfig.design_plant`, for a node that
-    sees only its own parameters: with ``stability.design_model: plant`` the model is the
+    The rule of :attr:`piezo_stage_ros.core.contracts.loop_config.LoopConfig.design_plant`, for a
+    node that sees only its own parameters: with ``stability.design_model: plant`` the model is the
     ``plant.*`` of the plant_node section of the parameter files the node was given (the files
     the plant node reads, or the launch file's merged one); no file gives the plant node's
     defaults, as a plant node started without one runs them.

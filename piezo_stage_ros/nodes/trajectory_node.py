@@ -28,9 +28,9 @@ from __future__ import annotations
 
 from typing import Any, Callable, Sequence
 
-from piezo_stage_ros.core import wire
-from piezo_stage_ros.core.cdr import CdrError, JointStateDecoder, JointStateEncoder
-from piezo_stage_ros.core.trajectories import make_trajectory
+from piezo_stage_ros.core.contracts import wire
+from piezo_stage_ros.core.contracts.cdr import CdrError, JointStateDecoder, JointStateEncoder
+from piezo_stage_ros.core.loop.trajectories import make_trajectory
 from piezo_stage_ros.nodes import qos
 from piezo_stage_ros.nodes.logic import Gate, TrajectoryLogic
 from piezo_stage_ros.nodes.parameters import ParameterBinding
@@ -65,7 +65,8 @@ class TrajectoryNode(Node):
         chunk_s = opts.chunk_s if opts.mode == 'lockstep' else min(opts.chunk_s, 0.005)
         self.logic = TrajectoryLogic(make_trajectory(params), sample_rate_hz=opts.sample_rate_hz,
                                      chunk_s=chunk_s, active=opts.active)
-        # CDR bytes in and out (core/cdr.py): rclpy message objects cost more than a sample
+        # CDR bytes in and out (core/contracts/cdr.py): rclpy message objects cost more than a
+        # sample
         self._encoder = JointStateEncoder([wire.JOINT_NAME], with_velocity=True)
         self._decoder = JointStateDecoder([wire.JOINT_NAME])
         self.malformed = 0

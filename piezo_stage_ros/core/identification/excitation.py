@@ -16,8 +16,8 @@
 Excitation signals for system identification (section III-D of the paper).
 
 Two signals the paper's procedure needs beyond the trajectories of
-:mod:`piezo_stage_ros.core.trajectories` (whose ``step`` and ``square`` kinds give the small step
-and the step train, and ``sine`` the 1 + sin(2 pi 100 t) V hysteresis run):
+:mod:`piezo_stage_ros.core.loop.trajectories` (whose ``step`` and ``square`` kinds give the small
+step and the step train, and ``sine`` the 1 + sin(2 pi 100 t) V hysteresis run):
 
 - :class:`NoiseExcitation` (``noise``): band-limited white noise, a random-phase multisine with a
   flat amplitude spectrum between ``band_low_hz`` and ``band_high_hz`` and nothing outside it,
@@ -27,9 +27,9 @@ and the step train, and ``sine`` the 1 + sin(2 pi 100 t) V hysteresis run):
 - :class:`ChirpExcitation` (``chirp``): a sine sweep from ``f0_hz`` to ``f1_hz`` in ``sweep_s``,
   linear or logarithmic in frequency, repeated; exact derivative.
 
-Both are :class:`~piezo_stage_ros.core.interfaces.Trajectory` objects in metres (a position
-reference for the trajectory node and the closed loop, ``simulate --trajectory noise``). For an
-open-loop (voltage) run, the ``open_loop`` controller turns them into volts
+Both are :class:`~piezo_stage_ros.core.contracts.interfaces.Trajectory` objects in metres (a
+position reference for the trajectory node and the closed loop, ``simulate --trajectory noise``).
+For an open-loop (voltage) run, the ``open_loop`` controller turns them into volts
 (v = gain x_d + offset); identification uses the recorded command, whatever produced it. Every
 signal is deterministic: the same parameters (and seed) give the same samples.
 """
@@ -41,9 +41,9 @@ import math
 
 import numpy as np
 from numpy.typing import ArrayLike
-from piezo_stage_ros.core.errors import ParameterError
-from piezo_stage_ros.core.params import param, Params
-from piezo_stage_ros.core.types import FloatArray
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.contracts.params import param, Params
+from piezo_stage_ros.core.contracts.types import FloatArray
 
 __all__ = ['ChirpExcitation', 'ChirpParams', 'NoiseExcitation', 'NoiseParams',
            'make_excitation']

@@ -37,8 +37,8 @@ from dataclasses import dataclass
 import math
 
 import numpy as np
-from piezo_stage_ros.core.hysteresis import make_hysteresis
-from piezo_stage_ros.core.identification import (
+from piezo_stage_ros.core.contracts.types import FloatArray
+from piezo_stage_ros.core.identification.fit import (
     _unit_filter,
     applied_voltage,
     discrete_frequency_response,
@@ -48,9 +48,9 @@ from piezo_stage_ros.core.identification import (
     sample_time_of,
     third_order_of,
 )
-from piezo_stage_ros.core.record import RunRecord
-from piezo_stage_ros.core.stage import StageParams
-from piezo_stage_ros.core.types import FloatArray
+from piezo_stage_ros.core.loop.record import RunRecord
+from piezo_stage_ros.core.model.hysteresis import make_hysteresis
+from piezo_stage_ros.core.model.stage import StageParams
 from scipy import optimize, signal
 
 __all__ = ['DriftReport', 'drift_lines', 'estimate_drift']

@@ -15,7 +15,7 @@
 """
 Stability of the linearized discrete-time loop: controller + ZOH plant at the sample rate.
 
-The loop is built exactly as it runs (see :mod:`piezo_stage_ros.core.interfaces`): the
+The loop is built exactly as it runs (see :mod:`piezo_stage_ros.core.contracts.interfaces`): the
 controller sees y_k and returns u_k, which the plant holds over [t_k, t_k+1) (optionally after
 ``delay_samples`` more samples of computational delay). With the hysteresis replaced by a
 gain (its local slope dw/dv) and the controller by its linear part, the loop transfer at the
@@ -24,8 +24,8 @@ plant input is::
     L(z) = z^-delay * N(z) * C(z) * slope * K_PSCM * G(z)
 
 with G(z) the ZOH discretization of the plant model from w [V] to x [m]
-(:meth:`piezo_stage_ros.core.linear.LinearPlant.discretize`), N(z) the notch filter and C(z) the
-controller from sensor volts to the command (negative feedback)::
+(:meth:`piezo_stage_ros.core.model.linear.LinearPlant.discretize`), N(z) the notch filter and C(z)
+the controller from sensor volts to the command (negative feedback)::
 
     PI:   C(z) = k_p + k_i T z/(z - 1)
     RAC:  C(z) = (k + phi_hat lambda - theta_hat) + k lambda T z/(z - 1)
@@ -78,17 +78,17 @@ from typing import Callable, Sequence
 import warnings
 
 import numpy as np
-from piezo_stage_ros.core.controllers import (
+from piezo_stage_ros.core.contracts.errors import ParameterError, StabilityError
+from piezo_stage_ros.core.contracts.params import group, param, Params
+from piezo_stage_ros.core.contracts.types import ComplexArray, FloatArray
+from piezo_stage_ros.core.control.controllers import (
     ControllerParams,
     notch_design,
     rac_linear_gains,
     RACParams,
 )
-from piezo_stage_ros.core.errors import ParameterError, StabilityError
-from piezo_stage_ros.core.linear import LinearPlant, third_order_plant
-from piezo_stage_ros.core.params import group, param, Params
-from piezo_stage_ros.core.stage import linear_plant, PlantParams
-from piezo_stage_ros.core.types import ComplexArray, FloatArray
+from piezo_stage_ros.core.model.linear import LinearPlant, third_order_plant
+from piezo_stage_ros.core.model.stage import linear_plant, PlantParams
 
 __all__ = ['ADAPTATION_MARGIN', 'AdaptationBound', 'BoxCertificate', 'LoopCase', 'StabilityParams',
            'StabilityReport', 'StabilityWarning', 'adaptation_bound', 'check_stability',

@@ -45,9 +45,9 @@ import math
 from typing import Any, Protocol, Union
 
 import numpy as np
-from piezo_stage_ros.core.errors import ParameterError
-from piezo_stage_ros.core.params import group, param, Params
-from piezo_stage_ros.core.types import FloatArray
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.contracts.params import group, param, Params
+from piezo_stage_ros.core.contracts.types import FloatArray
 
 __all__ = [
     'BacklashLike', 'BacklashLikeParams', 'BoucWen', 'BoucWenParams', 'HysteresisModel',

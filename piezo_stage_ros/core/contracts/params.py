@@ -38,7 +38,7 @@ import math
 import typing
 from typing import Any, ClassVar, Mapping, TypeVar
 
-from piezo_stage_ros.core.errors import ParameterError
+from piezo_stage_ros.core.contracts.errors import ParameterError
 
 __all__ = ['Params', 'ParamSpec', 'group', 'param']
 

@@ -47,8 +47,8 @@ from typing import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
-from piezo_stage_ros.core.params import param, Params
-from piezo_stage_ros.core.types import ComplexArray, FloatArray
+from piezo_stage_ros.core.contracts.params import param, Params
+from piezo_stage_ros.core.contracts.types import ComplexArray, FloatArray
 from scipy.linalg import expm
 
 __all__ = [
@@ -120,7 +120,7 @@ class ThirdOrderParams(Params):
     def _check(self) -> None:
         # Routh-Hurwitz for a monic cubic: stable iff all a_i > 0 and a0 a1 > a2.
         if self.a0 * self.a1 <= self.a2:
-            from piezo_stage_ros.core.errors import ParameterError
+            from piezo_stage_ros.core.contracts.errors import ParameterError
             raise ParameterError('a2', self.a2, f'< a0*a1 = {self.a0 * self.a1:g}',
                                  'makes the third-order plant unstable (Routh-Hurwitz)')
 
@@ -286,7 +286,7 @@ class LinearPlant:
 
         """
         if not (sample_time_s > 0.0 and math.isfinite(sample_time_s)):
-            from piezo_stage_ros.core.errors import ParameterError
+            from piezo_stage_ros.core.contracts.errors import ParameterError
             raise ParameterError('sample_time_s', sample_time_s, '(0, inf)')
         n, m = self.b.shape
         aug = np.zeros((n + m, n + m))

@@ -15,7 +15,7 @@
 """
 The stage: hysteresis + linear plant + signal chain, stepped one sample at a time.
 
-One sample k of the loop (see :mod:`piezo_stage_ros.core.interfaces`)::
+One sample k of the loop (see :mod:`piezo_stage_ros.core.contracts.interfaces`)::
 
     u_k --DAC (16 bit)--> clamp to amplifier range --> v_k --P(.)--> w_k --G (ZOH)--> x(t_k+1)
     x(t_k+1) --sensor K_PSCM (+ noise)--> ADC (16 bit) --> y_k+1 / K_PSCM = measured position
@@ -40,15 +40,17 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
-from piezo_stage_ros.core.errors import ParameterError
-from piezo_stage_ros.core.hysteresis import (
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.contracts.params import group, param, Params
+from piezo_stage_ros.core.contracts.types import FloatArray
+from piezo_stage_ros.core.model.hysteresis import (
     BacklashLike,
     HysteresisModel,
     HysteresisParams,
     make_hysteresis,
     NoHysteresis,
 )
-from piezo_stage_ros.core.linear import (
+from piezo_stage_ros.core.model.linear import (
     DiscreteLinearPlant,
     electromechanical_plant,
     ElectromechanicalParams,
@@ -58,8 +60,6 @@ from piezo_stage_ros.core.linear import (
     third_order_plant,
     ThirdOrderParams,
 )
-from piezo_stage_ros.core.params import group, param, Params
-from piezo_stage_ros.core.types import FloatArray
 
 __all__ = ['FusedConstants', 'PlantParams', 'SignalChainParams', 'Stage', 'StageBatch',
            'StageParams', 'amplifier_input', 'fused_constants', 'linear_plant', 'quantize']
@@ -430,7 +430,7 @@ class FusedConstants:
     The plain floats the fused per-sample kernel computes with, for one stage.
 
     The scalar kernel (:func:`_fused_kernel`) and the batch of stages
-    (:class:`piezo_stage_ros.core.batch.StageFamilyBatch`) both take them from
+    (:class:`piezo_stage_ros.core.loop.batch.StageFamilyBatch`) both take them from
     :func:`fused_constants`, so the two step the same numbers.
 
     Attributes

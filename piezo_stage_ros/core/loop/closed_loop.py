@@ -15,8 +15,8 @@
 """
 The offline closed loop: stage, controller and trajectory stepped at the sample rate, no ROS.
 
-One sample k, in the order of :mod:`piezo_stage_ros.core.interfaces` (the nodes' lockstep mode
-follows the same order, so both give the same samples)::
+One sample k, in the order of :mod:`piezo_stage_ros.core.contracts.interfaces` (the nodes'
+lockstep mode follows the same order, so both give the same samples)::
 
     t_k = k T
     x_d, x_d' = trajectory(t_k)                    (precomputed per chunk, vectorized)
@@ -30,13 +30,13 @@ once, outputs go into preallocated arrays, and a ``chunk_callback`` receives eac
 :class:`RunRecord` (streamed to a bag, or reduced to per-minute statistics by the soak) so that
 memory stays flat however long the run.
 
-Controller diagnostics are read by :func:`piezo_stage_ros.core.wire.diagnostic_reader`, the
-reader the controller node uses too (names in sorted order), every ``diagnostics_every``
+Controller diagnostics are read by :func:`piezo_stage_ros.core.contracts.wire.diagnostic_reader`,
+the reader the controller node uses too (names in sorted order), every ``diagnostics_every``
 samples and held in between (zero-order), which keeps the per-sample cost of the loop low.
 
 A simulated stage also knows its true position x(t_k) behind y_k (before sensor noise and ADC):
 the loop records it as ``true_position_m`` when the plant offers it (:func:`true_position_reader`:
-:class:`~piezo_stage_ros.core.stage.Stage`'s plain function ``read_position_m``, else a
+:class:`~piezo_stage_ros.core.model.stage.Stage`'s plain function ``read_position_m``, else a
 ``position_m`` attribute), so that metrics can show the tracking error below the sensor noise.
 """
 
@@ -46,11 +46,11 @@ import math
 from typing import Any, Callable, Mapping, Protocol, Sequence
 
 import numpy as np
-from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
-from piezo_stage_ros.core.interfaces import Controller, Trajectory
-from piezo_stage_ros.core.record import RunRecord
-from piezo_stage_ros.core.types import FloatArray
-from piezo_stage_ros.core.wire import diagnostic_reader
+from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
+from piezo_stage_ros.core.contracts.interfaces import Controller, Trajectory
+from piezo_stage_ros.core.contracts.types import FloatArray
+from piezo_stage_ros.core.contracts.wire import diagnostic_reader
+from piezo_stage_ros.core.loop.record import RunRecord
 
 __all__ = ['ChunkCallback', 'Plant', 'concatenate', 'run', 'true_position_reader']
 
@@ -60,7 +60,7 @@ ChunkCallback = Callable[[RunRecord], None]
 
 
 class Plant(Protocol):
-    """What the loop needs of a stage (:class:`~piezo_stage_ros.core.stage.Stage` has it)."""
+    """What the loop needs of a stage (:class:`~piezo_stage_ros.core.model.stage.Stage` has it)."""
 
     @property
     def sample_time_s(self) -> float:
@@ -84,7 +84,7 @@ def true_position_reader(stage: object) -> Callable[[], float] | None:
     ----------
     stage : object
         The plant: a ``read_position_m()`` function is used as it is (the cheap path of
-        :class:`~piezo_stage_ros.core.stage.Stage`); else a ``position_m`` attribute or
+        :class:`~piezo_stage_ros.core.model.stage.Stage`); else a ``position_m`` attribute or
         property is read on each call; else there is no true position (a real stage).
 
     Returns
@@ -145,7 +145,7 @@ def run(stage: Plant, controller: Controller, trajectory: Trajectory, *, duratio
     Returns
     -------
     RunRecord
-        The samples (see :mod:`piezo_stage_ros.core.record`).
+        The samples (see :mod:`piezo_stage_ros.core.loop.record`).
 
     Raises
     ------

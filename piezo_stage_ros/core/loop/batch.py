@@ -16,15 +16,15 @@
 The closed loop of N stages at once: stage and controller vectorized over the stages with numpy.
 
 :func:`run_batch` computes, for every member, exactly what
-:func:`piezo_stage_ros.core.closed_loop.run` computes for that member alone with a
-:class:`~piezo_stage_ros.core.stage.Stage` and the controller of
-:func:`~piezo_stage_ros.core.controllers.build_controller`: the same IEEE operations in the same
-order, elementwise, so the samples agree bit for bit (tested, with the 16-bit converters and
-sensor noise on). How that is kept:
+:func:`piezo_stage_ros.core.loop.closed_loop.run` computes for that member alone with a
+:class:`~piezo_stage_ros.core.model.stage.Stage` and the controller of
+:func:`~piezo_stage_ros.core.control.controllers.build_controller`: the same IEEE operations in
+the same order, elementwise, so the samples agree bit for bit (tested, with the 16-bit converters
+and sensor noise on). How that is kept:
 
 - every sum is written out left to right as the scalar code adds it (no matmul, einsum or
   reduction, whose summation order is the library's), every constant is the float the scalar
-  code uses (:func:`piezo_stage_ros.core.stage.fused_constants`), products keep the scalar
+  code uses (:func:`piezo_stage_ros.core.model.stage.fused_constants`), products keep the scalar
   code's association ((dt eta) u_fd) s_a;
 - the exponential of the hysteresis jump is libm's ``exp``, as ``math.exp`` in the scalar
   kernel: numpy's own float64 ``exp`` is a SIMD implementation (AVX-512 here) that differs from
@@ -52,13 +52,13 @@ import math
 from typing import Any, Callable, Sequence
 
 import numpy as np
-from piezo_stage_ros.core.controllers import ControllerParams, notch_design
-from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
-from piezo_stage_ros.core.interfaces import Trajectory
-from piezo_stage_ros.core.linear import LinearPlant
-from piezo_stage_ros.core.record import RunRecord
-from piezo_stage_ros.core.stage import fused_constants, FusedConstants, Stage, StageParams
-from piezo_stage_ros.core.types import FloatArray
+from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
+from piezo_stage_ros.core.contracts.interfaces import Trajectory
+from piezo_stage_ros.core.contracts.types import FloatArray
+from piezo_stage_ros.core.control.controllers import ControllerParams, notch_design
+from piezo_stage_ros.core.loop.record import RunRecord
+from piezo_stage_ros.core.model.linear import LinearPlant
+from piezo_stage_ros.core.model.stage import fused_constants, FusedConstants, Stage, StageParams
 
 __all__ = ['ControllerBatch', 'StageFamilyBatch', 'libm_exp', 'run_batch']
 
@@ -135,9 +135,9 @@ def _same(values: Sequence[float]) -> float | FloatArray:
 
 class StageFamilyBatch:
     """
-    N stages, one :class:`~piezo_stage_ros.core.stage.StageParams` each, stepped together.
+    N stages, one :class:`~piezo_stage_ros.core.model.stage.StageParams` each, stepped together.
 
-    Each member computes what a :class:`~piezo_stage_ros.core.stage.Stage` of its parameters
+    Each member computes what a :class:`~piezo_stage_ros.core.model.stage.Stage` of its parameters
     computes (module docstring). The members must share the sample rate, the model order (the
     reduced or the third-order plant), the hysteresis (backlash-like or none) and whether the
     converters quantize; any parameter may differ otherwise.

@@ -36,7 +36,7 @@ the 3.2 kHz resonance are modelled, not ignored):
    whose heights (one per jump) are fitted too, as linear parameters.
 4. Hysteresis by nonlinear least squares on a sine run (the paper: 1 + sin(2 pi 100 t) V), with
    the linear shape (w_n, zeta, tau) fixed (:func:`fit_hysteresis`), using the exact stepping of
-   :mod:`piezo_stage_ros.core.hysteresis` on the applied voltages (one pass per evaluation).
+   :mod:`piezo_stage_ros.core.model.hysteresis` on the applied voltages (one pass per evaluation).
 
 What v_in -> x data cannot give, and how it is resolved: scaling the linear gain k_p by lambda
 and the hysteresis output w by 1/lambda (c, B1 and the initial d of eq. (22) for the
@@ -58,8 +58,11 @@ import math
 from typing import Any, Callable, Sequence
 
 import numpy as np
-from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
-from piezo_stage_ros.core.hysteresis import (
+from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
+from piezo_stage_ros.core.contracts.params import param, Params
+from piezo_stage_ros.core.contracts.types import BoolArray, ComplexArray, FloatArray
+from piezo_stage_ros.core.loop.record import RunRecord
+from piezo_stage_ros.core.model.hysteresis import (
     BacklashLike,
     BacklashLikeParams,
     BoucWen,
@@ -68,11 +71,8 @@ from piezo_stage_ros.core.hysteresis import (
     PrandtlIshlinskii,
     PrandtlIshlinskiiParams,
 )
-from piezo_stage_ros.core.linear import third_order_plant, ThirdOrderParams
-from piezo_stage_ros.core.params import param, Params
-from piezo_stage_ros.core.record import RunRecord
-from piezo_stage_ros.core.stage import amplifier_input, SignalChainParams, StageParams
-from piezo_stage_ros.core.types import BoolArray, ComplexArray, FloatArray
+from piezo_stage_ros.core.model.linear import third_order_plant, ThirdOrderParams
+from piezo_stage_ros.core.model.stage import amplifier_input, SignalChainParams, StageParams
 from scipy import optimize, signal
 
 __all__ = [
@@ -1097,7 +1097,7 @@ class IdentificationResult:
         What was assumed where a run was missing, and other caveats.
     bounds : dict of str to (float, float)
         Confidence bounds of the parameters that carry them (filled by
-        :func:`piezo_stage_ros.core.identification_support.identify_checked`).
+        :func:`piezo_stage_ros.core.identification.support.identify_checked`).
     loop : str
         ``'open'``, or ``'closed'`` when the frequency response came from closed-loop data.
 

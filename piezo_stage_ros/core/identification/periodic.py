@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import math
 
 import numpy as np
-from piezo_stage_ros.core.types import BoolArray, ComplexArray, FloatArray
+from piezo_stage_ros.core.contracts.types import BoolArray, ComplexArray, FloatArray
 
 __all__ = ['PeriodicSpectra', 'detect_period', 'excited_lines', 'periodic_spectra']
 

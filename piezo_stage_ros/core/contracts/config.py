@@ -28,7 +28,8 @@ The files in ``config/`` are ordinary ROS 2 parameter files, usable with
 
 Nested mappings become dotted names (``plant.model``), as ROS 2 does. This module only maps a file
 onto flat per-node dictionaries; each parameter group validates itself with
-:meth:`piezo_stage_ros.core.params.Params.from_flat`, so no module here knows any parameter.
+:meth:`piezo_stage_ros.core.contracts.params.Params.from_flat`, so no module here knows any
+parameter.
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ import re
 import sys
 from typing import Any, Iterable, Mapping
 
-from piezo_stage_ros.core.errors import ConfigError
+from piezo_stage_ros.core.contracts.errors import ConfigError
 import yaml
 
 __all__ = ['Config', 'find_config', 'flatten', 'load_config']
@@ -216,7 +217,7 @@ def find_config(name: str = 'default.yaml') -> Path:
     given = Path(name)
     if given.is_file():
         return given
-    roots = [Path(__file__).resolve().parents[2] / 'config',
+    roots = [Path(__file__).resolve().parents[3] / 'config',
              Path(sys.prefix) / 'share' / PACKAGE / 'config']
     roots += [Path(p) / 'share' / PACKAGE / 'config'
               for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]

@@ -55,8 +55,8 @@ import struct
 from typing import Final
 
 import numpy as np
-from piezo_stage_ros.core.types import BoolArray, ByteMatrix, FloatArray, IntArray
-from piezo_stage_ros.core.wire import NS_PER_S
+from piezo_stage_ros.core.contracts.types import BoolArray, ByteMatrix, FloatArray, IntArray
+from piezo_stage_ros.core.contracts.wire import NS_PER_S
 
 __all__ = ['HEADER_LE', 'CdrError', 'JointStateDecoder', 'JointStateEncoder',
            'JointStateMessage', 'Layout', 'decode_float64', 'decode_joint_state',

@@ -55,15 +55,15 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike
-from piezo_stage_ros.core.errors import ConfigError, ParameterError
-from piezo_stage_ros.core.excitation import (
+from piezo_stage_ros.core.contracts.errors import ConfigError, ParameterError
+from piezo_stage_ros.core.contracts.params import group, param, Params
+from piezo_stage_ros.core.contracts.types import FloatArray
+from piezo_stage_ros.core.identification.excitation import (
     ChirpExcitation,
     ChirpParams,
     NoiseExcitation,
     NoiseParams,
 )
-from piezo_stage_ros.core.params import group, param, Params
-from piezo_stage_ros.core.types import FloatArray
 
 __all__ = ['CsvParams', 'MultisineParams', 'SineParams', 'SquareParams', 'StaircaseParams',
            'StepParams', 'TableTrajectory', 'TrajectoryBase', 'TrajectoryParams',
@@ -180,9 +180,9 @@ class TrajectoryParams(Params):
     triangle: TriangleParams = group(TriangleParams, 'kind triangle')
     csv: CsvParams = group(CsvParams, 'kind csv')
     noise: NoiseParams = group(NoiseParams, 'kind noise (band-limited white noise, '
-                               'identification: core/excitation.py)')
+                               'identification: core/identification/excitation.py)')
     chirp: ChirpParams = group(ChirpParams, 'kind chirp (sine sweep, identification: '
-                               'core/excitation.py)')
+                               'core/identification/excitation.py)')
 
     def _check(self) -> None:
         for name, fits, room in (
@@ -307,7 +307,8 @@ class TrajectoryBase:
     Attributes
     ----------
     period_s : float or None
-        Period of x_d [s]; the steady-state window of :mod:`piezo_stage_ros.core.metrics` uses it.
+        Period of x_d [s]; the steady-state window of :mod:`piezo_stage_ros.core.loop.metrics`
+        uses it.
     kind : str
         The trajectory kind.
 
@@ -450,7 +451,7 @@ class _Triangle(TrajectoryBase):
 
 
 class _Excitation(TrajectoryBase):
-    """An identification excitation (core/excitation.py) as a trajectory."""
+    """An identification excitation (core/identification/excitation.py) as a trajectory."""
 
     def __init__(self, inner: NoiseExcitation | ChirpExcitation) -> None:
         self._inner = inner

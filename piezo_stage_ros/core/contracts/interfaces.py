@@ -15,11 +15,12 @@
 """
 The small interfaces the closed loop is made of.
 
-The offline runner (:mod:`piezo_stage_ros.core.closed_loop`) and the ROS nodes drive the same
+The offline runner (:mod:`piezo_stage_ros.core.loop.closed_loop`) and the ROS nodes drive the same
 objects through these interfaces, one sample at a time:
 
-1. the plant gives the measured position y_k at t_k (:meth:`piezo_stage_ros.core.stage.Stage.reset`
-   or the previous :meth:`~piezo_stage_ros.core.stage.Stage.step`);
+1. the plant gives the measured position y_k at t_k
+(:meth:`piezo_stage_ros.core.model.stage.Stage.reset`
+   or the previous :meth:`~piezo_stage_ros.core.model.stage.Stage.step`);
 2. the trajectory gives x_d(t_k) and its derivative;
 3. the controller turns (y_k, x_d, x_d') into the amplifier input voltage u_k;
 4. the plant holds u_k over [t_k, t_k+1) (zero-order hold) and returns y_k+1.
@@ -32,7 +33,7 @@ from __future__ import annotations
 from typing import Mapping, Protocol, runtime_checkable
 
 from numpy.typing import ArrayLike
-from piezo_stage_ros.core.types import FloatArray
+from piezo_stage_ros.core.contracts.types import FloatArray
 
 __all__ = ['Controller', 'Trajectory']
 

@@ -15,22 +15,22 @@
 """
 The robustness study: one controller configuration, unchanged, on every stage of a family.
 
-For each stage of :mod:`piezo_stage_ros.core.family` and each case of :data:`CASES` (the
+For each stage of :mod:`piezo_stage_ros.core.model.family` and each case of :data:`CASES` (the
 Table III sines, the Fig. 12 multi-sine, the Fig. 10 square wave with ideal jumps and with a
 2 ms S-curve, the Fig. 9 staircase) the closed loop runs for ``duration_s`` and is measured in
 steady state, after ``settle_s`` (1 s by default):
 
-- sines and multi-sine: e_m and e_rms of :func:`piezo_stage_ros.core.metrics.summarize` over
+- sines and multi-sine: e_m and e_rms of :func:`piezo_stage_ros.core.loop.metrics.summarize` over
   the whole periods after ``settle_s``;
 - square wave: e_m and e_rms over the last half of every plateau after ``settle_s`` (the plateau
-  error of :func:`piezo_stage_ros.core.experiments.square_edge_metrics`), with overshoot and
+  error of :func:`piezo_stage_ros.core.loop.experiments.square_edge_metrics`), with overshoot and
   settling time of the edges there;
 - staircase (19 nm steps, 50 ms each, continued for the whole run): e_m and e_rms over the last
   half of every level that starts after ``settle_s``;
 
 and, for every case, the command range over the whole run and the RAC's estimates theta_hat and
 phi_hat (final value, smallest and largest) beside the stage's true theta and phi
-(:func:`piezo_stage_ros.core.family.true_estimates`).
+(:func:`piezo_stage_ros.core.model.family.true_estimates`).
 
 The controller is built from the configuration once per run, with a notch in ``model`` mode
 designed on the *configured* plant, never on the member's: nothing is retuned per stage.
@@ -43,15 +43,15 @@ import math
 from typing import Any, Callable, Collection, Sequence
 
 import numpy as np
-from piezo_stage_ros.core import closed_loop, metrics
-from piezo_stage_ros.core.batch import run_batch
-from piezo_stage_ros.core.controllers import build_controller, ControllerParams
-from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
-from piezo_stage_ros.core.experiments import square_edge_metrics
-from piezo_stage_ros.core.family import member_params, StageVariation, true_estimates
-from piezo_stage_ros.core.record import RunRecord
-from piezo_stage_ros.core.stage import linear_plant, Stage, StageParams
-from piezo_stage_ros.core.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
+from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
+from piezo_stage_ros.core.loop import closed_loop, metrics
+from piezo_stage_ros.core.loop.batch import run_batch
+from piezo_stage_ros.core.loop.experiments import square_edge_metrics
+from piezo_stage_ros.core.loop.record import RunRecord
+from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.model.family import member_params, StageVariation, true_estimates
+from piezo_stage_ros.core.model.stage import linear_plant, Stage, StageParams
 
 __all__ = ['BATCH_MEMBERS', 'CASES', 'COLUMNS', 'RobustnessResult', 'case_metrics',
            'case_trajectory', 'format_result', 'run_study', 'stage_table', 'summary_table',
@@ -271,7 +271,7 @@ def run_study(stage: StageParams, controller: ControllerParams, trajectory: Traj
     traced : collection of str, optional
         The members whose estimates are kept for the plots; default all.
     batch : bool
-        Run the members of each case together (:func:`piezo_stage_ros.core.batch.run_batch`,
+        Run the members of each case together (:func:`piezo_stage_ros.core.loop.batch.run_batch`,
         :data:`BATCH_MEMBERS` at a time); with False one :func:`closed_loop.run` per member
         and case. Both give the same samples, bit for bit (tested).
     progress : callable, optional

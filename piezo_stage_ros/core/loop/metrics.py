@@ -47,7 +47,7 @@ Every function takes arrays and returns plain floats or a frozen record of them
 (:class:`TrackingMetrics`, :class:`StepMetrics`, :class:`EdgeMetrics`: typed fields with the unit
 in each name, and ``as_dict()`` giving the JSON field names of ``simulate --json`` and
 ``analyze --json``): the same numbers come from an offline run (:func:`summarize` of the
-:class:`~piezo_stage_ros.core.record.RunRecord`) and from its bag read back by ``analyze``.
+:class:`~piezo_stage_ros.core.loop.record.RunRecord`) and from its bag read back by ``analyze``.
 """
 
 from __future__ import annotations
@@ -59,9 +59,9 @@ from typing import Any, Callable, ClassVar, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from piezo_stage_ros.core.errors import PiezoStageError
-from piezo_stage_ros.core.record import RunRecord
-from piezo_stage_ros.core.types import FloatArray
+from piezo_stage_ros.core.contracts.errors import PiezoStageError
+from piezo_stage_ros.core.contracts.types import FloatArray
+from piezo_stage_ros.core.loop.record import RunRecord
 
 __all__ = ['EdgeMetrics', 'PeriodErrors', 'StepMetrics', 'TRANSIENT_PERIODS', 'TRANSIENT_S',
            'TrackingMetrics', 'edge_metrics', 'error_metrics', 'loop_width', 'meta_period',

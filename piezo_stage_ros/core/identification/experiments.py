@@ -18,7 +18,8 @@ The paper's identification experiments, run open loop on a (simulated) stage.
 Three runs, all in amplifier volts through the ``open_loop`` controller (v = gain x_d) so that
 they are exactly the runs ``simulate --controller open_loop`` makes and the ROS nodes can stream:
 
-- ``noise``: small-amplitude band-limited white noise (:class:`~piezo_stage_ros.core.excitation.
+- ``noise``: small-amplitude band-limited white noise
+(:class:`~piezo_stage_ros.core.identification.excitation.
   NoiseExcitation`), for the frequency response;
 - ``step``: a train of small steps (the ``square`` trajectory), for the transient response;
 - ``sine``: 1 + sin(2 pi 100 t) V (the ``sine`` trajectory), for the hysteresis.
@@ -35,26 +36,26 @@ import math
 from typing import Any, Mapping, Sequence
 
 import numpy as np
-from piezo_stage_ros.core.closed_loop import run
-from piezo_stage_ros.core.controllers import (
+from piezo_stage_ros.core.contracts.interfaces import Trajectory
+from piezo_stage_ros.core.contracts.params import param, Params
+from piezo_stage_ros.core.contracts.types import FloatArray
+from piezo_stage_ros.core.control.controllers import (
     build_controller,
     ControllerParams,
     OpenLoopController,
     OpenLoopParams,
 )
-from piezo_stage_ros.core.excitation import NoiseExcitation, NoiseParams
-from piezo_stage_ros.core.identification import factors_of, LinearFactors, third_order_of
-from piezo_stage_ros.core.interfaces import Trajectory
-from piezo_stage_ros.core.params import param, Params
-from piezo_stage_ros.core.record import RunRecord
-from piezo_stage_ros.core.stage import linear_plant, Stage, StageParams
-from piezo_stage_ros.core.trajectories import (
+from piezo_stage_ros.core.identification.excitation import NoiseExcitation, NoiseParams
+from piezo_stage_ros.core.identification.fit import factors_of, LinearFactors, third_order_of
+from piezo_stage_ros.core.loop.closed_loop import run
+from piezo_stage_ros.core.loop.record import RunRecord
+from piezo_stage_ros.core.loop.trajectories import (
     make_trajectory,
     SineParams,
     SquareParams,
     TrajectoryParams,
 )
-from piezo_stage_ros.core.types import FloatArray
+from piezo_stage_ros.core.model.stage import linear_plant, Stage, StageParams
 
 __all__ = ['ClosedLoopPlan', 'ExperimentPlan', 'FeedforwardIntegralController', 'SumTrajectory',
            'perturbed_stage', 'run_closed_loop_experiment', 'run_experiments',

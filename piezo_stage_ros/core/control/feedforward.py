@@ -16,7 +16,7 @@ r"""
 Feed-forward from the known reference: inverse hysteresis, preview plant inversion, learning.
 
 A two-degree-of-freedom structure around any controller of
-:mod:`piezo_stage_ros.core.controllers` (RAC or PI, notched or not)::
+:mod:`piezo_stage_ros.core.control.controllers` (RAC or PI, notched or not)::
 
     v_lin,k = C(y_k, r_k) - N(s_k) + u_ff,k + L[k mod N]          (volts, "linear" input)
     v_k     = H^-1(c v_lin,k)   clipped to the amplifier range
@@ -66,13 +66,13 @@ import math
 from typing import Any, Callable, Mapping
 
 import numpy as np
-from piezo_stage_ros.core.errors import ParameterError, PiezoStageError
-from piezo_stage_ros.core.hysteresis import BacklashLike, HysteresisModel, NoHysteresis
-from piezo_stage_ros.core.interfaces import Trajectory
-from piezo_stage_ros.core.linear import LinearPlant
-from piezo_stage_ros.core.params import param, Params
-from piezo_stage_ros.core.trajectories import s_curve
-from piezo_stage_ros.core.types import ComplexArray, FloatArray
+from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
+from piezo_stage_ros.core.contracts.interfaces import Trajectory
+from piezo_stage_ros.core.contracts.params import param, Params
+from piezo_stage_ros.core.contracts.types import ComplexArray, FloatArray
+from piezo_stage_ros.core.loop.trajectories import s_curve
+from piezo_stage_ros.core.model.hysteresis import BacklashLike, HysteresisModel, NoHysteresis
+from piezo_stage_ros.core.model.linear import LinearPlant
 
 __all__ = ['FeedForwardController', 'FeedForwardParams', 'HysteresisInverse', 'MODES',
            'PreviewInverse', 'learning_convergence', 'make_hysteresis_inverse',

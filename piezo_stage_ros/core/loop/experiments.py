@@ -33,17 +33,17 @@ import math
 from typing import Any, Callable, Sequence
 
 import numpy as np
-from piezo_stage_ros.core import closed_loop, metrics
-from piezo_stage_ros.core.controllers import build_controller, ControllerParams
-from piezo_stage_ros.core.hysteresis import make_hysteresis
-from piezo_stage_ros.core.record import RunRecord
-from piezo_stage_ros.core.stage import linear_plant, PlantParams, Stage, StageParams
-from piezo_stage_ros.core.trajectories import (
+from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
+from piezo_stage_ros.core.loop import closed_loop, metrics
+from piezo_stage_ros.core.loop.record import RunRecord
+from piezo_stage_ros.core.loop.trajectories import (
     make_trajectory,
     SquareParams,
     TrajectoryBase,
     TrajectoryParams,
 )
+from piezo_stage_ros.core.model.hysteresis import make_hysteresis
+from piezo_stage_ros.core.model.stage import linear_plant, PlantParams, Stage, StageParams
 
 __all__ = ['EXPERIMENTS', 'ExperimentResult', 'PAPER_FIG10', 'PAPER_FIG12', 'PAPER_FIG6',
            'PAPER_FIG9_RESOLUTION_M', 'PAPER_TABLE3', 'StabilityFn', 'default_duration_s',
@@ -128,8 +128,8 @@ def default_duration_s(trajectory: TrajectoryBase, params: TrajectoryParams) -> 
     -------
     float
         Periodic: ``max(1 s, skip + 2 periods)`` with the steady-state skip of
-        :mod:`piezo_stage_ros.core.metrics`; staircase: every level plus one dwell; step: 0.1 s
-        after the step; csv: the table's last time (at least one sample); otherwise 1 s.
+        :mod:`piezo_stage_ros.core.loop.metrics`; staircase: every level plus one dwell; step: 0.1
+        s after the step; csv: the table's last time (at least one sample); otherwise 1 s.
 
     """
     period = trajectory.period_s
@@ -166,14 +166,14 @@ def run_one(stage_params: StageParams, controller_params: ControllerParams,
     duration_s : float, optional
         Simulated time [s]; default :func:`default_duration_s`.
     chunk_callback : callable, optional
-        Passed to :func:`piezo_stage_ros.core.closed_loop.run`.
+        Passed to :func:`piezo_stage_ros.core.loop.closed_loop.run`.
     keep : bool
-        Passed to :func:`piezo_stage_ros.core.closed_loop.run`.
+        Passed to :func:`piezo_stage_ros.core.loop.closed_loop.run`.
     meta : dict, optional
         Extra description stored in the record.
     design_plant : PlantParams, optional
         The model a ``model`` notch is designed on; default the stage's plant
-        (:attr:`piezo_stage_ros.core.loop_config.LoopConfig.design_plant`).
+        (:attr:`piezo_stage_ros.core.contracts.loop_config.LoopConfig.design_plant`).
 
     Returns
     -------
@@ -322,14 +322,14 @@ def square_edge_metrics(time_s: np.ndarray, position_m: np.ndarray, reference_m:
     square : SquareParams
         The square wave (levels, period, duty, ``transition_s``).
     settle_band_m : float
-        Absolute settling band [m] (see :func:`piezo_stage_ros.core.metrics.step_response`).
+        Absolute settling band [m] (see :func:`piezo_stage_ros.core.loop.metrics.step_response`).
     plateau_fraction : float
         Last fraction of each plateau taken as steady state, in (0, 1].
 
     Returns
     -------
     EdgeMetrics
-        The figures of :func:`piezo_stage_ros.core.metrics.square_wave_metrics`. Each edge is
+        The figures of :func:`piezo_stage_ros.core.loop.metrics.square_wave_metrics`. Each edge is
         measured from the time of the ideal jump, which is where a shaped transition starts,
         between the two levels (not the moving reference): rise time 10-90 % and settling of the
         measured position, so for a shaped reference they include the reference's own motion.

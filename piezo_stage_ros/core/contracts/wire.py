@@ -18,7 +18,7 @@ The wire contract of a stage: topics, message types, joint name, stamps and diag
 One module says what goes over the wire and into a bag; the nodes, the launch file, the bag
 writer and the bag reader take it from here (rclpy- and rosbags-free, so it lives in ``core``:
 the offline loop reads the controller's diagnostics with the same reader as the nodes). The
-bytes themselves are :mod:`piezo_stage_ros.core.cdr`.
+bytes themselves are :mod:`piezo_stage_ros.core.contracts.cdr`.
 
 Topics, relative to the launch namespace (several stages side by side), all under the stage
 prefix ``stage/``; under the root namespace the bag of a run has them as ``/stage/position`` ...
@@ -50,8 +50,8 @@ import operator
 import re
 from typing import Final
 
-from piezo_stage_ros.core.errors import BagError
-from piezo_stage_ros.core.interfaces import Controller
+from piezo_stage_ros.core.contracts.errors import BagError
+from piezo_stage_ros.core.contracts.interfaces import Controller
 
 __all__ = [
     'BAG_TOPICS', 'CLOCK', 'CLOCK_TYPE', 'COMMAND', 'COMMAND_TYPE', 'DEFAULT_NAMESPACE',

@@ -21,12 +21,12 @@ objects here, so a file means the same thing everywhere:
 
 - a node's *table* (:class:`NodeTable`) is the core parameter group it configures (the stage, the
   controller with its stability check, the trajectory) plus a node group (mode, timeouts,
-  bridge), all declared with :func:`~piezo_stage_ros.core.params.param`; from it come the ROS
-  parameter declarations (:meth:`NodeTable.declarations`), the validated objects
+  bridge), all declared with :func:`~piezo_stage_ros.core.contracts.params.param`; from it come
+  the ROS parameter declarations (:meth:`NodeTable.declarations`), the validated objects
   (:meth:`NodeTable.build`) and the validation of a run-time change (:meth:`NodeTable.change`);
 - :class:`LoopConfig` holds the objects of all three tables, built from a
-  :class:`~piezo_stage_ros.core.config.Config` by :meth:`LoopConfig.from_config` (or from files by
-  :func:`load_loop_config`).
+  :class:`~piezo_stage_ros.core.contracts.config.Config` by :meth:`LoopConfig.from_config` (or
+  from files by :func:`load_loop_config`).
 
 Which names of a node section belong to the node (:meth:`NodeTable.select`): a name whose first
 dotted part is a parameter or group of the node's table; it is validated strictly (a misspelt
@@ -59,13 +59,13 @@ import os
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
-from piezo_stage_ros.core.config import Config, load_config
-from piezo_stage_ros.core.controllers import ControllerParams
-from piezo_stage_ros.core.errors import ParameterError
-from piezo_stage_ros.core.params import group, param, Params, ParamSpec
-from piezo_stage_ros.core.stability import StabilityParams
-from piezo_stage_ros.core.stage import PlantParams, StageParams
-from piezo_stage_ros.core.trajectories import TrajectoryParams
+from piezo_stage_ros.core.contracts.config import Config, load_config
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.contracts.params import group, param, Params, ParamSpec
+from piezo_stage_ros.core.control.controllers import ControllerParams
+from piezo_stage_ros.core.control.stability import StabilityParams
+from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
+from piezo_stage_ros.core.model.stage import PlantParams, StageParams
 
 __all__ = ['BridgeParams', 'ControllerNodeParams', 'Declaration', 'Group', 'LockstepParams',
            'LoopConfig', 'MODES', 'NodeTable', 'PlantNodeParams', 'ServoParams',
@@ -298,7 +298,7 @@ class Group:
     Attributes
     ----------
     cls : type
-        The :class:`~piezo_stage_ros.core.params.Params` subclass.
+        The :class:`~piezo_stage_ros.core.contracts.params.Params` subclass.
     prefix : str
         Prepended to its names (``'stability.'``), empty at the top level.
     frozen : bool
@@ -356,7 +356,7 @@ class NodeTable:
         ----------
         values : Mapping[str, Any]
             A node's section of parameter files, wildcard values included
-            (:meth:`piezo_stage_ros.core.config.Config.node`).
+            (:meth:`piezo_stage_ros.core.contracts.config.Config.node`).
 
         Returns
         -------

@@ -47,8 +47,8 @@ the paper's law with its parameter at the neutral value (docs/controllers.md der
 - the normalisation kappa (``normalisation``) divides each update by n: the adaptation loop's
   per-sample gain g = T (gamma y^2 + eta u_fd^2) becomes g/(1 + kappa g) < 1/kappa whatever the
   regressors, so kappa >= ADAPTATION_MARGIN/g_crit certifies the adaptation loop for every
-  y and u_fd, not only up to y_max (:mod:`piezo_stage_ros.core.stability`). kappa = 0 is the
-  unnormalised law;
+  y and u_fd, not only up to y_max (:mod:`piezo_stage_ros.core.control.stability`). kappa = 0 is
+  the unnormalised law;
 - the regressors (``adaptation_regressor``): the paper's measured y and u_fd = dy_d/dt -
   lambda e, or the desired y_d and dy_d/dt (desired compensation, Sadegh and Horowitz 1990).
   With the measured ones the update holds -gamma e s_a and +eta lambda e s_a, and e s_a > 0 on
@@ -85,8 +85,8 @@ The default RAC gains are the discrete-time tuning of ``python3 -m piezo_stage_r
 k*/epsilon = 40, which is unstable at 10 kHz, and its unnormalised adaptation rates gamma = 3000,
 eta = 0.01 close a discrete loop through v (the update is an integrator whose per-sample gain is
 g = T (gamma y^2 + eta u_fd^2) times the response of s to v) that limit-cycles on a plateau of a
-few volts; :func:`piezo_stage_ros.core.stability.adaptation_bound` derives the largest stable
-per-sample gain g_crit from the plant model, and the default normalisation kappa = 20 >=
+few volts; :func:`piezo_stage_ros.core.control.stability.adaptation_bound` derives the largest
+stable per-sample gain g_crit from the plant model, and the default normalisation kappa = 20 >=
 2/g_crit keeps g/(1 + kappa g) below half of it for every regressor. The rates, the dead zone,
 the regressors and the box were chosen on a family of stages unlike the model (tune section 9).
 """
@@ -98,11 +98,15 @@ import math
 from typing import Any, Mapping
 
 import numpy as np
-from piezo_stage_ros.core.errors import ParameterError
-from piezo_stage_ros.core.feedforward import FeedForwardController, FeedForwardParams
-from piezo_stage_ros.core.hysteresis import HysteresisModel, HysteresisParams, make_hysteresis
-from piezo_stage_ros.core.linear import LinearPlant
-from piezo_stage_ros.core.params import group, param, Params
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.contracts.params import group, param, Params
+from piezo_stage_ros.core.control.feedforward import FeedForwardController, FeedForwardParams
+from piezo_stage_ros.core.model.hysteresis import (
+    HysteresisModel,
+    HysteresisParams,
+    make_hysteresis,
+)
+from piezo_stage_ros.core.model.linear import LinearPlant
 
 __all__ = [
     'ControllerParams', 'NotchFilter', 'NotchParams', 'NotchedController', 'OpenLoopController',
@@ -1134,9 +1138,9 @@ def build_controller(params: ControllerParams, sample_time_s: float,
     Returns
     -------
     Controller
-        An object implementing :class:`piezo_stage_ros.core.interfaces.Controller`; with
-        feed-forward a :class:`~piezo_stage_ros.core.feedforward.FeedForwardController` that
-        must be bound to the trajectory (``bind``) before it adds anything.
+        An object implementing :class:`piezo_stage_ros.core.contracts.interfaces.Controller`; with
+        feed-forward a :class:`~piezo_stage_ros.core.control.feedforward.FeedForwardController`
+        that must be bound to the trajectory (``bind``) before it adds anything.
 
     Raises
     ------

@@ -15,7 +15,7 @@
 """
 What recorded data can support, closed-loop identification on purpose, and refusals.
 
-:func:`identify_checked` wraps :func:`piezo_stage_ros.core.identification.identify`:
+:func:`identify_checked` wraps :func:`piezo_stage_ros.core.identification.fit.identify`:
 
 1. **Loop.** Each run is open loop when its command is a fixed function of its reference (the
    ``open_loop`` controller: v = g x_d + offset) or when the command's innovations do not
@@ -26,9 +26,9 @@ What recorded data can support, closed-loop identification on purpose, and refus
    loop), or the reference / command (open loop). When it repeats over at least two whole
    periods, the DFT of every period gives the lines the excitation drives and, from the scatter
    over the periods, the signal-to-noise ratio of the applied input and of the position on
-   each line (:mod:`piezo_stage_ros.core.periodic`); otherwise Welch spectra give the excited
-   bins and the coherence gives the signal-to-noise ratio (open loop only). The fraction of
-   commands outside the amplifier range (saturation) is counted.
+   each line (:mod:`piezo_stage_ros.core.identification.periodic`); otherwise Welch spectra give
+   the excited bins and the coherence gives the signal-to-noise ratio (open loop only). The
+   fraction of commands outside the amplifier range (saturation) is counted.
 3. **Support rules** (:func:`refusals`). For each parameter the procedure would take from a
    run: w_n and zeta need good lines across the resonance region of the configured model,
    tau across the corner 1/(2 pi tau), the small-signal gain below the resonance; the step fit
@@ -56,7 +56,9 @@ import math
 from typing import Any, Sequence
 
 import numpy as np
-from piezo_stage_ros.core.identification import (
+from piezo_stage_ros.core.contracts.params import param, Params
+from piezo_stage_ros.core.contracts.types import BoolArray, FloatArray
+from piezo_stage_ros.core.identification.fit import (
     applied_voltage,
     classify_run,
     discrete_frequency_response,
@@ -73,16 +75,14 @@ from piezo_stage_ros.core.identification import (
     sample_time_of,
     third_order_of,
 )
-from piezo_stage_ros.core.params import param, Params
-from piezo_stage_ros.core.periodic import (
+from piezo_stage_ros.core.identification.periodic import (
     detect_period,
     excited_lines,
     periodic_spectra,
     PeriodicSpectra,
 )
-from piezo_stage_ros.core.record import RunRecord
-from piezo_stage_ros.core.stage import SignalChainParams, StageParams
-from piezo_stage_ros.core.types import BoolArray, FloatArray
+from piezo_stage_ros.core.loop.record import RunRecord
+from piezo_stage_ros.core.model.stage import SignalChainParams, StageParams
 from scipy import optimize, signal
 
 __all__ = ['CheckedIdentification', 'LineAnalysis', 'RefusedError', 'RunSupport', 'SupportParams',
@@ -260,7 +260,7 @@ class RunSupport:
     ----------
     name : str
     role : str
-        What it is used for (one of :data:`~piezo_stage_ros.core.identification.ROLES`).
+        What it is used for (one of :data:`~piezo_stage_ros.core.identification.fit.ROLES`).
     loop : str
         ``'open'`` or ``'closed'``.
     loop_reason : str

@@ -29,8 +29,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from piezo_stage_ros.core.errors import PiezoStageError
-from piezo_stage_ros.core.types import FloatArray
+from piezo_stage_ros.core.contracts.errors import PiezoStageError
+from piezo_stage_ros.core.contracts.types import FloatArray
 
 __all__ = ['RunRecord']
 
