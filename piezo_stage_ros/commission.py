@@ -33,6 +33,9 @@ configured model. The steps are in
     commission
     commission --stage random_0002 --output stage.yaml --report rep
     commission --survey                   # several members, a Markdown table, no files
+    commission --write-excitation DIR     # the excitation for the ROS nodes (a table and
+                                          # their parameters); record it, then
+    commission --bag BAG                  # commission from the recorded run
 
 Exit status: 0 when the controller is certified and the verification is within its limit; 1
 when the excitation cannot support the model, no tuning is certified, or the verification
@@ -49,13 +52,17 @@ import sys
 from typing import Any, Sequence
 
 from piezo_stage_ros import cli
+from piezo_stage_ros.core.contracts.errors import ConfigError
 from piezo_stage_ros.core.contracts.loop_config import LoopConfig
 from piezo_stage_ros.core.identification.commission import (
     commission,
+    commission_record,
     CommissionParams,
     CommissionRefusedError,
     CommissionResult,
     comparison,
+    excitation_table,
+    ros_overrides,
 )
 from piezo_stage_ros.core.model.family import (
     default_family,
@@ -148,6 +155,13 @@ def build_parser() -> argparse.ArgumentParser:
                    f'{d.band_low_hz:g} {d.band_high_hz:g}).')
     p.add_argument('--verify-duration', type=float, default=d.verify_duration_s, metavar='S',
                    help=f'Length of the verification run [s] (default {d.verify_duration_s:g}).')
+    p.add_argument('--bag', metavar='BAG',
+                   help='Commission from a recorded hold-and-excitation run instead of '
+                   'simulating one (launch/commission.launch.py records it); the verification '
+                   'then runs on the identified model.')
+    p.add_argument('--write-excitation', metavar='DIR',
+                   help='Write the excitation table (excitation.csv) and the node parameters '
+                   'that run it (overrides.yaml) into DIR for the ROS nodes, and exit.')
     p.add_argument('--survey', action='store_true',
                    help='Commission every --stage (default: a list of members) and print a '
                    'Markdown table of recovered vs true, certification and verification; '
@@ -194,20 +208,48 @@ def parameter_text(result: CommissionResult, loop: LoopConfig, header: Sequence[
 
 
 def _run_one(args: argparse.Namespace, loop: LoopConfig, name: str,
-             progress: cli.Progress) -> tuple[CommissionResult, StageParams]:
-    true = member_params(loop.stage, member(name, seed=args.seed, noise_m=args.noise))
-
+             progress: cli.Progress) -> tuple[CommissionResult, StageParams | None]:
     def derive(stage: StageParams) -> dict[str, Any]:
         return controller_values(stage, loop.controller.to_flat(), loop.stage)
 
+    if args.bag is not None:
+        from piezo_stage_ros.analysis.bagread import read_run
+        if not Path(args.bag).exists():
+            raise ConfigError(f'bag {args.bag!r} does not exist')
+        record = read_run(args.bag)
+        return commission_record(record, loop.stage, loop.controller, derive, _params(args),
+                                 stability=loop.stability, progress=progress.line), None
+    true = member_params(loop.stage, member(name, seed=args.seed, noise_m=args.noise))
     result = commission(true, loop.stage, loop.controller, derive, _params(args),
                         stability=loop.stability, progress=progress.line)
     return result, true
 
 
+def _write_excitation(args: argparse.Namespace, loop: LoopConfig) -> int:
+    out = Path(args.write_excitation)
+    out.mkdir(parents=True, exist_ok=True)
+    params = _params(args)
+    t, r = excitation_table(params, loop.stage.sample_rate_hz)
+    table = out / 'excitation.csv'
+    rows = ''.join(f'{float(a)!r},{float(b)!r}\n' for a, b in zip(t, r))
+    table.write_text('time_s,position_m\n' + rows, encoding='utf-8')
+    doc = {node: {'ros__parameters': _nested(values)}
+           for node, values in ros_overrides(params, str(table.resolve())).items()}
+    overrides = out / 'overrides.yaml'
+    overrides.write_text(yaml.safe_dump(doc, sort_keys=False), encoding='utf-8')
+    print(f'excitation table: {table} ({t.size} samples, {t[-1]:g} s)')
+    print(f'node parameters: {overrides}')
+    print(f'run: ros2 launch piezo_stage_ros closed_loop.launch.py overrides:={overrides} '
+          f'record:=true bag:=commission_bag duration_s:={t[-1]:g}')
+    print('then: commission --bag commission_bag')
+    return 0
+
+
 def _single(args: argparse.Namespace, loop: LoopConfig) -> int:
     if len(args.stage) > 1:
         raise cli.UsageError('one --stage at a time (or --survey)')
+    if args.bag is not None and args.stage:
+        raise cli.UsageError('--bag commissions the recorded stage: no --stage')
     name = args.stage[0] if args.stage else DEFAULT_STAGE
     progress = cli.Progress(PROG)
     result, true = _run_one(args, loop, name, progress)
@@ -221,14 +263,18 @@ def _single(args: argparse.Namespace, loop: LoopConfig) -> int:
                                         extra={'stage': name, 'parameter file': args.output
                                                if result.accepted else None})
     s = result.checked.result.summary()
-    print(f'stage: {name} ({member(name, seed=args.seed, noise_m=args.noise).describe()})')
-    print(f'excitation: {result.excited.time_s.size * true.sample_time_s:g} s, reference within '
+    if true is None:
+        print(f'recorded run: {args.bag}')
+    else:
+        print(f'stage: {name} ({member(name, seed=args.seed, noise_m=args.noise).describe()})')
+    length = result.excited.time_s.size * result.identified.sample_time_s
+    print(f'excitation: {length:g} s, reference within '
           f'{result.excitation_peak_m * 1e6:.3f} um of the hold, position within '
           f'{result.position_peak_m * 1e6:.3f} um; loop closed throughout')
     print(f'identified: static gain {s["static_gain_m_per_v"]:.6g} m/V, w_n '
           f'{s["omega_n_rad_s"]:.6g} rad/s, zeta {s["zeta"]:.5g}, tau {s["tau_s"]:.6g} s, '
           f'alpha {s["alpha"]:.5g}, B1 {s["b1"]:.5g}')
-    for key, (value, inside) in comparison(result, true).items():
+    for key, (value, inside) in (comparison(result, true).items() if true else ()):
         print(f'  {key}: {100 * value:+.2f} % from the truth, '
               f'{"inside" if inside else "OUTSIDE"} its 95 % bounds')
     print(f'design: {result.design.label}, notch '
@@ -238,7 +284,8 @@ def _single(args: argparse.Namespace, loop: LoopConfig) -> int:
           f'{cert.corners} plants (identified model and the corners of its 95 % bounds), '
           f'slopes {cert.slope_range[0]:.4g} ... {cert.slope_range[1]:.4g}; smallest gain '
           f'margin {cert.gain_margin_db:.1f} dB, phase margin {cert.phase_margin_deg:.0f} deg')
-    print(f'verification: {ver.frequency_hz:g} Hz sine, e_rms {ver.e_rms_m * 1e9:.2f} nm '
+    where = 'on the stage' if ver.on_stage else 'on the identified model'
+    print(f'verification {where}: {ver.frequency_hz:g} Hz sine, e_rms {ver.e_rms_m * 1e9:.2f} nm '
           f'(limit {_params(args).verify_max_m * 1e9:g} nm; the identified model predicted '
           f'{ver.predicted_e_rms_m * 1e9:.2f} nm), e_max {ver.e_max_m * 1e9:.1f} nm')
     for note in result.notes:
@@ -274,6 +321,7 @@ def _survey(args: argparse.Namespace, loop: LoopConfig) -> int:
         except CommissionRefusedError as exc:
             print(f'| {name} | refused: {exc} |' + ' |' * (len(heads) - 2), flush=True)
             continue
+        assert true is not None
         cmp = comparison(result, true)
         cells = [f'{100 * cmp[k][0]:+.2f} %' for k in ('static_gain_m_per_v', 'omega_n_rad_s',
                                                         'tau_s', 'zeta', 'alpha')]
@@ -309,7 +357,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     def body(args: argparse.Namespace) -> int:
         args.argv = None if argv is None else list(argv)
         loop = cli.offline_loop(PROG, cli.read_config(args.config, args.param))
+        if args.write_excitation is not None:
+            return _write_excitation(args, loop)
         if args.survey:
+            if args.bag is not None:
+                raise cli.UsageError('--survey simulates the family: no --bag')
             return _survey(args, loop)
         return _single(args, loop)
     return cli.run_command(PROG, build_parser(), body, argv)

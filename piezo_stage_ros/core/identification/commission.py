@@ -33,8 +33,11 @@ Commissioning a stage without leaving closed loop: excite, identify, design, cer
 3. **Design** on the identified model: the model-dependent controller values (the notch on the
    identified resonance, the RAC's estimate box and initial values scaled to the identified
    theta and phi, rho and k*, the slope range), given by the caller (``identify``'s
-   ``controller_values``), on top of the configured controller; then the tunings of
-   :data:`LADDER` in order, more conservative each, until one is certified.
+   ``controller_values``), on top of the configured controller; its feedback gains scaled by
+   :func:`loop_gain_ratio` so that the loop gain on the identified stage is the one the
+   configured tuning has on the configured stage; then the tunings of :data:`LADDER` in order,
+   more conservative each, until one is certified (a step that fails only the RAC's adaptation
+   bound is retried with the normalisation kappa the bound asks for).
 4. **Certify** a tuning with :func:`piezo_stage_ros.core.control.stability.check_stability` on
    every corner of the box the 95 % bounds of (k_p, w_n, zeta, tau) span, with the hysteresis
    slope over [c (2 B1/c - 1), c] at the lower bound of B1/c: every corner must be certified
@@ -66,6 +69,7 @@ from piezo_stage_ros.core.control.controllers import (
     PIParams,
 )
 from piezo_stage_ros.core.control.stability import (
+    ADAPTATION_MARGIN,
     check_stability,
     StabilityParams,
     StabilityReport,
@@ -87,12 +91,15 @@ from piezo_stage_ros.core.loop.closed_loop import run
 from piezo_stage_ros.core.loop.metrics import summarize
 from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.model.family import true_estimates
 from piezo_stage_ros.core.model.stage import linear_plant, Stage, StageParams
 
 __all__ = ['CommissionParams', 'CommissionRefusedError', 'CommissionResult', 'Certification',
-           'Design', 'Excitation', 'LADDER', 'Verification', 'certify', 'commission',
-           'comparison', 'corner_plants', 'design', 'excitation_run', 'hold_controller',
-           'identify_excitation', 'slope_range', 'summary', 'true_values', 'verify']
+           'Design', 'Excitation', 'KAPPA_MARGIN', 'LADDER', 'Verification', 'certify',
+           'commission', 'commission_record', 'comparison', 'corner_plants', 'design',
+           'excitation_part', 'excitation_run', 'excitation_table', 'hold_controller',
+           'identify_excitation', 'loop_gain_ratio', 'ros_overrides', 'slope_range', 'summary',
+           'true_values', 'verify']
 
 #: Called with one line of progress.
 ProgressFn = Callable[[str], None]
@@ -330,6 +337,56 @@ def identify_excitation(excited: RunRecord, configured: StageParams,
                                      + '; '.join(exc.lines)) from exc
 
 
+def excitation_table(params: CommissionParams, sample_rate_hz: float
+                     ) -> tuple[FloatArray, FloatArray]:
+    """
+    Return the commissioning reference at every sample, for a trajectory table (``csv``).
+
+    Parameters
+    ----------
+    params : CommissionParams
+        Hold and excitation.
+    sample_rate_hz : float
+        Loop rate of the nodes [Hz].
+
+    Returns
+    -------
+    time_s, position_m : ndarray
+        Samples k T for k = 0 ... (settle_s + duration_s) / T: at the loop's sample times the
+        table's piecewise-linear interpolation gives the samples themselves, so the reference
+        the nodes run repeats exactly as offline.
+
+    """
+    t_s = 1.0 / sample_rate_hz
+    n = int(round((params.settle_s + params.duration_s) / t_s))
+    t = np.arange(n + 1) * t_s
+    return np.asarray(t, dtype=np.float64), Excitation(params, sample_rate_hz).evaluate(t)[0]
+
+
+def ros_overrides(params: CommissionParams, table_path: str) -> dict[str, dict[str, Any]]:
+    """
+    Return the node parameters that run the hold and excitation on the ROS nodes.
+
+    Parameters
+    ----------
+    params : CommissionParams
+        Hold controller and hold position.
+    table_path : str
+        The CSV of :func:`excitation_table`.
+
+    Returns
+    -------
+    dict
+        ``{node name: {flat name: value}}``: the controller node runs the hold PI without notch,
+        the trajectory node the table, the plant (a simulated one) starts at the hold.
+
+    """
+    return {'controller_node': {'type': 'pi', 'pi.k_p': params.hold_k_p,
+                                'pi.k_i': params.hold_k_i, 'notch.mode': 'off'},
+            'trajectory_node': {'kind': 'csv', 'csv.path': table_path},
+            'plant_node': {'initial_position_m': params.hold_m}}
+
+
 # --------------------------------------------------------------------------------------------
 # 3, 4. Design and certify
 
@@ -353,6 +410,10 @@ class Certification:
         Hysteresis slopes covered.
     nominal : StabilityReport
         The check on the identified model itself.
+    loops_stable : bool
+        Every frozen loop of every plant stable (the adaptation bound aside).
+    critical_gain : float
+        Smallest g_crit of the RAC's adaptation loop over the plants (inf for a PI).
 
     """
 
@@ -363,6 +424,8 @@ class Certification:
     phase_margin_deg: float
     slope_range: tuple[float, float]
     nominal: StabilityReport
+    loops_stable: bool = True
+    critical_gain: float = math.inf
 
 
 def corner_plants(stage: StageParams, bounds: Mapping[str, tuple[float, float]]
@@ -463,8 +526,10 @@ def certify(controller: ControllerParams, stage: StageParams,
     corners = corner_plants(stage, bounds)
     failed = []
     gms, pms = [nominal.gain_margin_db], [nominal.phase_margin_deg]
+    reports = [nominal]
     for i, (label, plant_stage) in enumerate(corners):
         rep = check_stability(controller, plant_stage.plant, t, options=opts)
+        reports.append(rep)
         gms.append(rep.gain_margin_db)
         pms.append(rep.phase_margin_deg)
         if not rep.certified:
@@ -473,32 +538,65 @@ def certify(controller: ControllerParams, stage: StageParams,
             progress(f'certify: {i + 1}/{len(corners)} corners checked')
     if not nominal.certified:
         failed.insert(0, f'identified model: {nominal.binding()}')
+    crit = [r.adaptation.critical_gain for r in reports if r.adaptation is not None]
     return Certification(certified=not failed, corners=len(corners) + 1, failed=tuple(failed),
                          gain_margin_db=min(gms, key=abs), phase_margin_deg=min(pms, key=abs),
-                         slope_range=(lo, hi), nominal=nominal)
+                         slope_range=(lo, hi), nominal=nominal,
+                         loops_stable=all(r.stable for r in reports),
+                         critical_gain=min(crit, default=math.inf))
 
 
 #: The tunings tried in order on the identified model: (label, changes of the RAC gains as
-#: factors on the configured k_d and epsilon; of the PI gains as a factor on both). Each is more
-#: conservative than the one before (less proportional gain inside the boundary layer).
+#: factors on the configured k_d and epsilon; of the PI gains as a factor on both), after the
+#: gains are scaled to keep the configured loop gain (:func:`loop_gain_ratio`). Each is more
+#: conservative than the one before (less proportional gain inside the boundary layer). When a
+#: step's frozen loops are stable everywhere but the RAC's adaptation bound is not, the step is
+#: tried again with the normalisation kappa the bound asks for (:data:`KAPPA_MARGIN` times
+#: ADAPTATION_MARGIN / g_crit, g_crit the smallest over the plants): g_crit does not depend on
+#: kappa, and with it the bound holds for every regressor size.
 LADDER: tuple[tuple[str, float, float], ...] = (
-    ('configured gains', 1.0, 1.0),
+    ('configured loop gain', 1.0, 1.0),
     ('boundary layer x2', 1.0, 2.0),
     ('k_d x0.5, boundary layer x4', 0.5, 4.0),
 )
 
 
-def _step(controller: ControllerParams, kd_factor: float, eps_factor: float
+#: Factor on the smallest normalisation kappa that holds the adaptation bound.
+KAPPA_MARGIN = 1.25
+
+
+def loop_gain_ratio(identified: StageParams, configured: StageParams) -> float:
+    """
+    Return the factor on the feedback gains that keeps the configured tuning's loop gain.
+
+    Parameters
+    ----------
+    identified, configured : StageParams
+        The identified and the configured stage.
+
+    Returns
+    -------
+    float
+        theta(identified) / theta(configured) = (g c)_configured / (g c)_identified, with
+        theta = 1/(K_PSCM g c) (:func:`piezo_stage_ros.core.model.family.true_estimates`): the
+        loop gain from the controller's sensor-volt error to the position is proportional to
+        g c, so the feedback gains scale inversely.
+
+    """
+    return true_estimates(identified)[0] / true_estimates(configured)[0]
+
+
+def _step(controller: ControllerParams, kd_factor: float, eps_factor: float, ratio: float
           ) -> ControllerParams:
     if controller.type == 'rac':
         r = controller.rac
-        return controller.replace(rac=r.replace(k_d=r.k_d * kd_factor,
-                                                epsilon_v=r.epsilon_v * eps_factor))
-    if controller.type == 'pi':
-        scale = kd_factor / eps_factor
-        return controller.replace(pi=controller.pi.replace(k_p=controller.pi.k_p * scale,
-                                                           k_i=controller.pi.k_i * scale))
-    return controller
+        # k_d and the gain inside the boundary layer, k*/epsilon, scale with the loop gain;
+        # k* itself stays (it covers the hysteresis' disturbance, in command volts)
+        return controller.replace(rac=r.replace(k_d=r.k_d * kd_factor * ratio,
+                                                epsilon_v=r.epsilon_v * eps_factor / ratio))
+    scale = ratio * kd_factor / eps_factor
+    return controller.replace(pi=controller.pi.replace(k_p=controller.pi.k_p * scale,
+                                                       k_i=controller.pi.k_i * scale))
 
 
 @dataclass(frozen=True)
@@ -529,7 +627,7 @@ class Design:
 
 def design(stage: StageParams, bounds: Mapping[str, tuple[float, float]],
            configured: ControllerParams, derived: Mapping[str, Any], options: StabilityParams,
-           progress: ProgressFn | None = None) -> Design:
+           progress: ProgressFn | None = None, *, ratio: float = 1.0) -> Design:
     """
     Put the notch and gains on the identified model and keep the first certified tuning.
 
@@ -549,6 +647,8 @@ def design(stage: StageParams, bounds: Mapping[str, tuple[float, float]],
         The configured check (estimates, delay).
     progress : callable, optional
         Told each step and how far the certification is.
+    ratio : float
+        Factor on the feedback gains (:func:`loop_gain_ratio`).
 
     Returns
     -------
@@ -572,17 +672,28 @@ def design(stage: StageParams, bounds: Mapping[str, tuple[float, float]],
     start = ControllerParams.from_flat(flat)
     tried = []
     for label, kd, eps in LADDER:
-        ctrl = _step(start, kd, eps)
+        ctrl = _step(start, kd, eps, ratio)
         if progress is not None:
             progress(f'design: {label}')
         cert = certify(ctrl, stage, bounds, options, progress)
         tried.append((label, cert))
+        if (not cert.certified and cert.loops_stable and ctrl.type == 'rac'
+                and 0.0 < cert.critical_gain < math.inf):
+            kappa = KAPPA_MARGIN * ADAPTATION_MARGIN / cert.critical_gain
+            if kappa > ctrl.rac.normalisation:
+                ctrl = ctrl.replace(rac=ctrl.rac.replace(normalisation=kappa))
+                label = f'{label}, kappa {kappa:.3g} (adaptation bound)'
+                if progress is not None:
+                    progress(f'design: {label}')
+                cert = certify(ctrl, stage, bounds, options, progress)
+                tried.append((label, cert))
         if cert.certified:
             return Design(controller=ctrl, label=label, derived=dict(derived),
                           certification=cert, tried=tuple(tried))
-    last = tried[-1][1]
-    raise CommissionRefusedError(f'no tuning is certified over the identified bounds '
-                                 f'({len(LADDER)} tried; the last fails at {last.failed[0]})')
+    first, last = tried[0], tried[-1]
+    raise CommissionRefusedError(
+        f'no tuning is certified over the identified bounds ({len(tried)} tried): '
+        f'{first[0]} fails at {first[1].failed[0]}; {last[0]} at {last[1].failed[0]}')
 
 
 # --------------------------------------------------------------------------------------------
@@ -598,11 +709,13 @@ class Verification:
     ----------
     frequency_hz : float
     e_rms_m, e_max_m : float
-        On the stage, steady-state window [m].
+        On the stage (or, without one, on the identified model), steady-state window [m].
     predicted_e_rms_m : float
-        The same run on the identified model [m].
+        The same run on the identified model without sensor noise [m].
     record : RunRecord
-        The run on the stage.
+        The run behind ``e_rms_m``.
+    on_stage : bool
+        False when no stage was at hand (a recorded run): ``e_rms_m`` is the model's.
 
     """
 
@@ -611,6 +724,7 @@ class Verification:
     e_max_m: float
     predicted_e_rms_m: float
     record: RunRecord
+    on_stage: bool = True
 
 
 def _track(stage: StageParams, controller: ControllerParams, design_stage: StageParams,
@@ -622,15 +736,15 @@ def _track(stage: StageParams, controller: ControllerParams, design_stage: Stage
                meta={'name': f'verification_{frequency_hz:g}hz'})
 
 
-def verify(true_stage: StageParams, identified: StageParams, controller: ControllerParams,
-           params: CommissionParams) -> Verification:
+def verify(true_stage: StageParams | None, identified: StageParams,
+           controller: ControllerParams, params: CommissionParams) -> Verification:
     """
     Run the verification sine on the stage and on the identified model.
 
     Parameters
     ----------
-    true_stage : StageParams
-        The stage.
+    true_stage : StageParams or None
+        The stage; None runs the identified model with its sensor noise in its place.
     identified : StageParams
         The identified model (the controller's design model).
     controller : ControllerParams
@@ -644,12 +758,13 @@ def verify(true_stage: StageParams, identified: StageParams, controller: Control
 
     """
     f, d = params.verify_frequency_hz, params.verify_duration_s
-    rec = _track(true_stage, controller, identified, f, d)
+    rec = _track(true_stage or identified, controller, identified, f, d)
     m = summarize(rec, period_s=1.0 / f)
     model = identified.replace(chain=identified.chain.replace(sensor_noise_std_m=0.0))
     pred = summarize(_track(model, controller, identified, f, d), period_s=1.0 / f)
     return Verification(frequency_hz=f, e_rms_m=m.e_rms_m, e_max_m=m.e_max_m,
-                        predicted_e_rms_m=pred.e_rms_m, record=rec)
+                        predicted_e_rms_m=pred.e_rms_m, record=rec,
+                        on_stage=true_stage is not None)
 
 
 # --------------------------------------------------------------------------------------------
@@ -670,8 +785,8 @@ class CommissionResult:
     verification : Verification
     whole, excited : RunRecord
         The hold-and-excitation run and its excitation part.
-    hold_check : StabilityReport
-        The hold controller on the configured model.
+    hold_check : StabilityReport or None
+        The hold controller on the configured model (None for a recorded run).
     excitation_peak_m : float
         Largest |reference - hold| of the excitation [m].
     position_peak_m : float
@@ -688,7 +803,7 @@ class CommissionResult:
     verification: Verification
     whole: RunRecord
     excited: RunRecord
-    hold_check: StabilityReport
+    hold_check: StabilityReport | None
     excitation_peak_m: float
     position_peak_m: float
     accepted: bool
@@ -739,18 +854,98 @@ def commission(true_stage: StageParams, configured: StageParams,
         f'{params.duration_s:g} s (PI k_p {params.hold_k_p:g}, k_i {params.hold_k_i:g})')
     whole, excited, hold_check = excitation_run(true_stage, configured, configured_controller,
                                                 params, opts)
+    return _finish(whole, excited, hold_check, true_stage, configured, configured_controller,
+                   derive, params, opts, say)
+
+
+def excitation_part(record: RunRecord) -> RunRecord:
+    """
+    Return the part of a recorded commissioning run from the first move of its reference.
+
+    Parameters
+    ----------
+    record : RunRecord
+        Hold, then excitation (e.g. a bag of ``launch/commission.launch.py``).
+
+    Returns
+    -------
+    RunRecord
+        From the first sample whose reference differs from the first one, time from 0.
+
+    Raises
+    ------
+    CommissionRefusedError
+        If the reference never moves.
+
+    """
+    r = np.asarray(record.reference_m, dtype=np.float64)
+    moved = np.flatnonzero(r != r[0]) if r.size else np.zeros(0, dtype=np.intp)
+    if moved.size == 0:
+        raise CommissionRefusedError('the recorded run has no excitation: its reference '
+                                     'never leaves the hold')
+    i0 = int(moved[0])
+    meta = {k: v for k, v in record.meta.items() if k != 'trajectory_period_s'}
+    return RunRecord(record.time_s[i0:] - record.time_s[i0], record.position_m[i0:],
+                     r[i0:], record.reference_velocity_mps[i0:], record.command_v[i0:],
+                     meta=meta)
+
+
+def commission_record(record: RunRecord, configured: StageParams,
+                      configured_controller: ControllerParams, derive: DeriveFn,
+                      params: CommissionParams | None = None, *,
+                      stability: StabilityParams | None = None,
+                      progress: ProgressFn | None = None) -> CommissionResult:
+    """
+    Commission from a recorded hold-and-excitation run: identify, design, certify, verify.
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run (the nodes with the overrides of :func:`ros_overrides`, recorded).
+    configured, configured_controller, derive, params, stability, progress
+        As :func:`commission`; the hold is the run's first reference.
+
+    Returns
+    -------
+    CommissionResult
+        Verified on the identified model (no stage at hand): run the nodes with the parameter
+        file to verify on the stage.
+
+    Raises
+    ------
+    CommissionRefusedError
+        One line: why the stage cannot be commissioned from this run.
+
+    """
+    params = params or CommissionParams()
+    opts = stability or StabilityParams()
+    say = progress or (lambda _line: None)
+    excited = excitation_part(record)
+    params = params.replace(hold_m=float(record.reference_m[0]))
+    return _finish(record, excited, None, None, configured, configured_controller, derive,
+                   params, opts, say)
+
+
+def _finish(whole: RunRecord, excited: RunRecord, hold_check: StabilityReport | None,
+            true_stage: StageParams | None, configured: StageParams,
+            configured_controller: ControllerParams, derive: DeriveFn,
+            params: CommissionParams, opts: StabilityParams,
+            say: ProgressFn) -> CommissionResult:
+    """Identify, design, certify and verify from the excitation part of a run."""
     exc_peak = float(np.max(np.abs(excited.reference_m - params.hold_m)))
     pos_peak = float(np.max(np.abs(excited.position_m - params.hold_m)))
+    # a recorded run ran at the configured rate of the nodes
+    rate = (true_stage or configured).sample_rate_hz
     say('identify in closed loop')
     checked = identify_excitation(excited, configured, params)
     result = checked.result
-    identified = result.stage.replace(sample_rate_hz=true_stage.sample_rate_hz)
+    identified = result.stage.replace(sample_rate_hz=rate)
     if identified.hysteresis.model != 'backlash_like':
         raise CommissionRefusedError('commissioning certifies the backlash-like hysteresis '
                                      f'only (identified: {identified.hysteresis.model})')
     say('design on the identified model, certify over its bounds')
     des = design(identified, result.bounds, configured_controller, derive(identified), opts,
-                 say)
+                 say, ratio=loop_gain_ratio(identified, configured))
     say(f'verify: {params.verify_frequency_hz:g} Hz sine for {params.verify_duration_s:g} s')
     ver = verify(true_stage, identified, des.controller, params)
     notes = list(checked.warnings) + list(result.notes)
@@ -758,6 +953,9 @@ def commission(true_stage: StageParams, configured: StageParams,
     if not ver.e_rms_m <= params.verify_max_m:
         notes.append(f'verification e_rms {ver.e_rms_m * 1e9:.1f} nm exceeds '
                      f'{params.verify_max_m * 1e9:g} nm')
+    if true_stage is None:
+        notes.append(f'recorded run at {rate:.0f} Hz: the verification ran on the identified '
+                     'model; verify on the stage by running the nodes with the parameter file')
     return CommissionResult(identified=identified, checked=checked, design=des,
                             verification=ver, whole=whole, excited=excited,
                             hold_check=hold_check, excitation_peak_m=exc_peak,
@@ -791,7 +989,8 @@ def summary(result: CommissionResult, true_stage: StageParams | None = None) -> 
                        'reference_peak_m': result.excitation_peak_m,
                        'position_peak_m': result.position_peak_m,
                        'loop': 'closed throughout (hold PI)',
-                       'hold_controller_check': result.hold_check.text()},
+                       'hold_controller_check': None if result.hold_check is None
+                       else result.hold_check.text()},
         'identified': {k: float(v) for k, v in s.items()},
         'bounds_95': {k: [float(lo), float(hi)] for k, (lo, hi) in res.bounds.items()},
         'design': {'tuning': result.design.label,
@@ -803,7 +1002,8 @@ def summary(result: CommissionResult, true_stage: StageParams | None = None) -> 
                           'gain_margin_db': cert.gain_margin_db,
                           'phase_margin_deg': cert.phase_margin_deg,
                           'identified_model': cert.nominal.text()},
-        'verification': {'frequency_hz': ver.frequency_hz, 'e_rms_m': ver.e_rms_m,
+        'verification': {'frequency_hz': ver.frequency_hz, 'on_stage': ver.on_stage,
+                         'e_rms_m': ver.e_rms_m,
                          'e_max_m': ver.e_max_m, 'predicted_e_rms_m': ver.predicted_e_rms_m},
         'notes': list(result.notes),
     }
