@@ -326,9 +326,11 @@ def _survey(args: argparse.Namespace, loop: LoopConfig) -> int:
         cells = [f'{100 * cmp[k][0]:+.2f} %' for k in ('static_gain_m_per_v', 'omega_n_rad_s',
                                                         'tau_s', 'zeta', 'alpha')]
         inside = sum(v[1] for v in cmp.values())
+        outside = [k for k, v in cmp.items() if not v[1]]
         cert = result.design.certification
         ver = result.verification
-        cells += [f'{inside}/{len(cmp)}',
+        cells += [f'{inside}/{len(cmp)}' + (f' ({", ".join(outside)} outside)' if outside
+                                             else ''),
                   f'{result.design.label}' + ('' if cert.certified else ' NOT certified'),
                   f'{cert.gain_margin_db:.1f} dB / {cert.phase_margin_deg:.0f} deg',
                   f'{result.excitation_peak_m * 1e6:.2f} / {result.position_peak_m * 1e6:.2f}',

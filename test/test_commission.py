@@ -184,3 +184,39 @@ def test_loop_gain_ratio_is_the_inverse_gain_ratio() -> None:
     assert loop_gain_ratio(base, base) == 1.0
     half = member_params(base, member('gain_lo'))  # gain x0.7
     assert loop_gain_ratio(half, base) == pytest.approx(1.0 / 0.7, rel=1e-12)
+
+
+def test_commission_from_a_recorded_run(tmp_path: Path, capsys: pytest.CaptureFixture[str]
+                                        ) -> None:
+    # the ROS path: the excitation as the nodes run it (a table and their parameters), run by
+    # the offline runner as lockstep runs it, recorded to a bag, commissioned from the bag
+    from piezo_stage_ros.simulate import main as simulate
+    folder = tmp_path / 'exc'
+    assert main(['--write-excitation', str(folder), '--duration', '1']) == 0
+    overrides = folder / 'overrides.yaml'
+    loop = load_loop_config([_default(), overrides])
+    assert (loop.controller.type, loop.controller.notch.mode) == ('pi', 'off')
+    assert loop.trajectory.kind == 'csv'
+    bag = tmp_path / 'bag'
+    assert simulate(['--config', str(overrides), '--noise', '2e-9', '--duration', '1.2',
+                     '--param', 'plant_node:plant.third_order.gain=6e6', '--bag',
+                     str(bag)]) == 0
+    capsys.readouterr()
+    out, report = tmp_path / 'c.yaml', tmp_path / 'rep'
+    status = main(['--bag', str(bag), '--verify-duration', '0.2', '--output', str(out),
+                   '--report', str(report)])
+    stdout = capsys.readouterr().out
+    assert status == 0 and out.exists(), stdout
+    doc = json.loads((report / 'report.json').read_text(encoding='utf-8'))
+    assert doc['certification']['certified'] and not doc['verification']['on_stage']
+    assert doc['excitation']['reference_peak_m'] <= 1e-6
+    # K of the recorded stage, within its bounds
+    stage = load_loop_config([_default(), out]).stage
+    assert stage.plant.third_order.gain == pytest.approx(6e6, rel=0.02)
+
+
+def test_write_excitation_refuses_beyond_the_limit(tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(['--write-excitation', str(tmp_path / 'x'), '--slow-amplitude', '0.95e-6']) == 1
+    assert "parameter 'multisine_rms_m'" in capsys.readouterr().err
+    assert not (tmp_path / 'x' / 'excitation.csv').exists()

@@ -96,10 +96,10 @@ from piezo_stage_ros.core.model.stage import linear_plant, Stage, StageParams
 
 __all__ = ['CommissionParams', 'CommissionRefusedError', 'CommissionResult', 'Certification',
            'Design', 'Excitation', 'KAPPA_MARGIN', 'LADDER', 'Verification', 'certify',
-           'commission', 'commission_record', 'comparison', 'corner_plants', 'design',
-           'excitation_part', 'excitation_run', 'excitation_table', 'hold_controller',
-           'identify_excitation', 'loop_gain_ratio', 'ros_overrides', 'slope_range', 'summary',
-           'true_values', 'verify']
+           'checked_excitation', 'commission', 'commission_record', 'comparison',
+           'corner_plants', 'design', 'excitation_part', 'excitation_run', 'excitation_table',
+           'hold_controller', 'identify_excitation', 'loop_gain_ratio', 'ros_overrides',
+           'slope_range', 'summary', 'true_values', 'verify']
 
 #: Called with one line of progress.
 ProgressFn = Callable[[str], None]
@@ -217,6 +217,37 @@ class Excitation:
         return float(np.max(np.abs(self.excitation(t)[0])))
 
 
+def checked_excitation(params: CommissionParams, sample_rate_hz: float) -> Excitation:
+    """
+    Return the excitation after checking that it stays within ``max_excursion_m`` of the hold.
+
+    Parameters
+    ----------
+    params : CommissionParams
+        Hold and excitation.
+    sample_rate_hz : float
+        Loop rate [Hz].
+
+    Returns
+    -------
+    Excitation
+
+    Raises
+    ------
+    ParameterError
+        If the reference leaves ``hold_m +- max_excursion_m`` at a sample.
+
+    """
+    exc = Excitation(params, sample_rate_hz)
+    peak = exc.peak_m(1.0 / sample_rate_hz)
+    if peak > params.max_excursion_m:
+        raise ParameterError('multisine_rms_m', params.multisine_rms_m,
+                             f'a reference within {params.max_excursion_m * 1e6:g} um of the '
+                             'hold', f'with slow_amplitude_m = {params.slow_amplitude_m:g} takes '
+                             f'the reference {peak * 1e6:.3g} um from the hold')
+    return exc
+
+
 def hold_controller(params: CommissionParams, configured: ControllerParams) -> ControllerParams:
     """
     Return the conservative controller that holds the stage during the excitation.
@@ -278,13 +309,7 @@ def excitation_run(true_stage: StageParams, configured: StageParams,
 
     """
     t = true_stage.sample_time_s
-    exc = Excitation(params, true_stage.sample_rate_hz)
-    peak = exc.peak_m(t)
-    if peak > params.max_excursion_m:
-        raise ParameterError('multisine_rms_m', params.multisine_rms_m,
-                             f'a reference within {params.max_excursion_m * 1e6:g} um of the '
-                             'hold', f'with slow_amplitude_m = {params.slow_amplitude_m:g} takes '
-                             f'the reference {peak * 1e6:.3g} um from the hold')
+    exc = checked_excitation(params, true_stage.sample_rate_hz)
     hold = hold_controller(params, configured_controller)
     opts = stability or StabilityParams()
     check = check_stability(hold, configured.plant, t, options=opts)
@@ -356,11 +381,17 @@ def excitation_table(params: CommissionParams, sample_rate_hz: float
         table's piecewise-linear interpolation gives the samples themselves, so the reference
         the nodes run repeats exactly as offline.
 
+    Raises
+    ------
+    ParameterError
+        As :func:`checked_excitation`.
+
     """
+    exc = checked_excitation(params, sample_rate_hz)
     t_s = 1.0 / sample_rate_hz
     n = int(round((params.settle_s + params.duration_s) / t_s))
     t = np.arange(n + 1) * t_s
-    return np.asarray(t, dtype=np.float64), Excitation(params, sample_rate_hz).evaluate(t)[0]
+    return np.asarray(t, dtype=np.float64), exc.evaluate(t)[0]
 
 
 def ros_overrides(params: CommissionParams, table_path: str) -> dict[str, dict[str, Any]]:
