@@ -45,13 +45,8 @@ from launch.launch_description_sources import PythonLaunchDescriptionSource
 from launch.substitutions import LaunchConfiguration
 from piezo_stage_ros.core.contracts.config import find_config, load_config
 from piezo_stage_ros.core.contracts.loop_config import LoopConfig
-from piezo_stage_ros.core.identification.commission import (
-    CommissionParams,
-    excitation_table,
-    ros_overrides,
-)
-from piezo_stage_ros.identify import _nested
-import yaml
+from piezo_stage_ros.commission import write_excitation
+from piezo_stage_ros.core.identification.commission import CommissionParams
 
 _D = CommissionParams()
 ARGUMENTS = {
@@ -76,24 +71,15 @@ def _launch(context: LaunchContext) -> list[Any]:
     params = CommissionParams(hold_m=float(arg['hold_m']), duration_s=float(arg['duration_s']),
                               multisine_rms_m=float(arg['multisine_rms_m']),
                               slow_amplitude_m=float(arg['slow_amplitude_m']))
-    folder = tempfile.mkdtemp(prefix='piezo_commission_')
-    t, r = excitation_table(params, rate)
-    table = os.path.join(folder, 'excitation.csv')
-    with open(table, 'w', encoding='utf-8') as stream:
-        stream.write('time_s,position_m\n')
-        stream.writelines(f'{float(a)!r},{float(b)!r}\n' for a, b in zip(t, r))
-    overrides = os.path.join(folder, 'overrides.yaml')
-    with open(overrides, 'w', encoding='utf-8') as stream:
-        yaml.safe_dump({node: {'ros__parameters': _nested(values)}
-                        for node, values in ros_overrides(params, table).items()}, stream,
-                       sort_keys=False)
+    _, overrides, length = write_excitation(
+        params, rate, tempfile.mkdtemp(prefix='piezo_commission_'))
     loop_launch = os.path.join(os.path.dirname(os.path.abspath(__file__)),
                                'closed_loop.launch.py')
     return [IncludeLaunchDescription(
         PythonLaunchDescriptionSource(loop_launch),
         launch_arguments={'config': files[0], 'scenario': arg['scenario'],
-                          'overrides': overrides, 'mode': arg['mode'], 'record': 'true',
-                          'bag': arg['bag'], 'duration_s': repr(float(t[-1])),
+                          'overrides': str(overrides), 'mode': arg['mode'], 'record': 'true',
+                          'bag': arg['bag'], 'duration_s': repr(length),
                           'end_with_plant': 'true'}.items())]
 
 

@@ -74,7 +74,7 @@ from piezo_stage_ros.core.model.stage import StageParams
 from piezo_stage_ros.identify import _nested, controller_values, parameter_file_text
 import yaml
 
-__all__ = ['build_parser', 'main', 'member', 'parameter_text']
+__all__ = ['build_parser', 'main', 'member', 'parameter_text', 'write_excitation']
 
 PROG = 'commission'
 DEFAULT_STAGE = 'gain_hi_zeta_lo_noise'
@@ -225,11 +225,37 @@ def _run_one(args: argparse.Namespace, loop: LoopConfig, name: str,
     return result, true
 
 
-def _write_excitation(args: argparse.Namespace, loop: LoopConfig) -> int:
-    out = Path(args.write_excitation)
+def write_excitation(params: CommissionParams, sample_rate_hz: float, folder: str | Path
+                     ) -> tuple[Path, Path, float]:
+    """
+    Write the excitation table and the node parameters that run it.
+
+    Parameters
+    ----------
+    params : CommissionParams
+        Hold, excitation, hold controller.
+    sample_rate_hz : float
+        Loop rate of the nodes [Hz].
+    folder : str or Path
+        Directory (created).
+
+    Returns
+    -------
+    table, overrides : Path
+        ``excitation.csv`` (columns time_s, position_m) and ``overrides.yaml`` (a parameter
+        file for ``closed_loop.launch.py overrides:=`` or ``simulate --config``).
+    length_s : float
+        Hold plus excitation [s], the run length to record.
+
+    Raises
+    ------
+    ParameterError
+        If the excitation leaves the allowed distance from the hold (nothing is written).
+
+    """
+    t, r = excitation_table(params, sample_rate_hz)
+    out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
-    params = _params(args)
-    t, r = excitation_table(params, loop.stage.sample_rate_hz)
     table = out / 'excitation.csv'
     rows = ''.join(f'{float(a)!r},{float(b)!r}\n' for a, b in zip(t, r))
     table.write_text('time_s,position_m\n' + rows, encoding='utf-8')
@@ -237,10 +263,16 @@ def _write_excitation(args: argparse.Namespace, loop: LoopConfig) -> int:
            for node, values in ros_overrides(params, str(table.resolve())).items()}
     overrides = out / 'overrides.yaml'
     overrides.write_text(yaml.safe_dump(doc, sort_keys=False), encoding='utf-8')
-    print(f'excitation table: {table} ({t.size} samples, {t[-1]:g} s)')
+    return table, overrides, float(t[-1])
+
+
+def _write_excitation(args: argparse.Namespace, loop: LoopConfig) -> int:
+    table, overrides, length = write_excitation(_params(args), loop.stage.sample_rate_hz,
+                                                args.write_excitation)
+    print(f'excitation table: {table} ({length:g} s)')
     print(f'node parameters: {overrides}')
     print(f'run: ros2 launch piezo_stage_ros closed_loop.launch.py overrides:={overrides} '
-          f'record:=true bag:=commission_bag duration_s:={t[-1]:g}')
+          f'record:=true bag:=commission_bag duration_s:={length:g}')
     print('then: commission --bag commission_bag')
     return 0
 
