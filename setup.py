@@ -51,6 +51,7 @@ setup(
             'benchmark = piezo_stage_ros.benchmark:main',
             'soak = piezo_stage_ros.soak:main',
             'tune = piezo_stage_ros.tune:main',
+            'commission = piezo_stage_ros.commission:main',
             'robustness = piezo_stage_ros.robustness:main',
             'plant_node = piezo_stage_ros.nodes.plant_node:main',
             'controller_node = piezo_stage_ros.nodes.controller_node:main',

@@ -1,0 +1,405 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+``commission``: commission a simulated stage without leaving closed loop.
+
+Holds the stage at a safe position under a conservative PI, adds a small periodic multisine to
+its reference (at most 1 um from the hold, at most 10 s), identifies the stage in closed loop
+with 95 % bounds, designs the notch and gains on the identified model, certifies them with the
+stability check over the bounds, runs a 100 Hz verification sine, and writes
+
+- a ROS 2 parameter file (``--output``, default ``commissioned.yaml``): the identified stage in
+  ``plant_node`` (as ``identify`` writes it) and the commissioned controller in
+  ``controller_node``; ``simulate --config`` and the nodes read it;
+- a report (``--report DIR``, default ``commission_report``): ``report.json`` and the figures.
+
+The stage is a member of the ``robustness`` family (``--stage``, default
+``gain_hi_zeta_lo_noise``: the worst-margin corner with 3 nm of sensor noise), unlike the
+configured model. The steps are in
+:mod:`piezo_stage_ros.core.identification.commission`. Examples::
+
+    commission
+    commission --stage random_0002 --output stage.yaml --report rep
+    commission --survey                   # several members, a Markdown table, no files
+    commission --write-excitation DIR     # the excitation for the ROS nodes (a table and
+                                          # their parameters); record it, then
+    commission --bag BAG                  # commission from the recorded run
+
+Exit status: 0 when the controller is certified and the verification is within its limit; 1
+when the excitation cannot support the model, no tuning is certified, or the verification
+fails (one line on stderr, no parameter file); 2 on bad usage.
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import replace
+import math
+from pathlib import Path
+import sys
+from typing import Any, Sequence
+
+from piezo_stage_ros import cli
+from piezo_stage_ros.core.contracts.errors import ConfigError
+from piezo_stage_ros.core.contracts.loop_config import LoopConfig
+from piezo_stage_ros.core.identification.commission import (
+    commission,
+    commission_record,
+    CommissionParams,
+    CommissionRefusedError,
+    CommissionResult,
+    comparison,
+    excitation_table,
+    ros_overrides,
+)
+from piezo_stage_ros.core.model.family import (
+    default_family,
+    member_params,
+    sample_family,
+    StageVariation,
+)
+from piezo_stage_ros.core.model.stage import StageParams
+from piezo_stage_ros.identify import _nested, controller_values, parameter_file_text
+import yaml
+
+__all__ = ['build_parser', 'main', 'member', 'parameter_text', 'write_excitation']
+
+PROG = 'commission'
+DEFAULT_STAGE = 'gain_hi_zeta_lo_noise'
+#: Sensor noise given to a member that has none [m rms].
+DEFAULT_NOISE_M = 2e-9
+#: The members of ``--survey``.
+SURVEY = ('nominal', 'gain_lo', 'gain_hi', 'omega_n_lo', 'omega_n_hi', 'zeta_lo', 'zeta_hi',
+          'tau_lo', 'tau_hi', 'alpha_lo', 'alpha_hi', 'gain_hi_zeta_lo_noise',
+          'gain_hi_wn_lo_zeta_lo', 'gain_lo_tau_hi', 'random_0000', 'random_0001',
+          'random_0002', 'random_0003')
+
+
+def member(name: str, *, seed: int = 0, noise_m: float | None = None) -> StageVariation:
+    """
+    Return a member of the stage family by name.
+
+    Parameters
+    ----------
+    name : str
+        A name of :func:`default_family`, or ``random_N`` (the N-th of
+        :func:`sample_family` with ``seed``).
+    seed : int
+        Seed of the random members.
+    noise_m : float, optional
+        Sensor noise [m rms]; default the member's own, or :data:`DEFAULT_NOISE_M` when it has
+        none.
+
+    Returns
+    -------
+    StageVariation
+
+    Raises
+    ------
+    cli.UsageError
+        For an unknown name.
+
+    """
+    known = {m.name: m for m in default_family()}
+    if name in known:
+        found = known[name]
+    elif name.startswith('random_') and name[7:].isdigit():
+        index = int(name[7:])
+        found = sample_family(index + 1, seed)[index]
+    else:
+        raise cli.UsageError(f'unknown stage {name!r}: one of {", ".join(known)} or random_N')
+    if noise_m is not None:
+        return replace(found, noise_m=noise_m)
+    return found if found.noise_m > 0.0 else replace(found, noise_m=DEFAULT_NOISE_M)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Return the command-line parser of ``commission``."""
+    p = cli.Parser(prog=PROG, description='Commission a simulated stage in closed loop: hold, '
+                   'excite, identify, design, certify, verify; write a parameter file and a '
+                   'report.')
+    p.add_argument('--stage', action='append', default=[], metavar='NAME',
+                   help=f'Family member to commission (default {DEFAULT_STAGE}); a name of '
+                   'robustness --list-family or random_N; repeatable with --survey.')
+    p.add_argument('--seed', type=int, default=0, help='Seed of the random_N members.')
+    p.add_argument('--noise', type=float, metavar='M', help='Sensor noise of the stage [m rms] '
+                   f"(default: the member's own, {DEFAULT_NOISE_M:g} when it has none).")
+    cli.add_config_options(p)
+    p.add_argument('--output', default='commissioned.yaml', metavar='FILE',
+                   help='Parameter file to write (default: commissioned.yaml).')
+    p.add_argument('--report', default='commission_report', metavar='DIR',
+                   help="Directory for report.json and the figures; 'none' to skip.")
+    d = CommissionParams()
+    p.add_argument('--hold', type=float, default=d.hold_m, metavar='M',
+                   help=f'Hold position [m] (default {d.hold_m:g}).')
+    p.add_argument('--duration', type=float, default=d.duration_s, metavar='S',
+                   help=f'Excitation length [s], at most 10 (default {d.duration_s:g}).')
+    p.add_argument('--multisine-rms', type=float, default=d.multisine_rms_m, metavar='M',
+                   help=f'Rms of the multisine [m] (default {d.multisine_rms_m:g}).')
+    p.add_argument('--slow-amplitude', type=float, default=d.slow_amplitude_m, metavar='M',
+                   help=f'Amplitude of the slow sine [m] (default {d.slow_amplitude_m:g}).')
+    p.add_argument('--band', nargs=2, type=float, default=(d.band_low_hz, d.band_high_hz),
+                   metavar=('LOW_HZ', 'HIGH_HZ'), help='Band of the multisine (default '
+                   f'{d.band_low_hz:g} {d.band_high_hz:g}).')
+    p.add_argument('--verify-duration', type=float, default=d.verify_duration_s, metavar='S',
+                   help=f'Length of the verification run [s] (default {d.verify_duration_s:g}).')
+    p.add_argument('--bag', metavar='BAG',
+                   help='Commission from a recorded hold-and-excitation run instead of '
+                   'simulating one (launch/commission.launch.py records it); the verification '
+                   'then runs on the identified model.')
+    p.add_argument('--write-excitation', metavar='DIR',
+                   help='Write the excitation table (excitation.csv) and the node parameters '
+                   'that run it (overrides.yaml) into DIR for the ROS nodes, and exit.')
+    p.add_argument('--survey', action='store_true',
+                   help='Commission every --stage (default: a list of members) and print a '
+                   'Markdown table of recovered vs true, certification and verification; '
+                   'writes no file.')
+    return p
+
+
+def _params(args: argparse.Namespace) -> CommissionParams:
+    return CommissionParams(hold_m=args.hold, duration_s=args.duration,
+                            multisine_rms_m=args.multisine_rms,
+                            slow_amplitude_m=args.slow_amplitude, band_low_hz=args.band[0],
+                            band_high_hz=args.band[1], verify_duration_s=args.verify_duration)
+
+
+def parameter_text(result: CommissionResult, loop: LoopConfig, header: Sequence[str]) -> str:
+    """
+    Return the parameter file of a commissioning run.
+
+    Parameters
+    ----------
+    result : CommissionResult
+        The run.
+    loop : LoopConfig
+        The configuration it started from.
+    header : sequence of str
+        Comment lines.
+
+    Returns
+    -------
+    str
+        YAML: ``plant_node`` as ``identify`` writes it; ``controller_node`` every value of the
+        commissioned controller and the slope range it was certified over.
+
+    """
+    text = parameter_file_text(result.identified, header=header,
+                               reference=loop.controller.to_flat(), reference_stage=loop.stage)
+    doc = yaml.safe_load(text)
+    lo, hi = result.design.certification.slope_range
+    flat: dict[str, Any] = dict(result.design.controller.to_flat())
+    flat.update({'stability.slope_min': lo, 'stability.slope_max': hi})
+    doc['controller_node'] = {'ros__parameters': _nested(flat)}
+    lines = [f'# {line}' for line in header]
+    return '\n'.join(lines + [yaml.safe_dump(doc, sort_keys=False, default_flow_style=False)])
+
+
+def _run_one(args: argparse.Namespace, loop: LoopConfig, name: str,
+             progress: cli.Progress) -> tuple[CommissionResult, StageParams | None]:
+    def derive(stage: StageParams) -> dict[str, Any]:
+        return controller_values(stage, loop.controller.to_flat(), loop.stage)
+
+    if args.bag is not None:
+        from piezo_stage_ros.analysis.bagread import read_run
+        if not Path(args.bag).exists():
+            raise ConfigError(f'bag {args.bag!r} does not exist')
+        record = read_run(args.bag)
+        return commission_record(record, loop.stage, loop.controller, derive, _params(args),
+                                 stability=loop.stability, progress=progress.line), None
+    true = member_params(loop.stage, member(name, seed=args.seed, noise_m=args.noise))
+    result = commission(true, loop.stage, loop.controller, derive, _params(args),
+                        stability=loop.stability, progress=progress.line)
+    return result, true
+
+
+def write_excitation(params: CommissionParams, sample_rate_hz: float, folder: str | Path
+                     ) -> tuple[Path, Path, float]:
+    """
+    Write the excitation table and the node parameters that run it.
+
+    Parameters
+    ----------
+    params : CommissionParams
+        Hold, excitation, hold controller.
+    sample_rate_hz : float
+        Loop rate of the nodes [Hz].
+    folder : str or Path
+        Directory (created).
+
+    Returns
+    -------
+    table, overrides : Path
+        ``excitation.csv`` (columns time_s, position_m) and ``overrides.yaml`` (a parameter
+        file for ``closed_loop.launch.py overrides:=`` or ``simulate --config``).
+    length_s : float
+        Hold plus excitation [s], the run length to record.
+
+    Raises
+    ------
+    ParameterError
+        If the excitation leaves the allowed distance from the hold (nothing is written).
+
+    """
+    t, r = excitation_table(params, sample_rate_hz)
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    table = out / 'excitation.csv'
+    rows = ''.join(f'{float(a)!r},{float(b)!r}\n' for a, b in zip(t, r))
+    table.write_text('time_s,position_m\n' + rows, encoding='utf-8')
+    doc = {node: {'ros__parameters': _nested(values)}
+           for node, values in ros_overrides(params, str(table.resolve())).items()}
+    overrides = out / 'overrides.yaml'
+    overrides.write_text(yaml.safe_dump(doc, sort_keys=False), encoding='utf-8')
+    return table, overrides, float(t[-1])
+
+
+def _write_excitation(args: argparse.Namespace, loop: LoopConfig) -> int:
+    table, overrides, length = write_excitation(_params(args), loop.stage.sample_rate_hz,
+                                                args.write_excitation)
+    print(f'excitation table: {table} ({length:g} s)')
+    print(f'node parameters: {overrides}')
+    print(f'run: ros2 launch piezo_stage_ros closed_loop.launch.py overrides:={overrides} '
+          f'record:=true bag:=commission_bag duration_s:={length:g}')
+    print('then: commission --bag commission_bag')
+    return 0
+
+
+def _single(args: argparse.Namespace, loop: LoopConfig) -> int:
+    if len(args.stage) > 1:
+        raise cli.UsageError('one --stage at a time (or --survey)')
+    if args.bag is not None and args.stage:
+        raise cli.UsageError('--bag commissions the recorded stage: no --stage')
+    name = args.stage[0] if args.stage else DEFAULT_STAGE
+    progress = cli.Progress(PROG)
+    result, true = _run_one(args, loop, name, progress)
+    cert = result.design.certification
+    ver = result.verification
+    report = args.report.lower() != 'none'
+    if report:
+        from piezo_stage_ros.analysis.commission_report import write_commission_report
+        progress.line('write the report')
+        files = write_commission_report(result, args.report, true_stage=true,
+                                        extra={'stage': name, 'parameter file': args.output
+                                               if result.accepted else None})
+    s = result.checked.result.summary()
+    if true is None:
+        print(f'recorded run: {args.bag}')
+    else:
+        print(f'stage: {name} ({member(name, seed=args.seed, noise_m=args.noise).describe()})')
+    length = result.excited.time_s.size * result.identified.sample_time_s
+    print(f'excitation: {length:g} s, reference within '
+          f'{result.excitation_peak_m * 1e6:.3f} um of the hold, position within '
+          f'{result.position_peak_m * 1e6:.3f} um; loop closed throughout')
+    print(f'identified: static gain {s["static_gain_m_per_v"]:.6g} m/V, w_n '
+          f'{s["omega_n_rad_s"]:.6g} rad/s, zeta {s["zeta"]:.5g}, tau {s["tau_s"]:.6g} s, '
+          f'alpha {s["alpha"]:.5g}, B1 {s["b1"]:.5g}')
+    for key, (value, inside) in (comparison(result, true).items() if true else ()):
+        print(f'  {key}: {100 * value:+.2f} % from the truth, '
+              f'{"inside" if inside else "OUTSIDE"} its 95 % bounds')
+    print(f'design: {result.design.label}, notch '
+          f'{result.design.controller.notch.frequency_hz:.1f} Hz (zero damping '
+          f'{result.design.controller.notch.zero_damping:.4g})')
+    print(f'certification: {"certified" if cert.certified else "NOT certified"} on '
+          f'{cert.corners} plants (identified model and the corners of its 95 % bounds), '
+          f'slopes {cert.slope_range[0]:.4g} ... {cert.slope_range[1]:.4g}; smallest gain '
+          f'margin {cert.gain_margin_db:.1f} dB, phase margin {cert.phase_margin_deg:.0f} deg')
+    where = 'on the stage' if ver.on_stage else 'on the identified model'
+    print(f'verification {where}: {ver.frequency_hz:g} Hz sine, e_rms {ver.e_rms_m * 1e9:.2f} nm '
+          f'(limit {_params(args).verify_max_m * 1e9:g} nm; the identified model predicted '
+          f'{ver.predicted_e_rms_m * 1e9:.2f} nm), e_max {ver.e_max_m * 1e9:.1f} nm')
+    for note in result.notes:
+        print(f'note: {note}')
+    if report:
+        print(f'report: {files[-1]}')
+    if not result.accepted:
+        cli.error(PROG, f'verification e_rms {ver.e_rms_m * 1e9:.1f} nm exceeds '
+                  f'{_params(args).verify_max_m * 1e9:g} nm: no parameter file written')
+        return 1
+    header = ['Commissioned by: commission ' + ' '.join(sys.argv[1:] if args.argv is None
+                                                        else args.argv),
+              f'Certified on {cert.corners} plants (the identified model and the corners of '
+              'its 95 % bounds); verification '
+              f'{ver.frequency_hz:g} Hz e_rms {ver.e_rms_m * 1e9:.2f} nm.',
+              'Review the report before using these values on a stage.']
+    Path(args.output).write_text(parameter_text(result, loop, header), encoding='utf-8')
+    print(f'parameter file: {args.output}')
+    return 0
+
+
+def _survey(args: argparse.Namespace, loop: LoopConfig) -> int:
+    names = args.stage or list(SURVEY)
+    progress = cli.Progress(PROG)
+    heads = ['stage', 'DC gain', 'w_n', 'tau', 'zeta', 'alpha', 'in bounds', 'tuning',
+             'GM / PM', 'ref / pos peak [um]', '100 Hz e_rms [nm] (predicted)']
+    print('| ' + ' | '.join(heads) + ' |')
+    print('|' + ' --- |' * len(heads))
+    for name in names:
+        progress.line(f'{name}: start')
+        try:
+            result, true = _run_one(args, loop, name, progress)
+        except CommissionRefusedError as exc:
+            print(f'| {name} | refused: {exc} |' + ' |' * (len(heads) - 2), flush=True)
+            continue
+        assert true is not None
+        cmp = comparison(result, true)
+        cells = [f'{100 * cmp[k][0]:+.2f} %' for k in ('static_gain_m_per_v', 'omega_n_rad_s',
+                                                        'tau_s', 'zeta', 'alpha')]
+        inside = sum(v[1] for v in cmp.values())
+        outside = [k for k, v in cmp.items() if not v[1]]
+        cert = result.design.certification
+        ver = result.verification
+        cells += [f'{inside}/{len(cmp)}' + (f' ({", ".join(outside)} outside)' if outside
+                                             else ''),
+                  f'{result.design.label}' + ('' if cert.certified else ' NOT certified'),
+                  f'{cert.gain_margin_db:.1f} dB / {cert.phase_margin_deg:.0f} deg',
+                  f'{result.excitation_peak_m * 1e6:.2f} / {result.position_peak_m * 1e6:.2f}',
+                  f'{ver.e_rms_m * 1e9:.1f} ({ver.predicted_e_rms_m * 1e9:.1f})']
+        print('| ' + ' | '.join([name] + cells) + ' |', flush=True)
+    print(f'\n(survey took {progress.elapsed():.0f} s; {math.ceil(args.duration):g} s '
+          'excitation each)')
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """
+    Run ``commission``.
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        Command-line arguments without the program name; default ``sys.argv[1:]``.
+
+    Returns
+    -------
+    int
+        Exit status: 0 commissioned, 1 refused or failed, 2 bad usage.
+
+    """
+    def body(args: argparse.Namespace) -> int:
+        args.argv = None if argv is None else list(argv)
+        loop = cli.offline_loop(PROG, cli.read_config(args.config, args.param))
+        if args.write_excitation is not None:
+            return _write_excitation(args, loop)
+        if args.survey:
+            if args.bag is not None:
+                raise cli.UsageError('--survey simulates the family: no --bag')
+            return _survey(args, loop)
+        return _single(args, loop)
+    return cli.run_command(PROG, build_parser(), body, argv)
+
+
+if __name__ == '__main__':
+    sys.exit(main())
