@@ -231,6 +231,46 @@ def test_learned_table_round_trip(tmp_path: object) -> None:
         ctrl.load_table(table[:-1])
 
 
+def test_learning_update_is_the_circular_convolution_of_the_stepped_errors() -> None:
+    # The update is summed in runs of LEARN_CHUNK samples; a stall (samples the caller
+    # skipped) across a run's end and the period's end must add nothing for those samples and
+    # lose none of the others: the period whose end was skipped is applied with the next one.
+    params = _controller('learning', **{'notch.mode': 'off',
+                                        'feedforward.learning_limit_v': 100.0})
+    ctrl = build_controller(params, T, linear_plant(LOOP.design_plant),
+                            make_hysteresis(HysteresisParams(model='none')))
+    assert isinstance(ctrl, FeedForwardController)
+    sine = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine', 'sine.frequency_hz': 100}))
+    ctrl.bind(sine)
+    ctrl.reset(3.8e-6, 3.8e-6)
+    n = 100
+    first_skipped, skipped = 2 * n - 3, 5  # samples 97 .. 99 of one period, 0 .. 1 of the next
+    errors = 1e-8 * np.random.default_rng(3).standard_normal(3 * n)
+    xd, vd = sine.evaluate(np.arange(3 * n) * T)
+    k = 0
+    while k < 3 * n:
+        if k == first_skipped:
+            ctrl.skip(skipped)
+            k += skipped
+            continue
+        ctrl.step(float(xd[k] + errors[k]), float(xd[k]), float(vd[k]))
+        k += 1
+    # the first period is not learned (start periods 1); the second's end was skipped
+    assert ctrl.periods_learned == 1
+    # the errors as the controller forms them: position minus its own table of the reference
+    measured = xd + errors
+    learned = measured - np.tile(ctrl._lx_raw, 3)
+    learned[first_skipped:first_skipped + skipped] = 0.0
+    learned = learned[n:2 * n] + learned[2 * n:]
+    h = ctrl._kernel2[:n]  # the filter's impulse response, designed at bind
+    circulant = h[(np.arange(n)[:, None] - np.arange(n)[None, :]) % n]
+    expected = -(circulant @ learned)
+    # sums of 2 n products, in another order: 2 n rounding steps of the largest partial sum
+    bound = 4 * n * EPS * float(np.max(np.abs(circulant) @ np.abs(learned)))
+    assert np.max(np.abs(ctrl.learned_table() - expected)) <= bound
+    assert np.max(np.abs(expected)) > 1e3 * bound  # the comparison is not of zeros
+
+
 # -- the closed loop: the targets on the default stage --------------------------------
 
 

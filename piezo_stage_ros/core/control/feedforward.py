@@ -46,7 +46,7 @@ A two-degree-of-freedom structure around any controller of
   sensitivity of the design model (the controller linearized as the stability check does).
   Q keeps the harmonics below ``learning_bandwidth_hz``; on the design model each kept harmonic
   converges monotonically with ratio |1 - gamma|; on another stage the ratio is
-  |1 - gamma P_true / P_s| (:func:`learning_convergence`). The update is summed sample by sample
+  |1 - gamma P_true / P_s| (:func:`learning_convergence`). The update is summed in runs of 16
   (no FFT at the period's end), and the RAC's estimates are held while the table learns: both
   would chase the same periodic error and drift.
 - **Jumps** (``inverse`` modes): an ideal jump cannot be followed; each jump of the reference is
@@ -80,6 +80,10 @@ __all__ = ['FeedForwardController', 'FeedForwardParams', 'HysteresisInverse', 'M
 
 #: The feed-forward modes.
 MODES = ('none', 'inverse', 'learning', 'inverse_learning')
+
+#: Samples whose errors enter the learning update together (one correlation each run).
+LEARN_CHUNK = 16
+_ZEROS = [0.0] * LEARN_CHUNK
 
 
 @dataclass(frozen=True)
@@ -232,6 +236,17 @@ class BacklashInverse(HysteresisInverse):
         self._c = p.c
         self._shift = (p.b1 - p.c) / p.alpha
         self._e = 0.0
+        # Across a jump of sign sgn from any state (|e0| <= rho = -shift), with y = |dv| and
+        # a = sgn shift - e0, so that a sgn is in [2 shift, 0]: w(dv) - w0 = c dv + a (1 -
+        # exp(-alpha y)) has the slope c + alpha a sgn exp(-alpha y), between
+        # c + 2 alpha shift = 2 B1 - c and c, and is convex in y. Newton from the tangent at 0
+        # comes down to the root monotonically, and after a step delta the output error is at
+        # most bound delta^2, bound = c (c / s_min)^2 alpha^2 2 rho / (2 s_min) with
+        # s_min = 2 B1 - c: the step that makes it smaller than the tolerance is the last one
+        # (no evaluation only to confirm it). A model with B1 <= c / 2 gets plain Newton.
+        s_min = 2.0 * p.b1 - p.c
+        self._bound = (p.c * (p.c / s_min) ** 2 * p.alpha ** 2 * -self._shift / s_min
+                       if s_min > 0.0 else math.inf)
         super().__init__(model, tolerance_v)
 
     def reset(self, v0: float) -> None:
@@ -248,27 +263,31 @@ class BacklashInverse(HysteresisInverse):
 
     def invert(self, w_target: float) -> float:
         """Return v with H(v) = ``w_target`` (Newton on the branch of the jump's sign)."""
-        c, alpha, shift, e0, v0 = self._c, self._alpha, self._shift, self._e, self._v
+        c, e0, v0 = self._c, self._e, self._v
         dw = w_target - (c * v0 + e0)
-        if dw == 0.0:
+        if dw > 0.0:
+            a = self._shift - e0
+            a_s = a
+        elif dw < 0.0:
+            a = -self._shift - e0
+            a_s = -a
+        else:
             return v0
-        sgn = 1.0 if dw > 0.0 else -1.0
-        a = sgn * shift - e0
-        # w(dv) - w0 = c dv + a (1 - exp(-alpha |dv|)) for dv of sign sgn
-        dv = dw / (c + alpha * a) if c + alpha * a > 0.0 else dw / c
-        if dv * sgn < 0.0:
-            dv = 0.0
+        alpha = self._alpha
+        slope = c + alpha * a_s
+        dv = dw / (slope if slope > 0.0 else c)
         exp = math.exp
         tol = self.tolerance_v
+        bound = self._bound
         for _ in range(30):
-            decay = exp(-alpha * sgn * dv)
+            decay = exp(-alpha * abs(dv))
             g = c * dv + a * (1.0 - decay) - dw
             if -tol <= g <= tol:
                 break
-            self.iterations += 1
-            dv -= g / (c + alpha * a * decay)
-            if dv * sgn < 0.0:
-                dv = 0.0
+            step = g / (c + alpha * a_s * decay)
+            dv -= step
+            if bound * step * step <= tol:
+                break
         return v0 + dv
 
     def commit(self, v: float) -> None:
@@ -546,11 +565,13 @@ class FeedForwardController:
         self._period_n = 0
         self._learned: FloatArray = np.zeros(0)
         self._ll: list[float] = []
-        # learning, spread over the period: each sample adds its error times its column of the
-        # circulant learning operator (a slice of _kernel2) to _delta; the period's end applies it
+        # learning, spread over the period: the errors of each run of LEARN_CHUNK samples go
+        # through their columns of the circulant learning operator (one correlation with a
+        # slice of _kernel2) into _delta; the period's end applies it
         self._kernel2: FloatArray = np.zeros(0)
         self._delta: FloatArray = np.zeros(0)
-        self._term: FloatArray = np.zeros(0)
+        self._errors: list[float] = []
+        self._pending = 0
         self._sq = 0.0
         self._holding = False
         self._lx_raw: list[float] = []
@@ -588,7 +609,8 @@ class FeedForwardController:
         self._learned = np.zeros(self._period_n)
         self._ll = self._learned.tolist()
         self._delta = np.zeros(self._period_n)
-        self._term = np.zeros(self._period_n)
+        self._errors = [0.0] * self._period_n
+        self._pending = 0
         self._sq = 0.0
         if self._learning_on:
             # designed here, on the controller's initial estimates: nothing of it in the loop
@@ -602,6 +624,9 @@ class FeedForwardController:
         """Reset the inner controller and restart the feed-forward at sample 0."""
         self.inner.reset(position_m, reference_m, output_v)
         self._u = self.inner._u
+        if self._learning_on and self._period_n:
+            self._accumulate(self._k % self._period_n)  # the errors so far stay in the update
+            self._pending = 0
         self._k = 0
         self._share_fresh = True
         self._hold(False)
@@ -659,9 +684,9 @@ class FeedForwardController:
             if k >= self._learn_from:
                 if not self._holding:
                     self._hold(True)
-                # delta_j += e_i h_((j - i) mod n): column i of the circulant operator
-                np.multiply(self._kernel2[n - i:2 * n - i], e, out=self._term)
-                self._delta += self._term
+                self._errors[i] = e
+                if i % LEARN_CHUNK == LEARN_CHUNK - 1 or i == n - 1:
+                    self._accumulate(i + 1)
             if i == n - 1:
                 self._learn(k)
         return self._output(u)
@@ -680,7 +705,13 @@ class FeedForwardController:
     def skip(self, samples: int) -> None:
         """Advance the reference index over ``samples`` samples the caller did not step."""
         if samples > 0:
+            n = self._period_n
+            if self._learning_on and n:
+                # the errors so far go in now: the skipped samples have none
+                self._accumulate(self._k % n)
             self._k += int(samples)
+            if n:
+                self._pending = self._k % n
 
     def _set_share(self) -> None:
         """Take the RAC's initial estimates as the share the model inverse replaces (PI: 0)."""
@@ -771,6 +802,24 @@ class FeedForwardController:
                                  None)
         if hold_estimates is not None:
             hold_estimates(hold)
+
+    def _accumulate(self, end: int) -> None:
+        """
+        Add the errors of samples pending .. end - 1 of the period to the update.
+
+        delta_j += sum_i e_i h_((j - i) mod n): columns i of the circulant operator, one
+        correlation of the errors (reversed) with the slice of h they meet.
+        """
+        start = self._pending
+        self._pending = end % self._period_n if self._period_n else 0
+        if end <= start:
+            return
+        n = self._period_n
+        errors = self._errors
+        chunk = np.array(errors[start:end][::-1])
+        errors[start:end] = _ZEROS[:end - start] if end - start <= LEARN_CHUNK \
+            else [0.0] * (end - start)
+        self._delta += np.correlate(self._kernel2[n - end + 1:2 * n - start], chunk, 'valid')
 
     @property
     def _learn_from(self) -> int:
