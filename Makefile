@@ -67,7 +67,7 @@ lint: $(STAMP)
 	$(BIN)/ruff check piezo_stage_ros test launch setup.py
 
 typecheck: $(STAMP)
-	$(BIN)/mypy piezo_stage_ros launch/closed_loop.launch.py
+	$(BIN)/mypy piezo_stage_ros launch/closed_loop.launch.py launch/commission.launch.py
 
 pytest: $(STAMP)
 	$(BIN)/python -m pytest -q
