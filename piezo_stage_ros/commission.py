@@ -52,6 +52,7 @@ import sys
 from typing import Any, Sequence
 
 from piezo_stage_ros import cli
+from piezo_stage_ros.core.contracts.config import nest
 from piezo_stage_ros.core.contracts.errors import ConfigError
 from piezo_stage_ros.core.contracts.loop_config import LoopConfig
 from piezo_stage_ros.core.identification.commission import (
@@ -71,7 +72,7 @@ from piezo_stage_ros.core.model.family import (
     StageVariation,
 )
 from piezo_stage_ros.core.model.stage import StageParams
-from piezo_stage_ros.identify import _nested, controller_values, parameter_file_text
+from piezo_stage_ros.identify import controller_values, parameter_file_text
 import yaml
 
 __all__ = ['build_parser', 'main', 'member', 'parameter_text', 'write_excitation']
@@ -202,7 +203,7 @@ def parameter_text(result: CommissionResult, loop: LoopConfig, header: Sequence[
     lo, hi = result.design.certification.slope_range
     flat: dict[str, Any] = dict(result.design.controller.to_flat())
     flat.update({'stability.slope_min': lo, 'stability.slope_max': hi})
-    doc['controller_node'] = {'ros__parameters': _nested(flat)}
+    doc['controller_node'] = {'ros__parameters': nest(flat)}
     lines = [f'# {line}' for line in header]
     return '\n'.join(lines + [yaml.safe_dump(doc, sort_keys=False, default_flow_style=False)])
 
@@ -259,7 +260,7 @@ def write_excitation(params: CommissionParams, sample_rate_hz: float, folder: st
     table = out / 'excitation.csv'
     rows = ''.join(f'{float(a)!r},{float(b)!r}\n' for a, b in zip(t, r))
     table.write_text('time_s,position_m\n' + rows, encoding='utf-8')
-    doc = {node: {'ros__parameters': _nested(values)}
+    doc = {node: {'ros__parameters': nest(values)}
            for node, values in ros_overrides(params, str(table.resolve())).items()}
     overrides = out / 'overrides.yaml'
     overrides.write_text(yaml.safe_dump(doc, sort_keys=False), encoding='utf-8')

@@ -47,6 +47,7 @@ import sys
 from typing import Any, Mapping, Sequence
 
 from piezo_stage_ros import cli
+from piezo_stage_ros.core.contracts.config import nest
 from piezo_stage_ros.core.contracts.errors import ConfigError, PiezoStageError
 from piezo_stage_ros.core.identification.fit import (
     factors_of,
@@ -117,18 +118,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--overwrite', action='store_true',
                    help='Replace existing bags in the --simulate directory.')
     return p
-
-
-def _nested(flat: Mapping[str, Any]) -> dict[str, Any]:
-    """Turn dotted names into nested mappings, as a ROS 2 parameter file holds them."""
-    out: dict[str, Any] = {}
-    for name, value in flat.items():
-        node = out
-        parts = name.split('.')
-        for part in parts[:-1]:
-            node = node.setdefault(part, {})
-        node[parts[-1]] = value
-    return out
 
 
 def _theta_phi(stage: StageParams) -> tuple[float, float] | None:
@@ -228,8 +217,8 @@ def parameter_file_text(stage: StageParams, *, header: Sequence[str] = (),
 
     """
     flat = {k: v for k, v in stage.to_flat().items() if k != 'sample_rate_hz'}
-    doc = {'plant_node': {'ros__parameters': _nested(flat)},
-           'controller_node': {'ros__parameters': _nested(
+    doc = {'plant_node': {'ros__parameters': nest(flat)},
+           'controller_node': {'ros__parameters': nest(
                controller_values(stage, reference, reference_stage))}}
     lines = [f'# {line}' for line in header]
     return '\n'.join(lines + [yaml.safe_dump(doc, sort_keys=False, default_flow_style=False)])

@@ -44,7 +44,7 @@ from typing import Any, Iterable, Mapping
 from piezo_stage_ros.core.contracts.errors import ConfigError
 import yaml
 
-__all__ = ['Config', 'find_config', 'flatten', 'load_config']
+__all__ = ['Config', 'find_config', 'flatten', 'load_config', 'nest']
 
 WILDCARD = '/**'
 PACKAGE = 'piezo_stage_ros'
@@ -89,6 +89,18 @@ def flatten(mapping: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
             out.update(flatten(value, name + '.'))
         else:
             out[name] = value
+    return out
+
+
+def nest(flat: Mapping[str, Any]) -> dict[str, Any]:
+    """Turn dotted names into nested mappings, as a ROS 2 parameter file holds them."""
+    out: dict[str, Any] = {}
+    for name, value in flat.items():
+        node = out
+        parts = name.split('.')
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+        node[parts[-1]] = value
     return out
 
 
