@@ -183,6 +183,10 @@ def _enforce(report: Any, action: str) -> None:
     if adaptation is not None and not adaptation.ok:
         print(f'{PROG}: WARNING: ADAPTATION GAIN ABOVE THE DISCRETE BOUND: {adaptation.text()}',
               file=sys.stderr)
+    learning = getattr(report, 'learning', None)
+    if learning is not None and not learning.design_ok:
+        print(f'{PROG}: WARNING: LEARNING NOT MONOTONE ON THE DESIGN MODEL: {learning.text()}',
+              file=sys.stderr)
 
 
 def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
@@ -192,11 +196,11 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
     from piezo_stage_ros.core.loop.trajectories import make_trajectory
 
     stage, ctrl, traj = loop.stage, loop.controller, loop.trajectory
+    trajectory = make_trajectory(traj)
     report = check_stability(ctrl, loop.design_plant, stage.sample_time_s,
-                             options=loop.stability)
+                             options=loop.stability, period_s=trajectory.period_s, stage=stage)
     text = report.text()
     _enforce(report, loop.stability.action)
-    trajectory = make_trajectory(traj)
     duration = args.duration if args.duration is not None else default_duration_s(trajectory,
                                                                                   traj)
     if not (duration > 0.0 and math.isfinite(duration)):
@@ -246,6 +250,11 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
                 'trajectory': traj.kind, 'seed': stage.seed,
                 'trajectory_period_s': record.meta.get('trajectory_period_s'),
                 'bag': args.bag, 'learned_table_file': args.save_table})
+    if report.learning is not None:
+        worst = report.learning.worst_member
+        out.update({'learning_ratio_design': report.learning.design_ratio,
+                    'learning_ratio_max': report.learning.ratio,
+                    'learning_worst_member': worst[0] if worst else None})
     if args.json:
         print(json.dumps({k: _clean(v) for k, v in out.items()}, sort_keys=True))
         return 0
@@ -254,6 +263,8 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
           f'hysteresis, trajectory {traj.kind}'
           + (f' (period {period:g} s)' if period else ''))
     print(f'stability check: {"stable" if report.stable else "UNSTABLE"}')
+    if report.learning is not None:
+        print(f'learning check: {report.learning.text()}')
     print(f'simulated {sim:g} s ({summary.samples} samples) in {wall:.3f} s wall '
           f'({out["realtime_factor"]:.1f}x real time)')
     print(f'steady state from {summary.steady_state_start_s:g} s '

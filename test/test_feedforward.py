@@ -41,8 +41,14 @@ from piezo_stage_ros.core.control.feedforward import (
     TABLE_FORMAT,
     TABLE_VERSION,
 )
+from piezo_stage_ros.core.control.stability import (
+    check_stability,
+    learning_check,
+    stability_plant,
+)
 from piezo_stage_ros.core.loop import closed_loop, experiments
 from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
+from piezo_stage_ros.core.model.family import member_params, StageVariation
 from piezo_stage_ros.core.model.hysteresis import (
     BacklashLike,
     BacklashLikeParams,
@@ -404,3 +410,74 @@ def test_a_table_file_needs_a_learning_mode(tmp_path) -> None:
         _bound('inverse', {'kind': 'sine'}, **{'feedforward.table_file': str(path)})
     with pytest.raises(PiezoStageError, match='no learned table'):
         _bound('inverse', {'kind': 'sine'}).learned()
+
+
+# -- the learning's convergence in the stability check --------------------------------------
+
+
+@pytest.mark.parametrize('gain', [0.1, 0.5, 1.0])
+@pytest.mark.parametrize('kind', ['rac', 'pi'])
+def test_on_the_design_model_the_ratio_is_one_minus_gamma(gain: float, kind: str) -> None:
+    params = _controller('inverse_learning', type=kind, **{'feedforward.learning_gain': gain})
+    check = learning_check(params, LOOP.design_plant, T, 0.01, stage=LOOP.stage)
+    assert check is not None
+    # P_true / P_s = 1 up to the rounding of one complex division
+    assert check.design_ratio == pytest.approx(abs(1.0 - gain), abs=4 * EPS)
+    # 100 Hz harmonics up to Q's 1.5 kHz
+    assert check.harmonics == 15
+    assert check.slopes == ()  # the inverse removes the hysteresis
+
+
+@pytest.mark.parametrize('gain', [0.3, 0.5])
+def test_without_feedback_the_ratio_is_one_minus_gamma_times_the_gain_change(
+        gain: float) -> None:
+    # no feedback: P = c G, so a member that scales K by a (and a hysteresis slope s instead
+    # of c) has P_true / P_s = a s / c exactly, on every harmonic
+    params = _controller('learning', type='open_loop', **{'feedforward.learning_gain': gain})
+    check = learning_check(params, LOOP.design_plant, T, 0.01, stage=LOOP.stage,
+                           options=LOOP.stability)
+    assert check is not None
+    c = make_hysteresis(LOOP.stage.hysteresis).slope  # the design hysteresis' c
+    members = dict(check.members)
+    slopes = LOOP.stability.slopes()
+    z = np.exp(2j * np.pi * np.arange(1, 16) / 100)  # the learned harmonics
+    nominal = _response(LOOP.stage, z)
+    for name, factor in (('gain_lo', 0.7), ('gain_hi', 1.4)):
+        expected = max(abs(1.0 - gain * factor * s / c) for s in slopes)
+        # the ZOH numerator of G(z) (state space to transfer function) is not exactly linear
+        # in K: the member's G(z) / (a G(z)) - 1, a few 1e-9 here, bounds the ratio's error
+        member = _response(member_params(LOOP.stage, StageVariation(name, gain=factor)), z)
+        spread = float(np.max(np.abs(member / (factor * nominal) - 1.0)))
+        assert abs(members[name] - expected) <= gain * factor * spread + 4 * EPS
+    assert [r for _, r in check.slopes] == pytest.approx(
+        [abs(1.0 - gain * s / c) for s in slopes], rel=1e-12)
+
+
+def _response(stage: StageParams, z: np.ndarray) -> np.ndarray:
+    num, den = stability_plant(stage.plant).discretize(T).transfer_function()
+    return np.asarray(np.polyval(num, z) / np.polyval(den, z))
+
+
+def test_the_report_names_the_worst_member_and_keeps_its_verdict_apart() -> None:
+    params = _controller('inverse_learning')
+    report = check_stability(params, LOOP.design_plant, T, options=LOOP.stability,
+                             period_s=0.01, stage=LOOP.stage)
+    check = report.learning
+    assert check is not None and check.design_ok
+    name, worst = check.worst_member or ('', 0.0)
+    assert worst == max(r for _, r in check.members)
+    assert f'worst {worst:.3f} ({name})' in report.text()
+    # the learning's verdict does not enter the loops' one
+    assert report.stable
+    assert check_stability(_controller('none'), LOOP.design_plant, T, period_s=0.01,
+                           stage=LOOP.stage).learning is None
+
+
+def test_no_check_without_a_whole_period() -> None:
+    params = _controller('learning')
+    assert learning_check(params, LOOP.design_plant, T, 0.0, stage=LOOP.stage) is None
+    assert learning_check(params, LOOP.design_plant, T, 0.01005, stage=LOOP.stage) is None
+    with_own = _controller('learning', **{'feedforward.period_s': 0.02})
+    check = learning_check(with_own, LOOP.design_plant, T, 0.0)
+    assert check is not None and check.period_s == pytest.approx(0.02, rel=EPS)
+    assert check.members == () and 'family is not checked' in check.text()

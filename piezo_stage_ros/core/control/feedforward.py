@@ -80,7 +80,8 @@ from piezo_stage_ros.core.model.linear import LinearPlant
 
 __all__ = ['FeedForwardController', 'FeedForwardParams', 'HysteresisInverse', 'LearnedTable',
            'MODES', 'PreviewInverse', 'TABLE_FORMAT', 'TABLE_META_KEY', 'TABLE_VERSION',
-           'learning_convergence', 'make_hysteresis_inverse', 'process_sensitivity',
+           'kept_harmonics', 'learning_convergence', 'make_hysteresis_inverse',
+           'period_harmonics', 'process_sensitivity',
            'read_learned_table', 'shape_jumps', 'write_learned_table']
 
 #: The feed-forward modes.
@@ -447,6 +448,35 @@ def process_sensitivity(g: ComplexArray, z: ComplexArray, k_p: float, k_i: float
         loop = c * sensor_gain_v_per_m * g
         ps = g / (1.0 + loop)
     return np.asarray(np.where(np.isfinite(ps), ps, 0.0), dtype=np.complex128)
+
+
+def period_harmonics(samples: int) -> ComplexArray:
+    """Return z = exp(2 pi j h / n) of the harmonics h = 0 .. n // 2 of a period of n samples."""
+    return np.asarray(np.exp(2j * math.pi * np.arange(samples // 2 + 1) / samples),
+                      dtype=np.complex128)
+
+
+def kept_harmonics(ps: ComplexArray, samples: int, sample_time_s: float,
+                   bandwidth_hz: float) -> FloatArray:
+    """
+    Return Q on the harmonics of a period: 1 where the learning acts, 0 elsewhere.
+
+    Parameters
+    ----------
+    ps : ndarray
+        The design process sensitivity at the harmonics h = 0 .. n // 2 of a period
+        (:func:`period_harmonics`).
+    samples : int
+        n, the samples of a period.
+    sample_time_s : float
+        T [s].
+    bandwidth_hz : float
+        ``learning_bandwidth_hz``: Q keeps 0 < h / (n T) <= it, where P_s is not 0.
+
+    """
+    freq = np.arange(len(ps)) / (samples * sample_time_s)
+    kept = (freq > 0.0) & (freq <= bandwidth_hz) & (np.abs(ps) > 0.0)
+    return kept.astype(np.float64)
 
 
 def learning_convergence(design_ps: ComplexArray, true_ps: ComplexArray, gain: float,
@@ -994,15 +1024,13 @@ class FeedForwardController:
     def _learning_filter(self) -> ComplexArray:
         """Return gamma Q / P_s on the period's harmonics (0 on those Q drops)."""
         n = self._period_n
-        harmonics = np.arange(n // 2 + 1)
-        z = np.exp(2j * math.pi * harmonics / n)
+        z = period_harmonics(n)
         # the plant seen from v_lin: c G (the compensator removes the hysteresis; without it,
         # the hysteresis slope c is its gain)
         g = self.slope * self.plant_inverse.frequency_response(z)
         k_p, k_i = self.inner.linear_gains()
         ps = process_sensitivity(g, z, k_p, k_i, self._ksens, self._t, self._notch_coeffs)
-        freq = harmonics / (n * self._t)
-        kept = (freq > 0.0) & (freq <= self.params.learning_bandwidth_hz) & (np.abs(ps) > 0.0)
+        kept = kept_harmonics(ps, n, self._t, self.params.learning_bandwidth_hz) > 0.0
         return np.asarray(np.where(kept, self.params.learning_gain / np.where(kept, ps, 1.0),
                                    0.0), dtype=np.complex128)
 
