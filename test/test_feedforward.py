@@ -481,3 +481,24 @@ def test_no_check_without_a_whole_period() -> None:
     check = learning_check(with_own, LOOP.design_plant, T, 0.0)
     assert check is not None and check.period_s == pytest.approx(0.02, rel=EPS)
     assert check.members == () and 'family is not checked' in check.text()
+
+
+@pytest.mark.parametrize('every', [1, 7])
+def test_the_recorded_feedforward_is_the_one_added_to_the_command(every: int) -> None:
+    # learning alone, no notch, inside the range: v = C(...) + L[i], and the RAC keeps C(...)
+    ctrl = _bound('learning', {'kind': 'sine'})
+    stage = Stage(LOOP.stage)
+    traj = make_trajectory(TrajectoryParams.from_flat({**LOOP.trajectory.to_flat(),
+                                                       'kind': 'sine'}))
+    y = stage.reset(None)
+    x, v = traj.evaluate(np.arange(600) * T)
+    ctrl.reset(y, float(x[0]))
+    checked = 0
+    for k in range(600):
+        u = ctrl.step(y, float(x[k]), float(v[k]))
+        if k % every == 0 or k % 100 == 99:
+            feedback = ctrl.inner._u  # the RAC's own command (a private: what the test checks)
+            assert abs(ctrl.feedforward_v() - (u - feedback)) <= 4 * EPS * abs(u)
+            checked += k % 100 == 99 and k >= 199  # a period's last sample, after an update
+        y = stage.step(u)
+    assert ctrl.periods_learned == 5 and checked == 5

@@ -765,6 +765,9 @@ class FeedForwardController:
         self.design = ''
         #: The file the table started from ('' when it started from zero).
         self.table_source = ''
+        # the table and sample at the last feedforward_v (the entry a period's last sample used)
+        self._seen_table: list[float] = []
+        self._seen_k = -1
         self._theta0 = self._phi0 = 0.0
         self._set_share()
         notch = getattr(inner, 'notch', None)
@@ -845,6 +848,7 @@ class FeedForwardController:
         self.inner.reset(position_m, reference_m, output_v)
         self._u = self.inner._u
         self._k = 0
+        self._seen_k = -1
         self._share_fresh = True
         # a table from a file was saved relative to the initial estimates (:meth:`learned`):
         # they are held from the first sample
@@ -1213,9 +1217,10 @@ class FeedForwardController:
         u_ff = W[i] + L[i] on the linear input v_lin (W the model inverse, already divided by
         the hysteresis slope c; L the learned table), 0 when the sample got feedback alone.
         The RAC's own first-order share at its initial estimates, which the model inverse
-        replaces (module doc), is not in it. At the last sample of a period the learned entry
-        is the one of the table just updated (the update of that entry differs from the one
-        applied by gamma times the filtered error there).
+        replaces (module doc), is not in it. The last sample of a period updates the table
+        after using it: the entry it used is the one of the table seen by an earlier call in
+        the same period, which a caller reading at least once a period (the diagnostics are
+        read every sample or every few) has made; otherwise the updated entry is returned.
         """
         if not self._matched or self._trajectory is None:
             return 0.0
@@ -1224,7 +1229,12 @@ class FeedForwardController:
         i = k % n if n else k - self._block_start
         u = self._lw[i] if self._inverse_on else 0.0
         if self._learning_on:
-            u += self._ll[i]
+            table = self._ll
+            if i == n - 1 and table is not self._seen_table and self._seen_k >= k - i:
+                table = self._seen_table  # updated at this sample, after its use
+            u += table[i]
+            self._seen_table = self._ll
+            self._seen_k = k
         return u
 
     def diagnostics(self) -> Mapping[str, float]:
