@@ -53,6 +53,12 @@ A two-degree-of-freedom structure around any controller of
   replaced by the quintic S-curve of ``transition_s`` starting at it (nothing moves before the
   jump is due), and the inner controller tracks that path.
 
+The learned table can be kept: :meth:`FeedForwardController.learned` returns it with what it
+was learned for (:class:`LearnedTable`: the period's reference, T, the mode, the design), saved
+relative to the RAC's initial estimates; :func:`write_learned_table` and
+:func:`read_learned_table` put it in a versioned ``.npz`` file, and ``table_file`` starts a
+bound controller from one, refused unless period, reference and design match.
+
 The reference comes from the trajectory object the wrapper is bound to
 (:meth:`FeedForwardController.bind`): the offline runner and the nodes hold the same one, and
 the reference each step receives is checked against it (a mismatch, a trajectory changed
@@ -81,8 +87,8 @@ from piezo_stage_ros.core.model.linear import LinearPlant
 __all__ = ['FeedForwardController', 'FeedForwardParams', 'HysteresisInverse', 'LearnedTable',
            'MODES', 'PreviewInverse', 'TABLE_FORMAT', 'TABLE_META_KEY', 'TABLE_VERSION',
            'kept_harmonics', 'learning_convergence', 'make_hysteresis_inverse',
-           'period_harmonics', 'process_sensitivity',
-           'read_learned_table', 'shape_jumps', 'write_learned_table']
+           'period_harmonics', 'process_sensitivity', 'read_learned_table', 'shape_jumps',
+           'write_learned_table']
 
 #: The feed-forward modes.
 MODES = ('none', 'inverse', 'learning', 'inverse_learning')
