@@ -212,7 +212,7 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
         raise ConfigError(f'--save-table: feed-forward mode {ctrl.feedforward.mode!r} learns no '
                           'table (use --feedforward learning or inverse_learning)')
     # the bag of a feed-forward run holds its diagnostics every sample: the signal u_ff (ff_u_v)
-    # whole (20-40 % more wall time: not without a bag)
+    # whole (25-50 % more wall time: not without a bag)
     every = 1 if ctrl.feedforward.mode != 'none' and args.bag is not None else 10
     controllers: list[Any] = []
     meta: dict[str, Any] = {'stable': bool(report.stable), 'stability': text,
