@@ -41,7 +41,11 @@ from piezo_stage_ros.core.contracts.cdr import (
     JointStateDecoder,
     JointStateEncoder,
 )
-from piezo_stage_ros.core.contracts.errors import PiezoStageError, StabilityError
+from piezo_stage_ros.core.contracts.errors import (
+    ParameterError,
+    PiezoStageError,
+    StabilityError,
+)
 from piezo_stage_ros.core.contracts.interfaces import Controller
 from piezo_stage_ros.core.control.controllers import (
     bound_controller,
@@ -169,7 +173,16 @@ class ControllerNode(Node):
         return bound_controller(params, self.sample_time_s, plant, *self._ff_context)
 
     def _rebuild(self, params: ControllerParams) -> Controller:
-        return self._build(params, self._stability)
+        try:
+            return self._build(params, self._stability)
+        except ParameterError as err:
+            if not params.feedforward.table_file:
+                raise
+            # a change at run time (a notch, a gain) that the table was not learned with: the
+            # new controller learns afresh instead of stopping the node at a sample
+            self.get_logger().warning(f'learned table not loaded after the change: {err}')
+            ff = params.feedforward.replace(table_file='')
+            return self._build(params.replace(feedforward=ff), self._stability)
 
     def _on_change(self, old: Sequence[Any], new: Sequence[Any]) -> None:
         params, stability, opts = new
