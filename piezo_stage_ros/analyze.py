@@ -23,6 +23,8 @@ Examples
     One JSON object per bag and line, the field names of ``simulate --json``.
 ``analyze --report report/ rac.bag pi.bag``
     ``report/report.md`` comparing the bags, with their figures.
+``analyze --export-table table.npz learning.bag``
+    The learned table of a learning run, as ``simulate --save-table`` writes it.
 
 Exit status: 0 when every bag was analysed, 1 when any bag failed (one line on stderr per bad
 bag, naming it and the problem; the other bags are still analysed), 2 for bad options.
@@ -92,6 +94,10 @@ def build_parser() -> argparse.ArgumentParser:
                       help='always estimate the frequency response v_in -> x')
     bode.add_argument('--no-bode', dest='bode', action='store_false',
                       help='never estimate it (default: only for noise or sweep runs)')
+    parser.add_argument('--export-table', type=Path, metavar='FILE', dest='export_table',
+                        help='write the learned table the bag holds (a simulate --bag run with '
+                             'a learning feed-forward) to FILE, the file controller_node '
+                             'feedforward.table_file loads; one bag only')
     parser.add_argument('-q', '--quiet', action='store_true',
                         help='no progress line and no notes on stderr')
     return parser
@@ -115,9 +121,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     return cli.run_command(PROG, build_parser(), _analyze, argv)
 
 
+def _export(analysis: object, path: Path) -> None:
+    from piezo_stage_ros.analysis.replay import BagAnalysis, learned_table
+    from piezo_stage_ros.core.control.feedforward import write_learned_table
+    assert isinstance(analysis, BagAnalysis)
+    table = learned_table(analysis)
+    write_learned_table(path, table)
+    print(f'{PROG}: learned table written to {path} ({table.samples} samples, '
+          f'{table.periods_learned} periods learned)', file=sys.stderr)
+
+
 def _analyze(args: argparse.Namespace) -> int:
     # Imported here so that --help works (and is fast) without the analysis dependencies, and
     # matplotlib only when figures are asked for.
+    if args.export_table is not None and len(args.bags) != 1:
+        print(f'{PROG}: error: --export-table takes the table of one bag; {len(args.bags)} '
+              'given', file=sys.stderr)
+        return 2
     figure_root: Path | None = args.plots if args.plots is not None else args.report
     try:
         from piezo_stage_ros.analysis.replay import analyze_bag, format_summary, summary_json
@@ -169,6 +189,12 @@ def _analyze(args: argparse.Namespace) -> int:
             print(json.dumps(summary_json(analysis), sort_keys=False), flush=True)
         else:
             print(format_summary(analysis), flush=True)
+        if args.export_table is not None:
+            try:
+                _export(analysis, args.export_table)
+            except PiezoStageError as err:
+                print(f'{PROG}: error: {err}', file=sys.stderr)
+                failed += 1
         if figure_root is not None:
             outdir = figure_root if len(args.bags) == 1 else figure_root / name
             try:

@@ -32,6 +32,7 @@ Examples::
     simulate --experiment table3          # the paper's Table III, project beside paper
     simulate --bag run1 --duration 2      # write the run as a rosbag2 bag (MCAP)
     simulate --feedforward learning --duration 10 --steady-state-start 9   # a late window
+    simulate --feedforward learning --duration 1 --save-table sine100.npz  # keep the table
 
 Exit status: 0 on success, 1 on a bad parameter, configuration or refused run, 2 on bad
 command-line usage; the error is one line on stderr.
@@ -53,6 +54,7 @@ from piezo_stage_ros.core.contracts.errors import ConfigError, ParameterError
 from piezo_stage_ros.core.contracts.loop_config import LoopConfig
 from piezo_stage_ros.core.contracts.wire import STORAGE_IDS
 from piezo_stage_ros.core.control.controllers import ControllerParams
+from piezo_stage_ros.core.control.feedforward import TABLE_META_KEY, write_learned_table
 from piezo_stage_ros.core.loop.experiments import EXPERIMENTS
 from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
 from piezo_stage_ros.core.model.hysteresis import HysteresisParams
@@ -107,6 +109,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--storage', choices=STORAGE_IDS, default=STORAGE_IDS[0],
                    help='Bag storage plugin (default mcap).')
     p.add_argument('--overwrite', action='store_true', help='Replace an existing bag.')
+    p.add_argument('--save-table', metavar='FILE', dest='save_table',
+                   help="Write the learning feed-forward's table at the end of the run to FILE "
+                   '(.npz, docs/controllers.md); controller_node feedforward.table_file loads '
+                   'it. A bag of the run holds it too (analyze --export-table).')
     return p
 
 
@@ -177,6 +183,10 @@ def _enforce(report: Any, action: str) -> None:
     if adaptation is not None and not adaptation.ok:
         print(f'{PROG}: WARNING: ADAPTATION GAIN ABOVE THE DISCRETE BOUND: {adaptation.text()}',
               file=sys.stderr)
+    learning = getattr(report, 'learning', None)
+    if learning is not None and not learning.design_ok:
+        print(f'{PROG}: WARNING: LEARNING NOT MONOTONE ON THE DESIGN MODEL: {learning.text()}',
+              file=sys.stderr)
 
 
 def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
@@ -186,17 +196,25 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
     from piezo_stage_ros.core.loop.trajectories import make_trajectory
 
     stage, ctrl, traj = loop.stage, loop.controller, loop.trajectory
+    trajectory = make_trajectory(traj)
     report = check_stability(ctrl, loop.design_plant, stage.sample_time_s,
-                             options=loop.stability)
+                             options=loop.stability, period_s=trajectory.period_s, stage=stage)
     text = report.text()
     _enforce(report, loop.stability.action)
-    trajectory = make_trajectory(traj)
     duration = args.duration if args.duration is not None else default_duration_s(trajectory,
                                                                                   traj)
     if not (duration > 0.0 and math.isfinite(duration)):
         raise ParameterError('--duration', duration, '(0, inf) s')
     window = args.steady_state_start_s
     _check_window(window, duration)
+    learning = ctrl.feedforward.learning
+    if args.save_table is not None and not learning:
+        raise ConfigError(f'--save-table: feed-forward mode {ctrl.feedforward.mode!r} learns no '
+                          'table (use --feedforward learning or inverse_learning)')
+    # the bag of a feed-forward run holds its diagnostics every sample: the signal u_ff (ff_u_v)
+    # whole (25-50 % more wall time: not without a bag)
+    every = 1 if ctrl.feedforward.mode != 'none' and args.bag is not None else 10
+    controllers: list[Any] = []
     meta: dict[str, Any] = {'stable': bool(report.stable), 'stability': text,
                             'config_files': [str(p) for p in loop.sources]}
     if window is not None:
@@ -210,11 +228,19 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
                 writer.set_meta(chunk.meta)
                 writer.write_chunk(chunk)
             record = run_one(stage, ctrl, traj, duration_s=duration, chunk_callback=stream,
-                             meta=meta, design_plant=loop.design_plant)
+                             meta=meta, design_plant=loop.design_plant,
+                             diagnostics_every=every, built=controllers.append)
+            if learning:
+                writer.set_meta({**writer.meta,
+                                 TABLE_META_KEY: controllers[0].learned().fields()})
     else:
         record = run_one(stage, ctrl, traj, duration_s=duration, meta=meta,
-                         design_plant=loop.design_plant)
+                         design_plant=loop.design_plant, diagnostics_every=every,
+                         built=controllers.append)
     wall = time.perf_counter() - start
+    if args.save_table is not None:
+        table = controllers[0].learned()
+        write_learned_table(args.save_table, table)
     summary = metrics.summarize(record, steady_state_start_s=window)
     sim = float(record.meta['duration_s'])
     out: dict[str, Any] = summary.as_dict()
@@ -224,7 +250,12 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
                 'hysteresis': stage.hysteresis.model, 'controller': ctrl.type,
                 'trajectory': traj.kind, 'seed': stage.seed,
                 'trajectory_period_s': record.meta.get('trajectory_period_s'),
-                'bag': args.bag})
+                'bag': args.bag, 'learned_table_file': args.save_table})
+    if report.learning is not None:
+        worst = report.learning.worst_member
+        out.update({'learning_ratio_design': report.learning.design_ratio,
+                    'learning_ratio_max': report.learning.ratio,
+                    'learning_worst_member': worst[0] if worst else None})
     if args.json:
         print(json.dumps({k: _clean(v) for k, v in out.items()}, sort_keys=True))
         return 0
@@ -233,6 +264,8 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
           f'hysteresis, trajectory {traj.kind}'
           + (f' (period {period:g} s)' if period else ''))
     print(f'stability check: {"stable" if report.stable else "UNSTABLE"}')
+    if report.learning is not None:
+        print(f'learning check: {report.learning.text()}')
     print(f'simulated {sim:g} s ({summary.samples} samples) in {wall:.3f} s wall '
           f'({out["realtime_factor"]:.1f}x real time)')
     print(f'steady state from {summary.steady_state_start_s:g} s '
@@ -253,6 +286,10 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
             print(f'{name}: {low:.6g} ... {high:.6g}')
     if args.bag is not None:
         print(f'bag written: {args.bag} ({args.storage})')
+    if args.save_table is not None:
+        print(f'learned table written: {args.save_table} ({table.samples} samples, '
+              f'{table.periods_learned} periods learned, last period '
+              f'{table.period_rms_m * 1e9:.2f} nm rms)')
     return 0
 
 
@@ -325,6 +362,9 @@ def _main(args: argparse.Namespace) -> int:
     if args.experiment is not None:
         if args.bag is not None:
             raise ConfigError('--bag records one run; it cannot be used with --experiment')
+        if args.save_table is not None:
+            raise ConfigError('--save-table keeps the table of one run; it cannot be used '
+                              'with --experiment')
         if args.steady_state_start_s is not None:
             raise ConfigError('--steady-state-start measures one run; each experiment has its '
                               "own window (the paper's); it cannot be used with --experiment")

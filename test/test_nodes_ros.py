@@ -366,3 +366,15 @@ def test_direct_realtime_reports_an_applied_and_a_refused_option(context, proces
     assert stats['servo_switch_interval'].startswith('applied')
     assert logged(Log.WARN, 'servo affinity: refused')
     assert logged(Log.INFO, 'servo switch_interval: applied')
+
+
+def test_the_controller_node_writes_its_learned_table_when_it_shuts_down(context, tmp_path):
+    from piezo_stage_ros.core.control.feedforward import read_learned_table
+    path = tmp_path / 'table.npz'
+    ctrl = ControllerNode(context=context, parameter_overrides=overrides({
+        **CONTROLLER, 'feedforward.mode': 'learning',
+        'feedforward.save_table_file': str(path)}))
+    ctrl.destroy_node()
+    # no parameter files: the default trajectory, a 100 Hz sine, 100 samples a period
+    table = read_learned_table(path)
+    assert table.samples == 100 and table.periods_learned == 0 and table.mode == 'learning'

@@ -22,7 +22,10 @@ PNG figures of a run in the style of the paper's Figs. 4, 10 and 11.
 - ``bode.png``: frequency response estimated from v_in to x (Fig. 4), for noise or sweep runs;
 - ``learning_curve.png``: e_rms and e_m of each whole period of a periodic reference
   (:func:`~piezo_stage_ros.core.loop.metrics.per_period_error`), measured and, for a simulation,
-  true; when the run has a period and at least two whole periods;
+  true, with the first period a learning feed-forward updated its table after marked; when the
+  run has a period and at least two whole periods;
+- ``feedforward.png``: the feed-forward u_ff (diagnostic ``ff_u_v``) beside the command over the
+  run, and over its last whole period; when the run has it;
 - ``comparison_error.png``: the tracking errors of several runs over each other.
 
 matplotlib is imported here only, with the non-interactive Agg backend, so nothing needs a display.
@@ -33,6 +36,7 @@ curves), so a 36 M-sample run draws as fast as a short one and looks the same.
 from __future__ import annotations
 
 from collections.abc import Sequence
+import math
 from pathlib import Path
 
 import matplotlib
@@ -53,6 +57,7 @@ __all__ = [
     'plot_bode',
     'plot_comparison',
     'plot_error',
+    'plot_feedforward',
     'plot_io_curves',
     'plot_learning_curve',
     'plot_run',
@@ -346,7 +351,8 @@ def plot_bode(estimate: BodeEstimate, path: Path, title: str = '') -> Path:
     return _save(fig, path)
 
 
-def plot_learning_curve(rows: PeriodErrors, path: Path, title: str = '') -> Path:
+def plot_learning_curve(rows: PeriodErrors, path: Path, title: str = '',
+                        first_update: int | None = None) -> Path:
     """
     Draw e_rms and e_m of every period against the period number (the learning curve).
 
@@ -358,6 +364,9 @@ def plot_learning_curve(rows: PeriodErrors, path: Path, title: str = '') -> Path
         PNG file to write.
     title : str
         Figure title.
+    first_update : int, optional
+        The period at whose end a learning feed-forward first updated its table (a dotted
+        line).
 
     Returns
     -------
@@ -378,11 +387,100 @@ def plot_learning_curve(rows: PeriodErrors, path: Path, title: str = '') -> Path
     finite = finite[np.isfinite(finite) & (finite > 0)]
     if finite.size:
         ax.set_yscale('log')
+    if first_update is not None:
+        ax.axvline(first_update + 0.5, color='0.4', ls=':', lw=1.0,
+                   label=f'first table update (end of period {first_update})')
     ax.set_xlabel(f'period (of {rows.period_s * 1e3:g} ms)')
     ax.set_ylabel('error per period [nm]')
     ax.set_title(title or 'Learning curve: error per period')
     ax.grid(True, which='both', alpha=0.3)
     ax.legend(loc='upper right')
+    return _save(fig, path)
+
+
+#: The diagnostics of a feed-forward a figure reads (core/control/feedforward.py).
+FEEDFORWARD_DIAGNOSTIC = 'ff_u_v'
+PERIODS_LEARNED_DIAGNOSTIC = 'ff_periods_learned'
+
+
+def first_update_period(record: RunRecord, period_s: float) -> int | None:
+    """
+    Return the period at whose end a learning feed-forward first updated its table.
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run; its diagnostic ``ff_periods_learned`` counts the updates.
+    period_s : float
+        The reference period [s].
+
+    Returns
+    -------
+    int or None
+        j, counted from 0 at the first sample; None without the diagnostic or an update.
+
+    """
+    learned = record.diagnostics.get(PERIODS_LEARNED_DIAGNOSTIC)
+    if learned is None:
+        return None
+    after = np.flatnonzero(np.asarray(learned) > 0.0)
+    if after.size == 0:
+        return None
+    t = _relative_time(record)
+    dt = float(t[1] - t[0]) if t.size > 1 else 0.0
+    # the update is at the last sample of period j, t = (j + 1) P - T; diagnostics read every
+    # m <= P / T samples show it first before (j + 2) P - T, which gives the same j
+    return max(int(math.floor((t[after[0]] + dt) / period_s + 1e-9)) - 1, 0)
+
+
+def plot_feedforward(record: RunRecord, path: Path, title: str = '') -> Path | None:
+    """
+    Draw the feed-forward u_ff beside the command: over the run, and over its last period.
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run; nothing is drawn without the diagnostic ``ff_u_v``.
+    path : Path
+        PNG file to write.
+    title : str
+        Figure title.
+
+    Returns
+    -------
+    Path or None
+        ``path``, or None when the run has no feed-forward signal.
+
+    """
+    u_ff = record.diagnostics.get(FEEDFORWARD_DIAGNOSTIC)
+    if u_ff is None or not len(u_ff):
+        return None
+    fig, (ax, ax_p) = _new(2, height=1.6 * _SIZE[1])
+    t = _relative_time(record)
+    ax.plot(*_envelope(t, record.command_v), color='0.6', lw=0.8, label='command $v$')
+    ax.plot(*_envelope(t, u_ff), color='tab:green', lw=0.8, label='feed-forward $u_{ff}$')
+    ax.set_xlabel('time [s]')
+    ax.set_ylabel('[V]')
+    ax.set_title(title or 'Feed-forward and command')
+    ax.legend(loc='upper right')
+    period = meta_period(record.meta)
+    dt = float(t[1] - t[0]) if t.size > 1 else 0.0
+    n = int(round(period / dt)) if period is not None and dt > 0.0 else 0
+    if n and t.size >= n:
+        last = slice(t.size - n, t.size)
+        phase = (t[last] - t[last][0]) * 1e3
+        ax_p.plot(phase, record.command_v[last], color='0.6', lw=1.0, label='command $v$')
+        ax_p.plot(phase, u_ff[last], color='tab:green', lw=1.2, label='$u_{ff}$')
+        ax_p.set_xlabel('time in the last period [ms]')
+    else:
+        tail = slice(max(t.size - 1000, 0), t.size)
+        ax_p.plot(t[tail], record.command_v[tail], color='0.6', lw=1.0, label='command $v$')
+        ax_p.plot(t[tail], u_ff[tail], color='tab:green', lw=1.2, label='$u_{ff}$')
+        ax_p.set_xlabel('time [s] (last 1000 samples)')
+    ax_p.set_ylabel('[V]')
+    ax_p.legend(loc='upper right')
+    for a in (ax, ax_p):
+        a.grid(True, alpha=0.3)
     return _save(fig, path)
 
 
@@ -458,9 +556,10 @@ def plot_run(record: RunRecord, outdir: Path, *, title: str = '',
     -------
     dict of str to Path
         Figure name (``tracking``, ``error``, ``io_curves``, ``step_zoom``, ``bode``,
-        ``learning_curve``) -> file; ``step_zoom`` only when the reference has a step, ``bode``
-        only with an estimate, ``learning_curve`` only when ``record.meta`` gives the reference
-        period and the run holds at least two whole periods.
+        ``learning_curve``, ``feedforward``) -> file; ``step_zoom`` only when the reference has
+        a step, ``bode`` only with an estimate, ``learning_curve`` only when ``record.meta``
+        gives the reference period and the run holds at least two whole periods,
+        ``feedforward`` only when the run records the feed-forward (``ff_u_v``).
 
     """
     outdir.mkdir(parents=True, exist_ok=True)
@@ -486,5 +585,9 @@ def plot_run(record: RunRecord, outdir: Path, *, title: str = '',
         rows = per_period_error(record, period)
         if len(rows) >= 2:
             files['learning_curve'] = plot_learning_curve(
-                rows, outdir / 'learning_curve.png', prefix + 'learning curve: error per period')
+                rows, outdir / 'learning_curve.png', prefix + 'learning curve: error per period',
+                first_update_period(record, period))
+    ff = plot_feedforward(record, outdir / 'feedforward.png', prefix + 'feed-forward')
+    if ff is not None:
+        files['feedforward'] = ff
     return files

@@ -33,10 +33,12 @@ import numpy as np
 from piezo_stage_ros.analysis.bagread import ProgressCallback, read_run, read_status
 from piezo_stage_ros.analysis.spectral import BodeEstimate, estimate_bode, is_excitation_run
 from piezo_stage_ros.core.contracts.errors import PiezoStageError
+from piezo_stage_ros.core.control.feedforward import LearnedTable, TABLE_META_KEY
 from piezo_stage_ros.core.loop.record import RunRecord
 
 __all__ = ['BagAnalysis', 'HEADLINE', 'analyze_bag', 'compute_metrics', 'estimate_period',
-           'format_metric', 'format_summary', 'ordered_keys', 'summary_json']
+           'format_metric', 'format_summary', 'learned_table', 'learning_metrics',
+           'ordered_keys', 'summary_json']
 
 #: Key in ``RunRecord.meta`` where a runner may store the start of its metrics window [s].
 STEADY_STATE_META_KEY = 'steady_state_start_s'
@@ -119,6 +121,7 @@ def compute_metrics(record: RunRecord,
     """
     from piezo_stage_ros.core.loop.metrics import square_wave_metrics, summarize
     out = summarize(record, steady_state_start_s=steady_state_start_s).as_dict()
+    out.update(learning_metrics(record))
     if _is_piecewise_constant(record.reference_m):
         period = record.meta.get('trajectory_period_s')
         try:
@@ -130,6 +133,68 @@ def compute_metrics(record: RunRecord,
             return out
         out.update({k: v for k, v in steps.as_dict().items() if k not in out})
     return out
+
+
+def learning_metrics(record: RunRecord) -> dict[str, float]:
+    """
+    Return the learning curve's ends for a run with a learning feed-forward.
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run; nothing is returned unless it has the diagnostic ``ff_periods_learned`` and
+        a reference period.
+
+    Returns
+    -------
+    dict of str to float
+        ``whole_periods_count``, ``periods_learned_count`` (table updates at the end of the
+        run), ``period_e_rms_first_m`` and ``period_e_rms_last_m`` (the first and last whole
+        periods of :func:`~piezo_stage_ros.core.loop.metrics.per_period_error`), and
+        ``period_e_rms_true_last_m`` with a true position.
+
+    """
+    from piezo_stage_ros.core.loop.metrics import meta_period, per_period_error
+    learned = record.diagnostics.get('ff_periods_learned')
+    period = meta_period(record.meta)
+    if learned is None or period is None or not len(learned):
+        return {}
+    rows = per_period_error(record, period)
+    if not len(rows):
+        return {}
+    out = {'whole_periods_count': float(len(rows)),
+           'periods_learned_count': float(learned[-1]),
+           'period_e_rms_first_m': float(rows.e_rms_m[0]),
+           'period_e_rms_last_m': float(rows.e_rms_m[-1])}
+    if rows.e_rms_true_m is not None:
+        out['period_e_rms_true_last_m'] = float(rows.e_rms_true_m[-1])
+    return out
+
+
+def learned_table(analysis: BagAnalysis) -> LearnedTable:
+    """
+    Return the learned table a bag holds (``simulate --bag`` of a learning run).
+
+    Parameters
+    ----------
+    analysis : BagAnalysis
+        The replayed bag.
+
+    Returns
+    -------
+    LearnedTable
+
+    Raises
+    ------
+    PiezoStageError
+        If the bag holds none, or not a readable one.
+
+    """
+    fields = analysis.record.meta.get(TABLE_META_KEY)
+    if not isinstance(fields, dict):
+        raise PiezoStageError(f'bag {analysis.path}: holds no learned table (simulate --bag '
+                              'stores one for a learning feed-forward)')
+    return LearnedTable.from_fields(fields, f'bag {analysis.path}: learned table')
 
 
 def _is_piecewise_constant(reference_m: Any) -> bool:
@@ -394,6 +459,11 @@ def format_summary(analysis: BagAnalysis) -> str:
     width = max((len(k) for k in analysis.metrics), default=0)
     for key in ordered_keys(list(analysis.metrics)):
         lines.append(f'  {key:<{width}}  {format_metric(key, analysis.metrics[key])}')
+    table = rec.meta.get(TABLE_META_KEY)
+    if isinstance(table, dict):
+        lines.append(f'  learned table: {len(table.get("table_v", ()))} samples, '
+                     f'{table.get("periods_learned")} periods learned, design '
+                     f'{table.get("design_hash")} (analyze --export-table FILE writes it)')
     if analysis.bode is not None:
         lines.append(f'  Bode estimate ({analysis.bode.label}): low-frequency gain '
                      f'{analysis.bode.dc_gain() * 1e6:.4g} µm/V')

@@ -41,13 +41,18 @@ from piezo_stage_ros.core.contracts.cdr import (
     JointStateDecoder,
     JointStateEncoder,
 )
-from piezo_stage_ros.core.contracts.errors import StabilityError
+from piezo_stage_ros.core.contracts.errors import (
+    ParameterError,
+    PiezoStageError,
+    StabilityError,
+)
 from piezo_stage_ros.core.contracts.interfaces import Controller
 from piezo_stage_ros.core.control.controllers import (
     bound_controller,
     build_controller,
     ControllerParams,
 )
+from piezo_stage_ros.core.control.feedforward import FeedForwardController
 from piezo_stage_ros.core.control.stability import check_stability, StabilityParams
 from piezo_stage_ros.core.model.stage import linear_plant, PlantParams
 from piezo_stage_ros.nodes import qos
@@ -168,7 +173,16 @@ class ControllerNode(Node):
         return bound_controller(params, self.sample_time_s, plant, *self._ff_context)
 
     def _rebuild(self, params: ControllerParams) -> Controller:
-        return self._build(params, self._stability)
+        try:
+            return self._build(params, self._stability)
+        except ParameterError as err:
+            if not params.feedforward.table_file:
+                raise
+            # a change at run time (a notch, a gain) that the table was not learned with: the
+            # new controller learns afresh instead of stopping the node at a sample
+            self.get_logger().warning(f'learned table not loaded after the change: {err}')
+            ff = params.feedforward.replace(table_file='')
+            return self._build(params.replace(feedforward=ff), self._stability)
 
     def _on_change(self, old: Sequence[Any], new: Sequence[Any]) -> None:
         params, stability, opts = new
@@ -286,6 +300,22 @@ class ControllerNode(Node):
                 self.get_logger().warning(
                     f'no position for {self.logic.watchdog.timeout_s:g} s: safe command '
                     f'{out.voltage_v:g} V published ({self.logic.safe_commands} so far)')
+
+
+    def destroy_node(self) -> None:
+        """Write the learned table (``feedforward.save_table_file``), then destroy the node."""
+        try:
+            path = self.binding.objects[0].feedforward.save_table_file
+            ctrl = self.logic.controller
+            if path and isinstance(ctrl, FeedForwardController):
+                table = ctrl.learned()
+                ctrl.save_table_file(path)
+                self.get_logger().info(f'learned table written: {path} ({table.samples} '
+                                       f'samples, {table.periods_learned} periods learned)')
+        except PiezoStageError as err:
+            self.get_logger().error(f'learned table not written: {err}')
+        finally:
+            super().destroy_node()
 
 
 def _files_of(cli_args: Sequence[str] | None) -> list[str]:

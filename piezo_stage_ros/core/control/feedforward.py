@@ -53,6 +53,12 @@ A two-degree-of-freedom structure around any controller of
   replaced by the quintic S-curve of ``transition_s`` starting at it (nothing moves before the
   jump is due), and the inner controller tracks that path.
 
+The learned table can be kept: :meth:`FeedForwardController.learned` returns it with what it
+was learned for (:class:`LearnedTable`: the period's reference, T, the mode, the design), saved
+relative to the RAC's initial estimates; :func:`write_learned_table` and
+:func:`read_learned_table` put it in a versioned ``.npz`` file, and ``table_file`` starts a
+bound controller from one, refused unless period, reference and design match.
+
 The reference comes from the trajectory object the wrapper is bound to
 (:meth:`FeedForwardController.bind`): the offline runner and the nodes hold the same one, and
 the reference each step receives is checked against it (a mismatch, a trajectory changed
@@ -62,8 +68,12 @@ elsewhere, turns the feed-forward off until the next bind, counted in ``ff_misma
 from __future__ import annotations
 
 from dataclasses import dataclass
+import hashlib
 import math
+import os
+from pathlib import Path
 from typing import Any, Callable, Mapping
+import zipfile
 
 import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
@@ -74,9 +84,11 @@ from piezo_stage_ros.core.loop.trajectories import s_curve
 from piezo_stage_ros.core.model.hysteresis import BacklashLike, HysteresisModel, NoHysteresis
 from piezo_stage_ros.core.model.linear import LinearPlant
 
-__all__ = ['FeedForwardController', 'FeedForwardParams', 'HysteresisInverse', 'MODES',
-           'PreviewInverse', 'learning_convergence', 'make_hysteresis_inverse',
-           'process_sensitivity', 'shape_jumps']
+__all__ = ['FeedForwardController', 'FeedForwardParams', 'HysteresisInverse', 'LearnedTable',
+           'MODES', 'PreviewInverse', 'TABLE_FORMAT', 'TABLE_META_KEY', 'TABLE_VERSION',
+           'kept_harmonics', 'learning_convergence', 'make_hysteresis_inverse',
+           'period_harmonics', 'process_sensitivity', 'read_learned_table', 'shape_jumps',
+           'write_learned_table']
 
 #: The feed-forward modes.
 MODES = ('none', 'inverse', 'learning', 'inverse_learning')
@@ -118,6 +130,14 @@ class FeedForwardParams(Params):
                                     'learned table.', low=0.0, low_open=True)
     period_s: float = param(0.0, unit='s', description='Period learned over (0: the '
                             "trajectory's own period).", low=0.0)
+    table_file: str = param('', unit='-', description='Learned table to start from (a file '
+                            'written by save_table_file or simulate --save-table), loaded when '
+                            'the controller is bound to the trajectory; refused unless its '
+                            'period, sample time, reference and design match (empty: start '
+                            'from zero).', read_only=True)
+    save_table_file: str = param('', unit='-', description='controller_node: write the learned '
+                                 'table to this file when the node shuts down (empty: not '
+                                 'written).', read_only=True)
 
     @property
     def inverse(self) -> bool:
@@ -455,6 +475,35 @@ def process_sensitivity(g: ComplexArray, z: ComplexArray, k_p: float, k_i: float
     return np.asarray(np.where(np.isfinite(ps), ps, 0.0), dtype=np.complex128)
 
 
+def period_harmonics(samples: int) -> ComplexArray:
+    """Return z = exp(2 pi j h / n) of the harmonics h = 0 .. n // 2 of a period of n samples."""
+    return np.asarray(np.exp(2j * math.pi * np.arange(samples // 2 + 1) / samples),
+                      dtype=np.complex128)
+
+
+def kept_harmonics(ps: ComplexArray, samples: int, sample_time_s: float,
+                   bandwidth_hz: float) -> FloatArray:
+    """
+    Return Q on the harmonics of a period: 1 where the learning acts, 0 elsewhere.
+
+    Parameters
+    ----------
+    ps : ndarray
+        The design process sensitivity at the harmonics h = 0 .. n // 2 of a period
+        (:func:`period_harmonics`).
+    samples : int
+        n, the samples of a period.
+    sample_time_s : float
+        T [s].
+    bandwidth_hz : float
+        ``learning_bandwidth_hz``: Q keeps 0 < h / (n T) <= it, where P_s is not 0.
+
+    """
+    freq = np.arange(len(ps)) / (samples * sample_time_s)
+    kept = (freq > 0.0) & (freq <= bandwidth_hz) & (np.abs(ps) > 0.0)
+    return kept.astype(np.float64)
+
+
 def learning_convergence(design_ps: ComplexArray, true_ps: ComplexArray, gain: float,
                          kept: FloatArray) -> float:
     """
@@ -467,6 +516,192 @@ def learning_convergence(design_ps: ComplexArray, true_ps: ComplexArray, gain: f
         ratio = np.abs(kept * (1.0 - gain * true_ps / design_ps))
     ratio = ratio[kept > 0.0]
     return float(np.max(ratio)) if ratio.size else 0.0
+
+
+# --------------------------------------------------------------------------------------------
+# The learned table in a file
+
+#: Format name of a learned-table file, and its version (:func:`write_learned_table`).
+TABLE_FORMAT = 'piezo_stage_ros.learned_table'
+TABLE_VERSION = 1
+#: Key of a run's learned table (:meth:`LearnedTable.fields`) in its description (a bag's meta).
+TABLE_META_KEY = 'learned_table'
+
+
+@dataclass(frozen=True)
+class LearnedTable:
+    """
+    One period of a learning feed-forward's table and what it was learned for.
+
+    Attributes
+    ----------
+    table_v : ndarray
+        L[i], i = 0 .. n - 1: the learned input added at sample i of each period [V] (the
+        linear input v_lin, before the inverse hysteresis).
+    reference_m : ndarray
+        x_d at the same n samples (the trajectory's second period) [m]: a table belongs to
+        one reference.
+    sample_time_s : float
+        T [s].
+    period_s : float
+        n T [s].
+    mode : str
+        The feed-forward mode it was learned in (``learning`` or ``inverse_learning``: the
+        table of ``learning`` also holds what the model inverse would add).
+    design : str
+        What the learning and the feed-forward were designed on, one ``name=value`` item per
+        part, separated by ``'; '``: the ZOH model G(z), the hysteresis, the controller's
+        linear gains at its initial estimates, the sensor gain, the notch, the mode.
+    periods_learned : int
+        Updates the table had received.
+    period_rms_m : float
+        The rms error of the last period the controller measured when it was saved [m] (NaN
+        when none).
+
+    """
+
+    table_v: FloatArray
+    reference_m: FloatArray
+    sample_time_s: float
+    period_s: float
+    mode: str
+    design: str
+    periods_learned: int = 0
+    period_rms_m: float = math.nan
+
+    @property
+    def samples(self) -> int:
+        """Return n, the samples of one period."""
+        return int(self.table_v.size)
+
+    @property
+    def design_hash(self) -> str:
+        """Return the first 16 hex digits of the SHA-256 of :attr:`design`."""
+        return hashlib.sha256(self.design.encode()).hexdigest()[:16]
+
+    def fields(self) -> dict[str, Any]:
+        """Return the fields of the file format, version :data:`TABLE_VERSION` (JSON-ready)."""
+        return {'format': TABLE_FORMAT, 'version': TABLE_VERSION,
+                'table_v': [float(v) for v in self.table_v],
+                'reference_m': [float(v) for v in self.reference_m],
+                'sample_time_s': float(self.sample_time_s), 'period_s': float(self.period_s),
+                'mode': self.mode, 'design': self.design, 'design_hash': self.design_hash,
+                'periods_learned': int(self.periods_learned),
+                'period_rms_m': float(self.period_rms_m)}
+
+    @classmethod
+    def from_fields(cls, fields: Mapping[str, Any], where: str) -> LearnedTable:
+        """
+        Return the table of :meth:`fields` (or the arrays of a file), checked.
+
+        Parameters
+        ----------
+        fields : Mapping
+            Field name to value (lists or NumPy arrays and scalars).
+        where : str
+            What the fields come from, for the error message.
+
+        Raises
+        ------
+        PiezoStageError
+            Not a learned table, another version, a missing field or inconsistent fields.
+
+        """
+        if str(fields.get('format', '')) != TABLE_FORMAT:
+            raise PiezoStageError(f'{where}: not a learned table (format '
+                                  f'{str(fields.get("format", "missing"))!r}, expected '
+                                  f'{TABLE_FORMAT!r})')
+        version = int(fields.get('version', -1))
+        if version != TABLE_VERSION:
+            raise PiezoStageError(f'{where}: version {version}; this program reads version '
+                                  f'{TABLE_VERSION}')
+        try:
+            table = cls(table_v=np.asarray(fields['table_v'], dtype=np.float64).reshape(-1),
+                        reference_m=np.asarray(fields['reference_m'],
+                                               dtype=np.float64).reshape(-1),
+                        sample_time_s=float(fields['sample_time_s']),
+                        period_s=float(fields['period_s']), mode=str(fields['mode']),
+                        design=str(fields['design']),
+                        periods_learned=int(fields['periods_learned']),
+                        period_rms_m=float(fields['period_rms_m']))
+        except KeyError as err:
+            raise PiezoStageError(f'{where}: field {err} is missing') from None
+        if (table.reference_m.size != table.samples or table.samples == 0
+                or not np.all(np.isfinite(table.table_v))):
+            raise PiezoStageError(f'{where}: {table.samples} table entries (finite, at least '
+                                  f'one) and {table.reference_m.size} reference samples do '
+                                  'not agree')
+        return table
+
+
+def write_learned_table(path: str | Path, table: LearnedTable) -> Path:
+    """
+    Write a learned table as a NumPy ``.npz`` archive, replacing ``path`` at once.
+
+    Version 1 holds the arrays ``format`` (:data:`TABLE_FORMAT`), ``version`` (1),
+    ``table_v``, ``reference_m``, ``sample_time_s``, ``period_s``, ``mode``, ``design``,
+    ``design_hash``, ``periods_learned``, ``period_rms_m`` (fields of :class:`LearnedTable`),
+    no pickled objects: ``numpy.load(path)`` reads it anywhere.
+
+    Parameters
+    ----------
+    path : path-like
+        File to write (the name is kept as given; ``.npz`` is the customary suffix).
+    table : LearnedTable
+        What to write.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Raises
+    ------
+    PiezoStageError
+        If the file cannot be written.
+
+    """
+    path = Path(path)
+    tmp = path.with_name(path.name + '.tmp')
+    try:
+        with open(tmp, 'wb') as f:
+            arrays: dict[str, Any] = {key: np.asarray(value)
+                                      for key, value in table.fields().items()}
+            np.savez(f, **arrays)
+        os.replace(tmp, path)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        raise PiezoStageError(f'learned table {path}: cannot write it: {err}') from None
+    return path
+
+
+def read_learned_table(path: str | Path) -> LearnedTable:
+    """
+    Read a file of :func:`write_learned_table`.
+
+    Parameters
+    ----------
+    path : path-like
+        The file.
+
+    Returns
+    -------
+    LearnedTable
+
+    Raises
+    ------
+    PiezoStageError
+        If it cannot be read, is not a learned table, has another version or inconsistent
+        fields.
+
+    """
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            fields = {key: data[key] for key in data.files}
+    except (OSError, ValueError, zipfile.BadZipFile) as err:
+        raise PiezoStageError(f'learned table {path}: cannot read it: {err}') from None
+    return LearnedTable.from_fields(fields, f'learned table {path}')
 
 
 # --------------------------------------------------------------------------------------------
@@ -550,6 +785,14 @@ class FeedForwardController:
             else 1.0
         self.hysteresis_inverse: HysteresisInverse | None = \
             make_hysteresis_inverse(hysteresis) if self._inverse_on else None
+        self._hysteresis_model = hysteresis
+        #: What the table was designed on (:meth:`design_summary` at :meth:`bind`).
+        self.design = ''
+        #: The file the table started from ('' when it started from zero).
+        self.table_source = ''
+        # the table and sample at the last feedforward_v (the entry a period's last sample used)
+        self._seen_table: list[float] = []
+        self._seen_k = -1
         self._theta0 = self._phi0 = 0.0
         self._set_share()
         notch = getattr(inner, 'notch', None)
@@ -618,6 +861,14 @@ class FeedForwardController:
             self._kernel2 = np.concatenate([kernel, kernel])
         self.periods_learned = 0
         self._prepare_tables()
+        self.design = self.design_summary()
+        self.table_source = ''
+        if self.params.table_file:
+            if not self._learning_on:
+                raise ParameterError('feedforward.table_file', self.params.table_file,
+                                     "'' unless feedforward.mode learns",
+                                     f'names a table, but mode {self.params.mode!r} learns none')
+            self.load_table_file(self.params.table_file)
 
     def reset(self, position_m: float, reference_m: float,
               output_v: float | None = None) -> None:
@@ -628,8 +879,11 @@ class FeedForwardController:
             self._accumulate(self._k % self._period_n)  # the errors so far stay in the update
             self._pending = 0
         self._k = 0
+        self._seen_k = -1
         self._share_fresh = True
-        self._hold(False)
+        # a table from a file was saved relative to the initial estimates (:meth:`learned`):
+        # they are held from the first sample
+        self._hold(bool(self.table_source))
         if self.hysteresis_inverse is not None:
             # the stage rests with w = c v: the compensator starts where the stage does
             hyst = self.hysteresis_inverse
@@ -829,15 +1083,13 @@ class FeedForwardController:
     def _learning_filter(self) -> ComplexArray:
         """Return gamma Q / P_s on the period's harmonics (0 on those Q drops)."""
         n = self._period_n
-        harmonics = np.arange(n // 2 + 1)
-        z = np.exp(2j * math.pi * harmonics / n)
+        z = period_harmonics(n)
         # the plant seen from v_lin: c G (the compensator removes the hysteresis; without it,
         # the hysteresis slope c is its gain)
         g = self.slope * self.plant_inverse.frequency_response(z)
         k_p, k_i = self.inner.linear_gains()
         ps = process_sensitivity(g, z, k_p, k_i, self._ksens, self._t, self._notch_coeffs)
-        freq = harmonics / (n * self._t)
-        kept = (freq > 0.0) & (freq <= self.params.learning_bandwidth_hz) & (np.abs(ps) > 0.0)
+        kept = kept_harmonics(ps, n, self._t, self.params.learning_bandwidth_hz) > 0.0
         return np.asarray(np.where(kept, self.params.learning_gain / np.where(kept, ps, 1.0),
                                    0.0), dtype=np.complex128)
 
@@ -878,19 +1130,167 @@ class FeedForwardController:
                                 self.params.learning_limit_v)
         self._ll = self._learned.tolist()
 
+    def design_summary(self) -> str:
+        """
+        Return what the feed-forward is designed on, one ``name=value`` item per part.
+
+        The mode, T, the ZOH model G(z), the design hysteresis and its slope c, the inner
+        controller's linear gains (at its present estimates: :meth:`bind` takes them at the
+        initial ones), the sensor gain, the RAC's share and the notch; floats in full
+        precision, so equal designs give equal text (:attr:`LearnedTable.design`).
+        """
+        def floats(values: Any) -> str:
+            return '[' + ', '.join(repr(float(v)) for v in np.ravel(values)) + ']'
+        hyst = self._hysteresis_model
+        k_p, k_i = self.inner.linear_gains()
+        notch = 'none' if self._notch_coeffs is None else \
+            f'{floats(self._notch_coeffs[0])}/{floats(self._notch_coeffs[1])}'
+        parts = [f'mode={self.params.mode}', f'T={self._t!r}',
+                 f'G={floats(self.plant_inverse.num)}/{floats(self.plant_inverse.den)}',
+                 f'hysteresis={type(hyst).__name__}({getattr(hyst, "params", "")!r})',
+                 f'c={self.slope!r}', f'k_p={float(k_p)!r}', f'k_i={float(k_i)!r}',
+                 f'k={self._ksens!r}', f'share={self._theta0!r},{self._phi0!r}',
+                 f'notch={notch}']
+        return '; '.join(parts)
+
+    def learned(self) -> LearnedTable:
+        """
+        Return the learned table with what it was learned for (to write to a file or a bag).
+
+        Raises
+        ------
+        PiezoStageError
+            If the mode does not learn or the controller is not bound to a periodic reference.
+
+        """
+        if not self._learning_on or not self._period_n:
+            raise PiezoStageError(f'feed-forward mode {self.params.mode!r}: no learned table '
+                                  '(the mode does not learn, or no trajectory is bound)')
+        return LearnedTable(table_v=self._learned + self._estimate_drift(),
+                            reference_m=np.asarray(self._lx_raw, dtype=np.float64),
+                            sample_time_s=self._t, period_s=self._period_n * self._t,
+                            mode=self.params.mode, design=self.design,
+                            periods_learned=self.periods_learned,
+                            period_rms_m=self.last_period_rms_m)
+
+    def _estimate_drift(self) -> FloatArray:
+        """
+        Return what the RAC's estimates add over their initial values at the reference [V].
+
+        At tracking (y = x_d) the RAC's command holds theta_hat y + phi_hat dy_d/dt, and the
+        table was learned with the estimates where they stood (held): k ((theta_hat - theta_0)
+        x_d + (phi_hat - phi_0) dx_d/dt), through the notch when there is one, is what a table
+        used with the initial estimates must add. Zero for a PI.
+        """
+        rac = getattr(self.inner, 'inner', self.inner)
+        values = dict(rac.diagnostics()) if hasattr(rac, 'diagnostics') else {}
+        if 'theta_hat' not in values or 'phi_hat' not in values:
+            return np.zeros(self._period_n)
+        d_theta = float(values['theta_hat']) - self._theta0
+        d_phi = float(values['phi_hat']) - self._phi0
+        drift = self._ksens * (d_theta * np.asarray(self._lx) + d_phi * np.asarray(self._lv))
+        if self._notch_coeffs is not None:
+            n = self._period_n
+            z = np.exp(2j * math.pi * np.arange(n // 2 + 1) / n)
+            num, den = self._notch_coeffs
+            drift = np.fft.irfft(np.fft.rfft(drift) * np.polyval(num, z) / np.polyval(den, z), n)
+        return np.asarray(drift, dtype=np.float64)
+
+    def save_table_file(self, path: str | Path) -> Path:
+        """Write :meth:`learned` to ``path`` (:func:`write_learned_table`) and return it."""
+        return write_learned_table(path, self.learned())
+
+    def load_table_file(self, path: str | Path) -> None:
+        """
+        Start from the table of a file, if it was learned for this reference and design.
+
+        Parameters
+        ----------
+        path : path-like
+            A file of :func:`write_learned_table`.
+
+        Raises
+        ------
+        ParameterError
+            Named ``feedforward.table_file``: the file cannot be read, or its sample time,
+            period length, reference or design differ from the bound controller's (the
+            message gives the file's value and the one expected).
+
+        """
+        name = 'feedforward.table_file'
+        try:
+            saved = read_learned_table(path)
+        except PiezoStageError as err:
+            raise ParameterError(name, str(path), 'a learned-table file (.npz, version '
+                                 f'{TABLE_VERSION})', f'cannot be loaded ({err})') from None
+        here = self.learned()
+        if (saved.samples != here.samples
+                or abs(saved.sample_time_s - here.sample_time_s) > 1e-12 * here.sample_time_s):
+            raise ParameterError(
+                name, str(path), f'a table of {here.samples} samples of T = '
+                f'{here.sample_time_s:g} s (period {here.period_s:g} s, the bound trajectory)',
+                f'holds {saved.samples} samples of T = {saved.sample_time_s:g} s (period '
+                f'{saved.period_s:g} s)')
+        gap = np.abs(saved.reference_m - here.reference_m)
+        bad = gap > 1e-12 + 1e-9 * np.abs(here.reference_m)
+        if np.any(bad):
+            i = int(np.argmax(gap))
+            raise ParameterError(
+                name, str(path), 'a table learned on the bound trajectory', 'was learned on '
+                f'another reference: {int(np.sum(bad))} of {here.samples} samples differ, most '
+                f'at sample {i}: {saved.reference_m[i]:.9g} m, expected '
+                f'{here.reference_m[i]:.9g} m')
+        if saved.design != here.design:
+            theirs = saved.design.split('; ')
+            mine = here.design.split('; ')
+            differ = [f'{a} (expected {b})' for a, b in zip(theirs, mine) if a != b] \
+                or [f'{saved.design} (expected {here.design})']
+            raise ParameterError(name, str(path), f'a table of design {here.design_hash}',
+                                 f'was learned on design {saved.design_hash}: '
+                                 + '; '.join(differ))
+        self.load_table(saved.table_v)
+        self.table_source = str(path)
+
     # -- diagnostics -----------------------------------------------------------------------
 
     @property
     def diagnostic_names(self) -> tuple[str, ...]:
         """Return the inner controller's names and the feed-forward's."""
         return tuple(getattr(self.inner, 'diagnostic_names', ())) + (
-            'ff_active', 'ff_mismatches', 'ff_periods_learned', 'ff_period_rms_m')
+            'ff_active', 'ff_mismatches', 'ff_periods_learned', 'ff_period_rms_m', 'ff_u_v')
 
     def diagnostic_values(self) -> tuple[float, ...]:
         """Return the values of :attr:`diagnostic_names`."""
         return tuple(self.inner.diagnostic_values()) + (
             1.0 if self._matched else 0.0, float(self.mismatches),
-            float(self.periods_learned), self.last_period_rms_m)
+            float(self.periods_learned), self.last_period_rms_m, self.feedforward_v())
+
+    def feedforward_v(self) -> float:
+        """
+        Return the feed-forward of the last sample: the model inverse plus the learned table [V].
+
+        u_ff = W[i] + L[i] on the linear input v_lin (W the model inverse, already divided by
+        the hysteresis slope c; L the learned table), 0 when the sample got feedback alone.
+        The RAC's own first-order share at its initial estimates, which the model inverse
+        replaces (module doc), is not in it. The last sample of a period updates the table
+        after using it: the entry it used is the one of the table seen by an earlier call in
+        the same period, which a caller reading at least once a period (the diagnostics are
+        read every sample or every few) has made; otherwise the updated entry is returned.
+        """
+        if not self._matched or self._trajectory is None:
+            return 0.0
+        k = self._k - 1
+        n = self._period_n
+        i = k % n if n else k - self._block_start
+        u = self._lw[i] if self._inverse_on else 0.0
+        if self._learning_on:
+            table = self._ll
+            if i == n - 1 and table is not self._seen_table and self._seen_k >= k - i:
+                table = self._seen_table  # updated at this sample, after its use
+            u += table[i]
+            self._seen_table = self._ll
+            self._seen_k = k
+        return u
 
     def diagnostics(self) -> Mapping[str, float]:
         """Return the diagnostics as a mapping."""

@@ -82,17 +82,29 @@ from piezo_stage_ros.core.contracts.errors import ParameterError, StabilityError
 from piezo_stage_ros.core.contracts.params import group, param, Params
 from piezo_stage_ros.core.contracts.types import ComplexArray, FloatArray
 from piezo_stage_ros.core.control.controllers import (
+    build_controller,
     ControllerParams,
     notch_design,
     rac_linear_gains,
     RACParams,
 )
+from piezo_stage_ros.core.control.feedforward import (
+    FeedForwardController,
+    FeedForwardParams,
+    kept_harmonics,
+    learning_convergence,
+    period_harmonics,
+    process_sensitivity,
+)
+from piezo_stage_ros.core.model.family import default_family, member_params
+from piezo_stage_ros.core.model.hysteresis import HysteresisParams, make_hysteresis, NoHysteresis
 from piezo_stage_ros.core.model.linear import LinearPlant, third_order_plant
-from piezo_stage_ros.core.model.stage import linear_plant, PlantParams
+from piezo_stage_ros.core.model.stage import linear_plant, PlantParams, StageParams
 
-__all__ = ['ADAPTATION_MARGIN', 'AdaptationBound', 'BoxCertificate', 'LoopCase', 'StabilityParams',
-           'StabilityReport', 'StabilityWarning', 'adaptation_bound', 'check_stability',
-           'enforce', 'loop_polynomials', 'stability_plant']
+__all__ = ['ADAPTATION_MARGIN', 'AdaptationBound', 'BoxCertificate', 'LearningConvergence',
+           'LoopCase', 'StabilityParams', 'StabilityReport', 'StabilityWarning',
+           'adaptation_bound', 'check_stability', 'enforce', 'learning_check', 'loop_polynomials',
+           'stability_plant']
 
 
 #: Required ratio g_crit / g of the adaptation loop (a gain margin of 6 dB).
@@ -341,6 +353,101 @@ class AdaptationBound:
 
 
 @dataclass(frozen=True)
+class LearningConvergence:
+    """
+    The learning feed-forward's contraction per period on the harmonics it learns.
+
+    After period j the table moves by -gamma Q E_j / P_s (P_s the design model's process
+    sensitivity); on a stage whose process sensitivity is P_true the error of a learned
+    harmonic then follows E_{j+1} = (1 - gamma P_true / P_s) E_j: it converges monotonically,
+    harmonic by harmonic, when every |1 - gamma P_true / P_s| < 1 (Q keeps the table inside
+    its band, so the harmonics above it do not grow). On the design model itself the ratio is
+    |1 - gamma|.
+
+    Attributes
+    ----------
+    period_s : float
+        The period learned over [s].
+    harmonics : int
+        Harmonics Q keeps.
+    gain : float
+        gamma.
+    bandwidth_hz : float
+        Q's band [Hz].
+    design_ratio : float
+        max |1 - gamma P_true / P_s| with P_true the design model at the hysteresis slope c
+        the learning was designed with.
+    slopes : tuple of (float, float)
+        (slope, ratio) of the design model at each hysteresis slope of the check (learning
+        without the model inverse: the hysteresis is in the loop); empty with the inverse.
+    members : tuple of (str, float)
+        (name, ratio) of every member of the stage family (:func:`~piezo_stage_ros.core.model.
+        family.default_family`), the worst slope of each; empty when the family cannot be
+        built (a plant other than the third-order one).
+    note : str
+        Why the family is missing, when it is.
+
+    """
+
+    period_s: float
+    harmonics: int
+    gain: float
+    bandwidth_hz: float
+    design_ratio: float
+    slopes: tuple[tuple[float, float], ...] = ()
+    members: tuple[tuple[str, float], ...] = ()
+    note: str = ''
+
+    @property
+    def worst_member(self) -> tuple[str, float] | None:
+        """Return the member with the largest ratio (None without a family)."""
+        return max(self.members, key=lambda m: m[1]) if self.members else None
+
+    @property
+    def ratio(self) -> float:
+        """Return the largest ratio over the design model, its slopes and the family."""
+        return max([self.design_ratio, *(r for _, r in self.slopes),
+                    *(r for _, r in self.members)])
+
+    @property
+    def ok(self) -> bool:
+        """Return whether every learned harmonic converges monotonically on every case."""
+        return self.ratio < 1.0
+
+    @property
+    def design_ok(self) -> bool:
+        """Return whether it converges monotonically on the design model at every slope."""
+        return max([self.design_ratio, *(r for _, r in self.slopes)]) < 1.0
+
+    def text(self) -> str:
+        """Return the verdict in one paragraph."""
+        head = (f'Learning (gamma {self.gain:g}, Q to {self.bandwidth_hz:g} Hz: {self.harmonics} '
+                f'harmonics of {self.period_s:g} s): per-period ratio max|1 - gamma P_true/P_s| '
+                f'= {self.design_ratio:.3f} on the design model')
+        if self.slopes:
+            worst = max(self.slopes, key=lambda c: c[1])
+            head += (f', {worst[1]:.3f} at worst over the hysteresis slopes '
+                     f'[{self.slopes[0][0]:.4g}, {self.slopes[-1][0]:.4g}] (slope '
+                     f'{worst[0]:.4g})')
+        member = self.worst_member
+        if member is not None:
+            bad = [name for name, r in self.members if r >= 1.0]
+            head += (f'; over the stage family ({len(self.members)} members) worst '
+                     f'{member[1]:.3f} ({member[0]})')
+            if bad:
+                head += f', NOT CONVERGING on {len(bad)}: ' + ', '.join(bad)
+        elif self.note:
+            head += f'; {self.note}'
+        if self.ok:
+            return head + ': every learned harmonic converges monotonically.'
+        if self.design_ok:
+            return (head + ': monotone on the design model, not on every member (lower '
+                    'learning_gain or learning_bandwidth_hz to cover them).')
+        return (head + ': ABOVE 1 on the design model, the learning can grow the error; lower '
+                'learning_gain or learning_bandwidth_hz.')
+
+
+@dataclass(frozen=True)
 class StabilityReport:
     """
     Verdict over every case of one controller configuration on one plant model.
@@ -367,6 +474,7 @@ class StabilityReport:
     cases: tuple[LoopCase, ...]
     adaptation: AdaptationBound | None = None
     certificates: tuple[BoxCertificate, ...] = ()
+    learning: LearningConvergence | None = None
 
     @property
     def stable(self) -> bool:
@@ -448,6 +556,8 @@ class StabilityReport:
         else:
             box = ''.join(f' NOT CERTIFIED: {c.label}, {c.detail}.' for c in failed)
         extra = box + extra + ' ' + self.binding()
+        if self.learning is not None:
+            extra += ' ' + self.learning.text()
         if self.stable:
             return head + worst + margins + extra
         if w.stable:  # every sampled case is stable, but the box is not
@@ -630,7 +740,8 @@ def _loop_parts(controller_params: ControllerParams, plant_params: PlantParams,
 
 
 def check_stability(controller_params: ControllerParams, plant_params: PlantParams,
-                    sample_time_s: float, *, options: StabilityParams | None = None
+                    sample_time_s: float, *, options: StabilityParams | None = None,
+                    period_s: float | None = None, stage: StageParams | None = None
                     ) -> StabilityReport:
     """
     Check the linearized discrete-time loop of a controller on a plant model.
@@ -646,11 +757,17 @@ def check_stability(controller_params: ControllerParams, plant_params: PlantPara
     options : StabilityParams, optional
         Slopes, estimates and delay to check; default :class:`StabilityParams` (its own
         ``plant`` group is ignored here: ``plant_params`` is used).
+    period_s : float, optional
+        The reference's period [s]: with a learning feed-forward the report holds its
+        convergence (:func:`learning_check`; ``feedforward.period_s`` takes precedence).
+    stage : StageParams, optional
+        The configured stage, for the learning's design hysteresis and stage family.
 
     Returns
     -------
     StabilityReport
-        Closed-loop poles, spectral radius and margins of every case, and the verdict.
+        Closed-loop poles, spectral radius and margins of every case, and the verdict; the
+        learning's convergence does not enter :attr:`StabilityReport.stable`.
 
     """
     opts, plant, g_num, g_den, notch = _loop_parts(controller_params, plant_params,
@@ -702,9 +819,92 @@ def check_stability(controller_params: ControllerParams, plant_params: PlantPara
     if controller_params.type == 'rac':
         adaptation = _adaptation(controller_params, plant, g_num, g_den, sample_time_s, notch,
                                  opts)
+    learning = learning_check(controller_params, plant_params, sample_time_s,
+                              period_s or 0.0, stage=stage, options=opts)
     return StabilityReport(controller=desc, plant=plant.name, sample_time_s=sample_time_s,
                            cases=tuple(cases), adaptation=adaptation,
-                           certificates=tuple(certificates))
+                           certificates=tuple(certificates), learning=learning)
+
+
+def learning_check(controller_params: ControllerParams, plant_params: PlantParams,
+                   sample_time_s: float, period_s: float, *, stage: StageParams | None = None,
+                   options: StabilityParams | None = None) -> LearningConvergence | None:
+    """
+    Return the learning feed-forward's per-period convergence ratios (None when it is off).
+
+    Parameters
+    ----------
+    controller_params : ControllerParams
+        Controller configuration; nothing is checked unless ``feedforward.mode`` learns.
+    plant_params : PlantParams
+        The design model the learning filter is designed on.
+    sample_time_s : float
+        T [s].
+    period_s : float
+        The period learned over [s] (``feedforward.period_s`` when set, else the
+        trajectory's); None is returned when it is not a whole number (>= 4) of samples.
+    stage : StageParams, optional
+        The configured stage: its hysteresis is the design hysteresis (slope c), and the
+        stage family of ``robustness`` is built from it; default the paper's stage, without
+        the family.
+    options : StabilityParams, optional
+        Its hysteresis slopes are checked when the model inverse is off.
+
+    Returns
+    -------
+    LearningConvergence or None
+
+    """
+    ff = controller_params.feedforward
+    if not ff.learning:
+        return None
+    period = ff.period_s or period_s
+    n = int(round(period / sample_time_s)) if period > 0.0 else 0
+    if n < 4 or abs(n * sample_time_s - period) > 1e-9 * period:
+        return None
+    opts = options if options is not None else StabilityParams()
+    hysteresis = make_hysteresis(stage.hysteresis if stage is not None
+                                 else HysteresisParams())
+    c = 1.0 if isinstance(hysteresis, NoHysteresis) else float(hysteresis.slope)
+    plant = stability_plant(plant_params)
+    z = period_harmonics(n)
+    # the feedback controller as the feed-forward linearizes it (initial estimates)
+    fb = build_controller(controller_params.replace(feedforward=FeedForwardParams()),
+                          sample_time_s, plant)
+    assert not isinstance(fb, FeedForwardController)  # mode none builds none
+    k_p, k_i = fb.linear_gains()
+    notch = notch_design(controller_params.notch, sample_time_s, plant)
+    k = controller_params.sensor_gain_v_per_m
+
+    def sensitivity(model: LinearPlant, slope: float) -> ComplexArray:
+        num, den = _plant_tf(model, sample_time_s)
+        g = slope * np.polyval(num, z) / np.polyval(den, z)
+        return process_sensitivity(g, z, k_p, k_i, k, sample_time_s, notch)
+    design = sensitivity(plant, c)
+    kept = kept_harmonics(design, n, sample_time_s, ff.learning_bandwidth_hz)
+    # with the inverse the compensator removes the design hysteresis; without it the loop
+    # sees the hysteresis' incremental slope
+    slopes = () if ff.inverse else opts.slopes()
+
+    def ratio(model: LinearPlant) -> float:
+        return max(learning_convergence(design, sensitivity(model, s), ff.learning_gain, kept)
+                   for s in (slopes or (c,)))
+    members: list[tuple[str, float]] = []
+    note = ''
+    if stage is None:
+        note = 'no stage given: the family is not checked'
+    elif stage.plant.model != 'third_order':
+        note = f'the stage family varies the third-order plant, not {stage.plant.model}'
+    else:
+        members = [(m.name, ratio(stability_plant(member_params(stage, m).plant)))
+                   for m in default_family()]
+    return LearningConvergence(
+        period_s=n * sample_time_s, harmonics=int(np.sum(kept)), gain=ff.learning_gain,
+        bandwidth_hz=ff.learning_bandwidth_hz,
+        design_ratio=learning_convergence(design, design, ff.learning_gain, kept),
+        slopes=tuple((s, learning_convergence(design, sensitivity(plant, s), ff.learning_gain,
+                                              kept)) for s in slopes),
+        members=tuple(members), note=note)
 
 
 def adaptation_bound(controller_params: ControllerParams, plant_params: PlantParams,

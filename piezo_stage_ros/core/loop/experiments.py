@@ -150,7 +150,8 @@ def default_duration_s(trajectory: TrajectoryBase, params: TrajectoryParams) -> 
 def run_one(stage_params: StageParams, controller_params: ControllerParams,
             trajectory_params: TrajectoryParams, *, duration_s: float | None = None,
             chunk_callback: closed_loop.ChunkCallback | None = None, keep: bool = True,
-            meta: dict[str, Any] | None = None, design_plant: PlantParams | None = None
+            meta: dict[str, Any] | None = None, design_plant: PlantParams | None = None,
+            diagnostics_every: int = 10, built: Callable[[Any], None] | None = None
             ) -> RunRecord:
     """
     Build a stage, a controller and a trajectory and run one closed loop.
@@ -174,6 +175,11 @@ def run_one(stage_params: StageParams, controller_params: ControllerParams,
     design_plant : PlantParams, optional
         The model a ``model`` notch is designed on; default the stage's plant
         (:attr:`piezo_stage_ros.core.contracts.loop_config.LoopConfig.design_plant`).
+    diagnostics_every : int
+        Passed to :func:`piezo_stage_ros.core.loop.closed_loop.run`.
+    built : callable, optional
+        Called with the controller before the run (a caller that reads its state afterwards:
+        a feed-forward's learned table).
 
     Returns
     -------
@@ -194,8 +200,11 @@ def run_one(stage_params: StageParams, controller_params: ControllerParams,
         'seed': stage_params.seed, 'sample_rate_hz': stage_params.sample_rate_hz,
     }
     run_meta.update(meta or {})
+    if built is not None:
+        built(controller)
     return closed_loop.run(stage, controller, trajectory, duration_s=duration_s,
-                           chunk_callback=chunk_callback, keep=keep, meta=run_meta)
+                           chunk_callback=chunk_callback, keep=keep, meta=run_meta,
+                           diagnostics_every=diagnostics_every)
 
 
 def _with_plant(stage_params: StageParams, plant: str) -> StageParams:
