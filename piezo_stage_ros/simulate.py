@@ -107,6 +107,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--storage', choices=STORAGE_IDS, default=STORAGE_IDS[0],
                    help='Bag storage plugin (default mcap).')
     p.add_argument('--overwrite', action='store_true', help='Replace an existing bag.')
+    p.add_argument('--bag-topics', choices=('samples', 'block', 'both'), default='samples',
+                   help='What the bag holds: the per-sample topics (default), the block topic '
+                   'stage/block (many samples per message, as a real-time loop records them; '
+                   'docs/bags.md), or both.')
     return p
 
 
@@ -205,7 +209,8 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
     start = time.perf_counter()
     if args.bag is not None:
         from piezo_stage_ros.analysis.bagwrite import RunBagWriter
-        with RunBagWriter(args.bag, storage=args.storage, overwrite=args.overwrite) as writer:
+        with RunBagWriter(args.bag, storage=args.storage, overwrite=args.overwrite,
+                          topics=args.bag_topics) as writer:
             def stream(chunk: Any) -> None:
                 writer.set_meta(chunk.meta)
                 writer.write_chunk(chunk)
