@@ -61,9 +61,10 @@ from piezo_stage_ros.hardware.pacing import Pacer, servo_setup
 from piezo_stage_ros.hardware.safety import GuardedPlant, Trip
 from piezo_stage_ros.hardware.udp import UdpBridge, UdpStreamBridge
 from piezo_stage_ros.nodes.logic import ControllerLogic, sample_count, TrajectoryLogic
+from piezo_stage_ros.nodes.recording import SampleBatch
 
-__all__ = ['apply_change', 'make_bridge', 'SampleRing', 'servo_from_config', 'ServoLoop',
-           'ServoProcess', 'ServoSample']
+__all__ = ['apply_change', 'batch_of', 'make_bridge', 'SampleRing', 'samples_of',
+           'servo_from_config', 'ServoLoop', 'ServoProcess', 'ServoSample']
 
 
 class ServoSample(NamedTuple):
@@ -238,12 +239,22 @@ class SampleRing:
             Samples overwritten before they were read.
 
         """
+        _, ints, floats, missed = self.take_numbered()
+        return ints, floats, missed
+
+    def take_numbered(self) -> tuple[int, Any, Any, int]:
+        """
+        Return the samples written since the last call, with the number of the first.
+
+        As :meth:`take`, with first the number of the first row returned among all the rows
+        ever written (0, 1, 2 ...: the rows that follow it are numbered on without gaps).
+        """
         end = int(self._count[0])
         missed = max(end - self.read - self.capacity, 0)
         start = self.read + missed
-        rows = [i % self.capacity for i in range(start, end)]
+        rows = np.arange(start, end) % self.capacity
         self.read = end
-        return self._ints[rows].copy(), self._floats[rows].copy(), missed
+        return start, self._ints[rows], self._floats[rows], missed
 
     def close(self, unlink: bool = False) -> None:
         """Detach (and remove, by the creator)."""
@@ -300,7 +311,8 @@ class ServoLoop:
         period_ns = round(NS_PER_S / self.rate_hz)
         self.pacer = pacer if pacer is not None else Pacer(period_ns)
         self.total = sample_count(duration_s, self.rate_hz)
-        self.samples: deque[ServoSample] = deque(maxlen=max(0, capacity))
+        # (number among the samples served, sample)
+        self.samples: deque[tuple[int, ServoSample]] = deque(maxlen=max(0, capacity))
         self.pushed = 0
         self.drained = 0
         self.start_ns = 0
@@ -347,7 +359,7 @@ class ServoLoop:
                                  out.diagnostics if out else None,
                                  out.diagnostic_names if out else None)
         if self.samples.maxlen:
-            self.samples.append(sample)
+            self.samples.append((self.pushed, sample))
             self.pushed += 1
         if self.on_sample is not None:
             self.on_sample(sample)
@@ -481,9 +493,18 @@ class ServoLoop:
         out: list[ServoSample] = []
         queue = self.samples
         while queue and (not limit or len(out) < limit):
-            out.append(queue.popleft())
+            out.append(queue.popleft()[1])
         self.drained += len(out)
         return out
+
+    def take_batch(self) -> SampleBatch:
+        """Return the samples queued since the last call as columns (the block recording)."""
+        items = []
+        queue = self.samples
+        while queue:
+            items.append(queue.popleft())
+        self.drained += len(items)
+        return batch_of(items)
 
     def take_trips(self) -> list[Trip]:
         """Return the watchdog trips that ended since the last call, oldest first."""
@@ -504,6 +525,48 @@ class ServoLoop:
             out['error'] = repr(self.error)
         return out
 
+
+
+def samples_of(batch: SampleBatch, first: int = 0) -> list[ServoSample]:
+    """
+    Return rows ``first ...`` of a batch as :class:`ServoSample`.
+
+    Diagnostics are named by their layout (None where the batch has no names for it: the
+    publisher then uses its own).
+    """
+    ints, floats, layouts = batch.ints[first:], batch.floats[first:], batch.layouts
+    diagnostics = floats[:, len(SampleRing.FLOATS):]
+    out = []
+    for i, ((k, stamp, late, layout, n), (p, r, v, c, a)) in enumerate(zip(
+            ints.tolist(), floats[:, :len(SampleRing.FLOATS)].tolist())):
+        if n:
+            out.append(ServoSample(k, stamp, p, r, v, c, a, late,
+                                   tuple(diagnostics[i, :n].tolist()), layouts.get(layout)))
+        else:
+            out.append(ServoSample(k, stamp, p, r, v, c, a, late, None, None))
+    return out
+
+
+def batch_of(items: Sequence[tuple[int, ServoSample]]) -> SampleBatch:
+    """Return numbered samples (``(number, sample)``) as the columns of a batch."""
+    n = len(items)
+    width = max((len(s.diagnostics) for _, s in items if s.diagnostics is not None),
+                default=0)
+    ints = np.zeros((n, len(SampleRing.INTS)), dtype=np.int64)
+    floats = np.full((n, len(SampleRing.FLOATS) + width), np.nan)
+    numbers = np.empty(n, dtype=np.int64)
+    layouts: dict[tuple[str, ...], int] = {}
+    for i, (number, s) in enumerate(items):
+        numbers[i] = number
+        layout, count = -1, 0
+        if s.diagnostics is not None and s.diagnostic_names is not None:
+            layout = layouts.setdefault(s.diagnostic_names, len(layouts))
+            count = len(s.diagnostics)
+            floats[i, len(SampleRing.FLOATS):len(SampleRing.FLOATS) + count] = s.diagnostics
+        ints[i] = (s.k, s.stamp_ns, s.lateness_ns, layout, count)
+        floats[i, :len(SampleRing.FLOATS)] = (s.position_m, s.reference_m, s.velocity_mps,
+                                              s.command_v, s.applied_v)
+    return SampleBatch(numbers, ints, floats, {v: k for k, v in layouts.items()})
 
 
 def make_bridge(stage: StageParams, opts: PlantNodeParams) -> Bridge:
@@ -902,21 +965,15 @@ class ServoProcess:
         controller that computed them named them (a layout sent before the first of its rows
         was written: received here after the rows were taken, it is always in).
         """
-        ints, floats, _ = self.take()
+        return samples_of(self.take_batch())
+
+    def take_batch(self) -> SampleBatch:
+        """Return the samples handed over since the last call as columns, numbered."""
+        start, ints, floats, missed = self.ring.take_numbered()
+        self.missed += missed
         self._receive()
-        layouts = self._layouts
-        diagnostics = floats[:, len(SampleRing.FLOATS):]
-        out = []
-        for i, ((k, stamp, late, layout, n), (p, r, v, c, a)) in enumerate(zip(
-                ints.tolist(), floats[:, :len(SampleRing.FLOATS)].tolist())):
-            if n:
-                # no layout: names the writer did not have (the publisher uses its own)
-                out.append(ServoSample(k, stamp, p, r, v, c, a, late,
-                                       tuple(diagnostics[i, :n].tolist()),
-                                       layouts.get(layout)))
-            else:
-                out.append(ServoSample(k, stamp, p, r, v, c, a, late, None, None))
-        return out
+        return SampleBatch(np.arange(start, start + ints.shape[0], dtype=np.int64), ints,
+                           floats, dict(self._layouts))
 
     def close(self) -> None:
         """Stop the process if it runs, remove the ring and close the pipe."""
