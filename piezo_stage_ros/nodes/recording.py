@@ -124,8 +124,11 @@ class BlockRecorder:
         self.block_samples = max(1, int(block_samples))
         self.rows = 0
         self.messages = 0
-        self._carry: SampleBatch | None = None
+        # batches not yet made into rows: numpy pays off once per block, not per small batch
+        self._waiting: list[SampleBatch] = []
+        self._waiting_rows = 0
         self._names: tuple[str, ...] | None = None  # diagnostics of the pending rows
+        self._columns: dict[tuple[str, ...], tuple[tuple[str, ...], IntArray]] = {}
         self._pending: list[FloatArray] = []
         self._pending_rows = 0
 
@@ -133,13 +136,12 @@ class BlockRecorder:
         """Take a batch; return the whole blocks now complete, oldest first."""
         if batch.size == 0:
             return []
-        if self._carry is not None:
-            batch = _join(self._carry, batch)
-        self._carry = _take(batch, slice(batch.size - 1, None))
-        following = np.full(batch.size - 1, np.nan)
-        after = batch.number[1:] == batch.number[:-1] + 1
-        following[after] = batch.floats[1:, _APPLIED][after]
-        return self._rows(_take(batch, slice(0, batch.size - 1)), following)
+        self._waiting.append(batch)
+        self._waiting_rows += batch.size
+        # the last sample waits for the next (its applied input): a whole block needs one more
+        if self._waiting_rows <= self.block_samples:
+            return []
+        return self._process(None)
 
     def finish(self, held_v: float = math.nan) -> list[bytes]:
         """
@@ -152,11 +154,23 @@ class BlockRecorder:
             voltage); NaN when unknown.
 
         """
-        out: list[bytes] = []
-        if self._carry is not None:
-            out += self._rows(self._carry, np.array([held_v], dtype=np.float64))
-            self._carry = None
+        out = self._process(held_v) if self._waiting_rows else []
         return out + self._flush()
+
+    def _process(self, held_v: float | None) -> list[bytes]:
+        # the rows waiting, each with the input held after it (the next sample's applied_v,
+        # NaN across a gap); without held_v the last row waits for the next batch
+        batch = _join(self._waiting)
+        following = np.full(batch.size, np.nan)
+        after = batch.number[1:] == batch.number[:-1] + 1
+        following[:-1][after] = batch.floats[1:, _APPLIED][after]
+        if held_v is None:
+            last = batch.size - 1
+            self._waiting, self._waiting_rows = [_take(batch, slice(last, None))], 1
+            return self._rows(_take(batch, slice(0, last)), following[:last])
+        self._waiting, self._waiting_rows = [], 0
+        following[-1] = held_v
+        return self._rows(batch, following)
 
     def _rows(self, batch: SampleBatch, applied: FloatArray) -> list[bytes]:
         n = batch.size
@@ -194,16 +208,17 @@ class BlockRecorder:
         if hi <= lo:
             return []
         names = self._names or ()
+        _, order = self._layout(names)
         width = len(names)
         diag = np.full((hi - lo, width), np.nan)
         if width:
-            count = batch.ints[lo:hi, _COUNT]
-            layouts = batch.ints[lo:hi, _LAYOUT]
-            same = [batch.layouts.get(int(x)) == names for x in np.unique(layouts[count > 0])]
-            mine = (count == width) & np.isin(layouts, np.unique(layouts[count > 0])[same])
+            layout = batch.ints[lo:hi, _LAYOUT]
+            mine = np.zeros(hi - lo, dtype=bool)
+            for number, known in batch.layouts.items():
+                if known == names:
+                    mine |= layout == number
+            mine &= batch.ints[lo:hi, _COUNT] == width
             diag[mine] = batch.floats[lo:hi][mine, _VALUES:_VALUES + width]
-        # columns of the names in sorted order (the block layout's order)
-        order = np.argsort(np.asarray(names, dtype=object)) if width else np.zeros(0, int)
         self._pending.append(np.hstack((base[lo:hi], diag[:, order])))
         self._pending_rows += hi - lo
         out: list[bytes] = []
@@ -222,11 +237,19 @@ class BlockRecorder:
         self._pending, self._pending_rows = [], 0
         return [self._message(rows)]
 
+    def _layout(self, names: tuple[str, ...]) -> tuple[tuple[str, ...], IntArray]:
+        # the block's column names, and the order that puts the diagnostics in theirs (sorted)
+        known = self._columns.get(names)
+        if known is None:
+            order = np.asarray(sorted(range(len(names)), key=names.__getitem__), dtype=np.int64)
+            known = self._columns[names] = (block_columns(applied=True, diagnostics=names),
+                                            order)
+        return known
+
     def _message(self, rows: FloatArray) -> bytes:
         self.rows += rows.shape[0]
         self.messages += 1
-        columns = block_columns(applied=True, diagnostics=self._names or ())
-        return encode_block(columns, rows)
+        return encode_block(self._layout(self._names or ())[0], rows)
 
 
 class Handover:
@@ -284,15 +307,19 @@ def _take(batch: SampleBatch, rows: slice) -> SampleBatch:
     return SampleBatch(batch.number[rows], batch.ints[rows], batch.floats[rows], batch.layouts)
 
 
-def _join(first: SampleBatch, second: SampleBatch) -> SampleBatch:
-    width = max(first.floats.shape[1], second.floats.shape[1])
+def _join(batches: list[SampleBatch]) -> SampleBatch:
+    if len(batches) == 1:
+        return batches[0]
+    width = max(b.floats.shape[1] for b in batches)
 
     def pad(values: FloatArray) -> FloatArray:
         if values.shape[1] == width:
             return values
         return np.hstack((values, np.full((values.shape[0], width - values.shape[1]),
                                           np.nan)))
-    return SampleBatch(np.concatenate((first.number, second.number)),
-                       np.vstack((first.ints, second.ints)),
-                       np.vstack((pad(first.floats), pad(second.floats))),
-                       {**first.layouts, **second.layouts})
+    layouts: dict[int, tuple[str, ...]] = {}
+    for b in batches:
+        layouts.update(b.layouts)
+    return SampleBatch(np.concatenate([b.number for b in batches]),
+                       np.vstack([b.ints for b in batches]),
+                       np.vstack([pad(b.floats) for b in batches]), layouts)
