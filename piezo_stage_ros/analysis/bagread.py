@@ -46,6 +46,7 @@ The block messages are few (about 100 a second), so each is decoded on its own
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
+import dataclasses
 from dataclasses import dataclass, field
 import json
 from pathlib import Path, PurePath
@@ -465,37 +466,35 @@ def _read_blocks(info: BagInfo, ns: str, progress: ProgressCallback | None,
         else None
     diagnostics = {name[len(BLOCK_DIAGNOSTIC_PREFIX):]: extra[keep, j]
                    for name, j in where.items() if name.startswith(BLOCK_DIAGNOSTIC_PREFIX)}
+    alignment = {
+        'source': 'block',
+        'samples': int(keep.size),
+        'block_messages': len(sink.blocks),
+        'block_rows': total,
+        'dropped_duplicate': total - int(keep.size),
+        'first_sample': int(numbers[0]),
+        'missing_samples': missing,
+        'commands_paired': bool(np.isfinite(command).any()),
+        'command_source': 'applied' if 'applied_v' in where else 'command',
+        'warnings': warnings,
+    }
+    return _run_record(info, ns, stamps, relative_time, alignment,
+                       {topic: {'messages': len(sink.blocks), 'rows': total}},
+                       RunRecord(stamps / 1e9, base[keep, 3], base[keep, 4], base[keep, 5],
+                                 command, diagnostics, true_position_m=true_position))
+
+
+def _run_record(info: BagInfo, ns: str, stamps: IntArray, relative_time: bool,
+                alignment: dict[str, Any], decoding: dict[str, Any],
+                record: RunRecord) -> RunRecord:
+    # the record of a bag: its samples, times from the first stamp if asked, the description
+    # stored in the bag plus where it came from and how it was aligned
     meta = dict(info.meta)
     origin_ns = int(stamps[0])
-    meta.update({
-        'bag': str(info.path),
-        'time_origin_ns': origin_ns,
-        'namespace': ns,
-        'storage': info.storage,
-        'alignment': {
-            'source': 'block',
-            'samples': int(keep.size),
-            'block_messages': len(sink.blocks),
-            'block_rows': total,
-            'dropped_duplicate': total - int(keep.size),
-            'first_sample': int(numbers[0]),
-            'missing_samples': missing,
-            'commands_paired': bool(np.isfinite(command).any()),
-            'command_source': 'applied' if 'applied_v' in where else 'command',
-            'warnings': warnings,
-        },
-        'decoding': {topic: {'messages': len(sink.blocks), 'rows': total}},
-    })
-    return RunRecord(
-        time_s=(stamps - origin_ns) / 1e9 if relative_time else stamps / 1e9,
-        position_m=base[keep, 3],
-        reference_m=base[keep, 4],
-        reference_velocity_mps=base[keep, 5],
-        command_v=command,
-        diagnostics=diagnostics,
-        meta=meta,
-        true_position_m=true_position,
-    )
+    meta.update({'bag': str(info.path), 'time_origin_ns': origin_ns, 'namespace': ns,
+                 'storage': info.storage, 'alignment': alignment, 'decoding': decoding})
+    return dataclasses.replace(record, meta=meta, time_s=(stamps - origin_ns) / 1e9
+                               if relative_time else record.time_s)
 
 
 def _scan_sqlite(bag: Path, file: Path, wanted: Mapping[str, _TopicData | _BlockData],
@@ -879,40 +878,25 @@ def read_run(path: str | Path, *, namespace: str | None = None,
         assert diag_stamp is not None
         for col, key in enumerate(names.get('diagnostics', ())):
             diagnostics[key] = _by_stamp(diag_stamp, diag_val[:, col], common)
-    meta = dict(info.meta)
-    origin_ns = int(common[0])
-    meta.update({
-        'bag': str(info.path),
-        'time_origin_ns': origin_ns,
-        'namespace': ns,
-        'storage': info.storage,
-        'alignment': {
-            'samples': int(common.size),
-            'position_messages': int(pos_stamp.size),
-            'reference_messages': int(ref_stamp.size),
-            'command_messages': int(cmd_log.size),
-            'dropped_position': int(pos_stamp.size - common.size),
-            'dropped_reference': int(ref_stamp.size - common.size),
-            'dropped_command': int(cmd_log.size - common.size),
-            'command_offset': int(offset),
-            'command_log_delay_median_s': float(residual_ns) / 1e9,
-            'commands_paired': bool(np.isfinite(command).any()),
-            'command_source': 'applied' if 'applied' in topics else 'command',
-            'warnings': warnings,
-        },
-        # How many messages the bulk decoder took (the rest went through rosbags one by one).
-        'decoding': {topic: {'messages': count, 'bulk': fast}
-                     for topic, (count, fast) in info.decoded.items()},
-    })
-    return RunRecord(
-        time_s=(common - origin_ns) / 1e9 if relative_time else common / 1e9,
-        position_m=pos_val[pi, 0],
-        reference_m=ref_val[ri, 0],
-        reference_velocity_mps=ref_val[ri, 1],
-        command_v=command,
-        diagnostics=diagnostics,
-        meta=meta,
-        true_position_m=true_position,
-    )
+    alignment = {
+        'samples': int(common.size),
+        'position_messages': int(pos_stamp.size),
+        'reference_messages': int(ref_stamp.size),
+        'command_messages': int(cmd_log.size),
+        'dropped_position': int(pos_stamp.size - common.size),
+        'dropped_reference': int(ref_stamp.size - common.size),
+        'dropped_command': int(cmd_log.size - common.size),
+        'command_offset': int(offset),
+        'command_log_delay_median_s': float(residual_ns) / 1e9,
+        'commands_paired': bool(np.isfinite(command).any()),
+        'command_source': 'applied' if 'applied' in topics else 'command',
+        'warnings': warnings,
+    }
+    # How many messages the bulk decoder took (the rest went through rosbags one by one).
+    decoding = {topic: {'messages': count, 'bulk': fast}
+                for topic, (count, fast) in info.decoded.items()}
+    return _run_record(info, ns, common, relative_time, alignment, decoding,
+                       RunRecord(common / 1e9, pos_val[pi, 0], ref_val[ri, 0], ref_val[ri, 1],
+                                 command, diagnostics, true_position_m=true_position))
 
 

@@ -48,7 +48,7 @@ from typing import Any, TypeVar
 import numpy as np
 from piezo_stage_ros.analysis.bagread import read_run
 from piezo_stage_ros.analysis.bagwrite import write_run
-from piezo_stage_ros.bench.bags import synthetic_record
+from piezo_stage_ros.bench.bags import duration_argument, synthetic_record
 from piezo_stage_ros.core.contracts.cdr import encode_float64, JointStateEncoder
 from piezo_stage_ros.core.contracts.wire import BLOCK_SAMPLES, JOINT_NAME, ns_to_stamp
 from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
@@ -239,14 +239,8 @@ def format_lines(out: dict[str, Any]) -> list[str]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python3 -m piezo_stage_ros.bench.recording [DURATION_S]``: 0, or 2 on a bad argument."""
-    args = list(sys.argv[1:] if argv is None else argv)
-    try:
-        duration = float(args[0]) if args else 60.0
-        if not (math.isfinite(duration) and duration > 0):
-            raise ValueError
-    except ValueError:
-        print(f'recording benchmark: error: duration {args[0]!r} is not a number of seconds '
-              '> 0', file=sys.stderr)
+    duration = duration_argument(argv, 'recording benchmark')
+    if duration is None:
         return 2
     run_recording_benchmark(duration)
     return 0

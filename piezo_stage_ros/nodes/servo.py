@@ -20,9 +20,10 @@ One :class:`ServoLoop` runs the whole sample in one place, in the order of
 (:class:`~piezo_stage_ros.hardware. pacing.Pacer`), measure y_k through the guarded backend (which
 holds u_k-1 over the sample that just ended), x_d(t_k) from the trajectory (evaluated ahead in
 chunks), u_k from the controller, and hand u_k to the backend to hold from now on. Nothing in that
-path waits for ROS: each sample goes as a tuple into a bounded queue (:attr:`ServoLoop.samples`)
-that the ROS side drains and publishes in batches; a full queue drops its oldest entries and
-counts them (``queue_overruns``), the servo never blocks.
+path waits for ROS: each sample goes, numbered, into a bounded queue (:attr:`ServoLoop.samples`)
+that the ROS side drains (:meth:`ServoLoop.take_batch`: as the columns of
+:class:`~piezo_stage_ros.nodes.recording.SampleBatch`) and publishes in batches; a full queue
+drops its oldest entries and counts them (``queue_overruns``), the servo never blocks.
 
 Parameters changed through ROS reach the loop as they reach the logic objects
 (:meth:`~piezo_stage_ros.nodes.logic.ControllerLogic.request_change`,

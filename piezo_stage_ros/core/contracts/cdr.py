@@ -131,6 +131,16 @@ def _string(text: str, offset: int) -> tuple[bytes, int]:
     return b'\x00' * pad + struct.pack('<I', len(raw)) + raw, offset + pad + 4 + len(raw)
 
 
+def _read_string(order: str, body: memoryview, offset: int) -> tuple[str, int]:
+    """Return the string at body offset ``offset`` (aligned to 4 here) and the offset after it."""
+    offset += (-offset) % 4
+    (length,) = _U32[order].unpack_from(body, offset)
+    end = offset + 4 + length
+    if length < 1 or end > len(body):
+        raise struct.error('string overruns the message')
+    return bytes(body[offset + 4:end - 1]).decode('utf-8'), end
+
+
 def _doubles(values: Sequence[float], offset: int) -> tuple[bytes, int]:
     pad = (-offset) % 4
     out = b'\x00' * pad + struct.pack('<I', len(values))
@@ -222,12 +232,7 @@ def decode_joint_state_message(data: bytes) -> JointStateMessage:
     body = memoryview(data)[4:]
 
     def string(offset: int) -> tuple[str, int]:
-        offset += (-offset) % 4
-        (length,) = u32(body, offset)
-        end = offset + 4 + length
-        if length < 1 or end > len(body):
-            raise struct.error('string overruns the message')
-        return bytes(body[offset + 4:end - 1]).decode('utf-8'), end
+        return _read_string(order, body, offset)
 
     try:
         sec, nanosec = _STAMP[order].unpack_from(body, 0)
@@ -440,11 +445,7 @@ def decode_multi_array(data: bytes) -> tuple[list[tuple[str, int, int]], int, Fl
             raise struct.error('dimension count overruns the message')
         dims = []
         for _ in range(count):
-            (length,) = u32(body, offset)
-            end = offset + 4 + length
-            if length < 1 or end > len(body):
-                raise struct.error('label overruns the message')
-            label = bytes(body[offset + 4:end - 1]).decode('utf-8')
+            label, end = _read_string(order, body, offset)
             offset = end + (-end) % 4
             size, stride = u32(body, offset)[0], u32(body, offset + 4)[0]
             dims.append((label, int(size), int(stride)))
