@@ -27,6 +27,8 @@ import math
 import numpy as np
 from piezo_stage_ros.analysis.bagread import read_run
 from piezo_stage_ros.core.contracts import cdr, wire
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.contracts.loop_config import RecordingParams
 from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
 from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
 from piezo_stage_ros.core.model.stage import StageParams
@@ -34,7 +36,13 @@ from piezo_stage_ros.hardware.bridge import ModelBridge
 from piezo_stage_ros.hardware.pacing import Pacer
 from piezo_stage_ros.hardware.safety import GuardedPlant
 from piezo_stage_ros.nodes.logic import ControllerLogic, run_verdict, TrajectoryLogic
-from piezo_stage_ros.nodes.recording import BlockRecorder, Handover, live_share, SampleBatch
+from piezo_stage_ros.nodes.recording import (
+    backlog_samples,
+    BlockRecorder,
+    Handover,
+    live_share,
+    SampleBatch,
+)
 from piezo_stage_ros.nodes.servo import (
     batch_of,
     SampleRing,
@@ -92,6 +100,16 @@ def write_blocks(path, messages):
 def test_live_share_leaves_out_the_oldest_beyond_the_limit():
     assert [live_share(n, 1000) for n in (0, 20, 1000, 1001, 50_000)] == [0, 0, 0, 1, 49_000]
     assert live_share(5, 0) == 4  # at least the newest sample goes out
+
+
+def test_the_recording_parameters_size_the_ring_and_the_live_share():
+    recording = RecordingParams(backlog_s=10.0, live_backlog_s=0.1, block_samples=50)
+    assert backlog_samples(recording, 1e4) == 100_000  # 10 s at 10 kHz
+    assert backlog_samples(RecordingParams(backlog_s=0.01), 10.0) == 1
+    handover = Handover.from_params(recording, 1e4)
+    assert handover.live_limit == 1000 and handover.blocks.block_samples == 50
+    with pytest.raises(ParameterError, match='live_backlog_s'):
+        RecordingParams(live_backlog_s=0.0)
 
 
 def test_batch_columns_give_back_the_samples():

@@ -29,7 +29,6 @@ Run: ``ros2 run piezo_stage_ros plant_node --ros-args --params-file default.yaml
 
 from __future__ import annotations
 
-import math
 import time
 from typing import Any, Callable, Sequence
 
@@ -56,7 +55,7 @@ from piezo_stage_ros.nodes.logic import (
     TripLog,
 )
 from piezo_stage_ros.nodes.parameters import ParameterBinding
-from piezo_stage_ros.nodes.recording import Handover, SampleBatch
+from piezo_stage_ros.nodes.recording import backlog_samples, Handover, SampleBatch
 from piezo_stage_ros.nodes.runner import run
 from piezo_stage_ros.nodes.servo import (
     make_bridge,
@@ -203,7 +202,7 @@ class PlantNode(Node):
                          duration_s=opts.duration_s,
                          pacer=Pacer(round(1e9 / self.logic.rate_hz),
                                      spin_ns=round(opts.servo.spin_us * 1000)),
-                         capacity=backlog_samples(opts, self.logic.rate_hz),
+                         capacity=backlog_samples(opts.recording, self.logic.rate_hz),
                          on_sample=on_sample)
 
     def _publish_sample(self, s: ServoSample) -> None:
@@ -230,8 +229,7 @@ class PlantNode(Node):
         recording = self.opts.recording
         if recording.block:
             self._block_pub = self.create_publisher(Float64MultiArray, wire.BLOCK, qos.BLOCK)
-            self._handover = Handover(recording.block_samples, max(1, round(
-                recording.live_backlog_s * self.logic.rate_hz)))
+            self._handover = Handover.from_params(recording, self.logic.rate_hz)
         # looked at every 50 batches (0.1 s) as the per-sample gates look every 1000 samples
         self._position_gate = Gate(self._pub.get_subscription_count, every=50)
 
@@ -509,11 +507,6 @@ class PlantNode(Node):
             self.logic.stop()
         finally:
             super().destroy_node()
-
-
-def backlog_samples(opts: PlantNodeParams, rate_hz: float) -> int:
-    """Return the samples the servo keeps for the executor (``recording.backlog_s``)."""
-    return max(1, math.ceil(opts.recording.backlog_s * rate_hz))
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -36,10 +36,11 @@ from typing import NamedTuple
 
 import numpy as np
 from piezo_stage_ros.core.contracts.cdr import encode_block
+from piezo_stage_ros.core.contracts.loop_config import RecordingParams
 from piezo_stage_ros.core.contracts.types import FloatArray, IntArray
 from piezo_stage_ros.core.contracts.wire import block_columns, BLOCK_SAMPLES, NS_PER_S
 
-__all__ = ['BlockRecorder', 'Handover', 'SampleBatch', 'live_share']
+__all__ = ['BlockRecorder', 'Handover', 'SampleBatch', 'backlog_samples', 'live_share']
 
 # The columns of a batch (those of the servo's ring, nodes/servo.py SampleRing).
 _K, _STAMP, _LATE, _LAYOUT, _COUNT = range(5)
@@ -75,6 +76,11 @@ class SampleBatch(NamedTuple):
     def size(self) -> int:
         """Return the number of samples."""
         return int(self.number.size)
+
+
+def backlog_samples(recording: RecordingParams, rate_hz: float) -> int:
+    """Return the samples the servo keeps for the executor (``recording.backlog_s`` [s])."""
+    return max(1, math.ceil(recording.backlog_s * rate_hz))
 
 
 def live_share(waiting: int, limit: int) -> int:
@@ -279,6 +285,11 @@ class Handover:
         self.blocks = BlockRecorder(block_samples)
         self.live_limit = max(1, int(live_limit))
         self.live_dropped = 0
+
+    @classmethod
+    def from_params(cls, recording: RecordingParams, rate_hz: float) -> Handover:
+        """Return the handover ``recording.*`` configures at this sample rate [Hz]."""
+        return cls(recording.block_samples, max(1, round(recording.live_backlog_s * rate_hz)))
 
     def take(self, batch: SampleBatch) -> tuple[list[bytes], int]:
         """
