@@ -175,6 +175,10 @@ def test_scripted_overload_per_sample_topics_drop_but_the_blocks_keep_every_samp
     assert rec.command_v[-1] == loop.held_v
     # the model backend passes each command through: the applied input is the command
     np.testing.assert_array_equal(rec.command_v, [s.command_v for s in served])
+    # the servo on the model knows the true position behind each y_k, and the blocks carry it
+    truth = np.array([s.true_position_m for s in served])
+    assert np.isfinite(truth).all() and not np.array_equal(truth, rec.position_m)
+    np.testing.assert_array_equal(rec.true_position_m, truth)
     # diagnostics every 10th sample, NaN in between, named as the controller names them
     with_diag = [i for i, s in enumerate(served) if s.diagnostics is not None]
     assert len(with_diag) == n // 10
@@ -224,6 +228,7 @@ def test_samples_the_ring_overwrote_show_as_missing_in_the_bag(tmp_path):
     assert align['missing_samples'] == 36 and align['samples'] == 170 - 36
     assert any('36 samples missing' in w for w in align['warnings'])
     assert np.isnan(rec.command_v[49]) and np.isnan(rec.command_v).sum() == 1
+    assert rec.true_position_m is None  # a backend without one: no column
     np.testing.assert_array_equal(rec.command_v[:49], 0.1 * np.arange(49))
     np.testing.assert_array_equal(rec.position_m[50:], 1e-9 * np.arange(86, 170))
 

@@ -44,8 +44,10 @@ __all__ = ['BlockRecorder', 'Handover', 'SampleBatch', 'backlog_samples', 'live_
 
 # The columns of a batch (those of the servo's ring, nodes/servo.py SampleRing).
 _K, _STAMP, _LATE, _LAYOUT, _COUNT = range(5)
-_POSITION, _REFERENCE, _VELOCITY, _COMMAND, _APPLIED = range(5)
-_VALUES = 5
+_POSITION, _REFERENCE, _VELOCITY, _COMMAND, _APPLIED, _TRUE = range(6)
+_VALUES = 6
+# the column of the true position in a block's rows (before it leaves a block without one)
+_TRUE_COLUMN = 8
 
 
 class SampleBatch(NamedTuple):
@@ -59,9 +61,10 @@ class SampleBatch(NamedTuple):
         except where samples were lost before the ROS side read them.
     ints : ndarray of int64, shape (n, 5)
         k, stamp t_k [ns], lateness [ns], the layout of the diagnostics, how many the row has.
-    floats : ndarray of float64, shape (n, 5 + width)
+    floats : ndarray of float64, shape (n, 6 + width)
         y_k, x_d, x_d', u_k, the input held over the sample y_k ends (``applied_v`` of
-        :class:`~piezo_stage_ros.nodes.servo.ServoSample`), then the diagnostics.
+        :class:`~piezo_stage_ros.nodes.servo.ServoSample`), the true position (NaN where
+        unknown), then the diagnostics.
     layouts : mapping of int to tuple of str
         Diagnostic names of each layout number.
 
@@ -184,8 +187,8 @@ class BlockRecorder:
             return []
         sec, nanosec = np.divmod(batch.ints[:, _STAMP], NS_PER_S)
         base = np.column_stack((batch.number, sec, nanosec,
-                                batch.floats[:, _POSITION:_COMMAND + 1], applied)).astype(
-            np.float64)
+                                batch.floats[:, _POSITION:_COMMAND + 1], applied,
+                                batch.floats[:, _TRUE])).astype(np.float64)
         # diagnostics: where their names change, a new block begins
         count = batch.ints[:, _COUNT]
         names_of = [(i, batch.layouts.get(int(batch.ints[i, _LAYOUT])))
@@ -244,18 +247,24 @@ class BlockRecorder:
         return [self._message(rows)]
 
     def _layout(self, names: tuple[str, ...]) -> tuple[tuple[str, ...], IntArray]:
-        # the block's column names, and the order that puts the diagnostics in theirs (sorted)
+        # the block's column names (with a true position), and the order that puts the
+        # diagnostics in theirs (sorted)
         known = self._columns.get(names)
         if known is None:
             order = np.asarray(sorted(range(len(names)), key=names.__getitem__), dtype=np.int64)
-            known = self._columns[names] = (block_columns(applied=True, diagnostics=names),
-                                            order)
+            known = self._columns[names] = (
+                block_columns(applied=True, true_position=True, diagnostics=names), order)
         return known
 
     def _message(self, rows: FloatArray) -> bytes:
         self.rows += rows.shape[0]
         self.messages += 1
-        return encode_block(self._layout(self._names or ())[0], rows)
+        columns = self._layout(self._names or ())[0]
+        if np.isnan(rows[:, _TRUE_COLUMN]).all():
+            # a backend that does not know the true position (hardware): no such column
+            columns = columns[:_TRUE_COLUMN] + columns[_TRUE_COLUMN + 1:]
+            rows = np.delete(rows, _TRUE_COLUMN, axis=1)
+        return encode_block(columns, rows)
 
 
 class Handover:

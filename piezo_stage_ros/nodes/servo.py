@@ -54,6 +54,7 @@ from piezo_stage_ros.core.contracts.interfaces import Controller
 from piezo_stage_ros.core.contracts.loop_config import LoopConfig, PlantNodeParams
 from piezo_stage_ros.core.contracts.wire import NS_PER_S
 from piezo_stage_ros.core.control.controllers import bound_controller, ControllerParams
+from piezo_stage_ros.core.loop.closed_loop import true_position_reader
 from piezo_stage_ros.core.loop.trajectories import make_trajectory
 from piezo_stage_ros.core.model.hysteresis import make_hysteresis
 from piezo_stage_ros.core.model.stage import linear_plant, PlantParams, StageParams
@@ -63,6 +64,9 @@ from piezo_stage_ros.hardware.safety import GuardedPlant, Trip
 from piezo_stage_ros.hardware.udp import UdpBridge, UdpStreamBridge
 from piezo_stage_ros.nodes.logic import ControllerLogic, sample_count, TrajectoryLogic
 from piezo_stage_ros.nodes.recording import SampleBatch
+
+# the float columns of a ring row before the diagnostics (SampleRing.FLOATS)
+_VALUES = 6
 
 __all__ = ['apply_change', 'batch_of', 'make_bridge', 'SampleRing', 'samples_of',
            'servo_from_config', 'ServoLoop', 'ServoProcess', 'ServoSample']
@@ -94,6 +98,9 @@ class ServoSample(NamedTuple):
         Controller internals (every ``diagnostics_every`` samples).
     diagnostic_names : tuple of str or None
         Their names (those of the controller that computed them; None without diagnostics).
+    true_position_m : float
+        x(t_k) [m], the true position behind y_k where the backend knows it (the model of
+        :class:`~piezo_stage_ros.hardware.bridge.ModelBridge`); NaN otherwise.
 
     """
 
@@ -107,6 +114,7 @@ class ServoSample(NamedTuple):
     lateness_ns: int
     diagnostics: Sequence[float] | None
     diagnostic_names: tuple[str, ...] | None = None
+    true_position_m: float = math.nan
 
 
 class SampleRing:
@@ -150,7 +158,8 @@ class SampleRing:
     """
 
     INTS = ('k', 'stamp_ns', 'lateness_ns', 'layout', 'diagnostics')
-    FLOATS = ('position_m', 'reference_m', 'velocity_mps', 'command_v', 'applied_v')
+    FLOATS = ('position_m', 'reference_m', 'velocity_mps', 'command_v', 'applied_v',
+              'true_position_m')
     HEADER = ('count', 'halt', 'posted', 'applied', 'index', 'paced_samples',
               'late_half_period', 'skipped', 'lateness_max_ns', 'watchdog_trips',
               'ramp_samples', 'safe_samples', 'recovery_samples')
@@ -219,9 +228,10 @@ class SampleRing:
                 self.dropped += 1
                 width = 0
             else:
-                floats[5:5 + width] = values
+                floats[_VALUES:_VALUES + width] = values
         self._ints[row] = (s.k, s.stamp_ns, s.lateness_ns, self.layout, width)
-        floats[:5] = (s.position_m, s.reference_m, s.velocity_mps, s.command_v, s.applied_v)
+        floats[:_VALUES] = (s.position_m, s.reference_m, s.velocity_mps, s.command_v,
+                            s.applied_v, s.true_position_m)
         self._count[0] = n + 1
 
     def take(self) -> tuple[Any, Any, int]:
@@ -233,7 +243,7 @@ class SampleRing:
         ints : ndarray of int64, shape (n, 5)
             Columns :attr:`INTS`: k, stamp [ns], lateness [ns], the layout of the
             diagnostics and how many the row carries (0: none).
-        floats : ndarray of float64, shape (n, 5 + diagnostics)
+        floats : ndarray of float64, shape (n, 6 + diagnostics)
             Columns :attr:`FLOATS`, then the diagnostics (the first as many as the row
             carries).
         missed : int
@@ -328,6 +338,9 @@ class ServoLoop:
             else None
         self._t0_arrival = 0
         self.on_sample = on_sample
+        # x(t_k) behind y_k, for the recording, where the backend is the model
+        self._true = true_position_reader(plant.bridge.stage) \
+            if isinstance(plant.bridge, ModelBridge) else None
         #: Called after each sample served (a sample boundary); returning False ends the run.
         self.boundary: Callable[[], bool] | None = None
         #: Called with :attr:`setup_report` as soon as the setup of :meth:`run` has run.
@@ -346,7 +359,8 @@ class ServoLoop:
         if self.controller is None or self.trajectory is None:
             # the plant alone: the command comes from elsewhere (another node), held as is
             sample = ServoSample(index, stamp, position_m, math.nan, math.nan, math.nan,
-                                 plant.applied_v, lateness_ns, None, None)
+                                 plant.applied_v, lateness_ns, None, None,
+                                 self._true() if self._true is not None else math.nan)
         else:
             now_s = now_ns / NS_PER_S
             ref, vel = self.trajectory.on_position(stamp)
@@ -358,7 +372,8 @@ class ServoLoop:
             self.held_v = plant.held_v
             sample = ServoSample(index, stamp, position_m, ref, vel, u, applied, lateness_ns,
                                  out.diagnostics if out else None,
-                                 out.diagnostic_names if out else None)
+                                 out.diagnostic_names if out else None,
+                                 self._true() if self._true is not None else math.nan)
         if self.samples.maxlen:
             self.samples.append((self.pushed, sample))
             self.pushed += 1
@@ -538,13 +553,13 @@ def samples_of(batch: SampleBatch, first: int = 0) -> list[ServoSample]:
     ints, floats, layouts = batch.ints[first:], batch.floats[first:], batch.layouts
     diagnostics = floats[:, len(SampleRing.FLOATS):]
     out = []
-    for i, ((k, stamp, late, layout, n), (p, r, v, c, a)) in enumerate(zip(
+    for i, ((k, stamp, late, layout, n), (p, r, v, c, a, x)) in enumerate(zip(
             ints.tolist(), floats[:, :len(SampleRing.FLOATS)].tolist())):
         if n:
             out.append(ServoSample(k, stamp, p, r, v, c, a, late,
-                                   tuple(diagnostics[i, :n].tolist()), layouts.get(layout)))
+                                   tuple(diagnostics[i, :n].tolist()), layouts.get(layout), x))
         else:
-            out.append(ServoSample(k, stamp, p, r, v, c, a, late, None, None))
+            out.append(ServoSample(k, stamp, p, r, v, c, a, late, None, None, x))
     return out
 
 
@@ -565,8 +580,8 @@ def batch_of(items: Sequence[tuple[int, ServoSample]]) -> SampleBatch:
             count = len(s.diagnostics)
             floats[i, len(SampleRing.FLOATS):len(SampleRing.FLOATS) + count] = s.diagnostics
         ints[i] = (s.k, s.stamp_ns, s.lateness_ns, layout, count)
-        floats[i, :len(SampleRing.FLOATS)] = (s.position_m, s.reference_m, s.velocity_mps,
-                                              s.command_v, s.applied_v)
+        floats[i, :_VALUES] = (s.position_m, s.reference_m, s.velocity_mps, s.command_v,
+                               s.applied_v, s.true_position_m)
     return SampleBatch(numbers, ints, floats, {v: k for k, v in layouts.items()})
 
 
