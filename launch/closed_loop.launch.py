@@ -24,7 +24,8 @@ Arguments (``ros2 launch piezo_stage_ros closed_loop.launch.py --show-args``):
   as configured); ``duration_s``: stop the run after this much loop time (0: run on);
 - ``composed``: ``true`` runs the three nodes in one process (``stage_servo``, one
   EventsExecutor), ``false`` one process each;
-- ``record``: ``true`` records the stage topics with ``ros2 bag record`` into ``bag``;
+- ``record``: ``true`` records the stage topics with ``ros2 bag record`` into ``bag`` (in real
+  time with ``direct:=true``: ``stage/block``, every sample in blocks, and ``stage/status``);
 - ``namespace``: puts the stage's topics and nodes under it (several stages side by side);
 - ``end_with_plant``: ``true`` ends the launch when the plant's process exits (its run of
   ``duration_s`` is complete, or it failed); ``executor``: ``events`` | ``single``;
@@ -68,7 +69,7 @@ from piezo_stage_ros.cli import choices
 from piezo_stage_ros.core.contracts.config import Config, find_config, load_config
 from piezo_stage_ros.core.control.controllers import ControllerParams
 from piezo_stage_ros.core.contracts.loop_config import LoopConfig, MODES
-from piezo_stage_ros.core.contracts.wire import RECORDED_TOPICS
+from piezo_stage_ros.core.contracts.wire import BLOCK_RECORDED_TOPICS, RECORDED_TOPICS
 import yaml
 
 ARGUMENTS = {
@@ -143,9 +144,9 @@ def _launch(context: LaunchContext) -> list[Any]:
         controller['type'] = arg['controller']
     trajectory = dict(common)
     # validate every value the nodes will get, as every command does, before any process starts
-    LoopConfig.from_config(config.with_overrides('plant_node', plant)
-                           .with_overrides('controller_node', controller)
-                           .with_overrides('trajectory_node', trajectory))
+    checked = LoopConfig.from_config(config.with_overrides('plant_node', plant)
+                                     .with_overrides('controller_node', controller)
+                                     .with_overrides('trajectory_node', trajectory))
     params = _parameter_file(config, {'plant_node': plant, 'controller_node': controller,
                                       'trajectory_node': trajectory})
     ns = arg['namespace']
@@ -180,7 +181,12 @@ def _launch(context: LaunchContext) -> list[Any]:
         qos_file = os.path.join(os.path.dirname(files[0]), 'record_qos.yaml')
         if os.path.isfile(qos_file):
             cmd += ['--qos-profile-overrides-path', qos_file]
-        cmd += ['--topics'] + [prefix + t for t in RECORDED_TOPICS]
+        # direct real time puts every sample on stage/block: the recorder takes that (about 100
+        # messages a second) and leaves the per-sample topics to live subscribers
+        blocks = (not lockstep and arg['composed'].lower() == 'true'
+                  and arg['direct'].lower() == 'true' and checked.plant_node.recording.block)
+        cmd += ['--topics'] + [prefix + t for t in (BLOCK_RECORDED_TOPICS if blocks
+                                                     else RECORDED_TOPICS)]
         actions.append(ExecuteProcess(cmd=cmd, output='screen'))
     if arg['end_with_plant'].lower() == 'true':
         # the plant's run is complete (or failed): end the whole launch, the recorder included

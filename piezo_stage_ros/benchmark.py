@@ -21,7 +21,9 @@ of a batch of 1000 stages, controller step median and p99
 (:mod:`piezo_stage_ros.bench.sim`). ``--suite bags``: bag write / read / analysis throughput
 (:mod:`piezo_stage_ros.bench.bags`, when installed). ``--suite servo``: how well the real-time
 servo loop and the target-paced UDP bridge hold 10 kHz here, without ROS
-(:mod:`piezo_stage_ros.bench.servo`). ``--suite ros``: the nodes on a ROS 2 install
+(:mod:`piezo_stage_ros.bench.servo`). ``--suite recording``: what a sample costs on the block
+topic and as per-sample messages, in the executor and in a bag
+(:mod:`piezo_stage_ros.bench.recording`). ``--suite ros``: the nodes on a ROS 2 install
 (:mod:`piezo_stage_ros.bench.ros`). ``--suite all``: every one available. ``--json`` prints
 one JSON object on stdout (the readable lines then go to stderr).
 """
@@ -58,7 +60,8 @@ def _positive(kind: type) -> Any:
 
 def _parser() -> argparse.ArgumentParser:
     p = cli.Parser(prog=PROG, description='Print speed figures of the simulation and bag tools.')
-    p.add_argument('--suite', choices=('sim', 'bags', 'servo', 'ros', 'all'), default='sim',
+    p.add_argument('--suite', choices=('sim', 'bags', 'servo', 'recording', 'ros', 'all'),
+                   default='sim',
                    help='What to measure (default sim).')
     p.add_argument('--realtime-s', type=_positive(float), default=10.0, metavar='S',
                    help='Wall time of each real-time run of the servo suite (default 10).')
@@ -124,6 +127,9 @@ def _bench(args: argparse.Namespace) -> int:
                     duration_s=args.realtime_s, fifo_priority=args.fifo_priority,
                     nice=args.nice)
                 print(servo.format_table(result['servo']))
+            if args.suite in ('recording', 'all'):
+                from piezo_stage_ros.bench.recording import run_recording_benchmark
+                result['recording'] = run_recording_benchmark(args.bag_duration)
             if args.suite == 'ros' or (args.suite == 'all' and _rclpy_available()):
                 if not _rclpy_available():
                     print(f'{PROG}: error: the ROS benchmark needs rclpy (a sourced ROS 2 Jazzy '

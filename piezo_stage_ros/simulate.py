@@ -113,6 +113,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Write the learning feed-forward's table at the end of the run to FILE "
                    '(.npz, docs/controllers.md); controller_node feedforward.table_file loads '
                    'it. A bag of the run holds it too (analyze --export-table).')
+    p.add_argument('--bag-topics', choices=('samples', 'block', 'both'), default='samples',
+                   help='What the bag holds: the per-sample topics (default), the block topic '
+                   'stage/block (many samples per message, as a real-time loop records them; '
+                   'docs/bags.md), or both.')
     return p
 
 
@@ -223,7 +227,8 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
     start = time.perf_counter()
     if args.bag is not None:
         from piezo_stage_ros.analysis.bagwrite import RunBagWriter
-        with RunBagWriter(args.bag, storage=args.storage, overwrite=args.overwrite) as writer:
+        with RunBagWriter(args.bag, storage=args.storage, overwrite=args.overwrite,
+                          topics=args.bag_topics) as writer:
             def stream(chunk: Any) -> None:
                 writer.set_meta(chunk.meta)
                 writer.write_chunk(chunk)

@@ -710,7 +710,7 @@ def test_record_qos_file_covers_every_topic():
     path = Path(__file__).resolve().parents[1] / 'config' / 'record_qos.yaml'
     profiles = yaml.safe_load(path.read_text())
     assert set(profiles) == {topic for key, topic in wire.topic_names('/stage').items()
-                             if key not in wire.SIMULATION_TOPICS}
+                             if key not in wire.SIMULATION_TOPICS} | {wire.block_topic('/stage')}
     for profile in profiles.values():
         assert profile['reliability'] == 'reliable'
         assert profile['history'] == 'keep_last' and profile['depth'] >= 1000

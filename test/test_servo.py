@@ -353,8 +353,9 @@ def test_sample_ring_carries_diagnostics_with_their_layout_and_counts_what_does_
     assert ints[:, 3].tolist() == [-1, 0, 0, 0, 1, 2, 3]
     # four values do not fit in three columns: stored without them, counted
     assert ints[:, 4].tolist() == [0, 3, 0, 3, 1, 0, 3] and ring.dropped == 1
-    assert floats[1, 5:].tolist() == [1.0, 2.0, 3.0] and floats[4, 5] == 7.0
-    assert floats[6, 5:].tolist() == [8.0, 9.0, 10.0]
+    first = len(SampleRing.FLOATS)  # the diagnostics follow the sample's values
+    assert floats[1, first:].tolist() == [1.0, 2.0, 3.0] and floats[4, first] == 7.0
+    assert floats[6, first:].tolist() == [8.0, 9.0, 10.0]
 
 
 def test_servo_loop_of_the_plant_alone_ramps_to_the_safe_voltage_when_commands_stop():

@@ -34,11 +34,19 @@ start) being the one that minimises the median log-time difference. Diagnostics 
 stamp and are NaN where missing, and so is the true position of a simulation's bag
 (``true_position``). The counts of dropped messages are in
 ``record.meta['alignment']``.
+
+A bag with the block topic (``<ns>/block``, many samples per ``std_msgs/Float64MultiArray``,
+layout in :mod:`piezo_stage_ros.core.contracts.wire`) is read from it alone: every row is a
+sample with its stamp, values and number, so nothing needs pairing; a gap in the sample numbers
+is a sample lost on the way to the bag, counted in ``meta['alignment']['missing_samples']``.
+The block messages are few (about 100 a second), so each is decoded on its own
+(:func:`~piezo_stage_ros.core.contracts.cdr.decode_block`, one copy of its data).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
+import dataclasses
 from dataclasses import dataclass, field
 import json
 from pathlib import Path, PurePath
@@ -52,6 +60,7 @@ from piezo_stage_ros.analysis.bagfast import describe as _describe
 from piezo_stage_ros.analysis.bagfast import McapScanner
 from piezo_stage_ros.core.contracts.cdr import (
     CdrError,
+    decode_block,
     decode_float64,
     decode_joint_state_message,
     float64_layout,
@@ -63,9 +72,14 @@ from piezo_stage_ros.core.contracts.errors import BagError
 from piezo_stage_ros.core.contracts.types import ByteMatrix, FloatArray, IntArray
 from piezo_stage_ros.core.contracts.wire import (
     BAG_TOPICS,
+    BLOCK_COLUMNS,
+    BLOCK_DIAGNOSTIC_PREFIX,
+    block_topic,
+    BLOCK_TYPE,
     COMMAND_TYPE,
     META_KEY,
     normalize_namespace,
+    NS_PER_S,
     REQUIRED_TOPICS,
     stamp_to_ns,
     STATUS_TYPE,
@@ -198,12 +212,15 @@ def _find_namespace(info: BagInfo, namespace: str | None) -> str:
         return normalize_namespace(namespace)
     candidates = sorted({topic[:-len('/position')] for topic in info.topics
                          if topic.endswith('/position')
-                         and f'{topic[:-len("/position")]}/command' in info.topics})
+                         and f'{topic[:-len("/position")]}/command' in info.topics}
+                        | {topic[:-len('/block')] for topic, (msgtype, _) in info.topics.items()
+                           if topic.endswith('/block') and msgtype == BLOCK_TYPE})
     if len(candidates) == 1:
         return candidates[0]
     if not candidates:
         raise BagError(f'bag {info.path}: no stage topics found (expected <namespace>/position, '
-                       f'/reference and /command; the bag has {sorted(info.topics) or "none"})')
+                       '/reference and /command, or <namespace>/block; the bag has '
+                       f'{sorted(info.topics) or "none"})')
     raise BagError(f'bag {info.path}: several stages recorded ({", ".join(candidates)}); '
                    'choose one with namespace= / --namespace')
 
@@ -368,7 +385,119 @@ class _TopicData:
         return log_ns, stamps, values
 
 
-def _scan_sqlite(bag: Path, file: Path, wanted: Mapping[str, _TopicData],
+class _BlockData:
+    """Collects the messages of the block topic and decodes each (they are few and large)."""
+
+    def __init__(self, bag: Path, topic: str) -> None:
+        self.bag = bag
+        self.topic = topic
+        self.blocks: list[tuple[int, tuple[str, ...], FloatArray]] = []
+
+    def push(self, log_ns: int, data: bytes) -> None:
+        try:
+            names, rows = decode_block(data)
+        except CdrError as err:
+            raise BagError(f'bag {self.bag}: a message on {self.topic} cannot be decoded as a '
+                           f'block ({BLOCK_TYPE}; corrupt data?): {_describe(err)}') from None
+        self.blocks.append((log_ns, names, rows))
+
+    def add(self, log_ns: IntArray, rows: ByteMatrix) -> None:
+        for i in range(rows.shape[0]):
+            self.push(int(log_ns[i]), rows[i].tobytes())
+
+    def flush(self) -> None:
+        """Nothing to do: every message is decoded as it comes."""
+
+
+def _read_blocks(info: BagInfo, ns: str, progress: ProgressCallback | None,
+                 relative_time: bool) -> RunRecord:
+    """Return the run of a bag's block topic (see :func:`read_run`)."""
+    topic = block_topic(ns)
+    if info.topics[topic][0] != BLOCK_TYPE:
+        raise BagError(f'bag {info.path}: topic {topic} has type {info.topics[topic][0]}, '
+                       f'expected {BLOCK_TYPE}')
+    sink = _BlockData(info.path, topic)
+    _scan(info, {topic: sink}, _progress_ticker(progress, info.topics[topic][1]))
+    blocks = [(names, rows) for _, names, rows in sink.blocks if rows.shape[0]]
+    if not blocks:
+        raise BagError(f'bag {info.path}: topic {topic} has no samples')
+    fixed = len(BLOCK_COLUMNS)
+    # the columns beyond the fixed ones, of every block (an optional column a block does not
+    # have, or another controller's diagnostics, is NaN in its rows)
+    extra_names = sorted({name for names, _ in blocks for name in names[fixed:]})
+    where = {name: j for j, name in enumerate(extra_names)}
+    total = sum(rows.shape[0] for _, rows in blocks)
+    base = np.empty((total, fixed))
+    extra = np.full((total, len(extra_names)), np.nan)
+    at = 0
+    for names, rows in blocks:
+        n = rows.shape[0]
+        base[at:at + n] = rows[:, :fixed]
+        for j, name in enumerate(names[fixed:], start=fixed):
+            extra[at:at + n, where[name]] = rows[:, j]
+        at += n
+    sample, sec, nanosec = base[:, 0], base[:, 1], base[:, 2]
+    exact = (np.isfinite(base[:, :3]).all(axis=1) & (np.floor(base[:, :3]) == base[:, :3]).all(
+        axis=1) & (sample >= 0) & (sec >= 0) & (nanosec >= 0) & (nanosec < NS_PER_S))
+    if not exact.all():
+        raise BagError(f'bag {info.path}: topic {topic} has {int((~exact).sum())} rows whose '
+                       'sample number or stamp is not a whole number in range (corrupt data?)')
+    stamps = sec.astype(np.int64) * NS_PER_S + nanosec.astype(np.int64)
+    order = np.argsort(stamps, kind='stable')
+    keep = order[_unique_first(stamps[order])]  # a republished sample counts once
+    stamps = stamps[keep]
+    numbers = np.unique(sample[keep].astype(np.int64))
+    missing = int(numbers[-1] - numbers[0] + 1 - numbers.size)
+    warnings = []
+    if missing:
+        warnings.append(f'{missing} samples missing from the blocks (gaps in the sample '
+                        f'numbers {int(numbers[0])}..{int(numbers[-1])}): lost on the way to '
+                        'the bag')
+    if 'applied_v' in where:
+        # real time: what the plant held over each sample, as stage/applied carries it
+        command = extra[keep, where['applied_v']]
+        unknown = int(np.isnan(command).sum())
+        if unknown:
+            warnings.append(f'{unknown} of {keep.size} samples have no applied input '
+                            'recorded (applied_v); their command is NaN')
+    else:
+        command = base[keep, 6]
+    true_position = extra[keep, where['true_position_m']] if 'true_position_m' in where \
+        else None
+    diagnostics = {name[len(BLOCK_DIAGNOSTIC_PREFIX):]: extra[keep, j]
+                   for name, j in where.items() if name.startswith(BLOCK_DIAGNOSTIC_PREFIX)}
+    alignment = {
+        'source': 'block',
+        'samples': int(keep.size),
+        'block_messages': len(sink.blocks),
+        'block_rows': total,
+        'dropped_duplicate': total - int(keep.size),
+        'first_sample': int(numbers[0]),
+        'missing_samples': missing,
+        'commands_paired': bool(np.isfinite(command).any()),
+        'command_source': 'applied' if 'applied_v' in where else 'command',
+        'warnings': warnings,
+    }
+    return _run_record(info, ns, stamps, relative_time, alignment,
+                       {topic: {'messages': len(sink.blocks), 'rows': total}},
+                       RunRecord(stamps / 1e9, base[keep, 3], base[keep, 4], base[keep, 5],
+                                 command, diagnostics, true_position_m=true_position))
+
+
+def _run_record(info: BagInfo, ns: str, stamps: IntArray, relative_time: bool,
+                alignment: dict[str, Any], decoding: dict[str, Any],
+                record: RunRecord) -> RunRecord:
+    # the record of a bag: its samples, times from the first stamp if asked, the description
+    # stored in the bag plus where it came from and how it was aligned
+    meta = dict(info.meta)
+    origin_ns = int(stamps[0])
+    meta.update({'bag': str(info.path), 'time_origin_ns': origin_ns, 'namespace': ns,
+                 'storage': info.storage, 'alignment': alignment, 'decoding': decoding})
+    return dataclasses.replace(record, meta=meta, time_s=(stamps - origin_ns) / 1e9
+                               if relative_time else record.time_s)
+
+
+def _scan_sqlite(bag: Path, file: Path, wanted: Mapping[str, _TopicData | _BlockData],
                  tick: Callable[[int], None]) -> None:
     try:
         con = sqlite3.connect(f'file:{file}?mode=ro', uri=True)
@@ -399,7 +528,7 @@ def _scan_sqlite(bag: Path, file: Path, wanted: Mapping[str, _TopicData],
         con.close()
 
 
-def _scan_generic(info: BagInfo, wanted: Mapping[str, _TopicData],
+def _scan_generic(info: BagInfo, wanted: Mapping[str, _TopicData | _BlockData],
                   tick: Callable[[int], None]) -> None:
     try:
         with Reader(info.path) as reader:
@@ -501,6 +630,24 @@ def read_topics(path: str | Path, *, namespace: str | None = None,
     """
     info = bag_info(path)
     ns = _find_namespace(info, namespace)
+    return (info, ns) + _read_topics(info, ns, progress)
+
+
+def _scan(info: BagInfo, wanted: Mapping[str, _TopicData | _BlockData],
+          tick: Callable[[int], None]) -> None:
+    if info.compressed or info.storage not in ('mcap', 'sqlite3'):
+        _scan_generic(info, wanted, tick)
+    else:
+        for file in info.files:
+            if info.storage == 'mcap':
+                McapScanner(info.path, file, wanted, tick).scan()
+            else:
+                _scan_sqlite(info.path, file, wanted, tick)
+
+
+def _read_topics(info: BagInfo, ns: str, progress: ProgressCallback | None
+                 ) -> tuple[dict[str, tuple[IntArray, IntArray | None, FloatArray]],
+                            dict[str, tuple[str, ...]]]:
     topics = topic_names(ns)
     if info.message_count == 0:
         raise BagError(f'bag {info.path}: bag is empty (no messages)')
@@ -514,15 +661,7 @@ def read_topics(path: str | Path, *, namespace: str | None = None,
     wanted = {topic: _TopicData(info.path, topic, BAG_TOPICS[key])
               for key, topic in topics.items() if topic in info.topics}
     total = sum(info.topics[t][1] for t in wanted)
-    tick = _progress_ticker(progress, total)
-    if info.compressed or info.storage not in ('mcap', 'sqlite3'):
-        _scan_generic(info, wanted, tick)
-    else:
-        for file in info.files:
-            if info.storage == 'mcap':
-                McapScanner(info.path, file, wanted, tick).scan()
-            else:
-                _scan_sqlite(info.path, file, wanted, tick)
+    _scan(info, wanted, _progress_ticker(progress, total))
     out = {}
     names = {}
     for key, topic in topics.items():
@@ -533,7 +672,7 @@ def read_topics(path: str | Path, *, namespace: str | None = None,
     for key in REQUIRED_TOPICS:
         if out[key][0].size == 0:
             raise BagError(f'bag {info.path}: topic {topics[key]} has no messages')
-    return info, ns, out, names
+    return out, names
 
 
 def _unique_first(stamps: IntArray) -> NDArray[np.intp]:
@@ -628,6 +767,13 @@ def read_run(path: str | Path, *, namespace: str | None = None,
     A bag with ``applied`` (real time: the amplifier input the plant held over each sample,
     stamped) takes the command from it by stamp instead, NaN (with a warning) where missing.
 
+    A bag with the block topic (``<ns>/block``) is read from it alone: the samples in stamp
+    order (a sample recorded twice counts once), the command from ``applied_v`` where the
+    blocks have it (real time) and from ``command_v`` otherwise, diagnostics and the true
+    position from their columns; ``meta['alignment']`` has ``source`` = ``'block'`` and
+    ``missing_samples`` (gaps in the sample numbers). From the same run, both paths give the
+    same record.
+
     Parameters
     ----------
     path : path-like
@@ -656,7 +802,11 @@ def read_run(path: str | Path, *, namespace: str | None = None,
         bag and the problem.
 
     """
-    info, ns, topics, names = read_topics(path, namespace=namespace, progress=progress)
+    info = bag_info(path)
+    ns = _find_namespace(info, namespace)
+    if block_topic(ns) in info.topics:
+        return _read_blocks(info, ns, progress, relative_time)
+    topics, names = _read_topics(info, ns, progress)
     pos_log, pos_stamp, pos_val = topics['position']
     ref_log, ref_stamp, ref_val = topics['reference']
     cmd_log, _, cmd_val = topics['command']
@@ -728,40 +878,25 @@ def read_run(path: str | Path, *, namespace: str | None = None,
         assert diag_stamp is not None
         for col, key in enumerate(names.get('diagnostics', ())):
             diagnostics[key] = _by_stamp(diag_stamp, diag_val[:, col], common)
-    meta = dict(info.meta)
-    origin_ns = int(common[0])
-    meta.update({
-        'bag': str(info.path),
-        'time_origin_ns': origin_ns,
-        'namespace': ns,
-        'storage': info.storage,
-        'alignment': {
-            'samples': int(common.size),
-            'position_messages': int(pos_stamp.size),
-            'reference_messages': int(ref_stamp.size),
-            'command_messages': int(cmd_log.size),
-            'dropped_position': int(pos_stamp.size - common.size),
-            'dropped_reference': int(ref_stamp.size - common.size),
-            'dropped_command': int(cmd_log.size - common.size),
-            'command_offset': int(offset),
-            'command_log_delay_median_s': float(residual_ns) / 1e9,
-            'commands_paired': bool(np.isfinite(command).any()),
-            'command_source': 'applied' if 'applied' in topics else 'command',
-            'warnings': warnings,
-        },
-        # How many messages the bulk decoder took (the rest went through rosbags one by one).
-        'decoding': {topic: {'messages': count, 'bulk': fast}
-                     for topic, (count, fast) in info.decoded.items()},
-    })
-    return RunRecord(
-        time_s=(common - origin_ns) / 1e9 if relative_time else common / 1e9,
-        position_m=pos_val[pi, 0],
-        reference_m=ref_val[ri, 0],
-        reference_velocity_mps=ref_val[ri, 1],
-        command_v=command,
-        diagnostics=diagnostics,
-        meta=meta,
-        true_position_m=true_position,
-    )
+    alignment = {
+        'samples': int(common.size),
+        'position_messages': int(pos_stamp.size),
+        'reference_messages': int(ref_stamp.size),
+        'command_messages': int(cmd_log.size),
+        'dropped_position': int(pos_stamp.size - common.size),
+        'dropped_reference': int(ref_stamp.size - common.size),
+        'dropped_command': int(cmd_log.size - common.size),
+        'command_offset': int(offset),
+        'command_log_delay_median_s': float(residual_ns) / 1e9,
+        'commands_paired': bool(np.isfinite(command).any()),
+        'command_source': 'applied' if 'applied' in topics else 'command',
+        'warnings': warnings,
+    }
+    # How many messages the bulk decoder took (the rest went through rosbags one by one).
+    decoding = {topic: {'messages': count, 'bulk': fast}
+                for topic, (count, fast) in info.decoded.items()}
+    return _run_record(info, ns, common, relative_time, alignment, decoding,
+                       RunRecord(common / 1e9, pos_val[pi, 0], ref_val[ri, 0], ref_val[ri, 1],
+                                 command, diagnostics, true_position_m=true_position))
 
 

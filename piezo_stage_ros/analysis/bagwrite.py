@@ -26,7 +26,10 @@ A run is stored on the topics of :mod:`piezo_stage_ros.core.contracts.wire` unde
   position [values];
 - ``<ns>/true_position``: ``sensor_msgs/msg/JointState``, stamp t_k, name ['stage'],
   position [x(t_k)] m: the true position behind y_k, only for a record that has one (a
-  simulation); a bag of a record without one is what it always was.
+  simulation); a bag of a record without one is what it always was;
+- ``<ns>/block`` (``topics='block'`` or ``'both'``): ``std_msgs/msg/Float64MultiArray``, the
+  same samples :data:`~piezo_stage_ros.core.contracts.wire.BLOCK_SAMPLES` to a message (the
+  block layout of :mod:`~piezo_stage_ros.core.contracts.wire`), log time = stamp of its last row.
 
 Bags written here have message log time = header stamp = sample time. The run's ``meta`` dict is
 kept as JSON in the bag's ``custom_data`` under
@@ -48,11 +51,20 @@ from typing import Any, Final, Literal
 import numpy as np
 from numpy.typing import ArrayLike
 from piezo_stage_ros.analysis.bagfast import BulkWriter, WRITE_BATCH
-from piezo_stage_ros.core.contracts.cdr import float64_layout, joint_state_layout, Layout
+from piezo_stage_ros.core.contracts.cdr import (
+    encode_block,
+    float64_layout,
+    joint_state_layout,
+    Layout,
+)
 from piezo_stage_ros.core.contracts.errors import BagError
 from piezo_stage_ros.core.contracts.types import ByteMatrix, FloatArray, IntArray
 from piezo_stage_ros.core.contracts.wire import (
     BAG_TOPICS,
+    block_columns,
+    BLOCK_SAMPLES,
+    block_topic,
+    BLOCK_TYPE,
     DEFAULT_NAMESPACE,
     JOINT_NAME,
     JOINT_STATE_TYPE,
@@ -76,7 +88,10 @@ from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
 from rosbags.typesys import get_typestore, Stores
 from rosbags.typesys.store import Typestore
 
-__all__ = ['OFFERED_QOS', 'STORAGES', 'RunBagWriter', 'write_run']
+__all__ = ['OFFERED_QOS', 'STORAGES', 'TOPIC_SETS', 'RunBagWriter', 'write_run']
+
+#: What a bag of a run can hold: the per-sample topics (as ever), the block topic, or both.
+TOPIC_SETS: Final = ('samples', 'block', 'both')
 
 
 STORAGES: Final[Mapping[str, StoragePlugin]] = {
@@ -144,23 +159,43 @@ class RunBagWriter:
         Write many messages at once into the rosbags storage writer (the default, several
         times faster, same bytes); False writes one message at a time through the public
         ``Writer.write`` (the tests compare both).
+    topics : {'samples', 'block', 'both'}
+        The per-sample topics (the default: the bag is what it always was), the block topic
+        ``<ns>/block`` only (:data:`TOPIC_SETS`), or both.
+    block_samples : int
+        Rows of a block message (the last one of the run may have fewer), >= 1.
 
     Raises
     ------
     BagError
-        Bad storage or namespace, an existing path without ``overwrite``, a write failure.
+        Bad storage, namespace, topics or block size, an existing path without
+        ``overwrite``, a write failure.
 
     """
 
     def __init__(self, path: str | Path, *, storage: str = 'mcap', overwrite: bool = False,
                  namespace: str = DEFAULT_NAMESPACE, meta: Mapping[str, Any] | None = None,
-                 bulk: bool = True) -> None:
+                 bulk: bool = True, topics: str = 'samples',
+                 block_samples: int = BLOCK_SAMPLES) -> None:
         self.path = Path(path)
+        if topics not in TOPIC_SETS:
+            raise BagError(f'topics {topics!r} is not supported; allowed: '
+                           + ', '.join(repr(t) for t in TOPIC_SETS))
+        if int(block_samples) != block_samples or block_samples < 1:
+            raise BagError(f'block_samples = {block_samples!r} is out of range; allowed: an '
+                           'integer >= 1')
+        self.per_sample = topics != 'block'
+        self.block = topics != 'samples'
+        self.block_samples = int(block_samples)
+        self._block_columns: tuple[str, ...] | None = None
+        self._block_rows: FloatArray | None = None  # rows not yet in a message
+        self._block_stamps: IntArray | None = None
         self.bulk = bulk
         self.storage = storage
         self._plugin = _check_storage(storage)
         self.overwrite = overwrite
         self.topics = topic_names(namespace)
+        self.namespace = namespace
         self.meta: dict[str, Any] = dict(meta or {})
         self._writer: Writer | None = None
         self._connections: dict[str, Connection] = {}
@@ -201,7 +236,7 @@ class RunBagWriter:
             bulk = BulkWriter(writer)
             self._bulk = bulk if bulk.supported else None
         store = _typestore()
-        for key in REQUIRED_TOPICS:
+        for key in REQUIRED_TOPICS if self.per_sample else ():
             self._connections[key] = writer.add_connection(
                 self.topics[key], BAG_TOPICS[key], typestore=store,
                 offered_qos_profiles=[OFFERED_QOS])
@@ -220,13 +255,21 @@ class RunBagWriter:
 
     def _add_diagnostics(self, keys: tuple[str, ...]) -> None:
         self._diagnostic_keys = keys
-        if keys:
+        if keys and self.per_sample:
             self._add_joint_states('diagnostics', keys)
 
     def _add_true_position(self, present: bool) -> None:
         self._has_true = present
-        if present:
+        if present and self.per_sample:
             self._add_joint_states('true_position', [JOINT_NAME])
+
+    def _add_block(self) -> None:
+        assert self._writer is not None and self._diagnostic_keys is not None
+        self._block_columns = block_columns(true_position=bool(self._has_true),
+                                            diagnostics=self._diagnostic_keys)
+        self._connections['block'] = self._writer.add_connection(
+            block_topic(self.namespace), BLOCK_TYPE, typestore=_typestore(),
+            offered_qos_profiles=[OFFERED_QOS])
 
     def set_meta(self, meta: Mapping[str, Any]) -> None:
         """
@@ -324,17 +367,31 @@ class RunBagWriter:
         if true_position_m is not None:
             columns['true_position'] = {
                 'position': _as_float(true_position_m, n, 'true_position_m', self.path)}
+        if self.block and self._block_columns is None:
+            self._add_block()
         if n == 0:
             return
-        order = [key for key in BAG_TOPICS if key in columns]
-        messages = []
-        for key in order:
-            layout = self._layouts[key]
-            stamps = None if layout.stamp_offset is None else stamp_ns
-            messages.append((self._connections[key], layout.encode(stamps, columns[key], n)))
-        try:
+        if self.per_sample:
+            order = [key for key in BAG_TOPICS if key in columns]
+            messages = []
+            for key in order:
+                layout = self._layouts[key]
+                stamps = None if layout.stamp_offset is None else stamp_ns
+                messages.append((self._connections[key],
+                                 layout.encode(stamps, columns[key], n)))
             # Sample k's messages go out together, in the order the nodes publish them.
+            self._write(messages, stamp_ns)
+        if self.block:
+            self._add_rows(stamp_ns, columns)
+        self._last_ns = int(stamp_ns[-1])
+        self.samples_written += n
+
+    def _write(self, messages: Sequence[tuple[Connection, ByteMatrix]],
+               stamp_ns: IntArray) -> None:
+        assert self._writer is not None
+        try:
             if self._bulk is not None:
+                n = stamp_ns.size
                 for lo in range(0, n, WRITE_BATCH):
                     hi = min(lo + WRITE_BATCH, n)
                     self._bulk.write([(c, rows[lo:hi]) for c, rows in messages],
@@ -343,11 +400,49 @@ class RunBagWriter:
                 _write_each(self._writer, messages, stamp_ns)
         except (WriterError, OSError, sqlite3.Error) as err:
             raise BagError(f'bag {self.path}: write failed: {err}') from None
-        self._last_ns = int(stamp_ns[-1])
-        self.samples_written += n
+
+    def _add_rows(self, stamp_ns: IntArray, columns: Mapping[str, Mapping[str, FloatArray]]
+                  ) -> None:
+        # the rows of the block layout (wire.block_columns), then every whole block goes out
+        n = stamp_ns.size
+        sec, nanosec = np.divmod(stamp_ns, NS_PER_S)
+        parts = [self.samples_written + np.arange(n, dtype=np.float64), sec, nanosec,
+                 columns['position']['position'], columns['reference']['position'],
+                 columns['reference']['velocity'], columns['command']['data']]
+        if 'true_position' in columns:
+            parts.append(columns['true_position']['position'])
+        rows = np.column_stack(parts).astype(np.float64)
+        if 'diagnostics' in columns:
+            rows = np.hstack((rows, columns['diagnostics']['position']))
+        if self._block_rows is not None:
+            assert self._block_stamps is not None
+            rows = np.vstack((self._block_rows, rows))
+            stamp_ns = np.concatenate((self._block_stamps, stamp_ns))
+        whole = rows.shape[0] // self.block_samples * self.block_samples
+        self._write_blocks(rows[:whole], stamp_ns[:whole])
+        self._block_rows, self._block_stamps = rows[whole:], stamp_ns[whole:]
+
+    def _write_blocks(self, rows: FloatArray, stamp_ns: IntArray) -> None:
+        # blocks of block_samples rows (the last may be shorter), each logged at its last row
+        assert self._block_columns is not None
+        n, size = rows.shape[0], self.block_samples
+        starts = range(0, n, size)
+        blobs = [encode_block(self._block_columns, rows[i:i + size]) for i in starts]
+        last = np.asarray([min(i + size, n) - 1 for i in starts], dtype=np.int64)
+        whole = n // size
+        # the whole blocks have one size and go in one matrix; a shorter last one on its own
+        for lo, hi in ((0, whole), (whole, len(blobs))):
+            if hi > lo:
+                matrix = np.frombuffer(b''.join(blobs[lo:hi]), np.uint8).reshape(hi - lo, -1)
+                self._write([(self._connections['block'], matrix)], stamp_ns[last[lo:hi]])
 
     def close(self) -> None:
-        """Write the index and ``metadata.yaml``; the bag is complete afterwards."""
+        """Write the last block, the index and ``metadata.yaml``; the bag is complete then."""
+        if self._writer is not None and self._block_rows is not None \
+                and self._block_rows.shape[0]:
+            assert self._block_stamps is not None
+            self._write_blocks(self._block_rows, self._block_stamps)
+        self._block_rows = self._block_stamps = None
         writer, self._writer = self._writer, None
         if writer is None:
             return
@@ -387,7 +482,8 @@ def _remove_bag(path: Path) -> None:
 
 
 def write_run(record: RunRecord, path: str | Path, *, storage: str = 'mcap',
-              overwrite: bool = False, namespace: str = DEFAULT_NAMESPACE) -> None:
+              overwrite: bool = False, namespace: str = DEFAULT_NAMESPACE,
+              topics: str = 'samples', block_samples: int = BLOCK_SAMPLES) -> None:
     """
     Write a whole run record as a bag.
 
@@ -403,6 +499,10 @@ def write_run(record: RunRecord, path: str | Path, *, storage: str = 'mcap',
         Replace an existing bag at ``path`` (see :class:`RunBagWriter`).
     namespace : str
         Topic namespace, default ``'/stage'``.
+    topics : {'samples', 'block', 'both'}
+        Per-sample topics, the block topic, or both (see :class:`RunBagWriter`).
+    block_samples : int
+        Rows of a block message.
 
     Raises
     ------
@@ -411,7 +511,8 @@ def write_run(record: RunRecord, path: str | Path, *, storage: str = 'mcap',
 
     """
     with RunBagWriter(path, storage=storage, overwrite=overwrite, namespace=namespace,
-                      meta=record.meta) as writer:
+                      meta=record.meta, topics=topics,
+                      block_samples=block_samples) as writer:
         writer.write_chunk(record)
 
 

@@ -340,7 +340,7 @@ def analyze_bag(path: str | Path, *, namespace: str | None = None,
 #: The plant counters of stage/status an analysis reports (those present), in this order.
 STATUS_KEYS = ('index', 'paced_samples', 'late', 'skipped', 'late_half_period',
                'lateness_p50_us', 'lateness_p99_us', 'lateness_max_us', 'watchdog_trips',
-               'safe_samples', 'queue_overruns', 'ring_missed', 'resends')
+               'safe_samples', 'queue_overruns', 'ring_missed', 'live_dropped', 'resends')
 
 
 #: The metrics a reader looks at first, in this order; the others (diagnostics) follow.

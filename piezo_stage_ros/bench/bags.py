@@ -40,7 +40,7 @@ from piezo_stage_ros.analysis.replay import analyze_bag
 from piezo_stage_ros.core.contracts.wire import STORAGE_IDS
 from piezo_stage_ros.core.loop.record import RunRecord
 
-__all__ = ['run_bag_benchmark', 'synthetic_record']
+__all__ = ['duration_argument', 'run_bag_benchmark', 'synthetic_record']
 
 _T = TypeVar('_T')
 SAMPLE_RATE_HZ = 10000.0
@@ -208,17 +208,25 @@ def main(argv: Sequence[str] | None = None) -> int:
         0, or 2 on a bad argument.
 
     """
+    duration = duration_argument(argv, 'bags benchmark')
+    if duration is None:
+        return 2
+    run_bag_benchmark(duration)
+    return 0
+
+
+def duration_argument(argv: Sequence[str] | None, prog: str) -> float | None:
+    """Return the run length [s] of a benchmark's command line (default 60), None if bad."""
     args = list(sys.argv[1:] if argv is None else argv)
     try:
         duration = float(args[0]) if args else 60.0
         if not (math.isfinite(duration) and duration > 0):
             raise ValueError
     except ValueError:
-        print(f'bags benchmark: error: duration {args[0]!r} is not a number of seconds > 0',
+        print(f'{prog}: error: duration {args[0]!r} is not a number of seconds > 0',
               file=sys.stderr)
-        return 2
-    run_bag_benchmark(duration)
-    return 0
+        return None
+    return duration
 
 
 if __name__ == '__main__':

@@ -56,11 +56,14 @@ LATE_HALF_LIMIT = 0.001
 #: new one had come: a controller in another node that answers late) makes it a warning.
 LATE_COMMAND_LIMIT = 0.001
 #: Counters of which any at all makes the end-of-run line a warning: samples the servo never
-#: took, samples taken but lost on the way to the ROS side, samples the UDP bridge or its
-#: target lost, and watchdog trips.
+#: took, samples taken but lost on the way to the ROS side, samples left out of the per-sample
+#: topics (the block topic has them), samples the UDP bridge or its target lost, and watchdog
+#: trips.
 ANY_COUNTS = (('skipped', 'skipped'), ('ring_missed', 'lost between the servo process and '
                                                      'the node (ring_missed)'),
               ('queue_overruns', 'lost in the servo queue (queue_overruns)'),
+              ('live_dropped', 'left out of the per-sample topics by an executor that fell '
+                               'behind (live_dropped; stage/block has them)'),
               ('bridge_lost', 'replies lost by the UDP bridge'),
               ('bridge_target_missing', 'commands the target found missing'),
               ('watchdog_trips', 'watchdog trips'))

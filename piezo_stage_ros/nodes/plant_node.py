@@ -18,8 +18,11 @@ The plant node: the stage model or a hardware bridge, publishing the measured po
 Parameters: :func:`piezo_stage_ros.nodes.tables.plant_table` (the stage of the core, start-up
 only, and the node group: mode, backend, duration, timeouts, bridge). Topics: publishes
 ``stage/position`` (and ``/clock`` in lockstep) and ``stage/status``, subscribes to
-``stage/command``. The behaviour is :class:`piezo_stage_ros.nodes.logic.PlantLogic`; this class
-only moves messages and owns the timers.
+``stage/command``; in real time ``stage/applied``, and with the servo loop running trajectory
+and controller (``stage_servo --direct``) ``stage/block``, every sample in blocks
+(:mod:`piezo_stage_ros.nodes.recording`). The behaviour is
+:class:`piezo_stage_ros.nodes.logic.PlantLogic`; this class only moves messages and owns the
+timers.
 
 Run: ``ros2 run piezo_stage_ros plant_node --ros-args --params-file default.yaml``.
 """
@@ -52,15 +55,22 @@ from piezo_stage_ros.nodes.logic import (
     TripLog,
 )
 from piezo_stage_ros.nodes.parameters import ParameterBinding
+from piezo_stage_ros.nodes.recording import backlog_samples, Handover, SampleBatch
 from piezo_stage_ros.nodes.runner import run
-from piezo_stage_ros.nodes.servo import make_bridge, ServoLoop, ServoProcess, ServoSample
+from piezo_stage_ros.nodes.servo import (
+    make_bridge,
+    samples_of,
+    ServoLoop,
+    ServoProcess,
+    ServoSample,
+)
 from piezo_stage_ros.nodes.tables import plant_table, PlantNodeParams
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64
+from std_msgs.msg import Float64, Float64MultiArray
 
 __all__ = ['PlantNode', 'main']
 
@@ -122,6 +132,10 @@ class PlantNode(Node):
             self._applied_pub.get_subscription_count, every=50) \
             if self._applied_pub is not None else (lambda: False)
         self._held_since: int | None = None
+        # direct real time (attach_servo): every sample on stage/block; the per-sample topics
+        # leave out what an overloaded executor cannot afford, counted
+        self._block_pub: Any = None
+        self._handover: Handover | None = None
         if self.logic.lockstep:
             # wall (steady) time: simulation time stands still while the plant waits
             self._timer = self.create_timer(0.005, self._lockstep_tick, clock=self._steady)
@@ -188,6 +202,7 @@ class PlantNode(Node):
                          duration_s=opts.duration_s,
                          pacer=Pacer(round(1e9 / self.logic.rate_hz),
                                      spin_ns=round(opts.servo.spin_us * 1000)),
+                         capacity=backlog_samples(opts.recording, self.logic.rate_hz),
                          on_sample=on_sample)
 
     def _publish_sample(self, s: ServoSample) -> None:
@@ -211,6 +226,10 @@ class PlantNode(Node):
         self.servo = process if process is not None else \
             self._make_servo(trajectory, controller)
         self._peers = publish
+        recording = self.opts.recording
+        if recording.block:
+            self._block_pub = self.create_publisher(Float64MultiArray, wire.BLOCK, qos.BLOCK)
+            self._handover = Handover.from_params(recording, self.logic.rate_hz)
         # looked at every 50 batches (0.1 s) as the per-sample gates look every 1000 samples
         self._position_gate = Gate(self._pub.get_subscription_count, every=50)
 
@@ -234,10 +253,7 @@ class PlantNode(Node):
                                    since_ns=time.monotonic_ns())
                 return
             finished = servo.finished
-            batch = servo.drain()
-            if batch:
-                self._publish_batch(batch)
-                self._publish_applied(batch)
+            self._hand_on(servo.take_batch())
             self._log_trips(servo.take_trips())
             if not self._servo_reported and (servo.setup_report or finished):
                 self._servo_reported = True
@@ -273,6 +289,23 @@ class PlantNode(Node):
             self.get_logger().warning(f'{head}, degraded ({"; ".join(reasons)}): {figures}')
         else:
             self.get_logger().info(f'{head}: {figures}')
+
+    def _hand_on(self, batch: SampleBatch) -> None:
+        # every sample into the blocks first; then the per-sample topics, without the oldest
+        # of a backlog the executor cannot afford one message at a time (counted)
+        if batch.size == 0:
+            return
+        first = 0
+        if self._handover is not None:
+            messages, first = self._handover.take(batch)
+            for raw in messages:
+                self._block_pub.publish(raw)
+            if first:
+                # the first sample published ends the hold that began at the one before it
+                self._held_since = int(batch.ints[first - 1, 1])
+        samples = samples_of(batch, first)
+        self._publish_batch(samples)
+        self._publish_applied(samples)
 
     def _publish_applied(self, batch: list[ServoSample]) -> None:
         # sample k's applied_v was held over the sample that ended at t_k: it goes out stamped
@@ -393,6 +426,8 @@ class PlantNode(Node):
             out['index'] = index
             # what the real-time setup applied or was refused, e.g. servo_affinity
             out.update({f'servo_{k}': v for k, v in self.servo.setup_report.items()})
+        if self._handover is not None:
+            out.update(self._handover.stats())
         out['malformed'] = self.malformed
         elapsed = time.monotonic() - self._t_start if self._t_start else 0.0
         samples = max(index + 1, 0)
@@ -406,7 +441,8 @@ class PlantNode(Node):
         """Publish the counters on ``stage/status``."""
         stats = self.stats()
         # under load the loop degrades with counts: any of them makes the status a warning
-        worse = ('late', 'watchdog_trips', 'late_half_period', 'skipped', 'queue_overruns')
+        worse = ('late', 'watchdog_trips', 'late_half_period', 'skipped', 'queue_overruns',
+                 'ring_missed', 'live_dropped')
         level = DiagnosticStatus.WARN if any(stats.get(k) for k in worse) \
             else DiagnosticStatus.OK
         self._status_pub.publish(DiagnosticStatus(
@@ -421,10 +457,10 @@ class PlantNode(Node):
         self._timer.cancel()
         if self.servo is not None:
             self.servo.stop()
-            batch = self.servo.drain()
-            if batch:
-                self._publish_batch(batch)
-                self._publish_applied(batch)
+            self._hand_on(self.servo.take_batch())
+            if self._handover is not None:
+                for raw in self._handover.finish(self.servo.held_v):
+                    self._block_pub.publish(raw)
             if self._held_since is not None and self._applied_pub is not None \
                     and self._peers is not None and self._applied_gate():
                 # the last sample's command, held until the stop drove the safe voltage (the

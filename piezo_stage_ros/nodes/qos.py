@@ -26,6 +26,8 @@ The QoS profiles of every topic, chosen once here (imports rclpy).
   machine lost samples of a real-time run (measured: 9 000-22 000 of 597 000 per topic, each
   topic other ones). 10 000 is one second at 10 kHz, the depth ``config/record_qos.yaml`` gives
   the recorder; the writer keeps a sample only until every reader has acknowledged it.
+- :data:`BLOCK` (``stage/block``, real time): reliable, volatile, keep last 1000: 10 s of blocks
+  at 100 a second, for a recorder that stalls (a block is about 8 kB: 8 MB at most).
 - :data:`CLOCK` (``/clock``, lockstep): reliable, keep last 1: only the newest time matters, and
   a reliable writer serves the best-effort subscription of every node's time source.
 - :data:`STATUS` (``stage/status``): reliable, transient local, keep last 1, so that a tool
@@ -36,13 +38,15 @@ from __future__ import annotations
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-__all__ = ['CLOCK', 'LOOP', 'LOOP_OUT', 'STATUS']
+__all__ = ['BLOCK', 'CLOCK', 'LOOP', 'LOOP_OUT', 'STATUS']
 
 LOOP = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                   reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 LOOP_OUT = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10_000,
                       reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.VOLATILE)
+BLOCK = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
+                   reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 CLOCK = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                    reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 STATUS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,

@@ -20,9 +20,10 @@ One :class:`ServoLoop` runs the whole sample in one place, in the order of
 (:class:`~piezo_stage_ros.hardware. pacing.Pacer`), measure y_k through the guarded backend (which
 holds u_k-1 over the sample that just ended), x_d(t_k) from the trajectory (evaluated ahead in
 chunks), u_k from the controller, and hand u_k to the backend to hold from now on. Nothing in that
-path waits for ROS: each sample goes as a tuple into a bounded queue (:attr:`ServoLoop.samples`)
-that the ROS side drains and publishes in batches; a full queue drops its oldest entries and
-counts them (``queue_overruns``), the servo never blocks.
+path waits for ROS: each sample goes, numbered, into a bounded queue (:attr:`ServoLoop.samples`)
+that the ROS side drains (:meth:`ServoLoop.take_batch`: as the columns of
+:class:`~piezo_stage_ros.nodes.recording.SampleBatch`) and publishes in batches; a full queue
+drops its oldest entries and counts them (``queue_overruns``), the servo never blocks.
 
 Parameters changed through ROS reach the loop as they reach the logic objects
 (:meth:`~piezo_stage_ros.nodes.logic.ControllerLogic.request_change`,
@@ -53,6 +54,7 @@ from piezo_stage_ros.core.contracts.interfaces import Controller
 from piezo_stage_ros.core.contracts.loop_config import LoopConfig, PlantNodeParams
 from piezo_stage_ros.core.contracts.wire import NS_PER_S
 from piezo_stage_ros.core.control.controllers import bound_controller, ControllerParams
+from piezo_stage_ros.core.loop.closed_loop import true_position_reader
 from piezo_stage_ros.core.loop.trajectories import make_trajectory
 from piezo_stage_ros.core.model.hysteresis import make_hysteresis
 from piezo_stage_ros.core.model.stage import linear_plant, PlantParams, StageParams
@@ -61,9 +63,13 @@ from piezo_stage_ros.hardware.pacing import Pacer, servo_setup
 from piezo_stage_ros.hardware.safety import GuardedPlant, Trip
 from piezo_stage_ros.hardware.udp import UdpBridge, UdpStreamBridge
 from piezo_stage_ros.nodes.logic import ControllerLogic, sample_count, TrajectoryLogic
+from piezo_stage_ros.nodes.recording import SampleBatch
 
-__all__ = ['apply_change', 'make_bridge', 'SampleRing', 'servo_from_config', 'ServoLoop',
-           'ServoProcess', 'ServoSample']
+# the float columns of a ring row before the diagnostics (SampleRing.FLOATS)
+_VALUES = 6
+
+__all__ = ['apply_change', 'batch_of', 'make_bridge', 'SampleRing', 'samples_of',
+           'servo_from_config', 'ServoLoop', 'ServoProcess', 'ServoSample']
 
 
 class ServoSample(NamedTuple):
@@ -92,6 +98,9 @@ class ServoSample(NamedTuple):
         Controller internals (every ``diagnostics_every`` samples).
     diagnostic_names : tuple of str or None
         Their names (those of the controller that computed them; None without diagnostics).
+    true_position_m : float
+        x(t_k) [m], the true position behind y_k where the backend knows it (the model of
+        :class:`~piezo_stage_ros.hardware.bridge.ModelBridge`); NaN otherwise.
 
     """
 
@@ -105,6 +114,7 @@ class ServoSample(NamedTuple):
     lateness_ns: int
     diagnostics: Sequence[float] | None
     diagnostic_names: tuple[str, ...] | None = None
+    true_position_m: float = math.nan
 
 
 class SampleRing:
@@ -148,7 +158,8 @@ class SampleRing:
     """
 
     INTS = ('k', 'stamp_ns', 'lateness_ns', 'layout', 'diagnostics')
-    FLOATS = ('position_m', 'reference_m', 'velocity_mps', 'command_v', 'applied_v')
+    FLOATS = ('position_m', 'reference_m', 'velocity_mps', 'command_v', 'applied_v',
+              'true_position_m')
     HEADER = ('count', 'halt', 'posted', 'applied', 'index', 'paced_samples',
               'late_half_period', 'skipped', 'lateness_max_ns', 'watchdog_trips',
               'ramp_samples', 'safe_samples', 'recovery_samples')
@@ -217,9 +228,10 @@ class SampleRing:
                 self.dropped += 1
                 width = 0
             else:
-                floats[5:5 + width] = values
+                floats[_VALUES:_VALUES + width] = values
         self._ints[row] = (s.k, s.stamp_ns, s.lateness_ns, self.layout, width)
-        floats[:5] = (s.position_m, s.reference_m, s.velocity_mps, s.command_v, s.applied_v)
+        floats[:_VALUES] = (s.position_m, s.reference_m, s.velocity_mps, s.command_v,
+                            s.applied_v, s.true_position_m)
         self._count[0] = n + 1
 
     def take(self) -> tuple[Any, Any, int]:
@@ -231,19 +243,29 @@ class SampleRing:
         ints : ndarray of int64, shape (n, 5)
             Columns :attr:`INTS`: k, stamp [ns], lateness [ns], the layout of the
             diagnostics and how many the row carries (0: none).
-        floats : ndarray of float64, shape (n, 5 + diagnostics)
+        floats : ndarray of float64, shape (n, 6 + diagnostics)
             Columns :attr:`FLOATS`, then the diagnostics (the first as many as the row
             carries).
         missed : int
             Samples overwritten before they were read.
 
         """
+        _, ints, floats, missed = self.take_numbered()
+        return ints, floats, missed
+
+    def take_numbered(self) -> tuple[int, Any, Any, int]:
+        """
+        Return the samples written since the last call, with the number of the first.
+
+        As :meth:`take`, with first the number of the first row returned among all the rows
+        ever written (0, 1, 2 ...: the rows that follow it are numbered on without gaps).
+        """
         end = int(self._count[0])
         missed = max(end - self.read - self.capacity, 0)
         start = self.read + missed
-        rows = [i % self.capacity for i in range(start, end)]
+        rows = np.arange(start, end) % self.capacity
         self.read = end
-        return self._ints[rows].copy(), self._floats[rows].copy(), missed
+        return start, self._ints[rows], self._floats[rows], missed
 
     def close(self, unlink: bool = False) -> None:
         """Detach (and remove, by the creator)."""
@@ -300,7 +322,8 @@ class ServoLoop:
         period_ns = round(NS_PER_S / self.rate_hz)
         self.pacer = pacer if pacer is not None else Pacer(period_ns)
         self.total = sample_count(duration_s, self.rate_hz)
-        self.samples: deque[ServoSample] = deque(maxlen=max(0, capacity))
+        # (number among the samples served, sample)
+        self.samples: deque[tuple[int, ServoSample]] = deque(maxlen=max(0, capacity))
         self.pushed = 0
         self.drained = 0
         self.start_ns = 0
@@ -315,6 +338,9 @@ class ServoLoop:
             else None
         self._t0_arrival = 0
         self.on_sample = on_sample
+        # x(t_k) behind y_k, for the recording, where the backend is the model
+        self._true = true_position_reader(plant.bridge.stage) \
+            if isinstance(plant.bridge, ModelBridge) else None
         #: Called after each sample served (a sample boundary); returning False ends the run.
         self.boundary: Callable[[], bool] | None = None
         #: Called with :attr:`setup_report` as soon as the setup of :meth:`run` has run.
@@ -333,7 +359,8 @@ class ServoLoop:
         if self.controller is None or self.trajectory is None:
             # the plant alone: the command comes from elsewhere (another node), held as is
             sample = ServoSample(index, stamp, position_m, math.nan, math.nan, math.nan,
-                                 plant.applied_v, lateness_ns, None, None)
+                                 plant.applied_v, lateness_ns, None, None,
+                                 self._true() if self._true is not None else math.nan)
         else:
             now_s = now_ns / NS_PER_S
             ref, vel = self.trajectory.on_position(stamp)
@@ -345,9 +372,10 @@ class ServoLoop:
             self.held_v = plant.held_v
             sample = ServoSample(index, stamp, position_m, ref, vel, u, applied, lateness_ns,
                                  out.diagnostics if out else None,
-                                 out.diagnostic_names if out else None)
+                                 out.diagnostic_names if out else None,
+                                 self._true() if self._true is not None else math.nan)
         if self.samples.maxlen:
-            self.samples.append(sample)
+            self.samples.append((self.pushed, sample))
             self.pushed += 1
         if self.on_sample is not None:
             self.on_sample(sample)
@@ -481,9 +509,18 @@ class ServoLoop:
         out: list[ServoSample] = []
         queue = self.samples
         while queue and (not limit or len(out) < limit):
-            out.append(queue.popleft())
+            out.append(queue.popleft()[1])
         self.drained += len(out)
         return out
+
+    def take_batch(self) -> SampleBatch:
+        """Return the samples queued since the last call as columns (the block recording)."""
+        items = []
+        queue = self.samples
+        while queue:
+            items.append(queue.popleft())
+        self.drained += len(items)
+        return batch_of(items)
 
     def take_trips(self) -> list[Trip]:
         """Return the watchdog trips that ended since the last call, oldest first."""
@@ -504,6 +541,48 @@ class ServoLoop:
             out['error'] = repr(self.error)
         return out
 
+
+
+def samples_of(batch: SampleBatch, first: int = 0) -> list[ServoSample]:
+    """
+    Return rows ``first ...`` of a batch as :class:`ServoSample`.
+
+    Diagnostics are named by their layout (None where the batch has no names for it: the
+    publisher then uses its own).
+    """
+    ints, floats, layouts = batch.ints[first:], batch.floats[first:], batch.layouts
+    diagnostics = floats[:, len(SampleRing.FLOATS):]
+    out = []
+    for i, ((k, stamp, late, layout, n), (p, r, v, c, a, x)) in enumerate(zip(
+            ints.tolist(), floats[:, :len(SampleRing.FLOATS)].tolist())):
+        if n:
+            out.append(ServoSample(k, stamp, p, r, v, c, a, late,
+                                   tuple(diagnostics[i, :n].tolist()), layouts.get(layout), x))
+        else:
+            out.append(ServoSample(k, stamp, p, r, v, c, a, late, None, None, x))
+    return out
+
+
+def batch_of(items: Sequence[tuple[int, ServoSample]]) -> SampleBatch:
+    """Return numbered samples (``(number, sample)``) as the columns of a batch."""
+    n = len(items)
+    width = max((len(s.diagnostics) for _, s in items if s.diagnostics is not None),
+                default=0)
+    ints = np.zeros((n, len(SampleRing.INTS)), dtype=np.int64)
+    floats = np.full((n, len(SampleRing.FLOATS) + width), np.nan)
+    numbers = np.empty(n, dtype=np.int64)
+    layouts: dict[tuple[str, ...], int] = {}
+    for i, (number, s) in enumerate(items):
+        numbers[i] = number
+        layout, count = -1, 0
+        if s.diagnostics is not None and s.diagnostic_names is not None:
+            layout = layouts.setdefault(s.diagnostic_names, len(layouts))
+            count = len(s.diagnostics)
+            floats[i, len(SampleRing.FLOATS):len(SampleRing.FLOATS) + count] = s.diagnostics
+        ints[i] = (s.k, s.stamp_ns, s.lateness_ns, layout, count)
+        floats[i, :_VALUES] = (s.position_m, s.reference_m, s.velocity_mps, s.command_v,
+                               s.applied_v, s.true_position_m)
+    return SampleBatch(numbers, ints, floats, {v: k for k, v in layouts.items()})
 
 
 def make_bridge(stage: StageParams, opts: PlantNodeParams) -> Bridge:
@@ -902,21 +981,15 @@ class ServoProcess:
         controller that computed them named them (a layout sent before the first of its rows
         was written: received here after the rows were taken, it is always in).
         """
-        ints, floats, _ = self.take()
+        return samples_of(self.take_batch())
+
+    def take_batch(self) -> SampleBatch:
+        """Return the samples handed over since the last call as columns, numbered."""
+        start, ints, floats, missed = self.ring.take_numbered()
+        self.missed += missed
         self._receive()
-        layouts = self._layouts
-        diagnostics = floats[:, len(SampleRing.FLOATS):]
-        out = []
-        for i, ((k, stamp, late, layout, n), (p, r, v, c, a)) in enumerate(zip(
-                ints.tolist(), floats[:, :len(SampleRing.FLOATS)].tolist())):
-            if n:
-                # no layout: names the writer did not have (the publisher uses its own)
-                out.append(ServoSample(k, stamp, p, r, v, c, a, late,
-                                       tuple(diagnostics[i, :n].tolist()),
-                                       layouts.get(layout)))
-            else:
-                out.append(ServoSample(k, stamp, p, r, v, c, a, late, None, None))
-        return out
+        return SampleBatch(np.arange(start, start + ints.shape[0], dtype=np.int64), ints,
+                           floats, dict(self._layouts))
 
     def close(self) -> None:
         """Stop the process if it runs, remove the ring and close the pipe."""

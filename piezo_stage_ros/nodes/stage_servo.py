@@ -33,6 +33,7 @@ from piezo_stage_ros.nodes.controller_node import ControllerNode
 from piezo_stage_ros.nodes.controller_node import factory as controller_factory
 from piezo_stage_ros.nodes.logic import Command, Sample
 from piezo_stage_ros.nodes.plant_node import PlantNode
+from piezo_stage_ros.nodes.recording import backlog_samples
 from piezo_stage_ros.nodes.runner import run
 from piezo_stage_ros.nodes.servo import ServoProcess, ServoSample
 from piezo_stage_ros.nodes.trajectory_node import TrajectoryNode
@@ -75,6 +76,8 @@ def connect_direct(plant: PlantNode, controller: ControllerNode,
                               stability=stability, controller_node=controller_opts,
                               trajectory=traj_params, trajectory_node=traj_opts)
             process = ServoProcess(loop, plant_opts.duration_s,
+                                   capacity=backlog_samples(plant_opts.recording,
+                                                            stage.sample_rate_hz),
                                    design_plant=controller.design_plant)
             controller.forward = trajectory.forward = process.change
         plant.attach_servo(trajectory.logic, controller.logic, publish, process)

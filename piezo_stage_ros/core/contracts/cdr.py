@@ -41,6 +41,14 @@ Layouts (``B`` = byte offset in the body, after the 4-byte header)::
     rosgraph_msgs/Clock      B0 int32 sec, B4 uint32 nanosec
     sensor_msgs/JointState   B0 int32 sec, B4 uint32 nanosec, B8 string frame_id,
                              sequence<string> name, sequence<float64> position, velocity, effort
+    std_msgs/Float64MultiArray  B0 sequence<MultiArrayDimension> layout.dim (each: string
+                             label, uint32 size, uint32 stride), uint32 layout.data_offset,
+                             sequence<float64> data
+
+The block topic (``stage/block``, many samples per message, layout in
+:mod:`piezo_stage_ros.core.contracts.wire`) is a Float64MultiArray:
+:func:`encode_block` / :func:`decode_block` write and read its (samples, columns) matrix with
+one copy of the data.
 
 (string: uint32 length including the NUL, the characters, NUL; sequence: uint32 count, then the
 elements, each aligned to its own size.)
@@ -55,13 +63,20 @@ import struct
 from typing import Final
 
 import numpy as np
+from piezo_stage_ros.core.contracts.errors import BagError
 from piezo_stage_ros.core.contracts.types import BoolArray, ByteMatrix, FloatArray, IntArray
-from piezo_stage_ros.core.contracts.wire import NS_PER_S
+from piezo_stage_ros.core.contracts.wire import (
+    BLOCK_ROWS_LABEL,
+    BLOCK_SEPARATOR,
+    NS_PER_S,
+    parse_block_columns,
+)
 
 __all__ = ['HEADER_LE', 'CdrError', 'JointStateDecoder', 'JointStateEncoder',
-           'JointStateMessage', 'Layout', 'decode_float64', 'decode_joint_state',
-           'decode_joint_state_message', 'encode_clock', 'encode_float64', 'encode_joint_state',
-           'float64_layout', 'joint_state_layout']
+           'JointStateMessage', 'Layout', 'decode_block', 'decode_float64', 'decode_joint_state',
+           'decode_joint_state_message', 'decode_multi_array', 'encode_block', 'encode_clock',
+           'encode_float64', 'encode_joint_state', 'encode_multi_array', 'float64_layout',
+           'joint_state_layout']
 
 
 HEADER_LE: Final = b'\x00\x01\x00\x00'
@@ -114,6 +129,16 @@ def _string(text: str, offset: int) -> tuple[bytes, int]:
     raw = text.encode('utf-8') + b'\x00'
     pad = (-offset) % 4
     return b'\x00' * pad + struct.pack('<I', len(raw)) + raw, offset + pad + 4 + len(raw)
+
+
+def _read_string(order: str, body: memoryview, offset: int) -> tuple[str, int]:
+    """Return the string at body offset ``offset`` (aligned to 4 here) and the offset after it."""
+    offset += (-offset) % 4
+    (length,) = _U32[order].unpack_from(body, offset)
+    end = offset + 4 + length
+    if length < 1 or end > len(body):
+        raise struct.error('string overruns the message')
+    return bytes(body[offset + 4:end - 1]).decode('utf-8'), end
 
 
 def _doubles(values: Sequence[float], offset: int) -> tuple[bytes, int]:
@@ -207,12 +232,7 @@ def decode_joint_state_message(data: bytes) -> JointStateMessage:
     body = memoryview(data)[4:]
 
     def string(offset: int) -> tuple[str, int]:
-        offset += (-offset) % 4
-        (length,) = u32(body, offset)
-        end = offset + 4 + length
-        if length < 1 or end > len(body):
-            raise struct.error('string overruns the message')
-        return bytes(body[offset + 4:end - 1]).decode('utf-8'), end
+        return _read_string(order, body, offset)
 
     try:
         sec, nanosec = _STAMP[order].unpack_from(body, 0)
@@ -354,6 +374,139 @@ class JointStateDecoder:
                 sec, nanosec, position, velocity = self._fast.unpack_from(data)
                 return sec, nanosec, position, velocity
         return decode_joint_state(data)
+
+
+# --------------------------------------------------------------------------------------------
+# Float64MultiArray: the block topic
+
+
+def encode_multi_array(dims: Sequence[tuple[str, int, int]], data: FloatArray,
+                       data_offset: int = 0) -> bytes:
+    """
+    Return a ``std_msgs/msg/Float64MultiArray``.
+
+    Parameters
+    ----------
+    dims : sequence of (str, int, int)
+        ``layout.dim``: (label, size, stride) of each dimension, outermost first.
+    data : ndarray of float64
+        ``data`` (flattened in C order).
+    data_offset : int
+        ``layout.data_offset``.
+
+    Returns
+    -------
+    bytes
+        Little-endian CDR with its encapsulation header.
+
+    """
+    parts = [HEADER_LE, struct.pack('<I', len(dims))]
+    offset = 4
+    for label, size, stride in dims:
+        chunk, offset = _string(label, offset)
+        pad = (-offset) % 4
+        parts += [chunk, b'\x00' * pad + struct.pack('<II', size, stride)]
+        offset += pad + 8
+    values = np.ascontiguousarray(data, dtype='<f8').reshape(-1)
+    pad = (-offset) % 4
+    parts.append(b'\x00' * pad + struct.pack('<II', data_offset, values.size))
+    offset += pad + 8
+    if values.size:
+        parts += [b'\x00' * ((-offset) % 8), values.tobytes()]
+    return b''.join(parts)
+
+
+def decode_multi_array(data: bytes) -> tuple[list[tuple[str, int, int]], int, FloatArray]:
+    """
+    Decode a ``std_msgs/msg/Float64MultiArray``, in either byte order.
+
+    Returns
+    -------
+    dims : list of (str, int, int)
+        ``layout.dim``: (label, size, stride).
+    data_offset : int
+        ``layout.data_offset``.
+    values : ndarray of float64
+        ``data`` (native byte order).
+
+    Raises
+    ------
+    CdrError
+        If the bytes are not a Float64MultiArray (bad header, truncated, a label not UTF-8).
+
+    """
+    order = _order(data)
+    u32 = _U32[order].unpack_from
+    body = memoryview(data)[4:]
+    try:
+        (count,) = u32(body, 0)
+        offset = 4
+        if count > len(body) // 12:
+            raise struct.error('dimension count overruns the message')
+        dims = []
+        for _ in range(count):
+            label, end = _read_string(order, body, offset)
+            offset = end + (-end) % 4
+            size, stride = u32(body, offset)[0], u32(body, offset + 4)[0]
+            dims.append((label, int(size), int(stride)))
+            offset += 8
+        data_offset, n = u32(body, offset)[0], u32(body, offset + 4)[0]
+        offset += 8
+        if n:
+            offset += (-offset) % 8
+        if offset + 8 * n > len(body):
+            raise struct.error('data overruns the message')
+        values = np.frombuffer(body, dtype=f'{order}f8', count=n, offset=offset).astype(
+            np.float64)
+    except (struct.error, UnicodeDecodeError):
+        raise CdrError(f'truncated Float64MultiArray ({len(data)} bytes)') from None
+    return dims, int(data_offset), values
+
+
+def encode_block(columns: Sequence[str], rows: FloatArray) -> bytes:
+    """
+    Return a block message (``stage/block``) of ``rows`` under these column names.
+
+    Parameters
+    ----------
+    columns : sequence of str
+        Column names (:func:`~piezo_stage_ros.core.contracts.wire.block_columns`).
+    rows : ndarray of float64, shape (n, len(columns))
+        One sample per row.
+
+    """
+    n, c = rows.shape
+    if c != len(columns):
+        raise ValueError(f'block of {c} columns for {len(columns)} names')
+    return encode_multi_array([(BLOCK_ROWS_LABEL, n, n * c),
+                               (BLOCK_SEPARATOR.join(columns), c, c)], rows)
+
+
+def decode_block(data: bytes) -> tuple[tuple[str, ...], FloatArray]:
+    """
+    Return the column names and the (samples, columns) matrix of a block message.
+
+    Raises
+    ------
+    CdrError
+        If the bytes are not a Float64MultiArray, or its layout is not that of a block (two
+        dimensions, the first labelled ``samples``, strides of a dense row-major matrix, no
+        data offset, the columns of :func:`~piezo_stage_ros.core.contracts.wire.block_columns`).
+
+    """
+    dims, data_offset, values = decode_multi_array(data)
+    if len(dims) != 2 or dims[0][0] != BLOCK_ROWS_LABEL or data_offset != 0:
+        raise CdrError(f'not a block layout: dims {dims}, data_offset {data_offset}')
+    (_, n, stride0), (label, c, stride1) = dims
+    if stride1 != c or stride0 != n * c or values.size != n * c:
+        raise CdrError(f'not a dense row-major block: dims {dims}, {values.size} values')
+    try:
+        names = parse_block_columns(label).names
+    except BagError as err:
+        raise CdrError(str(err)) from None
+    if len(names) != c:
+        raise CdrError(f'block of {c} columns names {len(names)}')
+    return names, values.reshape(n, c)
 
 
 # --------------------------------------------------------------------------------------------

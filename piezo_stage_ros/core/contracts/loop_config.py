@@ -68,7 +68,7 @@ from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
 from piezo_stage_ros.core.model.stage import PlantParams, StageParams
 
 __all__ = ['BridgeParams', 'ControllerNodeParams', 'Declaration', 'Group', 'LockstepParams',
-           'LoopConfig', 'MODES', 'NodeTable', 'PlantNodeParams', 'ServoParams',
+           'LoopConfig', 'MODES', 'NodeTable', 'PlantNodeParams', 'RecordingParams', 'ServoParams',
            'TrajectoryNodeParams', 'WatchdogParams',
            'TABLES', 'controller_table', 'design_plant', 'load_loop_config', 'plant_table',
            'trajectory_table']
@@ -138,6 +138,31 @@ class ServoParams(Params):
 
 
 @dataclass(frozen=True)
+class RecordingParams(Params):
+    """What a real-time loop hands to recorders and live subscribers (nodes/recording.py)."""
+
+    block: bool = param(True, unit='-', description='Real time with the servo loop running '
+                        'trajectory and controller (stage_servo --direct): publish every sample '
+                        'on stage/block, block_samples to a std_msgs/Float64MultiArray (the '
+                        'recording that keeps every sample under load; docs/bags.md).',
+                        read_only=True)
+    block_samples: int = param(100, unit='-', description='Samples a stage/block message '
+                               'carries (100: 10 ms at 10 kHz, 100 messages a second).', low=1,
+                               high=100000, read_only=True)
+    backlog_s: float = param(10.0, unit='s', description='Samples the servo keeps for the '
+                             'executor to take, in seconds at the sample rate (the ring of the '
+                             'servo process, the queue of a servo thread): a stall of the '
+                             'executor shorter than this loses no sample.', low=0.01,
+                             high=600.0, read_only=True)
+    live_backlog_s: float = param(0.1, unit='s', description='With block: of the samples '
+                                  'waiting when the executor comes, the per-sample topics '
+                                  'publish the newest this many seconds one by one and leave '
+                                  'the older out (counted: live_dropped; stage/block has every '
+                                  'one), so that an overloaded executor keeps up.', low=0.0,
+                                  low_open=True, high=600.0, read_only=True)
+
+
+@dataclass(frozen=True)
 class WatchdogParams(Params):
     """What the plant drives once commands have stopped (real time; hardware/safety.py)."""
 
@@ -173,6 +198,7 @@ class PlantNodeParams(Params):
     lockstep: LockstepParams = group(LockstepParams, 'lockstep start-up')
     bridge: BridgeParams = group(BridgeParams, 'UDP bridge')
     servo: ServoParams = group(ServoParams, 'real-time servo loop')
+    recording: RecordingParams = group(RecordingParams, 'real-time recording')
 
     def _check(self) -> None:
         if self.backend == 'udp_stream' and self.mode != 'realtime':

@@ -35,11 +35,33 @@ prefix ``stage/``; under the root namespace the bag of a run has them as ``/stag
 - ``stage/true_position``, ``sensor_msgs/msg/JointState``: stamp t_k, name ['stage'],
   position [x(t_k)] m, the true position behind y_k (no noise, no ADC): simulation only, written
   by the offline runner's bags (:data:`SIMULATION_TOPICS`; no node publishes it);
+- ``stage/block``, ``std_msgs/msg/Float64MultiArray``: many samples per message (the recording
+  path that keeps every sample under load, about 100 messages a second; layout below);
 - ``stage/status``, ``diagnostic_msgs/msg/DiagnosticStatus``: plant counters, about once a second;
 - ``/clock``, ``rosgraph_msgs/msg/Clock``: t_k, lockstep only (absolute: one clock per graph).
 
 Stamps are ``builtin_interfaces/msg/Time`` (int32 sec, uint32 nanosec) of the sample time;
 :func:`ns_to_stamp` and :func:`stamp_to_ns` convert, in integer nanoseconds.
+
+The block layout (``stage/block``; :func:`block_columns`, :func:`parse_block_columns`): a
+row-major matrix of n samples (rows) by c columns (``data[i * c + j]``), described by the
+message's own ``layout`` as the MultiArrayLayout convention has it: ``dim[0]`` = {label
+:data:`BLOCK_ROWS_LABEL`, size n, stride n * c}, ``dim[1]`` = {label: the column names joined
+by :data:`BLOCK_SEPARATOR`, size c, stride c}, ``data_offset`` 0. The columns, in this order:
+
+- :data:`BLOCK_COLUMNS`, always: ``sample`` (the number of the sample among those the loop
+  served: 0, 1, 2 ... without gaps, so a gap is a sample lost on its way to the bag),
+  ``stamp_sec`` and ``stamp_nanosec`` (t_k as in a header stamp: both integers, exact in
+  float64), ``position_m`` (y_k), ``reference_m`` (x_d), ``velocity_mps`` (x_d'),
+  ``command_v`` (u_k as the controller computed it);
+- :data:`BLOCK_OPTIONAL` where the writer knows them: ``applied_v`` (the amplifier input the
+  plant held over [t_k, t_k+1), as ``stage/applied`` carries it; NaN until known),
+  ``true_position_m`` (x(t_k), a simulated stage only);
+- the controller's diagnostics, each named :data:`BLOCK_DIAGNOSTIC_PREFIX` + key, keys sorted;
+  NaN in the rows of samples without diagnostics.
+
+A message carries one column set; when the diagnostic keys change (a controller rebuilt of
+another kind) the writer starts a new message. Rows are in sample order.
 """
 
 from __future__ import annotations
@@ -48,24 +70,27 @@ from collections.abc import Callable, Mapping, Sequence
 import math
 import operator
 import re
-from typing import Final
+from typing import Final, NamedTuple
 
 from piezo_stage_ros.core.contracts.errors import BagError
 from piezo_stage_ros.core.contracts.interfaces import Controller
 
 __all__ = [
-    'BAG_TOPICS', 'CLOCK', 'CLOCK_TYPE', 'COMMAND', 'COMMAND_TYPE', 'DEFAULT_NAMESPACE',
-    'APPLIED', 'DIAGNOSTICS', 'JOINT_NAME', 'JOINT_STATE_TYPE', 'META_KEY', 'NS_PER_S', 'POSITION',
-    'RECORDED_TOPICS', 'REFERENCE', 'REQUIRED_TOPICS', 'SIMULATION_TOPICS', 'STAGE', 'STATUS',
-    'STATUS_TYPE', 'STORAGE_IDS', 'TRUE_POSITION',
-    'TOPIC_TYPES', 'diagnostic_reader', 'normalize_namespace', 'ns_to_stamp', 'stamp_to_ns',
-    'topic_names',
+    'APPLIED', 'BAG_TOPICS', 'BLOCK', 'BLOCK_COLUMNS', 'BLOCK_DIAGNOSTIC_PREFIX',
+    'BLOCK_OPTIONAL', 'BLOCK_RECORDED_TOPICS', 'BLOCK_ROWS_LABEL', 'BLOCK_SAMPLES',
+    'BLOCK_SEPARATOR', 'BLOCK_TYPE', 'CLOCK', 'CLOCK_TYPE', 'COMMAND', 'COMMAND_TYPE',
+    'DEFAULT_NAMESPACE', 'DIAGNOSTICS', 'JOINT_NAME', 'JOINT_STATE_TYPE', 'META_KEY', 'NS_PER_S',
+    'POSITION', 'RECORDED_TOPICS', 'REFERENCE', 'REQUIRED_TOPICS', 'SIMULATION_TOPICS', 'STAGE',
+    'STATUS', 'STATUS_TYPE', 'STORAGE_IDS', 'TOPIC_TYPES', 'TRUE_POSITION', 'BlockColumns',
+    'block_columns', 'block_topic', 'diagnostic_reader', 'normalize_namespace', 'ns_to_stamp',
+    'parse_block_columns', 'stamp_to_ns', 'topic_names',
 ]
 
 JOINT_STATE_TYPE: Final = 'sensor_msgs/msg/JointState'
 COMMAND_TYPE: Final = 'std_msgs/msg/Float64'
 CLOCK_TYPE: Final = 'rosgraph_msgs/msg/Clock'
 STATUS_TYPE: Final = 'diagnostic_msgs/msg/DiagnosticStatus'
+BLOCK_TYPE: Final = 'std_msgs/msg/Float64MultiArray'
 
 #: The stage's topic prefix, and the name of its one joint in every JointState.
 STAGE: Final = 'stage'
@@ -100,16 +125,37 @@ TRUE_POSITION: Final = f'{STAGE}/true_position'
 #: Plant counters (late samples, resends, watchdog trips, bridge losses), about once a second.
 STATUS: Final = f'{STAGE}/status'
 CLOCK: Final = '/clock'
+#: Many samples per message (``std_msgs/msg/Float64MultiArray``, the block layout above).
+BLOCK: Final = f'{STAGE}/block'
 
 #: Topic name as the nodes use it (relative, except ``/clock``) -> message type.
 TOPIC_TYPES: Final[Mapping[str, str]] = {
     **{f'{STAGE}/{leaf}': msgtype for leaf, msgtype in BAG_TOPICS.items()},
+    BLOCK: BLOCK_TYPE,
     STATUS: STATUS_TYPE,
     CLOCK: CLOCK_TYPE,
 }
 #: What ``ros2 bag record`` takes from a stage (relative to the launch namespace): what the
 #: nodes publish, so not the :data:`SIMULATION_TOPICS`.
-RECORDED_TOPICS: Final = (POSITION, REFERENCE, COMMAND, DIAGNOSTICS, APPLIED, STATUS)
+RECORDED_TOPICS: Final = (POSITION, REFERENCE, COMMAND, DIAGNOSTICS, APPLIED, BLOCK, STATUS)
+#: What the recorder takes from a real-time loop that publishes :data:`BLOCK`: every sample is
+#: in the blocks, so the per-sample topics (10 000 messages a second each, for live use) are
+#: left to live subscribers.
+BLOCK_RECORDED_TOPICS: Final = (BLOCK, STATUS)
+
+#: Rows of a block the nodes publish: 10 ms at 10 kHz, about 100 messages a second.
+BLOCK_SAMPLES: Final = 100
+#: ``dim[0].label`` of a block.
+BLOCK_ROWS_LABEL: Final = 'samples'
+#: Joins the column names in ``dim[1].label``.
+BLOCK_SEPARATOR: Final = ','
+#: The columns of every block, first and in this order.
+BLOCK_COLUMNS: Final = ('sample', 'stamp_sec', 'stamp_nanosec', 'position_m', 'reference_m',
+                        'velocity_mps', 'command_v')
+#: Columns a block has where its writer knows them, after :data:`BLOCK_COLUMNS`, in this order.
+BLOCK_OPTIONAL: Final = ('applied_v', 'true_position_m')
+#: Prefix of a diagnostic's column name (the diagnostics come last).
+BLOCK_DIAGNOSTIC_PREFIX: Final = 'diagnostics.'
 
 #: The bag namespace of a stage launched in the root namespace.
 DEFAULT_NAMESPACE: Final = '/' + STAGE
@@ -173,6 +219,98 @@ def topic_names(namespace: str = DEFAULT_NAMESPACE) -> dict[str, str]:
     """
     ns = normalize_namespace(namespace)
     return {key: f'{ns}/{key}' for key in BAG_TOPICS}
+
+
+def block_topic(namespace: str = DEFAULT_NAMESPACE) -> str:
+    """Return the absolute name of the block topic under a namespace (``'/stage/block'``)."""
+    return f'{normalize_namespace(namespace)}/{BLOCK.rsplit("/", 1)[1]}'
+
+
+def block_columns(*, applied: bool = False, true_position: bool = False,
+                  diagnostics: Sequence[str] = ()) -> tuple[str, ...]:
+    """
+    Return the column names of a block, in wire order.
+
+    Parameters
+    ----------
+    applied : bool
+        Whether the block carries ``applied_v`` (a real-time loop).
+    true_position : bool
+        Whether it carries ``true_position_m`` (a simulated stage).
+    diagnostics : sequence of str
+        The controller's diagnostic keys (sorted here).
+
+    Raises
+    ------
+    BagError
+        A diagnostic key that is empty or holds :data:`BLOCK_SEPARATOR` or white space.
+
+    """
+    keys = sorted(str(k) for k in diagnostics)
+    if len(set(keys)) != len(keys):
+        raise BagError(f'diagnostic keys {keys} name a column twice')
+    for key in keys:
+        if not key or BLOCK_SEPARATOR in key or any(c.isspace() for c in key):
+            raise BagError(f'diagnostic key {key!r} cannot name a block column; allowed: a '
+                           f'non-empty name without {BLOCK_SEPARATOR!r} or white space')
+    optional = tuple(name for name, on in zip(BLOCK_OPTIONAL, (applied, true_position)) if on)
+    return BLOCK_COLUMNS + optional + tuple(BLOCK_DIAGNOSTIC_PREFIX + k for k in keys)
+
+
+class BlockColumns(NamedTuple):
+    """
+    Where the columns of a block are (:func:`parse_block_columns`).
+
+    Attributes
+    ----------
+    names : tuple of str
+        All column names, in order.
+    applied, true_position : int
+        Index of ``applied_v`` / ``true_position_m``, -1 when the block has none.
+    diagnostics : tuple of str
+        The diagnostic keys (without the prefix), in column order.
+    first_diagnostic : int
+        Index of the first diagnostic column.
+
+    """
+
+    names: tuple[str, ...]
+    applied: int
+    true_position: int
+    diagnostics: tuple[str, ...]
+    first_diagnostic: int
+
+
+def parse_block_columns(label: str) -> BlockColumns:
+    """
+    Return the column set a block's ``dim[1].label`` names.
+
+    Raises
+    ------
+    BagError
+        When the label does not start with :data:`BLOCK_COLUMNS`, or has an unknown column,
+        a column twice, or a column out of the order of :func:`block_columns`.
+
+    """
+    names = tuple(label.split(BLOCK_SEPARATOR)) if label else ()
+    fixed = len(BLOCK_COLUMNS)
+    if names[:fixed] != BLOCK_COLUMNS:
+        raise BagError(f'block columns {label!r} do not start with '
+                       f'{BLOCK_SEPARATOR.join(BLOCK_COLUMNS)!r}')
+    rest = names[fixed:]
+    optional = tuple(n for n in rest if not n.startswith(BLOCK_DIAGNOSTIC_PREFIX))
+    keys = tuple(n[len(BLOCK_DIAGNOSTIC_PREFIX):] for n in rest
+                 if n.startswith(BLOCK_DIAGNOSTIC_PREFIX))
+    try:
+        expected = block_columns(applied='applied_v' in optional,
+                                 true_position='true_position_m' in optional, diagnostics=keys)
+    except BagError as err:
+        raise BagError(f'block columns {label!r}: {err}') from None
+    if names != expected:
+        raise BagError(f'block columns {label!r}: expected {BLOCK_SEPARATOR.join(expected)!r}')
+    index = {name: i for i, name in enumerate(names)}
+    return BlockColumns(names, index.get('applied_v', -1), index.get('true_position_m', -1),
+                        keys, fixed + len(optional))
 
 
 def diagnostic_reader(controller: Controller
