@@ -1,0 +1,177 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Commands ahead: the controller's prediction of its next commands, for samples the host misses.
+
+At each sample k the controller gives u_k and a prediction p_k+1 .. p_k+m of the commands it
+would give next if the stage followed the reference. The I/O target (or the simulated stage)
+keeps them as a queue and applies p_k+j over a sample the host missed instead of holding u_k
+(:class:`~piezo_stage_ros.hardware.safety.GuardedPlant`).
+
+The prediction holds the feedback part and moves the part of the command the reference alone
+explains along the reference ahead:
+
+    p_k+j = u_k + a (x_d,k+j - x_d,k) + b (x_d',k+j - x_d',k)
+
+with (a, b) the controller's ``reference_gains()``: the RAC's theta_hat k and phi_hat k (its
+model-based part theta_hat y + phi_hat dy_d/dt at y = y_d, eq. (36)), an open loop's gain, and
+(0, 0) for a PI (its command is held). A feed-forward wrapper predicts from its own tables
+(:meth:`~piezo_stage_ros.core.control.feedforward.FeedForwardController.predict`). No controller
+step is run: a few array operations on m values per sample.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable
+
+import numpy as np
+from piezo_stage_ros.core.contracts.types import FloatArray
+
+__all__ = ['CommandPredictor', 'commands_ahead']
+
+
+def commands_ahead(command_v: float, reference_m: float, velocity_mps: float,
+                   ahead_m: FloatArray, ahead_mps: FloatArray, gains: tuple[float, float],
+                   low_v: float = -math.inf, high_v: float = math.inf) -> FloatArray:
+    """
+    Return the commands predicted for the samples after this one [V].
+
+    Parameters
+    ----------
+    command_v : float
+        u_k [V], the command of this sample.
+    reference_m, velocity_mps : float
+        x_d and x_d' of this sample [m, m/s].
+    ahead_m, ahead_mps : ndarray
+        x_d and x_d' of the next samples, k + 1 first [m, m/s].
+    gains : tuple of float
+        (a [V/m], b [V s/m]) of the model-based part a x_d + b x_d'.
+    low_v, high_v : float
+        Command limits [V].
+
+    """
+    a, b = gains
+    out = np.subtract(ahead_m, reference_m)
+    out *= a
+    if b:
+        out += b * (np.subtract(ahead_mps, velocity_mps))
+    out += command_v
+    np.clip(out, low_v, high_v, out=out)
+    return out
+
+
+class CommandPredictor:
+    """
+    The commands ahead of a controller, sample by sample, with the trend of its feedback part.
+
+    Its model-based part moves along the reference ahead (:func:`commands_ahead`). The
+    feedback part f_k = u_k - a x_d,k - b x_d',k is what the model-based part does not explain
+    (the estimates still adapting, the ZOH's lag, the hysteresis); it is not constant while
+    the reference moves. Its part along the reference, f ~ f0 + alpha x_d + beta x_d', is
+    fitted by least squares over the last ``memory_samples`` samples (exponential forgetting,
+    a few multiplications a sample) and moves along the reference ahead with the model-based
+    part; the rest of it is held. A fit the reference does not excite (a reference at rest) is
+    damped to no trend by a ridge of ``ridge`` times the regressors' variance: the feedback
+    part is then held.
+
+    Parameters
+    ----------
+    sensor_gain_v_per_m : float
+        k [V/m]: the regressors are fitted in sensor volts (numbers near 1).
+    sample_time_s : float
+        T [s] (x_d' is fitted as its change per sample).
+    memory_samples : float
+        Time constant of the forgetting [samples].
+    ridge : float
+        Relative ridge of the fit.
+
+    """
+
+    def __init__(self, sensor_gain_v_per_m: float, sample_time_s: float, *,
+                 memory_samples: float = 100.0, ridge: float = 1e-3) -> None:
+        self._kx = float(sensor_gain_v_per_m)
+        self._kv = float(sensor_gain_v_per_m) * float(sample_time_s)
+        self._forget = 1.0 - 1.0 / float(memory_samples)
+        self._ridge = float(ridge)
+        # exponentially weighted sums of 1, x, v, f and their products
+        self._sums = [0.0] * 9
+
+    def reset(self) -> None:
+        """Forget the fit (a controller rebuilt)."""
+        self._sums = [0.0] * 9
+
+    def trend(self, feedback_v: float, reference_m: float, velocity_mps: float
+              ) -> tuple[float, float]:
+        """Take this sample's feedback part [V]; return its (alpha [V/m], beta [V s/m])."""
+        x = reference_m * self._kx
+        v = velocity_mps * self._kv
+        f = feedback_v
+        lam = self._forget
+        s1, sx, sv, sf, sxx, sxv, svv, sxf, svf = self._sums
+        s1 = lam * s1 + 1.0
+        sx = lam * sx + x
+        sv = lam * sv + v
+        sf = lam * sf + f
+        sxx = lam * sxx + x * x
+        sxv = lam * sxv + x * v
+        svv = lam * svv + v * v
+        sxf = lam * sxf + x * f
+        svf = lam * svf + v * f
+        self._sums = [s1, sx, sv, sf, sxx, sxv, svv, sxf, svf]
+        mx, mv, mf = sx / s1, sv / s1, sf / s1
+        cxx = sxx / s1 - mx * mx
+        cxv = sxv / s1 - mx * mv
+        cvv = svv / s1 - mv * mv
+        cxf = sxf / s1 - mx * mf
+        cvf = svf / s1 - mv * mf
+        load = self._ridge * (cxx + cvv) + 1e-18
+        cxx += load
+        cvv += load
+        det = cxx * cvv - cxv * cxv
+        if not det > 0.0:
+            return 0.0, 0.0
+        alpha = (cvv * cxf - cxv * cvf) / det
+        beta = (cxx * cvf - cxv * cxf) / det
+        if not (math.isfinite(alpha) and math.isfinite(beta)):
+            return 0.0, 0.0
+        return alpha * self._kx, beta * self._kv
+
+    def predict(self, controller: Any, count: int, command_v: float, reference_m: float,
+                velocity_mps: float,
+                reference_ahead: Callable[[int], tuple[FloatArray, FloatArray]]
+                ) -> FloatArray:
+        """
+        Return ``count`` commands predicted after ``command_v`` for ``controller`` [V].
+
+        Call once a sample, after the controller's step. A controller with its own
+        ``predict(count)`` (a feed-forward) predicts from its tables; any other moves its
+        ``reference_gains()`` part and the trend of its feedback part along
+        ``reference_ahead(count)`` (x_d and x_d' of the next ``count`` samples); one without
+        reference gains holds its command.
+        """
+        predict = getattr(controller, 'predict', None)
+        if predict is not None:
+            return np.asarray(predict(count), dtype=np.float64)
+        gains = getattr(controller, 'reference_gains', None)
+        if gains is None:
+            return np.full(count, command_v)
+        a, b = gains()
+        alpha, beta = self.trend(command_v - a * reference_m - b * velocity_mps,
+                                 reference_m, velocity_mps)
+        ahead_m, ahead_mps = reference_ahead(count)
+        return commands_ahead(command_v, reference_m, velocity_mps, ahead_m, ahead_mps,
+                              (a + alpha, b + beta), getattr(controller, '_vmin', -math.inf),
+                              getattr(controller, '_vmax', math.inf))
