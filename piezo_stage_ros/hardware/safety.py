@@ -386,7 +386,8 @@ class GuardedPlant:
         if not math.isfinite(float(np.sum(values))):
             return ()  # a prediction that is not finite: hold the command instead
         if self._clamp:
-            values = np.clip(values, self.low_v, self.high_v)
+            values = np.minimum(values, self.high_v)
+            np.maximum(values, self.low_v, out=values)
         return values
 
     def _in_range(self, voltage_v: float) -> float:

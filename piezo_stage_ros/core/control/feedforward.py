@@ -721,7 +721,8 @@ class FeedForwardController:
         ahead += b * (xv[i + 1:stop] - xv[i])
         ahead += wl[i + 1:stop] - wl[i]
         ahead += v
-        np.clip(ahead, self._vmin, self._vmax, out=ahead)
+        np.minimum(ahead, self._vmax, out=ahead)
+        np.maximum(ahead, self._vmin, out=ahead)
         if len(ahead) < count:
             # an aperiodic reference's block ends here: its last prediction is held
             ahead = np.concatenate([ahead, np.full(count - len(ahead),
