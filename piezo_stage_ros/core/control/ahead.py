@@ -42,6 +42,10 @@ from piezo_stage_ros.core.contracts.types import FloatArray
 
 __all__ = ['CommandPredictor', 'commands_ahead']
 
+#: Variance of a regressor [V^2, sensor volts] below which the reference counts as at rest: a
+#: microvolt rms, far below any motion and far above the rounding of the sums (1e-16 of ~1 V).
+_AT_REST = 1e-12
+
 
 def commands_ahead(command_v: float, reference_m: float, velocity_mps: float,
                    ahead_m: FloatArray, ahead_mps: FloatArray, gains: tuple[float, float],
@@ -86,8 +90,9 @@ class CommandPredictor:
     fitted by least squares over the last ``memory_samples`` samples (exponential forgetting,
     a few multiplications a sample) and moves along the reference ahead with the model-based
     part; the rest of it is held. A fit the reference does not excite (a reference at rest) is
-    damped to no trend by a ridge of ``ridge`` times the regressors' variance: the feedback
-    part is then held.
+    damped to no trend by a ridge of ``ridge`` times each regressor's variance (and a floor of
+    (1 uV)^2 in sensor volts, far above the rounding of the sums): the feedback part is then
+    held.
 
     Parameters
     ----------
@@ -139,9 +144,10 @@ class CommandPredictor:
         cvv = svv / s1 - mv * mv
         cxf = sxf / s1 - mx * mf
         cvf = svf / s1 - mv * mf
-        load = self._ridge * (cxx + cvv) + 1e-18
-        cxx += load
-        cvv += load
+        if cxx + cvv <= _AT_REST:
+            return 0.0, 0.0  # the reference at rest: nothing to fit, the feedback part held
+        cxx = cxx * (1.0 + self._ridge) + _AT_REST
+        cvv = cvv * (1.0 + self._ridge) + _AT_REST
         det = cxx * cvv - cxv * cxv
         if not det > 0.0:
             return 0.0, 0.0

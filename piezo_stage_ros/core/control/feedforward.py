@@ -699,8 +699,8 @@ class FeedForwardController:
         change the tables explain, read ahead from them (no step is run): the inner
         controller's model-based part (``reference_gains()``, less the share the inverse
         replaces) on the shaped reference, the model inverse and the learned table; the
-        feedback part held, the inverse hysteresis taken with its slope (1 away from a
-        reversal). A periodic reference wraps around its period; an aperiodic one is read up
+        feedback part held, the inverse hysteresis taken with its secant from the present
+        state to the largest change ahead (one solve, not one a sample). A periodic reference wraps around its period; an aperiodic one is read up
         to the end of the block computed, then held. Held throughout when the last step was
         feedback alone (no reference bound, or not the one bound).
         """
@@ -720,6 +720,14 @@ class FeedForwardController:
         ahead *= a
         ahead += b * (xv[i + 1:stop] - xv[i])
         ahead += wl[i + 1:stop] - wl[i]
+        hyst = self.hysteresis_inverse
+        if hyst is not None and len(ahead):
+            # through the inverse hysteresis: its secant from here to the largest change ahead
+            # (on a branch about 1; up to c/B1 after a reversal of a backlash)
+            j = int(np.argmax(np.abs(ahead)))
+            du = float(ahead[j])
+            if du != 0.0:
+                ahead *= (hyst.invert(hyst.output_v + self.slope * du) - v) / du
         ahead += v
         np.minimum(ahead, self._vmax, out=ahead)
         np.maximum(ahead, self._vmin, out=ahead)
