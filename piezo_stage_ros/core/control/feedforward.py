@@ -700,9 +700,10 @@ class FeedForwardController:
         controller's model-based part (``reference_gains()``, less the share the inverse
         replaces) on the shaped reference, the model inverse and the learned table; the
         feedback part held, the inverse hysteresis taken with its secant from the present
-        state to the largest change ahead (one solve, not one a sample). A periodic reference wraps around its period; an aperiodic one is read up
-        to the end of the block computed, then held. Held throughout when the last step was
-        feedback alone (no reference bound, or not the one bound).
+        state to the largest change ahead (one solve, not one a sample). A periodic reference
+        wraps around its period; an aperiodic one is read up to the end of the block computed,
+        then held. Held throughout when the last step was feedback alone (no reference bound,
+        or not the one bound).
         """
         v = self._u
         k = self._k - 1
