@@ -23,7 +23,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 import numpy as np
 from piezo_stage_ros.bench.servo import loop_config, make_servo
-from piezo_stage_ros.core.control.ahead import CommandPredictor, commands_ahead
+from piezo_stage_ros.core.control.ahead import Ahead, CommandPredictor, commands_ahead
 from piezo_stage_ros.core.control.controllers import (
     build_controller,
     ControllerParams,
@@ -47,6 +47,14 @@ def test_commands_ahead_move_the_model_part_along_the_reference_and_stay_in_rang
     expected = 1.0 + 2e5 * (x - 0.5e-6) + 1e2 * v
     np.testing.assert_allclose(out[:2], expected[:2], rtol=1e-12)
     assert out[2] == 10.0  # clipped to the command range
+    # the same computed when read: values, views, a narrower range, finiteness
+    lazy = Ahead(x, v, 0, 3, 1.0 - 2e5 * 0.5e-6, (2e5, 1e2), -2.0, 10.0)
+    np.testing.assert_allclose(list(lazy), out, rtol=1e-12)
+    assert len(lazy[1:]) == 2 and lazy[1:][0] == lazy[1] and lazy[-1] == 10.0
+    assert len(lazy[5:]) == 0 and lazy.clamped(0.0, 5.0)[2] == 5.0 and lazy.finite()
+    assert not Ahead(x, v, 0, 3, math.nan, (1.0, 0.0)).finite()
+    with pytest.raises(IndexError):
+        lazy[3]
 
 
 def test_the_trend_of_the_feedback_part_is_fitted_and_vanishes_at_rest():
@@ -82,7 +90,7 @@ def test_the_reference_ahead_is_the_one_the_trajectory_plays():
     logic.stop()
     logic.on_position(301 * PERIOD_NS)
     x, v = logic.window(301 * PERIOD_NS, 4)
-    assert np.all(x == logic.hold_m) and np.all(v == 0.0)
+    assert np.all(x == logic.hold_m) and np.all(v == 0.0) and len(x) == len(v) == 4
 
 
 def test_the_simulated_stage_plays_its_queue_over_skipped_samples_then_holds():

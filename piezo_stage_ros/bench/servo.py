@@ -42,8 +42,8 @@ plant, 100 Hz sine):
   without a stall; with the commands ahead configured (``servo.commands_ahead``, the stage
   plays the predictions over the missed samples) and with none (0: the last command held);
 - ``ahead-cost``: what the commands ahead cost per sample: the servo loop on a scripted clock
-  (no waiting) for 2 s of samples with ``servo.commands_ahead`` and with 0, the wall time per
-  sample of each (best of 3) and of the prediction alone.
+  (no waiting) for ``duration_s`` of samples (at most 2 s) with ``servo.commands_ahead`` and
+  with 0, the wall time per sample of each (best of 3) and of the prediction alone.
 
 Per case: lateness p50 / p99 / max [us], samples late by more than half a period, skipped
 samples, e_rms in the steady state beside that of the offline runner (lockstep) on the same
@@ -429,7 +429,7 @@ def run_servo_benchmark(cases: tuple[str, ...] = CASES, duration_s: float = 10.0
                 'stalls': stall_response(loop, commands_ahead=0)}
         elif case == 'ahead-cost':
             out['commands ahead, cost per sample (scripted clock)'] = {
-                'ahead': ahead_cost(loop)}
+                'ahead': ahead_cost(loop, duration_s=min(duration_s, 2.0))}
         else:
             raise ValueError(f'unknown case {case!r}; choose among {", ".join(CASES)}')
     return out

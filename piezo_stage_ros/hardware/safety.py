@@ -382,13 +382,19 @@ class GuardedPlant:
         self._ahead = self._accept_ahead(ahead_v) if ahead_v is not None else ()
 
     def _accept_ahead(self, ahead_v: Commands) -> Commands:
-        values = np.asarray(ahead_v, dtype=np.float64)
-        if not math.isfinite(float(np.sum(values))):
+        low, high = self.low_v, self.high_v
+        finite = getattr(ahead_v, 'finite', None)
+        if finite is not None:
+            # computed when read (core.control.ahead.Ahead): checked and clipped as such
+            if not finite():
+                return ()
+            return ahead_v.clamped(low, high) if self._clamp else ahead_v  # type: ignore
+        total = sum(ahead_v) if isinstance(ahead_v, list) else float(np.sum(ahead_v))
+        if not math.isfinite(total):
             return ()  # a prediction that is not finite: hold the command instead
         if self._clamp:
-            values = np.minimum(values, self.high_v)
-            np.maximum(values, self.low_v, out=values)
-        return values
+            return [high if v > high else (low if v < low else float(v)) for v in ahead_v]
+        return ahead_v
 
     def _in_range(self, voltage_v: float) -> float:
         return clamp_command(voltage_v, self.low_v, self.high_v, self.safe_v)[0]

@@ -467,7 +467,7 @@ class TrajectoryLogic:
 
     def window(self, stamp_ns: int, count: int) -> tuple[Any, Any]:
         """
-        Return x_d and x_d' [m, m/s] of the ``count`` samples after ``stamp_ns`` (arrays).
+        Return x_d and x_d' [m, m/s] of the ``count`` samples after ``stamp_ns`` (array views).
 
         For commands ahead, after :meth:`on_position` of the same stamp: the trajectory as it
         plays now (held while inactive; a switch not yet made is not in it). Evaluated in

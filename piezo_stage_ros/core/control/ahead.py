@@ -35,21 +35,98 @@ step is run: a few array operations on m values per sample.
 from __future__ import annotations
 
 import math
-from typing import Any, Callable
+from typing import Any, Callable, Iterator, overload, Sequence
 
 import numpy as np
 from piezo_stage_ros.core.contracts.types import FloatArray
 
-__all__ = ['CommandPredictor', 'commands_ahead']
+__all__ = ['Ahead', 'CommandPredictor', 'commands_ahead']
 
 #: Variance of a regressor [V^2, sensor volts] below which the reference counts as at rest: a
 #: microvolt rms, far below any motion and far above the rounding of the sums (1e-16 of ~1 V).
 _AT_REST = 1e-12
 
 
+class Ahead(Sequence[float]):
+    """
+    Commands ahead u_k + a (x_d,j - x_d,k) + b (x_d',j - x_d',k), computed when read.
+
+    What :func:`commands_ahead` returns, as a sequence that costs nothing until a value is
+    read: a backend reads them only for the samples the host misses (the simulated stage), or
+    packs them into its request (the UDP target). Slices are views; :meth:`clamped` narrows
+    the range, :meth:`finite` says whether every value is finite (the reference is).
+
+    Parameters
+    ----------
+    ahead_m, ahead_mps : sequence of float
+        x_d and x_d' [m, m/s]; the values are those of indices ``start`` .. ``stop - 1``.
+    start, stop : int
+        The part of them that is ahead.
+    base_v : float
+        u_k - a x_d,k - b x_d',k [V].
+    gains : tuple of float
+        (a [V/m], b [V s/m]).
+    low_v, high_v : float
+        Command limits [V].
+
+    """
+
+    __slots__ = ('_x', '_v', '_start', '_stop', '_base', '_a', '_b', '_low', '_high')
+
+    def __init__(self, ahead_m: Sequence[float], ahead_mps: Sequence[float], start: int,
+                 stop: int, base_v: float, gains: tuple[float, float],
+                 low_v: float = -math.inf, high_v: float = math.inf) -> None:
+        self._x, self._v = ahead_m, ahead_mps
+        self._start, self._stop = start, stop
+        self._base = base_v
+        self._a, self._b = gains
+        self._low, self._high = low_v, high_v
+
+    def __len__(self) -> int:
+        return max(self._stop - self._start, 0)
+
+    def _value(self, j: int) -> float:
+        p = float(self._base + self._a * self._x[j] + self._b * self._v[j])
+        return self._high if p > self._high else (self._low if p < self._low else p)
+
+    @overload
+    def __getitem__(self, index: int) -> float: ...
+
+    @overload
+    def __getitem__(self, index: slice) -> Ahead: ...
+
+    def __getitem__(self, index: int | slice) -> float | Ahead:
+        n = len(self)
+        if isinstance(index, slice):
+            first, last, step = index.indices(n)
+            if step != 1:
+                raise ValueError('commands ahead: slices have step 1')
+            return Ahead(self._x, self._v, self._start + first,
+                         self._start + max(last, first), self._base, (self._a, self._b),
+                         self._low, self._high)
+        if index < 0:
+            index += n
+        if not 0 <= index < n:
+            raise IndexError('commands ahead: index out of range')
+        return self._value(self._start + index)
+
+    def __iter__(self) -> Iterator[float]:
+        return iter([self._value(j) for j in range(self._start, self._stop)])
+
+    def clamped(self, low_v: float, high_v: float) -> Ahead:
+        """Return the same commands clipped to ``[low_v, high_v]`` too [V]."""
+        return Ahead(self._x, self._v, self._start, self._stop, self._base,
+                     (self._a, self._b), max(self._low, low_v), min(self._high, high_v))
+
+    def finite(self) -> bool:
+        """Return whether every value is finite (the coefficients are; the reference is)."""
+        return math.isfinite(self._base + self._a + self._b)
+
+
 def commands_ahead(command_v: float, reference_m: float, velocity_mps: float,
-                   ahead_m: FloatArray, ahead_mps: FloatArray, gains: tuple[float, float],
-                   low_v: float = -math.inf, high_v: float = math.inf) -> FloatArray:
+                   ahead_m: Sequence[float], ahead_mps: Sequence[float],
+                   gains: tuple[float, float], low_v: float = -math.inf,
+                   high_v: float = math.inf) -> list[float]:
     """
     Return the commands predicted for the samples after this one [V].
 
@@ -59,7 +136,7 @@ def commands_ahead(command_v: float, reference_m: float, velocity_mps: float,
         u_k [V], the command of this sample.
     reference_m, velocity_mps : float
         x_d and x_d' of this sample [m, m/s].
-    ahead_m, ahead_mps : ndarray
+    ahead_m, ahead_mps : sequence of float
         x_d and x_d' of the next samples, k + 1 first [m, m/s].
     gains : tuple of float
         (a [V/m], b [V s/m]) of the model-based part a x_d + b x_d'.
@@ -68,14 +145,12 @@ def commands_ahead(command_v: float, reference_m: float, velocity_mps: float,
 
     """
     a, b = gains
-    # u_k + a (x - x_k) + b (x' - x'_k) as few array operations as can be (each costs about a
-    # microsecond whatever its 32 values; np.clip costs several)
-    out = np.multiply(ahead_m, a)
-    if b:
-        out += np.multiply(ahead_mps, b)
-    out += command_v - a * reference_m - b * velocity_mps
-    np.minimum(out, high_v, out=out)
-    np.maximum(out, low_v, out=out)
+    # u_k + a (x - x_k) + b (x' - x'_k) on plain floats: for a few tens of values a list is
+    # cheaper than numpy, whose every operation costs about a microsecond whatever its size
+    base = command_v - a * reference_m - b * velocity_mps
+    out = [base + a * x + b * v for x, v in zip(ahead_m, ahead_mps)]
+    if out and (max(out) > high_v or min(out) < low_v):
+        out = [high_v if p > high_v else (low_v if p < low_v else p) for p in out]
     return out
 
 
@@ -159,8 +234,8 @@ class CommandPredictor:
 
     def predict(self, controller: Any, count: int, command_v: float, reference_m: float,
                 velocity_mps: float,
-                reference_ahead: Callable[[int], tuple[FloatArray, FloatArray]]
-                ) -> FloatArray:
+                reference_ahead: Callable[[int], tuple[Sequence[float], Sequence[float]]]
+                ) -> Sequence[float] | FloatArray:
         """
         Return ``count`` commands predicted after ``command_v`` for ``controller`` [V].
 
@@ -175,11 +250,15 @@ class CommandPredictor:
             return np.asarray(predict(count), dtype=np.float64)
         gains = getattr(controller, 'reference_gains', None)
         if gains is None:
-            return np.full(count, command_v)
+            return [command_v] * count
         a, b = gains()
         alpha, beta = self.trend(command_v - a * reference_m - b * velocity_mps,
                                  reference_m, velocity_mps)
         ahead_m, ahead_mps = reference_ahead(count)
-        return commands_ahead(command_v, reference_m, velocity_mps, ahead_m, ahead_mps,
-                              (a + alpha, b + beta), getattr(controller, '_vmin', -math.inf),
-                              getattr(controller, '_vmax', math.inf))
+        a += alpha
+        b += beta
+        # computed when read (a few values after a stall, not 32 every sample)
+        return Ahead(ahead_m, ahead_mps, 0, len(ahead_m),
+                     command_v - a * reference_m - b * velocity_mps, (a, b),
+                     getattr(controller, '_vmin', -math.inf),
+                     getattr(controller, '_vmax', math.inf))
