@@ -190,6 +190,10 @@ class CommandPredictor:
         self._ridge = float(ridge)
         # exponentially weighted sums of 1, x, v, f and their products
         self._sums = [0.0] * 9
+        self._controller: Any = None
+        self._own: Callable[[int], Any] | None = None
+        self._gains: Callable[[], tuple[float, float]] | None = None
+        self._limits = (-math.inf, math.inf)
 
     def reset(self) -> None:
         """Forget the fit (a controller rebuilt)."""
@@ -245,10 +249,16 @@ class CommandPredictor:
         ``reference_ahead(count)`` (x_d and x_d' of the next ``count`` samples); one without
         reference gains holds its command.
         """
-        predict = getattr(controller, 'predict', None)
-        if predict is not None:
-            return np.asarray(predict(count), dtype=np.float64)
-        gains = getattr(controller, 'reference_gains', None)
+        if controller is not self._controller:
+            # looked up once per controller (a rebuild makes a new one)
+            self._controller = controller
+            self._own = getattr(controller, 'predict', None)
+            self._gains = getattr(controller, 'reference_gains', None)
+            self._limits = (getattr(controller, '_vmin', -math.inf),
+                            getattr(controller, '_vmax', math.inf))
+        if self._own is not None:
+            return np.asarray(self._own(count), dtype=np.float64)
+        gains = self._gains
         if gains is None:
             return [command_v] * count
         a, b = gains()
@@ -258,7 +268,6 @@ class CommandPredictor:
         a += alpha
         b += beta
         # computed when read (a few values after a stall, not 32 every sample)
+        low, high = self._limits
         return Ahead(ahead_m, ahead_mps, 0, len(ahead_m),
-                     command_v - a * reference_m - b * velocity_mps, (a, b),
-                     getattr(controller, '_vmin', -math.inf),
-                     getattr(controller, '_vmax', math.inf))
+                     command_v - a * reference_m - b * velocity_mps, (a, b), low, high)
