@@ -240,3 +240,18 @@ def test_a_stall_costs_the_feed_forward_less_with_its_predictions_than_held():
     # the same for the inverse feed-forward (its tables take seconds to build: one stall)
     ahead, held = _stall_costs('rac_inverse', 333, 20)
     assert ahead <= held
+
+
+@pytest.mark.parametrize('change', [{}, {'notch.mode': 'off'}, {'type': 'pi'},
+                                    {'feedforward.mode': 'inverse'}])
+def test_the_trend_is_fitted_in_the_controllers_own_sensor_volts(change):
+    # wrapped or not (notch, feed-forward), the fit's regressors are in the controller's k:
+    # in metres they would fall below the at-rest floor and the trend would be lost
+    loop = loop_config()
+    params = ControllerParams.from_flat({**loop.controller.to_flat(), **change,
+                                         'sensor_gain_v_per_m': 2e5})
+    servo = make_servo(dataclasses.replace(loop, controller=params), 0.001)
+    predictor = CommandPredictor(1.0, T)
+    predictor.predict(servo.controller.controller, 4, 0.0, 0.0, 0.0,
+                      lambda n: (np.zeros(n), np.zeros(n)))
+    assert predictor._kx == 2e5 and predictor._kv == pytest.approx(2e5 * T, rel=1e-15)

@@ -53,7 +53,11 @@ from piezo_stage_ros.core.contracts.interfaces import Controller
 from piezo_stage_ros.core.contracts.loop_config import LoopConfig, PlantNodeParams
 from piezo_stage_ros.core.contracts.wire import NS_PER_S
 from piezo_stage_ros.core.control.ahead import CommandPredictor
-from piezo_stage_ros.core.control.controllers import bound_controller, ControllerParams
+from piezo_stage_ros.core.control.controllers import (
+    bound_controller,
+    ControllerParams,
+    SENSOR_GAIN_V_PER_M,
+)
 from piezo_stage_ros.core.loop.trajectories import make_trajectory
 from piezo_stage_ros.core.model.hysteresis import make_hysteresis
 from piezo_stage_ros.core.model.stage import linear_plant, PlantParams, StageParams
@@ -302,9 +306,8 @@ class ServoLoop:
         self.plant = plant
         self.commands_ahead = int(commands_ahead)
         period_s = 1.0 / float(sample_rate_hz)
-        self._predictor = CommandPredictor(
-            getattr(controller.controller, '_k', 1.0) if controller is not None else 1.0,
-            period_s)
+        # in the controller's sensor volts (read from it; the paper's K_PSCM until then)
+        self._predictor = CommandPredictor(SENSOR_GAIN_V_PER_M, period_s)
         self.trajectory = trajectory
         self.controller = controller
         self.rate_hz = float(sample_rate_hz)

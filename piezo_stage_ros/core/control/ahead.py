@@ -154,6 +154,19 @@ def commands_ahead(command_v: float, reference_m: float, velocity_mps: float,
     return out
 
 
+def _sensor_gain(controller: Any) -> float | None:
+    """Return the sensor gain k [V/m] of a controller or of the one it wraps (None: none)."""
+    for _ in range(3):
+        for name in ('_ksens', '_k'):
+            gain = getattr(controller, name, None)
+            if isinstance(gain, float) and gain > 0.0:
+                return gain
+        controller = getattr(controller, 'inner', None)
+        if controller is None:
+            break
+    return None
+
+
 class CommandPredictor:
     """
     The commands ahead of a controller, sample by sample, with the trend of its feedback part.
@@ -172,7 +185,8 @@ class CommandPredictor:
     Parameters
     ----------
     sensor_gain_v_per_m : float
-        k [V/m]: the regressors are fitted in sensor volts (numbers near 1).
+        k [V/m]: the regressors are fitted in sensor volts (numbers near 1); the controller's
+        own k when it has one (:meth:`predict` reads it).
     sample_time_s : float
         T [s] (x_d' is fitted as its change per sample).
     memory_samples : float
@@ -184,8 +198,9 @@ class CommandPredictor:
 
     def __init__(self, sensor_gain_v_per_m: float, sample_time_s: float, *,
                  memory_samples: float = 100.0, ridge: float = 1e-3) -> None:
+        self._t = float(sample_time_s)
         self._kx = float(sensor_gain_v_per_m)
-        self._kv = float(sensor_gain_v_per_m) * float(sample_time_s)
+        self._kv = float(sensor_gain_v_per_m) * self._t
         self._forget = 1.0 - 1.0 / float(memory_samples)
         self._ridge = float(ridge)
         # exponentially weighted sums of 1, x, v, f and their products
@@ -252,6 +267,10 @@ class CommandPredictor:
         if controller is not self._controller:
             # looked up once per controller (a rebuild makes a new one)
             self._controller = controller
+            gain = _sensor_gain(controller)
+            if gain is not None and gain * self._t != self._kv:
+                self._kx, self._kv = gain, gain * self._t
+                self.reset()
             self._own = getattr(controller, 'predict', None)
             self._gains = getattr(controller, 'reference_gains', None)
             self._limits = (getattr(controller, '_vmin', -math.inf),
