@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -54,16 +55,24 @@ def connected(emu: TargetEmulator, **kwargs) -> udp.UdpBridge:
 
 
 def test_packets_round_trip_and_malformed_ones_are_refused():
-    assert udp.REQUEST.size == 16 and udp.REPLY.size == 24
-    assert udp.unpack_request(udp.pack_request(udp.COMMAND, 7, 1.25)) == (udp.COMMAND, 7, 1.25)
+    assert udp.REQUEST.size == 20 and udp.REPLY.size == 24 and udp.VERSION == 2
+    assert udp.unpack_request(udp.pack_request(udp.COMMAND, 7, 1.25)) == (udp.COMMAND, 7, 1.25,
+                                                                         ())
+    # commands ahead follow the header, their count in it
+    data = udp.pack_request(udp.COMMAND, 7, 1.25, np.array([1.5, -0.25]))
+    assert len(data) == 20 + 16 and data[16:20] == (2).to_bytes(4, 'little')
+    assert udp.unpack_request(data) == (udp.COMMAND, 7, 1.25, (1.5, -0.25))
+    assert udp.unpack_request(data[:-1]) is None and udp.unpack_request(data + bytes(8)) is None
+    with pytest.raises(ParameterError, match='commands ahead'):
+        udp.pack_request(udp.COMMAND, 1, 0.0, np.zeros(udp.MAX_AHEAD + 1))
     assert udp.unpack_request(udp.pack_request(udp.HELLO, 2 ** 32 + 3, 0.0))[1] == 3
     reply = udp.pack_reply(udp.COMMAND, 9, 3.8e-6, udp.STATUS_CLAMPED, 2)
     assert udp.unpack_reply(reply) == (udp.COMMAND, 9, 3.8e-6, udp.STATUS_CLAMPED, 2)
     # little-endian, magic first
-    assert reply[:4] == b'PZ\x01\x82' and reply[4:8] == (9).to_bytes(4, 'little')
+    assert reply[:4] == b'PZ\x02\x82' and reply[4:8] == (9).to_bytes(4, 'little')
     assert udp.unpack_reply(reply[:-1]) is None
     assert udp.unpack_reply(b'XX' + reply[2:]) is None
-    assert udp.unpack_reply(reply[:2] + b'\x02' + reply[3:]) is None
+    assert udp.unpack_reply(reply[:2] + b'\x01' + reply[3:]) is None
     assert udp.unpack_request(reply) is None
     assert udp.unpack_reply(udp.pack_request(udp.COMMAND, 1, 0.0) + bytes(8)) is None
 
@@ -159,8 +168,8 @@ def test_bridge_skips_stale_and_malformed_replies():
 
     def serve() -> None:
         for _ in range(2):
-            data, peer = target.recvfrom(64)
-            _, seq, _ = udp.unpack_request(data)
+            data, peer = target.recvfrom(256)
+            _, seq, _, _ = udp.unpack_request(data)
             kind = udp.unpack_request(data)[0]
             target.sendto(udp.pack_reply(kind, seq - 1, -1.0, 0, 0), peer)  # stale
             target.sendto(b'nonsense', peer)
@@ -422,3 +431,77 @@ def test_paced_target_holds_the_newest_command_and_counts_missing_ones(unanswere
     # each answered sample's answer latency is counted once
     assert bridge.answer.samples == 10 - len(unanswered)
     assert bridge.stats()['answer_max_us'] == round(bridge.answer.max_ns / 1000, 1)
+
+
+def test_another_protocol_version_is_refused_clearly_on_both_sides(capsys):
+    # the version-1 request of an old host (16 bytes, no commands ahead)
+    old = struct.pack('<2sBBId', b'PZ', 1, udp.HELLO, 1, 0.0)
+    assert udp.unpack_request(old) is None and udp.foreign_version(old) == 1
+    with TargetEmulator(PARAMS) as emu:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.settimeout(2.0)
+        sock.connect(('127.0.0.1', emu.port))
+        sock.send(old)
+        kind, seq, _, status, _ = udp.unpack_reply(sock.recv(64))
+        assert (kind, seq) == (udp.HELLO, 1)
+        assert status == udp.STATUS_REFUSED | udp.STATUS_VERSION and emu.refused_version == 1
+        sock.close()
+    assert 'protocol version 1 (this target speaks version 2)' in capsys.readouterr().err
+    # a target of another version: the host names both versions
+    target = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    target.bind(('127.0.0.1', 0))
+    target.settimeout(5.0)
+
+    def serve() -> None:
+        data, peer = target.recvfrom(256)
+        target.sendto(struct.pack('<2sBBIdII', b'PZ', 3, udp.HELLO | 0x80, 1, 0.0, 0, 0), peer)
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    bridge = udp.UdpBridge('127.0.0.1', target.getsockname()[1], timeout_s=2.0)
+    with pytest.raises(BridgeError, match='speaks protocol version 3, this host version 2'):
+        bridge.safe_start(0.0)
+    thread.join(5.0)
+    target.close()
+
+
+@pytest.mark.parametrize('late', [False, True])
+def test_paced_target_plays_the_commands_ahead_over_unanswered_samples(late):
+    from piezo_stage_ros.hardware.pacing import Pacer
+    clock = HostPacedClock()
+    emu = TargetEmulator(PARAMS, idle_timeout_s=5.0)
+    target = threading.Thread(target=emu.serve_paced, daemon=True,
+                              args=(Pacer(100_000, clock=clock.clock, sleep=clock.sleep,
+                                          spin_ns=0),))
+    target.start()
+    bridge = udp.UdpStreamBridge('127.0.0.1', emu.port, timeout_s=5.0)
+    positions = [bridge.safe_start(0.0)]
+    applied = []
+    unanswered = (3, 4, 5)
+    for k in range(10):
+        command = 1.0 + 0.5 * k
+        ahead = [command + 0.1 * j for j in range(1, 3)]  # two commands ahead
+        if k not in unanswered:
+            bridge.write_commands(command, ahead)
+            applied.append(command)
+        elif k == 5 and late:
+            # the answer to sample 4 comes while sample 5 is due: the target applies its
+            # prediction for the sample after 5 (one ahead of the one it answers)
+            bridge._send(udp.COMMAND, 4, 9.0, [9.1, 9.2])
+            applied.append(9.1)
+        else:
+            # the target plays the predictions of the command answering sample 2, then holds
+            # the last one
+            applied.append(applied[2] + 0.1 * min(k - 2, 2))
+        clock.host_done.set()
+        positions.append(bridge.read_position())
+    # what the target reported with sample 10 (it runs freely to STOP after)
+    predicted, missing = (bridge.stats()[k] for k in ('target_predicted', 'target_missing'))
+    clock.free = True
+    clock.host_done.set()
+    bridge.safe_stop(0.0)
+    target.join(5.0)
+    assert predicted == len(unanswered) and missing == len(unanswered)
+    model = Stage(PARAMS)
+    expected = [model.reset()] + [model.step(v) for v in applied]
+    np.testing.assert_array_equal(positions, expected)

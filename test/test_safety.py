@@ -204,27 +204,68 @@ def test_commands_stopping_again_while_followed_back_start_a_new_trip_from_there
     assert [t.ended for t in guard.ended_trips] == ['tripped again', 'stop']
 
 
-def test_the_hook_for_commands_ahead_comes_before_the_ramp():
-    # a later feature plays predictions for the samples without a command; until the timeout
-    # the guard applies them, and the ramp starts from the last one applied
+def test_commands_ahead_come_before_the_ramp_and_the_last_is_held():
+    # samples without a command apply the command's predictions (clamped), the last one held
+    # after the queue, until the timeout; the ramp then starts from the last one applied
     bridge = Written()
-    guard = GuardedPlant(bridge, chain(0.0), 4.5 * T, slew_v_per_s=1e4, sample_period_s=T)
-    asked = []
-
-    def ahead(n):
-        asked.append(n)
-        return 4.0 + n if n <= 2 else None
-
-    guard.ahead = ahead
+    guard = GuardedPlant(bridge, chain(0.0), 5.5 * T, slew_v_per_s=1e4, sample_period_s=T)
     guard.start(0.0)
-    guard.command(4.0, 0.0)
+    guard.command(4.0, 0.0, [5.0, 12.0])
     now = 0.0
-    for _ in range(6):
+    for _ in range(7):
         now += T
         guard.sample(now)
-    # the command, two predictions, the command held (no prediction for n = 3), then the ramp
-    assert bridge.written[1:] == pytest.approx([4.0, 5.0, 6.0, 4.0, 3.0, 2.0])
-    assert asked == [1, 2, 3] and guard.trip is not None and guard.trip.from_v == 4.0
+    # the command, two predictions (12 V clamped to 10), the last held, then the ramp
+    assert bridge.written[1:] == pytest.approx([4.0, 5.0, 10.0, 10.0, 10.0, 9.0, 8.0])
+    assert guard.trip is not None and guard.trip.from_v == 10.0
+    assert guard.predicted_samples == 4
+
+
+def test_a_prediction_that_is_not_finite_is_refused_and_the_command_held():
+    bridge = Written()
+    guard = GuardedPlant(bridge, chain(0.0), 1.0, sample_period_s=T)
+    guard.start(0.0)
+    guard.command(4.0, 0.0, [5.0, math.nan])
+    for n in range(3):
+        guard.sample((n + 1) * T)
+    assert bridge.written[1:] == [4.0, 4.0, 4.0] and guard.predicted_samples == 0
+
+
+class Queue(Written):
+    """A backend with a command queue: records each write and the queue that came with it."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.queues: list[list[float]] = []
+        self.advanced = 0
+
+    def write_commands(self, voltage_v: float, ahead_v) -> None:
+        self.written.append(voltage_v)
+        self.queues.append([float(a) for a in ahead_v])
+
+    def advance(self, samples: int) -> None:
+        self.advanced += samples
+
+
+def test_the_queue_goes_to_the_backend_and_a_late_command_is_its_own_prediction():
+    bridge = Queue()
+    guard = GuardedPlant(bridge, chain(0.0), 1.0, sample_period_s=T)
+    guard.start(0.0)
+    guard.command(1.0, 0.0, [2.0, 3.0, 4.0])
+    guard.sample(T)
+    assert bridge.written[-1] == 1.0 and bridge.queues[-1] == [2.0, 3.0, 4.0]
+    # the loop stalls two samples: the backend plays 2 and 3 meanwhile
+    guard.command(1.5, T, [2.5, 3.5, 4.5])
+    guard.skipped(2)
+    assert bridge.advanced == 2 and guard.applied_v == 3.0
+    # the command computed before the stall is two samples late: its second prediction
+    guard.sample(4 * T)
+    assert bridge.written[-1] == 3.5 and bridge.queues[-1] == [4.5]
+    # without a queue (commands ahead off) the backend is written as before
+    guard.command(2.0, 5 * T)
+    guard.sample(5 * T)
+    guard.sample(6 * T)
+    assert bridge.written[-2:] == [2.0, 2.0] and bridge.queues[-1] == []
 
 
 def test_a_trip_of_the_servo_loop_after_a_long_stall_steps_no_more_than_the_slew():

@@ -189,7 +189,8 @@ STAGE = {'plant.model': 'reduced', 'chain.sensor_noise_std_m': 1e-9, 'seed': 3}
 TRAJ = {'kind': 'sine', 'sine.frequency_hz': 50.0}
 
 
-def servo(clock: FakeClock, duration_s: float, kind: str = 'rac') -> ServoLoop:
+def servo(clock: FakeClock, duration_s: float, kind: str = 'rac',
+          commands_ahead: int = 0) -> ServoLoop:
     params = StageParams.from_flat(STAGE)
     ctrl = build_controller(ControllerParams.from_flat({'type': kind}), 1e-4)
     return ServoLoop(GuardedPlant(ModelBridge(params), params.chain, 0.01),
@@ -197,12 +198,15 @@ def servo(clock: FakeClock, duration_s: float, kind: str = 'rac') -> ServoLoop:
                                      sample_rate_hz=1e4, chunk_s=1.0),
                      ControllerLogic(ctrl, mode='realtime'), sample_rate_hz=1e4,
                      duration_s=duration_s,
-                     pacer=Pacer(PERIOD, clock=clock, sleep=clock.sleep))
+                     pacer=Pacer(PERIOD, clock=clock, sleep=clock.sleep),
+                     commands_ahead=commands_ahead)
 
 
+@pytest.mark.parametrize('ahead', [0, 32])
 @pytest.mark.parametrize('kind', ['rac', 'pi'])
-def test_servo_loop_on_time_equals_the_offline_runner(kind):
-    loop = servo(FakeClock(per_read=300), 0.05, kind)
+def test_servo_loop_on_time_equals_the_offline_runner(kind, ahead):
+    # with commands ahead too: a sample the loop takes applies the command, bit for bit
+    loop = servo(FakeClock(per_read=300), 0.05, kind, ahead)
     loop.run(start_ns=7 * PERIOD)
     assert loop.error is None and loop.done
     got = loop.drain()

@@ -76,7 +76,7 @@ def test_benchmark_servo_suite_reports_every_case(capsys: pytest.CaptureFixture[
     assert benchmark.main(['--suite', 'servo', '--realtime-s', '0.05', '--json']) == 0
     d = json.loads(capsys.readouterr().out)['servo']
     bridge = d['bridge (paced emulator, host servo process)']
-    assert len(d) == 7
+    assert len(d) == 9
     # the host's answers are counted: one per sample it took (a spinning host answers each)
     assert bridge['answer_max_us'] >= bridge['answer_p99_us'] >= bridge['answer_p50_us'] > 0
     # the scripted stalls skip as many samples as scripted, and the loop recovers: 300 samples
@@ -86,12 +86,18 @@ def test_benchmark_servo_suite_reports_every_case(capsys: pytest.CaptureFixture[
     floor = d.pop('machine floor (bare spin)')['floor']
     assert floor['periods_lost'] >= floor['gaps'] >= 0 and floor['nice'].startswith(('applied',
                                                                                     'refused'))
-    stalls = d.pop('stall (scripted clock)')['stalls']
-    assert {int(n): v['skipped'] for n, v in stalls.items()} == {0: 0, 1: 1, 2: 2, 5: 5, 10: 10,
-                                                                 20: 20}
-    for v in stalls.values():
-        assert v['after_nm'] <= 1.1 * stalls['0']['after_nm']
+    stalls = d.pop('stall (scripted clock, last command held)')['stalls']
+    ahead = d.pop('stall (scripted clock, 32 commands ahead)')['stalls']
+    for run in (stalls, ahead):
+        assert {int(n): v['skipped'] for n, v in run.items()} == {0: 0, 1: 1, 2: 2, 5: 5,
+                                                                  10: 10, 20: 20}
+        for v in run.values():
+            assert v['after_nm'] <= 1.1 * run['0']['after_nm']
     assert stalls['1']['e_max_nm'] < stalls['5']['e_max_nm'] < stalls['20']['e_max_nm']
+    # the commands ahead: no stall costs more than with the command held
+    assert all(ahead[n]['e_max_nm'] <= stalls[n]['e_max_nm'] for n in stalls)
+    cost = d.pop('commands ahead, cost per sample (scripted clock)')['ahead']
+    assert cost['commands_ahead'] == 32 and cost['with_us'] > 0 and cost['predict_us'] > 0
     for case in d.values():
         assert 'error' not in case, case.get('error')
         assert case['paced_samples'] + case['skipped'] == 500

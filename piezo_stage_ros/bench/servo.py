@@ -39,7 +39,11 @@ plant, 100 Hz sine):
 - ``stall``: no wall time: the servo loop on a scripted clock that stalls once, skipping 1, 2,
   5, 10 or 20 samples, where the sine is steepest (t = 0.5 s); the largest error over the 300
   samples after the stall, and after those (the controller's recovery), beside the same run
-  without a stall: what a stall costs when the amplifier holds the last command.
+  without a stall; with the commands ahead configured (``servo.commands_ahead``, the stage
+  plays the predictions over the missed samples) and with none (0: the last command held);
+- ``ahead-cost``: what the commands ahead cost per sample: the servo loop on a scripted clock
+  (no waiting) for ``duration_s`` of samples (at most 2 s) with ``servo.commands_ahead`` and
+  with 0, the wall time per sample of each (best of 3) and of the prediction alone.
 
 Per case: lateness p50 / p99 / max [us], samples late by more than half a period, skipped
 samples, e_rms in the steady state beside that of the offline runner (lockstep) on the same
@@ -49,6 +53,7 @@ configuration. Timings are those of a shared machine: compare them with each oth
 from __future__ import annotations
 
 import dataclasses
+import math
 import subprocess
 import sys
 import threading
@@ -70,7 +75,7 @@ from piezo_stage_ros.nodes.servo import servo_from_config, ServoLoop, ServoProce
 
 __all__ = ['CASES', 'loop_config', 'run_servo_benchmark', 'steady_e_rms']
 
-CASES = ('floor', 'servo-alone', 'servo', 'servo-process', 'bridge', 'stall')
+CASES = ('floor', 'servo-alone', 'servo', 'servo-process', 'bridge', 'stall', 'ahead-cost')
 CONFIG = 'table3_rac.yaml'
 
 
@@ -285,14 +290,16 @@ class _ScriptedClock:
 
 
 def stall_response(loop: LoopConfig, skips: tuple[int, ...] = (1, 2, 5, 10, 20),
-                   at_s: float = 0.5, duration_s: float = 0.8) -> dict[str, Any]:
+                   at_s: float = 0.5, duration_s: float = 0.8, *,
+                   commands_ahead: int | None = None) -> dict[str, Any]:
     """
     Return the error after one stall of the servo loop, on a scripted clock (no wall time).
 
     At ``at_s`` the clock jumps so that the loop skips ``n`` samples (for each ``n`` of
     ``skips``; 0: no stall), the amplifier holding the last command meanwhile. Per ``n``:
     ``skipped`` (as counted by the loop), ``e_max_nm`` over the 300 samples after the stall
-    and ``after_nm`` from then to the end (the controller's recovery).
+    and ``after_nm`` from then to the end (the controller's recovery). ``commands_ahead``:
+    that many (0: none, the last command held); default ``servo.commands_ahead`` of ``loop``.
     """
     period_ns = round(1e9 / loop.stage.sample_rate_hz)
     at = round(at_s * loop.stage.sample_rate_hz)
@@ -300,6 +307,8 @@ def stall_response(loop: LoopConfig, skips: tuple[int, ...] = (1, 2, 5, 10, 20),
     for skip in (0, *skips):
         clock = _ScriptedClock()
         servo = make_servo(loop, duration_s)
+        if commands_ahead is not None:
+            servo.commands_ahead = commands_ahead
         servo.pacer = Pacer(period_ns, clock=clock, sleep=clock.sleep)
         servo.start()
         while servo.step():
@@ -314,6 +323,49 @@ def stall_response(loop: LoopConfig, skips: tuple[int, ...] = (1, 2, 5, 10, 20),
                           'e_max_nm': round(float(err[near].max()) * 1e9, 1),
                           'after_nm': round(float(err[later].max()) * 1e9, 1)}
     return out
+
+
+def ahead_cost(loop: LoopConfig, duration_s: float = 2.0, repeats: int = 3) -> dict[str, Any]:
+    """
+    Return the wall time per sample [us] of the servo loop with and without commands ahead.
+
+    The loop of ``loop`` on a scripted clock (it never waits), ``duration_s`` of samples, best
+    of ``repeats``: ``with_us`` (``servo.commands_ahead``), ``without_us`` (0), their
+    difference, and ``predict_us``: the prediction alone (the controller's commands ahead and
+    the reference ahead they read), timed around each call.
+    """
+    m = loop.plant_node.servo.commands_ahead
+    period_ns = round(1e9 / loop.stage.sample_rate_hz)
+    best: dict[int, float] = {}
+    predict_ns: list[float] = []
+    for ahead in (m, 0):
+        for _ in range(repeats):
+            clock = _ScriptedClock()
+            servo = make_servo(loop, duration_s, capacity=0)
+            servo.commands_ahead = ahead
+            # no spinning: each wait is one scripted sleep to the due time
+            servo.pacer = Pacer(period_ns, clock=clock, sleep=clock.sleep, spin_ns=0)
+            spent = [0]
+            predict = servo._predictor.predict
+
+            def timed(*args: Any, predict: Any = predict, spent: list[int] = spent) -> Any:
+                t0 = time.perf_counter_ns()
+                out = predict(*args)
+                spent[0] += time.perf_counter_ns() - t0
+                return out
+
+            servo._predictor.predict = timed  # type: ignore[method-assign,assignment]
+            t0 = time.perf_counter_ns()
+            servo.start()
+            while servo.step():
+                pass
+            per = (time.perf_counter_ns() - t0) / (servo.index + 1) / 1e3
+            best[ahead] = min(best.get(ahead, math.inf), per)
+            if ahead:
+                predict_ns.append(spent[0] / (servo.index + 1))
+    return {'commands_ahead': m, 'with_us': round(best[m], 2), 'without_us': round(best[0], 2),
+            'difference_us': round(best[m] - best[0], 2),
+            'predict_us': round(min(predict_ns, default=0.0) / 1e3, 2)}
 
 
 def run_servo_benchmark(cases: tuple[str, ...] = CASES, duration_s: float = 10.0,
@@ -371,7 +423,13 @@ def run_servo_benchmark(cases: tuple[str, ...] = CASES, duration_s: float = 10.0
             out['bridge (paced emulator, host servo process)'] = run_bridge(
                 loop, duration_s, offline_rms)
         elif case == 'stall':
-            out['stall (scripted clock)'] = {'stalls': stall_response(loop)}
+            m = loop.plant_node.servo.commands_ahead
+            out[f'stall (scripted clock, {m} commands ahead)'] = {'stalls': stall_response(loop)}
+            out['stall (scripted clock, last command held)'] = {
+                'stalls': stall_response(loop, commands_ahead=0)}
+        elif case == 'ahead-cost':
+            out['commands ahead, cost per sample (scripted clock)'] = {
+                'ahead': ahead_cost(loop, duration_s=min(duration_s, 2.0))}
         else:
             raise ValueError(f'unknown case {case!r}; choose among {", ".join(CASES)}')
     return out
@@ -394,6 +452,12 @@ def format_table(result: dict[str, Any]) -> str:
             notes.append(f'{case}: {f["gaps"]} gaps longer than a period in the clock reads, '
                          f'{f["periods_lost"]} periods inside them, the longest '
                          f'{f["max_gap_us"]} us')
+            continue
+        if 'ahead' in s:
+            a = s['ahead']
+            notes.append(f'{case}: servo loop {a["with_us"]} us a sample with '
+                         f'{a["commands_ahead"]} commands ahead, {a["without_us"]} us without '
+                         f'(+{a["difference_us"]} us); the prediction alone {a["predict_us"]} us')
             continue
         if 'stalls' in s:
             notes += [f'{case}: {v["skipped"]} samples skipped: e_max {v["e_max_nm"]} nm over '

@@ -21,11 +21,16 @@ that sample. Around that come :meth:`Bridge.open`, :meth:`Bridge.safe_start` (dr
 voltage, return the first measurement) and :meth:`Bridge.safe_stop` (drive the safe voltage,
 release the device). Clamping and the watchdog are not the backend's business: every backend is
 driven through :class:`piezo_stage_ros.hardware.safety.GuardedPlant`.
+
+Commands ahead (optional): a backend that keeps a queue has ``write_commands(voltage_v,
+ahead_v)``, a :meth:`Bridge.write_voltage` that also hands over the commands predicted for the
+samples after that one. A sample without a newer write then applies the next of them instead of
+holding the voltage (the last one is held after the queue); any write replaces the queue.
 """
 
 from __future__ import annotations
 
-from typing import Mapping, Protocol, runtime_checkable
+from typing import Mapping, Protocol, runtime_checkable, Sequence
 
 import numpy as np
 from piezo_stage_ros.core.contracts.errors import PiezoStageError
@@ -105,6 +110,8 @@ class ModelBridge:
         self.params = params
         self.stage = Stage(params, rng)
         self._voltage_v = params.chain.safe_voltage_v
+        self._ahead: Sequence[float] = ()
+        self._played = 0
         self.steps = 0
 
     @property
@@ -118,12 +125,26 @@ class ModelBridge:
     def safe_start(self, safe_voltage_v: float) -> float:
         """Put the model at rest at its initial position and return y_0 [m]."""
         self._voltage_v = safe_voltage_v
+        self._ahead = ()
         self.steps = 0
         return self.stage.reset()
 
     def write_voltage(self, voltage_v: float) -> None:
         """Set the voltage [V] the next :meth:`read_position` holds over one sample."""
         self._voltage_v = voltage_v
+        self._ahead = ()
+
+    def write_commands(self, voltage_v: float, ahead_v: Sequence[float]) -> None:
+        """
+        Set the voltage [V] of the next sample and the queue of commands ahead after it [V].
+
+        :meth:`advance` plays the queue over the samples nobody takes, one command a sample,
+        then holds the last: what a real-time target with a command queue does while the host
+        stalls.
+        """
+        self._voltage_v = voltage_v
+        self._ahead = ahead_v
+        self._played = 0
 
     def read_position(self) -> float:
         """Step the model one sample and return the measured position [m]."""
@@ -135,9 +156,15 @@ class ModelBridge:
         Step the model ``samples`` times with the voltage held, measuring nothing.
 
         For samples a paced loop skipped after a stall: a physical stage goes on under the held
-        voltage while nobody looks, so the model does too and stays in step with wall time.
+        voltage while nobody looks, so the model does too and stays in step with wall time. With
+        a queue of commands ahead (:meth:`write_commands`), each skipped sample applies the next
+        of them instead, then the last is held.
         """
+        ahead = self._ahead
         for _ in range(samples):
+            if self._played < len(ahead):
+                self._voltage_v = float(ahead[self._played])
+                self._played += 1
             self.steps += 1
             self.stage.step(self._voltage_v)
 
@@ -149,6 +176,7 @@ class ModelBridge:
     def safe_stop(self, safe_voltage_v: float) -> None:
         """Remember the safe voltage; a model has nothing to release."""
         self._voltage_v = safe_voltage_v
+        self._ahead = ()
 
     def stats(self) -> Mapping[str, int]:
         """Return the number of samples stepped and of non-finite commands the model replaced."""

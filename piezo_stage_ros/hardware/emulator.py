@@ -24,8 +24,10 @@ gives the samples of the model itself). Target-paced (:meth:`TargetEmulator.serv
 ``stage_emulator --paced``): after a STREAM request it owns the sample clock as a real-time
 target does, paced like the servo loop (:class:`~piezo_stage_ros.hardware.pacing.Pacer`): at
 each sample it applies the newest command received, counts the sample missing when no command
-answered the previous one, steps the stage and sends the sample. It binds to 127.0.0.1 only and
-stops by itself: on STOP, after ``idle_timeout_s`` without a request, or after
+answered the previous one (and applies that command's prediction for it instead, when the
+command came with commands ahead), steps the stage and sends the sample. A request of another
+protocol version is refused with status 16 and said once on stderr. It binds to 127.0.0.1 only
+and stops by itself: on STOP, after ``idle_timeout_s`` without a request, or after
 ``max_requests``. Run it as ``stage_emulator --port 50000`` (console script) or in a thread
 from a test.
 """
@@ -46,20 +48,26 @@ from piezo_stage_ros.core.model.stage import Stage, StageParams
 from piezo_stage_ros.hardware.pacing import Pacer, servo_setup
 from piezo_stage_ros.hardware.udp import (
     COMMAND,
+    foreign_version,
     HELLO,
     pack_reply,
     STATUS_CLAMPED,
     STATUS_NOT_FINITE,
+    STATUS_PREDICTED,
     STATUS_REFUSED,
+    STATUS_VERSION,
     STOP,
     STREAM,
     unpack_request,
+    VERSION,
 )
 
 __all__ = ['TargetEmulator', 'main']
 
 LOOPBACK = '127.0.0.1'
 _HALF = 2 ** 31
+#: The largest datagram read: a request with the most commands ahead.
+_DATAGRAM = 20 + 8 * 1000
 
 
 class TargetEmulator:
@@ -124,13 +132,33 @@ class TargetEmulator:
         self._halt = threading.Event()
         self._sent = 0
         self.pacer: Pacer | None = None
+        # the newest command of a stream: the sample it answers, its commands ahead
+        self._newest = 0
+        self._queue: tuple[float, ...] = ()
+        #: Samples that applied a command ahead (paced).
+        self.predicted = 0
+        #: Requests refused for another protocol version.
+        self.refused_version = 0
+
+    def _refuse_version(self, data: bytes) -> bytes | None:
+        """Return the refusal of a request of another protocol version (None: not one)."""
+        version = foreign_version(data)
+        if version is None or len(data) < 8:
+            return None
+        self.refused_version += 1
+        if self.refused_version == 1:
+            print(f'stage_emulator: refused a request of protocol version {version} (this '
+                  f'target speaks version {VERSION})', file=sys.stderr, flush=True)
+        seq = int.from_bytes(data[4:8], 'little')
+        return pack_reply(data[3] & 0x7F, seq, math.nan, STATUS_REFUSED | STATUS_VERSION,
+                          self.missing)
 
     def _handle(self, data: bytes) -> tuple[bytes | None, bool]:
         """Return the reply to one datagram (None: no reply) and whether the session ends."""
         request = unpack_request(data)
         if request is None:
-            return None, False
-        kind, seq, value = request
+            return self._refuse_version(data), False
+        kind, seq, value, _ = request
         status = 0
         if self._expected is not None and kind != HELLO:
             gap = (seq - self._expected) % 2 ** 32
@@ -177,7 +205,7 @@ class TargetEmulator:
         idle = 0.0
         while not self._halt.is_set():
             try:
-                data, peer = sock.recvfrom(64)
+                data, peer = sock.recvfrom(_DATAGRAM)
             except TimeoutError:
                 idle += sock.gettimeout() or 0.0
                 if idle >= self.idle_timeout_s:
@@ -227,7 +255,7 @@ class TargetEmulator:
         idle = 0.0
         while peer is None and not self._halt.is_set():
             try:
-                data, addr = sock.recvfrom(64)
+                data, addr = sock.recvfrom(_DATAGRAM)
             except TimeoutError:
                 idle += sock.gettimeout() or 0.0
                 if idle >= self.idle_timeout_s:
@@ -241,6 +269,11 @@ class TargetEmulator:
             if request is not None and request[0] == STREAM:
                 peer = addr
                 self._voltage_v = request[2]
+                self._queue = ()
+            elif request is None:
+                refusal = self._refuse_version(data)
+                if refusal is not None:
+                    sock.sendto(refusal, addr)
         if peer is None:
             self.stop_reason = 'closed'
             sock.close()
@@ -261,13 +294,14 @@ class TargetEmulator:
                 break
             before = index
             index, _ = pacer.wait()
-            for _ in range(index - before - 1):
-                # samples skipped after a stall: the stage went on under the held voltage
-                self.stage.step(self._voltage_v)
+            for skipped in range(before + 1, index):
+                # samples skipped after a stall: the stage went on under the held voltage (or
+                # the commands ahead)
+                self.stage.step(self._ahead_voltage(skipped)[0])
             answered = False
             while True:
                 try:
-                    data = sock.recv(64)
+                    data = sock.recv(_DATAGRAM)
                 except (BlockingIOError, InterruptedError):
                     break
                 except OSError:
@@ -275,8 +309,11 @@ class TargetEmulator:
                     break
                 request = unpack_request(data)
                 if request is None:
+                    refusal = self._refuse_version(data)
+                    if refusal is not None:
+                        sock.sendto(refusal, peer)
                     continue
-                kind, seq, value = request
+                kind, seq, value, ahead = request
                 self.requests += 1
                 last_request_ns = pacer.clock()
                 if kind == STOP:
@@ -288,13 +325,19 @@ class TargetEmulator:
                     self.commands += 1
                     # the newest command is held; it answers the previous sample, or is late
                     self._voltage_v = value
+                    self._newest = seq
+                    self._queue = ahead
                     answered = answered or seq % 2 ** 32 == self._sent % 2 ** 32
             if reason:
                 break
+            status = 0
             if not answered:
                 self.missing += 1
-            status = 0
-            value = self._voltage_v
+                value, predicted = self._ahead_voltage(index)
+                if predicted:
+                    status |= STATUS_PREDICTED
+            else:
+                value = self._voltage_v
             if not math.isfinite(value):
                 status |= STATUS_NOT_FINITE
             elif not self._low <= value <= self._high:
@@ -309,6 +352,22 @@ class TargetEmulator:
         self.stop_reason = reason
         sock.close()
         return reason
+
+    def _ahead_voltage(self, index: int) -> tuple[float, bool]:
+        """
+        Return the voltage of sample ``index`` without a command answering the one before.
+
+        The newest command's prediction for it (``index - 1 - seq`` samples ahead, the last one
+        after the queue) and True, or the command itself (no queue) and False.
+        """
+        queue = self._queue
+        if not queue:
+            return self._voltage_v, False
+        ahead = (index - 1 - self._newest) % 2 ** 32
+        if ahead == 0:
+            return self._voltage_v, False
+        self.predicted += 1
+        return queue[min(ahead, len(queue)) - 1], True
 
     def start_thread(self) -> TargetEmulator:
         """Serve in a daemon thread; return self."""
@@ -394,7 +453,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         reason = 'interrupted'
     print(f'stage_emulator: stopped ({reason}) after {emulator.requests} requests, '
-          f'{emulator.missing} missing', flush=True)
+          f'{emulator.missing} missing, {emulator.predicted} played ahead', flush=True)
     if emulator.pacer is not None:
         print('stage_emulator: clock ' + ', '.join(
             f'{k} {v}' for k, v in emulator.pacer.stats.summary().items()), flush=True)

@@ -21,6 +21,11 @@ The rules hold whatever the backend (:mod:`piezo_stage_ros.hardware.bridge`):
 - clamp every command to the amplifier range; a non-finite command becomes the safe voltage;
 - drive the safe voltage on shutdown (:meth:`GuardedPlant.stop`) and on an exception
   (:meth:`GuardedPlant.fault`);
+- commands ahead: a command may come with the controller's prediction of the next ones
+  (:mod:`piezo_stage_ros.core.control.ahead`); a sample without a new command, taken or
+  missed, applies the prediction for it instead of holding the last command, and a backend
+  that keeps a queue (``write_commands``: the UDP target, the simulated stage) receives them
+  with each command so that it plays them over the samples the host misses;
 - when commands stop for longer than ``command_timeout_s`` (:class:`Watchdog`), never jump: ramp
   from the voltage applied last to the safe voltage by at most ``slew_v_per_s * T`` a sample,
   and when commands come back, follow them by at most as much a sample until they are reached
@@ -35,14 +40,19 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 import math
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
+import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.contracts.loop_config import WatchdogParams
+from piezo_stage_ros.core.contracts.types import FloatArray
 from piezo_stage_ros.core.model.stage import SignalChainParams
 from piezo_stage_ros.hardware.bridge import Bridge
 
 __all__ = ['GuardedPlant', 'Trip', 'Watchdog', 'clamp_command', 'slew_toward']
+
+#: Commands ahead [V], as lists or arrays.
+Commands = Sequence[float] | FloatArray
 
 #: The default ramp rate of the watchdog [V/s] (``watchdog.slew_v_per_s``).
 DEFAULT_SLEW_V_PER_S = WatchdogParams().slew_v_per_s
@@ -236,10 +246,13 @@ class GuardedPlant:
     ramp works on clamped values for it too (a ramp never leaves the amplifier range).
 
     When commands stop (real-time sampling, :meth:`sample`), each sample without a new command
-    holds the last one (or, once commands ahead exist, the prediction :attr:`ahead` gives) for
-    ``command_timeout_s``; then the watchdog trips and the applied voltage ramps from the
-    voltage applied last to the safe voltage by at most ``slew_v_per_s * T`` a sample, and
-    stays there.
+    holds the last one for ``command_timeout_s`` (or, when the command came with commands
+    ahead, applies the prediction for it: the n-th sample since the command, taken or
+    skipped, gets the n-th prediction, and the last one is held after the queue); then the
+    watchdog trips and the applied voltage ramps from the voltage applied last to the safe
+    voltage by at most ``slew_v_per_s * T`` a sample, and stays there. A command that comes
+    n samples late (the loop skipped them: :meth:`skipped`) is applied as its own n-th
+    prediction: the host computed it for a sample that has passed.
 
     When commands come back during or after the ramp, the stage is where the ramp left it and
     the controller's new command can be anywhere in the range (after a long stall of the host
@@ -299,8 +312,16 @@ class GuardedPlant:
         self._fresh = False
         self._trip_number = 0
         self._offset: float | None = None
-        #: Samples served since the last command (the n of :attr:`ahead`).
+        #: Samples since the last command, taken or skipped (the n of its n-th prediction).
         self.since_command = 0
+        # the last command's predictions of the commands after it (commands ahead), and what
+        # the backend still plays of the queue written with the last sample
+        self._ahead: Commands = ()
+        self._queued: Commands = ()
+        self._write_commands: Callable[[float, Commands], None] | None = getattr(
+            bridge, 'write_commands', None)
+        #: Samples that applied a prediction (commands ahead), taken or skipped.
+        self.predicted_samples = 0
         #: What the last sample did: ``'track'`` (a command, or the last one held), ``'ramp'``,
         #: ``'safe'`` or ``'recover'`` (the watchdog's).
         self.phase = 'track'
@@ -311,13 +332,6 @@ class GuardedPlant:
         self.ended_trips: deque[Trip] = deque(maxlen=1000)
         #: Called with each trip as it ends (in the thread that samples; keep it short).
         self.on_trip: Callable[[Trip], None] | None = None
-        #: The hook for commands ahead (issue 17; none yet): ``ahead(n)`` returns the command
-        #: predicted for the n-th sample without a new command since the last one (n >= 1: the
-        #: first sample that has none), or None
-        #: without one. While the watchdog has not expired, a sample without a new command
-        #: applies the prediction (clamped) instead of holding the last command; the ramp then
-        #: starts from whatever was applied last, so the predictions come before the ramp.
-        self.ahead: Callable[[int], float | None] | None = None
 
     def start(self, now_s: float) -> float:
         """
@@ -344,7 +358,8 @@ class GuardedPlant:
         self.clamped += changed
         return voltage
 
-    def command(self, command_v: float, now_s: float) -> None:
+    def command(self, command_v: float, now_s: float,
+                ahead_v: Commands | None = None) -> None:
         """
         Take a new command to hold from the next sample on (real-time sampling).
 
@@ -354,25 +369,46 @@ class GuardedPlant:
             Amplifier input [V] as the controller sent it.
         now_s : float
             Arrival time [s] (feeds the watchdog).
+        ahead_v : sequence of float, optional
+            Commands ahead: the commands predicted for the samples after the next one [V],
+            applied (clamped) over samples without a new command. Refused as a whole (the
+            command is held) if any is not finite.
 
         """
         self.held_v = self._accept(command_v)
         self.watchdog.feed(now_s)
         self._fresh = True
         self.since_command = 0
+        self._ahead = self._accept_ahead(ahead_v) if ahead_v is not None else ()
+
+    def _accept_ahead(self, ahead_v: Commands) -> Commands:
+        low, high = self.low_v, self.high_v
+        finite = getattr(ahead_v, 'finite', None)
+        if finite is not None:
+            # computed when read (core.control.ahead.Ahead): checked and clipped as such
+            if not finite():
+                return ()
+            return ahead_v.clamped(low, high) if self._clamp else ahead_v  # type: ignore
+        total = sum(ahead_v) if isinstance(ahead_v, list) else float(np.sum(ahead_v))
+        if not math.isfinite(total):
+            return ()  # a prediction that is not finite: hold the command instead
+        if self._clamp:
+            return [high if v > high else (low if v < low else float(v)) for v in ahead_v]
+        return ahead_v
 
     def _in_range(self, voltage_v: float) -> float:
         return clamp_command(voltage_v, self.low_v, self.high_v, self.safe_v)[0]
 
-    def _silent(self) -> float:
-        # no new command since the last sample, the watchdog not expired: the place for the
-        # commands ahead, before any ramp
-        ahead = self.ahead
-        if ahead is not None:
-            predicted = ahead(self.since_command)
-            if predicted is not None:
-                return self._in_range(predicted)
-        return self.held_v
+    def _predicted(self, since: int) -> tuple[float, Commands]:
+        # the n-th sample since the last command (n >= 1), the watchdog not expired: the
+        # command's n-th prediction (the last one after the queue), and the rest of the queue
+        ahead = self._ahead
+        if not len(ahead):
+            return self.held_v, ()
+        self.predicted_samples += 1
+        if since <= len(ahead):
+            return float(ahead[since - 1]), ahead[since:]
+        return float(ahead[-1]), ()
 
     def _watchdog_voltage(self, expired: bool, now_s: float) -> float:
         trip = self.trip
@@ -446,11 +482,17 @@ class GuardedPlant:
 
         """
         expired = self.watchdog.expired(now_s)
+        queue: Commands = ()
         if expired or self.trip is not None:
             voltage = self._watchdog_voltage(expired, now_s)
         else:
             self.phase = 'track'
-            voltage = self.held_v if self._fresh else self._silent()
+            since = self.since_command
+            if since == 0:
+                voltage, queue = self.held_v, self._ahead
+            else:
+                # no command for this sample (or a command late by the samples skipped)
+                voltage, queue = self._predicted(since)
         if not self._fresh and self.samples > 0:
             # no command since the last sample: the previous one is held, the sample is late
             self.late += 1
@@ -458,19 +500,34 @@ class GuardedPlant:
         self.since_command += 1
         self.samples += 1
         self.applied_v = voltage
-        self.bridge.write_voltage(voltage)
+        write = self._write_commands
+        if write is not None and (len(queue) or len(self._queued)):
+            write(voltage, queue)
+        else:
+            self.bridge.write_voltage(voltage)
+        self._queued = queue
         return self.bridge.read_position()
 
     def skipped(self, samples: int) -> None:
         """
         Let ``samples`` samples that were not taken pass (a paced loop's stall).
 
-        The voltage written last stays held over them; a simulated backend (one with
-        ``advance(n)``) steps through them so that it stays in step with wall time, a physical
-        one has done so by itself.
+        The voltage written last stays held over them (or the backend plays the commands ahead
+        written with it); a simulated backend (one with ``advance(n)``) steps through them so
+        that it stays in step with wall time, a physical one has done so by itself.
         """
+        if samples <= 0:
+            return
+        self.since_command += samples
+        queued = self._queued
+        if len(queued):
+            # the backend plays the queue written with the last sample, then holds its last
+            played = min(samples, len(queued))
+            self.predicted_samples += played
+            self.applied_v = float(queued[played - 1])
+            self._queued = queued[played:]
         advance = getattr(self.bridge, 'advance', None)
-        if samples > 0 and callable(advance):
+        if callable(advance):
             advance(samples)
 
     def step(self, command_v: float) -> float:
@@ -526,6 +583,7 @@ class GuardedPlant:
                                'ramp_samples': self.ramp_samples,
                                'safe_samples': self.safe_samples,
                                'recovery_samples': self.recovery_samples,
-                               'watchdog_max_step_v': self.max_step_v}
+                               'watchdog_max_step_v': self.max_step_v,
+                               'predicted_samples': self.predicted_samples}
         out.update({f'bridge_{k}': v for k, v in self.bridge.stats().items()})
         return out

@@ -20,19 +20,22 @@ amplifier input and the position ADC. The host sends one request per sample and 
 answers with the position measured at the end of that sample. Every datagram is one packet,
 little-endian, packed without padding (``struct`` formats below):
 
-Request, host -> target, 16 bytes, ``'<2sBBId'``:
+Request, host -> target, 20 bytes and ``count`` doubles, ``'<2sBBIdI'`` + ``count * 'd'``:
 
-======  =====  ======  ===============================================================
-offset  bytes  type    field
-======  =====  ======  ===============================================================
-0       2      char    magic ``b'PZ'``
-2       1      uint8   version, :data:`VERSION` (1)
-3       1      uint8   kind: 1 HELLO (reset, drive ``value`` = safe voltage),
-                       2 COMMAND (hold ``value`` over one sample), 3 STOP (drive
-                       ``value`` = safe voltage and end the session)
-4       4      uint32  sequence number, +1 per request, wraps at 2**32
-8       8      double  value [V]: the amplifier input voltage
-======  =====  ======  ===============================================================
+======  =========  ======  ===========================================================
+offset  bytes      type    field
+======  =========  ======  ===========================================================
+0       2          char    magic ``b'PZ'``
+2       1          uint8   version, :data:`VERSION` (2)
+3       1          uint8   kind: 1 HELLO (reset, drive ``value`` = safe voltage),
+                           2 COMMAND (hold ``value`` over one sample), 3 STOP (drive
+                           ``value`` = safe voltage and end the session)
+4       4          uint32  sequence number, +1 per request, wraps at 2**32
+8       8          double  value [V]: the amplifier input voltage
+16      4          uint32  ``count``: commands ahead that follow (0 .. :data:`MAX_AHEAD`)
+20      8 count    double  commands ahead [V]: the commands the host predicts for the
+                           ``count`` samples after this one (COMMAND of a stream; see below)
+======  =========  ======  ===========================================================
 
 Reply, target -> host, 24 bytes, ``'<2sBBIdII'``:
 
@@ -40,14 +43,21 @@ Reply, target -> host, 24 bytes, ``'<2sBBIdII'``:
 offset  bytes  type    field
 ======  =====  ======  ===============================================================
 0       2      char    magic ``b'PZ'``
-2       1      uint8   version (1)
+2       1      uint8   version (2)
 3       1      uint8   kind of the request | 0x80
 4       4      uint32  sequence number of the request answered
 8       8      double  measured position [m] at the end of the sample
 16      4      uint32  status bits: 1 command clamped, 2 command not finite (safe voltage
-                       applied), 4 request refused (bad kind)
+                       applied), 4 request refused (bad kind), 8 the sample applied a
+                       command ahead (no command answered the one before in time), 16
+                       request refused: another protocol version
 20      4      uint32  requests the target found missing so far (gaps in sequence numbers)
 ======  =====  ======  ===============================================================
+
+Versions: version 1 had no commands ahead (a 16-byte request). Each side refuses a datagram
+of another version, and says so: the target answers it with a reply of its own version, status
+16 (and the emulator prints it); the host raises
+:class:`~piezo_stage_ros.hardware.bridge.BridgeError` naming both versions.
 
 Target-paced streaming (kind 4, STREAM): the target owns the sample clock, as a real-time
 target does. The host sends STREAM with the safe voltage; the target resets, drives it, and from
@@ -57,6 +67,15 @@ answers each sample with a COMMAND whose sequence number is k and whose value is
 next sample the target applies the newest command it has received (zero-order hold) and counts
 the sample *missing* when no command answering the previous sample came in time. STOP ends the
 stream (replied with kind STOP). :class:`UdpStreamBridge` is the host side.
+
+Commands ahead: a COMMAND of a stream may carry the commands the host predicts for the samples
+after the one it answers (the controller's, :mod:`piezo_stage_ros.core.control.ahead`). The
+target keeps those of the newest command as a queue: when sample j has no command answering
+sample j - 1, it applies the newest command's prediction for it (the one ``j - 1 - seq``
+samples ahead; the last one after the queue) instead of holding that command, and sets status
+8 on sample j. A command that arrives late (answering an older sample) is taken the same way:
+its own prediction for the present sample. Without commands ahead (``count`` 0) the command is
+held as in version 1.
 
 Timing and losses (request-reply): the host waits for the reply with its own sequence number
 for at most ``timeout_s``; a reply with an older number is stale (counted, dropped); no reply in
@@ -73,18 +92,22 @@ import math
 import socket
 import struct
 import time
-from typing import Callable, Final, Mapping
+from typing import Any, Callable, Final, Mapping
 
+import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.hardware.bridge import BridgeError
 from piezo_stage_ros.hardware.pacing import LatenessStats
 
 __all__ = ['HELLO', 'COMMAND', 'STOP', 'STREAM', 'REPLY', 'REQUEST', 'VERSION', 'MAGIC',
-           'UdpBridge', 'UdpStreamBridge', 'pack_reply', 'pack_request', 'unpack_reply',
-           'unpack_request']
+           'MAX_AHEAD', 'UdpBridge', 'UdpStreamBridge', 'foreign_version', 'pack_reply',
+           'pack_request', 'unpack_reply', 'unpack_request']
 
 MAGIC: Final = b'PZ'
-VERSION: Final = 1
+VERSION: Final = 2
+#: Most commands ahead one request carries (8 kB of them; above 185 a request no longer fits
+#: one 1500-byte Ethernet frame).
+MAX_AHEAD: Final = 1000
 HELLO: Final = 1
 COMMAND: Final = 2
 STOP: Final = 3
@@ -93,24 +116,44 @@ REPLY_FLAG: Final = 0x80
 STATUS_CLAMPED: Final = 1
 STATUS_NOT_FINITE: Final = 2
 STATUS_REFUSED: Final = 4
-REQUEST: Final = struct.Struct('<2sBBId')
+STATUS_PREDICTED: Final = 8
+STATUS_VERSION: Final = 16
+REQUEST: Final = struct.Struct('<2sBBIdI')
 REPLY: Final = struct.Struct('<2sBBIdII')
 _SEQ_MOD: Final = 2 ** 32
 
 
-def pack_request(kind: int, seq: int, value_v: float) -> bytes:
-    """Return the request datagram (``kind``, sequence number, voltage [V])."""
-    return REQUEST.pack(MAGIC, VERSION, kind, seq % _SEQ_MOD, value_v)
+def pack_request(kind: int, seq: int, value_v: float, ahead_v: Any = ()) -> bytes:
+    """Return the request datagram (``kind``, sequence number, voltage [V], commands ahead)."""
+    ahead = np.asarray(ahead_v if isinstance(ahead_v, (list, tuple, np.ndarray))
+                       else list(ahead_v), dtype='<f8')
+    if len(ahead) > MAX_AHEAD:
+        raise ParameterError('commands ahead', len(ahead), f'[0, {MAX_AHEAD}]')
+    return REQUEST.pack(MAGIC, VERSION, kind, seq % _SEQ_MOD, value_v, len(ahead)) + \
+        ahead.tobytes()
 
 
-def unpack_request(data: bytes) -> tuple[int, int, float] | None:
-    """Return ``(kind, seq, value_v)`` of a request datagram, or None if it is not one."""
-    if len(data) != REQUEST.size:
+def unpack_request(data: bytes) -> tuple[int, int, float, tuple[float, ...]] | None:
+    """
+    Return ``(kind, seq, value_v, ahead_v)`` of a request datagram, or None if it is not one.
+
+    ``ahead_v``: its commands ahead [V] (empty: none).
+    """
+    if len(data) < REQUEST.size:
         return None
-    magic, version, kind, seq, value = REQUEST.unpack(data)
-    if magic != MAGIC or version != VERSION or kind & REPLY_FLAG:
+    magic, version, kind, seq, value, count = REQUEST.unpack_from(data)
+    if magic != MAGIC or version != VERSION or kind & REPLY_FLAG or \
+            len(data) != REQUEST.size + 8 * count:
         return None
-    return kind, seq, value
+    ahead = struct.unpack_from(f'<{count}d', data, REQUEST.size) if count else ()
+    return kind, seq, value, ahead
+
+
+def foreign_version(data: bytes) -> int | None:
+    """Return the version of a datagram of this protocol but of another version, else None."""
+    if len(data) >= 4 and data[:2] == MAGIC and data[2] != VERSION:
+        return int(data[2])
+    return None
 
 
 def pack_reply(kind: int, seq: int, position_m: float, status: int, missing: int) -> bytes:
@@ -171,6 +214,7 @@ class UdpBridge:
         self.malformed = 0
         self.target_missing = 0
         self.target_clamped = 0
+        self.target_predicted = 0
         self.exchanges = 0
         #: Poll the socket without blocking while waiting for a reply (a thread that spins
         #: anyway, the servo loop's) instead of sleeping in ``recv``.
@@ -189,12 +233,12 @@ class UdpBridge:
                               f'({exc.strerror})') from None
         self._sock = sock
 
-    def _send(self, kind: int, seq: int, value_v: float) -> None:
+    def _send(self, kind: int, seq: int, value_v: float, ahead_v: Any = ()) -> None:
         sock = self._sock
         if sock is None:
             raise BridgeError('UDP bridge: not open')
         try:
-            sock.send(pack_request(kind, seq, value_v))
+            sock.send(pack_request(kind, seq, value_v, ahead_v))
         except OSError as exc:
             raise BridgeError(f'UDP bridge: send to {self.address[0]}:{self.address[1]} '
                               f'failed ({exc.strerror})') from None
@@ -232,6 +276,12 @@ class UdpBridge:
                 return None
             reply = unpack_reply(data)
             if reply is None or reply[0] != kind:
+                version = foreign_version(data)
+                if version is not None:
+                    raise BridgeError(f'UDP bridge: the target at {self.address[0]}:'
+                                      f'{self.address[1]} speaks protocol version {version}, '
+                                      f'this host version {VERSION}; update one of them '
+                                      '(docs/nodes.md, UDP protocol)')
                 self.malformed += 1
                 continue
             _, rseq, position, status, missing = reply
@@ -242,6 +292,12 @@ class UdpBridge:
             self.target_missing = missing
             if status & (STATUS_CLAMPED | STATUS_NOT_FINITE):
                 self.target_clamped += 1
+            if status & STATUS_PREDICTED:
+                self.target_predicted += 1
+            if status & STATUS_VERSION:
+                raise BridgeError(f'UDP bridge: the target at {self.address[0]}:'
+                                  f'{self.address[1]} refused protocol version {VERSION}; '
+                                  'update one of them (docs/nodes.md, UDP protocol)')
             if status & STATUS_REFUSED:
                 raise BridgeError(f'UDP bridge: target refused request kind {kind}')
             return rseq, position
@@ -306,7 +362,8 @@ class UdpBridge:
         """Return the loss and error counters."""
         return {'exchanges': self.exchanges, 'lost': self.lost, 'stale': self.stale,
                 'malformed': self.malformed, 'target_missing': self.target_missing,
-                'target_clamped': self.target_clamped}
+                'target_clamped': self.target_clamped,
+                'target_predicted': self.target_predicted}
 
 
 class UdpStreamBridge(UdpBridge):
@@ -390,10 +447,19 @@ class UdpStreamBridge(UdpBridge):
 
     def write_voltage(self, voltage_v: float) -> None:
         """Send ``voltage_v`` [V] at once as the answer to the sample received last."""
+        self.write_commands(voltage_v, ())
+
+    def write_commands(self, voltage_v: float, ahead_v: Any) -> None:
+        """
+        Send ``voltage_v`` [V] and the commands ahead after it [V] as the answer (at once).
+
+        The target plays the commands ahead over the samples the host does not answer in
+        time (see the module doc).
+        """
         self._voltage_v = voltage_v
         if self._answered or self._sock is None:
             return  # the sample has its answer already (or the stream is over)
-        self._send(COMMAND, self.sample_index, voltage_v)
+        self._send(COMMAND, self.sample_index, voltage_v, ahead_v)
         self._answered = True
         self.answer.add(self.clock() - self.arrival_ns)
 

@@ -408,6 +408,7 @@ class TrajectoryLogic:
         self.answered = 0
         self._ahead_sent = -1
         self._ahead_asked: int | None = None
+        self._window: tuple[int, Any, Any, Any] = (0, None, np.zeros(0), np.zeros(0))
 
     def start(self) -> None:
         """Stream from the next sample on, from t = 0."""
@@ -466,6 +467,30 @@ class TrajectoryLogic:
             out.append((stamp, *self.on_position(stamp)))
             self._ahead_sent = k
         return out
+
+    def window(self, stamp_ns: int, count: int) -> tuple[Any, Any]:
+        """
+        Return x_d and x_d' [m, m/s] of the ``count`` samples after ``stamp_ns`` (array views).
+
+        For commands ahead, after :meth:`on_position` of the same stamp: the trajectory as it
+        plays now (held while inactive; a switch not yet made is not in it). Evaluated in
+        windows of its own, so the chunks :meth:`on_position` plays are untouched.
+        """
+        if not self.active or self._start_ns is None:
+            return np.full(count, self.hold_m), np.zeros(count)
+        index = round((stamp_ns - self._start_ns) * self.rate_hz / NS_PER_S) + 1
+        first, trajectory, ref, vel = self._window
+        if trajectory is not self.trajectory or index < first or \
+                index + count > first + len(ref):
+            first = max(index, 0)
+            size = count + max(self.chunk, 256)
+            time_s = np.arange(first, first + size, dtype=np.float64) * self.period_s
+            x, v = self.trajectory.evaluate(time_s)
+            ref = np.asarray(x, dtype=np.float64)
+            vel = np.asarray(v, dtype=np.float64)
+            self._window = (first, self.trajectory, ref, vel)
+        i = index - first
+        return ref[i:i + count], vel[i:i + count]
 
     def on_position(self, stamp_ns: int) -> tuple[float, float]:
         """
@@ -576,6 +601,7 @@ class ControllerLogic:
 
     def _bind_skip(self) -> None:
         self._skip: Callable[[int], None] | None = getattr(self.controller, 'skip', None)
+        self._missed: Callable[[int], None] | None = getattr(self.controller, 'missed', None)
         self._period_ns = max(1, round(self.controller.sample_time_s * NS_PER_S))
         self._gap_ns = self._period_ns * 3 // 2  # consecutive samples are one period apart
 
@@ -650,6 +676,8 @@ class ControllerLogic:
             self._index += gap
             if self._skip is not None:
                 self._skip(gap)
+            if self._missed is not None:
+                self._missed(gap)
         if self._pending is not None:
             self._apply_pending(y, xd)
         if self._needs_reset:

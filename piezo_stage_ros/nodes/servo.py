@@ -53,7 +53,12 @@ from piezo_stage_ros.core.contracts.errors import PiezoStageError
 from piezo_stage_ros.core.contracts.interfaces import Controller
 from piezo_stage_ros.core.contracts.loop_config import LoopConfig, PlantNodeParams
 from piezo_stage_ros.core.contracts.wire import NS_PER_S
-from piezo_stage_ros.core.control.controllers import bound_controller, ControllerParams
+from piezo_stage_ros.core.control.ahead import CommandPredictor
+from piezo_stage_ros.core.control.controllers import (
+    bound_controller,
+    ControllerParams,
+    SENSOR_GAIN_V_PER_M,
+)
 from piezo_stage_ros.core.loop.closed_loop import true_position_reader
 from piezo_stage_ros.core.loop.trajectories import make_trajectory
 from piezo_stage_ros.core.model.hysteresis import make_hysteresis
@@ -307,6 +312,10 @@ class ServoLoop:
     on_sample : callable, optional
         Called in the loop's thread with each sample as soon as it is served (the plant alone
         publishes y_k at once, for a controller in another node); keep it short.
+    commands_ahead : int
+        With each command, the controller's prediction of this many next ones goes to the
+        guard and the backend (:mod:`piezo_stage_ros.core.control.ahead`), applied over
+        samples the loop misses; 0: the last command is held.
 
     """
 
@@ -314,8 +323,13 @@ class ServoLoop:
                  controller: ControllerLogic | None, *, sample_rate_hz: float,
                  duration_s: float = 0.0, pacer: Pacer | None = None,
                  capacity: int = 65536,
-                 on_sample: Callable[[ServoSample], None] | None = None) -> None:
+                 on_sample: Callable[[ServoSample], None] | None = None,
+                 commands_ahead: int = 0) -> None:
         self.plant = plant
+        self.commands_ahead = int(commands_ahead)
+        period_s = 1.0 / float(sample_rate_hz)
+        # in the controller's sensor volts (read from it; the paper's K_PSCM until then)
+        self._predictor = CommandPredictor(SENSOR_GAIN_V_PER_M, period_s)
         self.trajectory = trajectory
         self.controller = controller
         self.rate_hz = float(sample_rate_hz)
@@ -368,7 +382,14 @@ class ServoLoop:
             out = self.controller.on_reference(stamp, ref, vel)
             u = out.voltage_v if out is not None else self.controller.safe_voltage_v
             applied = plant.applied_v
-            plant.command(u, now_s)
+            m = self.commands_ahead
+            if m and out is not None:
+                trajectory = self.trajectory
+                plant.command(u, now_s, self._predictor.predict(
+                    self.controller.controller, m, u, ref, vel,
+                    lambda count: trajectory.window(stamp, count)))
+            else:
+                plant.command(u, now_s)
             self.held_v = plant.held_v
             sample = ServoSample(index, stamp, position_m, ref, vel, u, applied, lateness_ns,
                                  out.diagnostics if out else None,
@@ -643,7 +664,8 @@ def servo_from_config(loop: LoopConfig, duration_s: float, bridge: Bridge | None
                      duration_s=duration_s,
                      pacer=Pacer(round(NS_PER_S / stage.sample_rate_hz),
                                  spin_ns=round(opts.servo.spin_us * 1000)),
-                     capacity=capacity, on_sample=on_sample)
+                     capacity=capacity, on_sample=on_sample,
+                     commands_ahead=opts.servo.commands_ahead)
 
 
 def apply_change(servo: ServoLoop, kind: str, value: Any) -> None:

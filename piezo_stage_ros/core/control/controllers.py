@@ -538,6 +538,27 @@ class RACController:
         self._held = hold
         self._gamma, self._eta = (0.0, 0.0) if hold else (self.params.gamma, self.params.eta)
 
+    def missed(self, samples: int) -> None:
+        """
+        Let ``samples`` samples the loop missed (a stall) pass before the next step.
+
+        The integral of eq. (33) goes on over them with the last error (the commands ahead
+        kept the stage near where it was); without this it would lack their area for the rest
+        of the run, an offset the loop then works off slowly.
+        """
+        if samples > 0 and not self._saturated:
+            self._i += samples * self._t * self._e
+
+    def reference_gains(self) -> tuple[float, float]:
+        """
+        Return (a [V/m], b [V s/m]): the model-based part a x_d + b x_d' of the command.
+
+        theta_hat y + phi_hat dy_d/dt of eq. (36) at perfect tracking (y = y_d), at the present
+        estimates: what changes of the command the reference alone explains (commands ahead,
+        :mod:`piezo_stage_ros.core.control.ahead`).
+        """
+        return self._theta * self._k, self._phi * self._k
+
     def linear_gains(self) -> tuple[float, float]:
         """Return (k_p, k_i) inside the boundary layer at the present estimates."""
         p = self.params
@@ -733,6 +754,15 @@ class PIController:
         return (self._e, self._i, self._saturated, float(self.nonfinite_inputs),
                 float(self.bad_dt))
 
+    def missed(self, samples: int) -> None:
+        """Let ``samples`` missed samples pass: the integral goes on with the last error."""
+        if samples > 0 and not self._saturated:
+            self._i += samples * self._t * self._e
+
+    def reference_gains(self) -> tuple[float, float]:
+        """Return (0, 0): a PI has no model-based part (commands ahead hold its command)."""
+        return 0.0, 0.0
+
     def linear_gains(self) -> tuple[float, float]:
         """Return (k_p, k_i) on the sensor-volt error."""
         return self.params.k_p, self.params.k_i
@@ -868,6 +898,10 @@ class OpenLoopController:
     def diagnostic_values(self) -> tuple[float, ...]:
         """Return the values of :attr:`diagnostic_names`."""
         return (float(self.nonfinite_inputs), float(self.bad_dt))
+
+    def reference_gains(self) -> tuple[float, float]:
+        """Return (gain [V/m], 0): the whole command is the reference's."""
+        return self.params.gain_v_per_m, 0.0
 
     def linear_gains(self) -> tuple[float, float]:
         """Return (0, 0): no feedback."""
@@ -1021,6 +1055,8 @@ class NotchedController:
         self._vmax = output_max_v
         self._u = inner._u
         self._fresh = True
+        self._gap = 0
+        self._last_in = 0.0
 
     @property
     def sample_time_s(self) -> float:
@@ -1058,6 +1094,13 @@ class NotchedController:
         if self._fresh:
             self.notch.reset(v)
             self._fresh = False
+        elif self._gap:
+            # samples missed before this one: the notch's input goes there in equal steps
+            gap, last = self._gap, self._last_in
+            for j in range(1, gap + 1):
+                self.notch.step(last + (v - last) * j / (gap + 1))
+        self._gap = 0
+        self._last_in = v
         f = self.notch.step(v)
         f = self._vmax if f > self._vmax else (self._vmin if f < self._vmin else f)
         self._u = f
@@ -1071,6 +1114,24 @@ class NotchedController:
     def diagnostic_values(self) -> tuple[float, ...]:
         """Return the inner controller's diagnostic values."""
         return self.inner.diagnostic_values()
+
+    def missed(self, samples: int) -> None:
+        """
+        Let ``samples`` missed samples pass before the next step.
+
+        The inner controller goes on over them (:meth:`RACController.missed`); the notch gets,
+        for each, the way from its last input to the next one in equal steps at that step, as
+        if it had filtered the commands ahead, instead of one jump that would ring.
+        """
+        missed = getattr(self.inner, 'missed', None)
+        if missed is not None:
+            missed(samples)
+        if samples > 0:
+            self._gap = samples
+
+    def reference_gains(self) -> tuple[float, float]:
+        """Return the inner controller's (the notch's DC gain is 1)."""
+        return self.inner.reference_gains()
 
     def linear_gains(self) -> tuple[float, float]:
         """Return the inner controller's (k_p, k_i) (the notch is not in them)."""

@@ -764,6 +764,9 @@ class FeedForwardController:
 
     """
 
+    #: The tables of :meth:`predict` as arrays, and the lists they were made from.
+    _ahead_cache: tuple[tuple[Any, ...], tuple[FloatArray, FloatArray, FloatArray]] | None = None
+
     def __init__(self, inner: Any, params: FeedForwardParams, plant: LinearPlant,
                  hysteresis: HysteresisModel, *, sensor_gain_v_per_m: float,
                  output_min_v: float, output_max_v: float) -> None:
@@ -966,6 +969,84 @@ class FeedForwardController:
             self._k += int(samples)
             if n:
                 self._pending = self._k % n
+
+    def missed(self, samples: int) -> None:
+        """Let ``samples`` missed samples pass in the inner controller (its ``missed``)."""
+        missed = getattr(self.inner, 'missed', None)
+        if missed is not None:
+            missed(samples)
+
+    def predict(self, count: int) -> FloatArray:
+        """
+        Return the commands predicted for the ``count`` samples after the last step [V].
+
+        Commands ahead (:mod:`piezo_stage_ros.core.control.ahead`): the last command plus the
+        change the tables explain, read ahead from them (no step is run): the inner
+        controller's model-based part (``reference_gains()``, less the share the inverse
+        replaces) on the shaped reference, the model inverse and the learned table; the
+        feedback part held, the inverse hysteresis taken with its secant from the present
+        state to the largest change ahead (one solve, not one a sample). A periodic reference
+        wraps around its period; an aperiodic one is read up to the end of the block computed,
+        then held. Held throughout when the last step was feedback alone (no reference bound,
+        or not the one bound).
+        """
+        v = self._u
+        k = self._k - 1
+        if self._trajectory is None or not self._matched or k < 0 or count <= 0:
+            return np.full(max(count, 0), v)
+        x, xv, wl = self._ahead_tables(count)
+        n = self._period_n
+        i = k % n if n else k - self._block_start
+        stop = min(i + 1 + count, len(x))
+        a, b = getattr(self.inner, 'reference_gains', lambda: (0.0, 0.0))()
+        if self._inverse_on:
+            a -= self._theta0 * self._ksens
+            b -= self._phi0 * self._ksens
+        ahead: FloatArray = x[i + 1:stop] - x[i]
+        ahead *= a
+        ahead += b * (xv[i + 1:stop] - xv[i])
+        ahead += wl[i + 1:stop] - wl[i]
+        hyst = self.hysteresis_inverse
+        if hyst is not None and len(ahead):
+            # through the inverse hysteresis: its secant from here to the largest change ahead
+            # (on a branch about 1; up to c/B1 after a reversal of a backlash)
+            j = int(np.argmax(np.abs(ahead)))
+            du = float(ahead[j])
+            if du != 0.0:
+                ahead *= (hyst.invert(hyst.output_v + self.slope * du) - v) / du
+        ahead += v
+        np.minimum(ahead, self._vmax, out=ahead)
+        np.maximum(ahead, self._vmin, out=ahead)
+        if len(ahead) < count:
+            # an aperiodic reference's block ends here: its last prediction is held
+            ahead = np.concatenate([ahead, np.full(count - len(ahead),
+                                                   ahead[-1] if len(ahead) else v)])
+        return ahead
+
+    def _ahead_tables(self, count: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """
+        Return the tables as arrays for :meth:`predict`: x_d, x_d', model inverse + learned.
+
+        Built again only when a table is replaced (a new block, a period learned); a periodic
+        table is repeated so that ``count`` samples after any index are one slice.
+        """
+        sources = (self._lx, self._lv, self._lw, self._ll, count)
+        cache = self._ahead_cache
+        if cache is not None and all(s is c for s, c in zip(sources[:4], cache[0][:4])) \
+                and cache[0][4] >= count:
+            return cache[1]
+        x = np.array(self._lx)
+        xv = np.array(self._lv)
+        wl = np.array(self._lw) if self._inverse_on else np.zeros(len(x))
+        if self._learning_on and len(self._ll) == len(wl):
+            wl = wl + np.array(self._ll)
+        n = self._period_n
+        if n:
+            reps = 2 + count // n
+            x, xv, wl = np.tile(x, reps), np.tile(xv, reps), np.tile(wl, reps)
+        tables = (x, xv, wl)
+        self._ahead_cache = (sources, tables)
+        return tables
 
     def _set_share(self) -> None:
         """Take the RAC's initial estimates as the share the model inverse replaces (PI: 0)."""

@@ -1,0 +1,292 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Commands ahead: the controller's prediction of its next commands, for samples the host misses.
+
+At each sample k the controller gives u_k and a prediction p_k+1 .. p_k+m of the commands it
+would give next if the stage followed the reference. The I/O target (or the simulated stage)
+keeps them as a queue and applies p_k+j over a sample the host missed instead of holding u_k
+(:class:`~piezo_stage_ros.hardware.safety.GuardedPlant`).
+
+The prediction holds the feedback part and moves the part of the command the reference alone
+explains along the reference ahead:
+
+    p_k+j = u_k + a (x_d,k+j - x_d,k) + b (x_d',k+j - x_d',k)
+
+with (a, b) the controller's ``reference_gains()``: the RAC's theta_hat k and phi_hat k (its
+model-based part theta_hat y + phi_hat dy_d/dt at y = y_d, eq. (36)), an open loop's gain, and
+(0, 0) for a PI (its command is held). A feed-forward wrapper predicts from its own tables
+(:meth:`~piezo_stage_ros.core.control.feedforward.FeedForwardController.predict`). No controller
+step is run: a few array operations on m values per sample.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable, Iterator, overload, Sequence
+
+import numpy as np
+from piezo_stage_ros.core.contracts.types import FloatArray
+
+__all__ = ['Ahead', 'CommandPredictor', 'commands_ahead']
+
+#: Variance of a regressor [V^2, sensor volts] below which the reference counts as at rest: a
+#: microvolt rms, far below any motion and far above the rounding of the sums (1e-16 of ~1 V).
+_AT_REST = 1e-12
+
+
+class Ahead(Sequence[float]):
+    """
+    Commands ahead u_k + a (x_d,j - x_d,k) + b (x_d',j - x_d',k), computed when read.
+
+    What :func:`commands_ahead` returns, as a sequence that costs nothing until a value is
+    read: a backend reads them only for the samples the host misses (the simulated stage), or
+    packs them into its request (the UDP target). Slices are views; :meth:`clamped` narrows
+    the range, :meth:`finite` says whether every value is finite (the reference is).
+
+    Parameters
+    ----------
+    ahead_m, ahead_mps : sequence of float
+        x_d and x_d' [m, m/s]; the values are those of indices ``start`` .. ``stop - 1``.
+    start, stop : int
+        The part of them that is ahead.
+    base_v : float
+        u_k - a x_d,k - b x_d',k [V].
+    gains : tuple of float
+        (a [V/m], b [V s/m]).
+    low_v, high_v : float
+        Command limits [V].
+
+    """
+
+    __slots__ = ('_x', '_v', '_start', '_stop', '_base', '_a', '_b', '_low', '_high')
+
+    def __init__(self, ahead_m: Sequence[float], ahead_mps: Sequence[float], start: int,
+                 stop: int, base_v: float, gains: tuple[float, float],
+                 low_v: float = -math.inf, high_v: float = math.inf) -> None:
+        self._x, self._v = ahead_m, ahead_mps
+        self._start, self._stop = start, stop
+        self._base = base_v
+        self._a, self._b = gains
+        self._low, self._high = low_v, high_v
+
+    def __len__(self) -> int:
+        return max(self._stop - self._start, 0)
+
+    def _value(self, j: int) -> float:
+        p = float(self._base + self._a * self._x[j] + self._b * self._v[j])
+        return self._high if p > self._high else (self._low if p < self._low else p)
+
+    @overload
+    def __getitem__(self, index: int) -> float: ...
+
+    @overload
+    def __getitem__(self, index: slice) -> Ahead: ...
+
+    def __getitem__(self, index: int | slice) -> float | Ahead:
+        n = len(self)
+        if isinstance(index, slice):
+            first, last, step = index.indices(n)
+            if step != 1:
+                raise ValueError('commands ahead: slices have step 1')
+            return Ahead(self._x, self._v, self._start + first,
+                         self._start + max(last, first), self._base, (self._a, self._b),
+                         self._low, self._high)
+        if index < 0:
+            index += n
+        if not 0 <= index < n:
+            raise IndexError('commands ahead: index out of range')
+        return self._value(self._start + index)
+
+    def __iter__(self) -> Iterator[float]:
+        return iter([self._value(j) for j in range(self._start, self._stop)])
+
+    def clamped(self, low_v: float, high_v: float) -> Ahead:
+        """Return the same commands clipped to ``[low_v, high_v]`` too [V]."""
+        return Ahead(self._x, self._v, self._start, self._stop, self._base,
+                     (self._a, self._b), max(self._low, low_v), min(self._high, high_v))
+
+    def finite(self) -> bool:
+        """Return whether every value is finite (the coefficients are; the reference is)."""
+        return math.isfinite(self._base + self._a + self._b)
+
+
+def commands_ahead(command_v: float, reference_m: float, velocity_mps: float,
+                   ahead_m: Sequence[float], ahead_mps: Sequence[float],
+                   gains: tuple[float, float], low_v: float = -math.inf,
+                   high_v: float = math.inf) -> list[float]:
+    """
+    Return the commands predicted for the samples after this one [V].
+
+    Parameters
+    ----------
+    command_v : float
+        u_k [V], the command of this sample.
+    reference_m, velocity_mps : float
+        x_d and x_d' of this sample [m, m/s].
+    ahead_m, ahead_mps : sequence of float
+        x_d and x_d' of the next samples, k + 1 first [m, m/s].
+    gains : tuple of float
+        (a [V/m], b [V s/m]) of the model-based part a x_d + b x_d'.
+    low_v, high_v : float
+        Command limits [V].
+
+    """
+    a, b = gains
+    # u_k + a (x - x_k) + b (x' - x'_k) on plain floats: for a few tens of values a list is
+    # cheaper than numpy, whose every operation costs about a microsecond whatever its size
+    base = command_v - a * reference_m - b * velocity_mps
+    out = [base + a * x + b * v for x, v in zip(ahead_m, ahead_mps)]
+    if out and (max(out) > high_v or min(out) < low_v):
+        out = [high_v if p > high_v else (low_v if p < low_v else p) for p in out]
+    return out
+
+
+def _sensor_gain(controller: Any) -> float | None:
+    """Return the sensor gain k [V/m] of a controller or of the one it wraps (None: none)."""
+    for _ in range(3):
+        for name in ('_ksens', '_k'):
+            gain = getattr(controller, name, None)
+            if isinstance(gain, float) and gain > 0.0:
+                return gain
+        controller = getattr(controller, 'inner', None)
+        if controller is None:
+            break
+    return None
+
+
+class CommandPredictor:
+    """
+    The commands ahead of a controller, sample by sample, with the trend of its feedback part.
+
+    Its model-based part moves along the reference ahead (:func:`commands_ahead`). The
+    feedback part f_k = u_k - a x_d,k - b x_d',k is what the model-based part does not explain
+    (the estimates still adapting, the ZOH's lag, the hysteresis); it is not constant while
+    the reference moves. Its part along the reference, f ~ f0 + alpha x_d + beta x_d', is
+    fitted by least squares over the last ``memory_samples`` samples (exponential forgetting,
+    a few multiplications a sample) and moves along the reference ahead with the model-based
+    part; the rest of it is held. A fit the reference does not excite (a reference at rest) is
+    damped to no trend by a ridge of ``ridge`` times each regressor's variance (and a floor of
+    (1 uV)^2 in sensor volts, far above the rounding of the sums): the feedback part is then
+    held.
+
+    Parameters
+    ----------
+    sensor_gain_v_per_m : float
+        k [V/m]: the regressors are fitted in sensor volts (numbers near 1); the controller's
+        own k when it has one (:meth:`predict` reads it).
+    sample_time_s : float
+        T [s] (x_d' is fitted as its change per sample).
+    memory_samples : float
+        Time constant of the forgetting [samples].
+    ridge : float
+        Relative ridge of the fit.
+
+    """
+
+    def __init__(self, sensor_gain_v_per_m: float, sample_time_s: float, *,
+                 memory_samples: float = 100.0, ridge: float = 1e-3) -> None:
+        self._t = float(sample_time_s)
+        self._kx = float(sensor_gain_v_per_m)
+        self._kv = float(sensor_gain_v_per_m) * self._t
+        self._forget = 1.0 - 1.0 / float(memory_samples)
+        self._ridge = float(ridge)
+        # exponentially weighted sums of 1, x, v, f and their products
+        self._sums = [0.0] * 9
+        self._controller: Any = None
+        self._own: Callable[[int], Any] | None = None
+        self._gains: Callable[[], tuple[float, float]] | None = None
+        self._limits = (-math.inf, math.inf)
+
+    def reset(self) -> None:
+        """Forget the fit (a controller rebuilt)."""
+        self._sums = [0.0] * 9
+
+    def trend(self, feedback_v: float, reference_m: float, velocity_mps: float
+              ) -> tuple[float, float]:
+        """Take this sample's feedback part [V]; return its (alpha [V/m], beta [V s/m])."""
+        x = reference_m * self._kx
+        v = velocity_mps * self._kv
+        f = feedback_v
+        lam = self._forget
+        s1, sx, sv, sf, sxx, sxv, svv, sxf, svf = self._sums
+        s1 = lam * s1 + 1.0
+        sx = lam * sx + x
+        sv = lam * sv + v
+        sf = lam * sf + f
+        sxx = lam * sxx + x * x
+        sxv = lam * sxv + x * v
+        svv = lam * svv + v * v
+        sxf = lam * sxf + x * f
+        svf = lam * svf + v * f
+        self._sums = [s1, sx, sv, sf, sxx, sxv, svv, sxf, svf]
+        mx, mv, mf = sx / s1, sv / s1, sf / s1
+        cxx = sxx / s1 - mx * mx
+        cxv = sxv / s1 - mx * mv
+        cvv = svv / s1 - mv * mv
+        cxf = sxf / s1 - mx * mf
+        cvf = svf / s1 - mv * mf
+        if cxx + cvv <= _AT_REST:
+            return 0.0, 0.0  # the reference at rest: nothing to fit, the feedback part held
+        cxx = cxx * (1.0 + self._ridge) + _AT_REST
+        cvv = cvv * (1.0 + self._ridge) + _AT_REST
+        det = cxx * cvv - cxv * cxv
+        if not det > 0.0:
+            return 0.0, 0.0
+        alpha = (cvv * cxf - cxv * cvf) / det
+        beta = (cxx * cvf - cxv * cxf) / det
+        if not (math.isfinite(alpha) and math.isfinite(beta)):
+            return 0.0, 0.0
+        return alpha * self._kx, beta * self._kv
+
+    def predict(self, controller: Any, count: int, command_v: float, reference_m: float,
+                velocity_mps: float,
+                reference_ahead: Callable[[int], tuple[Sequence[float], Sequence[float]]]
+                ) -> Sequence[float] | FloatArray:
+        """
+        Return ``count`` commands predicted after ``command_v`` for ``controller`` [V].
+
+        Call once a sample, after the controller's step. A controller with its own
+        ``predict(count)`` (a feed-forward) predicts from its tables; any other moves its
+        ``reference_gains()`` part and the trend of its feedback part along
+        ``reference_ahead(count)`` (x_d and x_d' of the next ``count`` samples); one without
+        reference gains holds its command.
+        """
+        if controller is not self._controller:
+            # looked up once per controller (a rebuild makes a new one)
+            self._controller = controller
+            gain = _sensor_gain(controller)
+            if gain is not None and gain * self._t != self._kv:
+                self._kx, self._kv = gain, gain * self._t
+                self.reset()
+            self._own = getattr(controller, 'predict', None)
+            self._gains = getattr(controller, 'reference_gains', None)
+            self._limits = (getattr(controller, '_vmin', -math.inf),
+                            getattr(controller, '_vmax', math.inf))
+        if self._own is not None:
+            return np.asarray(self._own(count), dtype=np.float64)
+        gains = self._gains
+        if gains is None:
+            return [command_v] * count
+        a, b = gains()
+        alpha, beta = self.trend(command_v - a * reference_m - b * velocity_mps,
+                                 reference_m, velocity_mps)
+        ahead_m, ahead_mps = reference_ahead(count)
+        a += alpha
+        b += beta
+        # computed when read (a few values after a stall, not 32 every sample)
+        low, high = self._limits
+        return Ahead(ahead_m, ahead_mps, 0, len(ahead_m),
+                     command_v - a * reference_m - b * velocity_mps, (a, b), low, high)
