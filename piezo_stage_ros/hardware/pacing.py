@@ -118,10 +118,15 @@ class LatenessStats:
         return self.max_ns / NS_PER_US
 
     def summary(self) -> dict[str, Any]:
-        """Return samples, p50/p99/max lateness [us], samples late > T/2, skipped samples."""
+        """
+        Return samples, p50/p99/max lateness [us], samples late > T/2, skipped samples.
+
+        All three lateness figures are rounded alike (0.1 us): the p99 of a top bin is the
+        maximum, and rounding only one of them could put it above the maximum.
+        """
         return {'paced_samples': self.samples,
-                'lateness_p50_us': self.percentile_us(50.0),
-                'lateness_p99_us': self.percentile_us(99.0),
+                'lateness_p50_us': round(self.percentile_us(50.0), 1),
+                'lateness_p99_us': round(self.percentile_us(99.0), 1),
                 'lateness_max_us': round(self.max_ns / NS_PER_US, 1),
                 'late_half_period': self.late_half, 'skipped': self.skipped}
 
