@@ -271,6 +271,10 @@ class BacklashInverse(HysteresisInverse):
                 dv = 0.0
         return v0 + dv
 
+    def jump_constants(self) -> tuple[float, float, float, float]:
+        """Return (alpha, c, (B1 - c)/alpha, tolerance) as the solve uses them (batched loop)."""
+        return self._alpha, self._c, self._shift, self.tolerance_v
+
     def commit(self, v: float) -> None:
         """Advance the state across the jump to the applied input ``v`` [V]."""
         dv = v - self._v
@@ -828,6 +832,31 @@ class FeedForwardController:
         self._learned = np.clip(table, -self.params.learning_limit_v,
                                 self.params.learning_limit_v)
         self._ll = self._learned.tolist()
+
+    # -- for a batched loop (N stages, one reference) -----------------------------------------
+
+    def reference_tables(self, k: int) -> tuple[int, int, list[float], list[float],
+                                                list[float], list[float]]:
+        """
+        Return the tables the step of sample ``k`` reads, for a loop that steps N stages.
+
+        ``(period, start, x_d, x_ref, x_ref', w)``: periodic (period > 0), one period read at
+        ``k mod period``; else the block holding sample ``k``, read at ``k - start`` (the next
+        block is computed when ``k`` passes the present one: ask in sample order, as the step
+        does). The lists are the wrapper's own: read, do not change.
+        """
+        if not self._period_n and k - self._block_start >= len(self._lx):
+            self._next_block(k)
+        return (self._period_n, self._block_start, self._lx_raw, self._lx, self._lv,
+                self._lw)
+
+    def learning_kernel(self) -> FloatArray:
+        """Return the learning operator's impulse response over two periods (a copy)."""
+        return self._kernel2.copy()
+
+    def share_gains(self) -> tuple[float, float, float]:
+        """Return (theta_0, phi_0, k): the share subtracted is (theta_0 x + phi_0 x') k."""
+        return self._theta0, self._phi0, self._ksens
 
     # -- diagnostics -----------------------------------------------------------------------
 
