@@ -259,3 +259,22 @@ def test_case_metrics_take_the_plateau_tails_after_the_settle_time(case):
     m = case_metrics(case, rec, tp, settle_s=1.0)
     assert m['e_rms_m'] == pytest.approx(2e-9, rel=1e-12)
     assert m['e_max_m'] == pytest.approx(2e-9, rel=1e-12)
+
+
+def test_a_window_only_study_measures_what_the_whole_run_measures(capsys):
+    # --window-only keeps the samples after --settle: the steady-state figures are those of the
+    # whole run's record, on the batch and the single path alike
+    argv = ['--stages', 'nominal,gain_hi', '--cases', 'sine_50', '--duration', '0.6',
+            '--settle', '0.3', '--quiet', '--json', '--feedforward', 'learning']
+    assert robustness.main(argv) == 0
+    whole = json.loads(capsys.readouterr().out)
+    runs = []
+    for extra in ([], ['--single']):
+        assert robustness.main([*argv, '--window-only', *extra]) == 0
+        runs.append(json.loads(capsys.readouterr().out))
+    assert runs[0]['rows'] == runs[1]['rows']
+    for row, full in zip(runs[0]['rows'], whole['rows']):
+        for key in ('e_rms_m', 'e_max_m', 'e_rms_true_m', 'e_max_true_m', 'theta_hat_end'):
+            assert row[key] == full[key]
+    assert robustness.main(['--cases', 'square', '--window-only', '--quiet']) == 1
+    assert '--cases' in capsys.readouterr().err

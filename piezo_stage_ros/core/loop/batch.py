@@ -853,7 +853,7 @@ def _reference_columns(trajectories: Sequence[Trajectory], time_s: FloatArray
 def run_batch(stages: Sequence[StageParams] | StageFamilyBatch, controller: ControllerParams,
               trajectory: Trajectory | Sequence[Trajectory], *, duration_s: float,
               plant: LinearPlant | None = None, hysteresis: HysteresisModel | None = None,
-              chunk_s: float = 1.0, record: bool = True,
+              chunk_s: float = 1.0, record: bool = True, record_from_s: float = 0.0,
               progress: Callable[[float], None] | None = None) -> list[RunRecord]:
     """
     Run the closed loop of every member at once; each as :func:`closed_loop.run` would.
@@ -881,6 +881,9 @@ def run_batch(stages: Sequence[StageParams] | StageFamilyBatch, controller: Cont
         Return the records (y, x_d, x_d', u, the true position x and the RAC's theta_hat,
         phi_hat every sample);
         with False nothing is kept (speed measurements) and an empty list is returned.
+    record_from_s : float
+        Record the samples from ``round(record_from_s / T)`` on only (long runs measured on a
+        late window: memory); the samples before are stepped alike, unrecorded.
     progress : callable, optional
         Called with the simulated time [s] after each chunk.
 
@@ -905,6 +908,8 @@ def run_batch(stages: Sequence[StageParams] | StageFamilyBatch, controller: Cont
         raise ParameterError('duration_s', duration_s, '(0, inf)')
     if not (chunk_s > 0.0 and math.isfinite(chunk_s)):
         raise ParameterError('chunk_s', chunk_s, '(0, inf)')
+    if not (record_from_s >= 0.0 and math.isfinite(record_from_s)):
+        raise ParameterError('record_from_s', record_from_s, '[0, inf)')
     batch = stages if isinstance(stages, StageFamilyBatch) else StageFamilyBatch(stages)
     n_members = batch.n
     trajs: list[Trajectory] = (list(trajectory) if isinstance(trajectory, (list, tuple))
@@ -932,15 +937,17 @@ def run_batch(stages: Sequence[StageParams] | StageFamilyBatch, controller: Cont
     chunks: list[dict[str, Any]] = []
     cstep, pstep = (ctrl.step if ff is None else ff.step), batch.step
     read_true = batch.true_position_m
+    first = min(max(int(round(record_from_s / dt)), 0), total - 1) if record else total
     k0 = 0
     while k0 < total:
-        n = min(per_chunk, total - k0)
+        # a chunk ends where the recording starts
+        n = min(per_chunk, total - k0, first - k0 if k0 < first else total)
         time_s = np.arange(k0, k0 + n, dtype=np.float64) * dt
         ref, vel = _reference_columns(trajs, time_s)
         refs: Any = ref[:, 0].tolist() if shared else ref
         vels: Any = vel[:, 0].tolist() if shared else vel
         batch.reserve(n)
-        if record:
+        if k0 >= first:
             pos = np.empty((n, n_members))
             cmd = np.empty((n, n_members))
             true = np.empty((n, n_members))

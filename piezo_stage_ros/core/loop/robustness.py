@@ -151,7 +151,9 @@ def case_metrics(case: str, record: RunRecord, trajectory: TrajectoryParams, *,
     out: dict[str, float] = {}
     if how == 'periodic':
         period = make_trajectory(trajectory).period_s
-        s = metrics.summarize(record, steady_state_start_s=settle_s, period_s=period)
+        # a record may start late (window_only): the start is counted from its first sample
+        s = metrics.summarize(record, steady_state_start_s=settle_s - float(t[0]),
+                              period_s=period)
         late = t[-1] + (t[1] - t[0] if t.size > 1 else 0.0) > settle_s + (period or 0.0) - 1e-9
         out.update({'e_max_m': s.e_max_m, 'e_rms_m': s.e_rms_m} if late
                    else _nan_metrics())
@@ -264,7 +266,8 @@ def run_study(stage: StageParams, controller: ControllerParams, trajectory: Traj
               family: Sequence[StageVariation], cases: Sequence[str], duration_s: float = 2.0,
               settle_s: float = 1.0, trace_every: int = 10,
               traced: Collection[str] | None = None, batch: bool = True,
-              progress: ProgressFn | None = None) -> RobustnessResult:
+              window_only: bool = False, progress: ProgressFn | None = None
+              ) -> RobustnessResult:
     """
     Run one controller configuration on every member of a family, for every case.
 
@@ -294,6 +297,10 @@ def run_study(stage: StageParams, controller: ControllerParams, trajectory: Traj
         :func:`batch_members` at a time), feed-forward included; with False one
         :func:`closed_loop.run` per member and case. Both give the same samples, bit for bit
         (tested).
+    window_only : bool
+        Keep the samples from ``settle_s`` on only (long runs: memory, and larger batches);
+        the command range and the estimates' ranges then cover that window. Sines and
+        multi-sine only.
     progress : callable, optional
         Receives a line per run (single) or per simulated second of a batch.
 
@@ -310,9 +317,11 @@ def run_study(stage: StageParams, controller: ControllerParams, trajectory: Traj
         raise ParameterError('stages', names, 'at least one, names unique')
     for case in cases:
         case_trajectory(case, trajectory, duration_s)  # refuse an unknown case up front
+        if window_only and CASES[case][1] != 'periodic':
+            raise ParameterError('--cases', case, 'sines and multisine with a window only')
     result = RobustnessResult(cases=list(cases), meta={
         'controller': controller.type, 'feedforward': controller.feedforward.mode,
-        'duration_s': duration_s, 'settle_s': settle_s,
+        'duration_s': duration_s, 'settle_s': settle_s, 'window_only': window_only,
         'path': 'batch' if batch else 'single', 'sample_rate_hz': stage.sample_rate_hz})
     members = [(m, member_params(stage, m)) for m in family]
     for m, sp in members:
@@ -324,7 +333,8 @@ def run_study(stage: StageParams, controller: ControllerParams, trajectory: Traj
     # the feed-forward's design hysteresis: the configured stage's, as the plant
     nominal_hysteresis = make_hysteresis(stage.hysteresis)
     dt = stage.sample_time_s
-    size = batch_members(int(round(duration_s / dt))) if batch else 1
+    start_s = settle_s if window_only else 0.0
+    size = batch_members(int(round((duration_s - start_s) / dt))) if batch else 1
     for case in cases:
         tp = case_trajectory(case, trajectory, duration_s)
         for g0 in range(0, len(members), size):
@@ -336,11 +346,13 @@ def run_study(stage: StageParams, controller: ControllerParams, trajectory: Traj
                         progress(f'{case:10s} members {g0}-{g0 + size - 1}: {t:g} s simulated')
                 records = run_batch([sp for _, sp in group], controller, make_trajectory(tp),
                                     duration_s=duration_s, plant=nominal_plant,
-                                    hysteresis=nominal_hysteresis, progress=say)
+                                    hysteresis=nominal_hysteresis, record_from_s=start_s,
+                                    progress=say)
             else:
-                records = [closed_loop.run(Stage(sp), build_controller(
+                records = [_window(closed_loop.run(Stage(sp), build_controller(
                     controller, dt, nominal_plant, nominal_hysteresis), make_trajectory(tp),
-                    duration_s=duration_s, diagnostics_every=1) for _, sp in group]
+                    duration_s=duration_s, diagnostics_every=1), start_s)
+                    for _, sp in group]
             for (m, _), info, rec in zip(group, result.stages[g0:], records):
                 mets = case_metrics(case, rec, tp, settle_s=settle_s)
                 row = _stage_rows(m.name, case, mets, (info['theta_true'], info['phi_true']))
@@ -355,6 +367,22 @@ def run_study(stage: StageParams, controller: ControllerParams, trajectory: Traj
                     progress(f'{case:10s} {m.name:22s} e_rms {row["e_rms_m"] * 1e9:8.2f} nm, '
                              f'e_m {row["e_max_m"] * 1e9:8.1f} nm')
     return result
+
+
+def _window(record: RunRecord, start_s: float) -> RunRecord:
+    """Return the samples from ``round(start_s / T)`` on (what run_batch records)."""
+    if start_s <= 0.0:
+        return record
+    k = int(round(start_s / float(record.time_s[1] - record.time_s[0])))
+    k = min(k, record.time_s.size - 1)
+
+    def cut(a: np.ndarray | None) -> np.ndarray | None:
+        return None if a is None else a[k:].copy()
+    return RunRecord(record.time_s[k:].copy(), record.position_m[k:].copy(),
+                     record.reference_m[k:].copy(), record.reference_velocity_mps[k:].copy(),
+                     record.command_v[k:].copy(),
+                     {name: v[k:].copy() for name, v in record.diagnostics.items()},
+                     dict(record.meta), cut(record.true_position_m))
 
 
 def worst(result: RobustnessResult, case: str) -> dict[str, Any]:
