@@ -75,6 +75,10 @@ def _parser() -> argparse.ArgumentParser:
                    help='Simulated time per run [s] (default 2).')
     p.add_argument('--settle', type=float, default=1.0, metavar='S',
                    help='Start of the steady state [s] (default 1).')
+    p.add_argument('--window-only', action='store_true',
+                   help='Keep only the samples after --settle (long runs: memory, larger '
+                   'batches); the command and estimate ranges then cover that window. Sines and '
+                   'multisine only.')
     p.add_argument('--out', metavar='DIR', help='Write robustness.json, robustness.txt and '
                    'the plots there.')
     p.add_argument('--json', action='store_true', help='Print the JSON on stdout instead of '
@@ -114,6 +118,7 @@ def _run(args: argparse.Namespace) -> int:
     result = run_study(loop.stage, loop.controller, loop.trajectory,
                        family=stages, cases=cases, duration_s=args.duration,
                        settle_s=args.settle, traced=named, batch=not args.single,
+                       window_only=args.window_only,
                        progress=progress.line)
     result.meta['wall_seconds'] = progress.elapsed()
     result.meta['config_files'] = [str(p) for p in loop.sources]

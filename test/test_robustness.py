@@ -209,10 +209,14 @@ def test_the_command_lists_the_family(capsys):
     assert all(name in out for name in FAMILY)
 
 
-def test_the_batch_and_the_single_runs_give_the_same_study(capsys):
-    # the command runs the batch; --single is the reference path of one closed loop per run
+@pytest.mark.parametrize('feedforward', [[], ['--feedforward', 'learning'],
+                                         ['--feedforward', 'inverse']])
+def test_the_batch_and_the_single_runs_give_the_same_study(feedforward, capsys):
+    # the command runs the batch, with feed-forward too; --single is the reference path of one
+    # closed loop per run
     argv = ['--stages', 'nominal,gain_lo_zeta_lo,noise_hi', '--cases', 'sine_50,square_2ms',
-            '--duration', '0.8', '--settle', '0.2', '--samples', '2', '--quiet', '--json']
+            '--duration', '0.8', '--settle', '0.2', '--samples', '2', '--quiet', '--json',
+            *feedforward]
     assert robustness.main(argv) == 0
     batch = json.loads(capsys.readouterr().out)
     assert robustness.main([*argv, '--single']) == 0
@@ -222,6 +226,9 @@ def test_the_batch_and_the_single_runs_give_the_same_study(capsys):
     assert all(r['e_rms_m'] is not None for r in batch['rows'])
     assert batch['rows'] == single['rows']
     assert batch['worst'] == single['worst']
+    assert batch['meta']['feedforward'] == (feedforward[1] if feedforward else 'none')
+    # the sines have a true-position error too (the square's plateau error has none)
+    assert all(r['e_rms_true_m'] is not None for r in batch['rows'] if r['case'] == 'sine_50')
 
 
 def test_drawn_members_stay_inside_the_declared_ranges():
@@ -252,3 +259,22 @@ def test_case_metrics_take_the_plateau_tails_after_the_settle_time(case):
     m = case_metrics(case, rec, tp, settle_s=1.0)
     assert m['e_rms_m'] == pytest.approx(2e-9, rel=1e-12)
     assert m['e_max_m'] == pytest.approx(2e-9, rel=1e-12)
+
+
+def test_a_window_only_study_measures_what_the_whole_run_measures(capsys):
+    # --window-only keeps the samples after --settle: the steady-state figures are those of the
+    # whole run's record, on the batch and the single path alike
+    argv = ['--stages', 'nominal,gain_hi', '--cases', 'sine_50', '--duration', '0.6',
+            '--settle', '0.3', '--quiet', '--json', '--feedforward', 'learning']
+    assert robustness.main(argv) == 0
+    whole = json.loads(capsys.readouterr().out)
+    runs = []
+    for extra in ([], ['--single']):
+        assert robustness.main([*argv, '--window-only', *extra]) == 0
+        runs.append(json.loads(capsys.readouterr().out))
+    assert runs[0]['rows'] == runs[1]['rows']
+    for row, full in zip(runs[0]['rows'], whole['rows']):
+        for key in ('e_rms_m', 'e_max_m', 'e_rms_true_m', 'e_max_true_m', 'theta_hat_end'):
+            assert row[key] == full[key]
+    assert robustness.main(['--cases', 'square', '--window-only', '--quiet']) == 1
+    assert '--cases' in capsys.readouterr().err

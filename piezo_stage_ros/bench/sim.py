@@ -26,7 +26,8 @@ Figures (the issue's targets in brackets):
 - stage-steps per second of the batched closed loop
 (:func:`piezo_stage_ros.core.loop.batch.run_batch`:
   RAC with the notch and 1000 stages, each its own member of the stage family, 16-bit
-  converters and sensor noise on) (>= 1e7);
+  converters and sensor noise on) (>= 1e7); the same with the feed-forward ``learning``
+  (>= 5e6) and ``inverse_learning``;
 - median and 99th percentile of one controller step, timed one by one with
   ``time.perf_counter_ns`` (the timer's own cost, measured on an empty call, is reported too).
 
@@ -199,7 +200,8 @@ def batch_speed(n: int = 1000, steps: int = 2000, *, plant: str = 'third_order',
 
 
 def batch_loop_speed(n: int = 1000, steps: int = 5000, *, controller: str = 'rac',
-                     repeats: int = 3, clock: Callable[[], float] = time.perf_counter) -> float:
+                     feedforward: str = 'none', repeats: int = 3,
+                     clock: Callable[[], float] = time.perf_counter) -> float:
     """
     Return stage-steps per second of the batched closed loop of ``n`` different stages.
 
@@ -213,6 +215,10 @@ def batch_loop_speed(n: int = 1000, steps: int = 5000, *, controller: str = 'rac
         Samples per measurement (a 100 Hz sine, nothing recorded).
     controller : str
         Controller type (the notch is on, as configured by default).
+    feedforward : str
+        ``feedforward.mode``, designed on the configured stage (:class:`~piezo_stage_ros.core.
+        loop.batch.FeedForwardBatch`; learning: a table of one 100-sample period per member,
+        updated every sample).
     repeats : int
         Measurements; the fastest counts.
     clock : callable
@@ -221,20 +227,22 @@ def batch_loop_speed(n: int = 1000, steps: int = 5000, *, controller: str = 'rac
     Returns
     -------
     float
-        n * steps / clock seconds of :func:`run_batch` (its reset included; building the stages,
-        which discretizes each member's plant, is not).
+        n * steps / clock seconds of :func:`run_batch` (its reset and the feed-forward's design
+        included; building the stages, which discretizes each member's plant, is not).
 
     """
     base = StageParams()
     stages = [member_params(base, m) for m in sample_family(n)]
-    cp = ControllerParams(type=controller)
+    cp = ControllerParams(type=controller).with_flat({'feedforward.mode': feedforward})
     traj = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine'}))
     dt = base.sample_time_s
+    plant, hysteresis = linear_plant(base.plant), make_hysteresis(base.hysteresis)
 
     def once() -> float:
         batch = StageFamilyBatch(stages)
         t0 = clock()
-        run_batch(batch, cp, traj, duration_s=steps * dt, record=False)
+        run_batch(batch, cp, traj, duration_s=steps * dt, record=False, plant=plant,
+                  hysteresis=hysteresis)
         return clock() - t0
     return n * steps / _best(once, repeats)
 
@@ -314,6 +322,8 @@ def run_sim_benchmark(*, duration_s: float = 2.0, batch: int = 1000, batch_steps
         ``realtime_<plant>`` (sim s / wall s, RAC), ``realtime_cpu_<plant>`` (per CPU s),
         ``breakdown_<plant>`` (dict, CPU us/sample), ``batch_steps_per_s``,
         ``batch_steps_per_cpu_s``, ``batch_loop_steps_per_s``, ``batch_loop_steps_per_cpu_s``,
+        ``batch_loop_<mode>_steps_per_s`` and ``_per_cpu_s`` for ``learning`` and
+        ``inverse_learning``,
         ``rac_step`` and ``pi_step`` (dicts, ns), and the targets.
 
     """
@@ -323,7 +333,8 @@ def run_sim_benchmark(*, duration_s: float = 2.0, batch: int = 1000, batch_steps
 
     out: dict[str, Any] = {'targets': {'realtime': 20.0, 'realtime_aim': 100.0,
                                        'batch_steps_per_s': 1e7,
-                                       'batch_loop_steps_per_s': 1e7}}
+                                       'batch_loop_steps_per_s': 1e7,
+                                       'batch_loop_learning_steps_per_s': 5e6}}
     say('simulation benchmark (best of {} runs; the machine is shared, figures are noisy)'
         .format(repeats))
     for plant in ('reduced', 'third_order', 'electromechanical'):
@@ -357,6 +368,17 @@ def run_sim_benchmark(*, duration_s: float = 2.0, batch: int = 1000, batch_steps
         f'noise): {bl:.3g} stage-steps per wall s, {bl_cpu:.3g} per CPU s (target >= 1e7: '
         f'{"met" if bl >= 1e7 else "NOT met"} per wall s, '
         f'{"met" if bl_cpu >= 1e7 else "NOT met"} per CPU s)')
+    for mode in ('learning', 'inverse_learning'):
+        fl = batch_loop_speed(batch, feedforward=mode, repeats=repeats)
+        fl_cpu = batch_loop_speed(batch, feedforward=mode, repeats=repeats,
+                                  clock=time.process_time)
+        out[f'batch_loop_{mode}_steps_per_s'] = fl
+        out[f'batch_loop_{mode}_steps_per_cpu_s'] = fl_cpu
+        verdict = (f'target >= 5e6: {"met" if fl >= 5e6 else "NOT met"} per wall s, '
+                   f'{"met" if fl_cpu >= 5e6 else "NOT met"} per CPU s'
+                   if mode == 'learning' else 'no target')
+        say(f'  the same + feed-forward {mode} (100 Hz sine, 100-sample table per member): '
+            f'{fl:.3g} stage-steps per wall s, {fl_cpu:.3g} per CPU s ({verdict})')
     for ctype in ('rac', 'pi'):
         st = controller_step_times(ctype, steps=controller_steps)
         out[f'{ctype}_step'] = st

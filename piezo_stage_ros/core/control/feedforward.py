@@ -86,7 +86,7 @@ from piezo_stage_ros.core.model.linear import LinearPlant
 
 __all__ = ['FeedForwardController', 'FeedForwardParams', 'HysteresisInverse', 'LearnedTable',
            'MODES', 'PreviewInverse', 'TABLE_FORMAT', 'TABLE_META_KEY', 'TABLE_VERSION',
-           'kept_harmonics', 'learning_convergence', 'make_hysteresis_inverse',
+           'kept_harmonics', 'learning_columns', 'learning_convergence', 'make_hysteresis_inverse',
            'period_harmonics', 'process_sensitivity', 'read_learned_table', 'shape_jumps',
            'write_learned_table']
 
@@ -309,6 +309,14 @@ class BacklashInverse(HysteresisInverse):
             if bound * step * step <= tol:
                 break
         return v0 + dv
+
+    def jump_constants(self) -> tuple[float, float, float, float, float]:
+        """
+        Return the constants of the solve, as it uses them (batched loop).
+
+        (alpha, c, (B1 - c)/alpha, tolerance, bound of the a-priori stop).
+        """
+        return self._alpha, self._c, self._shift, self.tolerance_v, self._bound
 
     def commit(self, v: float) -> None:
         """Advance the state across the jump to the applied input ``v`` [V]."""
@@ -743,6 +751,16 @@ def shape_jumps(x: FloatArray, v: FloatArray, sample_time_s: float, transition_s
 # The wrapper
 
 
+def learning_columns(kernel2: FloatArray) -> FloatArray:
+    """
+    Return the windows of the learning kernel over two periods, row s = kernel2[s : s + n].
+
+    Row n - i is column i of the circulant learning operator (a view, nothing copied).
+    """
+    n = len(kernel2) // 2
+    return np.asarray(np.lib.stride_tricks.sliding_window_view(kernel2, n), dtype=np.float64)
+
+
 class FeedForwardController:
     """
     Feed-forward (model inverse, learning) around a feedback controller; see the module doc.
@@ -815,6 +833,7 @@ class FeedForwardController:
         # through their columns of the circulant learning operator (one correlation with a
         # slice of _kernel2) into _delta; the period's end applies it
         self._kernel2: FloatArray = np.zeros(0)
+        self._columns: FloatArray = np.zeros((0, 0))
         self._delta: FloatArray = np.zeros(0)
         self._errors: list[float] = []
         self._pending = 0
@@ -862,6 +881,7 @@ class FeedForwardController:
             # designed here, on the controller's initial estimates: nothing of it in the loop
             kernel = np.fft.irfft(self._learning_filter(), n)
             self._kernel2 = np.concatenate([kernel, kernel])
+            self._columns = learning_columns(self._kernel2)
         self.periods_learned = 0
         self._prepare_tables()
         self.design = self.design_summary()
@@ -1142,8 +1162,8 @@ class FeedForwardController:
         """
         Add the errors of samples pending .. end - 1 of the period to the update.
 
-        delta_j += sum_i e_i h_((j - i) mod n): columns i of the circulant operator, one
-        correlation of the errors (reversed) with the slice of h they meet.
+        delta_j += sum_i e_i h_((j - i) mod n): columns i of the circulant operator, the
+        windows of h over two periods, weighted by the errors and summed in one call.
         """
         start = self._pending
         self._pending = end % self._period_n if self._period_n else 0
@@ -1154,7 +1174,9 @@ class FeedForwardController:
         chunk = np.array(errors[start:end][::-1])
         errors[start:end] = _ZEROS[:end - start] if end - start <= LEARN_CHUNK \
             else [0.0] * (end - start)
-        self._delta += np.correlate(self._kernel2[n - end + 1:2 * n - start], chunk, 'valid')
+        # row n - i of the windows is column i; the sum over the rows runs in their order
+        # (no BLAS: the same sums on every machine, and the batched loop repeats them)
+        self._delta += (chunk[:, None] * self._columns[n - end + 1:n - start + 1]).sum(axis=0)
 
     @property
     def _learn_from(self) -> int:
@@ -1331,6 +1353,31 @@ class FeedForwardController:
                                  + '; '.join(differ))
         self.load_table(saved.table_v)
         self.table_source = str(path)
+
+    # -- for a batched loop (N stages, one reference) -----------------------------------------
+
+    def reference_tables(self, k: int) -> tuple[int, int, list[float], list[float],
+                                                list[float], list[float]]:
+        """
+        Return the tables the step of sample ``k`` reads, for a loop that steps N stages.
+
+        ``(period, start, x_d, x_ref, x_ref', w)``: periodic (period > 0), one period read at
+        ``k mod period``; else the block holding sample ``k``, read at ``k - start`` (the next
+        block is computed when ``k`` passes the present one: ask in sample order, as the step
+        does). The lists are the wrapper's own: read, do not change.
+        """
+        if not self._period_n and k - self._block_start >= len(self._lx):
+            self._next_block(k)
+        return (self._period_n, self._block_start, self._lx_raw, self._lx, self._lv,
+                self._lw)
+
+    def learning_kernel(self) -> FloatArray:
+        """Return the learning operator's impulse response over two periods (a copy)."""
+        return self._kernel2.copy()
+
+    def share_gains(self) -> tuple[float, float, float]:
+        """Return (theta_0, phi_0, k): the share subtracted is (theta_0 x + phi_0 x') k."""
+        return self._theta0, self._phi0, self._ksens
 
     # -- diagnostics -----------------------------------------------------------------------
 

@@ -55,12 +55,29 @@ import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
 from piezo_stage_ros.core.contracts.interfaces import Trajectory
 from piezo_stage_ros.core.contracts.types import FloatArray
-from piezo_stage_ros.core.control.controllers import ControllerParams, notch_design
+from piezo_stage_ros.core.control.controllers import (
+    build_controller,
+    ControllerParams,
+    notch_design,
+    NotchFilter,
+)
+from piezo_stage_ros.core.control.feedforward import (
+    BacklashInverse,
+    FeedForwardController,
+    LEARN_CHUNK,
+    learning_columns,
+)
 from piezo_stage_ros.core.loop.record import RunRecord
+from piezo_stage_ros.core.model.hysteresis import (
+    HysteresisModel,
+    HysteresisParams,
+    make_hysteresis,
+    NoHysteresis,
+)
 from piezo_stage_ros.core.model.linear import LinearPlant
 from piezo_stage_ros.core.model.stage import fused_constants, FusedConstants, Stage, StageParams
 
-__all__ = ['ControllerBatch', 'StageFamilyBatch', 'libm_exp', 'run_batch']
+__all__ = ['ControllerBatch', 'FeedForwardBatch', 'StageFamilyBatch', 'libm_exp', 'run_batch']
 
 
 
@@ -275,6 +292,19 @@ class StageFamilyBatch:
         self._cursor += 1
         return row[0] if len(self._seed_list) == 1 else row[self._seed_of]
 
+    def true_position_m(self) -> FloatArray:
+        """
+        Return the true positions c x now [m], shape (n,): what ``Stage.read_position_m`` gives.
+
+        The output row's sum of :meth:`step` before the noise and the converter (the terms whose
+        coefficient is zero for every member left out: the same value).
+        """
+        terms, x = self._c, self._x
+        pos: FloatArray = np.multiply(x[terms[0][0]], terms[0][1])
+        for i, c in terms[1:]:
+            pos += c * x[i]
+        return pos
+
     def step(self, command_v: FloatArray) -> FloatArray:
         """
         Hold one command per member over one sample and return the measured positions.
@@ -430,6 +460,19 @@ class ControllerBatch:
         self._spare = (np.empty(self.n), np.empty(self.n), np.empty(self.n))
         self._fresh = True
         self._z1 = self._z2 = np.zeros(self.n)
+        self.hold_estimates(False)
+
+    def hold_estimates(self, hold: bool) -> None:
+        """
+        Stop (True) or resume (False) the adaptation of every member, as the RAC's own does.
+
+        Held, the rates gamma and eta are zero: the updates are exact zeros and each member's
+        estimates keep their values bit for bit (a PI or open loop has none to hold).
+        """
+        rac = self.params.rac
+        self._gamma, self._eta = (0.0, 0.0) if hold else (rac.gamma, rac.eta)
+        self._dt_gamma = self._t * self._gamma
+        self._dt_eta = self._t * self._eta
 
     def diagnostic_values(self) -> tuple[FloatArray, ...]:
         """Return theta_hat and phi_hat per member (RAC), or nothing; valid until the next step."""
@@ -579,6 +622,246 @@ class ControllerBatch:
         return np.asarray(v, dtype=np.float64)
 
 
+class FeedForwardBatch:
+    """
+    The feed-forward around a :class:`ControllerBatch`, for N members that share one reference.
+
+    What :class:`~piezo_stage_ros.core.control.feedforward.FeedForwardController` computes for
+    each member alone. Designed once, as the scalar wrapper is, on the design model (the
+    configured plant and hysteresis, never a member's): a scalar wrapper built by
+    :func:`build_controller` and bound to the trajectory is kept as the *template* and gives
+    the tables (reference, shaped reference, model inverse w: shared by every member), the
+    learning filter and the share of the RAC's initial estimates. Per member: the learned table
+    and the update accumulated over the period (shape (period, n)), the state of the inverse
+    hysteresis and, in the controller batch, the estimates the learning holds. Each member
+    computes what the scalar wrapper computes for it alone, the same operations in the same
+    order (the learning update summed sample by sample, the inverse hysteresis by the same
+    Newton steps with libm's ``exp``).
+
+    Parameters
+    ----------
+    params : ControllerParams
+        The configuration (``feedforward.mode`` not ``none``).
+    ctrl : ControllerBatch
+        The feedback of every member.
+    plant : LinearPlant
+        Design model of the linear part (None is refused, as by :func:`build_controller`).
+    hysteresis : HysteresisModel
+        Design hysteresis (backlash-like or none).
+    trajectory : Trajectory
+        The reference every member follows.
+
+    """
+
+    def __init__(self, params: ControllerParams, ctrl: ControllerBatch,
+                 plant: LinearPlant | None, hysteresis: HysteresisModel,
+                 trajectory: Trajectory) -> None:
+        template = build_controller(params, ctrl.sample_time_s, plant, hysteresis)
+        assert isinstance(template, FeedForwardController)
+        self.template = template
+        self.ctrl = ctrl
+        ff = params.feedforward
+        self._inverse, self._learning = ff.inverse, ff.learning
+        self._vmin, self._vmax = float(params.output_min_v), float(params.output_max_v)
+        self._slope = template.slope
+        self._theta0, self._phi0, self._ksens = template.share_gains()
+        hyst = template.hysteresis_inverse
+        self._jump: tuple[float, float, float, float, float] | None = None
+        self._rest_gain = 0.0
+        if hyst is not None and not isinstance(hysteresis, NoHysteresis):
+            if not isinstance(hyst, BacklashInverse):
+                raise ParameterError('hysteresis.model', type(hysteresis).__name__,
+                                     'backlash_like or none', 'has no inverse in the batched '
+                                     'loop: run one closed loop per stage')
+            self._jump = hyst.jump_constants()
+            self._rest_gain = template.plant_inverse.dc_gain * hyst.slope
+        coeffs = notch_design(params.notch, ctrl.sample_time_s, plant)
+        self._share_notch = None if coeffs is None else NotchFilter(*coeffs)
+        self._limit = ff.learning_limit_v
+        self._start_periods = ff.learning_start_periods
+        self._exp = _exp_function()
+        self.trajectory = trajectory
+        self.n = 0
+        self.mismatches = 0
+        self.periods_learned = 0
+
+    def reset(self, position_m: FloatArray) -> None:
+        """
+        Bind the template to the reference afresh and put every member at sample 0.
+
+        Parameters
+        ----------
+        position_m : ndarray
+            Measured positions at the start [m], shape (n,): the inverse hysteresis of each
+            member starts at rest where its stage does.
+
+        """
+        self.template.bind(self.trajectory)
+        self._periodic = self.template.reference_tables(0)
+        period = self._periodic[0]
+        self.n = n = int(np.asarray(position_m).size)
+        self._period = period
+        self._k = 0
+        self._share_fresh = True
+        self._holding = False
+        self.ctrl.hold_estimates(False)
+        self._learned = np.zeros((period, n))
+        self._delta = np.zeros((n, period))
+        self._errors = np.zeros((period, n))
+        self._columns = learning_columns(self.template.learning_kernel()) if self._learning \
+            else np.zeros((0, 0))
+        self._learn_from = self._start_periods * period
+        if self._jump is not None:
+            # BacklashInverse.reset at position / (dc gain slope): at rest, e = 0
+            self._hv = np.asarray(position_m, dtype=np.float64) / self._rest_gain
+            self._he = np.zeros(n)
+        self.mismatches = 0
+        self.periods_learned = 0
+
+    def learned_table(self) -> FloatArray:
+        """Return a copy of every member's learned table [V], shape (period, n)."""
+        return self._learned.copy()
+
+    def step(self, position_m: FloatArray, reference_m: float,
+             reference_velocity_mps: float) -> FloatArray:
+        """
+        Return every member's command [V]: feedback plus feed-forward, through the inverse.
+
+        Parameters
+        ----------
+        position_m : ndarray
+            Measured positions y_k [m], shape (n,).
+        reference_m, reference_velocity_mps : float
+            The shared reference of this sample, checked against the bound one.
+
+        Returns
+        -------
+        ndarray
+            Commands [V], shape (n,).
+
+        """
+        k = self._k
+        self._k = k + 1
+        n = self._period
+        if n:
+            i = k % n
+            tables = self._periodic
+        else:
+            tables = self.template.reference_tables(k)
+            i = k - tables[1]
+        _, _, lx_raw, lx, lv, lw = tables
+        xd = lx_raw[i]
+        if abs(reference_m - xd) > 1e-12 + 1e-9 * abs(xd):
+            # not the bound reference: feedback alone for this sample (the scalar wrapper)
+            self.mismatches += 1
+            self._share_fresh = True
+            return self._output(self.ctrl.step(position_m, reference_m, reference_velocity_mps))
+        x_ref = lx[i]
+        v_ref = lv[i]
+        u = self.ctrl.step(position_m, x_ref, v_ref)
+        if self._inverse:
+            u = u - self._share(x_ref, v_ref)
+            u += lw[i]
+        if self._learning:
+            u = u + self._learned[i]
+            if k >= self._learn_from:
+                if not self._holding:
+                    self._holding = True
+                    self.ctrl.hold_estimates(True)
+                self._errors[i] = position_m - xd
+                if i % LEARN_CHUNK == LEARN_CHUNK - 1 or i == n - 1:
+                    self._accumulate(i + 1)
+            if i == n - 1 and k >= self._learn_from:
+                learned = self._learned
+                learned -= self._delta.T
+                _clip(learned, -self._limit, self._limit)
+                self._delta.fill(0.0)
+                self.periods_learned += 1
+        return self._output(u)
+
+    def _accumulate(self, end: int) -> None:
+        """
+        Add the errors of the run of samples ending at ``end`` to every member's update.
+
+        The scalar wrapper's sums, in its order: the errors of the run, latest first, times
+        the windows of the kernel, added row after row (its ``sum(axis=0)``).
+        """
+        n = self._period
+        start = (end - 1) // LEARN_CHUNK * LEARN_CHUNK
+        rows = self._columns[n - end + 1:n - start + 1]
+        chunk = self._errors[start:end][::-1]
+        acc = chunk[0][:, None] * rows[0]
+        for c in range(1, end - start):
+            acc += chunk[c][:, None] * rows[c]
+        self._delta += acc
+
+    def _share(self, x_ref: float, v_ref: float) -> float:
+        """Return the RAC's share at its initial estimates (one for all), through the notch."""
+        share = (self._theta0 * x_ref + self._phi0 * v_ref) * self._ksens
+        notch = self._share_notch
+        if notch is None:
+            return share
+        if self._share_fresh:  # restarted at rest on the present share, as the scalar wrapper
+            self._share_fresh = False
+            notch.reset(share)
+        return notch.step(share)
+
+    def _output(self, u: FloatArray) -> FloatArray:
+        """Return the commands for the linear inputs ``u``: inverse hysteresis, the range."""
+        jump = self._jump
+        if jump is not None:
+            u = self._invert(self._slope * u)
+        v = np.minimum(np.maximum(u, self._vmin), self._vmax)
+        if jump is not None:
+            self._commit(v)
+        return v
+
+    def _invert(self, w_target: FloatArray) -> FloatArray:
+        """BacklashInverse.invert for every member: Newton on the branch of the jump's sign."""
+        assert self._jump is not None
+        alpha, c, shift, tol, bound = self._jump
+        v0, e0 = self._hv, self._he
+        exp = self._exp
+        with np.errstate(divide='ignore', invalid='ignore'):
+            dw = w_target - (c * v0 + e0)
+            sgn = np.where(dw > 0.0, 1.0, -1.0)
+            a = sgn * shift - e0
+            a_s = a * sgn
+            slope = c + alpha * a_s
+            dv = dw / np.where(slope > 0.0, slope, c)
+            alpha_a_s = alpha * a_s
+            one_minus = np.empty_like(dv)
+            decay = np.empty_like(dv)
+            active = np.ones(dv.shape, dtype=bool)
+            for _ in range(30):
+                # the same operations as the scalar solve, member by member: exp(-alpha |dv|)
+                exp(np.abs(dv) * -alpha, decay)
+                np.subtract(1.0, decay, out=one_minus)
+                g = c * dv + a * one_minus - dw
+                active &= ~((-tol <= g) & (g <= tol))
+                if not active.any():
+                    break
+                step = g / (c + alpha_a_s * decay)
+                np.copyto(dv, dv - step, where=active)
+                # the a-priori stop: this step was the last one for the members it brings
+                # within the tolerance
+                active &= ~(bound * step * step <= tol)
+                if not active.any():
+                    break
+        return np.where(dw == 0.0, v0, v0 + dv)
+
+    def _commit(self, v: FloatArray) -> None:
+        """BacklashInverse.commit for every member: the state across the applied jump."""
+        assert self._jump is not None
+        alpha, _, shift, _, _ = self._jump
+        dv = v - self._hv
+        decay = np.abs(dv)
+        decay *= -alpha
+        self._exp(decay, decay)
+        self._he = self._he * decay + shift * np.copysign(1.0 - decay, dv)
+        self._hv = v
+
+
 def _reference_columns(trajectories: Sequence[Trajectory], time_s: FloatArray
                        ) -> tuple[FloatArray, FloatArray]:
     """Evaluate each distinct trajectory once and return (n, members) arrays."""
@@ -594,7 +877,8 @@ def _reference_columns(trajectories: Sequence[Trajectory], time_s: FloatArray
 
 def run_batch(stages: Sequence[StageParams] | StageFamilyBatch, controller: ControllerParams,
               trajectory: Trajectory | Sequence[Trajectory], *, duration_s: float,
-              plant: LinearPlant | None = None, chunk_s: float = 1.0, record: bool = True,
+              plant: LinearPlant | None = None, hysteresis: HysteresisModel | None = None,
+              chunk_s: float = 1.0, record: bool = True, record_from_s: float = 0.0,
               progress: Callable[[float], None] | None = None) -> list[RunRecord]:
     """
     Run the closed loop of every member at once; each as :func:`closed_loop.run` would.
@@ -611,12 +895,20 @@ def run_batch(stages: Sequence[StageParams] | StageFamilyBatch, controller: Cont
     duration_s : float
         Simulated time [s]; ``round(duration_s / T)`` samples, at least one.
     plant : LinearPlant, optional
-        Model of a notch in ``model`` mode (the configured plant, the same for all).
+        Model of a notch in ``model`` mode and of the feed-forward (the configured plant, the
+        same for all; required with feed-forward).
+    hysteresis : HysteresisModel, optional
+        Design hysteresis the feed-forward inverts (backlash-like or none); default the paper's,
+        as :func:`build_controller`'s.
     chunk_s : float
         The reference is evaluated and the noise drawn per chunk of this length [s].
     record : bool
-        Return the records (y, x_d, x_d', u and the RAC's theta_hat, phi_hat every sample);
+        Return the records (y, x_d, x_d', u, the true position x and the RAC's theta_hat,
+        phi_hat every sample);
         with False nothing is kept (speed measurements) and an empty list is returned.
+    record_from_s : float
+        Record the samples from ``round(record_from_s / T)`` on only (long runs measured on a
+        late window: memory); the samples before are stepped alike, unrecorded.
     progress : callable, optional
         Called with the simulated time [s] after each chunk.
 
@@ -624,25 +916,25 @@ def run_batch(stages: Sequence[StageParams] | StageFamilyBatch, controller: Cont
     -------
     list of RunRecord
         One per member, with the samples :func:`closed_loop.run` gives with
-        ``diagnostics_every=1`` (diagnostics: ``theta_hat``, ``phi_hat`` for the RAC only).
+        ``diagnostics_every=1`` (diagnostics: ``theta_hat``, ``phi_hat`` for the RAC only),
+        feed-forward included (:class:`FeedForwardBatch`).
 
     Raises
     ------
     ParameterError
-        On a bad duration, chunk, or a trajectory list of the wrong length.
+        On a bad duration, chunk, or a trajectory list of the wrong length; feed-forward with
+        one trajectory per member, without a plant, with a design hysteresis other than
+        backlash-like or none, or learning on an aperiodic reference.
     PiezoStageError
         If a command or a measurement is not finite (the batch has no per-sample fallback).
 
     """
-    if controller.feedforward.mode != 'none':
-        raise ParameterError('feedforward.mode', controller.feedforward.mode,
-                             "'none' in the batched loop",
-                             'is not vectorized yet: run one closed loop per stage '
-                             '(robustness --single)')
     if not (duration_s > 0.0 and math.isfinite(duration_s)):
         raise ParameterError('duration_s', duration_s, '(0, inf)')
     if not (chunk_s > 0.0 and math.isfinite(chunk_s)):
         raise ParameterError('chunk_s', chunk_s, '(0, inf)')
+    if not (record_from_s >= 0.0 and math.isfinite(record_from_s)):
+        raise ParameterError('record_from_s', record_from_s, '[0, inf)')
     batch = stages if isinstance(stages, StageFamilyBatch) else StageFamilyBatch(stages)
     n_members = batch.n
     trajs: list[Trajectory] = (list(trajectory) if isinstance(trajectory, (list, tuple))
@@ -652,28 +944,43 @@ def run_batch(stages: Sequence[StageParams] | StageFamilyBatch, controller: Cont
         raise ParameterError('trajectory', len(trajs), f'one or {n_members} trajectories')
     dt = batch.sample_time_s
     ctrl = ControllerBatch(controller, dt, plant)
+    ff: FeedForwardBatch | None = None
+    if controller.feedforward.mode != 'none':
+        if not shared:
+            raise ParameterError('trajectory', f'{len(trajs)} trajectories', 'one shared by '
+                                 'every member', 'with feed-forward in the batched loop')
+        ff = FeedForwardBatch(controller, ctrl, plant,
+                              make_hysteresis(HysteresisParams()) if hysteresis is None
+                              else hysteresis, trajs[0])
     total = max(int(round(duration_s / dt)), 1)
     per_chunk = max(int(round(chunk_s / dt)), 1)
     y = batch.reset()
     ctrl.reset(y)
+    if ff is not None:
+        ff.reset(y)
     names = ctrl.diagnostic_names
     chunks: list[dict[str, Any]] = []
-    cstep, pstep = ctrl.step, batch.step
+    cstep, pstep = (ctrl.step if ff is None else ff.step), batch.step
+    read_true = batch.true_position_m
+    first = min(max(int(round(record_from_s / dt)), 0), total - 1) if record else total
     k0 = 0
     while k0 < total:
-        n = min(per_chunk, total - k0)
+        # a chunk ends where the recording starts
+        n = min(per_chunk, total - k0, first - k0 if k0 < first else total)
         time_s = np.arange(k0, k0 + n, dtype=np.float64) * dt
         ref, vel = _reference_columns(trajs, time_s)
         refs: Any = ref[:, 0].tolist() if shared else ref
         vels: Any = vel[:, 0].tolist() if shared else vel
         batch.reserve(n)
-        if record:
+        if k0 >= first:
             pos = np.empty((n, n_members))
             cmd = np.empty((n, n_members))
+            true = np.empty((n, n_members))
             diag = [np.empty((n, n_members)) for _ in names]
             for j in range(n):
                 u = cstep(y, refs[j], vels[j])
                 pos[j] = y
+                true[j] = read_true()
                 cmd[j] = u
                 for arr, val in zip(diag, ctrl.diagnostic_values()):
                     arr[j] = val
@@ -681,7 +988,7 @@ def run_batch(stages: Sequence[StageParams] | StageFamilyBatch, controller: Cont
             if not (np.isfinite(pos).all() and np.isfinite(cmd).all()):
                 raise PiezoStageError('run_batch: a non-finite command or measurement')
             chunks.append({'time_s': time_s, 'pos': pos, 'cmd': cmd, 'ref': ref, 'vel': vel,
-                           'diag': diag})
+                           'true': true, 'diag': diag})
         else:
             for j in range(n):
                 y = pstep(cstep(y, refs[j], vels[j]))
@@ -697,6 +1004,7 @@ def run_batch(stages: Sequence[StageParams] | StageFamilyBatch, controller: Cont
     cmd_all = np.concatenate([c['cmd'] for c in chunks]).T.copy()
     ref_all = np.concatenate([c['ref'] for c in chunks]).T.copy()
     vel_all = np.concatenate([c['vel'] for c in chunks]).T.copy()
+    true_all = np.concatenate([c['true'] for c in chunks]).T.copy()
     diag_all = [np.concatenate([c['diag'][j] for c in chunks]).T.copy()
                 for j in range(len(names))]
     meta: dict[str, Any] = {'sample_time_s': dt, 'duration_s': total * dt}
@@ -708,5 +1016,6 @@ def run_batch(stages: Sequence[StageParams] | StageFamilyBatch, controller: Cont
             m['trajectory_period_s'] = period
         records.append(RunRecord(time_all, pos_all[i], ref_all[0 if shared else i],
                                  vel_all[0 if shared else i], cmd_all[i],
-                                 {name: diag_all[j][i] for j, name in enumerate(names)}, m))
+                                 {name: diag_all[j][i] for j, name in enumerate(names)}, m,
+                                 true_all[i]))
     return records

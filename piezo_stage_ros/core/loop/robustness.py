@@ -30,10 +30,13 @@ steady state, after ``settle_s`` (1 s by default):
 
 and, for every case, the command range over the whole run and the RAC's estimates theta_hat and
 phi_hat (final value, smallest and largest) beside the stage's true theta and phi
-(:func:`piezo_stage_ros.core.model.family.true_estimates`).
+(:func:`piezo_stage_ros.core.model.family.true_estimates`). The sines and the multi-sine also
+give the true-position error (``e_rms_true_m``, ``e_max_true_m``: the stage's position before
+sensor noise and ADC), which shows tracking below the sensor noise.
 
-The controller is built from the configuration once per run, with a notch in ``model`` mode
-designed on the *configured* plant, never on the member's: nothing is retuned per stage.
+The controller is built from the configuration once per run, with a notch in ``model`` mode and
+a feed-forward (``feedforward.mode``) designed on the *configured* plant and hysteresis, never
+on the member's: nothing is retuned per stage.
 """
 
 from __future__ import annotations
@@ -51,11 +54,12 @@ from piezo_stage_ros.core.loop.experiments import square_edge_metrics
 from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
 from piezo_stage_ros.core.model.family import member_params, StageVariation, true_estimates
+from piezo_stage_ros.core.model.hysteresis import make_hysteresis
 from piezo_stage_ros.core.model.stage import linear_plant, Stage, StageParams
 
-__all__ = ['BATCH_MEMBERS', 'CASES', 'COLUMNS', 'RobustnessResult', 'case_metrics',
-           'case_trajectory', 'format_result', 'run_study', 'stage_table', 'summary_table',
-           'worst']
+__all__ = ['BATCH_MEMBERS', 'BATCH_RECORD_BYTES', 'CASES', 'COLUMNS', 'RobustnessResult',
+           'batch_members', 'case_metrics', 'case_trajectory', 'format_result', 'run_study',
+           'stage_table', 'summary_table', 'worst']
 
 #: The cases of the study: name -> (trajectory_node values, what is measured).
 CASES: dict[str, tuple[dict[str, Any], str]] = {
@@ -73,6 +77,7 @@ CASES: dict[str, tuple[dict[str, Any], str]] = {
 COLUMNS: tuple[tuple[str, str, float, str, str], ...] = (
     ('e_rms_m', 'e_rms [nm]', 1e9, '.2f', 'max'),
     ('e_max_m', 'e_m [nm]', 1e9, '.1f', 'max'),
+    ('e_rms_true_m', 'true e_rms [nm]', 1e9, '.2f', 'max'),
     ('command_min_v', 'u min [V]', 1.0, '.2f', 'min'),
     ('command_max_v', 'u max [V]', 1.0, '.2f', 'max'),
     ('theta_error_pct', 'theta_hat end/true-1 [%]', 1.0, '+.1f', 'abs'),
@@ -136,7 +141,8 @@ def case_metrics(case: str, record: RunRecord, trajectory: TrajectoryParams, *,
     -------
     dict
         ``e_max_m``, ``e_rms_m`` (NaN when the run holds no steady state), ``command_min_v``,
-        ``command_max_v``, and when present ``theta_hat_end``/``_min``/``_max``,
+        ``command_max_v``; periodic cases of a run with a true position: ``e_max_true_m``,
+        ``e_rms_true_m``; and when present ``theta_hat_end``/``_min``/``_max``,
         ``phi_hat_end``/``_min``/``_max``; square: also ``overshoot_pct``, ``settling_time_s``.
 
     """
@@ -145,10 +151,15 @@ def case_metrics(case: str, record: RunRecord, trajectory: TrajectoryParams, *,
     out: dict[str, float] = {}
     if how == 'periodic':
         period = make_trajectory(trajectory).period_s
-        s = metrics.summarize(record, steady_state_start_s=settle_s, period_s=period)
+        # a record may start late (window_only): the start is counted from its first sample
+        s = metrics.summarize(record, steady_state_start_s=settle_s - float(t[0]),
+                              period_s=period)
         late = t[-1] + (t[1] - t[0] if t.size > 1 else 0.0) > settle_s + (period or 0.0) - 1e-9
         out.update({'e_max_m': s.e_max_m, 'e_rms_m': s.e_rms_m} if late
                    else _nan_metrics())
+        if s.e_rms_true_m is not None and s.e_max_true_m is not None:
+            out.update({'e_max_true_m': s.e_max_true_m, 'e_rms_true_m': s.e_rms_true_m}
+                       if late else {'e_max_true_m': math.nan, 'e_rms_true_m': math.nan})
     elif how == 'square':
         sq = trajectory.square
         start = math.ceil(settle_s / sq.period_s - 1e-9) * sq.period_s
@@ -236,16 +247,27 @@ def _stage_rows(name: str, case: str, m: dict[str, float], truth: tuple[float, f
     return row
 
 
-#: Members per batch: the records of a batch are held in memory until measured (32 bytes per
-#: member and sample), 128 members of a 2 s run take 80 MB.
+#: Members per batch: the records of a batch are held in memory until measured (56 bytes per
+#: member and sample: y, x_d, x_d', u, x, theta_hat, phi_hat), 128 members of a 2 s run take
+#: 143 MB.
 BATCH_MEMBERS = 128
+
+#: Longer runs batch fewer members, so that a batch's records stay within this many bytes
+#: (building them takes about three times as much for a moment): 60 s runs, 35 members.
+BATCH_RECORD_BYTES = 1.2e9
+
+
+def batch_members(samples: int) -> int:
+    """Return the members per batch for runs of ``samples`` samples (1 ... BATCH_MEMBERS)."""
+    return max(1, min(BATCH_MEMBERS, int(BATCH_RECORD_BYTES // (56 * max(samples, 1)))))
 
 
 def run_study(stage: StageParams, controller: ControllerParams, trajectory: TrajectoryParams, *,
               family: Sequence[StageVariation], cases: Sequence[str], duration_s: float = 2.0,
               settle_s: float = 1.0, trace_every: int = 10,
               traced: Collection[str] | None = None, batch: bool = True,
-              progress: ProgressFn | None = None) -> RobustnessResult:
+              window_only: bool = False, progress: ProgressFn | None = None
+              ) -> RobustnessResult:
     """
     Run one controller configuration on every member of a family, for every case.
 
@@ -272,8 +294,13 @@ def run_study(stage: StageParams, controller: ControllerParams, trajectory: Traj
         The members whose estimates are kept for the plots; default all.
     batch : bool
         Run the members of each case together (:func:`piezo_stage_ros.core.loop.batch.run_batch`,
-        :data:`BATCH_MEMBERS` at a time); with False one :func:`closed_loop.run` per member
-        and case. Both give the same samples, bit for bit (tested).
+        :func:`batch_members` at a time), feed-forward included; with False one
+        :func:`closed_loop.run` per member and case. Both give the same samples, bit for bit
+        (tested).
+    window_only : bool
+        Keep the samples from ``settle_s`` on only (long runs: memory, and larger batches);
+        the command range and the estimates' ranges then cover that window. Sines and
+        multi-sine only.
     progress : callable, optional
         Receives a line per run (single) or per simulated second of a batch.
 
@@ -290,8 +317,11 @@ def run_study(stage: StageParams, controller: ControllerParams, trajectory: Traj
         raise ParameterError('stages', names, 'at least one, names unique')
     for case in cases:
         case_trajectory(case, trajectory, duration_s)  # refuse an unknown case up front
+        if window_only and CASES[case][1] != 'periodic':
+            raise ParameterError('--cases', case, 'sines and multisine with a window only')
     result = RobustnessResult(cases=list(cases), meta={
-        'controller': controller.type, 'duration_s': duration_s, 'settle_s': settle_s,
+        'controller': controller.type, 'feedforward': controller.feedforward.mode,
+        'duration_s': duration_s, 'settle_s': settle_s, 'window_only': window_only,
         'path': 'batch' if batch else 'single', 'sample_rate_hz': stage.sample_rate_hz})
     members = [(m, member_params(stage, m)) for m in family]
     for m, sp in members:
@@ -300,27 +330,29 @@ def run_study(stage: StageParams, controller: ControllerParams, trajectory: Traj
                               'changes': m.changes(), 'theta_true': theta, 'phi_true': phi,
                               'listed': traced is None or m.name in traced})
     nominal_plant = linear_plant(stage.plant)
+    # the feed-forward's design hysteresis: the configured stage's, as the plant
+    nominal_hysteresis = make_hysteresis(stage.hysteresis)
     dt = stage.sample_time_s
-    if controller.feedforward.mode != 'none' and batch:
-        # the batched loop has no feed-forward yet: the reference path, one run per member
-        batch = False
-        result.meta['path'] = 'single (feed-forward is not in the batched loop)'
+    start_s = settle_s if window_only else 0.0
+    size = batch_members(int(round((duration_s - start_s) / dt))) if batch else 1
     for case in cases:
         tp = case_trajectory(case, trajectory, duration_s)
-        for g0 in range(0, len(members), BATCH_MEMBERS if batch else 1):
-            group = members[g0:g0 + (BATCH_MEMBERS if batch else 1)]
+        for g0 in range(0, len(members), size):
+            group = members[g0:g0 + size]
             if batch:
                 def say(t: float, case: str = case, g0: int = g0, size: int = len(group)
                         ) -> None:
                     if progress is not None:
                         progress(f'{case:10s} members {g0}-{g0 + size - 1}: {t:g} s simulated')
                 records = run_batch([sp for _, sp in group], controller, make_trajectory(tp),
-                                    duration_s=duration_s, plant=nominal_plant, progress=say)
+                                    duration_s=duration_s, plant=nominal_plant,
+                                    hysteresis=nominal_hysteresis, record_from_s=start_s,
+                                    progress=say)
             else:
-                records = [closed_loop.run(Stage(sp), build_controller(controller, dt,
-                                                                       nominal_plant),
-                                           make_trajectory(tp), duration_s=duration_s,
-                                           diagnostics_every=1) for _, sp in group]
+                records = [_window(closed_loop.run(Stage(sp), build_controller(
+                    controller, dt, nominal_plant, nominal_hysteresis), make_trajectory(tp),
+                    duration_s=duration_s, diagnostics_every=1), start_s)
+                    for _, sp in group]
             for (m, _), info, rec in zip(group, result.stages[g0:], records):
                 mets = case_metrics(case, rec, tp, settle_s=settle_s)
                 row = _stage_rows(m.name, case, mets, (info['theta_true'], info['phi_true']))
@@ -335,6 +367,22 @@ def run_study(stage: StageParams, controller: ControllerParams, trajectory: Traj
                     progress(f'{case:10s} {m.name:22s} e_rms {row["e_rms_m"] * 1e9:8.2f} nm, '
                              f'e_m {row["e_max_m"] * 1e9:8.1f} nm')
     return result
+
+
+def _window(record: RunRecord, start_s: float) -> RunRecord:
+    """Return the samples from ``round(start_s / T)`` on (what run_batch records)."""
+    if start_s <= 0.0:
+        return record
+    k = int(round(start_s / float(record.time_s[1] - record.time_s[0])))
+    k = min(k, record.time_s.size - 1)
+
+    def cut(a: np.ndarray | None) -> np.ndarray | None:
+        return None if a is None else a[k:].copy()
+    return RunRecord(record.time_s[k:].copy(), record.position_m[k:].copy(),
+                     record.reference_m[k:].copy(), record.reference_velocity_mps[k:].copy(),
+                     record.command_v[k:].copy(),
+                     {name: v[k:].copy() for name, v in record.diagnostics.items()},
+                     dict(record.meta), cut(record.true_position_m))
 
 
 def worst(result: RobustnessResult, case: str) -> dict[str, Any]:
@@ -471,7 +519,10 @@ def format_result(result: RobustnessResult) -> str:
     width = max(len(s['name']) for s in result.stages) if result.stages else 5
     lines: list[str] = []
     meta = result.meta
-    lines.append(f'robustness: {meta.get("controller")} on {len(result.stages)} stages, '
+    ff = meta.get('feedforward', 'none')
+    lines.append(f'robustness: {meta.get("controller")}'
+                 f'{"" if ff == "none" else " + feed-forward " + str(ff)} on '
+                 f'{len(result.stages)} stages, '
                  f'{meta.get("duration_s"):g} s per run, steady state after '
                  f'{meta.get("settle_s"):g} s ({meta.get("path")} runs)')
     head = (f'{"stage":{width}s} {"e_rms[nm]":>9s} {"e_m[nm]":>8s} {"u min":>6s} {"u max":>6s}'
