@@ -463,8 +463,8 @@ def test_on_the_design_model_the_ratio_is_one_minus_gamma(gain: float, kind: str
     assert check is not None
     # P_true / P_s = 1 up to the rounding of one complex division
     assert check.design_ratio == pytest.approx(abs(1.0 - gain), abs=4 * EPS)
-    # 100 Hz harmonics up to Q's 1.5 kHz
-    assert check.harmonics == 15
+    # 100 Hz harmonics up to Q's edge
+    assert check.harmonics == int(params.feedforward.learning_bandwidth_hz // 100.0)
     assert check.slopes == ()  # the inverse removes the hysteresis
 
 

@@ -120,9 +120,12 @@ class FeedForwardParams(Params):
     learning_gain: float = param(0.5, unit='-', description='Learning gain gamma: the share of '
                                  "a period's error removed at the next period on the design "
                                  'model.', low=0.0, low_open=True, high=1.0)
-    learning_bandwidth_hz: float = param(1500.0, unit='Hz', description='Robustness filter Q: '
+    learning_bandwidth_hz: float = param(1200.0, unit='Hz', description='Robustness filter Q: '
                                          'harmonics of the period above this frequency are '
-                                         'not learned.', low=0.0, low_open=True)
+                                         'not learned (1200: the learning contracts by 0.84 '
+                                         'or less a period on every member of the stage '
+                                         'family, docs/robustness.md).',
+                                         low=0.0, low_open=True)
     learning_start_periods: int = param(1, unit='periods', description='Whole periods run '
                                         'before the first update (the start transient is not '
                                         'periodic).', low=0, high=1000)
