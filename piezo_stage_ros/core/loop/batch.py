@@ -708,6 +708,8 @@ class FeedForwardBatch:
         self._learned = np.zeros((period, n))
         self._delta = np.zeros((n, period))
         self._errors = np.zeros((period, n))
+        self._acc = np.zeros((n, period))
+        self._term = np.zeros((n, period))
         self._columns = learning_columns(self.template.learning_kernel()) if self._learning \
             else np.zeros((0, 0))
         self._learn_from = self._start_periods * period
@@ -790,9 +792,11 @@ class FeedForwardBatch:
         start = (end - 1) // LEARN_CHUNK * LEARN_CHUNK
         rows = self._columns[n - end + 1:n - start + 1]
         chunk = self._errors[start:end][::-1]
-        acc = chunk[0][:, None] * rows[0]
+        acc, term = self._acc, self._term
+        np.multiply(chunk[0][:, None], rows[0], out=acc)
         for c in range(1, end - start):
-            acc += chunk[c][:, None] * rows[c]
+            np.multiply(chunk[c][:, None], rows[c], out=term)
+            acc += term
         self._delta += acc
 
     def _share(self, x_ref: float, v_ref: float) -> float:
