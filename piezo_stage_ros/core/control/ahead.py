@@ -20,14 +20,15 @@ would give next if the stage followed the reference. The I/O target (or the simu
 keeps them as a queue and applies p_k+j over a sample the host missed instead of holding u_k
 (:class:`~piezo_stage_ros.hardware.safety.GuardedPlant`).
 
-The prediction holds the feedback part and moves the part of the command the reference alone
-explains along the reference ahead:
+The prediction moves the part of the command the reference explains along the reference ahead:
 
     p_k+j = u_k + a (x_d,k+j - x_d,k) + b (x_d',k+j - x_d',k)
 
-with (a, b) the controller's ``reference_gains()``: the RAC's theta_hat k and phi_hat k (its
-model-based part theta_hat y + phi_hat dy_d/dt at y = y_d, eq. (36)), an open loop's gain, and
-(0, 0) for a PI (its command is held). A feed-forward wrapper predicts from its own tables
+with (a, b) the controller's ``reference_gains()`` (the RAC's theta_hat k and phi_hat k: its
+model-based part theta_hat y + phi_hat dy_d/dt at y = y_d, eq. (36); an open loop's gain;
+(0, 0) for a PI) plus the trend of the feedback part along the reference, fitted over the last
+samples by :class:`CommandPredictor`; what the fit cannot explain is held. A feed-forward
+wrapper predicts from its own tables
 (:meth:`~piezo_stage_ros.core.control.feedforward.FeedForwardController.predict`). No controller
 step is run: a few array operations on m values per sample.
 """
