@@ -95,7 +95,6 @@ MODES = ('none', 'inverse', 'learning', 'inverse_learning')
 
 #: Samples whose errors enter the learning update together (one correlation each run).
 LEARN_CHUNK = 16
-_ZEROS = [0.0] * LEARN_CHUNK
 
 
 @dataclass(frozen=True)
@@ -1168,15 +1167,14 @@ class FeedForwardController:
         delta_j += sum_i e_i h_((j - i) mod n): columns i of the circulant operator, the
         windows of h over two periods, weighted by the errors and summed in one call.
         """
+        n = self._period_n  # > 0: learning binds only a periodic reference
         start = self._pending
-        self._pending = end % self._period_n if self._period_n else 0
+        self._pending = end % n
         if end <= start:
             return
-        n = self._period_n
         errors = self._errors
         chunk = np.array(errors[start:end][::-1])
-        errors[start:end] = _ZEROS[:end - start] if end - start <= LEARN_CHUNK \
-            else [0.0] * (end - start)
+        errors[start:end] = [0.0] * (end - start)
         # row n - i of the windows is column i; the sum over the rows runs in their order
         # (no BLAS: the same sums on every machine, and the batched loop repeats them)
         self._delta += (chunk[:, None] * self._columns[n - end + 1:n - start + 1]).sum(axis=0)
