@@ -235,7 +235,8 @@ def run_bridge(loop: LoopConfig, duration_s: float, offline_rms: float) -> dict[
             target.kill()
             target.wait()
     out = _figures(stats, got, loop, offline_rms)
-    for key in ('answer_p50_us', 'answer_p99_us', 'answer_max_us', 'lost', 'target_missing'):
+    for key in ('answers', 'answer_p50_us', 'answer_p99_us', 'answer_max_us', 'lost',
+                'target_missing'):
         out[f'host_{key}' if key == 'lost' else key] = stats.get(f'bridge_{key}')
     out['target'] = ' '.join(line.strip() for line in lines
                              if 'clock' in line or 'stopped' in line or 'sched' in line

@@ -473,8 +473,10 @@ class UdpStreamBridge(UdpBridge):
         out: dict[str, float] = dict(super().stats())
         out['gaps'] = self.gaps
         answer = self.answer
-        out.update({'answer_p50_us': answer.percentile_us(50.0),
-                    'answer_p99_us': answer.percentile_us(99.0),
+        # rounded alike, as LatenessStats.summary does: the p99 of a top bin is the maximum
+        out.update({'answers': answer.samples,
+                    'answer_p50_us': round(answer.percentile_us(50.0), 1),
+                    'answer_p99_us': round(answer.percentile_us(99.0), 1),
                     'answer_max_us': round(answer.max_ns / 1000, 1),
                     'answer_late_half_period': answer.late_half})
         return out
