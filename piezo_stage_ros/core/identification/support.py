@@ -46,7 +46,8 @@ What recorded data can support, closed-loop identification on purpose, and refus
    closed loop (the position noise at sample k is independent of the inputs before k).
 5. **Bounds.** Every parameter gets 95 % bounds, +-1.96 sigma from the Jacobian of its fit
    (the frequency fit's covariance scaled up by chi^2/dof when the residuals exceed the
-   variance per line).
+   variance per line, plus a model-structure term: the largest move of each parameter under
+   two other describing functions of the hysteresis).
 """
 
 from __future__ import annotations
@@ -591,9 +592,14 @@ def fit_periodic_response(spectra: PeriodicSpectra, params: IdentificationParams
     sig = np.sqrt(np.maximum(var, 1e-300)) / np.abs(g)
     fu, gu, su = f[used], g[used], np.maximum(sig[used], 1e-6)
 
+    # the lowest used line scales the relaxation term: x[5] is its phase lag there [rad]
+    lag = 1.0 / (1j * fu / fu[0])
+
     def residual(x: FloatArray) -> FloatArray:
         fac = LinearFactors(*(float(v) for v in np.exp(x[:4])))
         model = discrete_frequency_response(third_order_of(fac), t, fu) * np.exp(-1j * x[4])
+        if x.size > 5:
+            model = model * (1.0 + x[5] * lag)
         r = np.log(model / gu) / su
         return np.asarray(np.concatenate([r.real, r.imag]), dtype=np.float64)
 
@@ -604,10 +610,15 @@ def fit_periodic_response(spectra: PeriodicSpectra, params: IdentificationParams
     chi2 = float(sol.fun @ sol.fun) / dof
     jac = np.asarray(sol.jac, dtype=np.float64)
     cov = np.linalg.pinv(jac.T @ jac) * max(chi2, 1.0)
-    # model-structure term: the same fit without the hysteresis phase (a purely linear model)
-    # brackets how much the describing-function assumption moves each parameter
+    # model-structure term: how far two other describing functions of the hysteresis move each
+    # parameter, the larger of the two: none at all (a purely linear model), and the constant
+    # phase with the relaxation of the linearised dynamic backlash around the slow motion,
+    # (B s + kappa c) / (s + kappa) ~ B (1 + kappa (c / B - 1) / s) on lines far above kappa
+    # (a lag falling as 1 / f that the constant phase alone leaves to zeta and tau)
     alt = optimize.least_squares(lambda x: residual(np.append(x, 0.0)), sol.x[:4], method='lm')
-    structure = np.append(np.abs(alt.x - sol.x[:4]), 0.0)
+    relax = optimize.least_squares(residual, np.append(sol.x, 0.0), method='lm')
+    structure = np.append(np.maximum(np.abs(alt.x - sol.x[:4]),
+                                     np.abs(relax.x[:4] - sol.x[:4])), 0.0)
     rel = np.sqrt(np.maximum(np.diag(cov), 0.0) + structure ** 2)
     fac = LinearFactors(*(float(v) for v in np.exp(sol.x[:4])))
     std = LinearFactors(fac.gain_m_per_v * rel[0], fac.omega_n_rad_s * rel[1],
