@@ -30,6 +30,7 @@ from piezo_stage_ros.hardware.safety import GuardedPlant
 from piezo_stage_ros.nodes.logic import (
     ControllerLogic,
     PlantLogic,
+    rebuild_or_learn_afresh,
     sample_count,
     TrajectoryLogic,
 )
@@ -466,3 +467,29 @@ def test_each_trip_is_logged_with_its_length_and_largest_step_at_most_once_a_sec
                                          'samples, largest step 0.01 V']
     assert log.lines([trip(2)], 12.5, **kw) == []
     assert len(log.lines([], 12.6, final=True, **kw)) == 1
+
+
+def test_a_rebuild_learns_afresh_when_the_table_no_longer_fits():
+    # a change the table was not learned with: the new controller starts from zero, warned;
+    # a refusal for another reason stays a refusal
+    ff = ControllerParams().feedforward.replace(mode='learning', table_file='old.npz')
+    params = ControllerParams().replace(feedforward=ff)
+    built, told = [], []
+
+    def build(p: ControllerParams) -> object:
+        if p.feedforward.table_file:
+            raise ParameterError('feedforward.table_file', p.feedforward.table_file, 'a match')
+        built.append(p)
+        return object()
+
+    rebuild_or_learn_afresh(build, params, told.append)  # type: ignore[arg-type]
+    assert built[0].feedforward.table_file == '' and built[0].feedforward.mode == 'learning'
+    assert len(told) == 1 and 'old.npz' in told[0]
+
+    def refuse(p: ControllerParams) -> object:
+        raise ParameterError('rac.k_d', -1.0, '> 0')
+
+    with pytest.raises(ParameterError, match='rac.k_d'):
+        rebuild_or_learn_afresh(refuse, params.replace(feedforward=ff.replace(table_file='')),
+                                told.append)  # type: ignore[arg-type]
+    assert len(told) == 1

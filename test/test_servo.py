@@ -468,6 +468,31 @@ def test_apply_change_reaches_the_logic_and_names_a_bad_change():
         apply_change(servo, 'set', ('controller.no_such', 1))
 
 
+def test_servo_process_writes_the_table_its_controller_learned(tmp_path):
+    # the process runs the controller: its table, not the controller node's idle copy, is the
+    # one save_table_file keeps (the node skips its own write when it forwards to a process)
+    from piezo_stage_ros.core.control.feedforward import read_learned_table
+    loop = _loop_config()
+    path = tmp_path / 'table.npz'
+    ff = loop.controller.feedforward.replace(mode='learning', save_table_file=str(path))
+    loop = dataclasses.replace(loop, controller=loop.controller.replace(feedforward=ff))
+    proc = ServoProcess(loop, 0.05)  # 500 samples: five periods of the 100 Hz sine
+    try:
+        proc.start()
+        _wait_for(lambda: proc.take() is not None and proc.finished, 'run of 500 samples')
+        proc.stop()
+        stats = proc.stats()  # the figures of the end-of-run line: the table has its own
+    finally:
+        proc.close()
+    assert 'error' not in stats and 'learned_table' not in stats
+    table = read_learned_table(path)
+    # the run's periods, less the first (which only fills the table's history) and any a
+    # stall cut short
+    assert table.mode == 'learning' and 1 <= table.periods_learned <= 5
+    assert proc.table_line is not None and str(path) in proc.table_line
+    assert f'{table.periods_learned} periods learned' in proc.table_line
+
+
 def test_servo_process_refuses_fork_and_an_unknown_change():
     with pytest.raises(ValueError, match="'fork'"):
         ServoProcess(_loop_config(), 0.01, context='fork')

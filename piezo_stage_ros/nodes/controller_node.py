@@ -42,7 +42,6 @@ from piezo_stage_ros.core.contracts.cdr import (
     JointStateEncoder,
 )
 from piezo_stage_ros.core.contracts.errors import (
-    ParameterError,
     PiezoStageError,
     StabilityError,
 )
@@ -52,7 +51,6 @@ from piezo_stage_ros.core.control.controllers import (
     build_controller,
     ControllerParams,
 )
-from piezo_stage_ros.core.control.feedforward import FeedForwardController
 from piezo_stage_ros.core.control.stability import check_stability, StabilityParams
 from piezo_stage_ros.core.model.stage import linear_plant, PlantParams
 from piezo_stage_ros.nodes import qos
@@ -60,6 +58,8 @@ from piezo_stage_ros.nodes.logic import (
     Command,
     ControllerLogic,
     Gate,
+    rebuild_or_learn_afresh,
+    save_learned_table,
 )
 from piezo_stage_ros.nodes.parameters import ParameterBinding
 from piezo_stage_ros.nodes.runner import run
@@ -173,16 +173,8 @@ class ControllerNode(Node):
         return bound_controller(params, self.sample_time_s, plant, *self._ff_context)
 
     def _rebuild(self, params: ControllerParams) -> Controller:
-        try:
-            return self._build(params, self._stability)
-        except ParameterError as err:
-            if not params.feedforward.table_file:
-                raise
-            # a change at run time (a notch, a gain) that the table was not learned with: the
-            # new controller learns afresh instead of stopping the node at a sample
-            self.get_logger().warning(f'learned table not loaded after the change: {err}')
-            ff = params.feedforward.replace(table_file='')
-            return self._build(params.replace(feedforward=ff), self._stability)
+        return rebuild_or_learn_afresh(lambda p: self._build(p, self._stability), params,
+                                       self.get_logger().warning)
 
     def _on_change(self, old: Sequence[Any], new: Sequence[Any]) -> None:
         params, stability, opts = new
@@ -305,13 +297,13 @@ class ControllerNode(Node):
     def destroy_node(self) -> None:
         """Write the learned table (``feedforward.save_table_file``), then destroy the node."""
         try:
-            path = self.binding.objects[0].feedforward.save_table_file
-            ctrl = self.logic.controller
-            if path and isinstance(ctrl, FeedForwardController):
-                table = ctrl.learned()
-                ctrl.save_table_file(path)
-                self.get_logger().info(f'learned table written: {path} ({table.samples} '
-                                       f'samples, {table.periods_learned} periods learned)')
+            # with the servo in a process of its own, that process ran the controller and
+            # writes its table (the plant node logs it); this node's copy stayed idle
+            if self.forward is None:
+                line = save_learned_table(self.logic.controller,
+                                          self.binding.objects[0].feedforward.save_table_file)
+                if line is not None:
+                    self.get_logger().info(line)
         except PiezoStageError as err:
             self.get_logger().error(f'learned table not written: {err}')
         finally:

@@ -43,11 +43,12 @@ import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
 from piezo_stage_ros.core.contracts.interfaces import Controller, Trajectory
 from piezo_stage_ros.core.contracts.wire import diagnostic_reader, NS_PER_S
+from piezo_stage_ros.core.control.feedforward import FeedForwardController
 from piezo_stage_ros.hardware.safety import GuardedPlant, Trip, Watchdog
 
 __all__ = ['ControllerLogic', 'Gate', 'LATE_COMMAND_LIMIT', 'LATE_HALF_LIMIT', 'PlantLogic',
            'Sample', 'TrajectoryLogic', 'TripLog', 'realtime_warning', 'run_verdict',
-           'sample_count']
+           'rebuild_or_learn_afresh', 'sample_count', 'save_learned_table']
 
 #: End of a run: more than this fraction of the samples taken late by more than T/2 makes the
 #: end-of-run line a warning (docs/nodes.md, "Warnings").
@@ -192,6 +193,73 @@ class TripLog:
             out.append(f'watchdog: {self._held_back()}')
             self._last_s = now_s
         return out
+
+
+def rebuild_or_learn_afresh(build: Callable[[Any], Controller], params: Any,
+                            warn: Callable[[str], Any] | None = None) -> Controller:
+    """
+    Rebuild the controller for a change at run time; without the learned table if it must.
+
+    A change (a notch, a gain) that ``feedforward.table_file`` was not learned with would
+    refuse the table and stop the loop at a sample: the new controller learns afresh instead.
+
+    Parameters
+    ----------
+    build : callable
+        ``build(params)``: the controller of ControllerParams ``params``.
+    params : ControllerParams
+        The changed parameters.
+    warn : callable, optional
+        Told why the table was not loaded.
+
+    Returns
+    -------
+    Controller
+
+    Raises
+    ------
+    ParameterError
+        If the parameters are refused for another reason than the table.
+
+    """
+    try:
+        return build(params)
+    except ParameterError as err:
+        if not params.feedforward.table_file:
+            raise
+        if warn is not None:
+            warn(f'learned table not loaded after the change: {err}')
+        return build(params.replace(feedforward=params.feedforward.replace(table_file='')))
+
+
+def save_learned_table(controller: Controller, path: str) -> str | None:
+    """
+    Write the table a learning feed-forward learned to ``path`` (``feedforward.save_table_file``).
+
+    Parameters
+    ----------
+    controller : Controller
+        The controller that ran (whichever process ran it).
+    path : str
+        File to write; empty: nothing is written.
+
+    Returns
+    -------
+    str or None
+        The line to log, or ``None`` when nothing was to be written.
+
+    Raises
+    ------
+    PiezoStageError
+        If the file cannot be written.
+
+    """
+    if not path or not isinstance(controller, FeedForwardController):
+        return None
+    table = controller.learned()
+    controller.save_table_file(path)
+    return (f'learned table written: {path} ({table.samples} samples, '
+            f'{table.periods_learned} periods learned)')
 
 
 def sample_count(duration_s: float, sample_rate_hz: float) -> int:

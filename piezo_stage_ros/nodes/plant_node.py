@@ -471,10 +471,18 @@ class PlantNode(Node):
         self.logic.stop()
         if self.servo is not None:
             self._log_trips(self.servo.take_trips(), final=True)
+            self._log_table()
         self.publish_status()
         stats = self.stats()
         self._log_figures('run complete', stats)
         self.finished.set_result(stats)
+
+    def _log_table(self) -> None:
+        # the servo process ran the controller and wrote its learned table itself
+        line = self.servo.table_line if isinstance(self.servo, ServoProcess) else None
+        if line is not None:
+            (self.get_logger().info if line.startswith('learned table written')
+             else self.get_logger().error)(line)
 
     def _fault(self, exc: BaseException) -> None:
         if self.servo is not None:
@@ -502,6 +510,7 @@ class PlantNode(Node):
                     # stopped before its end (Ctrl-C, shutdown): its counters still go out
                     self._log_trips(self.servo.take_trips(), final=True)
                     self._log_figures('servo process stopped', self.stats())
+                    self._log_table()
             elif self.servo is not None:
                 self.servo.stop()
             self.logic.stop()

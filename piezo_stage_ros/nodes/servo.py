@@ -67,7 +67,13 @@ from piezo_stage_ros.hardware.bridge import Bridge, ModelBridge
 from piezo_stage_ros.hardware.pacing import Pacer, servo_setup
 from piezo_stage_ros.hardware.safety import GuardedPlant, Trip
 from piezo_stage_ros.hardware.udp import UdpBridge, UdpStreamBridge
-from piezo_stage_ros.nodes.logic import ControllerLogic, sample_count, TrajectoryLogic
+from piezo_stage_ros.nodes.logic import (
+    ControllerLogic,
+    rebuild_or_learn_afresh,
+    sample_count,
+    save_learned_table,
+    TrajectoryLogic,
+)
 from piezo_stage_ros.nodes.recording import SampleBatch
 
 # the float columns of a ring row before the diagnostics (SampleRing.FLOATS)
@@ -653,7 +659,10 @@ def servo_from_config(loop: LoopConfig, duration_s: float, bridge: Bridge | None
     controller = ControllerLogic(
         build(loop.controller), mode='realtime',
         safe_voltage_v=cn.safe_voltage_v, position_timeout_s=cn.position_timeout_s,
-        diagnostics_every=cn.diagnostics_every, rebuild=build)
+        diagnostics_every=cn.diagnostics_every,
+        # the controller node warns about a table it cannot load after a change; here too the
+        # new controller learns afresh instead of faulting at a sample
+        rebuild=lambda params: rebuild_or_learn_afresh(build, params))
     trajectory = TrajectoryLogic(reference, sample_rate_hz=stage.sample_rate_hz,
                                  chunk_s=min(tn.chunk_s, 0.005), active=tn.active)
     opts = loop.plant_node
@@ -738,6 +747,8 @@ def _servo_main(loop: LoopConfig, design_plant: PlantParams | None, duration_s: 
         servo.plant.on_trip = lambda trip: send(('trip', trip))
         header = ring.header
         halt, posted = SampleRing.HEADER.index('halt'), SampleRing.HEADER.index('posted')
+        # the controller's parameters as changed at run time (where its table is to be saved)
+        params = [loop.controller]
         applied = 0
         served = 0
         stats = servo.pacer.stats
@@ -753,6 +764,8 @@ def _servo_main(loop: LoopConfig, design_plant: PlantParams | None, duration_s: 
                         kind, value = changes.get_nowait()
                         applied += 1
                         apply_change(servo, kind, value)
+                        if kind == 'controller':
+                            params[0] = value
                         ring.set('applied', applied)
                 except queue.Empty:
                     pass  # the rest is still in the queue's pipe: taken at a later sample
@@ -781,6 +794,15 @@ def _servo_main(loop: LoopConfig, design_plant: PlantParams | None, duration_s: 
         out['stopped_at_v'] = servo.plant.held_v
         out['setup'] = servo.setup_report
         out['diagnostics_dropped'] = ring.dropped
+        # this process ran the controller: its learned table is the one to keep
+        assert servo.controller is not None
+        try:
+            line = save_learned_table(servo.controller.controller,
+                                      params[0].feedforward.save_table_file)
+        except PiezoStageError as err:
+            line = f'learned table not written: {err}'
+        if line is not None:
+            out['learned_table'] = line
         send(('final', out))
     except BaseException as exc:  # noqa: BLE001 -- reported to the parent, which faults
         send(('final', {'error': repr(exc)}))
@@ -895,6 +917,12 @@ class ServoProcess:
         """Return whether the process has ended (its run complete, stopped or failed)."""
         return self._proc is not None and not self._proc.is_alive()
 
+    @property
+    def table_line(self) -> str | None:
+        """Return what the process did with its learned table (``None``: nothing to write)."""
+        value = (self.result or {}).get('learned_table')
+        return None if value is None else str(value)
+
     def change(self, kind: str, value: Any) -> None:
         """Send a change (see :func:`apply_change`), applied at the servo's next sample."""
         if kind not in ('controller', 'trajectory', 'active', 'set'):
@@ -950,7 +978,7 @@ class ServoProcess:
         out: dict[str, Any]
         if self.poll() is not None:
             assert self.result is not None
-            out = {k: v for k, v in self.result.items() if k != 'setup'}
+            out = {k: v for k, v in self.result.items() if k not in ('setup', 'learned_table')}
         else:
             ring = self.ring
             out = {k: ring.get(k) for k in SampleRing.LIVE}

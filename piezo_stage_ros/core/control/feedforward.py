@@ -138,8 +138,9 @@ class FeedForwardParams(Params):
                             'period, sample time, reference and design match (empty: start '
                             'from zero).', read_only=True)
     save_table_file: str = param('', unit='-', description='controller_node: write the learned '
-                                 'table to this file when the node shuts down (empty: not '
-                                 'written).', read_only=True)
+                                 'table to this file when the node shuts down, or the servo '
+                                 'process at the end of its run when it ran the controller '
+                                 '(empty: not written).', read_only=True)
 
     @property
     def inverse(self) -> bool:
