@@ -36,6 +36,7 @@ from piezo_stage_ros.nodes.logic import (
 )
 from piezo_stage_ros.nodes.tables import (
     controller_table,
+    feedforward_context,
     Group,
     NodeTable,
     plant_table,
@@ -493,3 +494,10 @@ def test_a_rebuild_learns_afresh_when_the_table_no_longer_fits():
         rebuild_or_learn_afresh(refuse, params.replace(feedforward=ff.replace(table_file='')),
                                 told.append)  # type: ignore[arg-type]
     assert len(told) == 1
+
+
+def test_a_feed_forward_check_is_told_the_period_and_the_stage():
+    # no files: the defaults the other two nodes start from (a 100 Hz sine, the paper's stage)
+    (hysteresis, reference), check = feedforward_context([])
+    assert reference.period_s == pytest.approx(0.01) and check['period_s'] == reference.period_s
+    assert check['stage'] == StageParams() and hysteresis is not None

@@ -374,6 +374,9 @@ def test_the_controller_node_writes_its_learned_table_when_it_shuts_down(context
     ctrl = ControllerNode(context=context, parameter_overrides=overrides({
         **CONTROLLER, 'feedforward.mode': 'learning',
         'feedforward.save_table_file': str(path)}))
+    # the start-up check knows the trajectory's period and the stage: the learning's ratio
+    # over the slopes and the family is in its verdict
+    assert 'harmonics of 0.01 s' in ctrl.verdict and 'over the stage family' in ctrl.verdict
     ctrl.destroy_node()
     # no parameter files: the default trajectory, a 100 Hz sine, 100 samples a period
     table = read_learned_table(path)

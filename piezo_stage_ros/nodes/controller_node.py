@@ -52,6 +52,8 @@ from piezo_stage_ros.core.control.controllers import (
     ControllerParams,
 )
 from piezo_stage_ros.core.control.stability import check_stability, StabilityParams
+from piezo_stage_ros.core.loop.trajectories import TrajectoryBase
+from piezo_stage_ros.core.model.hysteresis import HysteresisModel
 from piezo_stage_ros.core.model.stage import linear_plant, PlantParams
 from piezo_stage_ros.nodes import qos
 from piezo_stage_ros.nodes.logic import (
@@ -109,8 +111,10 @@ class ControllerNode(Node):
         self.design_plant, source = self._design(stability)
         # the feed-forward's design hysteresis and reference ahead, from the same files; read
         # only when one is configured (feedforward.mode is read-only: no change turns it on)
-        self._ff_context = feedforward_context(self._files) \
-            if params.feedforward.mode != 'none' else None
+        self._ff_context: tuple[HysteresisModel, TrajectoryBase] | None = None
+        self._check_context: dict[str, Any] = {}
+        if params.feedforward.mode != 'none':
+            self._ff_context, self._check_context = feedforward_context(self._files)
         self.get_logger().info(f'design model: {source}')
         self.verdict = self._check(params, stability)
         self.logic = ControllerLogic(self._build(params, stability), mode=opts.mode,
@@ -151,7 +155,7 @@ class ControllerNode(Node):
 
     def _check(self, params: ControllerParams, stability: StabilityParams) -> str:
         report = check_stability(params, self.design_plant, self.sample_time_s,
-                                 options=stability)
+                                 options=stability, **self._check_context)
         text = report.text()
         adaptation = report.adaptation
         if report.stable and adaptation is not None and not adaptation.ok:

@@ -25,7 +25,7 @@ model (docs/nodes.md, "Which model the controller checks").
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Any, Sequence
 
 from piezo_stage_ros.core.contracts.loop_config import (
     BridgeParams,
@@ -132,16 +132,29 @@ def design_model(stability: StabilityParams, files: Sequence[str]
                    + ', '.join(files) + ')')
 
 
-def feedforward_context(files: Sequence[str]) -> tuple[HysteresisModel, TrajectoryBase]:
+def feedforward_context(files: Sequence[str]
+                        ) -> tuple[tuple[HysteresisModel, TrajectoryBase], dict[str, Any]]:
     """
-    Return the design hysteresis and the trajectory a controller node's feed-forward uses.
+    Return what a controller node's feed-forward is bound to, and what its check is told.
 
     Read from the same parameter files as :func:`design_model` (the plant_node and
     trajectory_node sections the other two nodes read; their defaults without a file), so that
     the reference ahead is the one the trajectory node will play.
+
+    Returns
+    -------
+    bound : (HysteresisModel, TrajectoryBase)
+        The design hysteresis and the trajectory (``bound_controller``'s last two arguments).
+    check : dict
+        ``period_s`` (the trajectory's period, ``None`` if aperiodic) and ``stage`` (the
+        configured stage) for ``check_stability``: the learning's convergence over the
+        hysteresis slopes and the stage family.
+
     """
     loop = load_loop_config(files)
-    return make_hysteresis(loop.stage.hysteresis), make_trajectory(loop.trajectory)
+    reference = make_trajectory(loop.trajectory)
+    return ((make_hysteresis(loop.stage.hysteresis), reference),
+            {'period_s': reference.period_s, 'stage': loop.stage})
 
 
 def main() -> int:
