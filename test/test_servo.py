@@ -335,6 +335,29 @@ def test_sample_ring_hands_samples_to_another_reader_and_counts_what_it_missed()
         ring.close(unlink=True)
 
 
+def test_a_ring_attached_by_name_takes_the_creators_layout():
+    # the servo process attaches by name only: a capacity or diagnostics width other than the
+    # defaults must still put every column where the creator reads it
+    from piezo_stage_ros.nodes.servo import SampleRing, ServoSample
+    ring = SampleRing(capacity=100_000, diagnostics=3)
+    writer = SampleRing(name=ring.name)
+    try:
+        assert (writer.capacity, writer.width) == (100_000, 3)
+        for k in range(3):
+            writer.append(ServoSample(k, 10 + k, 1.0 + k, 2.0, 3.0, 4.0, 5.0, 0, (7.0, 8.0, 9.0),
+                                      ('a', 'b', 'c'), 6.0))
+        ints, floats, missed = ring.take()
+        assert missed == 0 and ints[:, 0].tolist() == [0, 1, 2]
+        np.testing.assert_array_equal(floats[:, :len(SampleRing.FLOATS)],
+                                      [[1.0 + k, 2.0, 3.0, 4.0, 5.0, 6.0] for k in range(3)])
+        np.testing.assert_array_equal(floats[:, len(SampleRing.FLOATS):], [[7.0, 8.0, 9.0]] * 3)
+    finally:
+        writer.close()
+        ring.close(unlink=True)
+    with pytest.raises(ValueError, match='capacity 0'):
+        SampleRing(capacity=0)
+
+
 def test_sample_ring_carries_diagnostics_with_their_layout_and_counts_what_does_not_fit():
     from piezo_stage_ros.nodes.servo import SampleRing, ServoSample
     ring = SampleRing(capacity=8, diagnostics=3)
@@ -532,13 +555,14 @@ def test_servo_process_runs_its_samples_and_hands_over_every_one():
     assert np.array_equal(ints[:, 1], origin + ints[:, 0] * period)
 
 
-def test_servo_process_hands_over_the_diagnostics_of_the_same_loop_in_a_thread():
+@pytest.mark.parametrize('capacity', [65536, 100_000])  # 100 000: the node's 10 s backlog
+def test_servo_process_hands_over_the_diagnostics_of_the_same_loop_in_a_thread(capacity):
     # the process and a thread-mode loop on the same configuration give the same samples with
     # the same diagnostics (every diagnostics_every-th controller step, named as in thread
     # mode): the thread's clock replays the process's, so that it serves the same grid samples
     # (a loaded machine makes the process skip some) at the same lateness
     loop = _loop_config()
-    proc = ServoProcess(loop, 0.05)  # 500 samples of the grid
+    proc = ServoProcess(loop, 0.05, capacity=capacity)  # 500 samples of the grid
     got: list = []
     try:
         proc.start(7_000)
@@ -560,7 +584,9 @@ def test_servo_process_hands_over_the_diagnostics_of_the_same_loop_in_a_thread()
     want = thread.drain()
     assert thread.error is None
     assert [s.k for s in got] == [s.k for s in want]
-    np.testing.assert_array_equal([s.command_v for s in got], [s.command_v for s in want])
+    for column in ('position_m', 'reference_m', 'command_v', 'applied_v'):
+        np.testing.assert_array_equal([getattr(s, column) for s in got],
+                                      [getattr(s, column) for s in want], err_msg=column)
     carried = [i for i, s in enumerate(want) if s.diagnostics is not None]
     every = loop.controller_node.diagnostics_every
     assert carried == list(range(0, len(want), every)) and len(carried) > 1

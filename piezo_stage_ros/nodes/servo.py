@@ -159,11 +159,13 @@ class SampleRing:
     Parameters
     ----------
     capacity : int
-        Rows (samples) the ring holds.
+        Rows (samples) the ring holds (when creating it).
     name : str, optional
         Attach to an existing ring of that name (the other process); default: create one.
+        The side that attaches takes the capacity and the diagnostics columns from the ring's
+        header, so that both sides always share one layout.
     diagnostics : int
-        Columns for controller internals (the same on both sides; the controllers of the core
+        Columns for controller internals (when creating it; the controllers of the core
         report at most 8: the RAC).
 
     """
@@ -173,19 +175,29 @@ class SampleRing:
               'true_position_m')
     HEADER = ('count', 'halt', 'posted', 'applied', 'index', 'paced_samples',
               'late_half_period', 'skipped', 'lateness_max_ns', 'watchdog_trips',
-              'ramp_samples', 'safe_samples', 'recovery_samples')
+              'ramp_samples', 'safe_samples', 'recovery_samples', 'capacity', 'diagnostics')
     #: The header words :meth:`ServoProcess.stats` reports while the run goes on.
     LIVE = ('index', 'paced_samples', 'late_half_period', 'skipped', 'watchdog_trips',
             'ramp_samples', 'safe_samples', 'recovery_samples')
 
     def __init__(self, capacity: int = 65536, name: str | None = None, *,
                  diagnostics: int = 16) -> None:
-        self.capacity = int(capacity)
-        self.width = int(diagnostics)
         head = 8 * len(self.HEADER)
-        n_ints, n_floats = len(self.INTS), len(self.FLOATS) + self.width
-        size = head + self.capacity * 8 * (n_ints + n_floats)
-        self.shm = shared_memory.SharedMemory(name=name, create=name is None, size=size)
+        n_ints = len(self.INTS)
+        if name is None:
+            if capacity < 1 or diagnostics < 0:
+                raise ValueError(f'sample ring: capacity {capacity} (>= 1), diagnostics '
+                                 f'{diagnostics} (>= 0)')
+            self.capacity, self.width = int(capacity), int(diagnostics)
+            size = head + self.capacity * 8 * (n_ints + len(self.FLOATS) + self.width)
+            self.shm = shared_memory.SharedMemory(create=True, size=size)
+        else:
+            self.shm = shared_memory.SharedMemory(name=name)
+            known = np.ndarray((len(self.HEADER),), dtype=np.int64, buffer=self.shm.buf)
+            self.capacity = int(known[self.HEADER.index('capacity')])
+            self.width = int(known[self.HEADER.index('diagnostics')])
+            del known
+        n_floats = len(self.FLOATS) + self.width
         buf = self.shm.buf
         self.header = np.ndarray((len(self.HEADER),), dtype=np.int64, buffer=buf)
         self._count = self.header[0:1]
@@ -196,6 +208,8 @@ class SampleRing:
         if name is None:
             self.header[:] = 0
             self.header[self.HEADER.index('index')] = -1
+            self.header[self.HEADER.index('capacity')] = self.capacity
+            self.header[self.HEADER.index('diagnostics')] = self.width
         self.read = 0
         #: The writer's side: ``on_layout(number, names)`` is called with diagnostic names not
         #: passed on before, before the first row that carries them is written.
@@ -717,7 +731,7 @@ def apply_change(servo: ServoLoop, kind: str, value: Any) -> None:
 
 
 def _servo_main(loop: LoopConfig, design_plant: PlantParams | None, duration_s: float,
-                ring_name: str, diagnostics: int, start_ns: int, since_ns: int, changes: Any,
+                ring_name: str, start_ns: int, since_ns: int, changes: Any,
                 results: Any) -> None:
     # the servo process: no rclpy here, nothing else in this interpreter. Ctrl-C reaches the
     # whole process group: the parent stops this process (halt word), so SIGINT is ignored;
@@ -726,7 +740,7 @@ def _servo_main(loop: LoopConfig, design_plant: PlantParams | None, duration_s: 
     # of a pipe: messages go out in order and at once (no feeder thread), so that the parent
     # has a layout of diagnostic names before it can read a row of it
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    ring = SampleRing(name=ring_name, diagnostics=diagnostics)
+    ring = SampleRing(name=ring_name)  # its capacity and columns from its header
     parent = os.getppid()
     stop = [False]
     signal.signal(signal.SIGTERM, lambda *_: stop.__setitem__(0, True))
@@ -878,9 +892,8 @@ class ServoProcess:
         """
         self._proc = self._ctx.Process(
             target=_servo_main, args=(self.loop, self.design_plant, self.duration_s,
-                                      self.ring.name, self.ring.width,
-                                      int(start_ns), time.monotonic_ns(), self._changes,
-                                      self._sender),
+                                      self.ring.name, int(start_ns), time.monotonic_ns(),
+                                      self._changes, self._sender),
             name='servo', daemon=True)
         self._proc.start()
         # the child has its copy: with this one closed, the pipe ends when the process does
