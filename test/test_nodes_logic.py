@@ -501,3 +501,21 @@ def test_a_feed_forward_check_is_told_the_period_and_the_stage():
     (hysteresis, reference), check = feedforward_context([])
     assert reference.period_s == pytest.approx(0.01) and check['period_s'] == reference.period_s
     assert check['stage'] == StageParams() and hysteresis is not None
+
+
+@pytest.mark.parametrize('verdict', ['info', 'warn'])
+def test_the_ros_benchmark_reads_the_end_of_run_line_at_either_severity(verdict):
+    # the line the plant node logs (run_verdict decides its severity); the benchmark parses the
+    # launch's output without rclpy
+    from piezo_stage_ros.bench.ros import end_of_run_figures
+    stats = {'samples': 599746, 'late_half_period': 1221, 'skipped': 253, 'wall_s': 60.9,
+             'servo_nice': 'applied: -20'}
+    if verdict == 'warn':
+        head = 'run complete, degraded (1221 samples (0.2 %) late by more than T/2; 253 skipped)'
+    else:
+        head = 'run complete'
+    figures = ', '.join(f'{k}={v}' for k, v in stats.items())
+    log = f'[stage_servo-1] [INFO] [1.5] [plant_node]: {head}: {figures}\n[INFO] done\n'
+    assert end_of_run_figures(log) == stats
+    with pytest.raises(RuntimeError, match='no end-of-run line'):
+        end_of_run_figures('[INFO] nothing here')

@@ -291,6 +291,11 @@ def test_executable_prints_one_line_and_exits_2_on_a_bad_parameter(capsys):
     assert code == 2
     assert err[-1].startswith('stage_servo: ') and "'seed' = -1" in err[-1]
     assert stage_servo.main(['stage_servo', '--nodes', 'plant,nothing']) == 2
+    # a ROS argument rcl does not know: one line, no traceback
+    capsys.readouterr()
+    assert stage_servo.main(['stage_servo', '--ros-args', '--help']) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith('stage_servo: ROS arguments refused')
 
 
 @pytest.mark.parametrize('process', [True, False])

@@ -57,11 +57,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 from typing import Any, Sequence
 
-__all__ = ['CASES', 'main', 'run_ros_benchmark']
+__all__ = ['CASES', 'end_of_run_figures', 'main', 'run_ros_benchmark']
 
 CASES = ('pingpong', 'composed-lockstep', 'composed-realtime', 'direct-lockstep',
          'direct-realtime', 'cross-lockstep', 'three-lockstep', 'recorded-realtime',
@@ -225,9 +226,35 @@ def _burn() -> None:
         pass
 
 
+def end_of_run_figures(log: str) -> dict[str, Any]:
+    """
+    Return the figures of the plant's end-of-run line in a launch's output.
+
+    The line is ``run complete: k=v, ...`` or, as a WARN, ``run complete, degraded (reasons):
+    k=v, ...``; numbers come back as int or float, the rest as text.
+
+    Raises
+    ------
+    RuntimeError
+        If the output has no such line (with its last 3000 characters).
+
+    """
+    found = re.search(r'run complete(?:, degraded \(.*?\))?: (samples=.*)', log)
+    if found is None:
+        raise RuntimeError('recorded run: no end-of-run line from the plant; the launch '
+                           'printed:\n' + log[-3000:])
+    out: dict[str, Any] = {}
+    for item in found.group(1).split(', '):
+        key, _, value = item.partition('=')
+        try:
+            out[key] = float(value) if '.' in value else int(value)
+        except ValueError:
+            out[key] = value
+    return out
+
+
 def _recorded(duration_s: float, load: int = 0) -> dict[str, Any]:
     import multiprocessing
-    import re
     import tempfile
 
     import numpy as np
@@ -261,17 +288,7 @@ def _recorded(duration_s: float, load: int = 0) -> dict[str, Any]:
             for burner in burners:
                 burner.kill()
         log = done.stdout + done.stderr
-        found = re.search(r'run complete: (.*)', log)
-        if found is None:
-            raise RuntimeError('recorded run: no end-of-run line from the plant; the launch '
-                               'printed:\n' + log[-3000:])
-        out: dict[str, Any] = {}
-        for item in found.group(1).split(', '):
-            key, _, value = item.partition('=')
-            try:
-                out[key] = float(value) if '.' in value else int(value)
-            except ValueError:
-                out[key] = value
+        out = end_of_run_figures(log)
         out['setup'] = '; '.join(re.findall(r'servo (\w+: [^\n]*)', log))
         out['floor_periods_lost'] = floor['periods_lost']
         out['floor_gaps'] = floor['gaps']

@@ -56,8 +56,15 @@ def make_executor(kind: str = 'events', context: rclpy.context.Context | None = 
 
     """
     if kind == 'events':
-        from rclpy.experimental import EventsExecutor
-        return EventsExecutor(context=context)
+        try:
+            from rclpy.experimental import EventsExecutor
+        except ImportError:
+            # rclpy before 7.1.4 (Jazzy's first year) has no EventsExecutor: run, and say so
+            print('rclpy.experimental.EventsExecutor is missing (rclpy >= 7.1.4 has it): '
+                  'using SingleThreadedExecutor, several times slower per sample; update '
+                  'ROS 2 Jazzy or pass --executor single', file=sys.stderr)
+        else:
+            return EventsExecutor(context=context)
     return SingleThreadedExecutor(context=context)
 
 
@@ -110,7 +117,11 @@ def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
         print(f'{prog}: --nodes {opts.nodes!r}: choose among {", ".join(names)}',
               file=sys.stderr)
         return 2
-    rclpy.init(args=args)
+    try:
+        rclpy.init(args=args)
+    except RuntimeError as exc:  # rclpy's UnknownROSArgsError is one
+        print(f'{prog}: ROS arguments refused: {exc}', file=sys.stderr)
+        return 2
     nodes: list[Node] = []
     try:
         for name, factory in factories:
