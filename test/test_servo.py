@@ -226,6 +226,31 @@ def test_servo_loop_on_time_equals_the_offline_runner(kind, ahead):
     assert stats['samples'] == 499 and stats['commands'] == 500
 
 
+@pytest.mark.parametrize('mode', ['none', 'learning', 'inverse_learning'])
+def test_the_warm_up_leaves_the_run_it_precedes_bit_for_bit_alone(mode):
+    # the dry samples run on copies: the run after them is the run without them, stalls and
+    # commands ahead included (a copy that shared state with the run would show here)
+    def run_once(warm: bool) -> tuple[list, dict]:
+        loop = _loop_config()
+        ff = loop.controller.feedforward.replace(mode=mode)
+        loop = dataclasses.replace(loop, controller=loop.controller.replace(feedforward=ff))
+        servo_loop = servo_from_config(loop, 0.05)
+        clock = FakeClock(per_read=300)
+        clock.stalls = {40: 7 * PERIOD, 200: 25 * PERIOD}
+        servo_loop.pacer = Pacer(PERIOD, clock=clock, sleep=clock.sleep)
+        if not warm:
+            servo_loop.warm_up = lambda samples=0: 'skipped: off'  # type: ignore[method-assign]
+        servo_loop.run(start_ns=7 * PERIOD)
+        assert servo_loop.error is None
+        return servo_loop.drain(), servo_loop.setup_report
+
+    (cold, _), (warm, report) = run_once(False), run_once(True)
+    assert report['warm_up'].startswith('applied: 64 dry samples')
+    assert [s.k for s in warm] == [s.k for s in cold] and len(cold) < 500  # stalls skipped
+    for column in ('position_m', 'reference_m', 'command_v', 'applied_v', 'diagnostics'):
+        assert [getattr(s, column) for s in warm] == [getattr(s, column) for s in cold], column
+
+
 def test_servo_loop_after_a_stall_skips_and_counts_never_bursts():
     clock = FakeClock(per_read=300)
     loop = servo(clock, 0.01)

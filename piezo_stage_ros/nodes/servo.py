@@ -38,6 +38,7 @@ counted and the schedule moves on (no catch-up burst).
 from __future__ import annotations
 
 from collections import deque
+import copy
 import math
 import multiprocessing
 from multiprocessing import shared_memory
@@ -407,7 +408,7 @@ class ServoLoop:
                 trajectory = self.trajectory
                 plant.command(u, now_s, self._predictor.predict(
                     self.controller.controller, m, u, ref, vel,
-                    lambda count: trajectory.window(stamp, count)))
+                    lambda count, at=stamp: trajectory.window(at, count)))
             else:
                 plant.command(u, now_s)
             self.held_v = plant.held_v
@@ -422,6 +423,45 @@ class ServoLoop:
             self.on_sample(sample)
         if self.total and index + 1 >= self.total:
             self.done = True
+
+    #: Dry samples :meth:`warm_up` runs before the clock starts.
+    WARM_UP_SAMPLES = 64
+
+    def warm_up(self, samples: int = WARM_UP_SAMPLES) -> str:
+        """
+        Run the per-sample code on copies of trajectory and controller before the clock starts.
+
+        A cold loop pays for its first calls (the interpreter specialising the code, numpy's
+        caches, first allocations): measured here about 0.3 ms for sample 0 and 50-80 us too
+        much for the next few, so that every real-time start skipped samples 1-3 and the stage
+        fell away under a held command. The copies take the reference as position; the
+        trajectory, controller, predictor and backend of the run are not touched.
+
+        Returns
+        -------
+        str
+            ``'applied: ...'``, or why not (``'skipped: ...'``; the run goes on cold).
+
+        """
+        if self.controller is None or self.trajectory is None or samples <= 0:
+            return 'skipped: no controller in this loop'
+        try:
+            trajectory, controller, predictor = copy.deepcopy(
+                (self.trajectory, self.controller, self._predictor))
+            m = self.commands_ahead
+            period = NS_PER_S / self.rate_hz
+            for index in range(samples):
+                stamp = round(index * period)
+                now_s = time.monotonic()
+                ref, vel = trajectory.on_position(stamp)
+                controller.on_position(stamp, ref, now_s)
+                out = controller.on_reference(stamp, ref, vel)
+                if m and out is not None:
+                    predictor.predict(controller.controller, m, out.voltage_v, ref, vel,
+                                      lambda count, at=stamp: trajectory.window(at, count))
+        except Exception as exc:  # noqa: BLE001 -- an optimisation: the run goes on cold
+            return f'skipped: {type(exc).__name__}: {exc}'
+        return f'applied: {samples} dry samples on copies'
 
     def start(self, start_ns: int = 0, since_ns: int | None = None) -> None:
         """
@@ -508,8 +548,9 @@ class ServoLoop:
         try:
             if setup is not None:
                 self.setup_report = dict(setup() or {})
-                if self.on_setup is not None:
-                    self.on_setup(self.setup_report)
+            self.setup_report['warm_up'] = self.warm_up()
+            if self.on_setup is not None:
+                self.on_setup(self.setup_report)
             self.start(start_ns, since_ns)
             halt, boundary = self._halt, self.boundary
             while not halt.is_set() and self.step():
