@@ -39,6 +39,7 @@ from __future__ import annotations
 
 from collections import deque
 import copy
+import functools
 import math
 import multiprocessing
 from multiprocessing import shared_memory
@@ -408,7 +409,7 @@ class ServoLoop:
                 trajectory = self.trajectory
                 plant.command(u, now_s, self._predictor.predict(
                     self.controller.controller, m, u, ref, vel,
-                    lambda count, at=stamp: trajectory.window(at, count)))
+                    lambda count: trajectory.window(stamp, count)))
             else:
                 plant.command(u, now_s)
             self.held_v = plant.held_v
@@ -458,7 +459,7 @@ class ServoLoop:
                 out = controller.on_reference(stamp, ref, vel)
                 if m and out is not None:
                     predictor.predict(controller.controller, m, out.voltage_v, ref, vel,
-                                      lambda count, at=stamp: trajectory.window(at, count))
+                                      functools.partial(trajectory.window, stamp))
         except Exception as exc:  # noqa: BLE001 -- an optimisation: the run goes on cold
             return f'skipped: {type(exc).__name__}: {exc}'
         return f'applied: {samples} dry samples on copies'
