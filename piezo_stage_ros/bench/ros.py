@@ -293,6 +293,7 @@ def _recorded(duration_s: float, load: int = 0) -> dict[str, Any]:
         out['setup'] = '; '.join(re.findall(r'servo (\w+: [^\n]*)', log))
         out['floor_periods_lost'] = floor['periods_lost']
         out['floor_gaps'] = floor['gaps']
+        out['floor_max_gap_us'] = floor['max_gap_us']
         result = analyze_bag(bag, steady_state_start_s=0.0)
         out['bag_samples'] = result.samples
         out['e_rms_nm'] = round(result.metrics['e_rms_m'] * 1e9, 2)
@@ -306,6 +307,7 @@ def _recorded(duration_s: float, load: int = 0) -> dict[str, Any]:
             keep[start:start + 300] = False
         error = record.position_m[keep] - record.reference_m[keep]
         out['stalls_in_bag'] = int(gaps.size)
+        out['longest_gap_in_bag_ms'] = round(float(np.max(np.diff(record.time_s))) * 1e3, 2)
         out['e_rms_away_from_stalls_nm'] = round(error_metrics(error)[1] * 1e9, 2)
         # after the first period of the reference: the start-up transient (in lockstep too,
         # 0.24 um at 0.3 ms) left out, every stall of the run kept
