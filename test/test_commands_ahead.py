@@ -224,15 +224,18 @@ def _stall_costs(config: str, at: int, skip: int) -> tuple[float, float]:
         errors = _stall_errors(config, at, skip, ahead)
         return max(abs(e - steady[k]) for k, e in errors.items())
 
-    return cost(32), cost(0)
+    return cost(loop_config().plant_node.servo.commands_ahead), cost(0)
 
 
 @settings(max_examples=8, deadline=None, derandomize=True)
-@given(config=st.sampled_from(['pi', 'rac']), at=st.integers(300, 400),
-       skip=st.integers(1, 48))
-def test_a_missed_sample_is_never_worse_with_the_commands_ahead_than_held(config, at, skip):
-    # a stall anywhere on the sine, shorter and longer than the queue
-    ahead, held = _stall_costs(config, at, skip)
+@given(at=st.integers(300, 400), skip=st.integers(1, 90))
+def test_a_missed_sample_is_never_worse_with_the_commands_ahead_than_held(at, skip):
+    # the RAC, a stall anywhere on the sine, up to 9 ms (the queue holds 12.8 ms; the command
+    # timeout is 10 ms). Not claimed: a stall of a whole period of the reference (100 samples),
+    # after which the held command happens to be right again, and the PI, whose predictions
+    # (the trend of its command, no model part) cost up to a quarter more than holding at some
+    # phases (docs/nodes.md)
+    ahead, held = _stall_costs('rac', at, skip)
     assert ahead <= held
 
 

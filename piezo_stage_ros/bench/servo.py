@@ -425,9 +425,11 @@ def run_servo_benchmark(cases: tuple[str, ...] = CASES, duration_s: float = 10.0
                 loop, duration_s, offline_rms)
         elif case == 'stall':
             m = loop.plant_node.servo.commands_ahead
-            out[f'stall (scripted clock, {m} commands ahead)'] = {'stalls': stall_response(loop)}
+            skips = (1, 2, 5, 10, 20, 40, 60, 90)
+            out[f'stall (scripted clock, {m} commands ahead)'] = {
+                'stalls': stall_response(loop, skips)}
             out['stall (scripted clock, last command held)'] = {
-                'stalls': stall_response(loop, commands_ahead=0)}
+                'stalls': stall_response(loop, skips, commands_ahead=0)}
         elif case == 'ahead-cost':
             out['commands ahead, cost per sample (scripted clock)'] = {
                 'ahead': ahead_cost(loop, duration_s=min(duration_s, 2.0))}

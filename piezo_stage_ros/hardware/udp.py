@@ -125,8 +125,11 @@ _SEQ_MOD: Final = 2 ** 32
 
 def pack_request(kind: int, seq: int, value_v: float, ahead_v: Any = ()) -> bytes:
     """Return the request datagram (``kind``, sequence number, voltage [V], commands ahead)."""
-    ahead = np.asarray(ahead_v if isinstance(ahead_v, (list, tuple, np.ndarray))
-                       else list(ahead_v), dtype='<f8')
+    if hasattr(ahead_v, 'to_array'):  # computed when read (core.control.ahead.Ahead): at once
+        ahead = np.asarray(ahead_v.to_array(), dtype='<f8')
+    else:
+        ahead = np.asarray(ahead_v if isinstance(ahead_v, (list, tuple, np.ndarray))
+                           else list(ahead_v), dtype='<f8')
     if len(ahead) > MAX_AHEAD:
         raise ParameterError('commands ahead', len(ahead), f'[0, {MAX_AHEAD}]')
     return REQUEST.pack(MAGIC, VERSION, kind, seq % _SEQ_MOD, value_v, len(ahead)) + \

@@ -135,11 +135,13 @@ class ServoParams(Params):
                                       'interval (sys.setswitchinterval; 0: unchanged, '
                                       "CPython's default is 5000).", low=0.0, high=1e6,
                                       read_only=True)
-    commands_ahead: int = param(32, unit='samples', description='Commands ahead: with each '
+    commands_ahead: int = param(128, unit='samples', description='Commands ahead: with each '
                                 'command the controller predicts this many next ones, and the '
                                 'backend (the simulated stage, the udp_stream target) applies '
                                 'them over samples the host misses instead of holding the last '
-                                'command (32: 3.2 ms at 10 kHz; 0: hold, as without). Samples '
+                                'command (128: 12.8 ms at 10 kHz, past the 10 ms command timeout '
+                                'after which the watchdog takes over; a stall longer than the '
+                                'queue holds its last prediction; 0: hold, as without). Samples '
                                 'the host takes are the same either way.', low=0, high=1000,
                                 read_only=True)
 

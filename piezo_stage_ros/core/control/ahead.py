@@ -114,6 +114,18 @@ class Ahead(Sequence[float]):
     def __iter__(self) -> Iterator[float]:
         return iter([self._value(j) for j in range(self._start, self._stop)])
 
+    def to_array(self) -> FloatArray:
+        """
+        Return every value at once, as an array [V] (what a backend packs for its target).
+
+        The same arithmetic as reading them one by one, element for element, for a fraction of
+        its cost: 128 values read one by one took about 1 us each in the UDP host's answer.
+        """
+        x = np.asarray(self._x[self._start:self._stop], dtype=np.float64)
+        v = np.asarray(self._v[self._start:self._stop], dtype=np.float64)
+        p = self._base + self._a * x + self._b * v
+        return np.asarray(np.minimum(np.maximum(p, self._low), self._high), dtype=np.float64)
+
     def clamped(self, low_v: float, high_v: float) -> Ahead:
         """Return the same commands clipped to ``[low_v, high_v]`` too [V]."""
         return Ahead(self._x, self._v, self._start, self._stop, self._base,
