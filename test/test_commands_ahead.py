@@ -258,3 +258,15 @@ def test_the_trend_is_fitted_in_the_controllers_own_sensor_volts(change):
     predictor.predict(servo.controller.controller, 4, 0.0, 0.0, 0.0,
                       lambda n: (np.zeros(n), np.zeros(n)))
     assert predictor._kx == 2e5 and predictor._kv == pytest.approx(2e5 * T, rel=1e-15)
+
+
+def test_the_commands_ahead_at_once_are_the_ones_read_one_by_one():
+    # what the UDP host packs (to_array) is what the simulated stage reads sample by sample,
+    # bit for bit, clipped alike
+    x = np.linspace(2e-6, 6e-6, 140)
+    v = np.cos(np.linspace(0.0, 3.0, 140)) * 2e-3
+    ahead = Ahead(x, v, 7, 135, 0.31, (4.7e5, 21.0), -2.0, 2.6)
+    values = ahead.to_array()
+    assert values.shape == (128,) and values.tolist() == list(ahead)
+    assert values.max() == 2.6 and values.min() > -2.0  # the clip bites at the top
+    assert ahead[10:20].to_array().tolist() == list(ahead)[10:20]
