@@ -479,10 +479,14 @@ class PlantNode(Node):
 
     def _log_table(self) -> None:
         # the servo process ran the controller and wrote its learned table itself
+        # (one call site per severity: rclpy refuses a second severity at a site)
         line = self.servo.table_line if isinstance(self.servo, ServoProcess) else None
-        if line is not None:
-            (self.get_logger().info if line.startswith('learned table written')
-             else self.get_logger().error)(line)
+        if line is None:
+            return
+        if line.startswith('learned table written'):
+            self.get_logger().info(line)
+        else:
+            self.get_logger().error(line)
 
     def _fault(self, exc: BaseException) -> None:
         if self.servo is not None:
