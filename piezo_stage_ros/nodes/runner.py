@@ -105,7 +105,12 @@ def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
         parser.add_argument('--direct', action='store_true',
                             help='hand each sample from node to node by call (intra-process); '
                                  'the topics are published for outside subscribers only')
-    opts = parser.parse_args(remove_ros_args(args)[1:])
+    try:
+        own = remove_ros_args(args)
+    except RuntimeError as exc:  # rclpy's UnknownROSArgsError is one
+        print(f'{prog}: ROS arguments refused: {exc}', file=sys.stderr)
+        return 2
+    opts = parser.parse_args(own[1:])
     chosen = [n.strip() for n in opts.nodes.split(',') if n.strip()]
     unknown = [n for n in chosen if n not in names]
     direct = bool(getattr(opts, 'direct', False))
@@ -119,7 +124,7 @@ def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
         return 2
     try:
         rclpy.init(args=args)
-    except RuntimeError as exc:  # rclpy's UnknownROSArgsError is one
+    except RuntimeError as exc:
         print(f'{prog}: ROS arguments refused: {exc}', file=sys.stderr)
         return 2
     nodes: list[Node] = []
