@@ -394,9 +394,8 @@ class HostPacedClock:
         self.now += round(seconds * 1e9)
 
 
-@pytest.mark.parametrize('spin', [False, True])
-@pytest.mark.parametrize('unanswered', [(), (3, 4)])
-def test_paced_target_holds_the_newest_command_and_counts_missing_ones(unanswered, spin):
+def _paced_target() -> tuple[HostPacedClock, TargetEmulator, threading.Thread]:
+    """Start an emulator that paces its own 10 kHz clock on a :class:`HostPacedClock`."""
     from piezo_stage_ros.hardware.pacing import Pacer
     clock = HostPacedClock()
     emu = TargetEmulator(PARAMS, idle_timeout_s=5.0)
@@ -404,6 +403,13 @@ def test_paced_target_holds_the_newest_command_and_counts_missing_ones(unanswere
                               args=(Pacer(100_000, clock=clock.clock, sleep=clock.sleep,
                                           spin_ns=0),))
     target.start()
+    return clock, emu, target
+
+
+@pytest.mark.parametrize('spin', [False, True])
+@pytest.mark.parametrize('unanswered', [(), (3, 4)])
+def test_paced_target_holds_the_newest_command_and_counts_missing_ones(unanswered, spin):
+    clock, emu, target = _paced_target()
     # spin: the host polls its socket without blocking (as the servo loop's host does)
     bridge = udp.UdpStreamBridge('127.0.0.1', emu.port, timeout_s=5.0, spin=spin)
     positions = [bridge.safe_start(0.0)]
@@ -467,13 +473,7 @@ def test_another_protocol_version_is_refused_clearly_on_both_sides(capsys):
 
 @pytest.mark.parametrize('late', [False, True])
 def test_paced_target_plays_the_commands_ahead_over_unanswered_samples(late):
-    from piezo_stage_ros.hardware.pacing import Pacer
-    clock = HostPacedClock()
-    emu = TargetEmulator(PARAMS, idle_timeout_s=5.0)
-    target = threading.Thread(target=emu.serve_paced, daemon=True,
-                              args=(Pacer(100_000, clock=clock.clock, sleep=clock.sleep,
-                                          spin_ns=0),))
-    target.start()
+    clock, emu, target = _paced_target()
     bridge = udp.UdpStreamBridge('127.0.0.1', emu.port, timeout_s=5.0)
     positions = [bridge.safe_start(0.0)]
     applied = []
