@@ -23,7 +23,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 import numpy as np
 from piezo_stage_ros.bench.servo import loop_config, make_servo
-from piezo_stage_ros.core.control.ahead import Ahead, CommandPredictor, commands_ahead
+from piezo_stage_ros.core.control.ahead import Ahead, CommandPredictor
 from piezo_stage_ros.core.control.controllers import (
     build_controller,
     ControllerParams,
@@ -43,13 +43,14 @@ PERIOD_NS = 100_000
 def test_commands_ahead_move_the_model_part_along_the_reference_and_stay_in_range():
     x = np.array([1e-6, 2e-6, 60e-6])
     v = np.array([1e-3, 0.0, 0.0])
-    out = commands_ahead(1.0, 0.5e-6, 0.0, x, v, (2e5, 1e2), -2.0, 10.0)
+    # u_k = 1 V at x_d,k = 0.5 um, at rest: computed when read
+    lazy = Ahead(x, v, 0, 3, 1.0 - 2e5 * 0.5e-6, (2e5, 1e2), -2.0, 10.0)
+    out = list(lazy)
     expected = 1.0 + 2e5 * (x - 0.5e-6) + 1e2 * v
     np.testing.assert_allclose(out[:2], expected[:2], rtol=1e-12)
     assert out[2] == 10.0  # clipped to the command range
-    # the same computed when read: values, views, a narrower range, finiteness
-    lazy = Ahead(x, v, 0, 3, 1.0 - 2e5 * 0.5e-6, (2e5, 1e2), -2.0, 10.0)
-    np.testing.assert_allclose(list(lazy), out, rtol=1e-12)
+    # values, views, a narrower range, finiteness
+    np.testing.assert_allclose(lazy.to_array(), out, rtol=1e-12)
     assert len(lazy[1:]) == 2 and lazy[1:][0] == lazy[1] and lazy[-1] == 10.0
     assert len(lazy[5:]) == 0 and lazy.clamped(0.0, 5.0)[2] == 5.0 and lazy.finite()
     assert not Ahead(x, v, 0, 3, math.nan, (1.0, 0.0)).finite()

@@ -41,7 +41,7 @@ from typing import Any, Callable, Iterator, overload, Sequence
 import numpy as np
 from piezo_stage_ros.core.contracts.types import FloatArray
 
-__all__ = ['Ahead', 'CommandPredictor', 'commands_ahead']
+__all__ = ['Ahead', 'CommandPredictor']
 
 #: Variance of a regressor [V^2, sensor volts] below which the reference counts as at rest: a
 #: microvolt rms, far below any motion and far above the rounding of the sums (1e-16 of ~1 V).
@@ -52,10 +52,11 @@ class Ahead(Sequence[float]):
     """
     Commands ahead u_k + a (x_d,j - x_d,k) + b (x_d',j - x_d',k), computed when read.
 
-    What :func:`commands_ahead` returns, as a sequence that costs nothing until a value is
-    read: a backend reads them only for the samples the host misses (the simulated stage), or
-    packs them into its request (the UDP target). Slices are views; :meth:`clamped` narrows
-    the range, :meth:`finite` says whether every value is finite (the reference is).
+    What :meth:`CommandPredictor.predict` returns for a controller with reference gains, as a
+    sequence that costs nothing until a value is read: a backend reads them only for the
+    samples the host misses (the simulated stage), or packs them at once into its request (the
+    UDP target, :meth:`to_array`). Slices are views; :meth:`clamped` narrows the range,
+    :meth:`finite` says whether every value is finite (the reference is).
 
     Parameters
     ----------
@@ -136,37 +137,6 @@ class Ahead(Sequence[float]):
         return math.isfinite(self._base + self._a + self._b)
 
 
-def commands_ahead(command_v: float, reference_m: float, velocity_mps: float,
-                   ahead_m: Sequence[float], ahead_mps: Sequence[float],
-                   gains: tuple[float, float], low_v: float = -math.inf,
-                   high_v: float = math.inf) -> list[float]:
-    """
-    Return the commands predicted for the samples after this one [V].
-
-    Parameters
-    ----------
-    command_v : float
-        u_k [V], the command of this sample.
-    reference_m, velocity_mps : float
-        x_d and x_d' of this sample [m, m/s].
-    ahead_m, ahead_mps : sequence of float
-        x_d and x_d' of the next samples, k + 1 first [m, m/s].
-    gains : tuple of float
-        (a [V/m], b [V s/m]) of the model-based part a x_d + b x_d'.
-    low_v, high_v : float
-        Command limits [V].
-
-    """
-    a, b = gains
-    # u_k + a (x - x_k) + b (x' - x'_k) on plain floats: for a few tens of values a list is
-    # cheaper than numpy, whose every operation costs about a microsecond whatever its size
-    base = command_v - a * reference_m - b * velocity_mps
-    out = [base + a * x + b * v for x, v in zip(ahead_m, ahead_mps)]
-    if out and (max(out) > high_v or min(out) < low_v):
-        out = [high_v if p > high_v else (low_v if p < low_v else p) for p in out]
-    return out
-
-
 def _sensor_gain(controller: Any) -> float | None:
     """Return the sensor gain k [V/m] of a controller or of the one it wraps (None: none)."""
     for _ in range(3):
@@ -184,7 +154,7 @@ class CommandPredictor:
     """
     The commands ahead of a controller, sample by sample, with the trend of its feedback part.
 
-    Its model-based part moves along the reference ahead (:func:`commands_ahead`). The
+    Its model-based part moves along the reference ahead (:class:`Ahead`). The
     feedback part f_k = u_k - a x_d,k - b x_d',k is what the model-based part does not explain
     (the estimates still adapting, the ZOH's lag, the hysteresis); it is not constant while
     the reference moves. Its part along the reference, f ~ f0 + alpha x_d + beta x_d', is
