@@ -204,13 +204,14 @@ def test_commands_stopping_again_while_followed_back_start_a_new_trip_from_there
     assert [t.ended for t in guard.ended_trips] == ['tripped again', 'stop']
 
 
-def test_commands_ahead_come_before_the_ramp_and_the_last_is_held():
+@pytest.mark.parametrize('kind', [list, np.array])  # a feed-forward's tables come as an array
+def test_commands_ahead_come_before_the_ramp_and_the_last_is_held(kind):
     # samples without a command apply the command's predictions (clamped), the last one held
     # after the queue, until the timeout; the ramp then starts from the last one applied
     bridge = Written()
     guard = GuardedPlant(bridge, chain(0.0), 5.5 * T, slew_v_per_s=1e4, sample_period_s=T)
     guard.start(0.0)
-    guard.command(4.0, 0.0, [5.0, 12.0])
+    guard.command(4.0, 0.0, kind([5.0, 12.0]))
     now = 0.0
     for _ in range(7):
         now += T

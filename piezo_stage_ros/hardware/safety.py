@@ -393,6 +393,9 @@ class GuardedPlant:
         if not math.isfinite(total):
             return ()  # a prediction that is not finite: hold the command instead
         if self._clamp:
+            if isinstance(ahead_v, np.ndarray):
+                # a feed-forward's tables read ahead: 128 values one by one cost 38 us here
+                return np.minimum(np.maximum(ahead_v, low), high)
             return [high if v > high else (low if v < low else float(v)) for v in ahead_v]
         return ahead_v
 
