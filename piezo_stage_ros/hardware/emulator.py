@@ -50,7 +50,9 @@ from piezo_stage_ros.hardware.udp import (
     COMMAND,
     foreign_version,
     HELLO,
+    MAX_AHEAD,
     pack_reply,
+    REQUEST,
     STATUS_CLAMPED,
     STATUS_NOT_FINITE,
     STATUS_PREDICTED,
@@ -67,7 +69,7 @@ __all__ = ['TargetEmulator', 'main']
 LOOPBACK = '127.0.0.1'
 _HALF = 2 ** 31
 #: The largest datagram read: a request with the most commands ahead.
-_DATAGRAM = 20 + 8 * 1000
+_DATAGRAM = REQUEST.size + 8 * MAX_AHEAD
 
 
 class TargetEmulator:
