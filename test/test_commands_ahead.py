@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Callable
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -271,3 +272,34 @@ def test_the_commands_ahead_at_once_are_the_ones_read_one_by_one():
     assert values.shape == (128,) and values.tolist() == list(ahead)
     assert values.max() == 2.6 and values.min() > -2.0  # the clip bites at the top
     assert ahead[10:20].to_array().tolist() == list(ahead)[10:20]
+
+
+def test_a_predictor_that_only_observes_some_samples_predicts_as_one_that_predicts_all():
+    # the UDP host skips the commands ahead of a late answer (observe): the trend's fit
+    # must still take every sample, so that its next prediction is the same, bit for bit
+
+    class Controller:
+        _k = SENSOR_GAIN_V_PER_M
+
+        def reference_gains(self) -> tuple[float, float]:
+            return 2.5e5, 12.0
+
+    controller = Controller()
+    every, some = CommandPredictor(SENSOR_GAIN_V_PER_M, T), CommandPredictor(
+        SENSOR_GAIN_V_PER_M, T)
+    t = np.arange(400) * T
+    x = 3.8e-6 + 3.8e-6 * np.sin(2 * math.pi * 100 * t)
+    v = 3.8e-6 * 2 * math.pi * 100 * np.cos(2 * math.pi * 100 * t)
+    u = 2.5e5 * x + 12.0 * v + 0.05 * np.sin(2 * math.pi * 300 * t)
+
+    def window(k: int) -> Callable[[int], tuple[np.ndarray, np.ndarray]]:
+        return lambda n: (x[k + 1:k + 1 + n], v[k + 1:k + 1 + n])
+
+    for k in range(300):
+        args = (float(u[k]), float(x[k]), float(v[k]))
+        expected = every.predict(controller, 8, *args, window(k))
+        if k % 3:
+            some.observe(controller, *args)
+        else:
+            assert list(some.predict(controller, 8, *args, window(k))) == list(expected)
+    assert every.trend(0.0, 0.0, 0.0) == some.trend(0.0, 0.0, 0.0) != (0.0, 0.0)

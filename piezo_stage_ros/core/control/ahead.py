@@ -122,10 +122,26 @@ class Ahead(Sequence[float]):
         The same arithmetic as reading them one by one, element for element, for a fraction of
         its cost: 128 values read one by one took about 1 us each in the UDP host's answer.
         """
+        out = np.empty(len(self), dtype=np.float64)
+        self.values_into(out)
+        return out
+
+    def values_into(self, out: FloatArray) -> None:
+        """
+        Write every value into ``out`` (an array of ``len(self)``) [V], as :meth:`to_array`.
+
+        No array is made: the UDP host writes them straight into its datagram.
+        """
         x = np.asarray(self._x[self._start:self._stop], dtype=np.float64)
         v = np.asarray(self._v[self._start:self._stop], dtype=np.float64)
-        p = self._base + self._a * x + self._b * v
-        return np.asarray(np.minimum(np.maximum(p, self._low), self._high), dtype=np.float64)
+        # base + a x + b v, summed in that order as _value does
+        np.multiply(x, self._a, out=out)
+        out += self._base
+        out += self._b * v
+        if self._high < math.inf:
+            np.minimum(out, self._high, out=out)
+        if self._low > -math.inf:
+            np.maximum(out, self._low, out=out)
 
     def clamped(self, low_v: float, high_v: float) -> Ahead:
         """Return the same commands clipped to ``[low_v, high_v]`` too [V]."""
@@ -200,6 +216,11 @@ class CommandPredictor:
     def trend(self, feedback_v: float, reference_m: float, velocity_mps: float
               ) -> tuple[float, float]:
         """Take this sample's feedback part [V]; return its (alpha [V/m], beta [V s/m])."""
+        self._accumulate(feedback_v, reference_m, velocity_mps)
+        return self._solve()
+
+    def _accumulate(self, feedback_v: float, reference_m: float, velocity_mps: float) -> None:
+        """Take this sample's feedback part [V] into the fit's sums (no solve)."""
         x = reference_m * self._kx
         v = velocity_mps * self._kv
         f = feedback_v
@@ -215,6 +236,10 @@ class CommandPredictor:
         sxf = lam * sxf + x * f
         svf = lam * svf + v * f
         self._sums = [s1, sx, sv, sf, sxx, sxv, svv, sxf, svf]
+
+    def _solve(self) -> tuple[float, float]:
+        """Return the trend (alpha [V/m], beta [V s/m]) the sums give."""
+        s1, sx, sv, sf, sxx, sxv, svv, sxf, svf = self._sums
         mx, mv, mf = sx / s1, sv / s1, sf / s1
         cxx = sxx / s1 - mx * mx
         cxv = sxv / s1 - mx * mv
@@ -234,6 +259,35 @@ class CommandPredictor:
             return 0.0, 0.0
         return alpha * self._kx, beta * self._kv
 
+    def _look_up(self, controller: Any) -> None:
+        if controller is not self._controller:
+            # looked up once per controller (a rebuild makes a new one)
+            self._controller = controller
+            gain = _sensor_gain(controller)
+            if gain is not None and gain * self._t != self._kv:
+                self._kx, self._kv = gain, gain * self._t
+                self.reset()
+            self._own = getattr(controller, 'predict', None)
+            self._gains = getattr(controller, 'reference_gains', None)
+            self._limits = (getattr(controller, '_vmin', -math.inf),
+                            getattr(controller, '_vmax', math.inf))
+
+    def observe(self, controller: Any, command_v: float, reference_m: float,
+                velocity_mps: float) -> None:
+        """
+        Take a sample whose commands ahead are not wanted: only the trend's fit takes it.
+
+        For a caller that predicts on some samples only (the host of a UDP stream when its
+        answer leaves late): the fit's memory stays ``memory_samples`` samples, and the next
+        :meth:`predict` is the one it would have been.
+        """
+        self._look_up(controller)
+        gains = self._gains
+        if self._own is None and gains is not None:
+            a, b = gains()
+            self._accumulate(command_v - a * reference_m - b * velocity_mps, reference_m,
+                             velocity_mps)
+
     def predict(self, controller: Any, count: int, command_v: float, reference_m: float,
                 velocity_mps: float,
                 reference_ahead: Callable[[int], tuple[Sequence[float], Sequence[float]]]
@@ -247,17 +301,7 @@ class CommandPredictor:
         ``reference_ahead(count)`` (x_d and x_d' of the next ``count`` samples); one without
         reference gains holds its command.
         """
-        if controller is not self._controller:
-            # looked up once per controller (a rebuild makes a new one)
-            self._controller = controller
-            gain = _sensor_gain(controller)
-            if gain is not None and gain * self._t != self._kv:
-                self._kx, self._kv = gain, gain * self._t
-                self.reset()
-            self._own = getattr(controller, 'predict', None)
-            self._gains = getattr(controller, 'reference_gains', None)
-            self._limits = (getattr(controller, '_vmin', -math.inf),
-                            getattr(controller, '_vmax', math.inf))
+        self._look_up(controller)
         if self._own is not None:
             return np.asarray(self._own(count), dtype=np.float64)
         gains = self._gains
