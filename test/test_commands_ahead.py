@@ -114,14 +114,27 @@ def test_the_simulated_stage_plays_its_queue_over_skipped_samples_then_holds():
     assert bridge.stage.position_m == model.stage.position_m
 
 
-def test_a_missed_sample_goes_on_in_the_integral_with_the_last_error():
+def test_a_missed_sample_goes_on_in_the_integral_with_the_error_it_most_likely_had():
+    # the RAC: the last error relaxing to its recent mean, e_n = m + (e - m) r^n summed over
+    # the n missed samples (r = exp(-1/10)); a short stall is nearly the last error carried, a
+    # long one nearly the mean
     ctrl = build_controller(ControllerParams.from_flat({'type': 'rac', 'notch.mode': 'off'}),
                             T)
     ctrl.reset(0.0, 0.0)
-    ctrl.step(1e-8, 0.0, 0.0)
-    before, error = ctrl._i, ctrl._e
-    ctrl.missed(3)
-    assert ctrl._i == pytest.approx(before + 3 * T * error, rel=1e-12)
+    for y in (1e-8, 3e-8, -2e-8, 2e-8):
+        ctrl.step(y, 0.0, 0.0)
+    error = ctrl._e
+    mean = 0.0
+    for y in (1e-8, 3e-8, -2e-8, 2e-8):
+        mean += (y * ctrl._k - mean) / 100.0  # from the reset's error, 0
+    assert ctrl._e_mean == pytest.approx(mean, rel=1e-12) and mean != error
+    r = math.exp(-0.1)
+    for n in (1, 3, 60):
+        before = ctrl._i
+        ctrl.missed(n)
+        expected = sum(mean + (error - mean) * r ** j for j in range(1, n + 1))
+        assert ctrl._i == pytest.approx(before + T * expected, rel=1e-12)
+    # the PI: the last error (its predictions hold its command)
     pi = build_controller(ControllerParams.from_flat({'type': 'pi', 'notch.mode': 'off'}), T)
     pi.reset(0.0, 0.0)
     pi.step(1e-8, 0.0, 0.0)

@@ -118,6 +118,14 @@ __all__ = [
 #: K_PSCM of eq. (15), 10 V over 38 um [V/m] (same value as the stage's sensor).
 SENSOR_GAIN_V_PER_M = 10.0 / 38e-6
 
+#: Gain of the RAC's running mean of its error (an exponential window of 100 samples), and the
+#: factor a sample by which a stall's error relaxes from the last one to that mean (a time
+#: constant of 10 samples): :meth:`RACController.missed`. Checked over stalls of 1-120 samples
+#: at six phases of the 100 Hz sine: never worse than the last error carried, and at 40-90
+#: samples 131-184 nm against 175-366 nm.
+_MEAN_GAIN = 1.0 / 100.0
+_MISSED_RELAX = math.exp(-1.0 / 10.0)
+
 
 def rac_linear_gains(k: float, lambda_per_s: float, theta: float, phi: float
                      ) -> tuple[float, float]:
@@ -423,6 +431,7 @@ class RACController:
         self._u = min(max(out, self._vmin), self._vmax)
         e = (position_m - reference_m) * self._k
         self._e = e if math.isfinite(e) else 0.0
+        self._e_mean = self._e
 
     def step(self, position_m: float, reference_m: float, reference_velocity_mps: float,
              dt_s: float | None = None) -> float:
@@ -513,6 +522,7 @@ class RACController:
         self._i = i_new
         self._s = s
         self._e = e
+        self._e_mean += (e - self._e_mean) * _MEAN_GAIN
         self._u = v
         return v
 
@@ -542,12 +552,19 @@ class RACController:
         """
         Let ``samples`` samples the loop missed (a stall) pass before the next step.
 
-        The integral of eq. (33) goes on over them with the last error (the commands ahead
-        kept the stage near where it was); without this it would lack their area for the rest
-        of the run, an offset the loop then works off slowly.
+        The integral of eq. (33) goes on over them (the commands ahead kept the stage near
+        where it was; without this it would lack their area for the rest of the run, an
+        offset the loop then works off slowly), with the error it most likely had: the last
+        one, relaxing to the recent mean (the last 100 samples, exponentially weighted) with
+        a time constant of 10 samples. The last error alone, carried over a long stall, put
+        the noise and the ripple of one sample into the integral 60-90 times: a kick of
+        0.2-0.37 um when the loop came back (``benchmark --suite servo``, case ``stall``).
         """
         if samples > 0 and not self._saturated:
-            self._i += samples * self._t * self._e
+            mean = self._e_mean
+            r = _MISSED_RELAX
+            relaxing = (self._e - mean) * r * (1.0 - r ** samples) / (1.0 - r)
+            self._i += self._t * (samples * mean + relaxing)
 
     def reference_gains(self) -> tuple[float, float]:
         """
