@@ -22,6 +22,7 @@ import struct
 import subprocess
 import sys
 import threading
+import time
 
 import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError
@@ -55,7 +56,7 @@ def connected(emu: TargetEmulator, **kwargs) -> udp.UdpBridge:
 
 
 def test_packets_round_trip_and_malformed_ones_are_refused():
-    assert udp.REQUEST.size == 20 and udp.REPLY.size == 24 and udp.VERSION == 2
+    assert udp.REQUEST.size == 20 and udp.REPLY.size == 24 and udp.VERSION == 3
     assert udp.unpack_request(udp.pack_request(udp.COMMAND, 7, 1.25)) == (udp.COMMAND, 7, 1.25,
                                                                          ())
     # commands ahead follow the header, their count in it
@@ -69,7 +70,7 @@ def test_packets_round_trip_and_malformed_ones_are_refused():
     reply = udp.pack_reply(udp.COMMAND, 9, 3.8e-6, udp.STATUS_CLAMPED, 2)
     assert udp.unpack_reply(reply) == (udp.COMMAND, 9, 3.8e-6, udp.STATUS_CLAMPED, 2)
     # little-endian, magic first
-    assert reply[:4] == b'PZ\x02\x82' and reply[4:8] == (9).to_bytes(4, 'little')
+    assert reply[:4] == b'PZ\x03\x82' and reply[4:8] == (9).to_bytes(4, 'little')
     assert udp.unpack_reply(reply[:-1]) is None
     assert udp.unpack_reply(b'XX' + reply[2:]) is None
     assert udp.unpack_reply(reply[:2] + b'\x01' + reply[3:]) is None
@@ -351,6 +352,48 @@ def test_guard_drives_safe_voltage_at_start_ramps_to_it_on_silence_and_at_stop()
     assert bridge.stopped_with == [1.5]
 
 
+class QueueingBridge(RecordingBridge):
+    """A backend with a queue that records each write and each queue sent after it."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.events: list[tuple[str, float | list[float]]] = []
+
+    def write_voltage(self, voltage_v: float) -> None:
+        super().write_voltage(voltage_v)
+        self.events.append(('write', voltage_v))
+
+    def write_commands(self, voltage_v: float, ahead_v) -> None:
+        super().write_voltage(voltage_v)
+        self.events.append(('write', voltage_v))
+        self.events.append(('queue', [float(a) for a in ahead_v]))
+
+    def write_ahead(self, ahead_v) -> None:
+        self.events.append(('ahead', [float(a) for a in ahead_v]))
+
+
+def test_guard_releases_the_answer_first_and_its_commands_ahead_after():
+    bridge = QueueingBridge()
+    guard = GuardedPlant(bridge, StageParams().chain, command_timeout_s=0.01,
+                         slew_v_per_s=2e4, sample_period_s=1e-4)
+    guard.start(0.0)
+    guard.command(4.0, 0.0)
+    guard.release(0.0)                  # the answer leaves at once, alone
+    guard.follow([4.5, 20.0])           # its commands ahead after it, clamped as any
+    assert guard.sample(0.0) == 2e-6    # measures only: decided and written already
+    guard.sample(0.0001)                # no new command: the first prediction, the rest queued
+    assert bridge.events == [('write', 4.0), ('ahead', [4.5, 10.0]), ('write', 4.5),
+                             ('queue', [10.0])]
+    assert guard.stats()['predicted_samples'] == 1
+    # the watchdog's sample is no command's: nothing follows it
+    bridge.events.clear()
+    guard.release(0.05)
+    guard.follow([1.0, 2.0])
+    guard.sample(0.05)
+    # (its write empties the backend's queue: the watchdog plays no predictions)
+    assert guard.trip is not None and bridge.events[1:] == [('queue', [])]
+
+
 def test_guard_fault_drives_safe_voltage_and_never_raises():
     bridge = RecordingBridge(fail_stop=True)
     guard = GuardedPlant(bridge, StageParams().chain)
@@ -383,6 +426,7 @@ class HostPacedClock:
         self.now = 0
         self.host_done = threading.Event()
         self.free = False  # at the end: run freely until the STOP arrives
+        self.stall_ns = 0  # added to the next sleep once: the target's own clock stalls
 
     def clock(self) -> int:
         return self.now
@@ -391,7 +435,8 @@ class HostPacedClock:
         if not self.free:
             self.host_done.wait(5.0)
             self.host_done.clear()
-        self.now += round(seconds * 1e9)
+        self.now += round(seconds * 1e9) + self.stall_ns
+        self.stall_ns = 0
 
 
 def _paced_target() -> tuple[HostPacedClock, TargetEmulator, threading.Thread]:
@@ -452,7 +497,7 @@ def test_another_protocol_version_is_refused_clearly_on_both_sides(capsys):
         assert (kind, seq) == (udp.HELLO, 1)
         assert status == udp.STATUS_REFUSED | udp.STATUS_VERSION and emu.refused_version == 1
         sock.close()
-    assert 'protocol version 1 (this target speaks version 2)' in capsys.readouterr().err
+    assert 'protocol version 1 (this target speaks version 3)' in capsys.readouterr().err
     # a target of another version: the host names both versions
     target = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     target.bind(('127.0.0.1', 0))
@@ -460,12 +505,12 @@ def test_another_protocol_version_is_refused_clearly_on_both_sides(capsys):
 
     def serve() -> None:
         data, peer = target.recvfrom(256)
-        target.sendto(struct.pack('<2sBBIdII', b'PZ', 3, udp.HELLO | 0x80, 1, 0.0, 0, 0), peer)
+        target.sendto(struct.pack('<2sBBIdII', b'PZ', 2, udp.HELLO | 0x80, 1, 0.0, 0, 0), peer)
 
     thread = threading.Thread(target=serve, daemon=True)
     thread.start()
     bridge = udp.UdpBridge('127.0.0.1', target.getsockname()[1], timeout_s=2.0)
-    with pytest.raises(BridgeError, match='speaks protocol version 3, this host version 2'):
+    with pytest.raises(BridgeError, match='speaks protocol version 2, this host version 3'):
         bridge.safe_start(0.0)
     thread.join(5.0)
     target.close()
@@ -505,3 +550,132 @@ def test_paced_target_plays_the_commands_ahead_over_unanswered_samples(late):
     model = Stage(PARAMS)
     expected = [model.reset()] + [model.step(v) for v in applied]
     np.testing.assert_array_equal(positions, expected)
+
+
+def test_paced_target_keeps_its_queue_and_moves_it_onto_a_newer_command():
+    # version 3: the queue comes with the answer to sample 0 only, sent again after it
+    # (write_ahead); the answers to 1 and 2 come without one; 3, 4 and 5 go unanswered
+    clock, emu, target = _paced_target()
+    bridge = udp.UdpStreamBridge('127.0.0.1', emu.port, timeout_s=5.0)
+    positions = [bridge.safe_start(0.0)]
+    commands = [1.0 + 0.5 * k for k in range(10)]
+    queue = [commands[0] + 0.1 * j for j in range(1, 5)]  # for the answers to 1 .. 4
+    applied = []
+    for k in range(10):
+        if k == 0:
+            bridge.write_voltage(commands[0])
+            bridge.write_ahead(queue)
+            applied.append(commands[0])
+        elif k in (3, 4, 5):
+            # the queue's prediction for the answer to k (the last one after the queue),
+            # shifted by what the newest command (the answer to 2) made of its own prediction
+            applied.append(queue[min(k, len(queue)) - 1] + (commands[2] - queue[1]))
+        else:
+            bridge.write_voltage(commands[k])
+            applied.append(commands[k])
+        clock.host_done.set()
+        positions.append(bridge.read_position())
+    predicted = bridge.stats()['target_predicted']
+    clock.free = True
+    clock.host_done.set()
+    bridge.safe_stop(0.0)
+    target.join(5.0)
+    assert predicted == 3 and bridge.resent == 1
+    model = Stage(PARAMS)
+    expected = [model.reset()] + [model.step(v) for v in applied]
+    np.testing.assert_array_equal(positions, expected)
+
+
+def test_stream_host_answers_the_newest_sample_and_overtakes_a_backlog():
+    # a host that fell behind finds three samples queued: it answers the newest, and the
+    # two it overtakes are neither gaps nor answered late one by one
+    target = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    target.bind(('127.0.0.1', 0))
+    target.settimeout(5.0)
+    bridge = udp.UdpStreamBridge('127.0.0.1', target.getsockname()[1], timeout_s=5.0)
+    bridge.open()
+    bridge._send(udp.STREAM, 0, 0.0)
+    _, peer = target.recvfrom(256)
+    for k, position in enumerate((1e-6, 2e-6, 3e-6, 4e-6)):
+        target.sendto(udp.pack_reply(udp.STREAM, k, position, 0, 0), peer)
+    time.sleep(0.2)  # all four are queued before the host reads
+    assert bridge.read_position() == 4e-6
+    assert (bridge.sample_index, bridge.overtaken, bridge.gaps) == (3, 3, 0)
+    bridge.write_voltage(1.5)
+    kind, seq, value, ahead = udp.unpack_request(target.recv(256))
+    assert (kind, seq, value, ahead) == (udp.COMMAND, 3, 1.5, ())
+    # a number that never came is a gap, not overtaken
+    target.sendto(udp.pack_reply(udp.STREAM, 5, 6e-6, 0, 0), peer)
+    assert bridge.read_position() == 6e-6
+    assert (bridge.sample_index, bridge.overtaken, bridge.gaps) == (5, 3, 1)
+    bridge._sock.close()
+    target.close()
+
+
+def test_stream_host_follows_with_commands_ahead_when_it_keeps_up():
+    # the rule that spares a late host its commands ahead, on a scripted clock
+    now = [0]
+    bridge = udp.UdpStreamBridge('127.0.0.1', 9, clock=lambda: now[0], period_ns=100_000)
+    bridge.sample_index, bridge.arrival_ns, bridge._ahead_index = 10, 0, 9
+    now[0] = 40_000
+    assert bridge.ahead_wanted(128)  # answered within half a period
+    now[0] = 60_000
+    assert not bridge.ahead_wanted(128)  # past half a period
+    bridge.spin, bridge.waited, now[0] = True, False, 10_000
+    assert not bridge.ahead_wanted(128)  # spinning, the sample came before the host looked
+    bridge.waited = True
+    assert bridge.ahead_wanted(128)
+    bridge.waited, now[0] = False, 90_000
+    bridge.sample_index = 9 + 32
+    assert bridge.ahead_wanted(128) and not bridge.ahead_wanted(132)  # every count // 4
+
+
+def test_request_buffer_packs_commands_ahead_aligned_and_as_read_one_by_one():
+    from piezo_stage_ros.core.control.ahead import Ahead
+    x = np.linspace(0.0, 1e-5, 300)
+    v = np.cos(np.linspace(0.0, 3.0, 300)) * 1e-3
+    ahead = Ahead(x, v, 40, 168, 0.25, (5.0e5, 2.0), -1.0, 2.0)
+    request = udp.RequestBuffer()
+    size = request.pack(udp.COMMAND, 5, 0.5, ahead)
+    assert request._ahead.flags.aligned and size == udp.REQUEST.size + 8 * 128
+    kind, seq, value, values = udp.unpack_request(bytes(request.view[:size]))
+    assert (kind, seq, value) == (udp.COMMAND, 5, 0.5)
+    assert list(values) == list(ahead)  # bit for bit, clipped alike
+    assert max(values) == 2.0 and min(values) < 1.0  # the top ones clipped
+    # the buffer is reused: a shorter request after a longer one carries only its own
+    size = request.pack(udp.COMMAND, 6, 0.5, [1.0, 2.0])
+    assert udp.unpack_request(bytes(request.view[:size]))[3] == (1.0, 2.0)
+
+
+def test_after_a_stall_of_its_own_clock_the_target_plays_the_queue_not_a_stale_answer():
+    # the target's clock stalls for three samples after the host answered sample 1: those
+    # samples play the queue (the answer was not read yet), and the sample after them, whose
+    # previous sample the host never saw, plays the queue's prediction moved onto that answer,
+    # not the answer held four samples late
+    clock, emu, target = _paced_target()
+    bridge = udp.UdpStreamBridge('127.0.0.1', emu.port, timeout_s=5.0)
+    positions = [bridge.safe_start(0.0)]
+    c0, c1, c5 = 1.0, 1.2, 2.0
+    queue = [c0 + 0.1 * j for j in range(1, 5)]  # for the answers to 1 .. 4
+    bridge.write_commands(c0, queue)
+    clock.host_done.set()
+    positions.append(bridge.read_position())  # sample 1: applies c0
+    bridge.write_voltage(c1)
+    clock.stall_ns = 3 * 100_000
+    clock.host_done.set()
+    positions.append(bridge.read_position())  # sample 5, after 2, 3 and 4 on the queue
+    assert (bridge.sample_index, bridge.gaps) == (5, 3)
+    bridge.write_voltage(c5)
+    clock.host_done.set()
+    positions.append(bridge.read_position())  # sample 6: applies c5
+    clock.free = True
+    clock.host_done.set()
+    bridge.safe_stop(0.0)
+    target.join(5.0)
+    model = Stage(PARAMS)
+    expected = [model.reset(), model.step(c0)]
+    for v in queue[:3]:
+        model.step(v)  # samples 2, 3, 4: nobody measures them
+    expected += [model.step(queue[3] + (c1 - queue[0])), model.step(c5)]
+    np.testing.assert_array_equal(positions, expected)
+    assert emu.pacer is not None and emu.pacer.stats.skipped == 3

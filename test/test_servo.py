@@ -474,6 +474,92 @@ def test_the_stream_host_polls_its_socket_only_when_the_servo_spins(spin_us, spi
     assert type(lockstep) is UdpBridge and lockstep.spin is False
 
 
+class _TargetPacedModel(ModelBridge):
+    """The model as a target-paced stream: each sample arrives as soon as it is asked for."""
+
+    def __init__(self, params: StageParams, wanted) -> None:
+        super().__init__(params)
+        self.sample_index, self.arrival_ns = -1, 0
+        self.wanted = wanted
+        self.events: list[tuple[str, int, int]] = []
+
+    first = 0  # the first sample the host gets (the ones before it went by unanswered)
+
+    def safe_start(self, safe_voltage_v: float) -> float:
+        self.sample_index = self.first
+        self.arrival_ns = self.first * PERIOD
+        return super().safe_start(safe_voltage_v)
+
+    def write_voltage(self, voltage_v: float) -> None:
+        self.write_commands(voltage_v, ())
+
+    def write_commands(self, voltage_v: float, ahead_v) -> None:
+        self.events.append(('answer', self.sample_index, len(ahead_v)))
+        super().write_voltage(voltage_v)
+
+    def write_ahead(self, ahead_v) -> None:
+        self.events.append(('ahead', self.sample_index, len(ahead_v)))
+
+    def ahead_wanted(self, count: int) -> bool:
+        return self.wanted(self.sample_index)
+
+    def read_position(self) -> float:
+        self.sample_index += 1
+        self.arrival_ns += PERIOD
+        return super().read_position()
+
+
+def _run_on_a_target_clock(ahead: int) -> tuple[list[tuple[str, int, int]], list[float]]:
+    # the answers, commands ahead and samples served in their order; the positions taken
+    loop = _loop_config()
+    loop = dataclasses.replace(loop, plant_node=dataclasses.replace(
+        loop.plant_node, servo=dataclasses.replace(loop.plant_node.servo,
+                                                   commands_ahead=ahead)))
+    target = _TargetPacedModel(loop.stage, lambda k: k % 3 == 0)
+    servo = servo_from_config(loop, 0.005, target,
+                              on_sample=lambda s: target.events.append(('served', s.k, 0)))
+    assert servo.bridge_clock is target
+    servo.run()
+    assert servo.error is None and servo.done
+    return target.events, [s.position_m for _, s in servo.samples]
+
+
+@pytest.mark.parametrize('ahead', [0, 16])
+def test_on_a_target_clock_the_answer_leaves_first_and_its_commands_ahead_after(ahead):
+    events, _ = _run_on_a_target_clock(ahead)
+    assert [e[1] for e in events if e[0] == 'served'] == list(range(50))
+    for k in range(50):
+        i = events.index(('served', k, 0))
+        # the answer to sample k, alone, before the loop's bookkeeping of it; then its
+        # commands ahead when the host has time for them
+        follows = ahead > 0 and k % 3 == 0
+        assert events[i - 1 - follows] == ('answer', k, 0)
+        if follows:
+            assert events[i - 1] == ('ahead', k, ahead)
+    assert sum(e[0] == 'ahead' for e in events) == (17 if ahead else 0)
+
+
+def test_on_a_target_clock_the_commands_ahead_change_no_sample_taken():
+    # they serve only the samples the host misses; the model here misses none
+    without, with_ahead = (_run_on_a_target_clock(m)[1] for m in (0, 16))
+    assert with_ahead == without and len(without) == 50
+
+
+def test_on_a_target_clock_the_samples_before_the_first_taken_count_as_skipped():
+    # the host took sample 5 first (the newest waiting): 0-4 count as skipped, and the stamps
+    # stay on the target's grid, k periods after the start
+    loop = _loop_config()
+    target = _TargetPacedModel(loop.stage, lambda k: False)
+    target.first = 5
+    servo = servo_from_config(loop, 0.005, target)
+    servo.run(start_ns=10**9, since_ns=0)
+    got = servo.drain()
+    assert servo.error is None and [s.k for s in got] == list(range(5, 50))
+    stats = servo.stats()
+    assert stats['skipped'] == 5 and stats['paced_samples'] + stats['skipped'] == 50
+    assert all(s.stamp_ns == 10**9 + s.k * PERIOD for s in got)
+
+
 def _wait_for(condition, what: str, limit_s: float = 120.0) -> None:
     # a bound on a wait for a spawned process, not a timing figure: the test asserts nothing
     # on how long it took

@@ -25,7 +25,10 @@ driven through :class:`piezo_stage_ros.hardware.safety.GuardedPlant`.
 Commands ahead (optional): a backend that keeps a queue has ``write_commands(voltage_v,
 ahead_v)``, a :meth:`Bridge.write_voltage` that also hands over the commands predicted for the
 samples after that one. A sample without a newer write then applies the next of them instead of
-holding the voltage (the last one is held after the queue); any write replaces the queue.
+holding the voltage (the last one is held after the queue); any write replaces the queue. A
+backend that owns the clock and sends each write at once (``UdpStreamBridge``) also has
+``write_ahead(ahead_v)``: the commands ahead of the write just sent, sent after it (see
+:meth:`~piezo_stage_ros.hardware.safety.GuardedPlant.follow`).
 """
 
 from __future__ import annotations

@@ -39,7 +39,7 @@ import math
 import socket
 import sys
 import threading
-from typing import Sequence
+from typing import Any, Sequence
 
 from piezo_stage_ros import cli
 from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
@@ -133,10 +133,18 @@ class TargetEmulator:
         self._thread: threading.Thread | None = None
         self._halt = threading.Event()
         self._sent = 0
+        # a stream: whether the sample sent last has its answer, the next sample stepped ahead
+        # of its due time (position, status), why to stop, when the last request came
+        self._answered = False
+        self._ready: tuple[float, int] | None = None
+        self._reason = ''
+        self._last_request_ns = 0
         self.pacer: Pacer | None = None
-        # the newest command of a stream: the sample it answers, its commands ahead
+        # the newest command of a stream (the sample it answers), the newest commands ahead
+        # and the sample whose command they came with
         self._newest = 0
         self._queue: tuple[float, ...] = ()
+        self._queue_seq = 0
         #: Samples that applied a command ahead (paced).
         self.predicted = 0
         #: Requests refused for another protocol version.
@@ -271,7 +279,7 @@ class TargetEmulator:
             if request is not None and request[0] == STREAM:
                 peer = addr
                 self._voltage_v = request[2]
-                self._queue = ()
+                self._queue, self._queue_seq = (), 0
             elif request is None:
                 refusal = self._refuse_version(data)
                 if refusal is not None:
@@ -288,88 +296,132 @@ class TargetEmulator:
         pacer.start()
         index, _ = pacer.wait()
         sock.sendto(pack_reply(STREAM, index, self._position_m, 0, 0), peer)
-        last_request_ns = pacer.clock()
-        reason = ''
-        while not reason:
+        self._sent, self._answered, self._ready, self._reason = index, False, None, ''
+        self._last_request_ns = pacer.clock()
+
+        def poll() -> None:
+            # while the clock spins to the next sample: take the commands as they come, and
+            # once the answer to the sample sent last is in, step the next sample with it
+            # ahead of its due time, so that its reply leaves at once then, as an ADC's would
+            if self._reason or self._ready is not None:
+                return
+            self._reason = self._take_requests(sock, peer)
+            if self._answered and not self._reason:
+                self._ready = self._sample(self._sent + 1)
+
+        while not self._reason:
             if self._halt.is_set():
-                reason = 'closed'
+                self._reason = 'closed'
                 break
             before = index
-            index, _ = pacer.wait()
+            index, _ = pacer.wait(poll)
+            ready, self._ready = self._ready, None
             for skipped in range(before + 1, index):
                 # samples skipped after a stall: the stage went on under the held voltage (or
-                # the commands ahead)
-                self.stage.step(self._ahead_voltage(skipped)[0])
-            answered = False
-            while True:
-                try:
-                    data = sock.recv(_DATAGRAM)
-                except (BlockingIOError, InterruptedError):
-                    break
-                except OSError:
-                    reason = 'closed'
-                    break
-                request = unpack_request(data)
-                if request is None:
-                    refusal = self._refuse_version(data)
-                    if refusal is not None:
-                        sock.sendto(refusal, peer)
-                    continue
-                kind, seq, value, ahead = request
-                self.requests += 1
-                last_request_ns = pacer.clock()
-                if kind == STOP:
-                    self._voltage_v = value
-                    sock.sendto(pack_reply(STOP, seq, self._position_m, 0, self.missing), peer)
-                    reason = 'stop'
-                    break
-                if kind == COMMAND:
-                    self.commands += 1
-                    # the newest command is held; it answers the previous sample, or is late
+                # the commands ahead); the first of them stepped already if the answer came
+                if not (skipped == before + 1 and ready is not None):
+                    self.stage.step(self._ahead_voltage(skipped)[0])
+            self._reason = self._reason or self._take_requests(sock, peer)
+            if self._reason:
+                break
+            position, status = ready if ready is not None and index == before + 1 else \
+                self._sample(index)
+            self._position_m = position
+            self._sent, self._answered = index, False
+            sock.sendto(pack_reply(STREAM, index, position, status, self.missing), peer)
+            if self.max_requests and self.requests >= self.max_requests:
+                self._reason = 'limit'
+            elif (pacer.clock() - self._last_request_ns) / 1e9 > self.idle_timeout_s:
+                self._reason = 'idle'
+        self.stop_reason = self._reason
+        sock.close()
+        return self.stop_reason
+
+    def _take_requests(self, sock: socket.socket, peer: Any) -> str:
+        """
+        Take every request waiting at the socket (a stream's); return why to stop, or ''.
+
+        The newest command is held; it answers the sample sent last, or is late. The first
+        command answering the sample sent last fixes its value (its step may have been taken
+        already): a repeat of it (the same number) brings only its commands ahead.
+        """
+        assert self.pacer is not None
+        while True:
+            try:
+                data = sock.recv(_DATAGRAM)
+            except (BlockingIOError, InterruptedError):
+                return ''
+            except OSError:
+                return 'closed'
+            request = unpack_request(data)
+            if request is None:
+                refusal = self._refuse_version(data)
+                if refusal is not None:
+                    sock.sendto(refusal, peer)
+                continue
+            kind, seq, value, ahead = request
+            self.requests += 1
+            self._last_request_ns = self.pacer.clock()
+            if kind == STOP:
+                self._voltage_v = value
+                sock.sendto(pack_reply(STOP, seq, self._position_m, 0, self.missing), peer)
+                return 'stop'
+            if kind == COMMAND:
+                self.commands += 1
+                answers_last = seq % 2 ** 32 == self._sent % 2 ** 32
+                if not (answers_last and self._answered):
                     self._voltage_v = value
                     self._newest = seq
-                    self._queue = ahead
-                    answered = answered or seq % 2 ** 32 == self._sent % 2 ** 32
-            if reason:
-                break
-            status = 0
-            if not answered:
-                self.missing += 1
-                value, predicted = self._ahead_voltage(index)
-                if predicted:
-                    status |= STATUS_PREDICTED
-            else:
-                value = self._voltage_v
-            if not math.isfinite(value):
-                status |= STATUS_NOT_FINITE
-            elif not self._low <= value <= self._high:
-                status |= STATUS_CLAMPED
-            self._position_m = self.stage.step(value)
-            self._sent = index
-            sock.sendto(pack_reply(STREAM, index, self._position_m, status, self.missing), peer)
-            if self.max_requests and self.requests >= self.max_requests:
-                reason = 'limit'
-            elif (pacer.clock() - last_request_ns) / 1e9 > self.idle_timeout_s:
-                reason = 'idle'
-        self.stop_reason = reason
-        sock.close()
-        return reason
+                if ahead and (seq - self._queue_seq) % 2 ** 32 < 2 ** 31:
+                    # a command without commands ahead keeps the queue it has (version 3)
+                    self._queue, self._queue_seq = ahead, seq
+                self._answered = self._answered or answers_last
+
+    def _sample(self, index: int) -> tuple[float, int]:
+        """
+        Step sample ``index`` with the answer, a command ahead or the held command.
+
+        The answer is the command answering sample ``index - 1``: after a stall of the
+        target's own clock the sample sent last is older, and its answer, however punctual,
+        is the newest command the queue's prediction for ``index`` goes on from, not a command
+        to hold over it.
+        """
+        status = 0
+        if not (self._answered and index == self._sent + 1):
+            self.missing += 1
+            value, predicted = self._ahead_voltage(index)
+            if predicted:
+                status |= STATUS_PREDICTED
+        else:
+            value = self._voltage_v
+        if not math.isfinite(value):
+            status |= STATUS_NOT_FINITE
+        elif not self._low <= value <= self._high:
+            status |= STATUS_CLAMPED
+        return self.stage.step(value), status
 
     def _ahead_voltage(self, index: int) -> tuple[float, bool]:
         """
         Return the voltage of sample ``index`` without a command answering the one before.
 
-        The newest command's prediction for it (``index - 1 - seq`` samples ahead, the last one
-        after the queue) and True, or the command itself (no queue) and False.
+        The newest commands ahead's prediction for it (``index - 1 - q`` samples after the
+        sample q they came with, the last one after the queue) and True, or the newest command
+        itself (no queue) and False.
         """
         queue = self._queue
         if not queue:
             return self._voltage_v, False
-        ahead = (index - 1 - self._newest) % 2 ** 32
-        if ahead == 0:
+        ahead = (index - 1 - self._queue_seq) % 2 ** 32
+        if ahead == 0 or ahead >= 2 ** 31:
             return self._voltage_v, False
         self.predicted += 1
-        return queue[min(ahead, len(queue)) - 1], True
+        value = queue[min(ahead, len(queue)) - 1]
+        newer = (self._newest - self._queue_seq) % 2 ** 32
+        if 0 < newer <= len(queue) and newer < ahead:
+            # a newer command than the queue's: the queue moved onto it (its prediction for
+            # that command shifted to the command itself)
+            value += self._voltage_v - queue[newer - 1]
+        return value, True
 
     def start_thread(self) -> TargetEmulator:
         """Serve in a daemon thread; return self."""

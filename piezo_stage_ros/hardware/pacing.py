@@ -173,14 +173,16 @@ class Pacer:
         """Return the due time [ns] of sample ``index``."""
         return self.t0_ns + index * self.period_ns
 
-    def wait(self) -> tuple[int, int]:
+    def wait(self, poll: Callable[[], None] | None = None) -> tuple[int, int]:
         """
         Wait for the next sample's due time and return ``(index, lateness_ns)``.
 
         If the next sample is already overdue by a whole period or more, the samples whose
         time has passed are skipped (counted in ``stats.skipped``) and the one due latest is
         returned with its lateness (less than a period): the index says which sample of the
-        grid this is, so stamps stay on the grid.
+        grid this is, so stamps stay on the grid. ``poll``, if given, is called over and over
+        while the wait spins (work that can be done before the due time; keep each call
+        short), never while it sleeps.
         """
         index = self.index + 1
         due = self.t0_ns + index * self.period_ns
@@ -189,6 +191,8 @@ class Pacer:
             ahead = due - now
             if ahead > self.spin_ns:
                 self.sleep((ahead - self.spin_ns) / 1e9)
+            elif poll is not None:
+                poll()
             now = self.clock()
         if now - due >= self.period_ns:
             # a stall (here or in a sleep that overshot): no burst, move on by whole periods

@@ -310,6 +310,9 @@ class GuardedPlant:
         self.recovery_samples = 0
         self.max_step_v = 0.0
         self._fresh = False
+        self._released = False
+        # the sample written last applies the command itself (what follow() extends)
+        self._wrote_command = False
         self._trip_number = 0
         self._offset: float | None = None
         #: Samples since the last command, taken or skipped (the n of its n-th prediction).
@@ -484,6 +487,44 @@ class GuardedPlant:
             Measured position at the end of the sample [m].
 
         """
+        if self._released:
+            self._released = False
+        else:
+            self._write(now_s)
+        self._wrote_command = False
+        return self.bridge.read_position()
+
+    def release(self, now_s: float) -> None:
+        """
+        Write the coming sample's voltage to the backend now; :meth:`sample` then only measures.
+
+        For a backend whose write sends at once (the host of a target-paced stream): the
+        answer leaves as soon as the command is known, ahead of the loop's bookkeeping, and
+        :meth:`sample` called later decides nothing again. ``now_s``: as :meth:`sample`'s.
+        """
+        if not self._released:
+            self._write(now_s)
+            self._released = True
+
+    def follow(self, ahead_v: Commands) -> None:
+        """
+        Hand over the commands ahead of the command :meth:`release` wrote, after it [V].
+
+        For the host of a target-paced stream: the answer leaves without them, as early as it
+        can, and they follow in a second datagram that only the samples the host misses need
+        (``write_ahead`` of the backend). Taken as :meth:`command`'s ``ahead_v``; ignored when
+        the sample released was not the command's (the watchdog's, or a prediction's).
+        """
+        if not self._wrote_command:
+            return
+        queue = self._accept_ahead(ahead_v)
+        self._ahead = self._queued = queue
+        write_ahead = getattr(self.bridge, 'write_ahead', None)
+        if write_ahead is not None and len(queue):
+            write_ahead(queue)
+
+    def _write(self, now_s: float) -> None:
+        """Decide the voltage of the coming sample (command, queue or watchdog) and write it."""
         expired = self.watchdog.expired(now_s)
         queue: Commands = ()
         if expired or self.trip is not None:
@@ -493,6 +534,7 @@ class GuardedPlant:
             since = self.since_command
             if since == 0:
                 voltage, queue = self.held_v, self._ahead
+                self._wrote_command = True
             else:
                 # no command for this sample (or a command late by the samples skipped)
                 voltage, queue = self._predicted(since)
@@ -509,7 +551,6 @@ class GuardedPlant:
         else:
             self.bridge.write_voltage(voltage)
         self._queued = queue
-        return self.bridge.read_position()
 
     def skipped(self, samples: int) -> None:
         """

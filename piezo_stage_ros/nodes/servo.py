@@ -405,8 +405,21 @@ class ServoLoop:
             u = out.voltage_v if out is not None else self.controller.safe_voltage_v
             applied = plant.applied_v
             m = self.commands_ahead
-            if m and out is not None:
-                trajectory = self.trajectory
+            trajectory = self.trajectory
+            if self.bridge_clock is not None:
+                # the target waits for this answer: it leaves now, its commands ahead (only
+                # the samples the host misses need them) and the bookkeeping after it
+                plant.command(u, now_s)
+                plant.release(now_s)
+                if m and out is not None:
+                    wanted = getattr(self.bridge_clock, 'ahead_wanted', None)
+                    if wanted is None or wanted(m):
+                        plant.follow(self._predictor.predict(
+                            self.controller.controller, m, u, ref, vel,
+                            lambda count: trajectory.window(stamp, count)))
+                    else:
+                        self._predictor.observe(self.controller.controller, u, ref, vel)
+            elif m and out is not None:
                 plant.command(u, now_s, self._predictor.predict(
                     self.controller.controller, m, u, ref, vel,
                     lambda count: trajectory.window(stamp, count)))
@@ -483,7 +496,12 @@ class ServoLoop:
             y0 = self.plant.start(time.monotonic())
             bridge = self.bridge_clock
             self._t0_arrival = bridge.arrival_ns - bridge.sample_index * self.pacer.period_ns
-            self._set_origin(start_ns, since_ns, bridge.arrival_ns)
+            # the grid's origin: the first sample taken may be a later one (the host takes the
+            # newest waiting; those before it played the safe voltage and count as skipped)
+            self._set_origin(start_ns, since_ns, self._t0_arrival)
+            first = min(bridge.sample_index, self.total) if self.total else bridge.sample_index
+            if first > 0:
+                self.pacer.stats.skip(first)
             self.pacer.stats.add(0)
             self._serve(bridge.sample_index, y0, bridge.arrival_ns, 0)
             return
