@@ -202,9 +202,10 @@ def run_bridge(loop: LoopConfig, duration_s: float, offline_rms: float) -> dict[
     real-time target would; the host is the servo loop of ``stage_servo --direct`` with
     ``backend: udp_stream`` in its own process (:func:`serve_process`), answering each sample.
     Returns the host's figures (lateness: arrival of each sample against the grid of the
-    first), its answer latency (sample arrived to command sent), and the target's: missing
-    commands and its own clock's lateness. The target's clock gets the same ``servo.*``
-    options as the host's loop.
+    first), its answer latency (sample arrived to command sent), the samples it overtook and
+    the answers it sent again with their commands ahead, and the target's: missing commands,
+    samples that played a command ahead and its own clock's lateness. The target's clock gets
+    the same ``servo.*`` options as the host's loop.
     """
     opts = loop.plant_node.servo
     args = [sys.executable, '-m', 'piezo_stage_ros.hardware.emulator', '--config', CONFIG,
@@ -236,7 +237,7 @@ def run_bridge(loop: LoopConfig, duration_s: float, offline_rms: float) -> dict[
             target.wait()
     out = _figures(stats, got, loop, offline_rms)
     for key in ('answers', 'answer_p50_us', 'answer_p99_us', 'answer_max_us', 'lost',
-                'target_missing'):
+                'target_missing', 'target_predicted', 'overtaken', 'resent'):
         out[f'host_{key}' if key == 'lost' else key] = stats.get(f'bridge_{key}')
     out['target'] = ' '.join(line.strip() for line in lines
                              if 'clock' in line or 'stopped' in line or 'sched' in line
