@@ -505,11 +505,15 @@ class ServoLoop:
             self.pacer.stats.add(0)
             self._serve(bridge.sample_index, y0, bridge.arrival_ns, 0)
             return
+        # the backend's start (the model's reset: about 0.1 ms) before the clock's: in sample
+        # 0 it made samples 1-2 late, skipped while the RAC's start-up transient ran
+        y0 = self.plant.start(time.monotonic())
         self.pacer.start()
         index, lateness = self.pacer.wait()  # sample 0, due now
         now = self.pacer.due_ns(index) + lateness
+        self.plant.watchdog.arm(now / NS_PER_S)  # on the loop's clock, from sample 0
         self._set_origin(start_ns, since_ns, now)
-        self._serve(index, self.plant.start(now / NS_PER_S), now, lateness)
+        self._serve(index, y0, now, lateness)
 
     def _set_origin(self, start_ns: int, since_ns: int | None, now_ns: int) -> None:
         self.start_ns = int(start_ns) + (now_ns - since_ns if since_ns is not None else 0)
