@@ -587,8 +587,8 @@ def test_paced_target_keeps_its_queue_and_moves_it_onto_a_newer_command():
 
 
 def test_stream_host_answers_the_newest_sample_and_overtakes_a_backlog():
-    # a host that fell behind finds three samples queued: it answers the newest, and the
-    # two it overtakes are neither gaps nor answered late one by one
+    # a host that fell behind finds four samples queued: it answers the newest, and the
+    # three it overtakes are neither gaps nor answered late one by one
     target = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     target.bind(('127.0.0.1', 0))
     target.settimeout(5.0)
