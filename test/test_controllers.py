@@ -297,7 +297,12 @@ def test_normalisation_bounds_the_per_sample_step(xd, err, vd, kappa, gamma, eta
     # q is a difference of O(1) estimates times regressors: its rounding is ~1e-16 of
     # |y| theta + |u_fd| phi, the size of the terms cancelled
     tol = 1e-14 * (abs(y) + abs(u_fd)) * 1e9 + 1e-300
-    assert q == pytest.approx(-g / (1.0 + kappa * g) * s, rel=1e-9, abs=tol)
+    projected = d['theta_hat'] in (p.theta_min, p.theta_max) or \
+        d['phi_hat'] in (p.phi_min, p.phi_max)
+    if not projected:
+        assert q == pytest.approx(-g / (1.0 + kappa * g) * s, rel=1e-9, abs=tol)
+    # both terms of q have the sign of -s: the projection (40), which shortens one of them
+    # (theta_hat from 1 to 1e-9 when gamma y^2 is large and kappa small), shrinks |q|
     assert abs(q) <= abs(s) / kappa + tol
 
 
