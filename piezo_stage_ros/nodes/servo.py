@@ -492,8 +492,10 @@ class ServoLoop:
             process imports for a second or two). None: ``start_ns`` as given.
 
         """
+        # the backend's start (the model's reset: about 0.1 ms) before the clock's: in sample
+        # 0 it made samples 1-2 late, skipped while the RAC's start-up transient ran
+        y0 = self.plant.start(time.monotonic())
         if self.bridge_clock is not None:
-            y0 = self.plant.start(time.monotonic())
             bridge = self.bridge_clock
             self._t0_arrival = bridge.arrival_ns - bridge.sample_index * self.pacer.period_ns
             # the grid's origin: the first sample taken may be a later one (the host takes the
@@ -505,9 +507,6 @@ class ServoLoop:
             self.pacer.stats.add(0)
             self._serve(bridge.sample_index, y0, bridge.arrival_ns, 0)
             return
-        # the backend's start (the model's reset: about 0.1 ms) before the clock's: in sample
-        # 0 it made samples 1-2 late, skipped while the RAC's start-up transient ran
-        y0 = self.plant.start(time.monotonic())
         self.pacer.start()
         index, lateness = self.pacer.wait()  # sample 0, due now
         now = self.pacer.due_ns(index) + lateness
