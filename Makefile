@@ -77,7 +77,7 @@ test-jazzy: $(JAZZY_STAMP)
 	$(JAZZY_VENV)/bin/python -m pytest -q -p no:warnings
 
 # The whole suite in both environments under several OpenBLAS kernels, thread counts and numpy
-# SIMD levels (docs/explanation/testing.md); not part of `make test`: it takes ~30 runs of the suite.
+# SIMD levels (docs/explanation/testing.md); not part of `make test`: ~30 runs of the suite.
 test-matrix: $(STAMP) $(JAZZY_STAMP)
 	@mkdir -p out/test-matrix
 	bash test/matrix.sh | tee out/test-matrix/table.md
