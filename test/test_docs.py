@@ -171,3 +171,30 @@ def test_no_history_outside_results_and_changelog(page: Path):
         for pattern in (ISSUE, DATE) for m in pattern.finditer(line)]
     assert not found, (f'{_id(page)} names issues or dates (they belong in docs/results.md or '
                        f'CHANGELOG.rst): ' + '; '.join(f'line {n}: {t!r}' for n, t in found))
+
+
+SCRIPT = re.compile(r"'(\w+) = (piezo_stage_ros[\w.]*):main'")
+LAUNCH_ARGUMENT = re.compile(r"^    '(\w+)': \(", re.MULTILINE)
+
+
+def test_every_command_and_executable_is_in_the_reference():
+    # A console script is a command (reference/commands.md) or a node executable
+    # (reference/ros-interface.md); a new one fails here until its page names it.
+    scripts = SCRIPT.findall((ROOT / 'setup.py').read_text(encoding='utf-8'))
+    commands = (ROOT / 'docs' / 'reference' / 'commands.md').read_text(encoding='utf-8')
+    ros = (ROOT / 'docs' / 'reference' / 'ros-interface.md').read_text(encoding='utf-8')
+    assert len(scripts) > 10
+    missing = [name for name, module in scripts
+               if f'## `{name}`' not in commands and f'| `{name}` |' not in ros]
+    assert not missing, f'console scripts in no reference page: {missing}'
+
+
+@pytest.mark.parametrize('launch', sorted((ROOT / 'launch').glob('*.launch.py')),
+                         ids=lambda p: p.name)
+def test_every_launch_argument_is_in_the_reference(launch: Path):
+    names = LAUNCH_ARGUMENT.findall(launch.read_text(encoding='utf-8'))
+    ros = (ROOT / 'docs' / 'reference' / 'ros-interface.md').read_text(encoding='utf-8')
+    section = ros.split(f'### `{launch.name}`', 1)[1].split('\n### ', 1)[0]
+    assert len(names) >= 5
+    missing = [n for n in names if f'| `{n}` |' not in section]
+    assert not missing, f'{launch.name}: arguments not in reference/ros-interface.md: {missing}'
