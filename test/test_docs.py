@@ -198,3 +198,18 @@ def test_every_launch_argument_is_in_the_reference(launch: Path):
     assert len(names) >= 5
     missing = [n for n in names if f'| `{n}` |' not in section]
     assert not missing, f'{launch.name}: arguments not in reference/ros-interface.md: {missing}'
+
+
+def test_every_topic_of_the_wire_contract_is_in_the_reference_with_its_type():
+    from piezo_stage_ros.core.contracts.wire import SIMULATION_TOPICS, TOPIC_TYPES
+    ros = (ROOT / 'docs' / 'reference' / 'ros-interface.md').read_text(encoding='utf-8')
+    bags = (ROOT / 'docs' / 'reference' / 'bags.md').read_text(encoding='utf-8')
+    simulation = {f'stage/{leaf}' for leaf in SIMULATION_TOPICS}
+    missing = []
+    for topic, msgtype in TOPIC_TYPES.items():
+        # a topic no node publishes (the simulation's true position) lives in the bag reference
+        page, name = (bags, '/' + topic) if topic in simulation else (ros, topic)
+        if not any(line.startswith(f'| `{name}`') and f'`{msgtype}`' in line
+                   for line in page.splitlines()):
+            missing.append(f'{topic} ({msgtype})')
+    assert not missing, f'topics not in the reference with their type: {missing}'
