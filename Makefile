@@ -19,7 +19,8 @@ JAZZY_STAMP := $(JAZZY_VENV)/.installed
 LOCK := requirements-lock.txt
 JAZZY_LOCK := requirements-jazzy-lock.txt
 
-.PHONY: venv demo test check lint typecheck pytest test-jazzy test-matrix lock bench soak tune clean
+.PHONY: venv demo test check lint typecheck pytest test-jazzy test-random test-matrix lock bench soak
+.PHONY: tune results clean
 
 venv: $(STAMP)
 
@@ -76,10 +77,17 @@ test-jazzy: $(JAZZY_STAMP)
 	$(JAZZY_VENV)/bin/python -m pytest -q -p no:warnings
 
 # The whole suite in both environments under several OpenBLAS kernels, thread counts and numpy
-# SIMD levels (docs/testing.md); not part of `make test`: it takes ~30 runs of the suite.
+# SIMD levels (docs/explanation/testing.md); not part of `make test`: ~30 runs of the suite.
 test-matrix: $(STAMP) $(JAZZY_STAMP)
 	@mkdir -p out/test-matrix
 	bash test/matrix.sh | tee out/test-matrix/table.md
+
+# The property tests with new random examples on each run (test/conftest.py: profile `random`);
+# `make test` runs them derandomized (profile `ci`), so a landing passes or fails reproducibly.
+# A counterexample found here goes into the test as an @example.
+test-random: $(STAMP)
+	HYPOTHESIS_PROFILE=random $(BIN)/python -m pytest -q test/test_commands_ahead.py \
+		test/test_controllers.py test/test_feedforward.py test/test_safety.py
 
 # the quick loop while developing: one environment
 check: lint typecheck pytest
@@ -95,6 +103,10 @@ soak: $(STAMP)
 
 tune: $(STAMP)
 	$(BIN)/tune
+
+# rewrite the generated sections of docs/results.md with this machine's figures
+results: $(STAMP)
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m piezo_stage_ros.results
 
 clean:
 	rm -rf $(VENV) $(JAZZY_VENV) .venv-lock build install log *.egg-info

@@ -16,7 +16,9 @@
 The documentation holds no copy that drifts and no link that leads nowhere.
 
 The parameter tables of docs/parameters.md are the declarations; every relative link of the
-README and of docs/ names a file (and a heading) that exists.
+README and of docs/ (every folder of it) names a file (and a heading) that exists. The README is
+a front page (at most 10 KB), no page passes 40 KB, and the guide carries no history: issue
+numbers and dates belong to docs/results.md and CHANGELOG.rst only.
 """
 
 from pathlib import Path
@@ -27,7 +29,13 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PARAMETERS = ROOT / 'docs' / 'parameters.md'
-PAGES = [ROOT / 'README.md', *sorted((ROOT / 'docs').glob('*.md'))]
+PAGES = [ROOT / 'README.md', *sorted((ROOT / 'docs').rglob('*.md'))]
+# the pages that may hold dated runs and name issues
+HISTORY = {ROOT / 'docs' / 'results.md', ROOT / 'CHANGELOG.rst'}
+README_MAX_BYTES = 10_000
+PAGE_MAX_BYTES = 40_000
+ISSUE = re.compile(r'\bissues?\s+#?\d+|(?<![\w&/#])#\d+\b', re.IGNORECASE)
+DATE = re.compile(r'\b(19|20)\d\d-(0[1-9]|1[0-2])-(0[1-9]|[12]\d|3[01])\b')
 BEGIN = '<!-- parameter tables: begin -->'
 END = '<!-- parameter tables: end -->'
 
@@ -119,17 +127,89 @@ def _section(text: str, title: str) -> str:
 
 
 def test_the_readme_headline_rows_are_copies_of_the_docs():
-    # The README repeats a few rows of the results and speed tables; each must be a row of a
-    # docs/ page (where the command that makes it sits), so that a rerun updates one place and
-    # this test names the copy left behind.
+    # The README repeats the Table III rows of docs/results.md, where `python -m
+    # piezo_stage_ros.results` writes them with their command and machine; a rerun that moves a
+    # figure makes this test name the copy left behind.
     readme = ROOT / 'README.md'
-    docs_rows = {
-        line for page in PAGES if page != readme
-        for line in page.read_text(encoding='utf-8').splitlines()}
+    docs_rows = set((ROOT / 'docs' / 'results.md').read_text(encoding='utf-8').splitlines())
     rows = [
         line for line in _section(readme.read_text(encoding='utf-8'),
                                   'Results beside the paper').splitlines()
         if line.startswith('| ') and not line.startswith('| ---')]
-    assert len(rows) > 10
+    assert len(rows) >= 7  # the header, two paper rows and four project rows
     stale = [row for row in rows if row not in docs_rows]
-    assert not stale, 'README rows not in docs/ (update both): ' + '; '.join(stale)
+    assert not stale, ('README rows not in docs/results.md (copy them from there): '
+                       + '; '.join(stale))
+
+
+def _id(page: Path) -> str:
+    return str(page.relative_to(ROOT))
+
+
+def test_the_readme_is_a_front_page():
+    size = len((ROOT / 'README.md').read_bytes())
+    assert size <= README_MAX_BYTES, f'README.md is {size} bytes; at most {README_MAX_BYTES}'
+
+
+@pytest.mark.parametrize('page', PAGES, ids=_id)
+def test_no_page_is_too_long(page: Path):
+    size = len(page.read_bytes())
+    assert size <= PAGE_MAX_BYTES, f'{_id(page)} is {size} bytes; at most {PAGE_MAX_BYTES}'
+
+
+def test_the_history_checks_can_fail():
+    assert ISSUE.search('as issue 17 asked') and ISSUE.search('fixed in #17')
+    assert ISSUE.search('Issues 10 and 12')
+    assert not ISSUE.search('[a](page.md#17-x) &#39; 3#4 `x`')
+    assert DATE.search('run on 2026-11-25') and not DATE.search('version 2026-13-01')
+
+
+@pytest.mark.parametrize('page', [p for p in PAGES if p not in HISTORY], ids=_id)
+def test_no_history_outside_results_and_changelog(page: Path):
+    found = [(n, m.group(0)) for n, line in enumerate(
+        page.read_text(encoding='utf-8').splitlines(), 1)
+        for pattern in (ISSUE, DATE) for m in pattern.finditer(line)]
+    assert not found, (f'{_id(page)} names issues or dates (they belong in docs/results.md or '
+                       f'CHANGELOG.rst): ' + '; '.join(f'line {n}: {t!r}' for n, t in found))
+
+
+SCRIPT = re.compile(r"'(\w+) = (piezo_stage_ros[\w.]*):main'")
+LAUNCH_ARGUMENT = re.compile(r"^    '(\w+)': \(", re.MULTILINE)
+
+
+def test_every_command_and_executable_is_in_the_reference():
+    # A console script is a command (reference/commands.md) or a node executable
+    # (reference/ros-interface.md); a new one fails here until its page names it.
+    scripts = SCRIPT.findall((ROOT / 'setup.py').read_text(encoding='utf-8'))
+    commands = (ROOT / 'docs' / 'reference' / 'commands.md').read_text(encoding='utf-8')
+    ros = (ROOT / 'docs' / 'reference' / 'ros-interface.md').read_text(encoding='utf-8')
+    assert len(scripts) > 10
+    missing = [name for name, module in scripts
+               if f'## `{name}`' not in commands and f'| `{name}` |' not in ros]
+    assert not missing, f'console scripts in no reference page: {missing}'
+
+
+@pytest.mark.parametrize('launch', sorted((ROOT / 'launch').glob('*.launch.py')),
+                         ids=lambda p: p.name)
+def test_every_launch_argument_is_in_the_reference(launch: Path):
+    names = LAUNCH_ARGUMENT.findall(launch.read_text(encoding='utf-8'))
+    ros = (ROOT / 'docs' / 'reference' / 'ros-interface.md').read_text(encoding='utf-8')
+    section = ros.split(f'### `{launch.name}`', 1)[1].split('\n### ', 1)[0]
+    assert len(names) >= 5
+    missing = [n for n in names if f'| `{n}` |' not in section]
+    assert not missing, f'{launch.name}: arguments not in reference/ros-interface.md: {missing}'
+
+
+def test_every_topic_of_the_wire_contract_is_in_the_reference_with_its_type():
+    from piezo_stage_ros.core.contracts.wire import SIMULATION_TOPICS, TOPIC_TYPES
+    ros = (ROOT / 'docs' / 'reference' / 'ros-interface.md').read_text(encoding='utf-8')
+    bags = (ROOT / 'docs' / 'reference' / 'bags.md').read_text(encoding='utf-8')
+    simulation = {f'stage/{leaf}' for leaf in SIMULATION_TOPICS}
+    missing = []
+    for topic, msgtype in TOPIC_TYPES.items():
+        # a topic no node publishes (the simulation's true position) lives in the bag reference
+        page, name = (bags, '/' + topic) if topic in simulation else (ros, topic)
+        if not any(line.startswith(f'| `{name}`') and f'`{msgtype}`' in line
+                   for line in page.splitlines()):
+            missing.append(f'{topic} ({msgtype})')
+    assert not missing, f'topics not in the reference with their type: {missing}'
