@@ -248,7 +248,8 @@ def loop_overrides(config: Config, *, plant: str | None = None, hysteresis: str 
         ``plant.model``, ``hysteresis.model`` (plant_node), ``type`` (controller_node),
         ``kind`` (trajectory_node).
     frequencies : sequence of float, optional
-        Frequency of a sine or triangle (one value) or the multisine components [Hz].
+        Frequency of a sine, triangle or scan line (one value) or the multisine components
+        [Hz].
     amplitude, offset : float, optional
         Amplitude and offset of the trajectory kind [m] (each kind's own names, e.g. square:
         peak to peak and low level).
@@ -288,7 +289,7 @@ def loop_overrides(config: Config, *, plant: str | None = None, hysteresis: str 
         traj['kind'] = trajectory
     kind = traj.get('kind', config.node('trajectory_node').get('kind', 'sine'))
     freqs = list(frequencies) if frequencies else []
-    if kind in ('sine', 'triangle'):
+    if kind in ('sine', 'triangle', 'scan_line'):
         if freqs:
             if len(freqs) > 1:
                 raise ParameterError('--frequency', freqs, f'one value for {kind}',
@@ -314,7 +315,8 @@ def loop_overrides(config: Config, *, plant: str | None = None, hysteresis: str 
             traj['multisine.offset_m'] = offset
     else:
         if freqs:
-            raise ParameterError('--frequency', freqs[0], 'sine, triangle or multisine',
+            raise ParameterError('--frequency', freqs[0], 'sine, triangle, scan_line or '
+                                 'multisine',
                                  f'does not apply to trajectory {kind!r}')
         names = {'square': ('square.peak_to_peak_m', 'square.low_m'),
                  'staircase': ('staircase.step_m', 'staircase.start_m'),
