@@ -161,6 +161,44 @@ def add_feedforward_option(parser: argparse.ArgumentParser) -> None:
                         + ', '.join(modes) + '.')
 
 
+def add_line_options(parser: argparse.ArgumentParser, what: str) -> None:
+    """
+    Add ``--line-middle F`` and ``--pixels N``: the line figures (core/loop/metrics.py).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The command's parser.
+    what : str
+        What the command does with them, ending the help (e.g. ``'measure'``).
+
+    """
+    def fraction(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = -1.0
+        if not 0.0 < value <= 1.0:
+            raise argparse.ArgumentTypeError(f'{text!r} is out of range; allowed: (0, 1]')
+        return value
+
+    def pixels(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = 0
+        if not 1 <= value <= 1_000_000:
+            raise argparse.ArgumentTypeError(f'{text!r} is out of range; allowed: a whole '
+                                             'number in [1, 1000000]')
+        return value
+    parser.add_argument('--line-middle', type=fraction, metavar='F', dest='line_middle',
+                        help=f'{what} the middle F (0 < F <= 1) of the linear part of each '
+                        'line, trace and retrace apart (a scan line: without asking, F = 1; '
+                        'a triangle: only when asked).')
+    parser.add_argument('--pixels', type=pixels, metavar='N',
+                        help=f'Also {what} the error at N pixels a line over that part.')
+
+
 def parse_param(text: str) -> tuple[str, str, Any]:
     """
     Split ``NODE:NAME=VALUE``, VALUE read as ROS 2 reads YAML.

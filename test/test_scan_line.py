@@ -199,3 +199,4 @@ def test_simulate_refuses_a_line_rate_too_high_and_runs_the_scenario(capsys) -> 
     out = json.loads(capsys.readouterr().out)
     assert out['trajectory'] == 'scan_line'
     assert out['trajectory_period_s'] == pytest.approx(0.01)
+    assert math.isfinite(out['line_trace_e_rms_m']) and math.isfinite(out['line_retrace_e_rms_m'])

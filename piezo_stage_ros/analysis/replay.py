@@ -34,6 +34,7 @@ from piezo_stage_ros.analysis.bagread import ProgressCallback, read_run, read_st
 from piezo_stage_ros.analysis.spectral import BodeEstimate, estimate_bode, is_excitation_run
 from piezo_stage_ros.core.contracts.errors import PiezoStageError
 from piezo_stage_ros.core.control.feedforward import LearnedTable, TABLE_META_KEY
+from piezo_stage_ros.core.loop.metrics import LineOptions
 from piezo_stage_ros.core.loop.record import RunRecord
 
 __all__ = ['BagAnalysis', 'HEADLINE', 'analyze_bag', 'compute_metrics', 'estimate_period',
@@ -98,8 +99,8 @@ class BagAnalysis:
         return self.path.name or str(self.path)
 
 
-def compute_metrics(record: RunRecord,
-                    steady_state_start_s: float | None = None) -> dict[str, float]:
+def compute_metrics(record: RunRecord, steady_state_start_s: float | None = None,
+                    lines: LineOptions | None = None) -> dict[str, float]:
     """
     Compute the run's metrics with the offline runner's own function.
 
@@ -109,6 +110,8 @@ def compute_metrics(record: RunRecord,
         The run, times relative to its start [s].
     steady_state_start_s : float, optional
         Start of the metrics window [s]; None uses summarize's default (as ``simulate`` does).
+    lines : LineOptions, optional
+        The line figures to measure (``line_...``; a scan line's bag without asking).
 
     Returns
     -------
@@ -120,7 +123,7 @@ def compute_metrics(record: RunRecord,
 
     """
     from piezo_stage_ros.core.loop.metrics import square_wave_metrics, summarize
-    out = summarize(record, steady_state_start_s=steady_state_start_s).as_dict()
+    out = summarize(record, steady_state_start_s=steady_state_start_s, lines=lines).as_dict()
     out.update(learning_metrics(record))
     if _is_piecewise_constant(record.reference_m):
         period = record.meta.get('trajectory_period_s')
@@ -259,7 +262,8 @@ def estimate_period(record: RunRecord) -> float | None:
 
 def analyze_bag(path: str | Path, *, namespace: str | None = None,
                 steady_state_start_s: float | None = None, bode: bool | None = None,
-                progress: ProgressCallback | None = None) -> BagAnalysis:
+                progress: ProgressCallback | None = None,
+                lines: LineOptions | None = None) -> BagAnalysis:
     """
     Read a bag, align it, and compute its metrics (and a Bode estimate when it makes sense).
 
@@ -277,6 +281,8 @@ def analyze_bag(path: str | Path, *, namespace: str | None = None,
         run's description says the reference was noise or a sweep.
     progress : callable, optional
         ``progress(messages_read, messages_total)`` while reading.
+    lines : LineOptions, optional
+        Measure the linear part of each line (a scan line's bag: without asking).
 
     Returns
     -------
@@ -307,7 +313,7 @@ def analyze_bag(path: str | Path, *, namespace: str | None = None,
             rebased.meta[PERIOD_META_KEY] = period
             notes.append(f'reference period {period:g} s found from the samples (sets the '
                          'steady-state window)')
-    metrics = compute_metrics(rebased, window)
+    metrics = compute_metrics(rebased, window, lines)
     align: dict[str, Any] = record.meta.get('alignment', {})
     dropped = {k: v for k, v in align.items() if k.startswith('dropped_') and v}
     if dropped:

@@ -42,6 +42,8 @@ _CAPTIONS = {
     'bode': 'Frequency response estimated from v_in to x (as Fig. 4)',
     'learning_curve': 'Learning curve: e_rms (solid) and e_m (dashed) of each period, measured '
                       'and, for a simulation, of the true position',
+    'lines': 'Error over the linear part of each line against the position on it, trace and '
+             'retrace, and per pixel when asked',
     'feedforward': 'Feed-forward u_ff (model inverse plus learned table) beside the command, '
                    'over the run and over its last period',
 }
