@@ -33,12 +33,13 @@ import numpy as np
 from piezo_stage_ros.analysis.bagread import ProgressCallback, read_run, read_status
 from piezo_stage_ros.analysis.spectral import BodeEstimate, estimate_bode, is_excitation_run
 from piezo_stage_ros.core.contracts.errors import PiezoStageError
+from piezo_stage_ros.core.contracts.types import FloatArray
 from piezo_stage_ros.core.control.feedforward import LearnedTable, TABLE_META_KEY
-from piezo_stage_ros.core.loop.metrics import LineOptions
+from piezo_stage_ros.core.loop.metrics import grid_step, LineOptions
 from piezo_stage_ros.core.loop.record import RunRecord
 
 __all__ = ['BagAnalysis', 'HEADLINE', 'analyze_bag', 'compute_metrics', 'estimate_period',
-           'format_metric', 'format_summary', 'learned_table', 'learning_metrics',
+           'find_period', 'format_metric', 'format_summary', 'learned_table', 'learning_metrics',
            'ordered_keys', 'summary_json']
 
 #: Key in ``RunRecord.meta`` where a runner may store the start of its metrics window [s].
@@ -221,43 +222,85 @@ def estimate_period(record: RunRecord) -> float | None:
     ``simulate`` takes from the trajectory's period must come from the samples: the smallest
     lag L (in samples) with x_d[k + L] = x_d[k] for every k, to 1e-9 of the reference's range,
     gives the period L * T. Candidates are checked on the first samples, the winner on the
-    whole run.
+    whole run. A run recorded in real time has holes in its time grid (skipped samples): the
+    samples are put on the grid and only pairs of samples both present are compared.
 
     Parameters
     ----------
     record : RunRecord
-        The run, uniformly sampled.
+        The run, sampled on a uniform grid (holes allowed).
 
     Returns
     -------
     float or None
         Period [s]; None for a constant or aperiodic reference, a run shorter than two periods,
-        a period longer than 20000 samples, or a non-uniform sampling.
+        a period longer than 20000 samples, or times off a uniform grid
+        (:func:`find_period` says which).
+
+    """
+    return find_period(record)[0]
+
+
+def find_period(record: RunRecord) -> tuple[float | None, str]:
+    """
+    Find the period of the reference from its samples, or say why there is none.
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run (see :func:`estimate_period`).
+
+    Returns
+    -------
+    period_s : float or None
+        The period [s], or None.
+    why : str
+        Why there is none (empty with a period).
 
     """
     xd = np.asarray(record.reference_m, dtype=np.float64)
     t = np.asarray(record.time_s, dtype=np.float64)
     n = xd.size
     if n < 4 or not np.all(np.isfinite(xd)):
-        return None
+        return None, 'fewer than 4 samples, or a reference that is not finite'
     span = float(np.ptp(xd))
     if span <= 0.0:
-        return None
-    dt = np.diff(t)
-    period = float(np.median(dt))
-    if period <= 0.0 or float(np.max(np.abs(dt - period))) > 0.01 * period:
-        return None
+        return None, 'the reference is constant'
+    step, missing = grid_step(t)
+    if missing:
+        # real time: samples skipped; each sample's place on the grid, within 1 % of a step
+        place = np.rint((t - t[0]) / step)
+        if float(np.max(np.abs(t - t[0] - place * step))) > 0.01 * step:
+            return None, ('the sample times are not on a uniform grid (with holes); times off '
+                          'it by more than 1 % of a step')
+        grid = np.full(int(place[-1]) + 1, np.nan)
+        grid[place.astype(np.int64)] = xd
+        xd, n, period = grid, grid.size, step
+    else:
+        dt = np.diff(t)
+        period = float(np.median(dt))
+        if period <= 0.0 or float(np.max(np.abs(dt - period))) > 0.01 * period:
+            return None, 'the sample times are not uniform (spacings differ by more than 1 %)'
     tol = 1e-9 * span
+
+    def worst(a: FloatArray, b: FloatArray) -> float:
+        # the largest difference over the pairs both present; no pair: no evidence either way
+        d = np.abs(a - b)
+        d = d[np.isfinite(d)]
+        return float(np.max(d)) if d.size else math.inf
     probe = min(n // 2, 2000)
     for lag in range(1, min(n // 2, _MAX_PERIOD_SAMPLES) + 1):
         if n - lag < probe:
             break
-        if np.max(np.abs(xd[lag:lag + probe] - xd[:probe])) > tol:
+        if worst(xd[lag:lag + probe], xd[:probe]) > tol:
             continue
-        if np.max(np.abs(xd[lag:] - xd[:-lag])) <= tol:
-            return lag * period
-        return None
-    return None
+        if worst(xd[lag:], xd[:-lag]) <= tol:
+            return lag * period, ''
+        return None, (f'the reference repeats on its first samples after {lag} samples but '
+                      'not over the whole run (not periodic)')
+    return None, (f'no lag up to {min(n // 2, _MAX_PERIOD_SAMPLES)} samples repeats the '
+                  'reference to 1e-9 of its range (aperiodic, or a period longer than half '
+                  'the run)')
 
 
 def analyze_bag(path: str | Path, *, namespace: str | None = None,
@@ -306,13 +349,23 @@ def analyze_bag(path: str | Path, *, namespace: str | None = None,
         if isinstance(stored, (int, float)) and math.isfinite(stored):
             window = float(stored)
     notes = []
+    step, missing = grid_step(rebased.time_s)
+    if missing:
+        notes.append(f'{missing} samples missing from the time grid of {step:g} s (skipped in '
+                     f'real time, or lost): the figures are over the {len(rebased.time_s)} '
+                     'samples present')
     if not isinstance(rebased.meta.get(PERIOD_META_KEY), (int, float)):
-        period = estimate_period(rebased)
+        period, why = find_period(rebased)
         if period is not None:
             # What the closed loop would have stored: the same window as simulate.
             rebased.meta[PERIOD_META_KEY] = period
             notes.append(f'reference period {period:g} s found from the samples (sets the '
                          'steady-state window)')
+        elif not _is_piecewise_constant(rebased.reference_m) and why != 'the reference is ' \
+                'constant':
+            notes.append(f'no reference period found from the samples ({why}): the metrics '
+                         'window is the whole run (or the one given), and there is no '
+                         'learning curve')
     metrics = compute_metrics(rebased, window, lines)
     align: dict[str, Any] = record.meta.get('alignment', {})
     dropped = {k: v for k, v in align.items() if k.startswith('dropped_') and v}
