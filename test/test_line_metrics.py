@@ -160,7 +160,7 @@ def test_a_scan_line_bag_gives_the_line_figures_of_the_run_and_plots_them(
     assert sim['line_pixels'] == 32.0
     # from the bag alone: the meta holds the line's linear part
     analysis = analyze_bag(bag)
-    assert analysis.record.meta[LINES_KEY]['low_m'] == pytest.approx(14e-6)
+    assert analysis.record.meta[LINES_KEY]['low_m'] == pytest.approx(5e-6)
     for key in ('line_trace_e_rms_m', 'line_retrace_e_max_m', 'line_trace_e_rms_true_m',
                 'line_trace_samples'):
         assert analysis.metrics[key] == sim[key], key

@@ -172,16 +172,20 @@ class ScanLineParams(Params):
 
     The turnarounds are polynomial blends, not designed from the stage's inverse: a trajectory
     is a property of the image, not of one stage, so the same line is drawn on every stage and
-    controller and its linear part is exactly the image. The blend's order is the user's lever
-    on the turnaround's spectrum: order m makes x_d continuous with m derivatives, so the
-    turnaround's harmonics fall off as f^-(m+2) above 1/T_turn instead of the triangle's f^-2,
-    and fewer of them lie above the learning filter's band, where neither feedback nor learning
-    follows them; a higher order raises the peak acceleration within the same time (1.5, 1.875,
-    2.19 times the constant deceleration of order 1 for orders 2, 3, 4). The line rate a sample
-    rate can draw is checked where the rate is known (:func:`check_sampling`).
+    controller, its linear part is exactly the image, and its velocity is exact. What a stage
+    cannot follow is the turnarounds' content above the learning filter's band Q (neither the
+    feedback nor the learning follows it; the model inverse of ``inverse_learning`` does). The
+    blend's order m is the lever on it: x_d continuous with m derivatives makes the harmonics
+    fall off as f^-(m+2) far above 1/T_turn, but a higher order also raises the peak
+    acceleration within the same time (1.5, 1.875, 2.19 times the constant deceleration of
+    order 1 for orders 2, 3, 4) and so widens the turnaround's main lobe. When a turnaround
+    lasts about one period of Q (a 100 Hz line 80 % linear: 1 ms against 1.2 kHz) order 2 puts
+    the least content above Q of the family, hence the default; a slow line is far below Q at
+    any order. The line rate a sample rate can draw is checked where the rate is known
+    (:func:`check_sampling`).
     """
 
-    offset_m: float = param(19e-6, unit='m', description='Centre of the line.')
+    offset_m: float = param(10e-6, unit='m', description='Centre of the line.')
     amplitude_m: float = param(5e-6, unit='m', description='Half the linear (imaged) range A; '
                                'the turnarounds go beyond it.', low=0.0, low_open=True)
     frequency_hz: float = param(100.0, unit='Hz', description='Line rate f (one trace and one '
@@ -189,7 +193,7 @@ class ScanLineParams(Params):
     linear_fraction: float = param(0.8, unit='-', description='Fraction of each trace (and '
                                    'retrace) spent at constant speed; the rest turns around.',
                                    low=0.0, high=1.0, low_open=True, high_open=True)
-    continuity_order: int = param(3, unit='-', description='Derivatives of x_d continuous at '
+    continuity_order: int = param(2, unit='-', description='Derivatives of x_d continuous at '
                                   'the turnarounds (1 velocity, 2 acceleration, 3 jerk ...).',
                                   low=1, high=6)
 
