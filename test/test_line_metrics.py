@@ -182,3 +182,35 @@ def test_a_triangle_bag_has_line_figures_only_when_asked(tmp_path: Path, capsys)
     assert out['line_middle_fraction'] == 0.8
     assert out['line_trace_e_rms_m'] == pytest.approx(1e-9, abs=ROUND)
     assert analyze_main(['-q', '--line-middle', '1.5', str(tmp_path / 'tri')]) == 2
+
+
+def test_a_scan_line_recorded_without_description_is_found_from_its_velocity(
+        tmp_path: Path) -> None:
+    from piezo_stage_ros.core.contracts.loop_config import ControllerParams
+    from piezo_stage_ros.core.loop.experiments import run_one
+    from piezo_stage_ros.core.model.stage import StageParams
+    rec = run_one(StageParams(), ControllerParams().with_flat({'feedforward.mode': 'inverse'}),
+                  TrajectoryParams.from_flat({'kind': 'scan_line'}), duration_s=0.3)
+    write_run(rec, tmp_path / 'sim')
+    # what a recording of the nodes holds: the samples, no run description
+    write_run(RunRecord(rec.time_s, rec.position_m, rec.reference_m,
+                        rec.reference_velocity_mps, rec.command_v), tmp_path / 'graph')
+    sim, graph = analyze_bag(tmp_path / 'sim'), analyze_bag(tmp_path / 'graph')
+    assert any('scan line found from the reference velocity' in n for n in graph.notes)
+    spec = graph.record.meta[LINES_KEY]
+    # the linear part's ends are samples: within one sample's travel of the line's own, and the
+    # rounding of x_d there (of t mod P, eps t, times the speed)
+    rounding = spec['speed_mps'] * 4 * np.finfo(float).eps * 0.3 + ROUND
+    travel = spec['speed_mps'] * T + rounding
+    assert 5e-6 - rounding <= spec['low_m'] <= 5e-6 + travel
+    assert 15e-6 - travel <= spec['high_m'] <= 15e-6 + rounding
+    assert spec['speed_mps'] == pytest.approx(2.5e-3, rel=1e-12)
+    # so the same samples are measured: the same figures
+    for key in ('line_trace_samples', 'line_retrace_samples', 'line_trace_e_rms_m',
+                'line_retrace_e_rms_m', 'line_trace_e_max_m', 'line_retrace_e_max_m'):
+        assert graph.metrics[key] == pytest.approx(sim.metrics[key], rel=1e-12), key
+    # a triangle without description: every sample at full speed, figures only when asked
+    tri = triangle_record(lambda x, v: np.zeros_like(x))
+    write_run(RunRecord(tri.time_s, tri.position_m, tri.reference_m,
+                        tri.reference_velocity_mps, tri.command_v), tmp_path / 'tri')
+    assert LINES_KEY not in analyze_bag(tmp_path / 'tri').record.meta

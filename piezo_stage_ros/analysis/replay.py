@@ -35,7 +35,13 @@ from piezo_stage_ros.analysis.spectral import BodeEstimate, estimate_bode, is_ex
 from piezo_stage_ros.core.contracts.errors import PiezoStageError
 from piezo_stage_ros.core.contracts.types import FloatArray
 from piezo_stage_ros.core.control.feedforward import LearnedTable, TABLE_META_KEY
-from piezo_stage_ros.core.loop.metrics import grid_step, LineOptions
+from piezo_stage_ros.core.loop.metrics import (
+    grid_step,
+    line_spec,
+    LineOptions,
+    LINES_KEY,
+    LineSpec,
+)
 from piezo_stage_ros.core.loop.record import RunRecord
 
 __all__ = ['BagAnalysis', 'HEADLINE', 'analyze_bag', 'compute_metrics', 'estimate_period',
@@ -199,6 +205,14 @@ def learned_table(analysis: BagAnalysis) -> LearnedTable:
         raise PiezoStageError(f'bag {analysis.path}: holds no learned table (simulate --bag '
                               'stores one for a learning feed-forward)')
     return LearnedTable.from_fields(fields, f'bag {analysis.path}: learned table')
+
+
+def _turns_around(record: RunRecord, spec: LineSpec) -> bool:
+    # a raster line spends a share of each line below its line speed, turning around; a
+    # triangle reaches its corners at full speed
+    speed = np.abs(np.asarray(record.reference_velocity_mps, dtype=np.float64))
+    slow = np.count_nonzero(speed < spec.speed_mps * (1.0 - 1e-9))
+    return bool(slow >= 0.01 * speed.size)
 
 
 def _is_piecewise_constant(reference_m: Any) -> bool:
@@ -366,6 +380,16 @@ def analyze_bag(path: str | Path, *, namespace: str | None = None,
             notes.append(f'no reference period found from the samples ({why}): the metrics '
                          'window is the whole run (or the one given), and there is no '
                          'learning curve')
+    if LINES_KEY not in rebased.meta:
+        spec = line_spec(rebased)
+        # a raster line recorded from the graph (no run description): its linear part, as the
+        # closed loop would have stored it; a triangle (all of it linear) only when asked
+        if spec is not None and _turns_around(rebased, spec):
+            rebased.meta[LINES_KEY] = {'low_m': spec.low_m, 'high_m': spec.high_m,
+                                       'speed_mps': spec.speed_mps, 'source': spec.source}
+            notes.append(f'scan line found from the reference velocity: linear from '
+                         f'{spec.low_m * 1e6:.6g} to {spec.high_m * 1e6:.6g} um at '
+                         f'{spec.speed_mps * 1e3:.6g} mm/s (sets the line figures)')
     metrics = compute_metrics(rebased, window, lines)
     align: dict[str, Any] = record.meta.get('alignment', {})
     dropped = {k: v for k, v in align.items() if k.startswith('dropped_') and v}
