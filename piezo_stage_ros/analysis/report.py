@@ -100,7 +100,8 @@ def _cell(text: str) -> str:
 
 
 def _is_error(key: str) -> bool:
-    return key.startswith(('e_', 'ss_e_')) and key.endswith('_m')
+    line = key.startswith('line_') and '_e_' in key  # the line figures' errors, not the range
+    return (key.startswith(('e_', 'ss_e_')) or line) and key.endswith('_m')
 
 
 def _metrics_table(entries: Sequence[ReportEntry]) -> list[str]:
