@@ -38,6 +38,15 @@ Definitions (section V of the paper and this package's choices, stated once here
   e_rms and e_m of each whole period counted from the first sample, period j being the samples
   with t_0 + j P <= t_k < t_0 + (j + 1) P (half a sample of tolerance); a trailing partial
   period is dropped.
+- **Line figures** (:func:`line_metrics`, raster lines and triangles): e_m and e_rms over the
+  samples of the linear part of each line in the steady-state window, trace (x_d rising) and
+  retrace apart: the samples whose reference speed is the line speed (to 1e-9) and whose x_d lies
+  in the centred ``middle_fraction`` of the linear range; at ``pixels`` equal pixels over that
+  range, each line's error per pixel (the mean of its samples, or interpolated at its centre
+  when a line has fewer samples than pixels), rms and largest over every pixel of every line.
+- **Holes in the time grid** (a run recorded in real time skips samples): the sample step is
+  the median spacing (:func:`grid_step`) and windows and periods are counted on the grid, each
+  over the samples present; a run without holes keeps the mean spacing, as it always did.
 - **Step response** (:func:`step_response`): rise time 10-90 % of the step, overshoot in % of
   the step, settling time into a band of ``max(2 % of the step, settle_band_m)`` that the
   response never leaves again, steady-state e_m and e_rms over the last ``plateau_fraction`` of
