@@ -63,6 +63,9 @@ def test_trace_and_retrace_are_measured_apart() -> None:
     assert m.trace_e_rms_m == pytest.approx(1e-9, abs=ROUND)
     assert m.retrace_e_rms_m == pytest.approx(2e-9, abs=ROUND)
     assert m.trace_e_max_m == pytest.approx(1e-9, abs=ROUND)
+    # a constant error is all mean: the line's shift, trace and retrace apart
+    assert m.trace_e_mean_m == pytest.approx(1e-9, abs=ROUND)
+    assert m.retrace_e_mean_m == pytest.approx(-2e-9, abs=ROUND)
     # every sample of a triangle is on its linear part: all of them counted, half each way
     assert m.trace_samples + m.retrace_samples == rec.time_s.size
     assert abs(m.trace_samples - m.retrace_samples) <= 2 * 4000 / 200

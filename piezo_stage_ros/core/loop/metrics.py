@@ -909,6 +909,9 @@ class LineMetrics:
         Samples in it, in the steady-state window.
     trace_e_max_m, trace_e_rms_m, retrace_e_max_m, retrace_e_rms_m : float
         (D1), (D2) of y_k - x_d(t_k) over those samples [m].
+    trace_e_mean_m, retrace_e_mean_m : float
+        The mean of that error [m]: the part of e_rms that shifts the whole line (an image
+        offset, not a distortion; a trace-retrace difference shows as their difference).
     trace_e_max_true_m, ... : float or None
         The same of the true position [m]; None without one.
     pixels : int
@@ -929,6 +932,8 @@ class LineMetrics:
     trace_e_rms_m: float
     retrace_e_max_m: float
     retrace_e_rms_m: float
+    trace_e_mean_m: float = math.nan
+    retrace_e_mean_m: float = math.nan
     trace_e_max_true_m: float | None = None
     trace_e_rms_true_m: float | None = None
     retrace_e_max_true_m: float | None = None
@@ -969,7 +974,8 @@ class LineMetrics:
         for name in ('trace', 'retrace'):
             e_max, e_rms = getattr(self, f'{name}_e_max_m'), getattr(self, f'{name}_e_rms_m')
             row = (f'  {name:<7} e_m = {e_max * 1e9:8.2f} nm, e_rms = {e_rms * 1e9:8.2f} nm '
-                   f'({getattr(self, f"{name}_samples")} samples)')
+                   f'(mean {getattr(self, f"{name}_e_mean_m") * 1e9:.2f} nm; '
+                   f'{getattr(self, f"{name}_samples")} samples)')
             true_rms = getattr(self, f'{name}_e_rms_true_m')
             if true_rms is not None:
                 row += (f'; true e_m = {getattr(self, f"{name}_e_max_true_m") * 1e9:.2f} nm, '
@@ -1204,7 +1210,9 @@ def line_metrics(record: RunRecord, window: slice, options: LineOptions | None =
     measured = _f64(record.position_m)[window] - ref
     tr_max, tr_rms = error_metrics(measured[trace])
     re_max, re_rms = error_metrics(measured[retrace])
-    fields: dict[str, Any] = {}
+    fields: dict[str, Any] = {
+        'trace_e_mean_m': float(np.mean(measured[trace])) if trace.any() else math.nan,
+        'retrace_e_mean_m': float(np.mean(measured[retrace])) if retrace.any() else math.nan}
     if record.true_position_m is not None:
         true_err = _f64(record.true_position_m)[window] - ref
         a, b = error_metrics(true_err[trace])
