@@ -89,6 +89,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help='start of the metrics window, seconds after the first sample '
                              '(default: the one stored by simulate, else the same default as '
                              'simulate)')
+    cli.add_line_options(parser, 'Measure and plot')
     bode = parser.add_mutually_exclusive_group()
     bode.add_argument('--bode', dest='bode', action='store_true', default=None,
                       help='always estimate the frequency response v_in -> x')
@@ -143,12 +144,14 @@ def _analyze(args: argparse.Namespace) -> int:
         from piezo_stage_ros.analysis.replay import analyze_bag, format_summary, summary_json
         from piezo_stage_ros.analysis.report import ReportEntry, unique_names, write_report
         from piezo_stage_ros.core.contracts.errors import PiezoStageError
+        from piezo_stage_ros.core.loop.metrics import LineOptions
         if figure_root is not None:
             from piezo_stage_ros.analysis.plots import error_trace, plot_comparison, plot_run
     except ImportError as err:
         print(f'{PROG}: error: a dependency is missing: {err}', file=sys.stderr)
         return 1
 
+    lines = LineOptions.asked(args.line_middle, args.pixels)
     shown = cli.Progress(PROG, enabled=not args.quiet and sys.stderr.isatty())
     names = unique_names(args.bags)
     entries = []
@@ -163,7 +166,8 @@ def _analyze(args: argparse.Namespace) -> int:
             analysis = analyze_bag(bag, namespace=args.namespace,
                                    steady_state_start_s=args.steady_state_start_s,
                                    bode=args.bode,
-                                   progress=progress if shown.enabled else None)
+                                   progress=progress if shown.enabled else None,
+                                   lines=lines)
         except PiezoStageError as err:
             shown.end()
             print(f'{PROG}: error: {err}', file=sys.stderr)
@@ -200,7 +204,8 @@ def _analyze(args: argparse.Namespace) -> int:
             try:
                 window = analysis.metrics.get('steady_state_start_s')
                 figures = plot_run(analysis.record, outdir, title=name,
-                                   steady_state_start_s=window, bode=analysis.bode)
+                                   steady_state_start_s=window, bode=analysis.bode,
+                                   lines=lines)
             except OSError as err:
                 print(f'{PROG}: error: cannot write figures into {outdir}: {err.strerror}',
                       file=sys.stderr)

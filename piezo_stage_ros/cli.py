@@ -161,6 +161,44 @@ def add_feedforward_option(parser: argparse.ArgumentParser) -> None:
                         + ', '.join(modes) + '.')
 
 
+def add_line_options(parser: argparse.ArgumentParser, what: str) -> None:
+    """
+    Add ``--line-middle F`` and ``--pixels N``: the line figures (core/loop/metrics.py).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The command's parser.
+    what : str
+        What the command does with them, ending the help (e.g. ``'measure'``).
+
+    """
+    def fraction(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = -1.0
+        if not 0.0 < value <= 1.0:
+            raise argparse.ArgumentTypeError(f'{text!r} is out of range; allowed: (0, 1]')
+        return value
+
+    def pixels(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = 0
+        if not 1 <= value <= 1_000_000:
+            raise argparse.ArgumentTypeError(f'{text!r} is out of range; allowed: a whole '
+                                             'number in [1, 1000000]')
+        return value
+    parser.add_argument('--line-middle', type=fraction, metavar='F', dest='line_middle',
+                        help=f'{what} the middle F (0 < F <= 1) of the linear part of each '
+                        'line, trace and retrace apart (a scan line: without asking, F = 1; '
+                        'a triangle: only when asked).')
+    parser.add_argument('--pixels', type=pixels, metavar='N',
+                        help=f'Also {what} the error at N pixels a line over that part.')
+
+
 def parse_param(text: str) -> tuple[str, str, Any]:
     """
     Split ``NODE:NAME=VALUE``, VALUE read as ROS 2 reads YAML.
@@ -248,7 +286,8 @@ def loop_overrides(config: Config, *, plant: str | None = None, hysteresis: str 
         ``plant.model``, ``hysteresis.model`` (plant_node), ``type`` (controller_node),
         ``kind`` (trajectory_node).
     frequencies : sequence of float, optional
-        Frequency of a sine or triangle (one value) or the multisine components [Hz].
+        Frequency of a sine, triangle or scan line (one value) or the multisine components
+        [Hz].
     amplitude, offset : float, optional
         Amplitude and offset of the trajectory kind [m] (each kind's own names, e.g. square:
         peak to peak and low level).
@@ -288,7 +327,7 @@ def loop_overrides(config: Config, *, plant: str | None = None, hysteresis: str 
         traj['kind'] = trajectory
     kind = traj.get('kind', config.node('trajectory_node').get('kind', 'sine'))
     freqs = list(frequencies) if frequencies else []
-    if kind in ('sine', 'triangle'):
+    if kind in ('sine', 'triangle', 'scan_line'):
         if freqs:
             if len(freqs) > 1:
                 raise ParameterError('--frequency', freqs, f'one value for {kind}',
@@ -314,7 +353,8 @@ def loop_overrides(config: Config, *, plant: str | None = None, hysteresis: str 
             traj['multisine.offset_m'] = offset
     else:
         if freqs:
-            raise ParameterError('--frequency', freqs[0], 'sine, triangle or multisine',
+            raise ParameterError('--frequency', freqs[0], 'sine, triangle, scan_line or '
+                                 'multisine',
                                  f'does not apply to trajectory {kind!r}')
         names = {'square': ('square.peak_to_peak_m', 'square.low_m'),
                  'staircase': ('staircase.step_m', 'staircase.start_m'),

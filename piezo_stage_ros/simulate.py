@@ -94,6 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='Start of the steady-state window of e_m and e_rms, seconds after the '
                    'first sample, in [0, duration) (default: the reference period decides; '
                    'see docs/simulate.md). Stored in a bag, so analyze uses the same window.')
+    cli.add_line_options(p, 'Measure')
     p.add_argument('--seed', type=int, metavar='N', help='Seed of the sensor noise.')
     p.add_argument('--noise', type=float, metavar='M',
                    help='Sensor noise standard deviation [m] (plant_node '
@@ -246,7 +247,8 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
     if args.save_table is not None:
         table = controllers[0].learned()
         write_learned_table(args.save_table, table)
-    summary = metrics.summarize(record, steady_state_start_s=window)
+    summary = metrics.summarize(record, steady_state_start_s=window,
+                                lines=metrics.LineOptions.asked(args.line_middle, args.pixels))
     sim = float(record.meta['duration_s'])
     out: dict[str, Any] = summary.as_dict()
     out.update({'sim_seconds': sim, 'wall_seconds': wall,
@@ -282,6 +284,8 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
               f'{summary.e_max_true_m * 1e9:.2f} nm, e_rms = {summary.e_rms_true_m * 1e9:.2f} nm')
     if math.isfinite(summary.loop_width_pct):
         print(f'  loop width (x vs x_d) = {summary.loop_width_pct:.2f} % of range')
+    if summary.line is not None:
+        print('\n'.join(summary.line.text()))
     print(f'whole run: e_m = {summary.e_max_all_m * 1e9:.2f} nm, e_rms = '
           f'{summary.e_rms_all_m * 1e9:.2f} nm')
     print(f'command range: {summary.command_min_v:.3f} ... {summary.command_max_v:.3f} V')

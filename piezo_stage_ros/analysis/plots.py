@@ -24,6 +24,9 @@ PNG figures of a run in the style of the paper's Figs. 4, 10 and 11.
   (:func:`~piezo_stage_ros.core.loop.metrics.per_period_error`), measured and, for a simulation,
   true, with the first period a learning feed-forward updated its table after marked; when the
   run has a period and at least two whole periods;
+- ``lines.png``: the error over the linear part of each line against the position on the line,
+  trace and retrace apart, and per pixel when pixels are asked
+  (:func:`~piezo_stage_ros.core.loop.metrics.line_profile`); for a scan line, or when asked;
 - ``feedforward.png``: the feed-forward u_ff (diagnostic ``ff_u_v``) beside the command over the
   run, and over its last whole period; when the run has it;
 - ``comparison_error.png``: the tracking errors of several runs over each other.
@@ -48,7 +51,17 @@ from matplotlib.figure import Figure  # noqa: E402
 import numpy as np  # noqa: E402
 from piezo_stage_ros.analysis.spectral import BodeEstimate  # noqa: E402
 from piezo_stage_ros.core.contracts.types import FloatArray
-from piezo_stage_ros.core.loop.metrics import meta_period, per_period_error, PeriodErrors  # noqa: E402
+from piezo_stage_ros.core.loop.metrics import (  # noqa: E402
+    line_profile,
+    LineOptions,
+    LineProfile,
+    LINES_KEY,
+    meta_period,
+    per_period_error,
+    PeriodErrors,
+    steady_state_start,
+    window_slice,
+)
 from piezo_stage_ros.core.loop.record import RunRecord  # noqa: E402
 
 __all__ = [
@@ -60,6 +73,7 @@ __all__ = [
     'plot_feedforward',
     'plot_io_curves',
     'plot_learning_curve',
+    'plot_lines',
     'plot_run',
     'plot_step_zoom',
     'plot_tracking',
@@ -398,6 +412,69 @@ def plot_learning_curve(rows: PeriodErrors, path: Path, title: str = '',
     return _save(fig, path)
 
 
+def plot_lines(profile: LineProfile, path: Path, title: str = '') -> Path:
+    """
+    Draw the error along the linear part of the lines, trace and retrace, and per pixel.
+
+    Parameters
+    ----------
+    profile : LineProfile
+        :func:`~piezo_stage_ros.core.loop.metrics.line_profile` of the run's window.
+    path : Path
+        PNG file to write.
+    title : str
+        Figure title.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    """
+    pixels = profile.pixel_centre_m.size
+    fig, axes = _new(2 if pixels else 1, _SIZE[1] * (1.6 if pixels else 1.0))
+    which = 'true position' if profile.true else 'measured'
+    ax = axes[0]
+    for pos, err, color, label in (
+            (profile.trace_position_m, profile.trace_error_m, 'tab:blue', 'trace'),
+            (profile.retrace_position_m, profile.retrace_error_m, 'tab:orange', 'retrace')):
+        if pos.size:
+            xs, ys = _stride(pos * 1e6, err * 1e9)
+            ax.plot(xs, ys, '.', ms=1.5, color=color, alpha=0.5,
+                    label=f'{label} ({pos.size} samples)')
+    ax.set_xlim(profile.low_m * 1e6, profile.high_m * 1e6)
+    ax.set_xlabel('x_d along the line [µm]')
+    ax.set_ylabel(f'error, {which} [nm]')
+    ax.set_title(title or 'Error over the linear part of each line')
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc='upper right', markerscale=6)
+    if pixels:
+        ax = axes[1]
+        index = np.arange(pixels, dtype=np.float64)
+        for image, color, label in ((profile.trace_pixels_m, 'tab:blue', 'trace'),
+                                    (profile.retrace_pixels_m, 'tab:orange', 'retrace')):
+            if not image.size or not np.isfinite(image).any():
+                continue
+            with np.errstate(invalid='ignore'):
+                finite = np.isfinite(image).any(axis=0)
+                mean = np.full(pixels, np.nan)
+                low = np.full(pixels, np.nan)
+                high = np.full(pixels, np.nan)
+                mean[finite] = np.nanmean(image[:, finite], axis=0)
+                low[finite] = np.nanmin(image[:, finite], axis=0)
+                high[finite] = np.nanmax(image[:, finite], axis=0)
+            ax.plot(index, mean * 1e9, color=color, lw=1.2,
+                    label=f'{label}: mean over {image.shape[0]} lines')
+            ax.fill_between(index, low * 1e9, high * 1e9, color=color, alpha=0.2,
+                            label=f'{label}: lowest to highest line')
+        ax.set_xlabel(f'pixel (of {pixels}, {(profile.high_m - profile.low_m) * 1e9 / pixels:.4g}'
+                      ' nm each)')
+        ax.set_ylabel(f'pixel error, {which} [nm]')
+        ax.grid(True, alpha=0.3)
+        ax.legend(loc='upper right')
+    return _save(fig, path)
+
+
 #: The diagnostics of a feed-forward a figure reads (core/control/feedforward.py).
 FEEDFORWARD_DIAGNOSTIC = 'ff_u_v'
 PERIODS_LEARNED_DIAGNOSTIC = 'ff_periods_learned'
@@ -535,7 +612,8 @@ def plot_comparison(traces: Sequence[tuple[FloatArray, FloatArray]], labels: Seq
 
 def plot_run(record: RunRecord, outdir: Path, *, title: str = '',
              steady_state_start_s: float | None = None,
-             bode: BodeEstimate | None = None) -> dict[str, Path]:
+             bode: BodeEstimate | None = None,
+             lines: LineOptions | None = None) -> dict[str, Path]:
     """
     Draw every figure of one run into a directory.
 
@@ -551,12 +629,16 @@ def plot_run(record: RunRecord, outdir: Path, *, title: str = '',
         Start of the metrics window [s], shaded on the error plot.
     bode : BodeEstimate, optional
         Frequency-response estimate to draw.
+    lines : LineOptions, optional
+        Draw the error over the linear part of the lines (middle fraction, pixels); a scan
+        line's run draws it without asking.
 
     Returns
     -------
     dict of str to Path
         Figure name (``tracking``, ``error``, ``io_curves``, ``step_zoom``, ``bode``,
-        ``learning_curve``, ``feedforward``) -> file; ``step_zoom`` only when the reference has
+        ``learning_curve``, ``lines``, ``feedforward``) -> file; ``lines`` for a scan line or
+        when asked; ``step_zoom`` only when the reference has
         a step, ``bode`` only with an estimate, ``learning_curve`` only when ``record.meta``
         gives the reference period and the run holds at least two whole periods,
         ``feedforward`` only when the run records the feed-forward (``ff_u_v``).
@@ -587,6 +669,14 @@ def plot_run(record: RunRecord, outdir: Path, *, title: str = '',
             files['learning_curve'] = plot_learning_curve(
                 rows, outdir / 'learning_curve.png', prefix + 'learning curve: error per period',
                 first_update_period(record, period))
+    if lines is not None or LINES_KEY in record.meta:
+        t = np.asarray(record.time_s, dtype=np.float64)
+        if t.size:
+            start = (steady_state_start(t, period) if steady_state_start_s is None
+                     else float(t[0]) + steady_state_start_s)
+            profile = line_profile(record, window_slice(t, start, period), lines)
+            files['lines'] = plot_lines(profile, outdir / 'lines.png',
+                                        prefix + 'error over the linear part of each line')
     ff = plot_feedforward(record, outdir / 'feedforward.png', prefix + 'feed-forward')
     if ff is not None:
         files['feedforward'] = ff

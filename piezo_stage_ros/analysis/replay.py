@@ -33,11 +33,19 @@ import numpy as np
 from piezo_stage_ros.analysis.bagread import ProgressCallback, read_run, read_status
 from piezo_stage_ros.analysis.spectral import BodeEstimate, estimate_bode, is_excitation_run
 from piezo_stage_ros.core.contracts.errors import PiezoStageError
+from piezo_stage_ros.core.contracts.types import FloatArray
 from piezo_stage_ros.core.control.feedforward import LearnedTable, TABLE_META_KEY
+from piezo_stage_ros.core.loop.metrics import (
+    grid_step,
+    line_spec,
+    LineOptions,
+    LINES_KEY,
+    LineSpec,
+)
 from piezo_stage_ros.core.loop.record import RunRecord
 
 __all__ = ['BagAnalysis', 'HEADLINE', 'analyze_bag', 'compute_metrics', 'estimate_period',
-           'format_metric', 'format_summary', 'learned_table', 'learning_metrics',
+           'find_period', 'format_metric', 'format_summary', 'learned_table', 'learning_metrics',
            'ordered_keys', 'summary_json']
 
 #: Key in ``RunRecord.meta`` where a runner may store the start of its metrics window [s].
@@ -98,8 +106,8 @@ class BagAnalysis:
         return self.path.name or str(self.path)
 
 
-def compute_metrics(record: RunRecord,
-                    steady_state_start_s: float | None = None) -> dict[str, float]:
+def compute_metrics(record: RunRecord, steady_state_start_s: float | None = None,
+                    lines: LineOptions | None = None) -> dict[str, float]:
     """
     Compute the run's metrics with the offline runner's own function.
 
@@ -109,6 +117,8 @@ def compute_metrics(record: RunRecord,
         The run, times relative to its start [s].
     steady_state_start_s : float, optional
         Start of the metrics window [s]; None uses summarize's default (as ``simulate`` does).
+    lines : LineOptions, optional
+        The line figures to measure (``line_...``; a scan line's bag without asking).
 
     Returns
     -------
@@ -120,7 +130,7 @@ def compute_metrics(record: RunRecord,
 
     """
     from piezo_stage_ros.core.loop.metrics import square_wave_metrics, summarize
-    out = summarize(record, steady_state_start_s=steady_state_start_s).as_dict()
+    out = summarize(record, steady_state_start_s=steady_state_start_s, lines=lines).as_dict()
     out.update(learning_metrics(record))
     if _is_piecewise_constant(record.reference_m):
         period = record.meta.get('trajectory_period_s')
@@ -197,6 +207,14 @@ def learned_table(analysis: BagAnalysis) -> LearnedTable:
     return LearnedTable.from_fields(fields, f'bag {analysis.path}: learned table')
 
 
+def _turns_around(record: RunRecord, spec: LineSpec) -> bool:
+    # a raster line spends a share of each line below its line speed, turning around; a
+    # triangle reaches its corners at full speed
+    speed = np.abs(np.asarray(record.reference_velocity_mps, dtype=np.float64))
+    slow = np.count_nonzero(speed < spec.speed_mps * (1.0 - 1e-9))
+    return bool(slow >= 0.01 * speed.size)
+
+
 def _is_piecewise_constant(reference_m: Any) -> bool:
     # Steps, a staircase or a square wave: the reference changes on at most 1 % of the samples
     # (a sine changes on every one), so the step figures mean something.
@@ -218,48 +236,91 @@ def estimate_period(record: RunRecord) -> float | None:
     ``simulate`` takes from the trajectory's period must come from the samples: the smallest
     lag L (in samples) with x_d[k + L] = x_d[k] for every k, to 1e-9 of the reference's range,
     gives the period L * T. Candidates are checked on the first samples, the winner on the
-    whole run.
+    whole run. A run recorded in real time has holes in its time grid (skipped samples): the
+    samples are put on the grid and only pairs of samples both present are compared.
 
     Parameters
     ----------
     record : RunRecord
-        The run, uniformly sampled.
+        The run, sampled on a uniform grid (holes allowed).
 
     Returns
     -------
     float or None
         Period [s]; None for a constant or aperiodic reference, a run shorter than two periods,
-        a period longer than 20000 samples, or a non-uniform sampling.
+        a period longer than 20000 samples, or times off a uniform grid
+        (:func:`find_period` says which).
+
+    """
+    return find_period(record)[0]
+
+
+def find_period(record: RunRecord) -> tuple[float | None, str]:
+    """
+    Find the period of the reference from its samples, or say why there is none.
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run (see :func:`estimate_period`).
+
+    Returns
+    -------
+    period_s : float or None
+        The period [s], or None.
+    why : str
+        Why there is none (empty with a period).
 
     """
     xd = np.asarray(record.reference_m, dtype=np.float64)
     t = np.asarray(record.time_s, dtype=np.float64)
     n = xd.size
     if n < 4 or not np.all(np.isfinite(xd)):
-        return None
+        return None, 'fewer than 4 samples, or a reference that is not finite'
     span = float(np.ptp(xd))
     if span <= 0.0:
-        return None
-    dt = np.diff(t)
-    period = float(np.median(dt))
-    if period <= 0.0 or float(np.max(np.abs(dt - period))) > 0.01 * period:
-        return None
+        return None, 'the reference is constant'
+    step, missing = grid_step(t)
+    if missing:
+        # real time: samples skipped; each sample's place on the grid, within 1 % of a step
+        place = np.rint((t - t[0]) / step)
+        if float(np.max(np.abs(t - t[0] - place * step))) > 0.01 * step:
+            return None, ('the sample times are not on a uniform grid (with holes); times off '
+                          'it by more than 1 % of a step')
+        grid = np.full(int(place[-1]) + 1, np.nan)
+        grid[place.astype(np.int64)] = xd
+        xd, n, period = grid, grid.size, step
+    else:
+        dt = np.diff(t)
+        period = float(np.median(dt))
+        if period <= 0.0 or float(np.max(np.abs(dt - period))) > 0.01 * period:
+            return None, 'the sample times are not uniform (spacings differ by more than 1 %)'
     tol = 1e-9 * span
+
+    def worst(a: FloatArray, b: FloatArray) -> float:
+        # the largest difference over the pairs both present; no pair: no evidence either way
+        d = np.abs(a - b)
+        d = d[np.isfinite(d)]
+        return float(np.max(d)) if d.size else math.inf
     probe = min(n // 2, 2000)
     for lag in range(1, min(n // 2, _MAX_PERIOD_SAMPLES) + 1):
         if n - lag < probe:
             break
-        if np.max(np.abs(xd[lag:lag + probe] - xd[:probe])) > tol:
+        if worst(xd[lag:lag + probe], xd[:probe]) > tol:
             continue
-        if np.max(np.abs(xd[lag:] - xd[:-lag])) <= tol:
-            return lag * period
-        return None
-    return None
+        if worst(xd[lag:], xd[:-lag]) <= tol:
+            return lag * period, ''
+        return None, (f'the reference repeats on its first samples after {lag} samples but '
+                      'not over the whole run (not periodic)')
+    return None, (f'no lag up to {min(n // 2, _MAX_PERIOD_SAMPLES)} samples repeats the '
+                  'reference to 1e-9 of its range (aperiodic, or a period longer than half '
+                  'the run)')
 
 
 def analyze_bag(path: str | Path, *, namespace: str | None = None,
                 steady_state_start_s: float | None = None, bode: bool | None = None,
-                progress: ProgressCallback | None = None) -> BagAnalysis:
+                progress: ProgressCallback | None = None,
+                lines: LineOptions | None = None) -> BagAnalysis:
     """
     Read a bag, align it, and compute its metrics (and a Bode estimate when it makes sense).
 
@@ -277,6 +338,8 @@ def analyze_bag(path: str | Path, *, namespace: str | None = None,
         run's description says the reference was noise or a sweep.
     progress : callable, optional
         ``progress(messages_read, messages_total)`` while reading.
+    lines : LineOptions, optional
+        Measure the linear part of each line (a scan line's bag: without asking).
 
     Returns
     -------
@@ -300,14 +363,34 @@ def analyze_bag(path: str | Path, *, namespace: str | None = None,
         if isinstance(stored, (int, float)) and math.isfinite(stored):
             window = float(stored)
     notes = []
+    step, missing = grid_step(rebased.time_s)
+    if missing:
+        notes.append(f'{missing} samples missing from the time grid of {step:g} s (skipped in '
+                     f'real time, or lost): the figures are over the {len(rebased.time_s)} '
+                     'samples present')
     if not isinstance(rebased.meta.get(PERIOD_META_KEY), (int, float)):
-        period = estimate_period(rebased)
+        period, why = find_period(rebased)
         if period is not None:
             # What the closed loop would have stored: the same window as simulate.
             rebased.meta[PERIOD_META_KEY] = period
             notes.append(f'reference period {period:g} s found from the samples (sets the '
                          'steady-state window)')
-    metrics = compute_metrics(rebased, window)
+        elif not _is_piecewise_constant(rebased.reference_m) and why != 'the reference is ' \
+                'constant':
+            notes.append(f'no reference period found from the samples ({why}): the metrics '
+                         'window is the whole run (or the one given), and there is no '
+                         'learning curve')
+    if LINES_KEY not in rebased.meta:
+        spec = line_spec(rebased)
+        # a raster line recorded from the graph (no run description): its linear part, as the
+        # closed loop would have stored it; a triangle (all of it linear) only when asked
+        if spec is not None and _turns_around(rebased, spec):
+            rebased.meta[LINES_KEY] = {'low_m': spec.low_m, 'high_m': spec.high_m,
+                                       'speed_mps': spec.speed_mps, 'source': spec.source}
+            notes.append(f'scan line found from the reference velocity: linear from '
+                         f'{spec.low_m * 1e6:.6g} to {spec.high_m * 1e6:.6g} um at '
+                         f'{spec.speed_mps * 1e3:.6g} mm/s (sets the line figures)')
+    metrics = compute_metrics(rebased, window, lines)
     align: dict[str, Any] = record.meta.get('alignment', {})
     dropped = {k: v for k, v in align.items() if k.startswith('dropped_') and v}
     if dropped:

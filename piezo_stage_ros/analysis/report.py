@@ -42,6 +42,8 @@ _CAPTIONS = {
     'bode': 'Frequency response estimated from v_in to x (as Fig. 4)',
     'learning_curve': 'Learning curve: e_rms (solid) and e_m (dashed) of each period, measured '
                       'and, for a simulation, of the true position',
+    'lines': 'Error over the linear part of each line against the position on it, trace and '
+             'retrace, and per pixel when asked',
     'feedforward': 'Feed-forward u_ff (model inverse plus learned table) beside the command, '
                    'over the run and over its last period',
 }
@@ -98,7 +100,8 @@ def _cell(text: str) -> str:
 
 
 def _is_error(key: str) -> bool:
-    return key.startswith(('e_', 'ss_e_')) and key.endswith('_m')
+    line = key.startswith('line_') and '_e_' in key  # the line figures' errors, not the range
+    return (key.startswith(('e_', 'ss_e_')) or line) and key.endswith('_m')
 
 
 def _metrics_table(entries: Sequence[ReportEntry]) -> list[str]:

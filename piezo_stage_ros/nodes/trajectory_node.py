@@ -63,7 +63,8 @@ class TrajectoryNode(Node):
         # lockstep evaluates in the offline runner's chunks (same floats); real time in short
         # ones, so that no single sample pays for a long evaluation and comes late
         chunk_s = opts.chunk_s if opts.mode == 'lockstep' else min(opts.chunk_s, 0.005)
-        self.logic = TrajectoryLogic(make_trajectory(params), sample_rate_hz=opts.sample_rate_hz,
+        self.logic = TrajectoryLogic(make_trajectory(params, sample_rate_hz=opts.sample_rate_hz),
+                                     sample_rate_hz=opts.sample_rate_hz,
                                      chunk_s=chunk_s, active=opts.active)
         # CDR bytes in and out (core/contracts/cdr.py): rclpy message objects cost more than a
         # sample
@@ -87,7 +88,7 @@ class TrajectoryNode(Node):
         params, opts = new
         if params is not old[0]:
             # builds (and so checks) the new trajectory before accepting the change
-            self.logic.switch(make_trajectory(params))
+            self.logic.switch(make_trajectory(params, sample_rate_hz=self.opts.sample_rate_hz))
             if self.forward is not None:
                 self.forward('trajectory', params)
             self.get_logger().info(f'trajectory switched to {params.kind} at the next sample')

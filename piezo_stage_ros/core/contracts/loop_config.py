@@ -64,7 +64,7 @@ from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.contracts.params import group, param, Params, ParamSpec
 from piezo_stage_ros.core.control.controllers import ControllerParams
 from piezo_stage_ros.core.control.stability import StabilityParams
-from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
+from piezo_stage_ros.core.loop.trajectories import check_sampling, TrajectoryParams
 from piezo_stage_ros.core.model.stage import PlantParams, StageParams
 
 __all__ = ['BridgeParams', 'ControllerNodeParams', 'Declaration', 'Group', 'LockstepParams',
@@ -579,6 +579,7 @@ class LoopConfig:
             table.select(config.node('controller_node')))
         table = trajectory_table()
         trajectory, trajectory_node = table.build(table.select(config.node('trajectory_node')))
+        check_sampling(trajectory, trajectory_node.sample_rate_hz)
         return cls(stage=stage, plant_node=plant_node, controller=controller,
                    stability=stability, controller_node=controller_node,
                    trajectory=trajectory, trajectory_node=trajectory_node,

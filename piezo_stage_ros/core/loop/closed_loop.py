@@ -137,7 +137,7 @@ def run(stage: Plant, controller: Controller, trajectory: Trajectory, *, duratio
     meta : Mapping, optional
         Description of the run, copied into the record's ``meta`` (``sample_time_s``,
         ``duration_s`` and, when the trajectory has ``period_s``, ``trajectory_period_s`` are
-        added).
+        added; a scan line's ``lines`` as ``trajectory_lines``).
     record_true_position : bool
         Record the stage's true position x(t_k) as ``true_position_m`` when it has one
         (:func:`true_position_reader`); False leaves it None.
@@ -174,6 +174,10 @@ def run(stage: Plant, controller: Controller, trajectory: Trajectory, *, duratio
     period = getattr(trajectory, 'period_s', None)
     if isinstance(period, float) and period > 0.0:
         run_meta.setdefault('trajectory_period_s', period)
+    lines = getattr(trajectory, 'lines', None)
+    if isinstance(lines, dict):
+        # the linear part of a scan line, so that the line metrics need only the record
+        run_meta.setdefault('trajectory_lines', dict(lines))
 
     bind = getattr(controller, 'bind', None)
     if callable(bind):

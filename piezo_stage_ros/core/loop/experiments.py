@@ -191,7 +191,7 @@ def run_one(stage_params: StageParams, controller_params: ControllerParams,
     plant = linear_plant(stage_params.plant if design_plant is None else design_plant)
     controller = build_controller(controller_params, stage_params.sample_time_s, plant,
                                   make_hysteresis(stage_params.hysteresis))
-    trajectory = make_trajectory(trajectory_params)
+    trajectory = make_trajectory(trajectory_params, sample_rate_hz=stage_params.sample_rate_hz)
     if duration_s is None:
         duration_s = default_duration_s(trajectory, trajectory_params)
     run_meta: dict[str, Any] = {

@@ -38,6 +38,15 @@ Definitions (section V of the paper and this package's choices, stated once here
   e_rms and e_m of each whole period counted from the first sample, period j being the samples
   with t_0 + j P <= t_k < t_0 + (j + 1) P (half a sample of tolerance); a trailing partial
   period is dropped.
+- **Line figures** (:func:`line_metrics`, raster lines and triangles): e_m and e_rms over the
+  samples of the linear part of each line in the steady-state window, trace (x_d rising) and
+  retrace apart: the samples whose reference speed is the line speed (to 1e-9) and whose x_d lies
+  in the centred ``middle_fraction`` of the linear range; at ``pixels`` equal pixels over that
+  range, each line's error per pixel (the mean of its samples, or interpolated at its centre
+  when a line has fewer samples than pixels), rms and largest over every pixel of every line.
+- **Holes in the time grid** (a run recorded in real time skips samples): the sample step is
+  the median spacing (:func:`grid_step`) and windows and periods are counted on the grid, each
+  over the samples present; a run without holes keeps the mean spacing, as it always did.
 - **Step response** (:func:`step_response`): rise time 10-90 % of the step, overshoot in % of
   the step, settling time into a band of ``max(2 % of the step, settle_band_m)`` that the
   response never leaves again, steady-state e_m and e_rms over the last ``plateau_fraction`` of
@@ -59,14 +68,15 @@ from typing import Any, Callable, ClassVar, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from piezo_stage_ros.core.contracts.errors import PiezoStageError
+from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
 from piezo_stage_ros.core.contracts.types import FloatArray
 from piezo_stage_ros.core.loop.record import RunRecord
 
-__all__ = ['EdgeMetrics', 'PeriodErrors', 'StepMetrics', 'TRANSIENT_PERIODS', 'TRANSIENT_S',
-           'TrackingMetrics', 'edge_metrics', 'error_metrics', 'loop_width', 'meta_period',
-           'per_period_error', 'square_wave_metrics', 'steady_state_start', 'step_response',
-           'summarize']
+__all__ = ['EdgeMetrics', 'LineMetrics', 'LineOptions', 'LineProfile', 'LineSpec',
+           'PeriodErrors', 'StepMetrics', 'TRANSIENT_PERIODS', 'TRANSIENT_S', 'TrackingMetrics',
+           'edge_metrics', 'error_metrics', 'grid_step', 'line_metrics', 'line_profile',
+           'line_spec', 'loop_width', 'meta_period', 'per_period_error', 'square_wave_metrics',
+           'steady_state_start', 'step_response', 'summarize', 'window_slice']
 
 
 #: Whole periods of a periodic reference skipped before the steady-state window.
@@ -185,6 +195,9 @@ class TrackingMetrics(_Record):
     e_max_true_m, e_rms_true_m : float or None
         (D1), (D2) of the true position x(t_k) - x_d(t_k) over the steady-state window [m];
         None when the run has no true position (then they are not in the JSON object).
+    line : LineMetrics or None
+        The figures over the linear part of each line (:func:`line_metrics`), for a scan line
+        or when asked; None otherwise (then they are not in the JSON object).
 
     """
 
@@ -204,6 +217,7 @@ class TrackingMetrics(_Record):
         default_factory=dict, hash=False, metadata={'json': False})
     e_max_true_m: float | None = field(default=None, metadata={'json': False})
     e_rms_true_m: float | None = field(default=None, metadata={'json': False})
+    line: LineMetrics | None = field(default=None, metadata={'json': False})
 
     def as_dict(self) -> dict[str, float]:
         """
@@ -215,13 +229,16 @@ class TrackingMetrics(_Record):
             The fields in declaration order, then ``e_max_true_m``, ``e_rms_true_m`` when the
             run has a true position (left out otherwise, so the object of a run without one is
             what it always was), then ``<name>_min``, ``<name>_max`` of each diagnostic in name
-            order: the objects ``simulate --json`` and ``analyze --json`` print.
+            order, then the line figures (``line_...``) when measured: the objects
+            ``simulate --json`` and ``analyze --json`` print.
 
         """
         out = super().as_dict()
         if self.e_max_true_m is not None and self.e_rms_true_m is not None:
             out['e_max_true_m'] = float(self.e_max_true_m)
             out['e_rms_true_m'] = float(self.e_rms_true_m)
+        if self.line is not None:
+            out.update(self.line.as_dict())
         for name, (low, high) in sorted(self.diagnostic_ranges.items()):
             out[f'{name}_min'] = low
             out[f'{name}_max'] = high
@@ -253,6 +270,40 @@ def error_metrics(error_m: ArrayLike) -> tuple[float, float]:
     return float(np.max(np.abs(e))), float(np.sqrt(np.mean(e * e)))
 
 
+def grid_step(time_s: ArrayLike) -> tuple[float, int]:
+    """
+    Return the sample step of a run's times and how many samples its grid misses.
+
+    A run recorded in real time has holes where the loop skipped samples: its times are a
+    uniform grid with some points missing. The step is then the median spacing (most spacings
+    are one step), not the mean; a run without holes keeps the mean (t_n-1 - t_0)/(n - 1).
+
+    Parameters
+    ----------
+    time_s : array_like
+        Sample times [s], increasing.
+
+    Returns
+    -------
+    step_s : float
+        The grid step [s] (0 for fewer than 2 samples).
+    missing : int
+        Grid points between the first and last sample that hold no sample (0 without holes).
+
+    """
+    t = _f64(time_s)
+    n = t.size
+    if n < 2:
+        return 0.0, 0
+    mean = float((t[-1] - t[0]) / (n - 1))
+    spacing = np.diff(t)
+    step = float(np.median(spacing))
+    # a hole is a spacing of two steps or more; jitter of a stamp stays far below half a step
+    if not step > 0.0 or float(np.max(spacing)) <= 1.5 * step:
+        return mean, 0
+    return step, max(int(round(float(t[-1] - t[0]) / step)) + 1 - n, 0)
+
+
 def steady_state_start(time_s: ArrayLike, period_s: float | None) -> float:
     """
     Return the start of the steady-state window [s] (see the module docstring).
@@ -279,17 +330,33 @@ def steady_state_start(time_s: ArrayLike, period_s: float | None) -> float:
     skip = max(TRANSIENT_PERIODS * period_s, TRANSIENT_S)
     skip = math.ceil(skip / period_s - 1e-9) * period_s
     # the samples span [t0, t1 + T); whole periods are counted on (t1 - t0) plus one sample
-    span = (t1 - t0) + (t1 - t0) / max(t.size - 1, 1)
+    span = (t1 - t0) + grid_step(t)[0]
     if span - skip >= period_s * (1 - 1e-9):
         return t0 + skip
     whole = math.floor(span / period_s + 1e-9)
     return t0 + max(whole - 1, 0) * period_s
 
 
-def _window(time_s: FloatArray, start_s: float, period_s: float | None) -> slice:
-    """Return the slice of samples in [start, end of the last whole period)."""
+def window_slice(time_s: FloatArray, start_s: float, period_s: float | None) -> slice:
+    """
+    Return the slice of samples in [start, end of the last whole period).
+
+    Parameters
+    ----------
+    time_s : ndarray
+        Sample times [s] (holes in the grid allowed).
+    start_s : float
+        Start of the window, in the time base of ``time_s`` [s].
+    period_s : float or None
+        Reference period [s]; None: to the end of the run.
+
+    Returns
+    -------
+    slice
+
+    """
     n = time_s.size
-    dt = (time_s[-1] - time_s[0]) / (n - 1) if n > 1 else 0.0
+    dt = grid_step(time_s)[0]
     # half a sample of tolerance: epoch stamps of a bag carry rounding far above 1e-9 s
     i0 = int(np.searchsorted(time_s, start_s - 0.5 * dt))
     i1 = n
@@ -548,7 +615,8 @@ def _finite_extreme(values: FloatArray, pick: Callable[[FloatArray], Any]) -> fl
 
 
 def summarize(record: RunRecord, *, steady_state_start_s: float | None = None,
-              period_s: float | None = None) -> TrackingMetrics:
+              period_s: float | None = None, lines: LineOptions | None = None
+              ) -> TrackingMetrics:
     """
     Return the standard metrics of one run (what ``simulate --json`` and ``analyze`` print).
 
@@ -562,6 +630,10 @@ def summarize(record: RunRecord, *, steady_state_start_s: float | None = None,
         :func:`steady_state_start`.
     period_s : float, optional
         Reference period [s]; overrides the record's meta.
+    lines : LineOptions, optional
+        Measure the linear part of each line (:func:`line_metrics`) with these options; a scan
+        line (``meta['trajectory_lines']``) is measured without asking, over its whole linear
+        part without pixels.
 
     Returns
     -------
@@ -571,7 +643,13 @@ def summarize(record: RunRecord, *, steady_state_start_s: float | None = None,
         ``steady_state_start_s`` (since the first sample), ``steady_state_samples``,
         ``loop_width_pct`` (x vs x_d over the window; NaN when x_d is constant), the
         finite range of each diagnostic, and ``e_max_true_m``, ``e_rms_true_m`` over the window
-        when the record has a true position (else None); ``as_dict()`` gives the JSON object.
+        when the record has a true position (else None), ``line`` when measured;
+        ``as_dict()`` gives the JSON object.
+
+    Raises
+    ------
+    PiezoStageError
+        If ``lines`` asks for the line figures of a reference without a linear part.
 
     """
     t = _f64(record.time_s)
@@ -583,12 +661,12 @@ def summarize(record: RunRecord, *, steady_state_start_s: float | None = None,
                                e_rms_all_m=nan, command_min_v=nan, command_max_v=nan,
                                duration_s=0.0, steady_state_start_s=0.0,
                                steady_state_samples=0, loop_width_pct=nan)
-    dt = (t[-1] - t[0]) / (n - 1) if n > 1 else 0.0
+    dt, missing = grid_step(t)
     if steady_state_start_s is None:
         start_abs = steady_state_start(t, period)
     else:
         start_abs = float(t[0]) + float(steady_state_start_s)
-    window = _window(t, start_abs, period)
+    window = window_slice(t, start_abs, period)
     err = _f64(record.position_m) - _f64(record.reference_m)
     e_max, e_rms = error_metrics(err[window])
     e_max_all, e_rms_all = error_metrics(err)
@@ -609,11 +687,14 @@ def summarize(record: RunRecord, *, steady_state_start_s: float | None = None,
                         else (math.nan, math.nan))
     return TrackingMetrics(samples=n, e_max_m=e_max, e_rms_m=e_rms, e_max_all_m=e_max_all,
                            e_rms_all_m=e_rms_all, command_min_v=_finite_extreme(cmd, np.min),
-                           command_max_v=_finite_extreme(cmd, np.max), duration_s=float(n * dt),
+                           command_max_v=_finite_extreme(cmd, np.max),
+                           duration_s=float((n + missing) * dt),
                            steady_state_start_s=start_abs - float(t[0]),
                            steady_state_samples=window.stop - window.start,
                            loop_width_pct=width, diagnostic_ranges=ranges,
-                           e_max_true_m=e_max_true, e_rms_true_m=e_rms_true)
+                           e_max_true_m=e_max_true, e_rms_true_m=e_rms_true,
+                           line=(line_metrics(record, window, lines)
+                                 if lines is not None or LINES_KEY in record.meta else None))
 
 
 @dataclass(frozen=True)
@@ -682,7 +763,7 @@ def per_period_error(record: RunRecord, period_s: float) -> PeriodErrors:
     if n == 0:
         return PeriodErrors(period_s, empty, np.zeros(0, np.int64), empty, empty,
                             empty if has_true else None, empty if has_true else None)
-    dt = (t[-1] - t[0]) / (n - 1) if n > 1 else 0.0
+    dt = grid_step(t)[0]
     whole = math.floor(((t[-1] - t[0]) + dt) / period_s + 1e-9) if n > 1 else 0
     starts = np.arange(whole, dtype=np.float64) * period_s
     edges = np.searchsorted(t - t[0], np.arange(whole + 1) * period_s - 0.5 * dt)
@@ -731,3 +812,421 @@ def meta_period(meta: Mapping[str, Any]) -> float | None:
     except (TypeError, ValueError):
         return None
     return period if period is not None and period > 0.0 and math.isfinite(period) else None
+
+
+#: Meta key of a scan line's linear part (written by the closed loop, read from bags).
+LINES_KEY = 'trajectory_lines'
+# |x_d'| within this share of the line speed counts as the linear part: the speed is one float
+# on every linear sample; a turnaround's 1 - 2 S(s) differs from 1 by more from its second
+# sample on
+_SPEED_TOL = 1e-9
+# the linear part found from the reference velocity must hold this share of the samples at least
+# (a sine reaches its top speed on a sample or two a period)
+_MIN_LINEAR_SHARE = 0.25
+
+
+@dataclass(frozen=True)
+class LineOptions:
+    """
+    What the line metrics measure (:func:`line_metrics`).
+
+    Attributes
+    ----------
+    middle_fraction : float
+        Share of the linear range, centred, over which the error is taken, in (0, 1] (a pure
+        triangle: the middle of each line, away from the corners).
+    pixels : int
+        Pixels per line over that range; 0: no pixel figures.
+
+    """
+
+    middle_fraction: float = 1.0
+    pixels: int = 0
+
+    def __post_init__(self) -> None:
+        if not (0.0 < self.middle_fraction <= 1.0):
+            raise ParameterError('line middle_fraction', self.middle_fraction, '(0, 1]')
+        if not 0 <= self.pixels <= 1_000_000:
+            raise ParameterError('line pixels', self.pixels, '[0, 1000000] (0: none)')
+
+    @classmethod
+    def asked(cls, middle_fraction: float | None, pixels: int | None) -> LineOptions | None:
+        """
+        Return the options a command line asked for, or None when it asked for neither.
+
+        Parameters
+        ----------
+        middle_fraction : float or None
+            ``--line-middle`` (None: 1, the whole linear part).
+        pixels : int or None
+            ``--pixels`` (None: no pixel figures).
+
+        Returns
+        -------
+        LineOptions or None
+
+        """
+        if middle_fraction is None and pixels is None:
+            return None
+        return cls(1.0 if middle_fraction is None else middle_fraction, pixels or 0)
+
+
+@dataclass(frozen=True)
+class LineSpec:
+    """
+    The linear part of the lines of a run: the range the reference crosses at constant speed.
+
+    Attributes
+    ----------
+    low_m, high_m : float
+        Ends of the linear range [m].
+    speed_mps : float
+        Speed along it [m/s].
+    source : str
+        Where it comes from: ``'trajectory'`` (a scan line's description in the run's meta)
+        or ``'reference velocity'`` (found from x_d').
+
+    """
+
+    low_m: float
+    high_m: float
+    speed_mps: float
+    source: str
+
+
+@dataclass(frozen=True)
+class LineMetrics:
+    """
+    Figures over the linear part of each line, trace (x_d rising) and retrace separately.
+
+    Attributes
+    ----------
+    middle_fraction : float
+        Share of the linear range measured.
+    low_m, high_m : float
+        The measured range [m] (the middle of the linear range).
+    trace_samples, retrace_samples : int
+        Samples in it, in the steady-state window.
+    trace_e_max_m, trace_e_rms_m, retrace_e_max_m, retrace_e_rms_m : float
+        (D1), (D2) of y_k - x_d(t_k) over those samples [m].
+    trace_e_mean_m, retrace_e_mean_m : float
+        The mean of that error [m]: the part of e_rms that shifts the whole line (an image
+        offset, not a distortion; a trace-retrace difference shows as their difference).
+    trace_e_max_true_m, ... : float or None
+        The same of the true position [m]; None without one.
+    pixels : int
+        Pixels per line (0: no pixel figures).
+    pixel_trace_e_max_m, pixel_trace_e_rms_m, pixel_retrace_e_max_m, pixel_retrace_e_rms_m :
+        float or None
+        Largest and rms pixel value over every pixel of every line [m] (:func:`line_profile`);
+        the true position's when the run has one, else the measured.
+
+    """
+
+    middle_fraction: float
+    low_m: float
+    high_m: float
+    trace_samples: int
+    retrace_samples: int
+    trace_e_max_m: float
+    trace_e_rms_m: float
+    retrace_e_max_m: float
+    retrace_e_rms_m: float
+    trace_e_mean_m: float = math.nan
+    retrace_e_mean_m: float = math.nan
+    trace_e_max_true_m: float | None = None
+    trace_e_rms_true_m: float | None = None
+    retrace_e_max_true_m: float | None = None
+    retrace_e_rms_true_m: float | None = None
+    pixels: int = 0
+    pixel_trace_e_max_m: float | None = None
+    pixel_trace_e_rms_m: float | None = None
+    pixel_retrace_e_max_m: float | None = None
+    pixel_retrace_e_rms_m: float | None = None
+
+    def as_dict(self) -> dict[str, float]:
+        """
+        Return the figures under their JSON names, ``line_`` in front, counts as floats.
+
+        Returns
+        -------
+        dict of str to float
+            The fields that have a value (the true-position and pixel ones only when known),
+            e.g. ``line_trace_e_rms_m``, ``line_pixel_retrace_e_max_m``.
+
+        """
+        return {f'line_{f.name}': float(getattr(self, f.name)) for f in dataclasses.fields(self)
+                if getattr(self, f.name) is not None}
+
+    def text(self) -> list[str]:
+        """
+        Return the figures as lines a person reads (nm, um).
+
+        Returns
+        -------
+        list of str
+            The range measured, then trace and retrace (true position when known), then the
+            pixel figures when measured.
+
+        """
+        out = [f'linear part of each line, middle {self.middle_fraction * 100:g} % '
+               f'({self.low_m * 1e6:.4g} ... {self.high_m * 1e6:.4g} um):']
+        for name in ('trace', 'retrace'):
+            e_max, e_rms = getattr(self, f'{name}_e_max_m'), getattr(self, f'{name}_e_rms_m')
+            row = (f'  {name:<7} e_m = {e_max * 1e9:8.2f} nm, e_rms = {e_rms * 1e9:8.2f} nm '
+                   f'(mean {getattr(self, f"{name}_e_mean_m") * 1e9:.2f} nm; '
+                   f'{getattr(self, f"{name}_samples")} samples)')
+            true_rms = getattr(self, f'{name}_e_rms_true_m')
+            if true_rms is not None:
+                row += (f'; true e_m = {getattr(self, f"{name}_e_max_true_m") * 1e9:.2f} nm, '
+                        f'e_rms = {true_rms * 1e9:.2f} nm')
+            out.append(row)
+        if self.pixels:
+            for name in ('trace', 'retrace'):
+                out.append(f'  {name:<7} {self.pixels} pixels a line: largest pixel '
+                           f'{getattr(self, f"pixel_{name}_e_max_m") * 1e9:.2f} nm, rms '
+                           f'{getattr(self, f"pixel_{name}_e_rms_m") * 1e9:.2f} nm')
+        return out
+
+
+@dataclass(frozen=True)
+class LineProfile:
+    """
+    The error along the line, trace and retrace, for plots (:func:`line_profile`).
+
+    Attributes
+    ----------
+    spec : LineSpec
+        The linear part.
+    low_m, high_m : float
+        The measured range [m].
+    trace_position_m, trace_error_m, retrace_position_m, retrace_error_m : ndarray
+        x_d and the error (true when known, else measured) of every sample measured [m].
+    pixel_centre_m : ndarray
+        Centre of each pixel [m] (empty without pixels).
+    trace_pixels_m, retrace_pixels_m : ndarray
+        Lines x pixels: each pixel's error on each line [m] (NaN where a line does not reach).
+    true : bool
+        Whether the errors are of the true position.
+
+    """
+
+    spec: LineSpec
+    low_m: float
+    high_m: float
+    trace_position_m: FloatArray
+    trace_error_m: FloatArray
+    retrace_position_m: FloatArray
+    retrace_error_m: FloatArray
+    pixel_centre_m: FloatArray
+    trace_pixels_m: FloatArray
+    retrace_pixels_m: FloatArray
+    true: bool
+
+
+def line_spec(record: RunRecord, *, window: slice | None = None) -> LineSpec | None:
+    """
+    Return the linear part of a run's lines: from its meta, else from the reference velocity.
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run; ``meta['trajectory_lines']`` (a scan line's description) is used when present.
+    window : slice, optional
+        Samples from which the linear part is found when the meta has none (default: all).
+
+    Returns
+    -------
+    LineSpec or None
+        None when the reference has no linear part: no constant speed on at least a quarter of
+        the samples, or no rising and falling part at that speed (a sine, a step).
+
+    """
+    stored = record.meta.get(LINES_KEY)
+    if isinstance(stored, Mapping):
+        try:
+            low, high, speed = (float(stored['low_m']), float(stored['high_m']),
+                                float(stored['speed_mps']))
+        except (KeyError, TypeError, ValueError):
+            low = high = speed = math.nan
+        if math.isfinite(low) and math.isfinite(high) and high > low and speed > 0.0:
+            return LineSpec(low, high, speed, 'trajectory')
+    sel = window if window is not None else slice(None)
+    v = _f64(record.reference_velocity_mps)[sel]
+    x = _f64(record.reference_m)[sel]
+    finite = np.isfinite(v) & np.isfinite(x)
+    if not finite.any():
+        return None
+    speed = float(np.max(np.abs(v[finite])))
+    if not speed > 0.0:
+        return None
+    linear = finite & (np.abs(v) >= speed * (1.0 - _SPEED_TOL))
+    if linear.sum() < _MIN_LINEAR_SHARE * finite.sum():
+        return None
+    if not ((v[linear] > 0).any() and (v[linear] < 0).any()):
+        return None
+    low, high = float(np.min(x[linear])), float(np.max(x[linear]))
+    if not high > low:
+        return None
+    return LineSpec(low, high, speed, 'reference velocity')
+
+
+def _measured_range(spec: LineSpec, options: LineOptions) -> tuple[float, float]:
+    centre = 0.5 * (spec.low_m + spec.high_m)
+    half = 0.5 * options.middle_fraction * (spec.high_m - spec.low_m)
+    return centre - half, centre + half
+
+
+def _line_samples(record: RunRecord, spec: LineSpec, options: LineOptions,
+                  window: slice) -> tuple[FloatArray, FloatArray, NDArray[np.bool_],
+                                          NDArray[np.bool_], float, float]:
+    """Return x_d, v of the window and its trace and retrace masks, with the measured range."""
+    x = _f64(record.reference_m)[window]
+    v = _f64(record.reference_velocity_mps)[window]
+    low, high = _measured_range(spec, options)
+    # the range's ends are floats of the line's own arithmetic: a relative 1e-12 of slack
+    slack = 1e-12 * (spec.high_m - spec.low_m)
+    with np.errstate(invalid='ignore'):
+        linear = (np.abs(v) >= spec.speed_mps * (1.0 - _SPEED_TOL)) & (x >= low - slack) & (
+            x <= high + slack)
+        return x, v, linear & (v > 0), linear & (v < 0), low, high
+
+
+def _segments(mask: NDArray[np.bool_]) -> list[tuple[int, int]]:
+    """Return [start, end) of each run of True in ``mask``."""
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], mask.astype(np.int8), [0]))))
+    return list(zip(edges[0::2].tolist(), edges[1::2].tolist()))
+
+
+def _pixel_image(x: FloatArray, e: FloatArray, mask: NDArray[np.bool_], low: float, high: float,
+                 pixels: int) -> FloatArray:
+    """
+    Return lines x pixels of the error: the mean of each pixel's samples, or interpolated.
+
+    A line whose every pixel holds a sample gives each pixel the mean of its samples (the
+    pixel integrates over its dwell); a line with fewer samples than pixels gives each pixel the
+    error interpolated linearly in x_d at its centre, the end sample's within one sample's
+    travel beyond the ends, NaN further out (a line the window cuts).
+    """
+    width = (high - low) / pixels
+    centres = low + (np.arange(pixels) + 0.5) * width
+    rows = []
+    for i0, i1 in _segments(mask):
+        xs, es = x[i0:i1], e[i0:i1]
+        index = np.clip(np.floor((xs - low) / width).astype(np.int64), 0, pixels - 1)
+        counts = np.bincount(index, minlength=pixels)
+        if np.all(counts > 0):
+            rows.append(np.bincount(index, weights=es, minlength=pixels) / counts)
+            continue
+        order = np.argsort(xs, kind='stable')
+        xs, es = xs[order], es[order]
+        row = np.interp(centres, xs, es)
+        # a pixel within a sample's travel of the line's end takes the end's error; further
+        # out the line was cut by the window
+        reach = float(np.median(np.diff(xs))) if xs.size > 1 else 0.0
+        row[(centres < xs[0] - reach) | (centres > xs[-1] + reach)] = np.nan
+        rows.append(row)
+    return np.array(rows, dtype=np.float64).reshape(len(rows), pixels)
+
+
+def _line_parts(record: RunRecord, window: slice, options: LineOptions | None,
+                spec: LineSpec | None) -> tuple[LineSpec, LineOptions, FloatArray,
+                                                NDArray[np.bool_], NDArray[np.bool_], float,
+                                                float]:
+    """Return the spec, options, x_d, trace and retrace masks and range measured."""
+    opts = options if options is not None else LineOptions()
+    found = spec if spec is not None else line_spec(record, window=window)
+    if found is None:
+        raise PiezoStageError('line metrics: the reference has no linear part (no constant '
+                              'speed up and down on at least a quarter of the samples: not a '
+                              'scan line or a triangle)')
+    x, _, trace, retrace, low, high = _line_samples(record, found, opts, window)
+    return found, opts, x, trace, retrace, low, high
+
+
+def line_profile(record: RunRecord, window: slice, options: LineOptions | None = None,
+                 spec: LineSpec | None = None) -> LineProfile:
+    """
+    Return the error along the linear part of each line, trace and retrace, and per pixel.
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run.
+    window : slice
+        The samples measured (the steady-state window).
+    options : LineOptions, optional
+        Middle fraction and pixels (default: the whole linear part, no pixels).
+    spec : LineSpec, optional
+        The linear part (default :func:`line_spec` of the run).
+
+    Returns
+    -------
+    LineProfile
+
+    Raises
+    ------
+    PiezoStageError
+        If the run has no linear part.
+
+    """
+    found, opts, x, trace, retrace, low, high = _line_parts(record, window, options, spec)
+    true = record.true_position_m is not None
+    pos = _f64(record.position_m if record.true_position_m is None
+               else record.true_position_m)[window]
+    err = pos - x
+    pixels = opts.pixels
+    centres = (low + (np.arange(pixels) + 0.5) * (high - low) / pixels if pixels
+               else np.zeros(0))
+    empty = np.zeros((0, 0))
+    return LineProfile(
+        spec=found, low_m=low, high_m=high, trace_position_m=x[trace], trace_error_m=err[trace],
+        retrace_position_m=x[retrace], retrace_error_m=err[retrace], pixel_centre_m=centres,
+        trace_pixels_m=_pixel_image(x, err, trace, low, high, pixels) if pixels else empty,
+        retrace_pixels_m=_pixel_image(x, err, retrace, low, high, pixels) if pixels else empty,
+        true=true)
+
+
+def line_metrics(record: RunRecord, window: slice, options: LineOptions | None = None,
+                 spec: LineSpec | None = None) -> LineMetrics:
+    """
+    Return e_m and e_rms over the linear part of each line, trace and retrace, and per pixel.
+
+    The arguments are those of :func:`line_profile` (the same samples are measured); the
+    figures are of the measured error, and of the true one when the run has it.
+
+    Returns
+    -------
+    LineMetrics
+
+    Raises
+    ------
+    PiezoStageError
+        If the run has no linear part.
+
+    """
+    found, opts, ref, trace, retrace, low, high = _line_parts(record, window, options, spec)
+    profile = line_profile(record, window, opts, found)
+    measured = _f64(record.position_m)[window] - ref
+    tr_max, tr_rms = error_metrics(measured[trace])
+    re_max, re_rms = error_metrics(measured[retrace])
+    fields: dict[str, Any] = {
+        'trace_e_mean_m': float(np.mean(measured[trace])) if trace.any() else math.nan,
+        'retrace_e_mean_m': float(np.mean(measured[retrace])) if retrace.any() else math.nan}
+    if record.true_position_m is not None:
+        true_err = _f64(record.true_position_m)[window] - ref
+        a, b = error_metrics(true_err[trace])
+        c, d = error_metrics(true_err[retrace])
+        fields.update({'trace_e_max_true_m': a, 'trace_e_rms_true_m': b,
+                       'retrace_e_max_true_m': c, 'retrace_e_rms_true_m': d})
+    if opts.pixels:
+        for name, image in (('trace', profile.trace_pixels_m),
+                            ('retrace', profile.retrace_pixels_m)):
+            cells = image[np.isfinite(image)]
+            top, rms = error_metrics(cells)
+            fields[f'pixel_{name}_e_max_m'] = top
+            fields[f'pixel_{name}_e_rms_m'] = rms
+    return LineMetrics(middle_fraction=opts.middle_fraction, low_m=low, high_m=high,
+                       trace_samples=int(trace.sum()), retrace_samples=int(retrace.sum()),
+                       trace_e_max_m=tr_max, trace_e_rms_m=tr_rms, retrace_e_max_m=re_max,
+                       retrace_e_rms_m=re_rms, pixels=opts.pixels, **fields)

@@ -35,6 +35,14 @@ The kinds are those of the paper's experiments (section V) and a few for users:
 - ``triangle``: offset + A tri(f t), with the phase of the sine (rising through the offset at
   t = 0) and the exact piecewise derivative +-4 A f (at a corner, the slope of the piece that
   starts there);
+- ``scan_line``: the fast axis of a raster scan: trace up and retrace down at the constant speed
+  v over the linear part [offset - A, offset + A] (the image), each linear part lasting
+  ``linear_fraction`` of its half line, joined by turnarounds outside that range whose velocity
+  v (1 - 2 S_N(s)) follows the smoothstep polynomial S_N of order N = ``continuity_order`` - 1
+  (s the turnaround's normalised time): x_d is continuous with its first ``continuity_order``
+  derivatives (1: velocity, 2: acceleration, 3: jerk), exactly, at every junction. Rising
+  through the offset at t = 0 like the triangle; see :class:`ScanLineParams` for why the
+  turnarounds are polynomial blends;
 - ``csv``: a table with columns ``time_s, position_m``, interpolated **piecewise linearly**; the
   derivative is the slope of the segment [t_i, t_i+1) that contains t (piecewise constant, the
   derivative of the same rule). Before the first row and after the last the position is held and
@@ -65,15 +73,17 @@ from piezo_stage_ros.core.identification.excitation import (
     NoiseParams,
 )
 
-__all__ = ['CsvParams', 'MultisineParams', 'SineParams', 'SquareParams', 'StaircaseParams',
-           'StepParams', 'TableTrajectory', 'TrajectoryBase', 'TrajectoryParams',
-           'TriangleParams', 'load_table', 'make_trajectory', 's_curve']
+__all__ = ['CsvParams', 'MultisineParams', 'ScanLineParams', 'SineParams', 'SquareParams',
+           'StaircaseParams', 'StepParams', 'TableTrajectory', 'TrajectoryBase',
+           'TrajectoryParams', 'TriangleParams', 'check_sampling', 'load_table',
+           'make_trajectory', 's_curve', 'smoothstep']
 
 
 #: Stage travel of the P-753.31C [m] (sensor 0 ... 10 V over 0 ... 38 um).
 TRAVEL_MAX_M = 38e-6
 
-KINDS = ('sine', 'multisine', 'square', 'staircase', 'step', 'triangle', 'csv', 'noise', 'chirp')
+KINDS = ('sine', 'multisine', 'square', 'staircase', 'step', 'triangle', 'csv', 'noise', 'chirp',
+         'scan_line')
 
 
 @dataclass(frozen=True)
@@ -156,6 +166,57 @@ class TriangleParams(Params):
 
 
 @dataclass(frozen=True)
+class ScanLineParams(Params):
+    """
+    A raster scan line: linear trace and retrace over offset +- A, smooth turnarounds outside.
+
+    The turnarounds are polynomial blends, not designed from the stage's inverse: a trajectory
+    is a property of the image, not of one stage, so the same line is drawn on every stage and
+    controller, its linear part is exactly the image, and its velocity is exact. What a stage
+    cannot follow is the turnarounds' content above the learning filter's band Q (neither the
+    feedback nor the learning follows it; the model inverse of ``inverse_learning`` does). The
+    blend's order m is the lever on it: x_d continuous with m derivatives makes the harmonics
+    fall off as f^-(m+2) far above 1/T_turn, but a higher order also raises the peak
+    acceleration within the same time (1.5, 1.875, 2.19 times the constant deceleration of
+    order 1 for orders 2, 3, 4) and so widens the turnaround's main lobe. When a turnaround
+    lasts about one period of Q (a 100 Hz line 80 % linear: 1 ms against 1.2 kHz) order 2 puts
+    the least content above Q of the family, hence the default; a slow line is far below Q at
+    any order. The line rate a sample rate can draw is checked where the rate is known
+    (:func:`check_sampling`).
+    """
+
+    offset_m: float = param(10e-6, unit='m', description='Centre of the line.')
+    amplitude_m: float = param(5e-6, unit='m', description='Half the linear (imaged) range A; '
+                               'the turnarounds go beyond it.', low=0.0, low_open=True)
+    frequency_hz: float = param(100.0, unit='Hz', description='Line rate f (one trace and one '
+                                'retrace per line).', low=0.0, low_open=True, high=5000.0)
+    linear_fraction: float = param(0.8, unit='-', description='Fraction of each trace (and '
+                                   'retrace) spent at constant speed; the rest turns around.',
+                                   low=0.0, high=1.0, low_open=True, high_open=True)
+    continuity_order: int = param(2, unit='-', description='Derivatives of x_d continuous at '
+                                  'the turnarounds (1 velocity, 2 acceleration, 3 jerk ...).',
+                                  low=1, high=6)
+
+    @property
+    def speed_mps(self) -> float:
+        """Return the constant speed of the linear parts, 4 A f / linear_fraction [m/s]."""
+        return 4.0 * self.amplitude_m * self.frequency_hz / self.linear_fraction
+
+    @property
+    def turn_s(self) -> float:
+        """Return the duration of one turnaround, (1 - linear_fraction) / (2 f) [s]."""
+        return (1.0 - self.linear_fraction) / (2.0 * self.frequency_hz)
+
+    @property
+    def overshoot_m(self) -> float:
+        """Return how far a turnaround goes beyond the linear range [m]."""
+        _, _, integral = smoothstep(self.continuity_order - 1)
+        # the velocity v (1 - 2 q) integrated over the first half of the turnaround
+        half = float(integral(0.5))
+        return self.speed_mps * self.turn_s * (0.5 - 2.0 * half)
+
+
+@dataclass(frozen=True)
 class CsvParams(Params):
     """A table of (time_s, position_m) rows, interpolated piecewise linearly."""
 
@@ -179,6 +240,8 @@ class TrajectoryParams(Params):
     step: StepParams = group(StepParams, 'kind step')
     triangle: TriangleParams = group(TriangleParams, 'kind triangle')
     csv: CsvParams = group(CsvParams, 'kind csv')
+    scan_line: ScanLineParams = group(ScanLineParams, 'kind scan_line (raster line: linear '
+                                      'trace and retrace, smooth turnarounds)')
     noise: NoiseParams = group(NoiseParams, 'kind noise (band-limited white noise, '
                                'identification: core/identification/excitation.py)')
     chirp: ChirpParams = group(ChirpParams, 'kind chirp (sine sweep, identification: '
@@ -211,6 +274,11 @@ def _extent(p: TrajectoryParams) -> tuple[float, float, str, str]:
         r = p.triangle
         return (r.offset_m - r.amplitude_m, r.offset_m + r.amplitude_m,
                 'triangle.amplitude_m', 'triangle.offset_m')
+    if p.kind == 'scan_line':
+        sl = p.scan_line
+        reach = sl.amplitude_m + sl.overshoot_m
+        return (sl.offset_m - reach, sl.offset_m + reach, 'scan_line.amplitude_m',
+                'scan_line.offset_m')
     if p.kind == 'multisine':
         m = p.multisine
         # the bound sum |A_i| is reached (or approached) unless the frequencies are special;
@@ -282,6 +350,66 @@ def s_curve(u: ArrayLike) -> tuple[FloatArray, FloatArray]:
     return v2 * v * (10.0 + v * (6.0 * v - 15.0)), 30.0 * v2 * (1.0 - v) ** 2
 
 
+def smoothstep(order: int) -> tuple[np.polynomial.Polynomial, np.polynomial.Polynomial,
+                                      np.polynomial.Polynomial]:
+    """
+    Return the smoothstep polynomial S_N, its derivative and its integral from 0.
+
+    Parameters
+    ----------
+    order : int
+        N >= 0: S_N rises from S(0) = 0 to S(1) = 1 with its first N derivatives 0 at both ends
+        (N = 0: s; N = 1: 3 s^2 - 2 s^3; N = 2: the quintic of :func:`s_curve`).
+
+    Returns
+    -------
+    q, dq_ds, integral : numpy.polynomial.Polynomial
+        S_N(s) = s^(N+1) sum_n C(N+n, n) C(2N+1, N-n) (-s)^n, S_N'(s) and int_0^s S_N; the
+        integral reaches 1/2 at s = 1 (S_N(1 - s) = 1 - S_N(s)).
+
+    """
+    coef = np.zeros(2 * order + 2)
+    for n in range(order + 1):
+        coef[order + 1 + n] = math.comb(order + n, n) * math.comb(2 * order + 1, order - n) * (
+            -1.0) ** n
+    q = np.polynomial.Polynomial(coef)
+    return q, q.deriv(), q.integ(lbnd=0.0)
+
+
+def check_sampling(params: TrajectoryParams, sample_rate_hz: float) -> None:
+    """
+    Refuse a trajectory the sample rate cannot draw.
+
+    A scan line needs at least one sample period in each turnaround and in each linear part:
+    otherwise the samples jump from one linear part to the next (or over it) and the sampled
+    reference is no raster line. The fastest line is so min(phi, 1 - phi) f_s / 2 (1 kHz at
+    10 kHz with 80 % linear). The other kinds are not checked here.
+
+    Parameters
+    ----------
+    params : TrajectoryParams
+        The trajectory.
+    sample_rate_hz : float
+        The loop's sample rate f_s [Hz].
+
+    Raises
+    ------
+    ParameterError
+        Naming ``scan_line.frequency_hz``, its value and the allowed range.
+
+    """
+    if params.kind != 'scan_line':
+        return
+    sl = params.scan_line
+    fastest = min(sl.linear_fraction, 1.0 - sl.linear_fraction) * sample_rate_hz / 2.0
+    if sl.frequency_hz > fastest * (1.0 + 1e-12):
+        raise ParameterError('scan_line.frequency_hz', sl.frequency_hz,
+                             f'(0, {fastest:g}] Hz at {sample_rate_hz:g} Hz sampling and '
+                             f'linear_fraction {sl.linear_fraction:g}',
+                             'is above the line rate the sample rate can draw (each turnaround '
+                             'and each linear part needs at least one sample period)')
+
+
 def _common_period(frequencies_hz: tuple[float, ...]) -> float | None:
     """Return the common period of sines of these frequencies, or None if above 1000 s."""
     fracs = [Fraction(f).limit_denominator(1000) for f in frequencies_hz]
@@ -311,11 +439,15 @@ class TrajectoryBase:
         uses it.
     kind : str
         The trajectory kind.
+    lines : dict or None
+        A raster line's linear part (``low_m``, ``high_m``, ``speed_mps``, ``period_s``, ...),
+        stored in a run's meta for the line metrics; None for the other kinds.
 
     """
 
     period_s: float | None = None
     kind: str = ''
+    lines: dict[str, float] | None = None
 
     def evaluate(self, time_s: ArrayLike) -> tuple[FloatArray, FloatArray]:
         """
@@ -450,6 +582,42 @@ class _Triangle(TrajectoryBase):
         return p.offset_m + p.amplitude_m * shape, np.asarray(slope, dtype=np.float64)
 
 
+class _ScanLine(TrajectoryBase):
+    kind = 'scan_line'
+
+    def __init__(self, p: ScanLineParams) -> None:
+        self._p = p
+        self._period = 1.0 / p.frequency_hz
+        self.period_s = self._period
+        self._q, _, self._integral = smoothstep(p.continuity_order - 1)
+        self.speed_mps = p.speed_mps
+        # the linear part of each line, as the metrics take it (JSON-able; in a run's meta)
+        self.lines = {'low_m': p.offset_m - p.amplitude_m, 'high_m': p.offset_m + p.amplitude_m,
+                      'speed_mps': p.speed_mps, 'period_s': self._period,
+                      'linear_fraction': p.linear_fraction,
+                      'continuity_order': p.continuity_order}
+
+    def evaluate(self, time_s: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        t = np.asarray(time_s, dtype=np.float64)
+        p = self._p
+        v, period, turn = self.speed_mps, self._period, p.turn_s
+        linear = p.linear_fraction * period / 2.0
+        half = period / 2.0
+        # tau: time since the start of a trace's linear part; t = 0 is its middle (x_d = offset)
+        tau = np.mod(t + linear / 2.0, period)
+        retrace = tau >= half
+        tau_h = np.where(retrace, tau - half, tau)      # time into the half line
+        turning = tau_h >= linear
+        s = np.clip((tau_h - linear) / turn, 0.0, 1.0)
+        # within the half line going up (trace) from offset - A: linear then the turnaround
+        up = np.where(turning, p.amplitude_m + v * turn * (s - 2.0 * self._integral(s)),
+                      -p.amplitude_m + v * tau_h)
+        dup = np.where(turning, v * (1.0 - 2.0 * self._q(s)), v)
+        sign = np.where(retrace, -1.0, 1.0)
+        return (np.asarray(p.offset_m + sign * up, dtype=np.float64),
+                np.asarray(sign * dup, dtype=np.float64))
+
+
 class _Excitation(TrajectoryBase):
     """An identification excitation (core/identification/excitation.py) as a trajectory."""
 
@@ -555,7 +723,8 @@ def load_table(path: str | os.PathLike[str]) -> TableTrajectory:
         raise ConfigError(f'{p}: {exc}') from None
 
 
-def make_trajectory(params: TrajectoryParams) -> TrajectoryBase:
+def make_trajectory(params: TrajectoryParams, *,
+                    sample_rate_hz: float | None = None) -> TrajectoryBase:
     """
     Build the trajectory ``params.kind`` names.
 
@@ -563,6 +732,9 @@ def make_trajectory(params: TrajectoryParams) -> TrajectoryBase:
     ----------
     params : TrajectoryParams
         Kind and parameters (validated, inside the travel).
+    sample_rate_hz : float, optional
+        The loop's sample rate [Hz]: when given, a trajectory it cannot draw is refused
+        (:func:`check_sampling`).
 
     Returns
     -------
@@ -572,14 +744,18 @@ def make_trajectory(params: TrajectoryParams) -> TrajectoryBase:
     Raises
     ------
     ParameterError
-        If a csv table leaves the stage travel.
+        If a csv table leaves the stage travel, or the sample rate cannot draw the trajectory.
     ConfigError
         If the csv table cannot be read.
 
     """
     kind = params.kind
+    if sample_rate_hz is not None:
+        check_sampling(params, sample_rate_hz)
     if kind == 'sine':
         return _Sine(params.sine)
+    if kind == 'scan_line':
+        return _ScanLine(params.scan_line)
     if kind == 'multisine':
         return _Multisine(params.multisine)
     if kind == 'square':
