@@ -1,0 +1,278 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Control over the axes of a multi-axis stage: one controller per axis, stepped together.
+
+Each axis has the controller the one-axis loop builds (:func:`build_controller`: RAC or PI, the
+notch, the feed-forward with its learning), designed on that axis' model, so that a one-axis
+stage is controlled exactly as today. They are stepped one after the other in plain Python:
+the batched controller of :mod:`piezo_stage_ros.core.loop.batch` vectorises over members with
+numpy, which pays at hundreds of members, but at three its two dozen array operations per
+sample cost an order of magnitude more than three scalar steps (``benchmark --suite axes``).
+
+Coupling compensation (feed-forward with the model inverse, periodic references): the drive of
+axis i moves axis j by d_ij = H_ij(z) w_i, H_ij the coupling path of the design model from the
+hysteresis output w_i. With the model inverse, w_i is about G_i(z)^-1 x_d,i, so axis j is
+predicted to move by d_j = sum_i H_ij(z) G_i(z)^-1 x_d,i; its feed-forward adds
+-G_j(z)^-1 d_j / c to its model input (c the hysteresis slope, as the model inverse itself),
+computed once per bind on the harmonics of axis j's period (exact there, as the model inverse
+is). The feedback still tracks x_d,j: the compensation only removes what the model predicts.
+The driving axes' references must repeat within that period (a raster's lines within its
+frame, the axes of a Lissajous scan within their common period).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Sequence
+
+import numpy as np
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.contracts.interfaces import Trajectory
+from piezo_stage_ros.core.contracts.types import ComplexArray, FloatArray
+from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
+from piezo_stage_ros.core.control.feedforward import FeedForwardController
+from piezo_stage_ros.core.model.axes import AxesStageParams, coupling_paths, CouplingPath
+from piezo_stage_ros.core.model.hysteresis import make_hysteresis
+from piezo_stage_ros.core.model.stage import linear_plant
+
+__all__ = ['AxesController', 'coupled_displacement', 'path_responses']
+
+
+def path_responses(path: CouplingPath, z: ComplexArray) -> tuple[ComplexArray,
+                                                                 dict[int, ComplexArray]]:
+    """
+    Return the discrete responses from the driving axis' w [V]: its own position, each path's.
+
+    Parameters
+    ----------
+    path : CouplingPath
+        The discretised paths of one driving axis.
+    z : ndarray of complex
+        Points of the z-plane (e.g. the harmonics of a period on the unit circle).
+
+    Returns
+    -------
+    own : ndarray of complex
+        G_i(z) [m/V].
+    coupled : dict
+        {moved axis: H_ij(z) [m/V]}.
+
+    """
+    order = path.c.size
+    size = path.ad_full.shape[0]
+    zz = np.asarray(z, dtype=np.complex128).ravel()
+    lhs = zz[:, None, None] * np.eye(size)[None] - path.ad_full[None]
+    rhs = np.broadcast_to(path.bd_full.astype(np.complex128)[None, :, None],
+                          (zz.size, size, 1))
+    states = np.linalg.solve(lhs, rhs)[..., 0]
+    own = states[:, :order] @ path.c
+    coupled: dict[int, ComplexArray] = {}
+    zero = np.zeros(zz.size, dtype=np.complex128)
+    for j, kappa in path.static:
+        coupled[j] = np.asarray(coupled.get(j, zero) + kappa * own, dtype=np.complex128)
+    for p, j in enumerate(path.targets):
+        coupled[j] = np.asarray(coupled.get(j, zero) + path.gains[p] * states[:, order + 2 * p],
+                                dtype=np.complex128)
+    return np.asarray(own, dtype=np.complex128), coupled
+
+
+def coupled_displacement(paths: Sequence[CouplingPath], target: int,
+                         references: dict[int, FloatArray]) -> FloatArray:
+    """
+    Return the displacement of axis ``target`` the other axes' periodic references predict.
+
+    Parameters
+    ----------
+    paths : sequence of CouplingPath
+        The design model's coupling (:func:`coupling_paths`).
+    target : int
+        The moved axis.
+    references : dict
+        {driving axis: one period of its reference [m]}, all of the same length N.
+
+    Returns
+    -------
+    ndarray
+        d_target over the period [m] (zero when nothing drives the axis).
+
+    """
+    n = len(next(iter(references.values())))
+    out = np.zeros(n // 2 + 1, dtype=np.complex128)
+    z = np.exp(2j * math.pi * np.arange(n // 2 + 1) / n)
+    for path in paths:
+        if path.source not in references:
+            continue
+        own, coupled = path_responses(path, z)
+        if target not in coupled:
+            continue
+        spectrum = np.fft.rfft(references[path.source])
+        # H_ij / G_i: the path from the driving axis' position (its model inverse undone)
+        tiny = 1e-9 * float(np.max(np.abs(own)))
+        ratio = np.where(np.abs(own) > tiny, coupled[target] / np.where(
+            np.abs(own) > tiny, own, 1.0), 0.0)
+        out += ratio * spectrum
+    return np.asarray(np.fft.irfft(out, n), dtype=np.float64)
+
+
+class AxesController:
+    """
+    One controller per axis, stepped together; coupling compensation in the feed-forward.
+
+    Parameters
+    ----------
+    controllers : sequence of Controller
+        One per axis (as :func:`build_controller` builds them).
+    design : AxesStageParams, optional
+        The design model of the stage (axes and coupling) the compensation inverts.
+    compensate : bool
+        Add the coupling compensation to the feed-forwards with a model inverse.
+
+    """
+
+    def __init__(self, controllers: Sequence[Any], design: AxesStageParams | None = None,
+                 *, compensate: bool = True) -> None:
+        self.controllers = list(controllers)
+        self.n = len(self.controllers)
+        self.design = design
+        self.compensate = compensate
+        self._paths = coupling_paths(design) if design is not None else []
+        self._steps = [c.step for c in self.controllers]
+        #: The axes whose feed-forward got a coupling compensation at the last bind.
+        self.compensated: tuple[int, ...] = ()
+        #: Per axis, the displacement the compensation was computed for over its period [m].
+        self.predicted_m: dict[int, FloatArray] = {}
+        t = {float(c.sample_time_s) for c in self.controllers}
+        if len(t) != 1:
+            raise ParameterError('controllers', sorted(t), 'one sample time for every axis')
+        self.sample_time_s = t.pop()
+
+    @classmethod
+    def build(cls, params: Sequence[ControllerParams], design: AxesStageParams, *,
+              compensate: bool = True) -> AxesController:
+        """
+        Build each axis' controller on that axis' model, as the one-axis loop does.
+
+        Parameters
+        ----------
+        params : sequence of ControllerParams
+            One per axis.
+        design : AxesStageParams
+            The stage: each axis' plant and hysteresis are its controller's design model, the
+            coupling the compensation's.
+        compensate : bool
+            Coupling compensation in the feed-forward.
+
+        Returns
+        -------
+        AxesController
+
+        """
+        if len(params) != design.n:
+            raise ParameterError('controllers', len(params), f'{design.n}, one per axis '
+                                 f'{list(design.names)}')
+        ctrls = [build_controller(p, s.sample_time_s, linear_plant(s.plant),
+                                  make_hysteresis(s.hysteresis))
+                 for p, s in zip(params, design.axes)]
+        return cls(ctrls, design, compensate=compensate)
+
+    def bind(self, trajectories: Sequence[Trajectory]) -> None:
+        """
+        Bind every feed-forward to its axis' trajectory and add the coupling compensation.
+
+        Parameters
+        ----------
+        trajectories : sequence of Trajectory
+            One per axis.
+
+        Raises
+        ------
+        ParameterError
+            If a driving axis' reference does not repeat within a compensated axis' period.
+
+        """
+        if len(trajectories) != self.n:
+            raise ParameterError('trajectories', len(trajectories), f'{self.n}, one per axis')
+        for c, tr in zip(self.controllers, trajectories):
+            bind = getattr(c, 'bind', None)
+            if callable(bind):
+                bind(tr)
+        self.compensated = ()
+        self.predicted_m = {}
+        if not (self.compensate and self._paths):
+            return
+        done = []
+        dt = self.sample_time_s
+        for j, c in enumerate(self.controllers):
+            if not isinstance(c, FeedForwardController) or not c.params.inverse:
+                continue
+            n = c.reference_tables(0)[0]
+            sources = {p.source for p in self._paths if p.source != j and (
+                j in p.targets or any(t == j for t, _ in p.static))}
+            if not n or not sources:
+                continue
+            # one period from the second, as the feed-forward's own tables
+            refs: dict[int, FloatArray] = {}
+            t = np.arange(n, 2 * n, dtype=np.float64) * dt
+            for i in sources:
+                x = np.asarray(trajectories[i].evaluate(t)[0], dtype=np.float64)
+                again = np.asarray(trajectories[i].evaluate(t + n * dt)[0], dtype=np.float64)
+                scale = float(np.max(np.abs(x))) or 1.0
+                if float(np.max(np.abs(again - x))) > 1e-9 * scale:
+                    name = self.design.names[i] if self.design is not None else str(i)
+                    raise ParameterError('feedforward.period_s', n * dt, 'a period over which '
+                                         f'every driving axis repeats (axis {name!r} does not)',
+                                         'cannot carry the coupling compensation')
+                refs[i] = x
+            d = coupled_displacement(self._paths, j, refs)
+            c.add_to_inverse(-c.plant_inverse.periodic(d) / c.slope)
+            self.predicted_m[j] = d
+            done.append(j)
+        self.compensated = tuple(done)
+
+    def reset(self, positions_m: Sequence[float], references_m: Sequence[float]) -> None:
+        """Reset every axis' controller from its measured position and reference."""
+        for c, y, r in zip(self.controllers, positions_m, references_m):
+            c.reset(y, r)
+
+    def step(self, positions_m: Sequence[float], references_m: Sequence[float],
+             velocities_mps: Sequence[float]) -> list[float]:
+        """
+        Return every axis' command [V] for one sample.
+
+        Parameters
+        ----------
+        positions_m, references_m, velocities_mps : sequence of float
+            y_k, x_d and x_d' per axis.
+
+        Returns
+        -------
+        list of float
+
+        """
+        return [s(y, r, v) for s, y, r, v in zip(self._steps, positions_m, references_m,
+                                                  velocities_mps)]
+
+    def predict(self, count: int) -> list[FloatArray]:
+        """Return each axis' ``count`` commands ahead (its controller's ``predict``)."""
+        out = []
+        for c in self.controllers:
+            pred = getattr(c, 'predict', None)
+            out.append(pred(count) if callable(pred) else np.full(count, float(c._u)))
+        return out
+
+    def diagnostic_names(self) -> list[tuple[str, ...]]:
+        """Return each axis' controller's diagnostic names."""
+        return [tuple(getattr(c, 'diagnostic_names', ())) for c in self.controllers]
