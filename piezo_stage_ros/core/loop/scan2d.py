@@ -37,6 +37,7 @@ its value and the travel.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 import math
 from typing import Sequence
 
@@ -44,15 +45,21 @@ import numpy as np
 from numpy.typing import ArrayLike
 from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.contracts.interfaces import Trajectory
+from piezo_stage_ros.core.contracts.params import group, param, Params
 from piezo_stage_ros.core.contracts.types import FloatArray
 from piezo_stage_ros.core.loop.trajectories import (
     _common_period,
+    make_trajectory,
     s_curve,
     TrajectoryBase,
+    TrajectoryParams,
     TRAVEL_MAX_M,
 )
+from piezo_stage_ros.core.model.axes import AXIS_NAMES
 
-__all__ = ['SLOW_PROFILES', 'extent_m', 'lissajous', 'moves', 'raster', 'spiral']
+__all__ = ['LissajousParams', 'MovesParams', 'RasterParams', 'SCANS', 'SLOW_PROFILES',
+           'ScanParams', 'SpiralParams', 'extent_m', 'lissajous', 'make_scan', 'moves',
+           'raster', 'spiral']
 
 #: Slow-axis profiles of a raster frame.
 SLOW_PROFILES = ('ramp', 'staircase')
@@ -391,3 +398,186 @@ def moves(levels_m: Sequence[float], *, move_s: float, dwell_s: float,
         raise ParameterError('moves.dwell_s', dwell_s, '[0, inf)')
     _inside('moves.levels_m', levels, min(levels), max(levels), travel, axis)
     return _Moves(levels, move_s, dwell_s)
+
+
+# --------------------------------------------------------------------------------------------
+# Parameters (trajectory_node scan.*) and the scan they describe
+
+#: Scan kinds of a multi-axis stage.
+SCANS = ('raster', 'lissajous', 'spiral', 'moves', 'each')
+
+
+@dataclass(frozen=True)
+class RasterParams(Params):
+    """A raster frame: the fast axis plays its line trajectory, the slow axis steps."""
+
+    fast_axis: str = param('x', unit='-', description='Axis that plays the line (its '
+                           'one-axis trajectory: kind and parameters of trajectory_node, with '
+                           'axes.<name>.* overrides).', choices=AXIS_NAMES)
+    slow_axis: str = param('y', unit='-', description='Axis that steps from line to line.',
+                           choices=AXIS_NAMES)
+    lines: int = param(64, unit='-', description='Lines per frame.', low=2, high=100000)
+    pitch_m: float = param(10e-6 / 63, unit='m', description='Slow-axis distance between two '
+                           'lines (negative: downwards).')
+    start_m: float = param(5e-6, unit='m', description='Slow-axis position of the first '
+                           'line.')
+    profile: str = param('staircase', unit='-', description='Slow axis: one level a line '
+                         '(staircase) or constant speed (ramp).', choices=SLOW_PROFILES)
+    transition_s: float = param(1e-3, unit='s', description='Staircase: S-curve from one '
+                                'level to the next.', low=0.0, low_open=True, high=1.0)
+    delay_s: float = param(0.0, unit='s', description='Slow-axis profile delayed by this '
+                           'much against the lines.', low=0.0)
+
+    def _check(self) -> None:
+        if self.slow_axis == self.fast_axis:
+            raise ParameterError('slow_axis', self.slow_axis, f'an axis other than the fast '
+                                 f'axis {self.fast_axis!r}', 'is the fast axis too')
+
+
+@dataclass(frozen=True)
+class LissajousParams(Params):
+    """One sine per axis of the stage (amplitude 0: the axis holds its offset)."""
+
+    frequencies_hz: tuple[float, ...] = param((97.0, 103.0), unit='Hz', description='Frequency '
+                                              'of each axis, in axis order.', low=0.0,
+                                              low_open=True, high=5000.0)
+    amplitudes_m: tuple[float, ...] = param((3e-6, 3e-6), unit='m', description='Amplitude of '
+                                            'each axis.', low=0.0)
+    offsets_m: tuple[float, ...] = param((10e-6, 10e-6), unit='m', description='Centre of '
+                                         'each axis.')
+    phases_rad: tuple[float, ...] = param((0.0, 0.0), unit='rad', description='Phase of each '
+                                          'axis.')
+
+
+@dataclass(frozen=True)
+class SpiralParams(Params):
+    """An Archimedean spiral on the first two axes, out and back in."""
+
+    centres_m: tuple[float, ...] = param((15e-6, 15e-6), unit='m', description='Centre on each '
+                                         'of the first two axes.')
+    radius_m: float = param(5e-6, unit='m', description='Largest radius.', low=0.0,
+                            low_open=True)
+    frequency_hz: float = param(50.0, unit='Hz', description='Turns per second.', low=0.0,
+                                low_open=True, high=5000.0)
+    duration_s: float = param(0.5, unit='s', description='From the centre to the largest '
+                              'radius (the period is twice that).', low=0.0, low_open=True)
+
+
+@dataclass(frozen=True)
+class MovesParams(Params):
+    """Point-to-point moves per axis: S-curves through each axis' levels."""
+
+    x_m: tuple[float, ...] = param((5e-6, 15e-6, 10e-6), unit='m', description='Levels of '
+                                   'axis x.')
+    y_m: tuple[float, ...] = param((5e-6, 10e-6, 15e-6), unit='m', description='Levels of '
+                                   'axis y.')
+    z_m: tuple[float, ...] = param((5e-6, 8e-6, 5e-6), unit='m', description='Levels of '
+                                   'axis z.')
+    move_s: float = param(2e-3, unit='s', description='Duration of a move.', low=0.0,
+                          low_open=True)
+    dwell_s: float = param(20e-3, unit='s', description='Rest at each level before the next '
+                           'move.', low=0.0)
+
+
+@dataclass(frozen=True)
+class ScanParams(Params):
+    """The scan of a multi-axis stage (trajectory_node ``scan.*``)."""
+
+    kind: str = param('raster', unit='-', description='raster, lissajous, spiral, moves, or '
+                      'each (every axis its own one-axis trajectory).', choices=SCANS)
+    raster: RasterParams = group(RasterParams, 'kind raster')
+    lissajous: LissajousParams = group(LissajousParams, 'kind lissajous')
+    spiral: SpiralParams = group(SpiralParams, 'kind spiral')
+    moves: MovesParams = group(MovesParams, 'kind moves')
+
+
+class _Hold(TrajectoryBase):
+    """An axis the scan does not move: it holds a level (periodic with the scan's period)."""
+
+    kind = 'hold'
+
+    def __init__(self, level_m: float, period_s: float | None) -> None:
+        self._level = level_m
+        self.period_s = period_s
+
+    def evaluate(self, time_s: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        t = np.asarray(time_s, dtype=np.float64)
+        return np.full(t.shape, self._level), np.zeros(t.shape)
+
+
+def make_scan(params: ScanParams, names: Sequence[str], lines: Sequence[TrajectoryParams],
+              rest_m: Sequence[float]) -> tuple[Trajectory, ...]:
+    """
+    Build one trajectory per axis for the scan ``params.kind`` names.
+
+    Parameters
+    ----------
+    params : ScanParams
+        The scan.
+    names : sequence of str
+        The stage's axes.
+    lines : sequence of TrajectoryParams
+        Each axis' one-axis trajectory (the raster's fast axis plays its own; kind ``each``:
+        every axis); its travel is the axis' travel.
+    rest_m : sequence of float
+        Each axis' rest position, held by the axes the scan does not move [m].
+
+    Returns
+    -------
+    tuple of Trajectory
+        In axis order; an axis the scan leaves holds its rest position, periodic with the
+        scan's period.
+
+    Raises
+    ------
+    ParameterError
+        A scan naming an axis the stage lacks, lists of the wrong length, or a scan that
+        leaves an axis' travel.
+
+    """
+    travel = [(p.travel_min_m, p.travel_max_m) for p in lines]
+    n = len(names)
+    kind = params.kind
+    if kind == 'each':
+        return tuple(make_trajectory(p) for p in lines)
+    out: list[Trajectory | None] = [None] * n
+    if kind == 'raster':
+        r = params.raster
+        for key in ('fast_axis', 'slow_axis'):
+            if getattr(r, key) not in names:
+                raise ParameterError(f'scan.raster.{key}', getattr(r, key),
+                                     f'one of the axes {list(names)}')
+        f, s = names.index(r.fast_axis), names.index(r.slow_axis)
+        fast, slow = raster(make_trajectory(lines[f]), lines=r.lines, pitch_m=r.pitch_m,
+                            start_m=r.start_m, profile=r.profile, transition_s=r.transition_s,
+                            delay_s=r.delay_s, fast_travel=travel[f], slow_travel=travel[s],
+                            fast_axis=r.fast_axis, slow_axis=r.slow_axis)
+        out[f], out[s] = fast, slow
+        period: float | None = slow.period_s
+    elif kind == 'lissajous':
+        li = params.lissajous
+        for key in ('frequencies_hz', 'amplitudes_m', 'offsets_m', 'phases_rad'):
+            if len(getattr(li, key)) != n:
+                raise ParameterError(f'scan.lissajous.{key}', list(getattr(li, key)),
+                                     f'{n} values, one per axis {list(names)}')
+        out = list(lissajous(frequencies_hz=li.frequencies_hz, amplitudes_m=li.amplitudes_m,
+                             offsets_m=li.offsets_m, phases_rad=li.phases_rad, travel=travel,
+                             names=names))
+        period = None
+    elif kind == 'spiral':
+        sp = params.spiral
+        if n < 2:
+            raise ParameterError('scan.kind', kind, 'a scan of one axis (raster needs two, '
+                                 'spiral two)', f'needs two axes, the stage has {list(names)}')
+        out[0], out[1] = spiral(centres_m=sp.centres_m, radius_m=sp.radius_m,
+                                frequency_hz=sp.frequency_hz, duration_s=sp.duration_s,
+                                travel=travel[:2], names=names[:2])
+        period = 2.0 * sp.duration_s
+    else:
+        mv = params.moves
+        for k, name in enumerate(names):
+            out[k] = moves(getattr(mv, f'{name}_m'), move_s=mv.move_s, dwell_s=mv.dwell_s,
+                           travel=travel[k], axis=name)
+        period = None
+    return tuple(tr if tr is not None else _Hold(rest_m[k], period)
+                 for k, tr in enumerate(out))

@@ -1,0 +1,210 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Command-line program ``simulate_axes``: the multi-axis closed loop offline, per-axis metrics.
+
+Reads the parameter files of a multi-axis stage (``plant_node axes.names``, see
+:mod:`piezo_stage_ros.core.contracts.axes_config`), runs every axis' controller on the coupled
+stage and prints, per axis, the tracking error over the last ``--window`` seconds: the measured
+position (sensor, noise, ADC) and the true one. A raster's fast axis is measured over the middle
+80 % of its lines (its turn-arounds left out). ``simulate --config FILE`` runs this for such a
+file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from typing import Any, Sequence
+
+from piezo_stage_ros import cli
+from piezo_stage_ros.core.contracts.axes_config import axes_loop_config, AxesLoopConfig
+from piezo_stage_ros.core.contracts.config import Config
+from piezo_stage_ros.core.contracts.errors import ConfigError, ParameterError
+
+__all__ = ['build_parser', 'main', 'run_config', 'simulate_axes']
+
+PROG = 'simulate_axes'
+
+#: Share of a raster line's range over which the fast axis is measured.
+LINE_FRACTION = 0.8
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Return the command-line parser of ``simulate_axes``."""
+    p = cli.Parser(prog=PROG, description='Run the closed loop of a multi-axis stage offline '
+                   '(no ROS) and print per-axis tracking metrics.')
+    cli.add_config_options(p)
+    cli.add_feedforward_option(p)
+    p.add_argument('--compensation', choices=('on', 'off'),
+                   help='Coupling compensation in the feed-forward (controller_node '
+                   'axes.coupling_compensation).')
+    p.add_argument('--scan', help='Scan kind (trajectory_node scan.kind).')
+    p.add_argument('--duration', type=float, metavar='S',
+                   help='Simulated time [s] (default: 8 periods of the longest axis period, '
+                   'at least 2 s, or 2 s).')
+    p.add_argument('--window', type=float, default=1.0, metavar='S',
+                   help='Metrics over the last S seconds (default 1).')
+    p.add_argument('--json', action='store_true', help='Print one JSON object.')
+    return p
+
+
+def _config(args: argparse.Namespace) -> Config:
+    config = cli.read_config(args.config, args.param)
+    values: dict[str, dict[str, Any]] = {}
+    if args.feedforward is not None:
+        values.setdefault('controller_node', {})['feedforward.mode'] = args.feedforward
+    if args.compensation is not None:
+        values.setdefault('controller_node', {})['axes.coupling_compensation'] = \
+            args.compensation == 'on'
+    if getattr(args, 'scan', None) is not None:
+        values.setdefault('trajectory_node', {})['scan.kind'] = args.scan
+    for node, vals in values.items():
+        config = config.with_overrides(node, vals)
+    return config
+
+
+def default_duration_s(loop: AxesLoopConfig) -> float:
+    """Return 8 periods of the longest axis period (>= 2 s), or 2 s without one."""
+    periods = [p for p in (getattr(t, 'period_s', None) for t in loop.trajectories())
+               if isinstance(p, float) and p > 0.0]
+    return max(8.0 * max(periods), 2.0) if periods else 2.0
+
+
+def simulate_axes(loop: AxesLoopConfig, *, duration_s: float, window_s: float = 1.0
+                  ) -> dict[str, Any]:
+    """
+    Run the multi-axis loop and return its per-axis metrics.
+
+    Parameters
+    ----------
+    loop : AxesLoopConfig
+        The configuration.
+    duration_s : float
+        Simulated time [s].
+    window_s : float
+        Metrics over the last this many seconds, in (0, duration_s].
+
+    Returns
+    -------
+    dict
+        ``axes``: per axis name, e_rms / e_max of the measured and the true position [m] and
+        the samples in the window; ``compensated``: the axes whose feed-forward carried the
+        coupling compensation; timing.
+
+    """
+    from piezo_stage_ros.core.control.axes import AxesController
+    from piezo_stage_ros.core.loop.axes import axis_metrics, middle_of_lines, run_axes
+    from piezo_stage_ros.core.model.axes import AxesStage
+
+    if not (duration_s > 0.0 and math.isfinite(duration_s)):
+        raise ParameterError('--duration', duration_s, '(0, inf) s')
+    if not (0.0 < window_s <= duration_s):
+        raise ParameterError('--window', window_s, f'(0, {duration_s:g}] s (the run)')
+    trajectories = loop.trajectories()
+    ctrl = AxesController.build(loop.controllers, loop.stage, compensate=loop.compensate)
+    start = time.perf_counter()
+    records = run_axes(AxesStage(loop.stage), ctrl, trajectories, duration_s=duration_s)
+    wall = time.perf_counter() - start
+    fast = loop.scan.raster.fast_axis if loop.scan.kind == 'raster' else None
+    axes: dict[str, Any] = {}
+    for rec in records:
+        name = str(rec.meta['axis'])
+        mask = middle_of_lines(rec.reference_m, LINE_FRACTION) if name == fast else None
+        m = axis_metrics(rec, last_s=window_s, mask=mask)
+        axes[name] = {'e_rms_m': m.e_rms_m, 'e_max_m': m.e_max_m,
+                      'e_rms_true_m': m.e_rms_true_m, 'e_max_true_m': m.e_max_true_m,
+                      'samples': m.samples, 'window': ('middle 80 % of the lines'
+                                                       if mask is not None else 'all'),
+                      'trajectory_period_s': rec.meta.get('trajectory_period_s'),
+                      'feedforward': loop.controllers[loop.stage.index(name)].feedforward.mode}
+    sim = float(records[0].meta['duration_s'])
+    return {'axes': axes, 'scan': loop.scan.kind, 'compensation': loop.compensate,
+            'compensated': [loop.stage.names[j] for j in ctrl.compensated],
+            'sim_seconds': sim, 'wall_seconds': wall, 'window_s': window_s,
+            'config_files': [str(p) for p in loop.base.sources]}
+
+
+def run_config(prog: str, config: Config, *, duration_s: float | None,
+               window_s: float | None, as_json: bool) -> int:
+    """Run the loop and print its metrics (window None: the last second, or the run)."""
+    loop = axes_loop_config(config)
+    for text in loop.base.offline_notes():
+        cli.note(prog, text)
+    duration = default_duration_s(loop) if duration_s is None else duration_s
+    if window_s is None:
+        window_s = min(1.0, duration) if duration > 0.0 else 1.0
+    out = simulate_axes(loop, duration_s=duration, window_s=window_s)
+    if as_json:
+        print(json.dumps(out, sort_keys=True))
+        return 0
+    names = ', '.join(loop.stage.names)
+    print(f'{len(loop.stage.names)} axes ({names}), scan {out["scan"]}, coupling compensation '
+          f'{"on" if loop.compensate else "off"} (applied on: '
+          f'{", ".join(out["compensated"]) or "none"})')
+    print(f'simulated {out["sim_seconds"]:g} s in {out["wall_seconds"]:.2f} s wall')
+    print(f'last {window_s:g} s:')
+    for name, m in out['axes'].items():
+        print(f'  {name} ({m["feedforward"]}, {m["window"]}): e_rms = {m["e_rms_m"] * 1e9:.2f} '
+              f'nm, e_m = {m["e_max_m"] * 1e9:.2f} nm; true position: e_rms = '
+              f'{m["e_rms_true_m"] * 1e9:.2f} nm, e_m = {m["e_max_true_m"] * 1e9:.2f} nm')
+    return 0
+
+
+def from_simulate(args: argparse.Namespace, config: Config) -> int:
+    """
+    Run ``simulate`` on a multi-axis file (``config``: its files, --param and flags).
+
+    The flags that set one-axis parameters set the base of every axis; the options of one run
+    that have no multi-axis counterpart yet are refused.
+    """
+    for flag, value in (('--bag', args.bag), ('--save-table', args.save_table),
+                        ('--experiment', args.experiment),
+                        ('--steady-state-start', args.steady_state_start_s)):
+        if value is not None:
+            raise ConfigError(f'{flag} is not available for a multi-axis stage yet '
+                              '(plant_node axes.names); run without it')
+    return run_config('simulate', config, duration_s=args.duration, window_s=None,
+                      as_json=args.json)
+
+
+def _main(args: argparse.Namespace) -> int:
+    return run_config(PROG, _config(args), duration_s=args.duration, window_s=args.window,
+                      as_json=args.json)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """
+    Run ``simulate_axes``.
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        Arguments without the program name; default ``sys.argv[1:]``.
+
+    Returns
+    -------
+    int
+        0 success, 1 bad parameter or configuration, 2 bad usage.
+
+    """
+    return cli.run_command(PROG, build_parser(), _main, argv)
+
+
+if __name__ == '__main__':
+    sys.exit(main())
