@@ -58,8 +58,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--duration', type=float, metavar='S',
                    help='Simulated time [s] (default: 8 periods of the longest axis period, '
                    'at least 2 s, or 2 s).')
-    p.add_argument('--window', type=float, default=1.0, metavar='S',
-                   help='Metrics over the last S seconds (default 1).')
+    p.add_argument('--window', type=float, metavar='S',
+                   help='Metrics over the last S seconds (default 1, or the whole run when '
+                   'shorter).')
     p.add_argument('--json', action='store_true', help='Print one JSON object.')
     return p
 

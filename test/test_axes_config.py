@@ -114,3 +114,16 @@ def test_a_multi_axis_file_is_not_a_one_axis_node_file(name):
     values = {k: v for k, v in config.node('plant_node').items() if k != 'use_sim_time'}
     with pytest.raises(ParameterError, match="'axes.names'.*is not a parameter of this node"):
         plant_table().build(values)
+
+
+@pytest.mark.parametrize('kind, periods', [
+    ('lissajous', [1.0, 1.0]), ('spiral', [1.0, 1.0]), ('moves', [None, None]),
+    ('each', [0.01, 0.01]),
+])
+def test_every_scan_kind_builds_from_the_file(kind, periods):
+    loop = load('config/xy_stage.yaml', params=[f'trajectory_node:scan.kind={kind}'])
+    trajectories = loop.trajectories()
+    assert [t.period_s for t in trajectories] == periods
+    for tr in trajectories:
+        x, _ = tr.evaluate(np.linspace(0.0, 2.0, 2001))
+        assert 0.0 <= x.min() and x.max() <= 38e-6
