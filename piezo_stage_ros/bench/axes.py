@@ -31,9 +31,10 @@ The stage is stepped between samples but not timed. Cases:
   with the numpy batch of :mod:`piezo_stage_ros.core.loop.batch` and once as three scalar
   controllers: why the axes are stepped as scalars.
 
-Median and p99 per sample [us] (the run of the lowest median, and the lowest p99 of the runs).
-Timings are those of a shared machine: compare them with
-each other.
+Median and p99 per sample [us] (the run of the lowest median, and the lowest p99 of the runs),
+in wall time and in the thread's CPU time (which a preemption by another process does not
+count: on a shared machine the wall p99 is the scheduler's time slice). Timings are those of
+a shared machine: compare them with each other.
 """
 
 from __future__ import annotations
@@ -58,19 +59,24 @@ def _loop(config: str, mode: str) -> AxesLoopConfig:
         f'controller_node:feedforward.mode={mode}']))
 
 
-def _percentiles(ns: list[int]) -> dict[str, float]:
+def _percentiles(ns: list[int], cpu_ns: list[int] | None = None) -> dict[str, float]:
     a = np.asarray(ns, dtype=np.float64) / 1e3
-    return {'median_us': round(float(np.median(a)), 2),
-            'p99_us': round(float(np.percentile(a, 99)), 2),
-            'max_us': round(float(np.max(a)), 1)}
+    out = {'median_us': round(float(np.median(a)), 2),
+           'p99_us': round(float(np.percentile(a, 99)), 2),
+           'max_us': round(float(np.max(a)), 1)}
+    if cpu_ns is not None:
+        c = np.asarray(cpu_ns, dtype=np.float64) / 1e3
+        out.update({'cpu_median_us': round(float(np.median(c)), 2),
+                    'cpu_p99_us': round(float(np.percentile(c, 99)), 2)})
+    return out
 
 
 def _time_loop(loop: AxesLoopConfig, ctrl_step: Callable[[list[float], list[float],
                                                           list[float]], list[float]],
                predict: Callable[[], Any], bind: Callable[[Any], None],
                reset: Callable[[list[float], list[float]], None], *, warm_s: float,
-               samples: int, axes: int | None = None) -> list[int]:
-    """Run the loop, timing step + predict of every sample after ``warm_s``."""
+               samples: int, axes: int | None = None) -> tuple[list[int], list[int]]:
+    """Run the loop, timing step + predict of every sample after ``warm_s`` (wall, CPU)."""
     stage_params = loop.stage
     trajectories = list(loop.trajectories())
     stage = AxesStage(stage_params)
@@ -85,18 +91,22 @@ def _time_loop(loop: AxesLoopConfig, ctrl_step: Callable[[list[float], list[floa
     vels = np.column_stack([np.asarray(tr.evaluate(t)[1]) for tr in trajectories]).tolist()
     y = stage.reset()[:len(trajectories)]
     reset(y, refs[0])
-    clock = time.perf_counter_ns
+    clock, cpu = time.perf_counter_ns, time.thread_time_ns
     out: list[int] = []
+    out_cpu: list[int] = []
     pad = [0.0] * (stage.n - len(trajectories))
     for k in range(total):
+        c0 = cpu()
         t0 = clock()
         u = ctrl_step(y, refs[k], vels[k])
         predict()
         t1 = clock()
+        c1 = cpu()
         if k >= warm:
             out.append(t1 - t0)
+            out_cpu.append(c1 - c0)
         y = stage.step(u + pad)[:len(trajectories)]
-    return out
+    return out, out_cpu
 
 
 def _axes_case(loop: AxesLoopConfig, ahead: int, warm_s: float, samples: int
@@ -107,8 +117,8 @@ def _axes_case(loop: AxesLoopConfig, ahead: int, warm_s: float, samples: int
     def predict() -> None:
         for p in predicts:
             np.asarray(p(ahead))
-    return _percentiles(_time_loop(loop, ctrl.step, predict, ctrl.bind, ctrl.reset,
-                                   warm_s=warm_s, samples=samples))
+    return _percentiles(*_time_loop(loop, ctrl.step, predict, ctrl.bind, ctrl.reset,
+                                    warm_s=warm_s, samples=samples))
 
 
 def _today_case(loop: AxesLoopConfig, ahead: int, warm_s: float, samples: int
@@ -127,8 +137,8 @@ def _today_case(loop: AxesLoopConfig, ahead: int, warm_s: float, samples: int
     def reset(y: list[float], r: list[float]) -> None:
         c.reset(y[0], r[0])
     predict = c.predict  # type: ignore[union-attr]
-    return _percentiles(_time_loop(loop, one, lambda: np.asarray(predict(ahead)), bind, reset,
-                                   warm_s=warm_s, samples=samples, axes=1))
+    return _percentiles(*_time_loop(loop, one, lambda: np.asarray(predict(ahead)), bind,
+                                    reset, warm_s=warm_s, samples=samples, axes=1))
 
 
 def _feedback_cases(loop: AxesLoopConfig, samples: int) -> dict[str, dict[str, float]]:
@@ -194,7 +204,9 @@ def run_axes_benchmark(*, samples: int = 20000, ahead: int = 128, repeats: int =
             key = f'{name} {mode}'
             out[key] = best
             print(f'{key:28s} median {best["median_us"]:7.2f} us  p99 {best["p99_us"]:7.2f} us'
-                  f' (quietest run {best["p99_best_us"]:7.2f} us)  max {best["max_us"]:8.1f} us')
+                  f' (quietest run {best["p99_best_us"]:7.2f} us)  max {best["max_us"]:8.1f} us;'
+                  f' CPU time median {best["cpu_median_us"]:7.2f} us  p99 '
+                  f'{best["cpu_p99_us"]:7.2f} us')
     fb = _feedback_cases(_loop('xyz_stage.yaml', 'none'), samples)
     for key, best in fb.items():
         out[f'{key} feedback'] = best
