@@ -173,3 +173,24 @@ def test_a_trajectory_count_that_is_not_one_per_axis_is_refused():
     with pytest.raises(ParameterError, match=r"'trajectories' = 1.*one per axis \['x', 'y'\]"):
         run_axes(AxesStage(params), AxesController.build([LOOP.controller] * 2, params),
                  [sine()], duration_s=0.01)
+
+
+def test_axis_metrics_take_the_last_window_and_the_mask():
+    from piezo_stage_ros.core.loop.record import RunRecord
+    n = 1000
+    t = np.arange(n) * 1e-4
+    ref = np.zeros(n)
+    pos = np.where(np.arange(n) < 500, 1e-6, 2e-9)  # large error first, then 2 nm
+    pos[-1] = -4e-9
+    rec = RunRecord(t, pos, ref, np.zeros(n), np.zeros(n), {}, {'axis': 'y',
+                                                                'sample_time_s': 1e-4},
+                    pos.copy())
+    m = axis_metrics(rec, last_s=0.05)            # the last 500 samples
+    assert m.axis == 'y' and m.samples == 500
+    assert m.e_max_m == 4e-9
+    assert m.e_rms_m == pytest.approx(np.sqrt((499 * 4e-18 + 16e-18) / 500), rel=1e-12)
+    mask = np.ones(n, dtype=bool)
+    mask[-1] = False
+    assert axis_metrics(rec, last_s=0.05, mask=mask).e_max_true_m == 2e-9
+    with pytest.raises(ParameterError, match='fraction'):
+        middle_of_lines(ref, 0.0)

@@ -31,6 +31,8 @@ the samples of :func:`closed_loop.run` bit for bit. The result is one
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass
 import math
 from typing import Any, Mapping, Sequence
 
@@ -154,6 +156,7 @@ def run_axes(stage: AxesStage, controller: AxesController,
     return records
 
 
+@dataclass(frozen=True)
 class AxisMetrics:
     """
     The tracking error of one axis over a window: e_rms and e_max, measured and true.
@@ -163,25 +166,23 @@ class AxisMetrics:
     axis : str
     samples : int
         Samples in the window.
-    e_rms_m, e_max_m : float
+    e_max_m, e_rms_m : float
         Of the measured position [m].
-    e_rms_true_m, e_max_true_m : float
+    e_max_true_m, e_rms_true_m : float
         Of the true position [m] (NaN without it).
 
     """
 
-    def __init__(self, axis: str, samples: int, e_max_m: float, e_rms_m: float,
-                 e_max_true_m: float, e_rms_true_m: float) -> None:
-        self.axis = axis
-        self.samples = samples
-        self.e_max_m, self.e_rms_m = e_max_m, e_rms_m
-        self.e_max_true_m, self.e_rms_true_m = e_max_true_m, e_rms_true_m
+    axis: str
+    samples: int
+    e_max_m: float
+    e_rms_m: float
+    e_max_true_m: float
+    e_rms_true_m: float
 
     def as_dict(self) -> dict[str, Any]:
         """Return the metrics as a plain dict (JSON)."""
-        return {'axis': self.axis, 'samples': self.samples, 'e_max_m': self.e_max_m,
-                'e_rms_m': self.e_rms_m, 'e_max_true_m': self.e_max_true_m,
-                'e_rms_true_m': self.e_rms_true_m}
+        return dataclasses.asdict(self)
 
 
 def axis_metrics(record: RunRecord, *, last_s: float | None = None,
