@@ -31,6 +31,7 @@ import math
 import sys
 import time
 from typing import Any, Sequence
+import warnings
 
 from piezo_stage_ros import cli
 from piezo_stage_ros.core.contracts.axes_config import axes_loop_config, AxesLoopConfig
@@ -106,10 +107,11 @@ def simulate_axes(loop: AxesLoopConfig, *, duration_s: float, window_s: float = 
     dict
         ``axes``: per axis name, e_rms / e_max of the measured and the true position [m] and
         the samples in the window; ``compensated``: the axes whose feed-forward carried the
-        coupling compensation; timing.
+        coupling compensation; the check of the loops with the coupling
+        (:func:`coupled_loop_check`); timing.
 
     """
-    from piezo_stage_ros.core.control.axes import AxesController
+    from piezo_stage_ros.core.control.axes import AxesController, coupled_loop_check
     from piezo_stage_ros.core.loop.axes import axis_metrics, middle_of_lines, run_axes
     from piezo_stage_ros.core.model.axes import AxesStage
 
@@ -119,6 +121,8 @@ def simulate_axes(loop: AxesLoopConfig, *, duration_s: float, window_s: float = 
         raise ParameterError('--window', window_s, f'(0, {duration_s:g}] s (the run)')
     trajectories = loop.trajectories()
     ctrl = AxesController.build(loop.controllers, loop.stage, compensate=loop.compensate)
+    stable = _check_axes(loop, trajectories)
+    check = coupled_loop_check(ctrl)
     start = time.perf_counter()
     records = run_axes(AxesStage(loop.stage), ctrl, trajectories, duration_s=duration_s)
     wall = time.perf_counter() - start
@@ -133,12 +137,33 @@ def simulate_axes(loop: AxesLoopConfig, *, duration_s: float, window_s: float = 
                       'samples': m.samples, 'window': ('middle 80 % of the lines'
                                                        if mask is not None else 'all'),
                       'trajectory_period_s': rec.meta.get('trajectory_period_s'),
-                      'feedforward': loop.controllers[loop.stage.index(name)].feedforward.mode}
+                      'feedforward': loop.controllers[loop.stage.index(name)].feedforward.mode,
+                      'stable': stable[name]}
     sim = float(records[0].meta['duration_s'])
     return {'axes': axes, 'scan': loop.scan.kind, 'compensation': loop.compensate,
             'compensated': [loop.stage.names[j] for j in ctrl.compensated],
+            'coupling_check': check.text(), 'coupling_gain': check.coupling_gain,
+            'learning_ratio': check.learning_ratio,
             'sim_seconds': sim, 'wall_seconds': wall, 'window_s': window_s,
             'config_files': [str(p) for p in loop.base.sources]}
+
+
+def _check_axes(loop: AxesLoopConfig, trajectories: Sequence[Any]) -> dict[str, bool]:
+    """Check each axis' own loop as simulate does (warn on stderr, or refuse on request)."""
+    from piezo_stage_ros.core.control.stability import check_stability, enforce
+    out = {}
+    for name, sp, cp, tr in zip(loop.stage.names, loop.stage.axes, loop.controllers,
+                                trajectories):
+        report = check_stability(cp, sp.plant, sp.sample_time_s, options=loop.base.stability,
+                                 period_s=getattr(tr, 'period_s', None), stage=sp)
+        with warnings.catch_warnings():
+            warnings.simplefilter('ignore')  # printed below as one line
+            enforce(report, loop.base.stability.action)
+        if not report.stable:
+            print(f'{PROG}: WARNING: UNSTABLE CONFIGURATION on axis {name}: {report.text()}',
+                  file=sys.stderr)
+        out[name] = bool(report.stable)
+    return out
 
 
 def run_config(prog: str, config: Config, *, duration_s: float | None,
@@ -158,10 +183,12 @@ def run_config(prog: str, config: Config, *, duration_s: float | None,
     print(f'{len(loop.stage.names)} axes ({names}), scan {out["scan"]}, coupling compensation '
           f'{"on" if loop.compensate else "off"} (applied on: '
           f'{", ".join(out["compensated"]) or "none"})')
+    print(out['coupling_check'])
     print(f'simulated {out["sim_seconds"]:g} s in {out["wall_seconds"]:.2f} s wall')
     print(f'last {window_s:g} s:')
     for name, m in out['axes'].items():
-        print(f'  {name} ({m["feedforward"]}, {m["window"]}): e_rms = {m["e_rms_m"] * 1e9:.2f} '
+        print(f'  {name} ({m["feedforward"]}, {m["window"]}, '
+              f'{"stable" if m["stable"] else "UNSTABLE"}): e_rms = {m["e_rms_m"] * 1e9:.2f} '
               f'nm, e_m = {m["e_max_m"] * 1e9:.2f} nm; true position: e_rms = '
               f'{m["e_rms_true_m"] * 1e9:.2f} nm, e_m = {m["e_max_true_m"] * 1e9:.2f} nm')
     return 0

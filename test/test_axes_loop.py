@@ -194,3 +194,31 @@ def test_axis_metrics_take_the_last_window_and_the_mask():
     assert axis_metrics(rec, last_s=0.05, mask=mask).e_max_true_m == 2e-9
     with pytest.raises(ParameterError, match='fraction'):
         middle_of_lines(ref, 0.0)
+
+
+def check_for(gain, mode='inverse_learning'):
+    from piezo_stage_ros.core.control.axes import coupled_loop_check
+    coupling = CouplingParams(gain=gain, resonance_hz=(0.0, 1800.0, 1800.0, 0.0))
+    params = AxesStageParams(names=('x', 'y'), axes=(LOOP.stage, LOOP.stage), coupling=coupling)
+    cp = LOOP.controller.with_flat({'feedforward.mode': mode})
+    return coupled_loop_check(AxesController.build([cp, cp], params), points=800)
+
+
+def test_one_way_coupling_leaves_the_loops_and_the_learning_as_they_are():
+    # P is triangular: M is nilpotent (radius 0) and the learning's iteration triangular with
+    # the one-axis ratio 1 - gamma on its diagonal
+    r = check_for((0.0, 0.02, 0.0, 0.0))
+    assert r.coupling_gain <= 1e-12 and r.certified
+    assert r.learning_ratio == pytest.approx(0.5, abs=1e-9)
+    assert check_for((0.0, 0.02, 0.0, 0.0), mode='inverse').learning_ratio is None
+
+
+def test_two_way_coupling_gain_grows_with_the_coupling_and_is_refused_when_too_large():
+    # M is linear in the coupling paths: doubling both gains doubles its spectral radius
+    small = check_for((0.0, 0.02, 0.01, 0.0))
+    large = check_for((0.0, 0.04, 0.02, 0.0))
+    assert 0.0 < small.coupling_gain < 1.0
+    assert large.coupling_gain == pytest.approx(2.0 * small.coupling_gain, rel=1e-9)
+    assert large.coupling_frequency_hz == small.coupling_frequency_hz
+    too_much = check_for((0.0, 0.5, 0.5, 0.0))
+    assert not too_much.certified and 'not certified' in too_much.text()

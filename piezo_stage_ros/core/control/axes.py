@@ -35,6 +35,7 @@ frame, the axes of a Lissajous scan within their common period).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 import math
 from typing import Any, Sequence
 
@@ -48,7 +49,34 @@ from piezo_stage_ros.core.model.axes import AxesStageParams, coupling_paths, Cou
 from piezo_stage_ros.core.model.hysteresis import make_hysteresis
 from piezo_stage_ros.core.model.stage import linear_plant
 
-__all__ = ['AxesController', 'coupled_displacement', 'path_responses']
+__all__ = ['AxesController', 'CoupledLoopCheck', 'coupled_displacement', 'coupled_loop_check',
+           'path_responses', 'state_response']
+
+
+def state_response(ad: FloatArray, bd: FloatArray, z: ComplexArray) -> ComplexArray:
+    """
+    Return (zI - Ad)^-1 Bd at every point ``z``: the states' response to a held input.
+
+    Parameters
+    ----------
+    ad : ndarray, shape (n, n)
+        The discrete state matrix.
+    bd : ndarray, shape (n,)
+        The discrete input column.
+    z : ndarray of complex, shape (K,)
+        Points of the z-plane.
+
+    Returns
+    -------
+    ndarray of complex, shape (K, n)
+
+    """
+    size = ad.shape[0]
+    zz = np.asarray(z, dtype=np.complex128).ravel()
+    lhs = zz[:, None, None] * np.eye(size)[None] - ad[None]
+    rhs = np.broadcast_to(np.asarray(bd, dtype=np.complex128)[None, :, None],
+                          (zz.size, size, 1))
+    return np.asarray(np.linalg.solve(lhs, rhs)[..., 0], dtype=np.complex128)
 
 
 def path_responses(path: CouplingPath, z: ComplexArray) -> tuple[ComplexArray,
@@ -72,12 +100,8 @@ def path_responses(path: CouplingPath, z: ComplexArray) -> tuple[ComplexArray,
 
     """
     order = path.c.size
-    size = path.ad_full.shape[0]
     zz = np.asarray(z, dtype=np.complex128).ravel()
-    lhs = zz[:, None, None] * np.eye(size)[None] - path.ad_full[None]
-    rhs = np.broadcast_to(path.bd_full.astype(np.complex128)[None, :, None],
-                          (zz.size, size, 1))
-    states = np.linalg.solve(lhs, rhs)[..., 0]
+    states = state_response(path.ad_full, path.bd_full, zz)
     own = states[:, :order] @ path.c
     coupled: dict[int, ComplexArray] = {}
     zero = np.zeros(zz.size, dtype=np.complex128)
@@ -139,12 +163,17 @@ class AxesController:
         The design model of the stage (axes and coupling) the compensation inverts.
     compensate : bool
         Add the coupling compensation to the feed-forwards with a model inverse.
+    params : sequence of ControllerParams, optional
+        Each axis' configuration (:func:`coupled_loop_check` needs it).
 
     """
 
     def __init__(self, controllers: Sequence[Any], design: AxesStageParams | None = None,
-                 *, compensate: bool = True) -> None:
+                 *, compensate: bool = True,
+                 params: Sequence[ControllerParams] | None = None) -> None:
         self.controllers = list(controllers)
+        #: Each axis' configuration, when built from it (:meth:`build`).
+        self.params = tuple(params) if params is not None else None
         self.n = len(self.controllers)
         self.design = design
         self.compensate = compensate
@@ -186,7 +215,7 @@ class AxesController:
         ctrls = [build_controller(p, s.sample_time_s, linear_plant(s.plant),
                                   make_hysteresis(s.hysteresis))
                  for p, s in zip(params, design.axes)]
-        return cls(ctrls, design, compensate=compensate)
+        return cls(ctrls, design, compensate=compensate, params=params)
 
     def bind(self, trajectories: Sequence[Trajectory]) -> None:
         """
@@ -276,3 +305,147 @@ class AxesController:
     def diagnostic_names(self) -> list[tuple[str, ...]]:
         """Return each axis' controller's diagnostic names."""
         return [tuple(getattr(c, 'diagnostic_names', ())) for c in self.controllers]
+
+
+@dataclass(frozen=True)
+class CoupledLoopCheck:
+    """
+    The axes' loops checked together with the coupling (:func:`coupled_loop_check`).
+
+    Attributes
+    ----------
+    coupling_gain : float
+        sup over frequency of the spectral radius of M = (I + P_d K)^-1 P_o K: the coupling
+        paths P_o closed through the other axes' loops. Below 1 the coupled loop is stable
+        whenever each axis' own loop is (small gain); 0 for coupling one way only.
+    coupling_frequency_hz : float
+        Where the supremum is [Hz].
+    learning_ratio : float or None
+        The largest contraction per period of the learning on the coupled stage: the spectral
+        radius of I - P_cl D over the harmonics the learning axes keep (P_cl the coupled
+        loop's process sensitivity, D = gamma Q / P_s of each axis' design); the design model
+        without coupling gives |1 - gamma|. None when no axis learns.
+    learning_frequency_hz : float or None
+        Where that largest ratio is [Hz].
+
+    """
+
+    coupling_gain: float
+    coupling_frequency_hz: float
+    learning_ratio: float | None
+    learning_frequency_hz: float | None
+
+    @property
+    def certified(self) -> bool:
+        """Return whether the small-gain test certifies the coupled loop (gain < 1)."""
+        return self.coupling_gain < 1.0
+
+    def text(self) -> str:
+        """Return the verdict in one line."""
+        out = (f'coupled loops: small-gain radius {self.coupling_gain:.3g} at '
+               f'{self.coupling_frequency_hz:.4g} Hz ('
+               + ("certified stable with the axes' own loops" if self.certified else
+                  'not certified by the small-gain test') + ')')
+        if self.learning_ratio is not None:
+            out += (f'; learning contracts by {self.learning_ratio:.3g} a period at worst '
+                    f'({self.learning_frequency_hz:.4g} Hz)'
+                    + ('' if self.learning_ratio < 1.0 else ': NOT CONVERGENT'))
+        return out
+
+
+def coupled_loop_check(ctrl: AxesController, points: int = 4000) -> CoupledLoopCheck:
+    """
+    Check the axes' linearised loops together with the design model's coupling.
+
+    Each axis' loop is the one the one-axis stability check linearises (the controller's
+    linear gains at its present estimates, its notch, the hysteresis as its slope c), checked
+    per axis by :func:`~piezo_stage_ros.core.control.stability.check_stability`. With the
+    plant P(z) from the axes' commands to their positions (diagonal: c_i G_i; off the diagonal:
+    c_i H_ij, the coupling paths) and K = diag(N_i C_i k_i), det(I + P K) = det(I + P_d K)
+    det(I + M) with M = (I + P_d K)^-1 P_o K; when every axis' own loop is stable and the
+    spectral radius of M stays below 1 on the unit circle, no eigenvalue of I + s M crosses 0
+    as the coupling grows from 0 (s from 0 to 1), so the coupled loop is stable too (sufficient,
+    not necessary). The learning iterates E <- (I - P_cl D) E per harmonic over the axes that
+    learn it.
+
+    Parameters
+    ----------
+    ctrl : AxesController
+        Built by :meth:`AxesController.build` (design model and parameters known).
+    points : int
+        Frequencies on a log grid from 1e-4 of Nyquist to Nyquist.
+
+    Returns
+    -------
+    CoupledLoopCheck
+
+    """
+    from piezo_stage_ros.core.control.feedforward import process_sensitivity
+    from piezo_stage_ros.core.control.stability import stability_plant
+    from piezo_stage_ros.core.model.hysteresis import NoHysteresis
+
+    design, params = ctrl.design, ctrl.params
+    if design is None or params is None:
+        raise ParameterError('ctrl', 'an AxesController without design or parameters',
+                             'one built by AxesController.build')
+    n = design.n
+    t = ctrl.sample_time_s
+    omega = np.geomspace(1e-4, 1.0 - 1e-9, points) * math.pi / t
+    z = np.exp(1j * omega * t)
+    plant = np.zeros((z.size, n, n), dtype=np.complex128)
+    k_fb = np.zeros((z.size, n), dtype=np.complex128)
+    slopes, fbs = [], []
+    for j, (sp, cp, c) in enumerate(zip(design.axes, params, ctrl.controllers)):
+        hyst = make_hysteresis(sp.hysteresis)
+        slope = 1.0 if isinstance(hyst, NoHysteresis) else float(hyst.slope)
+        d = stability_plant(sp.plant).discretize(t)
+        plant[:, j, j] = slope * (state_response(d.ad, d.bd[:, 0], z) @ d.c)
+        fb = c.inner if isinstance(c, FeedForwardController) else c
+        k_p, k_i = fb.linear_gains()
+        with np.errstate(divide='ignore', invalid='ignore'):
+            cz = k_p + (k_i * t * z / (z - 1.0) if k_i else 0.0)
+        notch = getattr(fb, 'notch', None)
+        if notch is not None:
+            cz = cz * np.polyval(notch.num, z) / np.polyval(notch.den, z)
+        k_fb[:, j] = cz * cp.sensor_gain_v_per_m
+        slopes.append(slope)
+        fbs.append((k_p, k_i, None if notch is None else (notch.num, notch.den)))
+    for path in coupling_paths(design):
+        _, coupled = path_responses(path, z)
+        for j, h in coupled.items():
+            plant[:, j, path.source] += slopes[path.source] * h
+    own = np.einsum('kjj->kj', plant)
+    m = plant * k_fb[:, None, :] / (1.0 + own * k_fb)[:, :, None]
+    for j in range(n):
+        m[:, j, j] = 0.0
+    radius = np.max(np.abs(np.linalg.eigvals(m)), axis=1)
+    worst = int(np.argmax(radius))
+    freq = omega / (2.0 * math.pi)
+    learning = [j for j, c in enumerate(ctrl.controllers)
+                if isinstance(c, FeedForwardController) and c.params.learning]
+    ratio: float | None = None
+    ratio_hz: float | None = None
+    if learning:
+        eye = np.eye(n)
+        p_cl = np.linalg.solve(eye[None] + plant * k_fb[:, None, :], plant)
+        d_gain = np.zeros((z.size, n), dtype=np.complex128)
+        for j in learning:
+            ff = ctrl.controllers[j].params
+            k_p, k_i, notch_j = fbs[j]
+            # the diagonal is the axis' own c G (the paths fill the rest): the design P_s
+            ps = process_sensitivity(plant[:, j, j], z, k_p, k_i,
+                                     params[j].sensor_gain_v_per_m, t, notch_j)
+            kept = (freq <= ff.learning_bandwidth_hz) & (np.abs(ps) > 0.0)
+            d_gain[kept, j] = ff.learning_gain / ps[kept]
+        best = 0.0
+        for k in range(z.size):
+            s_idx = [j for j in learning if d_gain[k, j] != 0.0]
+            if not s_idx:
+                continue
+            block = np.eye(len(s_idx)) - p_cl[k][np.ix_(s_idx, s_idx)] * d_gain[k, s_idx][None]
+            r = float(np.max(np.abs(np.linalg.eigvals(block))))
+            if r > best:
+                best, ratio_hz = r, float(freq[k])
+        ratio = best
+    return CoupledLoopCheck(float(radius[worst]), float(freq[worst]), ratio, ratio_hz)
+
