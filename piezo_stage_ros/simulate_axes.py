@@ -37,6 +37,7 @@ from piezo_stage_ros import cli
 from piezo_stage_ros.core.contracts.axes_config import axes_loop_config, AxesLoopConfig
 from piezo_stage_ros.core.contracts.config import Config
 from piezo_stage_ros.core.contracts.errors import ConfigError, ParameterError
+from piezo_stage_ros.core.model.axes import AxesStageParams
 
 __all__ = ['build_parser', 'main', 'run_config', 'simulate_axes']
 
@@ -62,6 +63,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--window', type=float, metavar='S',
                    help='Metrics over the last S seconds (default 1, or the whole run when '
                    'shorter).')
+    p.add_argument('--family', type=int, metavar='N',
+                   help='Run on N stages unlike the configured one instead (each axis its own '
+                   'member of the stage family, every coupling path a gain of 0.5-5 %%), the '
+                   'controllers designed on the configured stage; print each and the worst.')
+    p.add_argument('--seed', type=int, default=0, metavar='S',
+                   help='Seed of the --family draw (default 0).')
     p.add_argument('--json', action='store_true', help='Print one JSON object.')
     return p
 
@@ -88,15 +95,17 @@ def default_duration_s(loop: AxesLoopConfig) -> float:
     return max(8.0 * max(periods), 2.0) if periods else 2.0
 
 
-def simulate_axes(loop: AxesLoopConfig, *, duration_s: float, window_s: float = 1.0
-                  ) -> dict[str, Any]:
+def simulate_axes(loop: AxesLoopConfig, *, duration_s: float, window_s: float = 1.0,
+                  stage: AxesStageParams | None = None) -> dict[str, Any]:
     """
     Run the multi-axis loop and return its per-axis metrics.
 
     Parameters
     ----------
     loop : AxesLoopConfig
-        The configuration.
+        The configuration (its stage is the controllers' design model).
+    stage : AxesStageParams, optional
+        The stage the loop runs on; default the configured one.
     duration_s : float
         Simulated time [s].
     window_s : float
@@ -124,7 +133,8 @@ def simulate_axes(loop: AxesLoopConfig, *, duration_s: float, window_s: float = 
     stable = _check_axes(loop, trajectories)
     check = coupled_loop_check(ctrl)
     start = time.perf_counter()
-    records = run_axes(AxesStage(loop.stage), ctrl, trajectories, duration_s=duration_s)
+    records = run_axes(AxesStage(loop.stage if stage is None else stage), ctrl, trajectories,
+                       duration_s=duration_s)
     wall = time.perf_counter() - start
     fast = loop.scan.raster.fast_axis if loop.scan.kind == 'raster' else None
     axes: dict[str, Any] = {}
@@ -211,7 +221,79 @@ def from_simulate(args: argparse.Namespace, config: Config) -> int:
                       as_json=args.json)
 
 
+def simulate_family(loop: AxesLoopConfig, n: int, *, seed: int, duration_s: float,
+                    window_s: float) -> dict[str, Any]:
+    """
+    Run the loop on ``n`` stages unlike the configured one and return each one's metrics.
+
+    Parameters
+    ----------
+    loop : AxesLoopConfig
+        The configuration: the controllers' design model.
+    n : int
+        Members (:func:`~piezo_stage_ros.core.model.axes.sample_axes_family`), >= 1.
+    seed : int
+        Seed of the draw.
+    duration_s, window_s : float
+        As :func:`simulate_axes`.
+
+    Returns
+    -------
+    dict
+        ``members``: description and per-axis metrics of each; ``worst``: per axis the largest
+        e_rms and e_max over the members; ``diverged``: members whose error over the window
+        is not finite or above :data:`DIVERGED_M`.
+
+    """
+    from piezo_stage_ros.core.model.axes import sample_axes_family
+    if n < 1:
+        raise ParameterError('--family', n, '[1, inf) members')
+    members = []
+    worst: dict[str, dict[str, float]] = {}
+    diverged = []
+    for k, (text, stage) in enumerate(sample_axes_family(loop.stage, n, seed)):
+        out = simulate_axes(loop, duration_s=duration_s, window_s=window_s, stage=stage)
+        members.append({'member': k, 'description': text, 'axes': out['axes']})
+        for name, m in out['axes'].items():
+            w = worst.setdefault(name, {'e_rms_m': 0.0, 'e_max_m': 0.0})
+            bad = not (math.isfinite(m['e_max_m']) and m['e_max_m'] <= DIVERGED_M)
+            if bad and k not in diverged:
+                diverged.append(k)
+            for key in ('e_rms_m', 'e_max_m'):
+                w[key] = max(w[key], m[key]) if math.isfinite(m[key]) else math.inf
+    return {'members': members, 'worst': worst, 'diverged': diverged, 'seed': seed,
+            'scan': loop.scan.kind}
+
+
+#: An error over the window above this counts as diverged [m] (a tenth of a 10 um scan).
+DIVERGED_M = 1e-6
+
+
+def _run_family(args: argparse.Namespace, config: Config) -> int:
+    loop = axes_loop_config(config)
+    duration = default_duration_s(loop) if args.duration is None else args.duration
+    window = args.window if args.window is not None else min(1.0, duration)
+    out = simulate_family(loop, args.family, seed=args.seed, duration_s=duration,
+                          window_s=window)
+    if args.json:
+        print(json.dumps(out, sort_keys=True))
+        return 0
+    print(f'{args.family} stages unlike the configured one (seed {args.seed}), scan '
+          f'{out["scan"]}, last {window:g} s:')
+    for m in out['members']:
+        errs = ', '.join(f'{name} {a["e_rms_m"] * 1e9:.2f} nm rms ({a["e_max_m"] * 1e9:.1f} '
+                         'max)' for name, a in m['axes'].items())
+        print(f'  {m["member"]:3d}: {errs}   [{m["description"]}]')
+    print('worst: ' + ', '.join(f'{name} {w["e_rms_m"] * 1e9:.2f} nm rms, '
+                                f'{w["e_max_m"] * 1e9:.1f} nm max'
+                                for name, w in out['worst'].items()))
+    print(f'diverged: {out["diverged"] or "none"}')
+    return 0
+
+
 def _main(args: argparse.Namespace) -> int:
+    if args.family is not None:
+        return _run_family(args, _config(args))
     return run_config(PROG, _config(args), duration_s=args.duration, window_s=args.window,
                       as_json=args.json)
 

@@ -127,3 +127,15 @@ def test_every_scan_kind_builds_from_the_file(kind, periods):
     for tr in trajectories:
         x, _ = tr.evaluate(np.linspace(0.0, 2.0, 2001))
         assert 0.0 <= x.min() and x.max() <= 38e-6
+
+
+def test_simulate_axes_runs_a_family_and_names_the_worst(capsys):
+    from piezo_stage_ros import simulate_axes
+    status = simulate_axes.main(['--config', 'config/xy_stage.yaml', '--family', '2',
+                                 '--feedforward', 'inverse', '--duration', '0.2', '--json'])
+    assert status == 0
+    out = json.loads(capsys.readouterr().out)
+    assert len(out['members']) == 2 and set(out['worst']) == {'x', 'y'}
+    for name in ('x', 'y'):
+        assert out['worst'][name]['e_rms_m'] == max(m['axes'][name]['e_rms_m']
+                                                    for m in out['members'])

@@ -210,3 +210,21 @@ def test_static_coupling_path_follows_the_driving_position_at_once():
         own_y.step(0.0)
         x_pos, y_pos = stage.read_positions_m()
         assert y_pos == own_y.position_m + 0.02 * x_pos
+
+
+def test_axes_family_draws_each_axis_and_every_path_in_range_reproducibly():
+    from piezo_stage_ros.core.model.axes import sample_axes_family
+    design = AxesStageParams(names=('x', 'y'), axes=(StageParams(),) * 2, coupling=CouplingParams(
+        gain=(0.0, 0.02, -0.01, 0.0), resonance_hz=(0.0, 1800.0, 0.0, 0.0)))
+    family = sample_axes_family(design, 5, seed=3)
+    assert family == sample_axes_family(design, 5, seed=3)
+    assert len(family) == 5
+    for text, stage in family:
+        gain, res, _, _ = stage.matrices()
+        assert 0.005 <= gain[0, 1] <= 0.05 and -0.05 <= gain[1, 0] <= -0.005
+        assert gain[0, 0] == gain[1, 1] == 0.0 and res[0, 1] == 1800.0
+        # the axes are different members of the stage family
+        assert stage.axes[0] != stage.axes[1]
+        assert 'x->y' in text and 'y->x' in text
+    with pytest.raises(ParameterError, match='coupling'):
+        sample_axes_family(design, 1, coupling=(0.1, 0.01))

@@ -38,6 +38,7 @@ bit, whatever the coupling; with no path into an axis and no cross-talk, its mea
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 import math
 from typing import Any, Sequence
@@ -49,7 +50,7 @@ from piezo_stage_ros.core.model.stage import _Converter, _dac_converter, Stage, 
 from scipy.linalg import expm
 
 __all__ = ['AXIS_NAMES', 'AxesStage', 'AxesStageParams', 'CouplingParams', 'CouplingPath',
-           'check_axis_names', 'coupling_paths']
+           'FAMILY_COUPLING', 'check_axis_names', 'coupling_paths', 'sample_axes_family']
 
 #: The axis names a stage may have, in their canonical order.
 AXIS_NAMES = ('x', 'y', 'z')
@@ -582,3 +583,60 @@ class AxesStage:
         cmds = np.asarray(commands_v, dtype=np.float64).reshape(-1, self.n)
         return np.array([self.step(row) for row in cmds.tolist()], dtype=np.float64).reshape(
             -1, self.n)
+
+
+#: Range of the coupling gains of :func:`sample_axes_family` [m/m] (magnitude).
+FAMILY_COUPLING = (0.005, 0.05)
+
+
+def sample_axes_family(design: AxesStageParams, n: int, seed: int = 0,
+                       coupling: tuple[float, float] = FAMILY_COUPLING
+                       ) -> tuple[tuple[str, AxesStageParams], ...]:
+    """
+    Return ``n`` multi-axis stages unlike the design: each axis its own family member.
+
+    Every axis of a member is drawn independently from the one-axis stage family
+    (:func:`~piezo_stage_ros.core.model.family.sample_family`: gain, resonance, damping, lag,
+    hysteresis, noise), and every coupling path of the design gets a gain drawn uniformly in
+    ``coupling`` (magnitude; the design's sign, resonance and damping kept).
+
+    Parameters
+    ----------
+    design : AxesStageParams
+        The configured stage (third-order axes).
+    n : int
+        Members, >= 0.
+    seed : int
+        Seed of the draw (the same seed gives the same members).
+    coupling : (float, float)
+        Range of the coupling gains' magnitude [m/m], within [0, 1].
+
+    Returns
+    -------
+    tuple of (str, AxesStageParams)
+        A description of each member (its axes' variations and coupling) and the stage.
+
+    """
+    from piezo_stage_ros.core.model.family import member_params, sample_family
+
+    lo, hi = coupling
+    if not (0.0 <= lo <= hi <= 1.0):
+        raise ParameterError('coupling', list(coupling), '0 <= low <= high <= 1')
+    axes = sample_family(n * design.n, seed)
+    rng = np.random.default_rng([seed, 1])
+    gain, _, _, _ = design.matrices()
+    paths = np.flatnonzero(gain.ravel() != 0.0)
+    out = []
+    for k in range(n):
+        members = axes[k * design.n:(k + 1) * design.n]
+        stages = tuple(member_params(p, m) for p, m in zip(design.axes, members))
+        g = gain.ravel().copy()
+        g[paths] = np.sign(g[paths]) * rng.uniform(lo, hi, paths.size)
+        stage = AxesStageParams(names=design.names, axes=stages, coupling=dataclasses.replace(
+            design.coupling, gain=tuple(float(v) for v in g)))
+        text = '; '.join(f'{name}: {m.describe()}' for name, m in zip(design.names, members))
+        text += '; coupling ' + ', '.join(f'{design.names[p // design.n]}->'
+                                          f'{design.names[p % design.n]} {g[p] * 100:.2f} %'
+                                          for p in paths)
+        out.append((text, stage))
+    return tuple(out)
