@@ -255,11 +255,12 @@ def simulate_family(loop: AxesLoopConfig, n: int, *, seed: int, duration_s: floa
         out = simulate_axes(loop, duration_s=duration_s, window_s=window_s, stage=stage)
         members.append({'member': k, 'description': text, 'axes': out['axes']})
         for name, m in out['axes'].items():
-            w = worst.setdefault(name, {'e_rms_m': 0.0, 'e_max_m': 0.0})
+            w = worst.setdefault(name, {'e_rms_m': 0.0, 'e_max_m': 0.0, 'e_rms_true_m': 0.0,
+                                        'e_max_true_m': 0.0})
             bad = not (math.isfinite(m['e_max_m']) and m['e_max_m'] <= DIVERGED_M)
             if bad and k not in diverged:
                 diverged.append(k)
-            for key in ('e_rms_m', 'e_max_m'):
+            for key in w:
                 w[key] = max(w[key], m[key]) if math.isfinite(m[key]) else math.inf
     return {'members': members, 'worst': worst, 'diverged': diverged, 'seed': seed,
             'scan': loop.scan.kind}
@@ -282,10 +283,12 @@ def _run_family(args: argparse.Namespace, config: Config) -> int:
           f'{out["scan"]}, last {window:g} s:')
     for m in out['members']:
         errs = ', '.join(f'{name} {a["e_rms_m"] * 1e9:.2f} nm rms ({a["e_max_m"] * 1e9:.1f} '
-                         'max)' for name, a in m['axes'].items())
+                         f'max; true {a["e_rms_true_m"] * 1e9:.2f})'
+                         for name, a in m['axes'].items())
         print(f'  {m["member"]:3d}: {errs}   [{m["description"]}]')
     print('worst: ' + ', '.join(f'{name} {w["e_rms_m"] * 1e9:.2f} nm rms, '
-                                f'{w["e_max_m"] * 1e9:.1f} nm max'
+                                f'{w["e_max_m"] * 1e9:.1f} nm max (true position '
+                                f'{w["e_rms_true_m"] * 1e9:.2f} nm rms)'
                                 for name, w in out['worst'].items()))
     print(f'diverged: {out["diverged"] or "none"}')
     return 0
