@@ -45,38 +45,17 @@ from piezo_stage_ros.core.contracts.interfaces import Trajectory
 from piezo_stage_ros.core.contracts.types import ComplexArray, FloatArray
 from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
 from piezo_stage_ros.core.control.feedforward import FeedForwardController
-from piezo_stage_ros.core.model.axes import AxesStageParams, coupling_paths, CouplingPath
+from piezo_stage_ros.core.model.axes import (
+    AxesStageParams,
+    coupling_paths,
+    CouplingPath,
+    state_response,
+)
 from piezo_stage_ros.core.model.hysteresis import make_hysteresis
 from piezo_stage_ros.core.model.stage import linear_plant
 
 __all__ = ['AxesController', 'CoupledLoopCheck', 'coupled_displacement', 'coupled_loop_check',
-           'path_responses', 'state_response']
-
-
-def state_response(ad: FloatArray, bd: FloatArray, z: ComplexArray) -> ComplexArray:
-    """
-    Return (zI - Ad)^-1 Bd at every point ``z``: the states' response to a held input.
-
-    Parameters
-    ----------
-    ad : ndarray, shape (n, n)
-        The discrete state matrix.
-    bd : ndarray, shape (n,)
-        The discrete input column.
-    z : ndarray of complex, shape (K,)
-        Points of the z-plane.
-
-    Returns
-    -------
-    ndarray of complex, shape (K, n)
-
-    """
-    size = ad.shape[0]
-    zz = np.asarray(z, dtype=np.complex128).ravel()
-    lhs = zz[:, None, None] * np.eye(size)[None] - ad[None]
-    rhs = np.broadcast_to(np.asarray(bd, dtype=np.complex128)[None, :, None],
-                          (zz.size, size, 1))
-    return np.asarray(np.linalg.solve(lhs, rhs)[..., 0], dtype=np.complex128)
+           'path_responses']
 
 
 def path_responses(path: CouplingPath, z: ComplexArray) -> tuple[ComplexArray,

@@ -50,7 +50,8 @@ from piezo_stage_ros.core.model.stage import _Converter, _dac_converter, Stage, 
 from scipy.linalg import expm
 
 __all__ = ['AXIS_NAMES', 'AxesStage', 'AxesStageParams', 'CouplingParams', 'CouplingPath',
-           'FAMILY_COUPLING', 'check_axis_names', 'coupling_paths', 'sample_axes_family']
+           'FAMILY_COUPLING', 'check_axis_names', 'coupling_paths', 'sample_axes_family',
+           'state_response']
 
 #: The axis names a stage may have, in their canonical order.
 AXIS_NAMES = ('x', 'y', 'z')
@@ -340,8 +341,33 @@ class CouplingPath:
         else:
             a, b = self.a_cont, self.b_cont
             pts = 1j * w
-        eye = np.eye(order + m)
-        return np.array([out_row @ np.linalg.solve(s * eye - a, b) for s in pts])
+        return state_response(a, b, pts) @ out_row
+
+
+def state_response(a: FloatArray, b: FloatArray, points: Any) -> Any:
+    """
+    Return (pI - A)^-1 b at every point p: the states' response to the input.
+
+    Parameters
+    ----------
+    a : ndarray, shape (n, n)
+        State matrix (discrete: Ad at p = z; continuous: A at p = s).
+    b : ndarray, shape (n,)
+        Input column.
+    points : array_like of complex, shape (K,)
+        Points of the z- or s-plane.
+
+    Returns
+    -------
+    ndarray of complex, shape (K, n)
+
+    """
+    size = a.shape[0]
+    pts = np.asarray(points, dtype=np.complex128).ravel()
+    lhs = pts[:, None, None] * np.eye(size)[None] - a[None]
+    rhs = np.broadcast_to(np.asarray(b, dtype=np.complex128)[None, :, None],
+                          (pts.size, size, 1))
+    return np.linalg.solve(lhs, rhs)[..., 0]
 
 
 def coupling_paths(params: AxesStageParams) -> list[CouplingPath]:
