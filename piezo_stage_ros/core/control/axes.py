@@ -158,6 +158,7 @@ class AxesController:
         self.compensate = compensate
         self._paths = coupling_paths(design) if design is not None else []
         self._steps = [c.step for c in self.controllers]
+        self._last = [0.0] * self.n
         #: The axes whose feed-forward got a coupling compensation at the last bind.
         self.compensated: tuple[int, ...] = ()
         #: Per axis, the displacement the compensation was computed for over its period [m].
@@ -270,15 +271,23 @@ class AxesController:
         list of float
 
         """
-        return [s(y, r, v) for s, y, r, v in zip(self._steps, positions_m, references_m,
-                                                  velocities_mps)]
+        out = [s(y, r, v) for s, y, r, v in zip(self._steps, positions_m, references_m,
+                                                 velocities_mps)]
+        self._last = out
+        return out
 
     def predict(self, count: int) -> list[FloatArray]:
-        """Return each axis' ``count`` commands ahead (its controller's ``predict``)."""
+        """
+        Return each axis' ``count`` commands ahead [V].
+
+        A feed-forward's own prediction from its tables; a controller without one holds its
+        last command here (the servo's :class:`~piezo_stage_ros.core.control.ahead.
+        CommandPredictor` per axis is the servo's to add).
+        """
         out = []
-        for c in self.controllers:
+        for j, c in enumerate(self.controllers):
             pred = getattr(c, 'predict', None)
-            out.append(pred(count) if callable(pred) else np.full(count, float(c._u)))
+            out.append(pred(count) if callable(pred) else np.full(count, self._last[j]))
         return out
 
     def diagnostic_names(self) -> list[tuple[str, ...]]:
