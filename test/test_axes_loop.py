@@ -222,3 +222,29 @@ def test_two_way_coupling_gain_grows_with_the_coupling_and_is_refused_when_too_l
     assert large.coupling_frequency_hz == small.coupling_frequency_hz
     too_much = check_for((0.0, 0.5, 0.5, 0.0))
     assert not too_much.certified and 'not certified' in too_much.text()
+
+
+def test_frame_images_put_each_line_in_a_row_low_end_first():
+    from piezo_stage_ros.core.loop.axes import frame_images
+    params = AxesStageParams(names=('x', 'y'), axes=(LOOP.stage, LOOP.stage),
+                             coupling=XY_COUPLING)
+    line = make_trajectory(TrajectoryParams.from_flat({
+        'kind': 'triangle', 'triangle.offset_m': 10e-6, 'triangle.amplitude_m': 5e-6,
+        'triangle.frequency_hz': 100.0}))
+    fast, slow = raster(line, lines=4, pitch_m=1e-6, start_m=6e-6)
+    recs = run_axes(AxesStage(params), AxesController.build([LOOP.controller] * 2, params),
+                    [fast, slow], duration_s=0.1)   # two frames and a half
+    x_img, y_img = frame_images(recs[0], recs[1], lines=4, frame=1)
+    assert x_img.shape == y_img.shape == (4, 100)
+    # frame 1 runs down: its first line (samples 400-499) is the top row, shown last
+    assert np.array_equal(x_img[3], recs[0].error_m[400:500])
+    assert np.array_equal(y_img[0], recs[1].error_m[700:800])
+    up, _ = frame_images(recs[0], recs[1], lines=4, frame=0)
+    assert np.array_equal(up[0], recs[0].error_m[:100])
+    assert np.array_equal(frame_images(recs[0], recs[1], lines=4)[0], x_img)  # the last whole
+    with pytest.raises(ParameterError, match=r"'frame' = 2"):
+        frame_images(recs[0], recs[1], lines=4, frame=2)
+    with pytest.raises(ParameterError, match='trajectory_period_s'):
+        frame_images(recs[1].__class__(recs[1].time_s, recs[1].position_m, recs[1].reference_m,
+                                       recs[1].reference_velocity_mps, recs[1].command_v, {},
+                                       {'sample_time_s': 1e-4}), recs[1], lines=4)

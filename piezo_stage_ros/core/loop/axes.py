@@ -45,7 +45,7 @@ from piezo_stage_ros.core.loop.metrics import error_metrics
 from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.model.axes import AxesStage
 
-__all__ = ['AxisMetrics', 'axis_metrics', 'middle_of_lines', 'run_axes']
+__all__ = ['AxisMetrics', 'axis_metrics', 'frame_images', 'middle_of_lines', 'run_axes']
 
 
 def run_axes(stage: AxesStage, controller: AxesController,
@@ -245,3 +245,62 @@ def middle_of_lines(reference_m: FloatArray, fraction: float = 0.8) -> FloatArra
     lo, hi = float(np.min(x)), float(np.max(x))
     centre, half = 0.5 * (lo + hi), 0.5 * fraction * (hi - lo)
     return np.asarray(np.abs(x - centre) <= half, dtype=bool)
+
+
+def frame_images(fast: RunRecord, slow: RunRecord, *, lines: int, frame: int = -1,
+                 true: bool = False) -> tuple[FloatArray, FloatArray]:
+    """
+    Return one raster frame's errors as images: rows the lines, columns the samples of a line.
+
+    A line is one period of the fast axis' reference (``trajectory_period_s`` of its record),
+    trace and retrace side by side as the line runs; frames follow each other every ``lines``
+    lines, the slow axis going up one frame and down the next (:func:`~piezo_stage_ros.core.
+    loop.scan2d.raster`). Row 0 is the line at the low end of the slow axis in either frame, so
+    that the images of an up and a down frame overlay.
+
+    Parameters
+    ----------
+    fast, slow : RunRecord
+        The fast and the slow axis of one run (:func:`run_axes`).
+    lines : int
+        Lines per frame.
+    frame : int
+        Which complete frame of the run (negative: counted from the last).
+    true : bool
+        The true position's error instead of the measured one.
+
+    Returns
+    -------
+    (ndarray, ndarray)
+        The fast and the slow axis' error [m], each of shape (lines, samples per line).
+
+    Raises
+    ------
+    ParameterError
+        Without a fast-axis period of a whole number of samples, or for a frame the run does
+        not hold whole.
+
+    """
+    dt = float(fast.meta.get('sample_time_s', 0.0))
+    period = fast.meta.get('trajectory_period_s')
+    line_s = float(period) if isinstance(period, (int, float)) else 0.0
+    per_line = int(round(line_s / dt)) if dt > 0.0 else 0
+    if per_line < 2 or abs(per_line * dt - line_s) > 1e-9 * line_s:
+        raise ParameterError('fast.meta.trajectory_period_s', period,
+                             'a line period of a whole number (>= 2) of samples')
+    size = lines * per_line
+    frames = len(fast) // size
+    index = frame + frames if frame < 0 else frame
+    if not 0 <= index < frames:
+        raise ParameterError('frame', frame, f'[{-frames}, {frames}) (complete frames in the '
+                             'run)')
+    out = []
+    for rec in (fast, slow):
+        err = rec.true_error_m if true else rec.error_m
+        if err is None:
+            raise ParameterError('true', true, 'False for a record without true positions')
+        image = np.asarray(err[index * size:(index + 1) * size], dtype=np.float64).reshape(
+            lines, per_line)
+        # odd frames run down the slow axis: their first line is the top one
+        out.append(image[::-1].copy() if index % 2 else image.copy())
+    return out[0], out[1]
