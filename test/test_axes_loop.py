@@ -147,16 +147,20 @@ def test_compensation_needs_the_driving_axis_to_repeat_within_the_period():
         ctrl.bind([tx, ty])
 
 
-def test_raster_on_the_coupled_stage_tracks_both_axes():
+def raster_run(lines, duration_s, controller):
+    """A 100 Hz triangle raster of ``lines`` 1 um lines on the coupled XY stage."""
     params = AxesStageParams(names=('x', 'y'), axes=(LOOP.stage, LOOP.stage),
                              coupling=XY_COUPLING)
     line = make_trajectory(TrajectoryParams.from_flat({
         'kind': 'triangle', 'triangle.offset_m': 10e-6, 'triangle.amplitude_m': 5e-6,
         'triangle.frequency_hz': 100.0}))
-    fast, slow = raster(line, lines=8, pitch_m=1e-6, start_m=6e-6)
-    cp = LOOP.controller.with_flat({'feedforward.mode': 'inverse'})
-    recs = run_axes(AxesStage(params), AxesController.build([cp, cp], params), [fast, slow],
-                    duration_s=0.2)
+    fast, slow = raster(line, lines=lines, pitch_m=1e-6, start_m=6e-6)
+    return run_axes(AxesStage(params), AxesController.build([controller] * 2, params),
+                    [fast, slow], duration_s=duration_s)
+
+
+def test_raster_on_the_coupled_stage_tracks_both_axes():
+    recs = raster_run(8, 0.2, LOOP.controller.with_flat({'feedforward.mode': 'inverse'}))
     assert [r.meta['axis'] for r in recs] == ['x', 'y']
     assert recs[1].meta['trajectory_period_s'] == pytest.approx(0.16)
     mask = middle_of_lines(recs[0].reference_m)
@@ -226,14 +230,7 @@ def test_two_way_coupling_gain_grows_with_the_coupling_and_is_refused_when_too_l
 
 def test_frame_images_put_each_line_in_a_row_low_end_first():
     from piezo_stage_ros.core.loop.axes import frame_images
-    params = AxesStageParams(names=('x', 'y'), axes=(LOOP.stage, LOOP.stage),
-                             coupling=XY_COUPLING)
-    line = make_trajectory(TrajectoryParams.from_flat({
-        'kind': 'triangle', 'triangle.offset_m': 10e-6, 'triangle.amplitude_m': 5e-6,
-        'triangle.frequency_hz': 100.0}))
-    fast, slow = raster(line, lines=4, pitch_m=1e-6, start_m=6e-6)
-    recs = run_axes(AxesStage(params), AxesController.build([LOOP.controller] * 2, params),
-                    [fast, slow], duration_s=0.1)   # two frames and a half
+    recs = raster_run(4, 0.1, LOOP.controller)   # two frames and a half
     x_img, y_img = frame_images(recs[0], recs[1], lines=4, frame=1)
     assert x_img.shape == y_img.shape == (4, 100)
     # frame 1 runs down: its first line (samples 400-499) is the top row, shown last
