@@ -23,7 +23,9 @@ of a batch of 1000 stages, controller step median and p99
 servo loop and the target-paced UDP bridge hold 10 kHz here, without ROS
 (:mod:`piezo_stage_ros.bench.servo`). ``--suite recording``: what a sample costs on the block
 topic and as per-sample messages, in the executor and in a bag
-(:mod:`piezo_stage_ros.bench.recording`). ``--suite ros``: the nodes on a ROS 2 install
+(:mod:`piezo_stage_ros.bench.recording`). ``--suite axes``: what the controllers of one and
+of three axes cost per sample, learning and commands ahead included
+(:mod:`piezo_stage_ros.bench.axes`). ``--suite ros``: the nodes on a ROS 2 install
 (:mod:`piezo_stage_ros.bench.ros`). ``--suite all``: every one available. ``--json`` prints
 one JSON object on stdout (the readable lines then go to stderr).
 """
@@ -60,7 +62,8 @@ def _positive(kind: type) -> Any:
 
 def _parser() -> argparse.ArgumentParser:
     p = cli.Parser(prog=PROG, description='Print speed figures of the simulation and bag tools.')
-    p.add_argument('--suite', choices=('sim', 'bags', 'servo', 'recording', 'ros', 'all'),
+    p.add_argument('--suite', choices=('sim', 'bags', 'servo', 'recording', 'axes', 'ros',
+                                         'all'),
                    default='sim',
                    help='What to measure (default sim).')
     p.add_argument('--realtime-s', type=_positive(float), default=10.0, metavar='S',
@@ -130,6 +133,9 @@ def _bench(args: argparse.Namespace) -> int:
             if args.suite in ('recording', 'all'):
                 from piezo_stage_ros.bench.recording import run_recording_benchmark
                 result['recording'] = run_recording_benchmark(args.bag_duration)
+            if args.suite in ('axes', 'all'):
+                from piezo_stage_ros.bench.axes import run_axes_benchmark
+                result['axes'] = run_axes_benchmark(repeats=args.repeats)
             if args.suite == 'ros' or (args.suite == 'all' and _rclpy_available()):
                 if not _rclpy_available():
                     print(f'{PROG}: error: the ROS benchmark needs rclpy (a sourced ROS 2 Jazzy '

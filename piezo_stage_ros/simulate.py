@@ -367,6 +367,13 @@ def _run_experiments(args: argparse.Namespace, loop: LoopConfig) -> int:
 
 
 def _main(args: argparse.Namespace) -> int:
+    from piezo_stage_ros.core.contracts.axes_config import has_axes
+    config = build_config(args)
+    if has_axes(config):
+        # a multi-axis stage (plant_node axes.names): the multi-axis loop, the flags setting
+        # the base of every axis
+        from piezo_stage_ros.simulate_axes import from_simulate
+        return from_simulate(args, config)
     loop = load_loop(args)
     if args.experiment is not None:
         if args.bag is not None:

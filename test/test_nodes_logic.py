@@ -19,6 +19,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from piezo_stage_ros.core.contracts.axes_config import has_axes
 from piezo_stage_ros.core.contracts.config import load_config
 from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
 from piezo_stage_ros.core.contracts.params import param, Params
@@ -72,8 +73,10 @@ def test_every_row_has_unit_description_and_a_valid_default(node):
         assert (decl.int_range is not None) == (both and spec.type_name == 'integer')
 
 
+# a multi-axis file (plant_node axes.names) is not a node file yet: test_axes_config.py
 SCENARIOS = sorted(p.name for p in CONFIG.glob('*.yaml') if p.name not in ('default.yaml',
-                                                                           'record_qos.yaml'))
+                                                                           'record_qos.yaml')
+                   and not has_axes(load_config([p])))
 
 
 @pytest.mark.parametrize('scenario', ['default.yaml', *SCENARIOS])

@@ -1373,6 +1373,23 @@ class FeedForwardController:
         return (self._period_n, self._block_start, self._lx_raw, self._lx, self._lv,
                 self._lw)
 
+    def add_to_inverse(self, w_v: FloatArray) -> None:
+        """
+        Add a table over the bound period to the model inverse's w [V] (until the next bind).
+
+        A multi-axis stage's coupling compensation: the inverse of this axis' model acting on
+        the displacement the other axes' references are predicted to cause here.
+        """
+        if not self._inverse_on:
+            raise ParameterError('feedforward.mode', self.params.mode, "'inverse' or "
+                                 "'inverse_learning'", 'has no model inverse to add to')
+        n = self._period_n
+        table = np.asarray(w_v, dtype=np.float64)
+        if not n or table.shape != (n,):
+            raise ParameterError('w_v', table.shape, f'({n},): one period of a periodic bound '
+                                 'reference')
+        self._lw = (np.asarray(self._lw) + table).tolist()
+
     def learning_kernel(self) -> FloatArray:
         """Return the learning operator's impulse response over two periods (a copy)."""
         return self._kernel2.copy()
