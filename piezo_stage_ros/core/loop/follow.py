@@ -465,7 +465,8 @@ def run_goals(stage: Plant, controller: Controller, follower: GoalFollower,
     stage : Plant
         The stage, reset here to the follower's initial reference.
     controller : Controller
-        The controller, reset from y_0 and x_d(0).
+        The controller, reset from y_0 and x_d(0); one with ``bind`` (a feed-forward) is bound
+        to the follower's reference (:class:`GoalTrajectory`), which it reads ahead.
     follower : GoalFollower
         The goals' bookkeeping (one axis).
     events : sequence of (time_s, goal or 'cancel')
@@ -482,6 +483,9 @@ def run_goals(stage: Plant, controller: Controller, follower: GoalFollower,
     dt = float(stage.sample_time_s)
     total = max(int(round(duration_s / dt)), 1)
     x0 = float(follower.reference(np.zeros(1))[0][0, 0])
+    bind = getattr(controller, 'bind', None)
+    if callable(bind):
+        bind(GoalTrajectory(follower))
     y = float(stage.reset(x0))
     controller.reset(y, x0)
     pending = sorted(events, key=lambda e: e[0])

@@ -166,6 +166,9 @@ class AxisLimits:
         g c: static position per volt of command [m/V].
     tau1_s, tau2_s2 : float
         Velocity and acceleration terms of the command estimate [s, s^2].
+    resolution_m : float
+        How far a first point at time 0 may lie from the present reference [m] (the sensor's
+        resolution: closer than that the two cannot be told apart).
 
     """
 
@@ -178,6 +181,7 @@ class AxisLimits:
     gain_m_per_v: float = 1.0
     tau1_s: float = 0.0
     tau2_s2: float = 0.0
+    resolution_m: float = 0.0
 
     def __post_init__(self) -> None:
         if not self.position_min_m < self.position_max_m:
@@ -231,7 +235,8 @@ class AxisLimits:
                    velocity_max_mps=gain * span / abs(tau1),
                    acceleration_max_mps2=gain * span / abs(tau2) if tau2 else math.inf,
                    command_min_v=chain.amplifier_min_v, command_max_v=chain.amplifier_max_v,
-                   gain_m_per_v=gain, tau1_s=tau1, tau2_s2=tau2)
+                   gain_m_per_v=gain, tau1_s=tau1, tau2_s2=tau2,
+                   resolution_m=chain.adc_lsb_m if chain.quantize else 0.0)
 
     def command_v(self, position_m: FloatArray, velocity_mps: FloatArray,
                   acceleration_mps2: FloatArray) -> FloatArray:
@@ -406,13 +411,14 @@ def validate_goal(goal: JointTrajectoryGoal, joints: Sequence[str],
     if cols.times_s[0] == 0.0:
         # a point at the start must be where the reference is, or the reference would jump
         jump = np.abs(cols.positions_m[0] - start_state[0])
-        step = np.array([lim.velocity_max_mps * sample_time_s for lim in limits])
+        step = np.array([lim.resolution_m for lim in limits])
         if np.any(jump > step):
             k = int(np.argmax(jump - step))
             return _refuse(f'point 0 at time_from_start 0 puts {joints[k]!r} at '
                            f'{cols.positions_m[0, k]:.6g} m, {jump[k]:.3g} m from the present '
                            f'reference {start_state[0][k]:.6g} m; allowed: a first point at time '
-                           f'0 within {step[k]:.3g} m of it, or a later time')
+                           f'0 within {step[k]:.3g} m of it (the sensor resolution), or a later '
+                           'time')
     for k, lim in enumerate(limits):
         column = cols.positions_m[:, k]
         for i in (int(np.argmin(column)), int(np.argmax(column))):
