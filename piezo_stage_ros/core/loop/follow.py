@@ -401,7 +401,7 @@ class GoalFollower:
             if unchecked or self._settled_s >= self.params.settle_s - 0.5 * dt:
                 self._phase = _Phase.HOLD
                 result = self._finish(time_s, GoalStatus.SUCCEEDED, ResultCode.SUCCESSFUL, '')
-            elif self._goal_time_s > 0.0 and time_s > end_s + self._goal_time_s:
+            elif self._goal_time_s > 0.0 and time_s - end_s > self._goal_time_s + 0.5 * dt:
                 self._phase = _Phase.HOLD
                 k = int(np.argmax(np.abs(error) - self._goal_tol))
                 result = self._finish(
