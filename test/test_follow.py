@@ -16,6 +16,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -45,9 +46,10 @@ from piezo_stage_ros.core.model.stage import linear_plant, Stage
 import pytest
 
 T = 1e-4
+CONFIG_DIR = Path(__file__).resolve().parents[1] / 'config'
 J = (JOINT_NAME,)
 P = TrajectoryPoint
-CONFIG = LoopConfig.from_config(load_config(['config/default.yaml']))
+CONFIG = LoopConfig.from_config(load_config([CONFIG_DIR / 'default.yaml']))
 STAGE = CONFIG.stage
 LIMITS = AxisLimits.from_stage(STAGE)
 

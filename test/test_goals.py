@@ -18,9 +18,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 import re
 
 import numpy as np
+from piezo_stage_ros.core.contracts.config import load_config
+from piezo_stage_ros.core.contracts.loop_config import LoopConfig
 from piezo_stage_ros.core.contracts.wire import JOINT_NAME
 from piezo_stage_ros.core.loop.goals import (
     AxisLimits,
@@ -31,12 +34,13 @@ from piezo_stage_ros.core.loop.goals import (
     validate_goal,
 )
 from piezo_stage_ros.core.loop.splines import segment_coefficients, Spline
-from piezo_stage_ros.core.loop.trajectories import s_curve
+from piezo_stage_ros.core.loop.trajectories import make_trajectory, s_curve
 from piezo_stage_ros.core.model.stage import PlantParams, Stage, StageParams
 import pytest
 from tolerances import EPS
 
 T = 1e-4
+CONFIG_DIR = Path(__file__).resolve().parents[1] / 'config'
 J = (JOINT_NAME,)
 LIMITS = AxisLimits.from_stage(StageParams())
 
@@ -227,3 +231,12 @@ def test_the_static_reach_is_reached_at_the_amplifier_limit() -> None:
         for _ in range(3000):       # 0.3 s, many times the slowest time constant
             stage.step(volts)
         assert check(stage.position_m), (volts, stage.position_m, lim)
+
+
+def test_the_hold_scenario_holds_the_start_position() -> None:
+    files = [CONFIG_DIR / 'default.yaml', CONFIG_DIR / 'hold.yaml']
+    config = LoopConfig.from_config(load_config(files))
+    trajectory = make_trajectory(config.trajectory)
+    x, v = trajectory.evaluate(np.arange(5) * T)
+    assert trajectory.kind == 'hold' and trajectory.period_s is None
+    assert np.all(x == config.stage.initial_position_m) and np.all(v == 0.0)
