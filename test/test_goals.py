@@ -27,6 +27,7 @@ from piezo_stage_ros.core.contracts.loop_config import LoopConfig
 from piezo_stage_ros.core.contracts.wire import JOINT_NAME
 from piezo_stage_ros.core.loop.goals import (
     AxisLimits,
+    build_spline,
     JointTolerance,
     JointTrajectoryGoal,
     ResultCode,
@@ -176,7 +177,7 @@ P = TrajectoryPoint
     (_goal(P(0.02, (-1e-6,))), ResultCode.INVALID_GOAL,
      r"point 0: position of 'stage' = -1e-06 m; allowed: \[0, "),
     (_goal(P(0.0, (10e-6,))), ResultCode.INVALID_GOAL,
-     r'point 0 at time_from_start 0 puts .* 6.2e-06 m from the present reference'),
+     r'point 0 due now puts .* 6.2e-06 m from the present reference'),
     # 20 um in 0.1 ms: the velocity term alone asks more than the amplifier span
     (_goal(P(1e-4, (23.8e-6,))), ResultCode.INVALID_GOAL,
      r"'stage' reaches velocity 0.2 m/s at 0 s; allowed: \|velocity\| <= 0.144"),
@@ -204,6 +205,24 @@ def test_bad_goals_are_refused_naming_the_value(goal: JointTrajectoryGoal, code:
 ])
 def test_good_goals_are_accepted(goal: JointTrajectoryGoal) -> None:
     assert _check(goal) == (ResultCode.SUCCESSFUL, '')
+
+
+def test_a_stamp_in_the_past_drops_the_points_due_and_refuses_a_trajectory_over() -> None:
+    goal = _goal(P(0.01, (5e-6,)), P(0.02, (6e-6,)), P(0.03, (7e-6,)))
+    state = (np.array([3.8e-6]), np.zeros(1), np.zeros(1))
+    common = dict(start_s=1.0, start_state=state, sample_time_s=T)
+    old = validate_goal(goal, J, [LIMITS], origin_s=0.96, **common)  # type: ignore[arg-type]
+    assert old.code == ResultCode.OLD_HEADER_TIMESTAMP
+    assert 'the last point is due at 0.99 s; allowed: not before now (1 s)' in old.reason
+    late = validate_goal(goal, J, [LIMITS], origin_s=0.985, **common)  # type: ignore[arg-type]
+    assert late.accepted
+    spline = build_spline(goal, J, 1.0, state, T, origin_s=0.985)
+    # the points due at 0.995 s and before are gone; the next one is reached from the state
+    assert np.allclose(spline.knots_s, [1.0, 1.005, 1.015], rtol=0, atol=1e-12)
+    assert spline.sample(np.array([1.0]))[0][0, 0] == 3.8e-6
+    # a stamp in the future: the reference moves to the first point due then
+    ahead = build_spline(goal, J, 1.0, state, T, origin_s=1.5)
+    assert ahead.knots_s[1] == pytest.approx(1.51, abs=1e-12)
 
 
 def test_limits_of_a_first_order_stage_are_its_time_constant() -> None:

@@ -287,14 +287,15 @@ class GoalFollower:
 
     # -- commands ------------------------------------------------------------------------
 
-    def check(self, goal: JointTrajectoryGoal, time_s: float) -> GoalVerdict:
+    def check(self, goal: JointTrajectoryGoal, time_s: float, origin_s: float | None = None
+              ) -> GoalVerdict:
         """Return whether ``goal`` may start at ``time_s`` from the present reference."""
         return validate_goal(goal, self.joints, self.limits, start_s=time_s,
                              start_state=self._state(time_s),
-                             sample_time_s=self.params.sample_time_s)
+                             sample_time_s=self.params.sample_time_s, origin_s=origin_s)
 
-    def accept(self, goal: JointTrajectoryGoal, time_s: float, *, tracked: bool = True
-               ) -> tuple[GoalVerdict, int]:
+    def accept(self, goal: JointTrajectoryGoal, time_s: float, *, tracked: bool = True,
+               origin_s: float | None = None) -> tuple[GoalVerdict, int]:
         """
         Check a goal and, if it may run, follow it from ``time_s`` on.
 
@@ -306,6 +307,9 @@ class GoalFollower:
             Loop time of the first sample that follows it [s].
         tracked : bool
             True for an action goal (results and feedback), False for a topic message.
+        origin_s : float, optional
+            Loop time ``time_from_start`` counts from (a header stamp that is not zero);
+            default ``time_s``.
 
         Returns
         -------
@@ -315,12 +319,13 @@ class GoalFollower:
             The id of the new goal (its results and feedback carry it); 0 when refused.
 
         """
-        verdict = self.check(goal, time_s)
+        verdict = self.check(goal, time_s, origin_s)
         if not verdict.accepted:
             return verdict, 0
         self._finish(time_s, GoalStatus.CANCELED, ResultCode.INVALID_GOAL, PREEMPTED)
         start = self._state(time_s)
-        self._replace(build_spline(goal, self.joints, time_s, start, self.params.sample_time_s))
+        self._replace(build_spline(goal, self.joints, time_s, start, self.params.sample_time_s,
+                                   origin_s))
         p = self.params
         self._goal_id += 1
         self._tracked = tracked

@@ -333,7 +333,7 @@ def _columns(goal: JointTrajectoryGoal, joints: Sequence[str]
 
 def build_spline(goal: JointTrajectoryGoal, joints: Sequence[str], start_s: float,
                  start_state: tuple[FloatArray, FloatArray, FloatArray],
-                 sample_time_s: float) -> Spline:
+                 sample_time_s: float, origin_s: float | None = None) -> Spline:
     """
     Return the spline of a goal that :func:`validate_goal` accepted.
 
@@ -344,36 +344,40 @@ def build_spline(goal: JointTrajectoryGoal, joints: Sequence[str], start_s: floa
     joints : sequence of str
         The stage's joints, in the order of the spline's axes.
     start_s : float
-        Absolute time of the trajectory's start [s] (``time_from_start`` counts from here).
+        Now: the time of the start state [s].
     start_state : tuple of ndarray
         Present reference of every axis: position, velocity, acceleration.
     sample_time_s : float
-        Sample period [s]: a lone point at time 0 is reached one sample later.
+        Sample period [s]: a lone point due now is reached one sample later.
+    origin_s : float, optional
+        The time ``time_from_start`` counts from (the header's stamp) [s]; default now.
 
     Returns
     -------
     Spline
-        A first point at time 0 is the start state itself (validated to be within a sample's
-        travel of the present reference) and is dropped when later points follow.
+        Points due now or earlier are dropped (a point due now is the start state itself,
+        validated to be within the sensor resolution of the present reference); the first
+        later point is reached from the present reference.
 
     """
     cols, verdict = _columns(goal, joints)
     assert cols is not None, verdict
-    times = cols.times_s.copy()
-    if times.size == 1 and times[0] == 0.0:
-        times[0] = sample_time_s
-    keep = times > 0.0
+    times = (start_s if origin_s is None else origin_s) + cols.times_s
+    keep = times > start_s
+    if not np.any(keep):
+        times[-1] = start_s + sample_time_s
+        keep[-1] = True
 
     def pick(a: FloatArray | None) -> FloatArray | None:
         return None if a is None else a[keep]
-    return Spline(start_s, start_state, start_s + times[keep], cols.positions_m[keep],
+    return Spline(start_s, start_state, times[keep], cols.positions_m[keep],
                   pick(cols.velocities_mps), pick(cols.accelerations_mps2))
 
 
 def validate_goal(goal: JointTrajectoryGoal, joints: Sequence[str],
                   limits: Sequence[AxisLimits], *, start_s: float,
                   start_state: tuple[FloatArray, FloatArray, FloatArray],
-                  sample_time_s: float) -> GoalVerdict:
+                  sample_time_s: float, origin_s: float | None = None) -> GoalVerdict:
     """
     Decide whether a goal may run from the present reference, and why not.
 
@@ -386,16 +390,20 @@ def validate_goal(goal: JointTrajectoryGoal, joints: Sequence[str],
     limits : sequence of AxisLimits
         One per joint, in the order of ``joints``.
     start_s : float
-        When the trajectory would start [s].
+        Now: when the trajectory would start from the present reference [s].
     start_state : tuple of ndarray
         The present reference: position, velocity, acceleration of every axis.
     sample_time_s : float
         Sample period of the loop [s]: the grid on which the limits are checked.
+    origin_s : float, optional
+        The time ``time_from_start`` counts from (the header's stamp, in the loop's time) [s];
+        default now. Points due before now are dropped; a trajectory whose last point is due
+        before now is refused (``OLD_HEADER_TIMESTAMP``).
 
     Returns
     -------
     GoalVerdict
-        SUCCESSFUL, or INVALID_JOINTS / INVALID_GOAL with the reason.
+        SUCCESSFUL, or INVALID_JOINTS / INVALID_GOAL / OLD_HEADER_TIMESTAMP with the reason.
 
     """
     verdict = _check_joints(goal, joints)
@@ -408,16 +416,22 @@ def validate_goal(goal: JointTrajectoryGoal, joints: Sequence[str],
     for tol, what in ((goal.goal_time_tolerance_s, 'goal_time_tolerance'),):
         if not (math.isfinite(tol) and tol >= 0.0):
             return _refuse(f'{what} = {tol!r} s; allowed: a finite time >= 0')
-    if cols.times_s[0] == 0.0:
-        # a point at the start must be where the reference is, or the reference would jump
-        jump = np.abs(cols.positions_m[0] - start_state[0])
+    due = (start_s if origin_s is None else origin_s) + cols.times_s
+    if due[-1] < start_s:
+        return GoalVerdict(ResultCode.OLD_HEADER_TIMESTAMP,
+                           f'the last point is due at {due[-1]:.6g} s; allowed: not before now '
+                           f'({start_s:.6g} s)')
+    for now in np.flatnonzero(due == start_s).tolist():
+        i = int(now)
+        # a point due now must be where the reference is, or the reference would jump
+        jump = np.abs(cols.positions_m[i] - start_state[0])
         step = np.array([lim.resolution_m for lim in limits])
         if np.any(jump > step):
             k = int(np.argmax(jump - step))
-            return _refuse(f'point 0 at time_from_start 0 puts {joints[k]!r} at '
-                           f'{cols.positions_m[0, k]:.6g} m, {jump[k]:.3g} m from the present '
-                           f'reference {start_state[0][k]:.6g} m; allowed: a first point at time '
-                           f'0 within {step[k]:.3g} m of it (the sensor resolution), or a later '
+            return _refuse(f'point {i} due now puts {joints[k]!r} at '
+                           f'{cols.positions_m[i, k]:.6g} m, {jump[k]:.3g} m from the present '
+                           f'reference {start_state[0][k]:.6g} m; allowed: a point due now '
+                           f'within {step[k]:.3g} m of it (the sensor resolution), or a later '
                            'time')
     for k, lim in enumerate(limits):
         column = cols.positions_m[:, k]
@@ -426,7 +440,7 @@ def validate_goal(goal: JointTrajectoryGoal, joints: Sequence[str],
                 return _refuse(f'point {i}: position of {joints[k]!r} = {column[i]:.6g} m; '
                                f'allowed: [{lim.position_min_m:.6g}, {lim.position_max_m:.6g}] m '
                                "(the travel and the amplifier's static reach)")
-    spline = build_spline(goal, joints, start_s, start_state, sample_time_s)
+    spline = build_spline(goal, joints, start_s, start_state, sample_time_s, origin_s)
     n = int(math.ceil((spline.end_s - start_s) / sample_time_s)) + 1
     grid = start_s + np.arange(n) * sample_time_s
     grid[-1] = min(grid[-1], spline.end_s)
