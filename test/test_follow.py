@@ -234,6 +234,16 @@ def test_a_thousand_scan_points_within_a_10_nm_path_tolerance() -> None:
     assert [r.code for r in run.results] == [ResultCode.SUCCESSFUL], run.results
 
 
+def test_a_feed_forward_follows_goals_from_rest() -> None:
+    # the goal comes while the loop holds: the feed-forward, bound again, reads the new
+    # reference ahead and never falls back to feedback alone
+    stage, controller, f = loop('inverse')
+    goal = JointTrajectoryGoal(J, (P(0.02, (20e-6,), (0.0,), (0.0,)),))
+    run = run_goals(stage, controller, f, [(0.0123, goal)], duration_s=0.05)
+    assert controller.mismatches == 0
+    assert [r.code for r in run.results] == [ResultCode.SUCCESSFUL]
+
+
 def _largest_steps(run: GoalRun) -> tuple[float, float]:
     return (float(np.max(np.abs(np.diff(run.reference_m)))),
             float(np.max(np.abs(np.diff(run.command_v)))))
@@ -253,6 +263,9 @@ def test_preemption_and_cancel_add_no_step(second: str) -> None:
     k = int(round(0.01 / T))
     jumps = np.abs(np.diff(cut.reference_m[k - 5:k + 5]))
     assert np.max(jumps) <= dx_alone
+    # from the switch on, the command changes no faster than during the move alone
+    _, du_alone = _largest_steps(alone)
+    assert np.max(np.abs(np.diff(cut.command_v[k - 1:]))) <= du_alone
     assert cut.results[0].status == GoalStatus.CANCELED
 
 

@@ -26,8 +26,9 @@ configured stage and controller (default: the paper's stage, the RAC) with goals
 - 1 000 scan-line points (ten trace-and-retrace lines, 10 um, 1 ms apart), path tolerance
   10 nm: the path error reached with positions only (linear) and with velocities (cubic),
   without and with the inverse feed-forward;
-- a quintic move of 16 um in 20 ms, alone, preempted and cancelled half-way: the largest
-  sample-to-sample change of the reference and of the command, beside the watchdog's slew.
+- a quintic move of 16 um in 20 ms, alone, preempted and cancelled half-way, without and with
+  the inverse feed-forward: the largest sample-to-sample change of the reference and of the
+  command, beside the watchdog's slew, and the largest tracking error.
 """
 
 from __future__ import annotations
@@ -172,15 +173,18 @@ def _interrupt(loop: LoopConfig) -> None:
     print(f'quintic move 3.8 -> 20 um in 20 ms; stop acceleration '
           f'{FollowParams().stop_acceleration_mps2:g} m/s^2; watchdog slew {slew * 1e3:.0f} mV '
           'a sample:')
-    for name, events in (('alone', [(0.0, first)]), ('preempted at 10 ms', [(0.0, first),
-                                                                          (0.01, other)]),
-                         ('cancelled at 10 ms', [(0.0, first), (0.01, 'cancel')])):
-        run = run_goals(*_loop(loop, 'none', loop.stage.initial_position_m), events,
-                        duration_s=0.05)
-        dx, du = _steps(run)
-        ends = ', '.join(f'{r.status.name}/{r.code.name}' for r in run.results)
-        print(f'  {name:19s} largest step: reference {dx * 1e9:6.1f} nm, command '
-              f'{du * 1e3:5.1f} mV; {ends}')
+    cases = (('alone', [(0.0, first)]), ('preempted at 10 ms', [(0.0, first), (0.01, other)]),
+             ('cancelled at 10 ms', [(0.0, first), (0.01, 'cancel')]))
+    for ff in ('none', 'inverse'):
+        for name, events in cases:
+            run = run_goals(*_loop(loop, ff, loop.stage.initial_position_m), events,
+                            duration_s=0.05)
+            dx, du = _steps(run)
+            error = float(np.max(np.abs(run.reference_m - run.position_m)))
+            ends = ', '.join(f'{r.status.name}/{r.code.name}' for r in run.results)
+            print(f'  feed-forward {ff:7s} {name:19s} largest step: reference '
+                  f'{dx * 1e9:6.1f} nm, command {du * 1e3:6.1f} mV; max |error| '
+                  f'{error * 1e9:7.1f} nm; {ends}')
 
 
 def main(argv: Sequence[str] | None = None) -> int:
