@@ -282,3 +282,28 @@ def test_the_offline_runner_and_the_follower_loop_give_identical_samples() -> No
     assert np.array_equal(record.reference_m, run.reference_m)
     assert np.array_equal(record.command_v, run.command_v)
     assert np.array_equal(record.position_m, run.position_m)
+
+
+def test_several_axes_follow_in_the_stage_order_whatever_the_goal_order() -> None:
+    # two axes (the multi-axis stage to come): the goal names them in the other order
+    f = GoalFollower(('x', 'y'), [LIMITS, LIMITS], [3.8e-6, 5e-6], FollowParams(sample_time_s=T))
+    goal = JointTrajectoryGoal(('y', 'x'), (P(0.01, (7e-6, 10e-6), (0.0, 0.0), (0.0, 0.0)),),
+                               goal_tolerance=(JointTolerance('y', 5e-9),))
+    verdict, _ = f.accept(goal, 0.0)
+    assert verdict.accepted
+    x, v, _ = f.reference(np.array([0.0, 0.01, 0.02]))
+    assert x.shape == (3, 2)
+    assert x[0].tolist() == [3.8e-6, 5e-6] and x[2].tolist() == [10e-6, 7e-6]
+    assert np.all(v[2] == 0.0)
+    # y on its target, x 1 um off but unchecked (no tolerance given, default 0): success
+    # after the ten samples of settle_s
+    results = []
+    for k in range(0, 300):
+        ref = f.reference(np.array([k * T]))[0][0]
+        result, _ = f.step(k * T, ref + np.array([1e-6, 0.0]))
+        if result is not None:
+            results.append(result)
+    assert [r.code for r in results] == [ResultCode.SUCCESSFUL]
+    assert results[0].time_s == pytest.approx(0.01 + 9 * T, abs=T / 2)
+    missing = JointTrajectoryGoal(('x',), (P(0.01, (7e-6,)),))
+    assert f.check(missing, 0.03).code == ResultCode.INVALID_JOINTS
