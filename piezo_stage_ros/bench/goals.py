@@ -28,12 +28,16 @@ configured stage and controller (default: the paper's stage, the RAC) with goals
   without and with the inverse feed-forward;
 - a quintic move of 16 um in 20 ms, alone, preempted and cancelled half-way, without and with
   the inverse feed-forward: the largest sample-to-sample change of the reference and of the
-  command, beside the watchdog's slew, and the largest tracking error.
+  command, beside the watchdog's slew, and the largest tracking error;
+- what following costs a sample: ``GoalFollower.step`` with the reference given (as the loop
+  has it from its block) and evaluating it itself, and a block of 50 references (the best of
+  three timings; the machine may be shared).
 """
 
 from __future__ import annotations
 
 import argparse
+import time
 from typing import Any, Sequence
 
 import numpy as np
@@ -187,6 +191,30 @@ def _interrupt(loop: LoopConfig) -> None:
                   f'{error * 1e9:7.1f} nm; {ends}')
 
 
+def _cost(loop: LoopConfig) -> None:
+    _, _, follower = _loop(loop, 'none', loop.stage.initial_position_m)
+    dt = loop.stage.sample_time_s
+    goal = JointTrajectoryGoal(J, (TrajectoryPoint(10.0, (20e-6,), (0.0,), (0.0,)),),
+                               path_tolerance=(JointTolerance(JOINT_NAME, 1e-3),))
+    follower.accept(goal, 0.0)
+    n = 5000
+
+    def best(body: Any) -> float:
+        times = []
+        for _ in range(3):
+            t0 = time.perf_counter()
+            body()
+            times.append(time.perf_counter() - t0)
+        return min(times) / n * 1e6
+
+    given = best(lambda: [follower.step(k * dt, (5e-6,), (5e-6,)) for k in range(n)])
+    itself = best(lambda: [follower.step(k * dt, (5e-6,)) for k in range(n)])
+    block = best(lambda: [follower.reference(np.arange(k, k + 50) * dt) for k in range(n)])
+    print(f'cost: step {given:.1f} us a sample with the reference given, {itself:.1f} us '
+          f'evaluating it; a block of 50 references {block:.1f} us '
+          f'({block / 50:.2f} us a sample)')
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the goal cases and print their figures; return the exit status."""
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split('\n\n')[0].strip())
@@ -199,6 +227,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         _beyond(loop)
         _scan(loop)
         _interrupt(loop)
+        _cost(loop)
         return 0
     return cli.run_command(PROG, parser, body, argv)
 

@@ -159,9 +159,9 @@ class _Phase(enum.Enum):
 
 
 def _tolerance(given: Sequence[JointTolerance], joints: Sequence[str], default: float
-               ) -> FloatArray:
+               ) -> list[float]:
     """Return the position tolerance of each joint: inf where unchecked."""
-    out = np.full(len(joints), default if default > 0.0 else math.inf)
+    out = [default if default > 0.0 else math.inf] * len(joints)
     for tol in given:
         k = list(joints).index(tol.name)
         if tol.position_m < 0.0:
@@ -200,8 +200,9 @@ class GoalFollower:
         self._phase = _Phase.HOLD
         self._goal_id = 0
         self._tracked = False
-        self._path_tol = np.full(len(self.joints), math.inf)
-        self._goal_tol = np.full(len(self.joints), math.inf)
+        self._path_tol: list[float] = [math.inf] * len(self.joints)
+        self._goal_tol: list[float] = [math.inf] * len(self.joints)
+        self._unchecked = True
         self._goal_time_s = 0.0
         self._settled_s = 0.0
         self._next_feedback_s = 0.0
@@ -334,6 +335,7 @@ class GoalFollower:
         self._phase = _Phase.MOVING
         self._path_tol = _tolerance(goal.path_tolerance, self.joints, p.path_position_m)
         self._goal_tol = _tolerance(goal.goal_tolerance, self.joints, p.goal_position_m)
+        self._unchecked = all(math.isinf(tol) for tol in self._goal_tol)
         self._goal_time_s = goal.goal_time_tolerance_s or p.goal_time_s
         self._settled_s = 0.0
         self._next_feedback_s = time_s
@@ -354,7 +356,8 @@ class GoalFollower:
 
     # -- one sample ----------------------------------------------------------------------
 
-    def step(self, time_s: float, measured_m: ArrayLike
+    def step(self, time_s: float, measured_m: Sequence[float],
+             desired_m: Sequence[float] | None = None
              ) -> tuple[GoalResult | None, Feedback | None]:
         """
         Account for one sample: the reference at ``time_s`` against the measured positions.
@@ -363,8 +366,11 @@ class GoalFollower:
         ----------
         time_s : float
             Loop time of the sample [s].
-        measured_m : array_like
+        measured_m : sequence of float
             Measured position of every axis at that sample [m].
+        desired_m : sequence of float, optional
+            The reference of every axis at that sample, when the caller has it already (the
+            loop evaluated it in a block): saves evaluating the spline again.
 
         Returns
         -------
@@ -373,14 +379,19 @@ class GoalFollower:
         feedback : Feedback or None
             Feedback, when one is due.
 
+        Notes
+        -----
+        Plain floats per axis: a handful of axes cost less this way than as arrays, which
+        matters in the real-time servo's sample.
+
         """
         phase = self._phase
         if phase is _Phase.HOLD:
             return None, None
-        y = np.asarray(measured_m, dtype=np.float64).reshape(len(self.joints))
         spline = self._spline
-        x, v, _ = spline.sample(np.array([time_s]))
-        error = x[0] - y
+        if desired_m is None:
+            desired_m = spline.sample(np.array([time_s]))[0][0].tolist()
+        error = [float(d) - float(y) for d, y in zip(desired_m, measured_m)]
         result: GoalResult | None = None
         end_s = spline.end_s
         if phase is _Phase.STOPPING:
@@ -388,29 +399,28 @@ class GoalFollower:
                 self._phase = _Phase.HOLD
                 result = self._finish(time_s, GoalStatus.CANCELED, ResultCode.SUCCESSFUL,
                                       'cancelled: the stage decelerated to a hold at '
-                                      f'{x[0].tolist()} m')
+                                      f'{list(desired_m)} m')
         elif time_s < end_s:
-            bad = np.abs(error) > self._path_tol
-            if np.any(bad):
-                k = int(np.argmax(bad))
-                self._replace(self._stop(time_s))
-                self._phase = _Phase.STOPPING
-                result = self._finish(
-                    time_s, GoalStatus.ABORTED, ResultCode.PATH_TOLERANCE_VIOLATED,
-                    f'joint {self.joints[k]!r}: path error {error[k]:.4g} m at '
-                    f'{time_s:.6g} s; allowed: |error| <= {self._path_tol[k]:.4g} m')
+            for k, (e, tol) in enumerate(zip(error, self._path_tol)):
+                if abs(e) > tol:
+                    self._replace(self._stop(time_s))
+                    self._phase = _Phase.STOPPING
+                    result = self._finish(
+                        time_s, GoalStatus.ABORTED, ResultCode.PATH_TOLERANCE_VIOLATED,
+                        f'joint {self.joints[k]!r}: path error {e:.4g} m at {time_s:.6g} s; '
+                        f'allowed: |error| <= {tol:.4g} m')
+                    break
         else:
             self._phase = _Phase.SETTLING
-            inside = bool(np.all(np.abs(error) <= self._goal_tol))
+            inside = all(abs(e) <= tol for e, tol in zip(error, self._goal_tol))
             dt = self.params.sample_time_s
             self._settled_s = self._settled_s + dt if inside else 0.0
-            unchecked = bool(np.all(np.isinf(self._goal_tol)))
-            if unchecked or self._settled_s >= self.params.settle_s - 0.5 * dt:
+            if self._unchecked or self._settled_s >= self.params.settle_s - 0.5 * dt:
                 self._phase = _Phase.HOLD
                 result = self._finish(time_s, GoalStatus.SUCCEEDED, ResultCode.SUCCESSFUL, '')
             elif self._goal_time_s > 0.0 and time_s - end_s > self._goal_time_s + 0.5 * dt:
                 self._phase = _Phase.HOLD
-                k = int(np.argmax(np.abs(error) - self._goal_tol))
+                k = max(range(len(error)), key=lambda i: abs(error[i]) - self._goal_tol[i])
                 result = self._finish(
                     time_s, GoalStatus.ABORTED, ResultCode.GOAL_TOLERANCE_VIOLATED,
                     f'joint {self.joints[k]!r}: error {error[k]:.4g} m '
@@ -419,7 +429,9 @@ class GoalFollower:
                     f'{self._goal_time_s:g} s')
         feedback: Feedback | None = None
         if self._tracked and time_s >= self._next_feedback_s - 1e-12:
-            feedback = Feedback(self._goal_id, time_s, x[0], v[0], y, error)
+            x, v, _ = spline.sample(np.array([time_s]))
+            feedback = Feedback(self._goal_id, time_s, x[0], v[0],
+                                np.asarray(measured_m, dtype=np.float64), np.asarray(error))
             self._next_feedback_s += self.params.feedback_period_s
         return result, feedback
 
@@ -527,7 +539,7 @@ def run_goals(stage: Plant, controller: Controller, follower: GoalFollower,
         pos[k] = y
         ref[k] = xd
         cmd[k] = u
-        _, fb = follower.step(t, [y])
+        _, fb = follower.step(t, (y,), (xd,))
         if fb is not None:
             feedback.append(fb)
         y = float(stage.step(u))
