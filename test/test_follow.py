@@ -307,3 +307,18 @@ def test_several_axes_follow_in_the_stage_order_whatever_the_goal_order() -> Non
     assert results[0].time_s == pytest.approx(0.01 + 9 * T, abs=T / 2)
     missing = JointTrajectoryGoal(('x',), (P(0.01, (7e-6,)),))
     assert f.check(missing, 0.03).code == ResultCode.INVALID_JOINTS
+
+
+def test_hold_ends_the_goal_at_once_and_stops_the_reference() -> None:
+    # deactivation: the goal ends now (jtc's words), the reference still comes to rest smoothly
+    f = follower()
+    f.accept(move(20e-6, 0.02, quintic=True), 0.0)
+    drive(f, 0.01)
+    x0, v0, _ = f.reference(np.array([0.01]))
+    result = f.hold(0.01)
+    assert result is not None and result.status == GoalStatus.CANCELED
+    assert result.reason == 'Current goal cancelled during deactivate transition.'
+    x, v, a = f.reference(np.arange(100, 200) * T)
+    assert x[0, 0] == x0[0, 0] and v[0, 0] == v0[0, 0] and v[-1, 0] == 0.0
+    assert np.max(np.abs(a)) <= f.params.stop_acceleration_mps2
+    assert f.hold(0.02) is None                    # nothing left to end
