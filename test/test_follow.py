@@ -322,3 +322,25 @@ def test_hold_ends_the_goal_at_once_and_stops_the_reference() -> None:
     assert x[0, 0] == x0[0, 0] and v[0, 0] == v0[0, 0] and v[-1, 0] == 0.0
     assert np.max(np.abs(a)) <= f.params.stop_acceleration_mps2
     assert f.hold(0.02) is None                    # nothing left to end
+
+
+def test_a_goal_prepared_ahead_starts_as_if_accepted_then() -> None:
+    # a real-time loop checks and builds outside its sample, for a sample a little ahead
+    first = move(20e-6, 0.02, quintic=True)
+    second = move(8e-6, 0.02, quintic=True)
+    f, g = follower(), follower()
+    f.accept(first, 0.0)
+    g.accept(first, 0.0)
+    verdict, prepared = f.prepare(second, 0.012)
+    assert verdict.accepted and prepared is not None
+    drive(f, 0.012)
+    assert f.start(prepared, 0.0121) == 0          # not the sample it was prepared for
+    assert f.start(prepared, 0.012) == 2
+    g.accept(second, 0.012)
+    t = np.arange(100, 400) * T
+    for a, b in zip(f.reference(t), g.reference(t)):
+        assert np.array_equal(a, b)
+    # a reference changed in between (a cancel): prepare again
+    _, stale = f.prepare(first, 0.02)
+    f.cancel(0.015)
+    assert stale is not None and f.start(stale, 0.02) == 0

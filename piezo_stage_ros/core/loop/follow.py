@@ -69,7 +69,7 @@ from piezo_stage_ros.core.loop.splines import Spline
 from piezo_stage_ros.core.loop.trajectories import TrajectoryBase
 
 __all__ = ['Feedback', 'FollowParams', 'GoalFollower', 'GoalResult', 'GoalStatus',
-           'GoalTrajectory', 'run_goals']
+           'GoalTrajectory', 'PreparedGoal', 'run_goals']
 
 #: joint_trajectory_controller's result string of a goal a new one preempted.
 PREEMPTED = 'Current goal cancelled due to new incoming action.'
@@ -149,6 +149,17 @@ class FollowParams:
             value = getattr(self, name)
             if not (value >= 0.0 and math.isfinite(value)):
                 raise ParameterError(name, value, '[0, inf)')
+
+
+@dataclass(frozen=True)
+class PreparedGoal:
+    """A checked goal with its spline, for :meth:`GoalFollower.start` at ``time_s``."""
+
+    goal: JointTrajectoryGoal
+    spline: Spline
+    time_s: float
+    version: int
+    tracked: bool
 
 
 class _Phase(enum.Enum):
@@ -297,6 +308,73 @@ class GoalFollower:
                              start_state=self._state(time_s),
                              sample_time_s=self.params.sample_time_s, origin_s=origin_s)
 
+    def prepare(self, goal: JointTrajectoryGoal, time_s: float, *, tracked: bool = True,
+                origin_s: float | None = None) -> tuple[GoalVerdict, PreparedGoal | None]:
+        """
+        Check a goal and build its spline for a start at ``time_s``, changing nothing.
+
+        The expensive half of :meth:`accept` (the check runs over every sample of the
+        trajectory, the spline is built over every point): a real-time loop does it outside
+        its sample, for a time a little ahead (the reference until then is known), and
+        :meth:`start` takes it up at that sample.
+
+        Parameters
+        ----------
+        goal, time_s, tracked, origin_s
+            As :meth:`accept`.
+
+        Returns
+        -------
+        verdict : GoalVerdict
+            SUCCESSFUL, or the code and the reason of the refusal.
+        prepared : PreparedGoal or None
+            The goal ready to start at ``time_s``; None when refused.
+
+        """
+        verdict = self.check(goal, time_s, origin_s)
+        if not verdict.accepted:
+            return verdict, None
+        spline = build_spline(goal, self.joints, time_s, self._state(time_s),
+                              self.params.sample_time_s, origin_s)
+        return verdict, PreparedGoal(goal, spline, time_s, self.version, tracked)
+
+    def start(self, prepared: PreparedGoal, time_s: float) -> int:
+        """
+        Follow a prepared goal from this sample on; the running goal is preempted.
+
+        Parameters
+        ----------
+        prepared : PreparedGoal
+            From :meth:`prepare`.
+        time_s : float
+            Loop time of this sample [s]: the one the goal was prepared for.
+
+        Returns
+        -------
+        int
+            The id of the goal; 0 if the reference changed since it was prepared or the
+            sample is not the one it was prepared for (prepare it again: starting it would
+            make the reference jump).
+
+        """
+        p = self.params
+        if prepared.version != self.version or abs(time_s - prepared.time_s) > 0.5 * \
+                p.sample_time_s:
+            return 0
+        goal = prepared.goal
+        self._finish(time_s, GoalStatus.CANCELED, ResultCode.INVALID_GOAL, PREEMPTED)
+        self._replace(prepared.spline)
+        self._goal_id += 1
+        self._tracked = prepared.tracked
+        self._phase = _Phase.MOVING
+        self._path_tol = _tolerance(goal.path_tolerance, self.joints, p.path_position_m)
+        self._goal_tol = _tolerance(goal.goal_tolerance, self.joints, p.goal_position_m)
+        self._unchecked = all(math.isinf(tol) for tol in self._goal_tol)
+        self._goal_time_s = goal.goal_time_tolerance_s or p.goal_time_s
+        self._settled_s = 0.0
+        self._next_feedback_s = time_s
+        return self._goal_id
+
     def accept(self, goal: JointTrajectoryGoal, time_s: float, *, tracked: bool = True,
                origin_s: float | None = None) -> tuple[GoalVerdict, int]:
         """
@@ -322,24 +400,10 @@ class GoalFollower:
             The id of the new goal (its results and feedback carry it); 0 when refused.
 
         """
-        verdict = self.check(goal, time_s, origin_s)
-        if not verdict.accepted:
+        verdict, prepared = self.prepare(goal, time_s, tracked=tracked, origin_s=origin_s)
+        if prepared is None:
             return verdict, 0
-        self._finish(time_s, GoalStatus.CANCELED, ResultCode.INVALID_GOAL, PREEMPTED)
-        start = self._state(time_s)
-        self._replace(build_spline(goal, self.joints, time_s, start, self.params.sample_time_s,
-                                   origin_s))
-        p = self.params
-        self._goal_id += 1
-        self._tracked = tracked
-        self._phase = _Phase.MOVING
-        self._path_tol = _tolerance(goal.path_tolerance, self.joints, p.path_position_m)
-        self._goal_tol = _tolerance(goal.goal_tolerance, self.joints, p.goal_position_m)
-        self._unchecked = all(math.isinf(tol) for tol in self._goal_tol)
-        self._goal_time_s = goal.goal_time_tolerance_s or p.goal_time_s
-        self._settled_s = 0.0
-        self._next_feedback_s = time_s
-        return verdict, self._goal_id
+        return verdict, self.start(prepared, time_s)
 
     def cancel(self, time_s: float) -> None:
         """Bring the reference to rest from ``time_s``; the goal ends once it is at rest."""

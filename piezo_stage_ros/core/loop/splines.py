@@ -46,23 +46,24 @@ __all__ = ['Spline', 'segment_coefficients']
 KIND_NAMES = ('linear', 'cubic', 'quintic')
 
 
-def segment_coefficients(duration_s: float, start: Sequence[FloatArray],
+def segment_coefficients(duration_s: ArrayLike, start: Sequence[FloatArray],
                          end: Sequence[FloatArray]) -> FloatArray:
     """
     Return the power-basis coefficients of one segment for every axis.
 
     Parameters
     ----------
-    duration_s : float
-        Length T of the segment [s], > 0.
+    duration_s : float or array_like
+        Length T of the segment [s], > 0; for several segments at once, an array that
+        broadcasts against the boundary values (e.g. shape (segments, 1)).
     start, end : sequence of ndarray
         Boundary states: ``(position,)`` for linear, ``(position, velocity)`` for cubic,
         ``(position, velocity, acceleration)`` for quintic; each an array over the axes [m,
-        m/s, m/s^2]. Both ends give the same number of derivatives.
+        m/s, m/s^2] (or segments x axes). Both ends give the same number of derivatives.
 
     Returns
     -------
-    ndarray, shape (6, axes)
+    ndarray, shape (6,) + the boundary values' shape
         c_0 ... c_5 of x(tau) = sum c_j tau^j, tau = t - t_a in [0, T] (unused orders zero).
 
     Notes
@@ -71,10 +72,10 @@ def segment_coefficients(duration_s: float, start: Sequence[FloatArray],
     ends (joint_trajectory_controller's formulas); the linear one meets the positions only.
 
     """
-    t = float(duration_s)
+    t = np.asarray(duration_s, dtype=np.float64)
     x0 = np.asarray(start[0], dtype=np.float64)
     x1 = np.asarray(end[0], dtype=np.float64)
-    c = np.zeros((6,) + x0.shape)
+    c = np.zeros((6,) + np.broadcast_shapes(x0.shape, t.shape))
     c[0] = x0
     order = len(start)
     if order == 1:
@@ -150,13 +151,10 @@ class Spline:
         self.axes = x.shape[1]
         self.knots_s = knots
         self.start_state = (s0[0], s0[1], s0[2])
-        coeffs = np.empty((times.size, 6, self.axes))
-        prev = s0[:order + 1]
-        for i in range(times.size):
-            here = [col[i] for col in columns]
-            coeffs[i] = segment_coefficients(knots[i + 1] - knots[i], prev, here)
-            prev = here
-        self._c = coeffs
+        # all segments at once: segment i runs from point i - 1 (the start state for i = 0)
+        starts = [np.concatenate([s0[j][None, :], columns[j][:-1]]) for j in range(order + 1)]
+        coeffs = segment_coefficients(np.diff(knots)[:, None], starts, columns)
+        self._c = np.ascontiguousarray(np.moveaxis(coeffs, 0, 1))
         self.end_position_m = x[-1].copy()
 
     @property
