@@ -30,8 +30,9 @@ configured stage and controller (default: the paper's stage, the RAC) with goals
   the inverse feed-forward: the largest sample-to-sample change of the reference and of the
   command, beside the watchdog's slew, and the largest tracking error;
 - what following costs a sample: ``GoalFollower.step`` with the reference given (as the loop
-  has it from its block) and evaluating it itself, and a block of 50 references (the best of
-  three timings; the machine may be shared).
+  has it from its block) and evaluating it itself, a block of 50 references, and preparing
+  the 1 000 scan points (check and spline; the best of three timings, the machine may be
+  shared).
 """
 
 from __future__ import annotations
@@ -210,9 +211,16 @@ def _cost(loop: LoopConfig) -> None:
     given = best(lambda: [follower.step(k * dt, (5e-6,), (5e-6,)) for k in range(n)])
     itself = best(lambda: [follower.step(k * dt, (5e-6,)) for k in range(n)])
     block = best(lambda: [follower.reference(np.arange(k, k + 50) * dt) for k in range(n)])
+    scan = JointTrajectoryGoal(J, scan_lines())
+    prepare = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        follower.prepare(scan, 0.0)
+        prepare.append(time.perf_counter() - t0)
     print(f'cost: step {given:.1f} us a sample with the reference given, {itself:.1f} us '
           f'evaluating it; a block of 50 references {block:.1f} us '
-          f'({block / 50:.2f} us a sample)')
+          f'({block / 50:.2f} us a sample); preparing the 1 000 scan points '
+          f'{min(prepare) * 1e3:.1f} ms')
 
 
 def main(argv: Sequence[str] | None = None) -> int:
