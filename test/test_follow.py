@@ -344,3 +344,17 @@ def test_a_goal_prepared_ahead_starts_as_if_accepted_then() -> None:
     _, stale = f.prepare(first, 0.02)
     f.cancel(0.015)
     assert stale is not None and f.start(stale, 0.02) == 0
+
+
+def test_a_cancel_while_accelerating_harder_than_the_stop_allows_starts_from_that() -> None:
+    # 5 um in 2 ms: about 7 m/s^2 a quarter of the way, above the 1 m/s^2 of a stop; the stop
+    # starts with the present acceleration (no step) and never exceeds it
+    f = follower()
+    f.accept(move(8.8e-6, 0.002, quintic=True), 0.0)
+    _, v0, a0 = f.reference(np.array([0.0004]))
+    assert abs(a0[0, 0]) > 5.0
+    f.cancel(0.0004)
+    x, v, a = f.reference(np.arange(4, 400) * T)
+    assert v[0, 0] == v0[0, 0] and a[0, 0] == a0[0, 0]
+    assert np.max(np.abs(a)) <= abs(a0[0, 0])
+    assert v[-1, 0] == 0.0

@@ -71,6 +71,9 @@ from piezo_stage_ros.core.loop.trajectories import TrajectoryBase
 __all__ = ['Feedback', 'FollowParams', 'GoalFollower', 'GoalResult', 'GoalStatus',
            'GoalTrajectory', 'PreparedGoal', 'run_goals']
 
+#: How many times a stop's duration grows by 1.25 to keep to the acceleration (1.25^40: 7500x).
+_STOP_TRIES = 40
+
 #: joint_trajectory_controller's result string of a goal a new one preempted.
 PREEMPTED = 'Current goal cancelled due to new incoming action.'
 
@@ -265,26 +268,33 @@ class GoalFollower:
                       position_m[None, :])
 
     def _stop(self, time_s: float) -> Spline:
-        """Return a quintic from the present state to rest, within the stop acceleration."""
+        """
+        Return a quintic from the present state to rest, within the stop acceleration.
+
+        The stop starts with the present acceleration (no step in it), so its bound is the
+        larger of ``stop_acceleration_mps2`` and that; the duration grows until the sampled
+        acceleration keeps to it (a bounded number of times: a stop clipped at the end of the
+        travel may not get there, and then takes the longest).
+        """
         x0, v0, a0 = self._state(time_s)
         dt = self.params.sample_time_s
         if not (np.any(v0) or np.any(a0)):
             return self._rest(time_s, x0)
-        limit = self.params.stop_acceleration_mps2
-        duration = max(dt, 1.875 * float(np.max(np.abs(v0))) / limit,
-                       math.sqrt(float(np.max(np.abs(a0))) / limit) * 4.0 * dt)
+        limit = max(self.params.stop_acceleration_mps2, float(np.max(np.abs(a0))))
+        duration = max(dt, 1.875 * float(np.max(np.abs(v0))) / limit)
         lo = np.array([lim.position_min_m for lim in self.limits])
         hi = np.array([lim.position_max_m for lim in self.limits])
         zero = np.zeros_like(x0)
-        while True:
+        for _ in range(_STOP_TRIES):
             x1 = np.clip(x0 + 0.5 * v0 * duration + a0 * duration ** 2 / 12.0, lo, hi)
             spline = Spline(time_s, (x0, v0, a0), [time_s + duration], x1[None, :], zero[None, :],
                             zero[None, :])
             grid = time_s + np.arange(1, int(math.ceil(duration / dt)) + 1) * dt
             _, _, acc = spline.sample(grid)
             if float(np.max(np.abs(acc))) <= limit:
-                return spline
+                break
             duration *= 1.25
+        return spline
 
     def _replace(self, spline: Spline) -> None:
         self._spline = spline
