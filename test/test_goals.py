@@ -259,3 +259,11 @@ def test_the_hold_scenario_holds_the_start_position() -> None:
     x, v = trajectory.evaluate(np.arange(5) * T)
     assert trajectory.kind == 'hold' and trajectory.period_s is None
     assert np.all(x == config.stage.initial_position_m) and np.all(v == 0.0)
+
+
+def test_a_long_goal_is_checked_to_its_end() -> None:
+    # the limits are checked in blocks of samples: a violation 9 s in is found
+    code, reason = _check(_goal(P(5.0, (10e-6,)), P(9.0, (10e-6,)), P(9.0001, (28e-6,)),
+                                P(10.0, (28e-6,))))
+    assert code == ResultCode.INVALID_GOAL
+    assert re.search(r"'stage' reaches velocity 0.18 m/s at 9 s", reason), reason

@@ -54,6 +54,10 @@ __all__ = ['AxisLimits', 'GoalVerdict', 'JointTolerance', 'JointTrajectoryGoal',
            'TrajectoryPoint', 'build_spline', 'validate_goal']
 
 
+#: Samples checked at a time against the limits.
+_CHECK_BLOCK = 65536
+
+
 class ResultCode(enum.IntEnum):
     """The ``error_code`` values of ``control_msgs/action/FollowJointTrajectory`` Result."""
 
@@ -374,6 +378,29 @@ def build_spline(goal: JointTrajectoryGoal, joints: Sequence[str], start_s: floa
                   pick(cols.velocities_mps), pick(cols.accelerations_mps2))
 
 
+def _check_block(spline: Spline, grid: FloatArray, start_s: float, joints: Sequence[str],
+                 limits: Sequence[AxisLimits]) -> GoalVerdict | None:
+    """Return the refusal of the first limit the spline breaks on ``grid``, or None."""
+    pos, vel, acc = spline.sample(grid)
+    for k, lim in enumerate(limits):
+        for values, name, bound, unit in (
+                (vel[:, k], 'velocity', lim.velocity_max_mps, 'm/s'),
+                (acc[:, k], 'acceleration', lim.acceleration_max_mps2, 'm/s^2')):
+            i = int(np.argmax(np.abs(values)))
+            if abs(values[i]) > bound:
+                return _refuse(f'{joints[k]!r} reaches {name} {values[i]:.4g} {unit} at '
+                               f'{grid[i] - start_s:.6g} s; allowed: |{name}| <= {bound:.4g} '
+                               f'{unit} (what the amplifier range drives on this stage)')
+        u = lim.command_v(pos[:, k], vel[:, k], acc[:, k])
+        i = int(np.argmax(np.maximum(u - lim.command_max_v, lim.command_min_v - u)))
+        if not lim.command_min_v <= u[i] <= lim.command_max_v:
+            return _refuse(f'{joints[k]!r} would need {u[i]:.4g} V at {grid[i] - start_s:.6g} s '
+                           f'(position {pos[i, k]:.6g} m, velocity {vel[i, k]:.4g} m/s, '
+                           f'acceleration {acc[i, k]:.4g} m/s^2); allowed: the amplifier input '
+                           f'[{lim.command_min_v:g}, {lim.command_max_v:g}] V')
+    return None
+
+
 def validate_goal(goal: JointTrajectoryGoal, joints: Sequence[str],
                   limits: Sequence[AxisLimits], *, start_s: float,
                   start_state: tuple[FloatArray, FloatArray, FloatArray],
@@ -442,23 +469,12 @@ def validate_goal(goal: JointTrajectoryGoal, joints: Sequence[str],
                                "(the travel and the amplifier's static reach)")
     spline = build_spline(goal, joints, start_s, start_state, sample_time_s, origin_s)
     n = int(math.ceil((spline.end_s - start_s) / sample_time_s)) + 1
-    grid = start_s + np.arange(n) * sample_time_s
-    grid[-1] = min(grid[-1], spline.end_s)
-    pos, vel, acc = spline.sample(grid)
-    for k, lim in enumerate(limits):
-        for values, name, bound, unit in (
-                (vel[:, k], 'velocity', lim.velocity_max_mps, 'm/s'),
-                (acc[:, k], 'acceleration', lim.acceleration_max_mps2, 'm/s^2')):
-            i = int(np.argmax(np.abs(values)))
-            if abs(values[i]) > bound:
-                return _refuse(f'{joints[k]!r} reaches {name} {values[i]:.4g} {unit} at '
-                               f'{grid[i] - start_s:.6g} s; allowed: |{name}| <= {bound:.4g} '
-                               f'{unit} (what the amplifier range drives on this stage)')
-        u = lim.command_v(pos[:, k], vel[:, k], acc[:, k])
-        i = int(np.argmax(np.maximum(u - lim.command_max_v, lim.command_min_v - u)))
-        if not lim.command_min_v <= u[i] <= lim.command_max_v:
-            return _refuse(f'{joints[k]!r} would need {u[i]:.4g} V at {grid[i] - start_s:.6g} s '
-                           f'(position {pos[i, k]:.6g} m, velocity {vel[i, k]:.4g} m/s, '
-                           f'acceleration {acc[i, k]:.4g} m/s^2); allowed: the amplifier input '
-                           f'[{lim.command_min_v:g}, {lim.command_max_v:g}] V')
+    # in blocks, so that a long goal costs time but not memory
+    for first in range(0, n, _CHECK_BLOCK):
+        grid = start_s + np.arange(first, min(first + _CHECK_BLOCK, n),
+                                   dtype=np.float64) * sample_time_s
+        grid[-1] = min(grid[-1], spline.end_s)
+        verdict = _check_block(spline, grid, start_s, joints, limits)
+        if verdict is not None:
+            return verdict
     return GoalVerdict(ResultCode.SUCCESSFUL)
