@@ -25,8 +25,9 @@ returns the result code of ``FollowJointTrajectory.Result`` with a reason that n
 and what is allowed: unknown, repeated or missing joints (``INVALID_JOINTS``); an empty
 trajectory, times that do not increase or are negative, non-finite values, fields whose
 length is not the number of joints, a velocity left at the end, positions outside what the
-stage reaches, velocities, accelerations or commands beyond what the amplifier can drive
-(``INVALID_GOAL``).
+stage reaches, velocities, accelerations or commands beyond what the amplifier can drive, a
+point due now away from the present reference (``INVALID_GOAL``); a header stamp so early that
+the last point is already due (``OLD_HEADER_TIMESTAMP``).
 
 The limits come from the stage model (:meth:`AxisLimits.from_stage`): the stage follows a
 slow reference x(t) with the command u = (x + tau_1 x' + tau_2 x'') / (g c) to second order
@@ -49,6 +50,8 @@ import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.contracts.types import FloatArray
 from piezo_stage_ros.core.loop.splines import Spline
+from piezo_stage_ros.core.model.hysteresis import make_hysteresis
+from piezo_stage_ros.core.model.stage import linear_plant, StageParams
 
 __all__ = ['AxisLimits', 'GoalVerdict', 'JointTolerance', 'JointTrajectoryGoal', 'ResultCode',
            'TrajectoryPoint', 'build_spline', 'validate_goal']
@@ -197,7 +200,7 @@ class AxisLimits:
                 raise ParameterError(name, value, '(0, inf]')
 
     @classmethod
-    def from_stage(cls, stage: object, *, travel_min_m: float = 0.0,
+    def from_stage(cls, stage: StageParams, *, travel_min_m: float = 0.0,
                    travel_max_m: float = 38e-6) -> AxisLimits:
         """
         Derive the limits of a stage model's axis.
@@ -217,9 +220,6 @@ class AxisLimits:
             velocity term alone needs the whole amplifier span, and likewise the acceleration.
 
         """
-        from piezo_stage_ros.core.model.hysteresis import make_hysteresis
-        from piezo_stage_ros.core.model.stage import linear_plant, StageParams
-        assert isinstance(stage, StageParams)
         plant = linear_plant(stage.plant)
         hyst = make_hysteresis(stage.hysteresis)
         a_inv = np.linalg.inv(plant.a)
