@@ -24,6 +24,7 @@ The kinds are those of the paper's experiments (section V) and a few for users:
 - ``staircase``: ``steps`` steps of ``step_m`` every ``dwell_s`` from ``start_m``, then held
   (Fig. 9, 19 nm resolution); derivative 0;
 - ``step``: ``initial_m`` until ``time_s``, then ``final_m``; derivative 0;
+- ``hold``: x_d = ``position_m`` at all times (a stage that waits for goals);
 
   each of these three takes ``transition_s``: 0 (the default) is the ideal discontinuous jump
   of the paper; T_r > 0 replaces every jump of height D at t_0 by the quintic (minimum-jerk)
@@ -73,8 +74,8 @@ from piezo_stage_ros.core.identification.excitation import (
     NoiseParams,
 )
 
-__all__ = ['CsvParams', 'MultisineParams', 'ScanLineParams', 'SineParams', 'SquareParams',
-           'StaircaseParams', 'StepParams', 'TableTrajectory', 'TrajectoryBase',
+__all__ = ['CsvParams', 'HoldParams', 'MultisineParams', 'ScanLineParams', 'SineParams',
+           'SquareParams', 'StaircaseParams', 'StepParams', 'TableTrajectory', 'TrajectoryBase',
            'TrajectoryParams', 'TriangleParams', 'check_sampling', 'load_table',
            'make_trajectory', 's_curve', 'smoothstep']
 
@@ -83,7 +84,7 @@ __all__ = ['CsvParams', 'MultisineParams', 'ScanLineParams', 'SineParams', 'Squa
 TRAVEL_MAX_M = 38e-6
 
 KINDS = ('sine', 'multisine', 'square', 'staircase', 'step', 'triangle', 'csv', 'noise', 'chirp',
-         'scan_line')
+         'scan_line', 'hold')
 
 
 @dataclass(frozen=True)
@@ -153,6 +154,13 @@ class StepParams(Params):
     transition_s: float = param(0.0, unit='s', description='Duration of the quintic S-curve '
                                 'that replaces each jump (0: ideal jump, as in the paper).',
                                 low=0.0)
+
+
+@dataclass(frozen=True)
+class HoldParams(Params):
+    """x_d = ``position_m``: the stage holds still (where the plant starts, by default)."""
+
+    position_m: float = param(3.8e-6, unit='m', description='Position held.')
 
 
 @dataclass(frozen=True)
@@ -242,6 +250,7 @@ class TrajectoryParams(Params):
     csv: CsvParams = group(CsvParams, 'kind csv')
     scan_line: ScanLineParams = group(ScanLineParams, 'kind scan_line (raster line: linear '
                                       'trace and retrace, smooth turnarounds)')
+    hold: HoldParams = group(HoldParams, 'kind hold')
     noise: NoiseParams = group(NoiseParams, 'kind noise (band-limited white noise, '
                                'identification: core/identification/excitation.py)')
     chirp: ChirpParams = group(ChirpParams, 'kind chirp (sine sweep, identification: '
@@ -307,6 +316,8 @@ def _extent(p: TrajectoryParams) -> tuple[float, float, str, str]:
         lo_name = 'step.initial_m' if st.initial_m <= st.final_m else 'step.final_m'
         hi_name = 'step.final_m' if st.initial_m <= st.final_m else 'step.initial_m'
         return (min(st.initial_m, st.final_m), max(st.initial_m, st.final_m), lo_name, hi_name)
+    if p.kind == 'hold':
+        return p.hold.position_m, p.hold.position_m, 'hold.position_m', 'hold.position_m'
     raise AssertionError(p.kind)  # csv is checked on its data
 
 
@@ -616,6 +627,15 @@ class _ScanLine(TrajectoryBase):
         sign = np.where(retrace, -1.0, 1.0)
         return (np.asarray(p.offset_m + sign * up, dtype=np.float64),
                 np.asarray(sign * dup, dtype=np.float64))
+class _Hold(TrajectoryBase):
+    kind = 'hold'
+
+    def __init__(self, p: HoldParams) -> None:
+        self._x = p.position_m
+
+    def evaluate(self, time_s: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        shape = np.shape(time_s)
+        return np.full(shape, self._x), np.zeros(shape)
 
 
 class _Excitation(TrajectoryBase):
@@ -770,6 +790,8 @@ def make_trajectory(params: TrajectoryParams, *,
         return _Excitation(NoiseExcitation(params.noise))
     if kind == 'chirp':
         return _Excitation(ChirpExcitation(params.chirp))
+    if kind == 'hold':
+        return _Hold(params.hold)
     if not params.csv.path:
         raise ParameterError('csv.path', '', 'the path of a CSV file',
                              'is empty but kind is csv')

@@ -1,0 +1,620 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Following joint-trajectory goals sample by sample: the bookkeeping of an action server, no ROS.
+
+:class:`GoalFollower` owns the reference of every axis and the goal being followed. It is
+stepped with the loop's time and the measured positions; it holds no wall time and no thread,
+so the same calls give the same samples offline, in lockstep and in the real-time servo.
+
+- :meth:`~GoalFollower.accept` checks a goal
+  (:func:`~piezo_stage_ros.core.loop.goals.validate_goal`) and, if it may run, starts it from
+  the present reference (position, velocity and acceleration: no jump). A goal that was
+  running ends CANCELED with ``INVALID_GOAL`` and joint_trajectory_controller's words
+  ("Current goal cancelled due to new incoming action.").
+- :meth:`~GoalFollower.cancel` brings the reference to rest with a quintic from the present
+  state whose acceleration stays within ``stop_acceleration_mps2``; the goal ends CANCELED
+  (``SUCCESSFUL``) once the axes are at rest.
+- :meth:`~GoalFollower.step` checks the path tolerance on every sample before the last point
+  (``PATH_TOLERANCE_VIOLATED``: the reference then stops as on a cancel), the goal tolerance
+  after it: ``SUCCESSFUL`` once every axis has been inside it for ``settle_s``,
+  ``GOAL_TOLERANCE_VIOLATED`` if that has not happened ``goal_time_tolerance`` after the last
+  point (0: no time limit, as in joint_trajectory_controller). Feedback (desired, actual,
+  error) comes every ``feedback_period_s``.
+
+Only positions are measured, so velocity and acceleration tolerances are not checked; a goal
+that sets them runs with its position tolerances. After a goal the last position is held.
+
+:class:`GoalTrajectory` presents one axis of the follower's reference as a trajectory
+(:class:`~piezo_stage_ros.core.loop.trajectories.TrajectoryBase`), for the loop and a
+feed-forward that reads the reference ahead; :func:`run_goals` is the offline loop with goals
+and cancels at given times, in the order of :mod:`piezo_stage_ros.core.loop.closed_loop`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import enum
+import math
+from typing import Any, Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.contracts.interfaces import Controller
+from piezo_stage_ros.core.contracts.types import FloatArray
+from piezo_stage_ros.core.loop.closed_loop import Plant
+from piezo_stage_ros.core.loop.goals import (
+    AxisLimits,
+    build_spline,
+    GoalVerdict,
+    JointTolerance,
+    JointTrajectoryGoal,
+    ResultCode,
+    validate_goal,
+)
+from piezo_stage_ros.core.loop.splines import Spline
+from piezo_stage_ros.core.loop.trajectories import TrajectoryBase
+
+__all__ = ['Feedback', 'FollowParams', 'GoalFollower', 'GoalResult', 'GoalStatus',
+           'GoalTrajectory', 'PreparedGoal', 'run_goals']
+
+#: How many times a stop's duration grows by 1.25 to keep to the acceleration (1.25^40: 7500x).
+_STOP_TRIES = 40
+
+#: joint_trajectory_controller's result string of a goal a new one preempted.
+PREEMPTED = 'Current goal cancelled due to new incoming action.'
+
+
+class GoalStatus(enum.IntEnum):
+    """Terminal states of ``action_msgs/GoalStatus``."""
+
+    SUCCEEDED = 4
+    CANCELED = 5
+    ABORTED = 6
+
+
+@dataclass(frozen=True)
+class GoalResult:
+    """How a goal ended: status, ``FollowJointTrajectory`` error code, reason, when [s]."""
+
+    goal_id: int
+    status: GoalStatus
+    code: ResultCode
+    reason: str
+    time_s: float
+
+
+@dataclass(frozen=True)
+class Feedback:
+    """FollowJointTrajectory feedback: desired, actual and their difference per axis [m]."""
+
+    goal_id: int
+    time_s: float
+    desired_m: FloatArray
+    desired_velocity_mps: FloatArray
+    actual_m: FloatArray
+    error_m: FloatArray
+
+
+@dataclass(frozen=True)
+class FollowParams:
+    """
+    How goals are followed; defaults as joint_trajectory_controller's where it has one.
+
+    Attributes
+    ----------
+    sample_time_s : float
+        Loop sample period [s].
+    feedback_period_s : float
+        Time between feedbacks [s] (0.02: 50 Hz).
+    path_position_m : float
+        Default path tolerance [m]; 0 checks nothing.
+    goal_position_m : float
+        Default goal tolerance [m]; 0 checks nothing (success at the last point).
+    goal_time_s : float
+        Default goal_time_tolerance [s]; 0 waits without limit.
+    settle_s : float
+        How long every axis must stay inside the goal tolerance before success [s].
+    stop_acceleration_mps2 : float
+        Largest deceleration of a cancel or a path violation [m/s^2]; 1 stops the fastest
+        point-to-point moves of the stage (mm/s) within a few milliseconds and micrometres,
+        gently enough that the controller follows the stop about as closely as the move.
+
+    """
+
+    sample_time_s: float = 1e-4
+    feedback_period_s: float = 0.02
+    path_position_m: float = 0.0
+    goal_position_m: float = 0.0
+    goal_time_s: float = 0.0
+    settle_s: float = 1e-3
+    stop_acceleration_mps2: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ('sample_time_s', 'feedback_period_s', 'stop_acceleration_mps2'):
+            value = getattr(self, name)
+            if not (value > 0.0 and math.isfinite(value)):
+                raise ParameterError(name, value, '(0, inf)')
+        for name in ('path_position_m', 'goal_position_m', 'goal_time_s', 'settle_s'):
+            value = getattr(self, name)
+            if not (value >= 0.0 and math.isfinite(value)):
+                raise ParameterError(name, value, '[0, inf)')
+
+
+@dataclass(frozen=True)
+class PreparedGoal:
+    """A checked goal with its spline, for :meth:`GoalFollower.start` at ``time_s``."""
+
+    goal: JointTrajectoryGoal
+    spline: Spline
+    time_s: float
+    version: int
+    tracked: bool
+
+
+class _Phase(enum.Enum):
+    HOLD = 'hold'
+    MOVING = 'moving'
+    SETTLING = 'settling'
+    STOPPING = 'stopping'
+
+
+def _tolerance(given: Sequence[JointTolerance], joints: Sequence[str], default: float
+               ) -> list[float]:
+    """Return the position tolerance of each joint: inf where unchecked."""
+    out = [default if default > 0.0 else math.inf] * len(joints)
+    for tol in given:
+        k = list(joints).index(tol.name)
+        if tol.position_m < 0.0:
+            out[k] = math.inf
+        elif tol.position_m > 0.0:
+            out[k] = tol.position_m
+    return out
+
+
+class GoalFollower:
+    """
+    The reference of N axes and the goal it follows, stepped once a sample.
+
+    Parameters
+    ----------
+    joints : sequence of str
+        The stage's joints (axes), in the order of every array here.
+    limits : sequence of AxisLimits
+        What each axis can follow.
+    initial_position_m : array_like
+        Where the reference rests at the start [m].
+    params : FollowParams
+        Tolerance defaults, feedback rate, stop deceleration.
+
+    """
+
+    def __init__(self, joints: Sequence[str], limits: Sequence[AxisLimits],
+                 initial_position_m: ArrayLike, params: FollowParams | None = None) -> None:
+        self.joints = tuple(joints)
+        self.limits = tuple(limits)
+        self.params = params if params is not None else FollowParams()
+        if len(self.limits) != len(self.joints):
+            raise ParameterError('limits', len(self.limits), f'{len(self.joints)}, one per joint')
+        x0 = np.asarray(initial_position_m, dtype=np.float64).reshape(len(self.joints))
+        self._spline = self._rest(0.0, x0)
+        self._phase = _Phase.HOLD
+        self._goal_id = 0
+        self._tracked = False
+        self._path_tol: list[float] = [math.inf] * len(self.joints)
+        self._goal_tol: list[float] = [math.inf] * len(self.joints)
+        self._unchecked = True
+        self._goal_time_s = 0.0
+        self._settled_s = 0.0
+        self._next_feedback_s = 0.0
+        #: bumped whenever the reference changes (a reader ahead must evaluate it again)
+        self.version = 0
+        self.results: list[GoalResult] = []
+
+    # -- the reference -------------------------------------------------------------------
+
+    @property
+    def phase(self) -> str:
+        """Return 'hold', 'moving', 'settling' (after the last point) or 'stopping'."""
+        return self._phase.value
+
+    @property
+    def active_goal(self) -> int | None:
+        """Return the id of the goal being followed, or None."""
+        return self._goal_id if self._tracked else None
+
+    @property
+    def spline(self) -> Spline:
+        """Return the present reference: a spline that holds its end."""
+        return self._spline
+
+    def reference(self, time_s: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """
+        Return the reference at these times, as it stands (no event after now is known).
+
+        Parameters
+        ----------
+        time_s : array_like
+            Loop times [s].
+
+        Returns
+        -------
+        position_m, velocity_mps, acceleration_mps2 : ndarray
+            Shape ``time_s.shape + (axes,)``.
+
+        """
+        return self._spline.sample(time_s)
+
+    def _state(self, time_s: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+        x, v, a = self._spline.sample(np.array([time_s]))
+        return x[0], v[0], a[0]
+
+    def _rest(self, time_s: float, position_m: FloatArray) -> Spline:
+        zero = np.zeros_like(position_m)
+        return Spline(time_s, (position_m, zero, zero), [time_s + self.params.sample_time_s],
+                      position_m[None, :])
+
+    def _stop(self, time_s: float) -> Spline:
+        """
+        Return a quintic from the present state to rest, within the stop acceleration.
+
+        The stop starts with the present acceleration (no step in it), so its bound is the
+        larger of ``stop_acceleration_mps2`` and that; the duration grows until the sampled
+        acceleration keeps to it (a bounded number of times: a stop clipped at the end of the
+        travel may not get there, and then takes the longest).
+        """
+        x0, v0, a0 = self._state(time_s)
+        dt = self.params.sample_time_s
+        if not (np.any(v0) or np.any(a0)):
+            return self._rest(time_s, x0)
+        limit = max(self.params.stop_acceleration_mps2, float(np.max(np.abs(a0))))
+        duration = max(dt, 1.875 * float(np.max(np.abs(v0))) / limit)
+        lo = np.array([lim.position_min_m for lim in self.limits])
+        hi = np.array([lim.position_max_m for lim in self.limits])
+        zero = np.zeros_like(x0)
+        for _ in range(_STOP_TRIES):
+            x1 = np.clip(x0 + 0.5 * v0 * duration + a0 * duration ** 2 / 12.0, lo, hi)
+            spline = Spline(time_s, (x0, v0, a0), [time_s + duration], x1[None, :], zero[None, :],
+                            zero[None, :])
+            grid = time_s + np.arange(1, int(math.ceil(duration / dt)) + 1) * dt
+            _, _, acc = spline.sample(grid)
+            if float(np.max(np.abs(acc))) <= limit:
+                break
+            duration *= 1.25
+        return spline
+
+    def _replace(self, spline: Spline) -> None:
+        self._spline = spline
+        self.version += 1
+
+    def _finish(self, time_s: float, status: GoalStatus, code: ResultCode, reason: str
+                ) -> GoalResult | None:
+        if not self._tracked:
+            return None
+        result = GoalResult(self._goal_id, status, code, reason, time_s)
+        self.results.append(result)
+        self._tracked = False
+        return result
+
+    # -- commands ------------------------------------------------------------------------
+
+    def check(self, goal: JointTrajectoryGoal, time_s: float, origin_s: float | None = None
+              ) -> GoalVerdict:
+        """Return whether ``goal`` may start at ``time_s`` from the present reference."""
+        return validate_goal(goal, self.joints, self.limits, start_s=time_s,
+                             start_state=self._state(time_s),
+                             sample_time_s=self.params.sample_time_s, origin_s=origin_s)
+
+    def prepare(self, goal: JointTrajectoryGoal, time_s: float, *, tracked: bool = True,
+                origin_s: float | None = None) -> tuple[GoalVerdict, PreparedGoal | None]:
+        """
+        Check a goal and build its spline for a start at ``time_s``, changing nothing.
+
+        The expensive half of :meth:`accept` (the check runs over every sample of the
+        trajectory, the spline is built over every point): a real-time loop does it outside
+        its sample, for a time a little ahead (the reference until then is known), and
+        :meth:`start` takes it up at that sample.
+
+        Parameters
+        ----------
+        goal, time_s, tracked, origin_s
+            As :meth:`accept`.
+
+        Returns
+        -------
+        verdict : GoalVerdict
+            SUCCESSFUL, or the code and the reason of the refusal.
+        prepared : PreparedGoal or None
+            The goal ready to start at ``time_s``; None when refused.
+
+        """
+        verdict = self.check(goal, time_s, origin_s)
+        if not verdict.accepted:
+            return verdict, None
+        spline = build_spline(goal, self.joints, time_s, self._state(time_s),
+                              self.params.sample_time_s, origin_s)
+        return verdict, PreparedGoal(goal, spline, time_s, self.version, tracked)
+
+    def start(self, prepared: PreparedGoal, time_s: float) -> int:
+        """
+        Follow a prepared goal from this sample on; the running goal is preempted.
+
+        Parameters
+        ----------
+        prepared : PreparedGoal
+            From :meth:`prepare`.
+        time_s : float
+            Loop time of this sample [s]: the one the goal was prepared for.
+
+        Returns
+        -------
+        int
+            The id of the goal; 0 if the reference changed since it was prepared or the
+            sample is not the one it was prepared for (prepare it again: starting it would
+            make the reference jump).
+
+        """
+        p = self.params
+        if prepared.version != self.version or abs(time_s - prepared.time_s) > 0.5 * \
+                p.sample_time_s:
+            return 0
+        goal = prepared.goal
+        self._finish(time_s, GoalStatus.CANCELED, ResultCode.INVALID_GOAL, PREEMPTED)
+        self._replace(prepared.spline)
+        self._goal_id += 1
+        self._tracked = prepared.tracked
+        self._phase = _Phase.MOVING
+        self._path_tol = _tolerance(goal.path_tolerance, self.joints, p.path_position_m)
+        self._goal_tol = _tolerance(goal.goal_tolerance, self.joints, p.goal_position_m)
+        self._unchecked = all(math.isinf(tol) for tol in self._goal_tol)
+        self._goal_time_s = goal.goal_time_tolerance_s or p.goal_time_s
+        self._settled_s = 0.0
+        self._next_feedback_s = time_s
+        return self._goal_id
+
+    def accept(self, goal: JointTrajectoryGoal, time_s: float, *, tracked: bool = True,
+               origin_s: float | None = None) -> tuple[GoalVerdict, int]:
+        """
+        Check a goal and, if it may run, follow it from ``time_s`` on.
+
+        Parameters
+        ----------
+        goal : JointTrajectoryGoal
+            The goal (or a JointTrajectory message, ``tracked=False``).
+        time_s : float
+            Loop time of the first sample that follows it [s].
+        tracked : bool
+            True for an action goal (results and feedback), False for a topic message.
+        origin_s : float, optional
+            Loop time ``time_from_start`` counts from (a header stamp that is not zero);
+            default ``time_s``.
+
+        Returns
+        -------
+        verdict : GoalVerdict
+            SUCCESSFUL if it runs, else the code and the reason (nothing changes).
+        goal_id : int
+            The id of the new goal (its results and feedback carry it); 0 when refused.
+
+        """
+        verdict, prepared = self.prepare(goal, time_s, tracked=tracked, origin_s=origin_s)
+        if prepared is None:
+            return verdict, 0
+        return verdict, self.start(prepared, time_s)
+
+    def cancel(self, time_s: float) -> None:
+        """Bring the reference to rest from ``time_s``; the goal ends once it is at rest."""
+        if self._phase in (_Phase.MOVING, _Phase.SETTLING):
+            self._replace(self._stop(time_s))
+            self._phase = _Phase.STOPPING
+
+    def hold(self, time_s: float) -> GoalResult | None:
+        """Stop at once where the reference is (a stop first if it moves); end the goal."""
+        self._replace(self._stop(time_s))
+        self._phase = _Phase.STOPPING
+        return self._finish(time_s, GoalStatus.CANCELED, ResultCode.INVALID_GOAL,
+                            'Current goal cancelled during deactivate transition.')
+
+    # -- one sample ----------------------------------------------------------------------
+
+    def step(self, time_s: float, measured_m: Sequence[float],
+             desired_m: Sequence[float] | None = None
+             ) -> tuple[GoalResult | None, Feedback | None]:
+        """
+        Account for one sample: the reference at ``time_s`` against the measured positions.
+
+        Parameters
+        ----------
+        time_s : float
+            Loop time of the sample [s].
+        measured_m : sequence of float
+            Measured position of every axis at that sample [m].
+        desired_m : sequence of float, optional
+            The reference of every axis at that sample, when the caller has it already (the
+            loop evaluated it in a block): saves evaluating the spline again.
+
+        Returns
+        -------
+        result : GoalResult or None
+            The goal that ended at this sample, if any.
+        feedback : Feedback or None
+            Feedback, when one is due.
+
+        Notes
+        -----
+        Plain floats per axis: a handful of axes cost less this way than as arrays, which
+        matters in the real-time servo's sample.
+
+        """
+        phase = self._phase
+        if phase is _Phase.HOLD:
+            return None, None
+        spline = self._spline
+        if desired_m is None:
+            desired_m = spline.sample(np.array([time_s]))[0][0].tolist()
+        error = [float(d) - float(y) for d, y in zip(desired_m, measured_m)]
+        result: GoalResult | None = None
+        end_s = spline.end_s
+        if phase is _Phase.STOPPING:
+            if time_s >= end_s:
+                self._phase = _Phase.HOLD
+                result = self._finish(time_s, GoalStatus.CANCELED, ResultCode.SUCCESSFUL,
+                                      'cancelled: the stage decelerated to a hold at '
+                                      f'{list(desired_m)} m')
+        elif time_s < end_s:
+            for k, (e, tol) in enumerate(zip(error, self._path_tol)):
+                if abs(e) > tol:
+                    self._replace(self._stop(time_s))
+                    self._phase = _Phase.STOPPING
+                    result = self._finish(
+                        time_s, GoalStatus.ABORTED, ResultCode.PATH_TOLERANCE_VIOLATED,
+                        f'joint {self.joints[k]!r}: path error {e:.4g} m at {time_s:.6g} s; '
+                        f'allowed: |error| <= {tol:.4g} m')
+                    break
+        else:
+            self._phase = _Phase.SETTLING
+            inside = all(abs(e) <= tol for e, tol in zip(error, self._goal_tol))
+            dt = self.params.sample_time_s
+            self._settled_s = self._settled_s + dt if inside else 0.0
+            if self._unchecked or self._settled_s >= self.params.settle_s - 0.5 * dt:
+                self._phase = _Phase.HOLD
+                result = self._finish(time_s, GoalStatus.SUCCEEDED, ResultCode.SUCCESSFUL, '')
+            elif self._goal_time_s > 0.0 and time_s - end_s > self._goal_time_s + 0.5 * dt:
+                self._phase = _Phase.HOLD
+                k = max(range(len(error)), key=lambda i: abs(error[i]) - self._goal_tol[i])
+                result = self._finish(
+                    time_s, GoalStatus.ABORTED, ResultCode.GOAL_TOLERANCE_VIOLATED,
+                    f'joint {self.joints[k]!r}: error {error[k]:.4g} m '
+                    f'{time_s - end_s:.6g} s after the last point; allowed: |error| <= '
+                    f'{self._goal_tol[k]:.4g} m within goal_time_tolerance '
+                    f'{self._goal_time_s:g} s')
+        feedback: Feedback | None = None
+        if self._tracked and time_s >= self._next_feedback_s - 1e-12:
+            x, v, _ = spline.sample(np.array([time_s]))
+            feedback = Feedback(self._goal_id, time_s, x[0], v[0],
+                                np.asarray(measured_m, dtype=np.float64), np.asarray(error))
+            self._next_feedback_s += self.params.feedback_period_s
+        return result, feedback
+
+
+class GoalTrajectory(TrajectoryBase):
+    """
+    One axis of a follower's reference as a trajectory (x_d, dx_d/dt), evaluated vectorised.
+
+    Parameters
+    ----------
+    follower : GoalFollower
+        The follower.
+    axis : int
+        Which axis.
+
+    """
+
+    kind = 'goal'
+
+    def __init__(self, follower: GoalFollower, axis: int = 0) -> None:
+        self._follower = follower
+        self._axis = axis
+
+    def evaluate(self, time_s: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        x, v, _ = self._follower.reference(time_s)
+        return (np.ascontiguousarray(x[..., self._axis]),
+                np.ascontiguousarray(v[..., self._axis]))
+
+
+@dataclass
+class GoalRun:
+    """The samples of :func:`run_goals` and what happened to the goals."""
+
+    time_s: FloatArray
+    position_m: FloatArray
+    reference_m: FloatArray
+    command_v: FloatArray
+    results: list[GoalResult]
+    feedback: list[Feedback]
+    verdicts: list[tuple[float, GoalVerdict, int]]
+
+
+def run_goals(stage: Plant, controller: Controller, follower: GoalFollower,
+              events: Sequence[tuple[float, Any]], *, duration_s: float) -> GoalRun:
+    """
+    Run one axis's closed loop with goals and cancels at given loop times.
+
+    Parameters
+    ----------
+    stage : Plant
+        The stage, reset here to the follower's initial reference.
+    controller : Controller
+        The controller, reset from y_0 and x_d(0); one with ``bind`` (a feed-forward) is bound
+        to the follower's reference (:class:`GoalTrajectory`), which it reads ahead, and bound
+        again whenever a goal or a cancel changes that reference (what it read ahead is stale).
+        Binding again restarts the feed-forward's inverse filter: exact from rest, a transient
+        when a goal preempts one in motion.
+    follower : GoalFollower
+        The goals' bookkeeping (one axis).
+    events : sequence of (time_s, goal or 'cancel')
+        What happens when: a :class:`JointTrajectoryGoal` is accepted (or refused) at the first
+        sample at or after its time, ``'cancel'`` cancels.
+    duration_s : float
+        Simulated time [s].
+
+    Returns
+    -------
+    GoalRun
+
+    """
+    dt = float(stage.sample_time_s)
+    total = max(int(round(duration_s / dt)), 1)
+    x0 = float(follower.reference(np.zeros(1))[0][0, 0])
+    bind = getattr(controller, 'bind', None)
+    view = GoalTrajectory(follower)
+    if callable(bind):
+        bind(view)
+    bound = follower.version
+    y = float(stage.reset(x0))
+    controller.reset(y, x0)
+    pending = sorted(events, key=lambda e: e[0])
+    t_out = np.arange(total, dtype=np.float64) * dt
+    pos = np.empty(total)
+    ref = np.empty(total)
+    cmd = np.empty(total)
+    feedback: list[Feedback] = []
+    verdicts: list[tuple[float, GoalVerdict, int]] = []
+    j = 0
+    for k in range(total):
+        t = float(t_out[k])
+        while j < len(pending) and pending[j][0] <= t + 0.5 * dt:
+            what = pending[j][1]
+            if isinstance(what, JointTrajectoryGoal):
+                verdict, gid = follower.accept(what, t)
+                verdicts.append((t, verdict, gid))
+            else:
+                follower.cancel(t)
+            j += 1
+        if callable(bind) and follower.version != bound:
+            bind(view)
+            bound = follower.version
+        x, v, _ = follower.reference(np.array([t]))
+        xd = float(x[0, 0])
+        u = controller.step(y, xd, float(v[0, 0]))
+        pos[k] = y
+        ref[k] = xd
+        cmd[k] = u
+        _, fb = follower.step(t, (y,), (xd,))
+        if fb is not None:
+            feedback.append(fb)
+        y = float(stage.step(u))
+    return GoalRun(t_out, pos, ref, cmd, list(follower.results), feedback, verdicts)
