@@ -513,10 +513,13 @@ def test_the_report_names_the_worst_member_and_keeps_its_verdict_apart() -> None
                            stage=LOOP.stage).learning is None
 
 
-def test_no_check_without_a_whole_period() -> None:
+def test_no_check_without_a_period_of_four_samples() -> None:
     params = _controller('learning')
     assert learning_check(params, LOOP.design_plant, T, 0.0, stage=LOOP.stage) is None
-    assert learning_check(params, LOOP.design_plant, T, 0.01005, stage=LOOP.stage) is None
+    assert learning_check(params, LOOP.design_plant, T, 3.9 * T, stage=LOOP.stage) is None
+    # a period that is not a whole number of samples is checked (test_feedforward_anyperiod)
+    check = learning_check(params, LOOP.design_plant, T, 0.01005, stage=LOOP.stage)
+    assert check is not None and check.period_s == 0.01005
     with_own = _controller('learning', **{'feedforward.period_s': 0.02})
     check = learning_check(with_own, LOOP.design_plant, T, 0.0)
     assert check is not None and check.period_s == pytest.approx(0.02, rel=EPS)

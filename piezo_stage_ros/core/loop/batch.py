@@ -713,6 +713,10 @@ class FeedForwardBatch:
         self._columns = learning_columns(self.template.learning_kernel()) if self._learning \
             else np.zeros((0, 0))
         self._learn_from = self._start_periods * period
+        # a period that is not a whole number of samples: every member's table on its phase
+        template_phase = self.template.phase_table
+        self._phase = None if template_phase is None or not self._learning else \
+            self.template.phase_learning(template_phase.samples, n)
         if self._jump is not None:
             # BacklashInverse.reset at position / (dc gain slope): at rest, e = 0
             self._hv = np.asarray(position_m, dtype=np.float64) / self._rest_gain
@@ -721,7 +725,14 @@ class FeedForwardBatch:
         self.periods_learned = 0
 
     def learned_table(self) -> FloatArray:
-        """Return a copy of every member's learned table [V], shape (period, n)."""
+        """
+        Return a copy of every member's learned table [V], shape (period, n).
+
+        A period that is not a whole number of samples: the table at the phases of
+        :meth:`~piezo_stage_ros.core.control.feedforward.FeedForwardController.table_points`.
+        """
+        if self._phase is not None:
+            return self._phase.on_grid(self.template.table_points())
         return self._learned.copy()
 
     def step(self, position_m: FloatArray, reference_m: float,
@@ -764,7 +775,16 @@ class FeedForwardBatch:
         if self._inverse:
             u = u - self._share(x_ref, v_ref)
             u += lw[i]
-        if self._learning:
+        phase = self._phase
+        if phase is not None:
+            u = u + phase.play(k)
+            if k >= phase.learn_from:
+                if not self._holding:
+                    self._holding = True
+                    self.ctrl.hold_estimates(True)
+                phase.record(k, position_m - xd)
+            self.periods_learned = phase.periods_learned
+        elif self._learning:
             u = u + self._learned[i]
             if k >= self._learn_from:
                 if not self._holding:

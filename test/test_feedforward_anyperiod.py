@@ -1,0 +1,195 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Learning on a period of any length (core/control/feedforward.py, PhaseLearning): the table on
+the period's harmonics, its convergence and its check, the wrapper, table files.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.control.feedforward import (
+    boundary_weights,
+    FeedForwardController,
+    phase_learning_convergence,
+    PhaseLearning,
+    whole_period,
+)
+from piezo_stage_ros.core.control.stability import learning_check
+from piezo_stage_ros.core.loop import experiments
+from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
+import pytest
+from test_feedforward import _bound, _controller, LOOP, T
+from tolerances import EPS
+
+# 300 Hz (33.3 samples), 70 Hz (142.86), a short odd one and a whole one
+PERIODS = [1e4 / 300.0, 1e4 / 70.0, 7.3, 40.0]
+
+
+def _signal(harmonics: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return rng.standard_normal(harmonics.size), rng.standard_normal(harmonics.size)
+
+
+def _at(phases: np.ndarray, harmonics: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    ang = 2.0 * math.pi * np.multiply.outer(phases, harmonics)
+    return np.asarray(np.cos(ang) @ a + np.sin(ang) @ b)
+
+
+@pytest.mark.parametrize('samples', PERIODS)
+def test_a_phase_table_plays_a_band_limited_periodic_signal_at_every_sample(samples) -> None:
+    # a signal of the kept harmonics, given on the grid of ceil(n) phases, is held exactly:
+    # played at the samples of many periods (whatever phase they fall at) it is the signal
+    h = np.arange(1.0, min(5, int((samples - 1e-9) // 2)) + 1)
+    a, b = _signal(h, 1)
+    table = PhaseLearning(np.ones(h.size, dtype=complex), h, samples, 1, 1e3, 0)
+    points = int(math.ceil(samples))
+    table.load_grid(_at(np.arange(points) / points, h, a, b))
+    k = np.arange(int(20 * samples))
+    played = np.array([float(table.play(int(i))[0]) for i in k])
+    expected = _at(k / samples % 1.0, h, a, b)
+    # phases of k/n to ~k EPS, each term's rounding: a few EPS of the amplitude sum
+    scale = float(np.sum(np.hypot(a, b)))
+    bound = 8 * h.size * EPS * scale * (1 + float(2 * math.pi * h.max() * k.max() / samples))
+    assert np.max(np.abs(played - expected)) <= bound
+    assert np.allclose(table.on_grid(points)[:, 0], _at(np.arange(points) / points, h, a, b),
+                       rtol=0, atol=bound)
+
+
+def test_the_trapezoid_weights_integrate_linear_functions_over_a_cut_period() -> None:
+    # the boundary weights make the sum over a period's samples the integral of the linear
+    # interpolant: exact for a linear integrand across both ends, and the plain sum for a
+    # whole period
+    assert boundary_weights(0.0) == (1.0, 0.0, 0.5, 0.5)
+    for samples in (33.3, 142.857, 7.3):
+        for a in (0.0, 0.25, 0.9):
+            m = int(math.ceil(samples - a - 1e-12))
+            t = a + np.arange(-1, m + 1, dtype=float)  # samples -1 .. m, boundary at 0 and n
+            w = np.ones(m + 2)
+            w[0] = w[-1] = 0.0
+            _, back, own_first, _ = boundary_weights(a)
+            own_last, _, _, ahead = boundary_weights(a + m - samples)
+            w[0], w[1] = back, own_first
+            w[m], w[m + 1] = own_last, ahead
+            for slope in (0.0, 1.0):
+                f = 2.0 + slope * t
+                exact = 2.0 * samples + slope * samples ** 2 / 2.0
+                assert float(np.dot(w, f)) == pytest.approx(exact, rel=64 * EPS * samples)
+
+
+@pytest.mark.parametrize('samples', PERIODS)
+def test_on_a_unit_process_the_table_converges_at_the_checked_ratio(samples) -> None:
+    # e = L - d with the process sensitivity 1 and F = gamma: the table's harmonics move
+    # towards d's by the map phase_learning_convergence bounds, period after period, down to
+    # rounding
+    gamma = 0.5
+    h = np.arange(1.0, min(5, int((samples - 1e-9) // 2)) + 1)
+    a, b = _signal(h, 2)
+    table = PhaseLearning(np.full(h.size, gamma + 0j), h, samples, 1, 1e3, 0)
+    ones = np.ones(int(samples // 2) + 1, dtype=complex)
+    kept = np.zeros(ones.size)
+    kept[h.astype(int)] = 1.0
+    ratio = phase_learning_convergence(ones, ones, gamma, kept, samples)
+    assert ratio < 1.0
+    if samples.is_integer():
+        assert ratio == 1.0 - gamma
+    target = np.concatenate([a, b])
+    gaps = []
+    period = 0
+    for k in range(int(45 * samples)):
+        value = float(table.play(k)[0])
+        if table.periods_learned > period:
+            period = table.periods_learned
+            gaps.append(float(np.linalg.norm(table.coefficients[:, 0] - target)))
+        table.record(k, value - float(_at(np.array([k / samples % 1.0]), h, a, b)[0]))
+    gaps_a = np.asarray(gaps)
+    steps = gaps_a[1:] / gaps_a[:-1]
+    # the map is the period's steady state; the table changes one sample after the period
+    # ends (the sample after it is in the sums), which perturbs one of ~n weights by at most
+    # 1.5 times the change: 1.5 (1 + ratio) / n on top
+    slack = 1.5 * (1.0 + ratio) / samples
+    live = gaps_a[:-1] > 1e-9 * gaps_a[0]
+    assert np.all(steps[live] <= ratio + slack)
+    assert gaps_a[-1] <= 1e-9 * gaps_a[0]
+
+
+@pytest.mark.parametrize('period_s', [1 / 70, 1 / 300, 1 / 137, 1 / 37.3])
+def test_the_learning_check_covers_any_period_and_says_it_converges(period_s) -> None:
+    check = learning_check(_controller('inverse_learning'), LOOP.design_plant, T, period_s,
+                           stage=LOOP.stage)
+    assert check is not None and check.ok
+    assert check.period_s == period_s and check.harmonics >= 1
+    # the design model: gamma's ratio and the leakage of windows that cut the period
+    assert 0.5 - 1e-9 <= check.design_ratio < 0.6
+
+
+def test_whole_periods_keep_the_table_of_samples() -> None:
+    assert whole_period(0.01, T) == (100, 100.0)
+    assert whole_period(1 / 70, T)[0] == 0
+    whole = _bound('learning', {'kind': 'sine', 'sine.frequency_hz': 100.0})
+    assert whole.phase_table is None and whole.learned_table().size == 100
+    cut = _bound('learning', {'kind': 'sine', 'sine.frequency_hz': 300.0})
+    assert cut.phase_table is not None and cut.learned_table().size == 34
+
+
+@pytest.mark.parametrize('period_s', [3.5e-4, 1e-4])
+def test_a_period_too_short_to_learn_is_refused_with_the_range(period_s) -> None:
+    with pytest.raises(ParameterError, match=r'feedforward.period_s.*at least 4 samples '
+                       r'\(>= 0.0004 s, a line rate <= 2500 Hz'):
+        _bound('learning', {'kind': 'sine'}, **{'feedforward.period_s': period_s})
+
+
+def _true_rms_tail(rec: experiments.RunRecord, tail_s: float) -> float:
+    assert rec.true_position_m is not None
+    sel = rec.time_s - rec.time_s[0] >= rec.time_s[-1] - rec.time_s[0] - tail_s
+    return float(np.sqrt(np.mean((rec.true_position_m - rec.reference_m)[sel] ** 2)))
+
+
+def test_learning_at_300_hz_removes_what_the_inverse_leaves_in_its_band() -> None:
+    tp = TrajectoryParams.from_flat({**LOOP.trajectory.to_flat(), 'kind': 'sine',
+                                     'sine.frequency_hz': 300.0})
+    runs = {mode: experiments.run_one(LOOP.stage, _controller(mode), tp, duration_s=0.5,
+                                      design_plant=LOOP.design_plant)
+            for mode in ('inverse', 'inverse_learning')}
+    inverse = _true_rms_tail(runs['inverse'], 0.1)
+    learned = _true_rms_tail(runs['inverse_learning'], 0.1)
+    # 150 periods at a ratio of 0.5: the four learned harmonics of the error are gone; what
+    # stays lies above Q (1.2 kHz) and under the converters
+    assert learned <= 0.5 * inverse
+    diag = runs['inverse_learning'].diagnostics
+    assert diag['ff_periods_learned'][-1] >= 140
+
+
+def test_a_table_file_of_a_cut_period_round_trips_and_another_rate_is_refused(tmp_path) -> None:
+    sine = {'kind': 'sine', 'sine.frequency_hz': 300.0}
+    tp = TrajectoryParams.from_flat({**LOOP.trajectory.to_flat(), **sine})
+    kept: list[FeedForwardController] = []
+    experiments.run_one(LOOP.stage, _controller('inverse_learning'), tp, duration_s=0.1,
+                        design_plant=LOOP.design_plant, built=kept.append)
+    path = kept[0].save_table_file(tmp_path / 'table.npz')
+    loaded = _bound('inverse_learning', sine, **{'feedforward.table_file': str(path)})
+    saved = kept[0].learned()
+    assert loaded.learned().period_s == saved.period_s == 1 / 300.0
+    # grid -> DFT -> harmonics -> grid: a few rounding steps of the table's size
+    bound = 64 * EPS * float(np.sum(np.abs(saved.table_v)))
+    assert np.max(np.abs(loaded.learned_table() - saved.table_v)) <= bound
+    assert np.max(np.abs(saved.table_v)) > 1e6 * bound  # not a table of zeros
+    with pytest.raises(ParameterError, match=r'feedforward.table_file.*learned for a period '
+                       r'of 0.00333'):
+        _bound('inverse_learning', {'kind': 'sine', 'sine.frequency_hz': 301.0},
+               **{'feedforward.table_file': str(path)})
