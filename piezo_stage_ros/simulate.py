@@ -193,6 +193,23 @@ def _enforce(report: Any, action: str) -> None:
               file=sys.stderr)
 
 
+def _limits_text(controller: Any, samples: int) -> str:
+    """Return the run's report of the limits a feed-forward met ('' when none was active)."""
+    clipped = getattr(controller, 'clipped_samples', 0)
+    limited = getattr(controller, 'limited_updates', 0)
+    if not (clipped or limited):
+        return ''
+    learning = bool(getattr(getattr(controller, 'params', None), 'learning', False))
+    text = (f'LIMIT ACTIVE: the amplifier range clipped {clipped} commands '
+            f'({100.0 * clipped / max(samples, 1):.2f} % of the samples)')
+    if learning:
+        text += ('; the learning check assumed none: the errors after each clip were not '
+                 'learned, and what the range clipped off the table was taken out of it')
+        if limited:
+            text += f'; learning_limit_v scaled the table down in {limited} updates'
+    return text + '.'
+
+
 def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
     from piezo_stage_ros.core.control.stability import check_stability
     from piezo_stage_ros.core.loop import metrics
@@ -261,6 +278,10 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
         out.update({'learning_ratio_design': report.learning.design_ratio,
                     'learning_ratio_max': report.learning.ratio,
                     'learning_worst_member': worst[0] if worst else None})
+    limits = _limits_text(controllers[0] if controllers else None, summary.samples)
+    if limits:
+        out['ff_clipped_samples'] = controllers[0].clipped_samples
+        out['ff_limited_updates'] = controllers[0].limited_updates
     if args.json:
         print(json.dumps({k: _clean(v) for k, v in out.items()}, sort_keys=True))
         return 0
@@ -285,6 +306,8 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
     print(f'whole run: e_m = {summary.e_max_all_m * 1e9:.2f} nm, e_rms = '
           f'{summary.e_rms_all_m * 1e9:.2f} nm')
     print(f'command range: {summary.command_min_v:.3f} ... {summary.command_max_v:.3f} V')
+    if limits:
+        print(limits)
     for name in ('theta_hat', 'phi_hat'):
         if name in summary.diagnostic_ranges:
             low, high = summary.diagnostic_ranges[name]

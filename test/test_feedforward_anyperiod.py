@@ -193,3 +193,62 @@ def test_a_table_file_of_a_cut_period_round_trips_and_another_rate_is_refused(tm
                        r'of 0.00333'):
         _bound('inverse_learning', {'kind': 'sine', 'sine.frequency_hz': 301.0},
                **{'feedforward.table_file': str(path)})
+
+
+# -- the limits: the amplifier's range and the table's bound ---------------------------------
+
+SATURATING = {'kind': 'sine', 'sine.amplitude_m': 14.3e-6, 'sine.offset_m': 15e-6}
+
+
+def _saturating(mode: str, frequency: float, duration_s: float,
+                **flat: object) -> tuple[experiments.RunRecord, object]:
+    tp = TrajectoryParams.from_flat({**LOOP.trajectory.to_flat(), **SATURATING,
+                                     'sine.frequency_hz': frequency})
+    kept: list[object] = []
+    rec = experiments.run_one(LOOP.stage, _controller(mode, **flat), tp,
+                              duration_s=duration_s, design_plant=LOOP.design_plant,
+                              built=kept.append)
+    return rec, kept[0]
+
+
+@pytest.mark.parametrize('frequency', [50.0, 47.3])  # a whole period and a cut one
+def test_at_the_amplifiers_limit_learning_is_no_worse_than_feedback_alone(frequency) -> None:
+    # the sine's top needs more than the amplifier's 10 V: no table can follow it there.
+    # Feedback alone is the floor a learning that stays right at the limit must not leave
+    runs = {mode: _saturating(mode, frequency, 1.5)
+            for mode in ('none', 'learning', 'inverse_learning')}
+    alone = _true_rms_tail(runs['none'][0], 0.5)
+    for mode in ('learning', 'inverse_learning'):
+        rec, ctrl = runs[mode]
+        assert isinstance(ctrl, FeedForwardController)
+        assert ctrl.clipped_samples > 0  # the limit was active, and the run knows it
+        assert _true_rms_tail(rec, 0.5) <= alone
+        # the table holds no DC: the learning filter has none and the clipped-off part is
+        # projected on Q's band
+        table = ctrl.learned_table()
+        assert abs(float(np.mean(table))) <= 4 * table.size * EPS * float(np.max(np.abs(table)))
+
+
+def test_the_tables_bound_scales_it_inside_q_and_without_dc() -> None:
+    limit = 0.02
+    for frequency in (50.0, 47.3):
+        _, ctrl = _saturating('learning', frequency, 0.3,
+                              **{'feedforward.learning_limit_v': limit})
+        assert isinstance(ctrl, FeedForwardController)
+        table = ctrl.learned_table()
+        assert ctrl.limited_updates > 0
+        assert np.max(np.abs(table)) <= limit * (1 + 4 * EPS)
+        assert abs(float(np.mean(table))) <= 4 * table.size * EPS * limit
+
+
+def test_simulate_reports_the_limit_and_the_learning_checks_assumption(capsys) -> None:
+    from piezo_stage_ros import simulate
+    assert simulate.main(['--trajectory', 'sine', '--frequency', '50', '--amplitude',
+                          '14.3e-6', '--offset', '15e-6', '--duration', '0.2',
+                          '--feedforward', 'learning']) == 0
+    out = capsys.readouterr().out
+    assert 'assumes a linear loop: the command inside the amplifier range' in out
+    assert 'LIMIT ACTIVE: the amplifier range clipped' in out
+    assert simulate.main(['--trajectory', 'sine', '--frequency', '50', '--duration', '0.2',
+                          '--feedforward', 'learning']) == 0
+    assert 'LIMIT ACTIVE' not in capsys.readouterr().out

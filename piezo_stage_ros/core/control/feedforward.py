@@ -87,6 +87,7 @@ from piezo_stage_ros.core.model.linear import LinearPlant
 __all__ = ['FeedForwardController', 'FeedForwardParams', 'HysteresisInverse', 'LearnedTable',
            'MIN_PERIOD_SAMPLES', 'MODES', 'PhaseLearning', 'PreviewInverse', 'TABLE_FORMAT',
            'TABLE_META_KEY', 'TABLE_VERSION', 'boundary_weights', 'check_learning_period',
+           'CLIP_SETTLE_SAMPLES', 'clipped_excess',
            'kept_harmonics',
            'learning_columns', 'learning_convergence', 'make_hysteresis_inverse',
            'period_harmonics', 'phase_learning_convergence', 'phase_windows',
@@ -98,6 +99,11 @@ MODES = ('none', 'inverse', 'learning', 'inverse_learning')
 
 #: Samples whose errors enter the learning update together (one correlation each run).
 LEARN_CHUNK = 16
+
+#: Samples after a command the amplifier's range clipped whose errors are not learned: the
+#: clip's own transient (the closed loop settles from a lost input within a few samples at the
+#: resonance of the default stage) tells nothing about what the table could do.
+CLIP_SETTLE_SAMPLES = 8
 
 
 @dataclass(frozen=True)
@@ -710,6 +716,19 @@ def _window_sum(d: FloatArray, phi0: float, m: int, samples: float) -> ComplexAr
     return np.asarray(np.exp(2j * math.pi * d * phi0) * total / samples, dtype=np.complex128)
 
 
+def clipped_excess(lost: Any, table: Any) -> Any:
+    """
+    Return the part of the table's entry the amplifier's range clipped off [V].
+
+    ``lost`` is the linear input asked minus the one applied (through the inverse hysteresis,
+    when there is one); the part is at most the entry itself, and of its sign: the table is
+    not blamed for what the feedback asked beyond the range. Scalars or arrays.
+    """
+    up = np.where(table > 0.0, np.minimum(lost, table), 0.0)
+    down = np.where(table < 0.0, np.maximum(lost, table), 0.0)
+    return np.where(lost > 0.0, up, np.where(lost < 0.0, down, 0.0))
+
+
 def _row_sum(x: FloatArray) -> FloatArray:
     """
     Return the sum over the first axis, row after row in their order, whatever the shape.
@@ -794,6 +813,11 @@ class PhaseLearning:
         self.offset = np.zeros(self.members)
         self._sums: dict[int, FloatArray] = {}
         self._errors = np.zeros((LEARN_CHUNK, self.members))
+        # what the amplifier's range clipped off the table (:meth:`record_excess`): its
+        # harmonics are taken out of the table at the period's end
+        self._excess = np.zeros((LEARN_CHUNK, self.members))
+        self._excess_sums: dict[int, FloatArray] = {}
+        self._excess_run = False
         self._phasors = np.zeros((2 * size, LEARN_CHUNK))
         self._play = np.zeros((LEARN_CHUNK, self.members))
         self._run_start = 0
@@ -821,7 +845,10 @@ class PhaseLearning:
         """Restart at sample 0: the table stays, the errors of unfinished periods go."""
         self._recorded = 0
         self._errors.fill(0.0)
+        self._excess.fill(0.0)
+        self._excess_run = False
         self._sums.clear()
+        self._excess_sums.clear()
         self._run_end = self._run_start = 0
         self._stale = True
 
@@ -845,6 +872,20 @@ class PhaseLearning:
             self._errors[i] = error
             if i >= self._recorded:
                 self._recorded = i + 1
+
+    def record_excess(self, k: int, excess: Any) -> None:
+        """
+        Keep what the range clipped off the table at sample ``k`` [V] (after :meth:`play`).
+
+        The table then takes, at the period's end, the input that was applied: the excess's
+        harmonics in Q's band (the same quadrature as the errors) are subtracted, so the
+        table does not wind up against a limit and Q holds after the clip.
+        """
+        i = k - self._run_start
+        self._excess[i] += excess
+        self._excess_run = True
+        if i >= self._recorded:
+            self._recorded = i + 1
 
     def values(self, first: int, count: int) -> FloatArray:
         """Return the present table at samples first .. first + count - 1, shape (count, M)."""
@@ -890,8 +931,9 @@ class PhaseLearning:
             # period q is finished once the first sample of q + 1 has passed
             if q < period - 1 or (q == period - 1 and k > first):
                 sums = self._sums.pop(q)
+                excess = self._excess_sums.pop(q, None)
                 if q >= self.start_periods:
-                    self._apply(sums)
+                    self._apply(sums, excess)
         end = k + 1 if k == first else min(k + LEARN_CHUNK, self.period_start(period + 1))
         ang = 2.0 * math.pi * (k * self.r - period) * self.harmonics
         c0 = np.cos(ang)[:, None]
@@ -909,11 +951,12 @@ class PhaseLearning:
         self._run_length = end - k
         self._stale = False
 
-    def _sum_of(self, period: int) -> FloatArray:
-        sums = self._sums.get(period)
-        if sums is None:
-            sums = self._sums[period] = np.zeros((2 * self.harmonics.size, self.members))
-        return sums
+    def _sum_of(self, period: int, sums: dict[int, FloatArray] | None = None) -> FloatArray:
+        table = self._sums if sums is None else sums
+        out = table.get(period)
+        if out is None:
+            out = table[period] = np.zeros((2 * self.harmonics.size, self.members))
+        return out
 
     def _flush(self) -> None:
         """Add the errors kept in the present run to its period's sums (and its neighbours')."""
@@ -921,33 +964,47 @@ class PhaseLearning:
         if not m:
             return
         self._recorded = 0
-        errors = self._errors[:m]
+        self._flush_rows(self._errors[:m], self._sums)
+        if self._excess_run:
+            self._flush_rows(self._excess[:m], self._excess_sums)
+            self._excess_run = False
+
+    def _flush_rows(self, rows: FloatArray, sums: dict[int, FloatArray]) -> None:
+        """Add the trapezoid sums of ``rows`` (samples of the present run) to ``sums``."""
+        m = len(rows)
         period = self._run_period
         k0 = self._run_start
-        weighted = errors.copy()
+        weighted = rows.copy()
         if k0 == self.period_start(period):
             # the period's first sample: its own weight and its share of the period before
             a = k0 - period * self.samples
             _, _, own, back = boundary_weights(a)
             weighted[0] *= own
-            self._sum_of(period - 1)[:] += self._phasors[:, 0][:, None] * (errors[0] * back)
+            self._sum_of(period - 1, sums)[:] += self._phasors[:, 0][:, None] * (rows[0] * back)
         last = k0 + m - 1
         if m == self._run_length and last + 1 == self.period_start(period + 1):
             # the period's last sample: its own weight and its share of the period after
             own, ahead, _, _ = boundary_weights(last + 1 - (period + 1) * self.samples)
             weighted[m - 1] *= own
-            self._sum_of(period + 1)[:] += (self._phasors[:, m - 1][:, None]
-                                            * (errors[m - 1] * ahead))
+            self._sum_of(period + 1, sums)[:] += (self._phasors[:, m - 1][:, None]
+                                                  * (rows[m - 1] * ahead))
         terms = self._phasors[:, :m].T[:, :, None] * weighted[:, None, :]
-        self._sum_of(period)[:] += _row_sum(terms)
-        errors.fill(0.0)
+        self._sum_of(period, sums)[:] += _row_sum(terms)
+        rows.fill(0.0)
 
-    def _apply(self, sums: FloatArray) -> None:
-        """Apply a period's update, c_h <- c_h - gamma E_h / P_s, on the cos and sin rows."""
+    def _apply(self, sums: FloatArray, excess: FloatArray | None = None) -> None:
+        """
+        Apply a period's update, c_h <- c_h - gamma E_h / P_s, on the cos and sin rows.
+
+        With what the range clipped off the table (``excess``'s sums), its harmonics first:
+        the table takes the input applied, projected on Q's band.
+        """
         size = self.harmonics.size
+        coef = self.coefficients
+        if excess is not None:
+            coef -= (2.0 * self.r) * excess
         cos_sum = sums[:size]
         sin_sum = sums[size:]
-        coef = self.coefficients
         coef[:size] -= self._g_re * cos_sum + self._g_im * sin_sum
         coef[size:] -= self._g_re * sin_sum - self._g_im * cos_sum
         self._limit()
@@ -1279,6 +1336,18 @@ class FeedForwardController:
         self._next_period_k = 0
         self._sq_count = 0
         self._last_learned = 0.0
+        # the amplifier's range: the last sample it clipped, the linear input asked then, and
+        # what it clipped off the table's entries this period (projected out at its end)
+        self._clip_k = -(1 << 62)
+        self._asked = 0.0
+        #: Commands the amplifier's range clipped since the controller was bound.
+        self.clipped_samples = 0
+        #: Learning updates the table's bound ``learning_limit_v`` scaled down.
+        self.limited_updates = 0
+        self._excess_table: FloatArray = np.zeros(0)
+        self._excess_any = False
+        self._kept: Any = None
+        self._leak = 0.0
         self._learned: FloatArray = np.zeros(0)
         self._ll: list[float] = []
         # learning, spread over the period: the errors of each run of LEARN_CHUNK samples go
@@ -1325,13 +1394,22 @@ class FeedForwardController:
         self.period_s = period if self._learning_on else 0.0
         self._learned = np.zeros(self._period_n)
         self._ll = self._learned.tolist()
+        self._excess_table = np.zeros(self._period_n)
+        self._excess_any = False
+        self._clip_k = -(1 << 62)
+        self.clipped_samples = 0
+        self.limited_updates = 0
         self._delta = np.zeros(self._period_n)
         self._errors = [0.0] * self._period_n
         self._pending = 0
         self._sq = 0.0
+        if self._learning_on:
+            self._set_leak(n if exact else samples)
         if self._learning_on and exact:
             # designed here, on the controller's initial estimates: nothing of it in the loop
-            kernel = np.fft.irfft(self._learning_filter(n), n)
+            filt = self._learning_filter(n)
+            self._kept = filt != 0.0
+            kernel = np.fft.irfft(filt, n)
             self._kernel2 = np.concatenate([kernel, kernel])
             self._columns = learning_columns(self._kernel2)
         elif self._learning_on:
@@ -1416,22 +1494,29 @@ class FeedForwardController:
             u = u - share + self._lw[i]
         if self._learning_on:
             if not n:
-                return self._output(u + self._phase_step(k, position_m - xd))
-            u += self._ll[i]
+                return self._phase_step(k, u, position_m - xd)
+            table = self._ll[i]
+            u += table
             e = position_m - xd
             self._sq += e * e
             if k >= self._learn_from:
                 if not self._holding:
                     self._hold(True)
-                self._errors[i] = e
+                # no error learned from a clipped command's samples
+                self._errors[i] = e if k - self._clip_k > CLIP_SETTLE_SAMPLES \
+                    else self._leak * table
                 if i % LEARN_CHUNK == LEARN_CHUNK - 1 or i == n - 1:
                     self._accumulate(i + 1)
             if i == n - 1:
                 self._learn(k)
+            v = self._output(u)
+            if self._clip_k == k:
+                self._fold_excess(i, table)
+            return v
         return self._output(u)
 
-    def _phase_step(self, k: int, e: float) -> float:
-        """Return the table of a period of any length at sample ``k``, and learn its error."""
+    def _phase_step(self, k: int, u: float, e: float) -> float:
+        """Return the command of sample ``k`` with the table of a period of any length."""
         phase = self._phase
         assert phase is not None
         value = float(phase.play(k)[0])
@@ -1442,9 +1527,35 @@ class FeedForwardController:
         if k >= phase.learn_from:
             if not self._holding:
                 self._hold(True)
-            phase.record(k, e)
+            phase.record(k, e if k - self._clip_k > CLIP_SETTLE_SAMPLES
+                         else self._leak * value)
         self._last_learned = value
-        return value
+        v = self._output(u + value)
+        if self._clip_k == k:
+            phase.record_excess(k, self._excess(value))
+        return v
+
+    def _excess(self, table: float) -> float:
+        """Return the part of the table's entry the amplifier's range clipped off [V]."""
+        hyst = self.hysteresis_inverse
+        applied = hyst.output_v / self.slope if hyst is not None else self._u
+        return float(clipped_excess(np.float64(self._asked - applied), np.float64(table)))
+
+    def limit_terms(self) -> tuple[float, Any]:
+        """
+        Return what the learning does at the range's limits, for the batched loop.
+
+        (the leak of an entry whose error is not learned [m/V], Q on the period's harmonics
+        of a whole period).
+        """
+        return self._leak, self._kept
+
+    def _fold_excess(self, i: int, table: float) -> None:
+        """Keep what the range clipped off entry ``i`` (the table is projected at the end)."""
+        fold = self._excess(table)
+        if fold != 0.0:
+            self._excess_table[i] += fold
+            self._excess_any = True
 
     def _end_phase_period(self, k: int) -> None:
         """Close a period of any length that ended before sample ``k``: its rms, its updates."""
@@ -1455,14 +1566,19 @@ class FeedForwardController:
         self._sq = 0.0
         self._sq_count = 0
         self.periods_learned = phase.periods_learned
+        self.limited_updates = phase.limited
         self._next_period_k = phase.period_start(period_index(k, phase.r) + 1)
 
     def _output(self, u: float) -> float:
         """Return the command for the linear input ``u``: inverse hysteresis, then the range."""
         hyst = self.hysteresis_inverse
+        self._asked = u
         if hyst is not None:
             u = hyst.invert(self.slope * u)
         v = self._vmax if u > self._vmax else (self._vmin if u < self._vmin else u)
+        if v != u:
+            self._clip_k = self._k - 1
+            self.clipped_samples += 1
         if hyst is not None:
             hyst.commit(v)
         self._u = v
@@ -1670,6 +1786,14 @@ class FeedForwardController:
         """Return the first sample whose error is learned (after the start periods)."""
         return self.params.learning_start_periods * self._period_n
 
+    def _set_leak(self, n: float) -> None:
+        """|P_s| at the period's first harmonic [m/V]: see ``CLIP_SETTLE_SAMPLES``."""
+        z = period_harmonics(n)[1:2]
+        k_p, k_i = self.inner.linear_gains()
+        g = self.slope * self.plant_inverse.frequency_response(z)
+        ps = process_sensitivity(g, z, k_p, k_i, self._ksens, self._t, self._notch_coeffs)
+        self._leak = float(np.abs(ps[0])) if ps.size else 0.0
+
     def phase_learning(self, samples: float, members: int) -> PhaseLearning:
         """Return the learning of a period of ``samples`` samples (any length), M members."""
         filt = self._learning_filter(samples)
@@ -1705,7 +1829,18 @@ class FeedForwardController:
         limit = self.params.learning_limit_v
         learned = self._learned
         learned -= self._delta
-        np.clip(learned, -limit, limit, out=learned)
+        if self._excess_any:
+            # what the range clipped off the table: the table takes the input that was
+            # applied, then Q (band, no DC)
+            learned -= self._excess_table
+            self._excess_table.fill(0.0)
+            self._excess_any = False
+            learned[:] = np.fft.irfft(np.fft.rfft(learned) * self._kept, len(learned))
+        peak = float(np.max(np.abs(learned)))
+        if peak > limit:
+            # scaled, not clipped: the table stays in Q's band with no DC
+            learned *= limit / peak
+            self.limited_updates += 1
         self._delta.fill(0.0)
         self._ll = learned.tolist()
         self.periods_learned += 1

@@ -424,8 +424,9 @@ class LearningConvergence:
     def text(self) -> str:
         """Return the verdict in one paragraph."""
         head = (f'Learning (gamma {self.gain:g}, Q to {self.bandwidth_hz:g} Hz: {self.harmonics} '
-                f'harmonics of {self.period_s:g} s): per-period ratio max|1 - gamma P_true/P_s| '
-                f'= {self.design_ratio:.3f} on the design model')
+                f'harmonics of {self.period_s:g} s; assumes a linear loop: the command inside '
+                'the amplifier range, the table inside learning_limit_v): per-period ratio '
+                f'max|1 - gamma P_true/P_s| = {self.design_ratio:.3f} on the design model')
         if self.slopes:
             worst = max(self.slopes, key=lambda c: c[1])
             head += (f', {worst[1]:.3f} at worst over the hysteresis slopes '
