@@ -32,7 +32,7 @@ from piezo_stage_ros.core.control.feedforward import (
 )
 from piezo_stage_ros.core.control.stability import learning_check
 from piezo_stage_ros.core.loop import experiments
-from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
+from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
 import pytest
 from test_feedforward import _bound, _controller, LOOP, T
 from tolerances import EPS
@@ -252,3 +252,57 @@ def test_simulate_reports_the_limit_and_the_learning_checks_assumption(capsys) -
     assert simulate.main(['--trajectory', 'sine', '--frequency', '50', '--duration', '0.2',
                           '--feedforward', 'learning']) == 0
     assert 'LIMIT ACTIVE' not in capsys.readouterr().out
+
+
+# -- references with jumps ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize('sample_time_s', [1e-5, 1e-4, 1e-3])
+def test_the_jump_test_scales_with_the_sampling(sample_time_s) -> None:
+    from piezo_stage_ros.core.control.feedforward import shape_jumps
+    t = np.arange(4000) * sample_time_s
+    fs = 1.0 / sample_time_s
+    for fraction in (0.001, 0.03, 0.1, 0.2):  # sines up to a fifth of the sample rate
+        w = 2 * math.pi * fraction * fs
+        for amplitude in (1e-9, 1e-6, 19e-6):
+            x = 19e-6 + amplitude * np.sin(w * t)
+            v = amplitude * w * np.cos(w * t)
+            assert shape_jumps(x, v, sample_time_s, 10 * sample_time_s)[2] == 0
+    # a triangle's corners are turns of the velocity, not jumps of the position
+    tri = make_trajectory(TrajectoryParams.from_flat({'kind': 'triangle',
+                                                      'triangle.frequency_hz': 0.05 * fs}))
+    x, v = tri.evaluate(t)
+    assert shape_jumps(np.asarray(x), np.asarray(v), sample_time_s, 10 * sample_time_s)[2] == 0
+    # a jump of a reference at rest is found at the tolerance, whatever the sampling
+    rest = np.where(t >= t[2000], 4e-6 + 1.01e-9, 4e-6)
+    assert shape_jumps(rest, np.zeros_like(t), sample_time_s, 10 * sample_time_s)[2] == 1
+    # and one riding on a fast sine (300 Hz at 10 kHz), above the motion's own allowance:
+    # 2 T (d2 / 2 + d2 / 12) with d2 = A w (w T)^2 is 7/6 (w T)^3 = 0.8 % of the amplitude
+    w = 2 * math.pi * 0.03 * fs
+    x = 3.8e-6 * np.sin(w * t) + np.where(t >= t[2000], 0.1e-6, 0.0)
+    assert shape_jumps(x, 3.8e-6 * w * np.cos(w * t), sample_time_s,
+                       10 * sample_time_s)[2] == 1
+
+
+@pytest.mark.parametrize('mode', ['learning', 'inverse_learning'])
+def test_a_square_wave_is_learned_on_the_shaped_path(mode) -> None:
+    # Fig. 10: 7.8 um, 0.5 s. Learning against the path the feedback follows: no overshoot to
+    # learn, and nothing to move before an edge (the S-curve starts at it)
+    tp = TrajectoryParams.from_flat({**LOOP.trajectory.to_flat(), 'kind': 'square'})
+    sq = tp.square
+    periods = 3
+    rec = experiments.run_one(LOOP.stage, _controller(mode), tp,
+                              duration_s=periods * sq.period_s,
+                              design_plant=LOOP.design_plant)
+    assert rec.true_position_m is not None
+    t = rec.time_s - rec.time_s[0]
+    y = rec.true_position_m
+    low, high = sq.low_m, sq.low_m + sq.peak_to_peak_m
+    last = periods - 1
+    for edge, before, after in (((last + 1 - sq.duty) * sq.period_s, low, high),
+                                (last * sq.period_s, high, low)):
+        k = int(np.searchsorted(t, edge - 0.5 * T))
+        ahead = y[k - int(0.05 / T):k]
+        assert np.max(np.abs(ahead - before)) <= 5e-9
+        over = (np.max(y[k:k + 1000]) - high if after > before else low - np.min(y[k:k + 1000]))
+        assert over <= 0.02 * sq.peak_to_peak_m

@@ -49,9 +49,14 @@ A two-degree-of-freedom structure around any controller of
   |1 - gamma P_true / P_s| (:func:`learning_convergence`). The update is summed in runs of 16
   (no FFT at the period's end), and the RAC's estimates are held while the table learns: both
   would chase the same periodic error and drift.
-- **Jumps** (``inverse`` modes): an ideal jump cannot be followed; each jump of the reference is
-  replaced by the quintic S-curve of ``transition_s`` starting at it (nothing moves before the
-  jump is due), and the inner controller tracks that path.
+- **Jumps**: an ideal jump cannot be followed; each jump of the reference is replaced by the
+  quintic S-curve of ``transition_s`` starting at it (nothing moves before the jump is due),
+  and the inner controller tracks that path and the learning learns against it. A jump is a
+  step the reference's velocity does not explain by more than a smooth path could
+  (:func:`shape_jumps`: the test scales with T). ``learning`` without the model inverse can
+  only draw what lies in Q's band: its S-curves last at least
+  :data:`LEARNING_SHAPE_CYCLES` / ``learning_bandwidth_hz``, so that what Q drops of them, which
+  would ring over the whole period ahead of the edge, stays below 5e-4 of the jump.
 
 The learned table can be kept: :meth:`FeedForwardController.learned` returns it with what it
 was learned for (:class:`LearnedTable`: the period's reference, T, the mode, the design), saved
@@ -87,7 +92,7 @@ from piezo_stage_ros.core.model.linear import LinearPlant
 __all__ = ['FeedForwardController', 'FeedForwardParams', 'HysteresisInverse', 'LearnedTable',
            'MIN_PERIOD_SAMPLES', 'MODES', 'PhaseLearning', 'PreviewInverse', 'TABLE_FORMAT',
            'TABLE_META_KEY', 'TABLE_VERSION', 'boundary_weights', 'check_learning_period',
-           'CLIP_SETTLE_SAMPLES', 'clipped_excess',
+           'CLIP_SETTLE_SAMPLES', 'clipped_excess', 'LEARNING_SHAPE_CYCLES',
            'kept_harmonics',
            'learning_columns', 'learning_convergence', 'make_hysteresis_inverse',
            'period_harmonics', 'phase_learning_convergence', 'phase_windows',
@@ -99,6 +104,11 @@ MODES = ('none', 'inverse', 'learning', 'inverse_learning')
 
 #: Samples whose errors enter the learning update together (one correlation each run).
 LEARN_CHUNK = 16
+
+#: ``learning`` without the model inverse shapes a jump over at least this many periods of
+#: ``learning_bandwidth_hz``: the quintic S-curve's content above Q is then below 5e-4 of the
+#: jump (3 cycles: 1e-3; 1.2: 2e-2), the part the table cannot learn.
+LEARNING_SHAPE_CYCLES = 3.6
 
 #: Samples after a command the amplifier's range clipped whose errors are not learned: the
 #: clip's own transient (the closed loop settles from a lost input within a few samples at the
@@ -121,9 +131,12 @@ class FeedForwardParams(Params):
     block_samples: int = param(256, unit='samples', description='Aperiodic references: the '
                                'feed-forward is computed this many samples at a time.', low=16,
                                high=100000)
-    transition_s: float = param(1e-3, unit='s', description='Inverse modes: each ideal jump of '
-                                'the reference is replaced by a quintic S-curve of this '
-                                'duration starting at it (0: jumps are passed on as they are).',
+    transition_s: float = param(1e-3, unit='s', description='Each ideal jump of the reference '
+                                'is replaced by a quintic S-curve of this duration starting at '
+                                'it, which the feedback follows and the learning learns (0: '
+                                'jumps are passed on as they are); learning without the '
+                                'inverse takes at least 3.6 / learning_bandwidth_hz (what Q '
+                                'drops of the curve stays below 5e-4 of the jump).',
                                 low=0.0, high=0.1)
     learning_gain: float = param(0.5, unit='-', description='Learning gain gamma: the share of '
                                  "a period's error removed at the next period on the design "
@@ -1223,9 +1236,17 @@ def shape_jumps(x: FloatArray, v: FloatArray, sample_time_s: float, transition_s
     """
     Replace each ideal jump of a sampled reference by a quintic S-curve starting at it.
 
-    A jump is a step x_{k+1} - x_k that its velocity does not explain by more than
-    ``tolerance_m``. Returns the shaped position and velocity and the number of jumps; the
-    reference is unchanged outside [t_jump, t_jump + transition_s] of each jump.
+    A jump is a step x_{k+1} - x_k that its velocity does not explain. The trapezoid
+    T (v_k + v_{k+1}) / 2 leaves T^3 / 12 times the third derivative on a smooth path, that is
+    T d2 / 12 with d2 the velocity's second difference around the step (the larger of its
+    two), and at most T |v_{k+1} - v_k| / 2 at a corner of the velocity (a triangle's turn),
+    where that difference is as large as d2; a step off by more than twice
+    T (min(|v_{k+1} - v_k|, d2) / 2 + d2 / 12) plus ``tolerance_m`` is a jump. The test
+    scales with the sample time and the reference's own motion: a fast smooth reference (a
+    sine of a fifth of the sample rate) is never taken for jumps, a jump of a reference at
+    rest is found down to ``tolerance_m``, one riding on a moving reference above the
+    motion's own allowance. Returns the shaped position and velocity and the number of
+    jumps; the reference is unchanged outside [t_jump, t_jump + transition_s] of each jump.
     """
     x = np.asarray(x, dtype=np.float64)
     v = np.asarray(v, dtype=np.float64)
@@ -1233,7 +1254,14 @@ def shape_jumps(x: FloatArray, v: FloatArray, sample_time_s: float, transition_s
         return x, v, 0
     explained = 0.5 * sample_time_s * (v[1:] + v[:-1])
     jump = np.diff(x) - explained
-    where = np.flatnonzero(np.abs(jump) > tolerance_m)
+    dv = np.abs(np.diff(v))
+    turn = dv.copy()  # two samples: no second difference, a corner's bound
+    if len(v) >= 3:
+        second = np.abs(np.diff(v, 2))
+        turn[:-1] = second
+        turn[1:] = np.maximum(turn[1:], second)
+    smooth = 2.0 * sample_time_s * (0.5 * np.minimum(dv, turn) + turn / 12.0)
+    where = np.flatnonzero(np.abs(jump) > tolerance_m + smooth)
     if where.size == 0:
         return x, v, 0
     xs, vs = x.copy(), v.copy()
@@ -1301,6 +1329,11 @@ class FeedForwardController:
         self._vmax = float(output_max_v)
         self._inverse_on = params.inverse
         self._learning_on = params.learning
+        #: The S-curve's duration a jump is shaped over [s] (module doc, Jumps).
+        self.transition_s = params.transition_s
+        if self._learning_on and not self._inverse_on and params.transition_s > 0.0:
+            self.transition_s = max(params.transition_s,
+                                    LEARNING_SHAPE_CYCLES / params.learning_bandwidth_hz)
         self.plant_inverse = PreviewInverse(plant, self._t, params.preview_samples)
         # the plant seen from v_lin: c G with the compensator (inverse modes), about c G
         # (hysteresis slope) without
@@ -1494,10 +1527,10 @@ class FeedForwardController:
             u = u - share + self._lw[i]
         if self._learning_on:
             if not n:
-                return self._phase_step(k, u, position_m - xd)
+                return self._phase_step(k, u, position_m - x_ref)
             table = self._ll[i]
             u += table
-            e = position_m - xd
+            e = position_m - x_ref  # the shaped path, the one the feedback follows
             self._sq += e * e
             if k >= self._learn_from:
                 if not self._holding:
@@ -1702,9 +1735,9 @@ class FeedForwardController:
         return x, v
 
     def _shape(self, x: FloatArray, v: FloatArray) -> tuple[FloatArray, FloatArray]:
-        if not self._inverse_on:
+        if not (self._inverse_on or self._learning_on):
             return x, v
-        xs, vs, _ = shape_jumps(x, v, self._t, self.params.transition_s)
+        xs, vs, _ = shape_jumps(x, v, self._t, self.transition_s)
         return xs, vs
 
     def _prepare_tables(self) -> None:
@@ -1728,8 +1761,7 @@ class FeedForwardController:
         """Compute the feed-forward of samples k .. k + block - 1 (aperiodic references)."""
         inv = self.plant_inverse
         size = self.params.block_samples
-        half = int(math.ceil(self.params.transition_s / self._t)) + 2 \
-            if self._inverse_on else 0
+        half = int(math.ceil(self.transition_s / self._t)) + 2
         first = k - inv.back - half
         raw_x, raw_v = self._evaluate(first, size + inv.back + inv.lead + 2 * half)
         xs, vs = self._shape(raw_x, raw_v)

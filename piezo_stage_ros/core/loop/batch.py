@@ -793,7 +793,7 @@ class FeedForwardBatch:
                     self._holding = True
                     self.ctrl.hold_estimates(True)
                 phase.record(k, np.where(k - self._clip_k > CLIP_SETTLE_SAMPLES,
-                                         position_m - xd, self._leak * value))
+                                         position_m - x_ref, self._leak * value))
             self.periods_learned = phase.periods_learned
             v = self._output(u)
             if self._clipped.any():
@@ -807,7 +807,7 @@ class FeedForwardBatch:
                     self._holding = True
                     self.ctrl.hold_estimates(True)
                 self._errors[i] = np.where(k - self._clip_k > CLIP_SETTLE_SAMPLES,
-                                           position_m - xd, self._leak * table)
+                                           position_m - x_ref, self._leak * table)
                 if i % LEARN_CHUNK == LEARN_CHUNK - 1 or i == n - 1:
                     self._accumulate(i + 1)
             if i == n - 1 and k >= self._learn_from:
