@@ -113,6 +113,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Write the learning feed-forward's table at the end of the run to FILE "
                    '(.npz, docs/controllers.md); controller_node feedforward.table_file loads '
                    'it. A bag of the run holds it too (analyze --export-table).')
+    p.add_argument('--line-rate-change', metavar='S:HZ', dest='line_rate_change',
+                   help='Change the line rate of a sine or triangle to HZ at S seconds (a '
+                   'whole number of its periods): the new line starts at its own t = 0 and '
+                   'the feed-forward binds it there (the model inverse from its first sample, '
+                   'the learning afresh).')
     p.add_argument('--bag-topics', choices=('samples', 'block', 'both'), default='samples',
                    help='What the bag holds: the per-sample topics (default), the block topic '
                    'stage/block (many samples per message, as a real-time loop records them; '
@@ -193,6 +198,24 @@ def _enforce(report: Any, action: str) -> None:
               file=sys.stderr)
 
 
+def _line_rate_change(text: str, params: Any, first: Any) -> Any:
+    """Return the trajectory of ``--line-rate-change S:HZ``: ``first``, then at S the new rate."""
+    from piezo_stage_ros.core.loop.switched import LineRateChange
+    from piezo_stage_ros.core.loop.trajectories import make_trajectory
+    try:
+        at_text, hz_text = text.split(':')
+        at_s, hz = float(at_text), float(hz_text)
+    except ValueError:
+        raise ParameterError('--line-rate-change', text, 'S:HZ, two numbers') from None
+    if params.kind not in ('sine', 'triangle'):
+        raise ParameterError('--line-rate-change', text, 'a sine or triangle trajectory',
+                             f'cannot change the rate of a {params.kind}')
+    if not (hz > 0.0 and math.isfinite(hz)):
+        raise ParameterError('--line-rate-change', hz, '(0, inf) Hz')
+    second = make_trajectory(params.with_flat({f'{params.kind}.frequency_hz': hz}))
+    return LineRateChange(first, second, at_s)
+
+
 def _limits_text(controller: Any, samples: int) -> str:
     """Return the run's report of the limits a feed-forward met ('' when none was active)."""
     clipped = getattr(controller, 'clipped_samples', 0)
@@ -217,9 +240,11 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
     from piezo_stage_ros.core.loop.trajectories import make_trajectory
 
     stage, ctrl, traj = loop.stage, loop.controller, loop.trajectory
-    trajectory = make_trajectory(traj)
+    trajectory: Any = make_trajectory(traj)
     report = check_stability(ctrl, loop.design_plant, stage.sample_time_s,
                              options=loop.stability, period_s=trajectory.period_s, stage=stage)
+    if args.line_rate_change is not None:
+        trajectory = _line_rate_change(args.line_rate_change, traj, trajectory)
     text = report.text()
     _enforce(report, loop.stability.action)
     duration = args.duration if args.duration is not None else default_duration_s(trajectory,
@@ -251,14 +276,15 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
                 writer.write_chunk(chunk)
             record = run_one(stage, ctrl, traj, duration_s=duration, chunk_callback=stream,
                              meta=meta, design_plant=loop.design_plant,
-                             diagnostics_every=every, built=controllers.append)
+                             diagnostics_every=every, built=controllers.append,
+                             trajectory=trajectory)
             if learning:
                 writer.set_meta({**writer.meta,
                                  TABLE_META_KEY: controllers[0].learned().fields()})
     else:
         record = run_one(stage, ctrl, traj, duration_s=duration, meta=meta,
                          design_plant=loop.design_plant, diagnostics_every=every,
-                         built=controllers.append)
+                         built=controllers.append, trajectory=trajectory)
     wall = time.perf_counter() - start
     if args.save_table is not None:
         table = controllers[0].learned()

@@ -1358,6 +1358,11 @@ class FeedForwardController:
             self._share_notch = type(notch)(notch.num, notch.den)
         self._share_fresh = True
         self._trajectory: Trajectory | None = None
+        # the segments of a trajectory still to come: (start [s], trajectory), and when the
+        # next one starts [samples from the present segment's start]
+        self._segments: list[tuple[float, Trajectory]] = []
+        self._segment_start_k = 0
+        self._switch_in = 0
         self.mismatches = 0
         self.periods_learned = 0
         self.last_period_rms_m = math.nan
@@ -1414,8 +1419,54 @@ class FeedForwardController:
         """
         Take the reference ahead from ``trajectory`` (t = 0 at the first step after reset).
 
-        A new trajectory starts the learned table afresh.
+        A new trajectory starts the learned table afresh. A trajectory of segments (a line
+        rate changed during the run, :class:`~piezo_stage_ros.core.loop.switched.
+        LineRateChange`) is bound one segment at a time, each at the sample it starts
+        (:meth:`switch`).
         """
+        segments = getattr(trajectory, 'segments', None)
+        self._segments = list(segments[1:]) if segments else []
+        self._segment_start_k = 0
+        self._switch_in = self._sample_at(self._segments[0][0]) if self._segments else 0
+        self._bind_one(segments[0][1] if segments else trajectory, load_file=True)
+
+    def _sample_at(self, time_s: float) -> int:
+        """Return the first sample k with k T >= ``time_s`` (the loop's own rounding)."""
+        k = max(int(math.ceil(time_s / self._t)) - 1, 0)
+        while k * self._t < time_s:
+            k += 1
+        return k
+
+    def switch(self, trajectory: Trajectory) -> None:
+        """
+        Bind a new trajectory from the next step on, at its t = 0, without a reset.
+
+        A new line rate: the feedback, the inverse hysteresis and the estimates go on; the
+        model inverse of the new reference acts from its first sample and the learned table
+        starts afresh for the new period (a table file is not loaded again: it belongs to the
+        first trajectory). Nothing is refused that :meth:`bind` of the first one accepted,
+        except a period the learning cannot use (its error names the range).
+        """
+        self._segments = []
+        self._bind_one(trajectory, load_file=False)
+        self._k = 0
+        self._seen_k = -1
+        self._hold(False)
+
+    def _next_segment(self, k: int) -> int:
+        """Bind the next segment of the trajectory at sample ``k``; return k in it."""
+        start_s, trajectory = self._segments.pop(0)
+        start_k = self._sample_at(start_s)
+        local = k - (start_k - self._segment_start_k)
+        rest = self._segments
+        self.switch(trajectory)
+        self._segments = rest
+        self._segment_start_k = start_k
+        self._switch_in = self._sample_at(rest[0][0]) - start_k if rest else 0
+        return local
+
+    def _bind_one(self, trajectory: Trajectory, *, load_file: bool) -> None:
+        """Bind one trajectory: its tables, a fresh table, the table file when asked."""
         self._trajectory = trajectory
         period = self.params.period_s or getattr(trajectory, 'period_s', None) or 0.0
         n, samples = whole_period(period, self._t)
@@ -1452,7 +1503,7 @@ class FeedForwardController:
         self._prepare_tables()
         self.design = self.design_summary()
         self.table_source = ''
-        if self.params.table_file:
+        if self.params.table_file and load_file:
             if not self._learning_on:
                 raise ParameterError('feedforward.table_file', self.params.table_file,
                                      "'' unless feedforward.mode learns",
@@ -1496,6 +1547,8 @@ class FeedForwardController:
         the feedback controller.
         """
         k = self._k
+        if self._segments and k >= self._switch_in:
+            k = self._next_segment(k)
         self._k = k + 1
         if self._trajectory is None:
             return self._plain(position_m, reference_m, reference_velocity_mps, dt_s)
@@ -1553,6 +1606,7 @@ class FeedForwardController:
         phase = self._phase
         assert phase is not None
         value = float(phase.play(k)[0])
+        self.periods_learned = phase.periods_learned
         if k >= self._next_period_k:
             self._end_phase_period(k)
         self._sq += e * e
@@ -1598,7 +1652,6 @@ class FeedForwardController:
             self.last_period_rms_m = math.sqrt(self._sq / self._sq_count)
         self._sq = 0.0
         self._sq_count = 0
-        self.periods_learned = phase.periods_learned
         self.limited_updates = phase.limited
         self._next_period_k = phase.period_start(period_index(k, phase.r) + 1)
 

@@ -658,6 +658,11 @@ class FeedForwardBatch:
     def __init__(self, params: ControllerParams, ctrl: ControllerBatch,
                  plant: LinearPlant | None, hysteresis: HysteresisModel,
                  trajectory: Trajectory) -> None:
+        if getattr(trajectory, 'segments', None):
+            raise ParameterError('trajectory', type(trajectory).__name__,
+                                 'one trajectory for the whole run',
+                                 'changes its line rate: the batched loop binds one reference '
+                                 '(run one closed loop per stage)')
         template = build_controller(params, ctrl.sample_time_s, plant, hysteresis)
         assert isinstance(template, FeedForwardController)
         self.template = template
