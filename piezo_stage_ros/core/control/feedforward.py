@@ -804,6 +804,7 @@ class PhaseLearning:
                  members: int, limit_v: float, start_periods: int) -> None:
         self.samples = float(samples)
         self.r = 1.0 / self.samples
+        self._starts: dict[int, int] = {}
         self.harmonics = np.asarray(harmonics, dtype=np.float64)
         if self.harmonics.size and 2.0 * float(np.max(self.harmonics)) >= self.samples:
             raise ParameterError('learned harmonics', float(np.max(self.harmonics)),
@@ -826,6 +827,9 @@ class PhaseLearning:
         self.offset = np.zeros(self.members)
         self._sums: dict[int, FloatArray] = {}
         self._errors = np.zeros((LEARN_CHUNK, self.members))
+        self._error_column = self._errors[:, 0]
+        #: Kept instead of the error after a clip, times the table [m/V] (the wrapper's).
+        self.leak = 0.0
         # what the amplifier's range clipped off the table (:meth:`record_excess`): its
         # harmonics are taken out of the table at the period's end
         self._excess = np.zeros((LEARN_CHUNK, self.members))
@@ -833,6 +837,7 @@ class PhaseLearning:
         self._excess_run = False
         self._phasors = np.zeros((2 * size, LEARN_CHUNK))
         self._play = np.zeros((LEARN_CHUNK, self.members))
+        self._play_one: list[float] = []
         self._run_start = 0
         self._run_end = 0  # no run yet
         self._run_period = 0
@@ -847,11 +852,17 @@ class PhaseLearning:
 
     def period_start(self, period: int) -> int:
         """Return the first sample of period ``period`` (the first k with k T / P >= it)."""
+        cached = self._starts.get(period)
+        if cached is not None:
+            return cached
+        if len(self._starts) > 8:
+            self._starts.clear()
         k = max(int(math.ceil(period * self.samples)) - 1, 0)
         while period_index(k, self.r) < period:
             k += 1
         while k > 0 and period_index(k - 1, self.r) >= period:
             k -= 1
+        self._starts[period] = k
         return k
 
     def reset(self) -> None:
@@ -877,6 +888,25 @@ class PhaseLearning:
             self._start_run(k)
         row: FloatArray = self._play[k - self._run_start]
         return row
+
+    def learn_one(self, k: int, error: float, masked: bool) -> float:
+        """
+        Return the first member's table at sample ``k`` [V] and keep the sample's error [m].
+
+        :meth:`play` and :meth:`record` of one member, as floats (the real-time step); the
+        error is not kept before :attr:`learn_from`, and ``masked`` keeps
+        :attr:`leak` times the table instead (an error a clip made).
+        """
+        if self._stale or not self._run_start <= k < self._run_end:
+            self._start_run(k)
+            self._play_one = self._play[:, 0].tolist()
+        i = k - self._run_start
+        value = self._play_one[i]
+        if k >= self.learn_from:
+            self._error_column[i] = self.leak * value if masked else error
+            if i >= self._recorded:
+                self._recorded = i + 1
+        return value
 
     def record(self, k: int, error: Any) -> None:
         """Keep the error of sample ``k`` [m] (after :meth:`play` of the same sample)."""
@@ -1372,6 +1402,7 @@ class FeedForwardController:
         # a period that is not a whole number of samples: the table on its phase
         self._phase: PhaseLearning | None = None
         self._next_period_k = 0
+        self._sync_k = 0
         self._sq_count = 0
         self._last_learned = 0.0
         # the amplifier's range: the last sample it clipped, the linear input asked then, and
@@ -1605,17 +1636,15 @@ class FeedForwardController:
         """Return the command of sample ``k`` with the table of a period of any length."""
         phase = self._phase
         assert phase is not None
-        value = float(phase.play(k)[0])
-        self.periods_learned = phase.periods_learned
+        value = phase.learn_one(k, e, k - self._clip_k <= CLIP_SETTLE_SAMPLES)
         if k >= self._next_period_k:
             self._end_phase_period(k)
+        elif k == self._sync_k:  # a period's update is applied one sample after its end
+            self.periods_learned = phase.periods_learned
         self._sq += e * e
         self._sq_count += 1
-        if k >= phase.learn_from:
-            if not self._holding:
-                self._hold(True)
-            phase.record(k, e if k - self._clip_k > CLIP_SETTLE_SAMPLES
-                         else self._leak * value)
+        if not self._holding and k >= phase.learn_from:
+            self._hold(True)
         self._last_learned = value
         v = self._output(u + value)
         if self._clip_k == k:
@@ -1652,7 +1681,9 @@ class FeedForwardController:
             self.last_period_rms_m = math.sqrt(self._sq / self._sq_count)
         self._sq = 0.0
         self._sq_count = 0
+        self.periods_learned = phase.periods_learned
         self.limited_updates = phase.limited
+        self._sync_k = k + 1
         self._next_period_k = phase.period_start(period_index(k, phase.r) + 1)
 
     def _output(self, u: float) -> float:
@@ -1883,8 +1914,11 @@ class FeedForwardController:
         """Return the learning of a period of ``samples`` samples (any length), M members."""
         filt = self._learning_filter(samples)
         kept = np.flatnonzero(filt != 0.0)
-        return PhaseLearning(filt[kept], kept.astype(np.float64), samples, members,
-                             self.params.learning_limit_v, self.params.learning_start_periods)
+        table = PhaseLearning(filt[kept], kept.astype(np.float64), samples, members,
+                              self.params.learning_limit_v,
+                              self.params.learning_start_periods)
+        table.leak = self._leak
+        return table
 
     def _learning_filter(self, n: float) -> ComplexArray:
         """Return gamma Q / P_s on the harmonics of a period of n samples (0 where Q drops)."""
