@@ -376,3 +376,30 @@ def test_the_controller_logic_binds_a_new_trajectory_where_it_starts() -> None:
     assert ctrl.mismatches == 0
     assert ctrl.learned().period_s == 1 / 137.0
     assert ctrl.periods_learned >= 3
+
+
+def test_a_line_rate_above_the_nyquist_frequency_is_refused_in_every_mode() -> None:
+    for mode in ('inverse', 'learning'):
+        # a sine at 5 kHz is two samples a period: drawn at its zero crossings, it is nothing
+        with pytest.raises(ParameterError, match=r"'trajectory period'.*is 2 samples.*allowed: "
+                           r'> 0.0002 s \(a line rate below the Nyquist frequency, 5000 Hz\)'):
+            _bound(mode, {'kind': 'sine', 'sine.frequency_hz': 5000.0})
+        with pytest.raises(ParameterError, match=r"'feedforward.period_s'.*1.5 samples"):
+            _bound(mode, {'kind': 'sine'}, **{'feedforward.period_s': 1.5e-4})
+
+
+def test_a_70_hz_triangle_is_learned_in_the_middle_of_its_lines() -> None:
+    # 142.86 samples a line pair; its corners are turns of the velocity, not jumps (nothing
+    # shaped): the middle 80 % of each line, trace and retrace, within 2 nm
+    tp = TrajectoryParams.from_flat({**LOOP.trajectory.to_flat(), 'kind': 'triangle',
+                                     'triangle.frequency_hz': 70.0})
+    rec = experiments.run_one(LOOP.stage, _controller('inverse_learning'), tp, duration_s=1.0,
+                              design_plant=LOOP.design_plant)
+    period = 1.0 / 70.0
+    t = rec.time_s - rec.time_s[0]
+    phase = ((t - period / 4) % (period / 2)) / (period / 2)
+    middle = (phase > 0.1) & (phase < 0.9) & (t >= 0.5)
+    e = rec.position_m - rec.reference_m
+    assert float(np.sqrt(np.mean(e[middle] ** 2))) <= 2e-9
+    assert rec.true_position_m is not None  # and the true position everywhere in them
+    assert float(np.max(np.abs((rec.true_position_m - rec.reference_m)[middle]))) <= 2e-9

@@ -1501,6 +1501,13 @@ class FeedForwardController:
         self._trajectory = trajectory
         period = self.params.period_s or getattr(trajectory, 'period_s', None) or 0.0
         n, samples = whole_period(period, self._t)
+        if 0.0 < period <= 2.0 * self._t:
+            raise ParameterError('feedforward.period_s' if self.params.period_s else
+                                 'trajectory period', period,
+                                 f'> {2.0 * self._t:g} s (a line rate below the Nyquist '
+                                 f'frequency, {0.5 / self._t:g} Hz)',
+                                 f'is {period / self._t:.3g} samples: the sample rate cannot '
+                                 'draw it')
         if self._learning_on:
             check_learning_period(period, self._t)
         exact = n >= 4
