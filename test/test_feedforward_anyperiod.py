@@ -403,3 +403,34 @@ def test_a_70_hz_triangle_is_learned_in_the_middle_of_its_lines() -> None:
     assert float(np.sqrt(np.mean(e[middle] ** 2))) <= 2e-9
     assert rec.true_position_m is not None  # and the true position everywhere in them
     assert float(np.max(np.abs((rec.true_position_m - rec.reference_m)[middle]))) <= 2e-9
+
+
+def test_commands_ahead_at_a_period_that_is_not_whole_follow_the_phase_table() -> None:
+    # the servo with commands ahead: at 137 Hz the learned table is read ahead on the period's
+    # phase; the commands predicted for the next 32 samples against those then given
+    import dataclasses
+
+    from piezo_stage_ros.bench.servo import loop_config, make_servo
+    from piezo_stage_ros.hardware.pacing import Pacer
+    from test_commands_ahead import _Clock, PERIOD_NS
+    loop = loop_config()
+    ff = dataclasses.replace(loop.controller.feedforward, mode='inverse_learning')
+    loop = dataclasses.replace(
+        loop, controller=dataclasses.replace(loop.controller, feedforward=ff),
+        trajectory=loop.trajectory.with_flat({'kind': 'sine', 'sine.frequency_hz': 137.0}))
+    servo = make_servo(loop, 0.12)
+    servo.commands_ahead = 32
+    clock = _Clock()
+    servo.pacer = Pacer(PERIOD_NS, clock=clock, sleep=clock.sleep, spin_ns=0)
+    predictions = {}
+    servo.start()
+    while servo.step():
+        if servo.index in (700, 725, 750, 1100):
+            predictions[servo.index] = np.array(servo.plant._ahead)
+    commands = np.array([s.command_v for s in servo.drain()])
+    assert servo.controller is not None
+    assert servo.controller.controller.phase_table is not None
+    for k, predicted in predictions.items():
+        actual = commands[k + 1:k + 33]
+        held = np.abs(actual - commands[k]).max()
+        assert np.abs(predicted - actual).max() < 0.05 * held

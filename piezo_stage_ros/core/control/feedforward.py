@@ -1435,6 +1435,9 @@ class FeedForwardController:
         self._lw: list[float] = []
         self._block_start = 0
         self._filter_state: Any = None
+        # the next block, computed ahead for predict: (start, tables, filter state before it)
+        self._block_ahead: tuple[int, tuple[FloatArray, FloatArray, FloatArray, FloatArray],
+                                 Any] | None = None
         self._k = 0
         self._matched = False
         self._u = 0.0
@@ -1735,8 +1738,9 @@ class FeedForwardController:
         replaces) on the shaped reference, the model inverse and the learned table; the
         feedback part held, the inverse hysteresis taken with its secant from the present
         state to the largest change ahead (one solve, not one a sample). A periodic reference
-        wraps around its period; an aperiodic one is read up to the end of the block computed,
-        then held. Held throughout when the last step was feedback alone (no reference bound,
+        wraps around its period; an aperiodic one (and one whose period is not a whole number
+        of samples) is read on into the next block, computed ahead once when needed. Held
+        throughout when the last step was feedback alone (no reference bound,
         or not the one bound).
         """
         v = self._u
@@ -1746,6 +1750,12 @@ class FeedForwardController:
         x, xv, wl = self._ahead_tables(count)
         n = self._period_n
         i = k % n if n else k - self._block_start
+        if not n and i + 1 + count > len(x):
+            # an aperiodic reference's block ends within the count: the next one, ahead
+            _, nx, nv, nw = self._peek_block()
+            x = np.concatenate([x, nx])
+            xv = np.concatenate([xv, nv])
+            wl = np.concatenate([wl, nw if self._inverse_on else np.zeros(len(nw))])
         stop = min(i + 1 + count, len(x))
         a, b = getattr(self.inner, 'reference_gains', lambda: (0.0, 0.0))()
         if self._inverse_on:
@@ -1769,7 +1779,7 @@ class FeedForwardController:
         np.minimum(ahead, self._vmax, out=ahead)
         np.maximum(ahead, self._vmin, out=ahead)
         if len(ahead) < count:
-            # an aperiodic reference's block ends here: its last prediction is held
+            # more than a block ahead: the last prediction is held
             ahead = np.concatenate([ahead, np.full(count - len(ahead),
                                                    ahead[-1] if len(ahead) else v)])
         return ahead
@@ -1846,10 +1856,32 @@ class FeedForwardController:
             return
         self._block_start = 0
         self._filter_state = None
+        self._block_ahead = None
         self._lx = []
 
     def _next_block(self, k: int) -> None:
-        """Compute the feed-forward of samples k .. k + block - 1 (aperiodic references)."""
+        """Install the feed-forward of samples k .. k + block - 1 (aperiodic references)."""
+        ahead = self._block_ahead
+        self._block_ahead = None
+        if ahead is not None and ahead[0] == k:
+            tables = ahead[1]
+        else:
+            if ahead is not None:
+                self._filter_state = ahead[2]  # the block read ahead was not used
+            tables = self._compute_block(k)
+        self._set_tables(*tables)
+        self._block_start = k
+
+    def _peek_block(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Return the next block's tables ahead of time (:meth:`predict` at a block's end)."""
+        k = self._block_start + len(self._lx)
+        if self._block_ahead is None or self._block_ahead[0] != k:
+            state = self._filter_state
+            self._block_ahead = (k, self._compute_block(k), state)
+        return self._block_ahead[1]
+
+    def _compute_block(self, k: int) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Return x_d, shaped x_d, x_d', w of samples k .. k + block - 1 (the filter goes on)."""
         inv = self.plant_inverse
         size = self.params.block_samples
         half = int(math.ceil(self.transition_s / self._t)) + 2
@@ -1864,8 +1896,7 @@ class FeedForwardController:
                 self._filter_state = inv.start(float(seq[0]))
             w, self._filter_state = inv.block(seq, self._filter_state)
             w = w / self.slope
-        self._set_tables(raw_x[core], xs[core], vs[core], w)
-        self._block_start = k
+        return raw_x[core], xs[core], vs[core], w
 
     def _set_tables(self, x_raw: FloatArray, x: FloatArray, v: FloatArray,
                     w: FloatArray) -> None:
