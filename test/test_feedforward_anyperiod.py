@@ -410,24 +410,14 @@ def test_commands_ahead_at_a_period_that_is_not_whole_follow_the_phase_table() -
     # phase; the commands predicted for the next 32 samples against those then given
     import dataclasses
 
-    from piezo_stage_ros.bench.servo import loop_config, make_servo
-    from piezo_stage_ros.hardware.pacing import Pacer
-    from test_commands_ahead import _Clock, PERIOD_NS
+    from piezo_stage_ros.bench.servo import loop_config
+    from test_commands_ahead import servo_predictions
     loop = loop_config()
     ff = dataclasses.replace(loop.controller.feedforward, mode='inverse_learning')
     loop = dataclasses.replace(
         loop, controller=dataclasses.replace(loop.controller, feedforward=ff),
         trajectory=loop.trajectory.with_flat({'kind': 'sine', 'sine.frequency_hz': 137.0}))
-    servo = make_servo(loop, 0.12)
-    servo.commands_ahead = 32
-    clock = _Clock()
-    servo.pacer = Pacer(PERIOD_NS, clock=clock, sleep=clock.sleep, spin_ns=0)
-    predictions = {}
-    servo.start()
-    while servo.step():
-        if servo.index in (700, 725, 750, 1100):
-            predictions[servo.index] = np.array(servo.plant._ahead)
-    commands = np.array([s.command_v for s in servo.drain()])
+    predictions, commands, servo = servo_predictions(loop, 0.12, (700, 725, 750, 1100))
     assert servo.controller is not None
     assert servo.controller.controller.phase_table is not None
     for k, predicted in predictions.items():
