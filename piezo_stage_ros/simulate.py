@@ -245,6 +245,10 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
                              options=loop.stability, period_s=trajectory.period_s, stage=stage)
     if args.line_rate_change is not None:
         trajectory = _line_rate_change(args.line_rate_change, traj, trajectory)
+        # the learning after the change: its own period's check
+        after = check_stability(ctrl, loop.design_plant, stage.sample_time_s,
+                                options=loop.stability, period_s=trajectory.second.period_s,
+                                stage=stage).learning
     text = report.text()
     _enforce(report, loop.stability.action)
     duration = args.duration if args.duration is not None else default_duration_s(trajectory,
@@ -318,6 +322,8 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
     print(f'stability check: {"stable" if report.stable else "UNSTABLE"}')
     if report.learning is not None:
         print(f'learning check: {report.learning.text()}')
+    if args.line_rate_change is not None and after is not None:
+        print(f'learning check after the line-rate change: {after.text()}')
     print(f'simulated {sim:g} s ({summary.samples} samples) in {wall:.3f} s wall '
           f'({out["realtime_factor"]:.1f}x real time)')
     print(f'steady state from {summary.steady_state_start_s:g} s '

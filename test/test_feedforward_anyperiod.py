@@ -19,6 +19,7 @@ the period's harmonics, its convergence and its check, the wrapper, table files.
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -424,3 +425,21 @@ def test_commands_ahead_at_a_period_that_is_not_whole_follow_the_phase_table() -
         actual = commands[k + 1:k + 33]
         held = np.abs(actual - commands[k]).max()
         assert np.abs(predicted - actual).max() < 0.05 * held
+
+
+def test_simulate_changes_the_line_rate_and_checks_the_new_period(capsys) -> None:
+    from piezo_stage_ros import simulate
+    # the figure: within 50 lines of the new rate (0.2 + 50 / 137 s), <= 1 nm
+    assert simulate.main(['--trajectory', 'sine', '--frequency', '100', '--duration', '0.7',
+                          '--feedforward', 'inverse_learning', '--line-rate-change',
+                          '0.2:137', '--steady-state-start', '0.565', '--json']) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out['e_rms_m'] <= 1e-9 and out['e_rms_true_m'] <= 1e-9
+    assert simulate.main(['--trajectory', 'sine', '--frequency', '100', '--duration', '0.4',
+                          '--feedforward', 'inverse_learning', '--line-rate-change',
+                          '0.2:137']) == 0
+    assert 'learning check after the line-rate change: Learning (gamma 0.5, Q to 1200 Hz: 8 ' \
+        'harmonics of 0.00729927 s' in capsys.readouterr().out
+    assert simulate.main(['--trajectory', 'sine', '--frequency', '100', '--duration', '0.4',
+                          '--line-rate-change', '0.205:137']) != 0
+    assert 'whole number of the first line period' in capsys.readouterr().err
