@@ -351,6 +351,12 @@ def test_a_line_rate_change_is_refused_by_the_batch_and_checked_at_its_time() ->
         LineRateChange(sine, sine, 0.015)
     with pytest.raises(ParameterError, match=r'line_rate_change.at_s'):
         LineRateChange(sine, sine, 0.0)
+    # 73 periods of 137 Hz end between two samples: the new line would start between them
+    fast = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine',
+                                                       'sine.frequency_hz': 137.0}))
+    with pytest.raises(ParameterError, match=r'line_rate_change.at_s.*a whole number of '
+                       r'samples \(T = 0.0001 s\)'):
+        _bound('inverse', {'kind': 'sine'}).bind(LineRateChange(fast, sine, 73 / 137.0))
 
 
 def test_the_controller_logic_binds_a_new_trajectory_where_it_starts() -> None:
@@ -443,3 +449,12 @@ def test_simulate_changes_the_line_rate_and_checks_the_new_period(capsys) -> Non
     assert simulate.main(['--trajectory', 'sine', '--frequency', '100', '--duration', '0.4',
                           '--line-rate-change', '0.205:137']) != 0
     assert 'whole number of the first line period' in capsys.readouterr().err
+
+
+def test_learning_alone_starts_a_new_line_rate_from_the_design_models_input() -> None:
+    # without the model inverse in the loop, the new table starts at the design model's input
+    # for the new reference (in Q's band): the first new line is not feedback alone
+    learned = _rate_change('learning', 100.0, 137.0, 0.5, 50)
+    inverse = _rate_change('inverse', 100.0, 137.0, 0.5, 2)
+    assert learned[0] <= inverse[0]
+    assert max(learned[-5:]) <= 1e-9

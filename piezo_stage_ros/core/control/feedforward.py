@@ -1459,6 +1459,12 @@ class FeedForwardController:
         (:meth:`switch`).
         """
         segments = getattr(trajectory, 'segments', None)
+        for start_s, _ in (segments or ())[1:]:
+            k = round(start_s / self._t)
+            if abs(k * self._t - start_s) > 1e-9 * self._t:
+                raise ParameterError('line_rate_change.at_s', start_s,
+                                     f'a whole number of samples (T = {self._t:g} s)',
+                                     'would start the new line between two samples')
         self._segments = list(segments[1:]) if segments else []
         self._segment_start_k = 0
         self._switch_in = self._sample_at(self._segments[0][0]) if self._segments else 0
@@ -1486,6 +1492,43 @@ class FeedForwardController:
         self._k = 0
         self._seen_k = -1
         self._hold(False)
+        if self._learning_on and not self._inverse_on:
+            self._seed_from_model()
+
+    def _seed_from_model(self) -> None:
+        """
+        Start ``learning`` (no model inverse) from the design model's input for the reference.
+
+        The table converges to what the loop lacks for the reference, which on the design
+        model is its inverse, X_h / (c G(z_h)), less the RAC's own share at its initial
+        estimates, k (theta_0 X_h + phi_0 V_h) through the notch; Q's harmonics of that are the
+        table a new line rate starts from, so that its first line is not feedback alone.
+        """
+        points = self.table_points()
+        samples = self._phase.samples if self._phase is not None else float(points)
+        x, v = self._grid_reference() if self._phase is not None else \
+            (np.asarray(self._lx, dtype=np.float64), np.asarray(self._lv, dtype=np.float64))
+        if self._phase is not None:
+            x, v = self._shape_periodic(x, v)
+        z = np.exp(2j * math.pi * np.arange(points // 2 + 1) / samples)
+        kept = np.zeros(z.size, dtype=bool)
+        if self._phase is not None:
+            kept[self._phase.harmonics.astype(int)] = True
+        else:
+            kept[:len(self._kept)] = self._kept
+        g = self.slope * self.plant_inverse.frequency_response(z)
+        share = self._ksens * (self._theta0 * np.fft.rfft(x) + self._phi0 * np.fft.rfft(v))
+        if self._notch_coeffs is not None:
+            num, den = self._notch_coeffs
+            share = share * np.polyval(num, z) / np.polyval(den, z)
+        with np.errstate(divide='ignore', invalid='ignore'):
+            seed = np.where(kept, np.fft.rfft(x) / np.where(kept, g, 1.0) - share, 0.0)
+        table = np.fft.irfft(seed, points)
+        peak = float(np.max(np.abs(table)))
+        limit = self.params.learning_limit_v
+        if peak > limit:
+            table *= limit / peak
+        self.load_table(table)
 
     def _next_segment(self, k: int) -> int:
         """Bind the next segment of the trajectory at sample ``k``; return k in it."""
