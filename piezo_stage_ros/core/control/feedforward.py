@@ -742,6 +742,18 @@ def clipped_excess(lost: Any, table: Any) -> Any:
     return np.where(lost > 0.0, up, np.where(lost < 0.0, down, 0.0))
 
 
+def _member_products(a: FloatArray, b: FloatArray) -> FloatArray:
+    """
+    Return a @ b one member (column of b) at a time: the same matrix-vector product for one
+    member alone as for each of M (a product of all M at once may take another kernel and
+    round otherwise).
+    """
+    out = np.empty((a.shape[0], b.shape[1]))
+    for j in range(b.shape[1]):
+        out[:, j] = a @ np.ascontiguousarray(b[:, j])
+    return out
+
+
 def _row_sum(x: FloatArray) -> FloatArray:
     """
     Return the sum over the first axis, row after row in their order, whatever the shape.
@@ -818,8 +830,10 @@ class PhaseLearning:
         self.start_periods = int(start_periods)
         h = self.harmonics
         steps = 2.0 * math.pi * np.multiply.outer(h, np.arange(LEARN_CHUNK) * self.r)
-        self._step_cos = np.cos(steps)  # (H, chunk)
-        self._step_sin = np.sin(steps)
+        # cos and sin of the run's constant steps i T / P, rows h: (2H, chunk), and its
+        # transpose for the playback
+        self._steps = np.concatenate([np.cos(steps), np.sin(steps)])
+        self._steps_t = np.ascontiguousarray(self._steps.T)
         size = h.size
         #: The harmonics of every member's table: alpha_h rows, then beta_h rows (2H, M).
         self.coefficients = np.zeros((2 * size, self.members))
@@ -835,7 +849,9 @@ class PhaseLearning:
         self._excess = np.zeros((LEARN_CHUNK, self.members))
         self._excess_sums: dict[int, FloatArray] = {}
         self._excess_run = False
-        self._phasors = np.zeros((2 * size, LEARN_CHUNK))
+        # cos and sin of the present run's first phase, (H, 1) each
+        self._c0 = np.ones((size, 1))
+        self._s0 = np.zeros((size, 1))
         self._play = np.zeros((LEARN_CHUNK, self.members))
         self._play_one: list[float] = []
         self._run_start = 0
@@ -979,14 +995,15 @@ class PhaseLearning:
                     self._apply(sums, excess)
         end = k + 1 if k == first else min(k + LEARN_CHUNK, self.period_start(period + 1))
         ang = 2.0 * math.pi * (k * self.r - period) * self.harmonics
-        c0 = np.cos(ang)[:, None]
-        s0 = np.sin(ang)[:, None]
+        self._c0 = c0 = np.cos(ang)[:, None]
+        self._s0 = s0 = np.sin(ang)[:, None]
         size = self.harmonics.size
-        # cos(a + b), sin(a + b) from the run's first phase a and its steps b
-        phasors = self._phasors
-        phasors[:size] = c0 * self._step_cos - s0 * self._step_sin
-        phasors[size:] = s0 * self._step_cos + c0 * self._step_sin
-        self._play = _row_sum(phasors[:, :, None] * self.coefficients[:, None, :])
+        # the table from the run's first phase a: alpha cos(a + b) + beta sin(a + b) is
+        # (alpha cos a + beta sin a) cos b + (beta cos a - alpha sin a) sin b, b the steps
+        alpha = self.coefficients[:size]
+        beta = self.coefficients[size:]
+        turned = np.concatenate([c0 * alpha + s0 * beta, c0 * beta - s0 * alpha])
+        self._play = _member_products(self._steps_t, turned)
         self._play += self.offset
         self._run_start = k
         self._run_end = end
@@ -1023,17 +1040,30 @@ class PhaseLearning:
             a = k0 - period * self.samples
             _, _, own, back = boundary_weights(a)
             weighted[0] *= own
-            self._sum_of(period - 1, sums)[:] += self._phasors[:, 0][:, None] * (rows[0] * back)
+            self._sum_of(period - 1, sums)[:] += self._phasor(0) * (rows[0] * back)
         last = k0 + m - 1
         if m == self._run_length and last + 1 == self.period_start(period + 1):
             # the period's last sample: its own weight and its share of the period after
             own, ahead, _, _ = boundary_weights(last + 1 - (period + 1) * self.samples)
             weighted[m - 1] *= own
-            self._sum_of(period + 1, sums)[:] += (self._phasors[:, m - 1][:, None]
-                                                  * (rows[m - 1] * ahead))
-        terms = self._phasors[:, :m].T[:, :, None] * weighted[:, None, :]
-        self._sum_of(period, sums)[:] += _row_sum(terms)
+            self._sum_of(period + 1, sums)[:] += self._phasor(m - 1) * (rows[m - 1] * ahead)
+        # sums over the run at its steps b, then turned to its first phase a:
+        # sum w cos(a + b) = cos a sum w cos b - sin a sum w sin b, and the sin likewise
+        size = self.harmonics.size
+        at_steps = _member_products(self._steps[:, :m], weighted)
+        c0, s0 = self._c0, self._s0
+        self._sum_of(period, sums)[:] += np.concatenate([
+            c0 * at_steps[:size] - s0 * at_steps[size:],
+            s0 * at_steps[:size] + c0 * at_steps[size:]])
         rows.fill(0.0)
+
+    def _phasor(self, i: int) -> FloatArray:
+        """Return cos and sin of every harmonic at sample i of the present run, (2H, 1)."""
+        size = self.harmonics.size
+        cos_b = self._steps[:size, i:i + 1]
+        sin_b = self._steps[size:, i:i + 1]
+        c0, s0 = self._c0, self._s0
+        return np.concatenate([c0 * cos_b - s0 * sin_b, s0 * cos_b + c0 * sin_b])
 
     def _apply(self, sums: FloatArray, excess: FloatArray | None = None) -> None:
         """
