@@ -744,9 +744,10 @@ def clipped_excess(lost: Any, table: Any) -> Any:
 
 def _member_products(a: FloatArray, b: FloatArray) -> FloatArray:
     """
-    Return a @ b one member (column of b) at a time: the same matrix-vector product for one
-    member alone as for each of M (a product of all M at once may take another kernel and
-    round otherwise).
+    Return a @ b one member (column of b) at a time.
+
+    The same matrix-vector product for one member alone as for each of M: a product of all M
+    at once may take another kernel and round otherwise.
     """
     out = np.empty((a.shape[0], b.shape[1]))
     for j in range(b.shape[1]):
