@@ -114,6 +114,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Write the learning feed-forward's table at the end of the run to FILE "
                    '(.npz, docs/controllers.md); controller_node feedforward.table_file loads '
                    'it. A bag of the run holds it too (analyze --export-table).')
+    p.add_argument('--line-rate-change', metavar='S:HZ', dest='line_rate_change',
+                   help='Change the line rate of a sine or triangle to HZ at S seconds (a '
+                   'whole number of its periods): the new line starts at its own t = 0 and '
+                   'the feed-forward binds it there (the model inverse from its first sample, '
+                   'the learning afresh).')
     p.add_argument('--bag-topics', choices=('samples', 'block', 'both'), default='samples',
                    help='What the bag holds: the per-sample topics (default), the block topic '
                    'stage/block (many samples per message, as a real-time loop records them; '
@@ -194,6 +199,41 @@ def _enforce(report: Any, action: str) -> None:
               file=sys.stderr)
 
 
+def _line_rate_change(text: str, params: Any, first: Any) -> Any:
+    """Return the trajectory of ``--line-rate-change S:HZ``: ``first``, then at S the new rate."""
+    from piezo_stage_ros.core.loop.switched import LineRateChange
+    from piezo_stage_ros.core.loop.trajectories import make_trajectory
+    try:
+        at_text, hz_text = text.split(':')
+        at_s, hz = float(at_text), float(hz_text)
+    except ValueError:
+        raise ParameterError('--line-rate-change', text, 'S:HZ, two numbers') from None
+    if params.kind not in ('sine', 'triangle'):
+        raise ParameterError('--line-rate-change', text, 'a sine or triangle trajectory',
+                             f'cannot change the rate of a {params.kind}')
+    if not (hz > 0.0 and math.isfinite(hz)):
+        raise ParameterError('--line-rate-change', hz, '(0, inf) Hz')
+    second = make_trajectory(params.with_flat({f'{params.kind}.frequency_hz': hz}))
+    return LineRateChange(first, second, at_s)
+
+
+def _limits_text(controller: Any, samples: int) -> str:
+    """Return the run's report of the limits a feed-forward met ('' when none was active)."""
+    clipped = getattr(controller, 'clipped_samples', 0)
+    limited = getattr(controller, 'limited_updates', 0)
+    if not (clipped or limited):
+        return ''
+    learning = bool(getattr(getattr(controller, 'params', None), 'learning', False))
+    text = (f'LIMIT ACTIVE: the amplifier range clipped {clipped} commands '
+            f'({100.0 * clipped / max(samples, 1):.2f} % of the samples)')
+    if learning:
+        text += ('; the learning check assumed none: the errors after each clip were not '
+                 'learned, and what the range clipped off the table was taken out of it')
+        if limited:
+            text += f'; learning_limit_v scaled the table down in {limited} updates'
+    return text + '.'
+
+
 def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
     from piezo_stage_ros.core.control.stability import check_stability
     from piezo_stage_ros.core.loop import metrics
@@ -201,9 +241,15 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
     from piezo_stage_ros.core.loop.trajectories import make_trajectory
 
     stage, ctrl, traj = loop.stage, loop.controller, loop.trajectory
-    trajectory = make_trajectory(traj)
+    trajectory: Any = make_trajectory(traj)
     report = check_stability(ctrl, loop.design_plant, stage.sample_time_s,
                              options=loop.stability, period_s=trajectory.period_s, stage=stage)
+    if args.line_rate_change is not None:
+        trajectory = _line_rate_change(args.line_rate_change, traj, trajectory)
+        # the learning after the change: its own period's check
+        after = check_stability(ctrl, loop.design_plant, stage.sample_time_s,
+                                options=loop.stability, period_s=trajectory.second.period_s,
+                                stage=stage).learning
     text = report.text()
     _enforce(report, loop.stability.action)
     duration = args.duration if args.duration is not None else default_duration_s(trajectory,
@@ -235,14 +281,15 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
                 writer.write_chunk(chunk)
             record = run_one(stage, ctrl, traj, duration_s=duration, chunk_callback=stream,
                              meta=meta, design_plant=loop.design_plant,
-                             diagnostics_every=every, built=controllers.append)
+                             diagnostics_every=every, built=controllers.append,
+                             trajectory=trajectory)
             if learning:
                 writer.set_meta({**writer.meta,
                                  TABLE_META_KEY: controllers[0].learned().fields()})
     else:
         record = run_one(stage, ctrl, traj, duration_s=duration, meta=meta,
                          design_plant=loop.design_plant, diagnostics_every=every,
-                         built=controllers.append)
+                         built=controllers.append, trajectory=trajectory)
     wall = time.perf_counter() - start
     if args.save_table is not None:
         table = controllers[0].learned()
@@ -263,6 +310,10 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
         out.update({'learning_ratio_design': report.learning.design_ratio,
                     'learning_ratio_max': report.learning.ratio,
                     'learning_worst_member': worst[0] if worst else None})
+    limits = _limits_text(controllers[0] if controllers else None, summary.samples)
+    if limits:
+        out['ff_clipped_samples'] = controllers[0].clipped_samples
+        out['ff_limited_updates'] = controllers[0].limited_updates
     if args.json:
         print(json.dumps({k: _clean(v) for k, v in out.items()}, sort_keys=True))
         return 0
@@ -273,6 +324,8 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
     print(f'stability check: {"stable" if report.stable else "UNSTABLE"}')
     if report.learning is not None:
         print(f'learning check: {report.learning.text()}')
+    if args.line_rate_change is not None and after is not None:
+        print(f'learning check after the line-rate change: {after.text()}')
     print(f'simulated {sim:g} s ({summary.samples} samples) in {wall:.3f} s wall '
           f'({out["realtime_factor"]:.1f}x real time)')
     print(f'steady state from {summary.steady_state_start_s:g} s '
@@ -289,6 +342,8 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
     print(f'whole run: e_m = {summary.e_max_all_m * 1e9:.2f} nm, e_rms = '
           f'{summary.e_rms_all_m * 1e9:.2f} nm')
     print(f'command range: {summary.command_min_v:.3f} ... {summary.command_max_v:.3f} V')
+    if limits:
+        print(limits)
     for name in ('theta_hat', 'phi_hat'):
         if name in summary.diagnostic_ranges:
             low, high = summary.diagnostic_ranges[name]

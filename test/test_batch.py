@@ -199,6 +199,9 @@ def _ff_singles(stages, cp, tp, duration_s, hysteresis):
     # an aperiodic reference: the inverse computed block by block
     ('inverse', {}, {'kind': 'staircase', 'staircase.dwell_s': 0.01}),
     ('inverse_learning', {'type': 'pi'}, {'kind': 'multisine'}),
+    # periods that are not a whole number of samples: the tables on the period's phase
+    ('learning', {}, {'kind': 'sine', 'sine.frequency_hz': 300.0}),
+    ('inverse_learning', {}, {'kind': 'triangle', 'triangle.frequency_hz': 70.0}),
 ])
 def test_the_batch_equals_single_runs_with_feedforward(mode, controller, trajectory):
     # Bit for bit, as without feed-forward: the tables are the scalar wrapper's own, the learning

@@ -170,20 +170,25 @@ def test_the_feed_forward_predicts_its_next_commands_from_its_tables():
         loop.controller, feedforward=dataclasses.replace(loop.controller.feedforward,
                                                          mode='inverse'))
     loop = dataclasses.replace(loop, controller=ctrl_params)
-    servo = make_servo(loop, 0.1)
+    predictions, commands, _ = servo_predictions(loop, 0.1, (700, 725, 750))
+    for k, predicted in predictions.items():
+        actual = commands[k + 1:k + 33]
+        held = np.abs(actual - commands[k]).max()
+        assert np.abs(predicted - actual).max() < 0.05 * held
+
+
+def servo_predictions(loop, duration_s, at):
+    """Run the servo with 32 commands ahead; return those predicted at ``at``, the commands."""
+    servo = make_servo(loop, duration_s)
     servo.commands_ahead = 32
     clock = _Clock()
     servo.pacer = Pacer(PERIOD_NS, clock=clock, sleep=clock.sleep, spin_ns=0)
     predictions = {}
     servo.start()
     while servo.step():
-        if servo.index in (700, 725, 750):
+        if servo.index in at:
             predictions[servo.index] = np.array(servo.plant._ahead)
-    commands = np.array([s.command_v for s in servo.drain()])
-    for k, predicted in predictions.items():
-        actual = commands[k + 1:k + 33]
-        held = np.abs(actual - commands[k]).max()
-        assert np.abs(predicted - actual).max() < 0.05 * held
+    return predictions, np.array([s.command_v for s in servo.drain()]), servo
 
 
 class _Clock:

@@ -317,7 +317,9 @@ def test_raster_line_with_learning_holds_the_estimates_and_meets_the_target() ->
     assert np.all(phi[2 * n:] == phi[2 * n]) and np.all(theta[2 * n:] == theta[2 * n])
     e = rec.position_m - rec.reference_m
     per_period = [_rms(e[i * n:(i + 1) * n]) for i in range(len(e) // n)]
-    assert max(per_period[-20:]) <= 1.1 * min(per_period[2:])  # converged, not drifting
+    # converged, not drifting: at the converters' floor each period's rms scatters by some
+    # 10 % (the ADC's and DAC's rounding), so the drift is judged on means of ten periods
+    assert np.mean(per_period[-10:]) <= 1.1 * np.mean(per_period[2:12])
     # issue 16: middle 80 % of each line (away from the turnarounds at P/4 + j P/2) <= 2 nm
     period = 1.0 / 50.0
     phase = ((rec.time_s - period / 4) % (period / 2)) / (period / 2)
@@ -513,10 +515,13 @@ def test_the_report_names_the_worst_member_and_keeps_its_verdict_apart() -> None
                            stage=LOOP.stage).learning is None
 
 
-def test_no_check_without_a_whole_period() -> None:
+def test_no_check_without_a_period_of_four_samples() -> None:
     params = _controller('learning')
     assert learning_check(params, LOOP.design_plant, T, 0.0, stage=LOOP.stage) is None
-    assert learning_check(params, LOOP.design_plant, T, 0.01005, stage=LOOP.stage) is None
+    assert learning_check(params, LOOP.design_plant, T, 3.9 * T, stage=LOOP.stage) is None
+    # a period that is not a whole number of samples is checked (test_feedforward_anyperiod)
+    check = learning_check(params, LOOP.design_plant, T, 0.01005, stage=LOOP.stage)
+    assert check is not None and check.period_s == 0.01005
     with_own = _controller('learning', **{'feedforward.period_s': 0.02})
     check = learning_check(with_own, LOOP.design_plant, T, 0.0)
     assert check is not None and check.period_s == pytest.approx(0.02, rel=EPS)

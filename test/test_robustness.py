@@ -278,3 +278,18 @@ def test_a_window_only_study_measures_what_the_whole_run_measures(capsys):
             assert row[key] == full[key]
     assert robustness.main(['--cases', 'square', '--window-only', '--quiet']) == 1
     assert '--cases' in capsys.readouterr().err
+
+
+@pytest.mark.parametrize('feedforward', ['learning', 'inverse_learning'])
+def test_the_study_at_line_rates_that_are_not_whole_samples(feedforward, capsys):
+    # 137 Hz (72.99 samples a period) and 70 Hz (142.86): the batch learns each member's table
+    # on the period's phase as one closed loop per stage does
+    argv = ['--stages', 'nominal,gain_hi,tau_hi', '--cases', 'sine_137,triangle_70',
+            '--duration', '0.5', '--settle', '0.3', '--quiet', '--json',
+            '--feedforward', feedforward]
+    assert robustness.main(argv) == 0
+    batch = json.loads(capsys.readouterr().out)
+    assert robustness.main([*argv, '--single']) == 0
+    single = json.loads(capsys.readouterr().out)
+    assert batch['rows'] == single['rows'] and len(batch['rows']) == 6
+    assert all(math.isfinite(r['e_rms_m']) for r in batch['rows'])

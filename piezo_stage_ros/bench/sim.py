@@ -248,7 +248,8 @@ def batch_loop_speed(n: int = 1000, steps: int = 5000, *, controller: str = 'rac
 
 
 def controller_step_times(controller: str = 'rac', *, steps: int = 200_000,
-                          feedforward: str = 'none') -> dict[str, float]:
+                          feedforward: str = 'none', frequency_hz: float = 100.0
+                          ) -> dict[str, float]:
     """
     Return the median and 99th percentile of one controller step [ns].
 
@@ -259,8 +260,11 @@ def controller_step_times(controller: str = 'rac', *, steps: int = 200_000,
     steps : int
         Steps timed one by one.
     feedforward : str
-        ``feedforward.mode`` (the feed-forward bound to the 100 Hz sine timed: its learning
-        update runs at the end of every period, inside the timed steps).
+        ``feedforward.mode`` (the feed-forward bound to the sine timed: its learning update
+        runs at the end of every period, inside the timed steps).
+    frequency_hz : float
+        The sine's frequency: 100 Hz is a period of 100 samples (the table of samples), 70 Hz
+        one of 142.86 (the table on the period's phase).
 
     Returns
     -------
@@ -273,14 +277,14 @@ def controller_step_times(controller: str = 'rac', *, steps: int = 200_000,
     cp = ControllerParams(type=controller).with_flat({'feedforward.mode': feedforward})
     ctrl = bound_controller(cp, 1e-4, linear_plant(sp.plant), make_hysteresis(sp.hysteresis),
                             make_trajectory(TrajectoryParams.from_flat(
-                                {'kind': 'sine', 'sine.frequency_hz': 100.0})))
+                                {'kind': 'sine', 'sine.frequency_hz': frequency_hz})))
     ctrl.reset(3.8e-6, 3.8e-6)
     step = ctrl.step
     clock = time.perf_counter_ns
     rng = np.random.default_rng(1)
     t = np.arange(steps) * 1e-4
-    ref = (3.8e-6 + 3.8e-6 * np.sin(2 * np.pi * 100 * t)).tolist()
-    vel = (3.8e-6 * 2 * np.pi * 100 * np.cos(2 * np.pi * 100 * t)).tolist()
+    ref = (3.8e-6 + 3.8e-6 * np.sin(2 * np.pi * frequency_hz * t)).tolist()
+    vel = (3.8e-6 * 2 * np.pi * frequency_hz * np.cos(2 * np.pi * frequency_hz * t)).tolist()
     pos = (np.asarray(ref) + 2e-8 * rng.standard_normal(steps)).tolist()
     out = np.empty(steps, dtype=np.int64)
     for k in range(steps):
@@ -292,7 +296,8 @@ def controller_step_times(controller: str = 'rac', *, steps: int = 200_000,
         t0 = clock()
         empty[k] = clock() - t0
     return {'median_ns': float(np.median(out)), 'p99_ns': float(np.percentile(out, 99)),
-            'max_ns': float(np.max(out)), 'timer_ns': float(np.median(empty))}
+            'max_ns': float(np.max(out)), 'mean_ns': float(np.mean(out)),
+            'timer_ns': float(np.median(empty))}
 
 
 def run_sim_benchmark(*, duration_s: float = 2.0, batch: int = 1000, batch_steps: int = 2000,
@@ -394,5 +399,16 @@ def run_sim_benchmark(*, duration_s: float = 2.0, batch: int = 1000, batch_steps
             f'({ratio:.2f}x the RAC step; target <= 2x: {"met" if ratio <= 2.0 else "NOT met"}),'
             f' p99 {st["p99_ns"]:.0f} ns, max {st["max_ns"]:.0f} ns (the period-end learning '
             'update inside)')
+    whole = out['rac_inverse_learning_step']['median_ns']
+    for hz in (70.0, 300.0):
+        st = controller_step_times('rac', steps=controller_steps, feedforward='inverse_learning',
+                                   frequency_hz=hz)
+        out[f'rac_inverse_learning_{hz:g}hz_step'] = st
+        ratio = st['median_ns'] / whole
+        say(f'  the same at {hz:g} Hz ({1e4 / hz:.2f} samples a period, the table on its '
+            f'phase): median {st["median_ns"]:.0f} ns ({ratio:.2f}x the whole-period learning '
+            f'step; target <= 1.2x: {"met" if ratio <= 1.2 else "NOT met"}), p99 '
+            f'{st["p99_ns"]:.0f} ns, mean {st["mean_ns"]:.0f} ns, max {st["max_ns"]:.0f} ns '
+            f'(servo sample 100000 ns)')
     return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
             for k, v in out.items()}

@@ -660,6 +660,7 @@ class ControllerLogic:
         self._last_stamp: int | None = None
         self._index = 0  # samples since the first, skipped ones included
         self._pending: Any = None
+        self._pending_trajectory: Any = None
         self._needs_reset = True
         self._safe = False
         self.steps = 0
@@ -682,6 +683,16 @@ class ControllerLogic:
     def request_change(self, params: Any) -> None:
         """Apply validated new controller parameters at the next sample boundary."""
         self._pending = params
+
+    def request_trajectory(self, trajectory: Any) -> None:
+        """
+        Bind a new trajectory at the next sample, where the trajectory's t = 0 falls.
+
+        What :meth:`TrajectoryLogic.switch` does to the reference: a feed-forward (its
+        ``switch``) takes the new line from that sample on, its model inverse at once and its
+        learning afresh; another controller just follows the new reference.
+        """
+        self._pending_trajectory = trajectory
 
     def _apply_pending(self, position_m: float, reference_m: float) -> None:
         params, self._pending = self._pending, None
@@ -746,6 +757,12 @@ class ControllerLogic:
                 self._skip(gap)
             if self._missed is not None:
                 self._missed(gap)
+        if self._pending_trajectory is not None:
+            switch = getattr(self.controller, 'switch', None)
+            if switch is not None:
+                switch(self._pending_trajectory)
+            self._pending_trajectory = None
+            self._index = 0  # a restart goes on from the new trajectory's t = 0
         if self._pending is not None:
             self._apply_pending(y, xd)
         if self._needs_reset:

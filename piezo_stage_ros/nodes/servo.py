@@ -769,7 +769,10 @@ def apply_change(servo: ServoLoop, kind: str, value: Any) -> None:
         servo.controller.request_change(value)
     elif kind == 'trajectory':
         assert servo.trajectory is not None
-        servo.trajectory.switch(make_trajectory(value))
+        trajectory = make_trajectory(value)
+        servo.trajectory.switch(trajectory)
+        if servo.controller is not None:
+            servo.controller.request_trajectory(trajectory)
     elif kind == 'active':
         assert servo.trajectory is not None
         if value:

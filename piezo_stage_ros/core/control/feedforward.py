@@ -49,9 +49,14 @@ A two-degree-of-freedom structure around any controller of
   |1 - gamma P_true / P_s| (:func:`learning_convergence`). The update is summed in runs of 16
   (no FFT at the period's end), and the RAC's estimates are held while the table learns: both
   would chase the same periodic error and drift.
-- **Jumps** (``inverse`` modes): an ideal jump cannot be followed; each jump of the reference is
-  replaced by the quintic S-curve of ``transition_s`` starting at it (nothing moves before the
-  jump is due), and the inner controller tracks that path.
+- **Jumps**: an ideal jump cannot be followed; each jump of the reference is replaced by the
+  quintic S-curve of ``transition_s`` starting at it (nothing moves before the jump is due),
+  and the inner controller tracks that path and the learning learns against it. A jump is a
+  step the reference's velocity does not explain by more than a smooth path could
+  (:func:`shape_jumps`: the test scales with T). ``learning`` without the model inverse can
+  only draw what lies in Q's band: its S-curves last at least
+  :data:`LEARNING_SHAPE_CYCLES` / ``learning_bandwidth_hz``, so that what Q drops of them, which
+  would ring over the whole period ahead of the edge, stays below 5e-4 of the jump.
 
 The learned table can be kept: :meth:`FeedForwardController.learned` returns it with what it
 was learned for (:class:`LearnedTable`: the period's reference, T, the mode, the design), saved
@@ -85,9 +90,13 @@ from piezo_stage_ros.core.model.hysteresis import BacklashLike, HysteresisModel,
 from piezo_stage_ros.core.model.linear import LinearPlant
 
 __all__ = ['FeedForwardController', 'FeedForwardParams', 'HysteresisInverse', 'LearnedTable',
-           'MODES', 'PreviewInverse', 'TABLE_FORMAT', 'TABLE_META_KEY', 'TABLE_VERSION',
-           'kept_harmonics', 'learning_columns', 'learning_convergence', 'make_hysteresis_inverse',
-           'period_harmonics', 'process_sensitivity', 'read_learned_table', 'shape_jumps',
+           'MIN_PERIOD_SAMPLES', 'MODES', 'PhaseLearning', 'PreviewInverse', 'TABLE_FORMAT',
+           'TABLE_META_KEY', 'TABLE_VERSION', 'boundary_weights', 'check_learning_period',
+           'CLIP_SETTLE_SAMPLES', 'clipped_excess', 'LEARNING_SHAPE_CYCLES',
+           'kept_harmonics',
+           'learning_columns', 'learning_convergence', 'make_hysteresis_inverse',
+           'period_harmonics', 'phase_learning_convergence', 'phase_windows',
+           'process_sensitivity', 'read_learned_table', 'shape_jumps', 'whole_period',
            'write_learned_table']
 
 #: The feed-forward modes.
@@ -95,6 +104,16 @@ MODES = ('none', 'inverse', 'learning', 'inverse_learning')
 
 #: Samples whose errors enter the learning update together (one correlation each run).
 LEARN_CHUNK = 16
+
+#: ``learning`` without the model inverse shapes a jump over at least this many periods of
+#: ``learning_bandwidth_hz``: the quintic S-curve's content above Q is then below 5e-4 of the
+#: jump (3 cycles: 1e-3; 1.2: 2e-2), the part the table cannot learn.
+LEARNING_SHAPE_CYCLES = 3.6
+
+#: Samples after a command the amplifier's range clipped whose errors are not learned: the
+#: clip's own transient (the closed loop settles from a lost input within a few samples at the
+#: resonance of the default stage) tells nothing about what the table could do.
+CLIP_SETTLE_SAMPLES = 8
 
 
 @dataclass(frozen=True)
@@ -112,9 +131,12 @@ class FeedForwardParams(Params):
     block_samples: int = param(256, unit='samples', description='Aperiodic references: the '
                                'feed-forward is computed this many samples at a time.', low=16,
                                high=100000)
-    transition_s: float = param(1e-3, unit='s', description='Inverse modes: each ideal jump of '
-                                'the reference is replaced by a quintic S-curve of this '
-                                'duration starting at it (0: jumps are passed on as they are).',
+    transition_s: float = param(1e-3, unit='s', description='Each ideal jump of the reference '
+                                'is replaced by a quintic S-curve of this duration starting at '
+                                'it, which the feedback follows and the learning learns (0: '
+                                'jumps are passed on as they are); learning without the '
+                                'inverse takes at least 3.6 / learning_bandwidth_hz (what Q '
+                                'drops of the curve stays below 5e-4 of the jump).',
                                 low=0.0, high=0.1)
     learning_gain: float = param(0.5, unit='-', description='Learning gain gamma: the share of '
                                  "a period's error removed at the next period on the design "
@@ -486,13 +508,60 @@ def process_sensitivity(g: ComplexArray, z: ComplexArray, k_p: float, k_i: float
     return np.asarray(np.where(np.isfinite(ps), ps, 0.0), dtype=np.complex128)
 
 
-def period_harmonics(samples: int) -> ComplexArray:
-    """Return z = exp(2 pi j h / n) of the harmonics h = 0 .. n // 2 of a period of n samples."""
-    return np.asarray(np.exp(2j * math.pi * np.arange(samples // 2 + 1) / samples),
+#: The shortest period learned [samples]: four samples draw its first harmonic.
+MIN_PERIOD_SAMPLES = 4
+
+
+def whole_period(period_s: float, sample_time_s: float) -> tuple[int, float]:
+    """
+    Return (n, P/T): n the samples of the period when it is a whole number of them, else 0.
+
+    A whole period (to 1e-9 of it) keeps the table of samples; another one learns on the
+    period's phase (:class:`PhaseLearning`).
+    """
+    if not period_s > 0.0:
+        return 0, 0.0
+    n = int(round(period_s / sample_time_s))
+    whole = n >= 1 and abs(n * sample_time_s - period_s) <= 1e-9 * period_s
+    return (n if whole else 0), (float(n) if whole else period_s / sample_time_s)
+
+
+def check_learning_period(period_s: float, sample_time_s: float) -> None:
+    """
+    Refuse a period the learning cannot use, naming the value and the range allowed.
+
+    Raises
+    ------
+    ParameterError
+        ``feedforward.period_s``: no period (an aperiodic reference), or one shorter than
+        :data:`MIN_PERIOD_SAMPLES` samples (its first harmonic not drawn below the Nyquist
+        frequency with room for the learning).
+
+    """
+    shortest = MIN_PERIOD_SAMPLES * sample_time_s
+    allowed = (f'a period of at least {MIN_PERIOD_SAMPLES} samples (>= {shortest:g} s, a '
+               f'line rate <= {1.0 / shortest:g} Hz at T = {sample_time_s:g} s), a whole '
+               'number of samples or not')
+    if not period_s > 0.0:
+        raise ParameterError('feedforward.period_s', period_s, allowed,
+                             'learning needs a periodic reference')
+    if period_s < shortest * (1.0 - 1e-9):
+        raise ParameterError('feedforward.period_s', period_s, allowed,
+                             f'is {period_s / sample_time_s:.4g} samples: too short to learn')
+
+
+def period_harmonics(samples: float) -> ComplexArray:
+    """
+    Return z = exp(2 pi j h / n) of the harmonics h = 0 .. floor(n / 2) of a period of n samples.
+
+    ``samples`` is P/T, a whole number or not (a harmonic at exactly n / 2 exists only for a
+    whole, even n).
+    """
+    return np.asarray(np.exp(2j * math.pi * np.arange(int(samples // 2) + 1) / samples),
                       dtype=np.complex128)
 
 
-def kept_harmonics(ps: ComplexArray, samples: int, sample_time_s: float,
+def kept_harmonics(ps: ComplexArray, samples: float, sample_time_s: float,
                    bandwidth_hz: float) -> FloatArray:
     """
     Return Q on the harmonics of a period: 1 where the learning acts, 0 elsewhere.
@@ -502,8 +571,8 @@ def kept_harmonics(ps: ComplexArray, samples: int, sample_time_s: float,
     ps : ndarray
         The design process sensitivity at the harmonics h = 0 .. n // 2 of a period
         (:func:`period_harmonics`).
-    samples : int
-        n, the samples of a period.
+    samples : float
+        n = P/T, the samples of a period (a whole number or not).
     sample_time_s : float
         T [s].
     bandwidth_hz : float
@@ -527,6 +596,510 @@ def learning_convergence(design_ps: ComplexArray, true_ps: ComplexArray, gain: f
         ratio = np.abs(kept * (1.0 - gain * true_ps / design_ps))
     ratio = ratio[kept > 0.0]
     return float(np.max(ratio)) if ratio.size else 0.0
+
+
+# --------------------------------------------------------------------------------------------
+# Learning on the phase of a period of any length
+
+
+def period_index(k: int, cycles_per_sample: float) -> int:
+    """Return the period sample ``k`` falls in, floor(k T / P) (the one rounding used)."""
+    return int(math.floor(k * cycles_per_sample))
+
+
+def phase_windows(samples: float, count: int = 16) -> list[tuple[float, int]]:
+    """
+    Return the windows a period of ``samples`` samples can cut from the sample grid.
+
+    A period starts between two samples: its first sample lies a fraction a in [0, 1) of a
+    sample after the period's start, at the phase phi_0 = a / n, and it holds the m samples
+    with phi_0 + i/n < 1. Returns ``count`` (phi_0, m) for a spread evenly over [0, 1): the
+    learning check takes the worst of them.
+    """
+    r = 1.0 / samples
+    out = []
+    for j in range(count):
+        phi0 = r * j / count
+        m = int(math.ceil((1.0 - phi0) / r - 1e-9))
+        out.append((phi0, m))
+    return out
+
+
+def boundary_weights(a: float) -> tuple[float, float, float, float]:
+    """
+    Return the trapezoid weights of the two samples around a period's boundary.
+
+    The boundary lies a fraction 1 - a of a sample after the last sample of the period
+    ending there and a before the first sample of the next one (a in [0, 1)). The integral
+    over a period by the trapezoid rule, with the integrand interpolated linearly to the
+    period's ends, weights its interior samples by 1 (in samples) and:
+    (last sample: own period, next period; first sample: own period, previous period) =
+    (1/2 + b - b^2/2, a^2/2, 1/2 + a - a^2/2, b^2/2) with b = 1 - a. A whole period (a = 0)
+    gives (1, 0, 1/2, 1/2): the samples' plain sum when the error repeats.
+    """
+    b = 1.0 - a
+    return 0.5 + b - 0.5 * b * b, 0.5 * a * a, 0.5 + a - 0.5 * a * a, 0.5 * b * b
+
+
+def phase_learning_convergence(design_ps: ComplexArray, true_ps: ComplexArray, gain: float,
+                               kept: FloatArray, samples: float) -> float:
+    """
+    Return the per-period contraction of learning on a period of any length.
+
+    When the period is not a whole number of samples, one period holds m = floor or ceil of
+    n = P/T samples at a phase that moves from period to period, and :class:`PhaseLearning`
+    measures the error's harmonics by the trapezoid rule over the period, the samples just
+    outside it interpolated to its ends (:func:`boundary_weights`): a quadrature that is
+    exact only for whole periods. Harmonic h' then leaks into h by
+    A_{h h'} = (1/n) sum_i w_i exp(2 pi j (h' - h) phi_i) (A_hh is not exactly 1), and its
+    mirror -h' by B_{h h'} = (1/n) sum_i w_i exp(-2 pi j (h' + h) phi_i), the error being
+    real. The table's harmonics c move over one period by c <- c - F (A (P c) + B conj(P c)),
+    F = gamma Q / P_design, P the true process sensitivity. Returned: the largest gain
+    (spectral norm, as a real map) of that map over the windows a period can cut
+    (:func:`phase_windows`); above :data:`EXACT_HARMONICS` harmonics a bound of it,
+    max_h |1 - F_h P_h| (the whole-period ratio) plus the Frobenius norms of F (A - I) P and
+    F B P. Below 1, the table converges monotonically in the root-sum-square of its
+    harmonics on that stage. A whole number of samples gives the whole-period ratio,
+    max |1 - F_h P_h|, exactly (the table of samples is learned then).
+
+    Parameters
+    ----------
+    design_ps, true_ps : ndarray
+        P_s of the design model and of the stage at the harmonics h = 0 .. floor(n/2)
+        (:func:`period_harmonics` of ``samples``).
+    gain : float
+        gamma.
+    kept : ndarray
+        Q at those harmonics (:func:`kept_harmonics`).
+    samples : float
+        n = P/T.
+
+    """
+    base = learning_convergence(design_ps, true_ps, gain, kept)
+    idx = np.flatnonzero(kept > 0.0)
+    if idx.size == 0 or float(samples).is_integer():
+        return base
+    h = idx.astype(np.float64)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        f = gain / design_ps[idx]
+    p = true_ps[idx]
+    diff = h[None, :] - h[:, None]
+    summ = h[None, :] + h[:, None]
+    eye = np.eye(h.size)
+    worst = 0.0
+    for phi0, m in phase_windows(samples):
+        a = _window_sum(diff, phi0, m, samples)
+        b = _window_sum(-summ, phi0, m, samples)
+        if h.size <= EXACT_HARMONICS:
+            x = eye - f[:, None] * a * p[None, :]
+            y = -f[:, None] * b * np.conj(p)[None, :]
+            real = np.block([[x.real + y.real, -x.imag + y.imag],
+                             [x.imag + y.imag, x.real - y.real]])
+            worst = max(worst, float(np.linalg.norm(real, 2)))
+        else:
+            scale = np.abs(f)[:, None] * np.abs(p)[None, :]
+            leak = (math.sqrt(float(np.sum((scale * np.abs(a - eye)) ** 2)))
+                    + math.sqrt(float(np.sum((scale * np.abs(b)) ** 2))))
+            worst = max(worst, base + leak)
+    return worst
+
+
+#: Up to this many harmonics :func:`phase_learning_convergence` takes the exact norm.
+EXACT_HARMONICS = 128
+
+
+def _window_sum(d: FloatArray, phi0: float, m: int, samples: float) -> ComplexArray:
+    """
+    Return (1/n) sum_i w_i exp(2 pi j d phi_i) over a period's window, for every entry d.
+
+    phi_i = phi0 + i/n, i = -1 .. m, with the trapezoid weights of :func:`boundary_weights`
+    (1 inside; the sum over i = 0 .. m - 1 in closed form, then the ends corrected).
+    """
+    theta = 2.0 * math.pi * d / samples
+    with np.errstate(divide='ignore', invalid='ignore'):
+        geometric = np.where(np.isclose(np.sin(theta / 2.0), 0.0, atol=1e-12),
+                             float(m) + 0j, (1.0 - np.exp(1j * theta * m))
+                             / (1.0 - np.exp(1j * theta)))
+    a = phi0 * samples  # the first sample, after the period's start [samples]
+    _, prev_cross, first_own, _ = boundary_weights(a)
+    last_own, _, _, next_cross = boundary_weights(a + m - samples)  # at the period's end
+    total = (geometric + (first_own - 1.0)
+             + (last_own - 1.0) * np.exp(1j * theta * (m - 1))
+             + prev_cross * np.exp(-1j * theta) + next_cross * np.exp(1j * theta * m))
+    return np.asarray(np.exp(2j * math.pi * d * phi0) * total / samples, dtype=np.complex128)
+
+
+def clipped_excess(lost: Any, table: Any) -> Any:
+    """
+    Return the part of the table's entry the amplifier's range clipped off [V].
+
+    ``lost`` is the linear input asked minus the one applied (through the inverse hysteresis,
+    when there is one); the part is at most the entry itself, and of its sign: the table is
+    not blamed for what the feedback asked beyond the range. Scalars or arrays.
+    """
+    up = np.where(table > 0.0, np.minimum(lost, table), 0.0)
+    down = np.where(table < 0.0, np.maximum(lost, table), 0.0)
+    return np.where(lost > 0.0, up, np.where(lost < 0.0, down, 0.0))
+
+
+def _member_products(a: FloatArray, b: FloatArray) -> FloatArray:
+    """
+    Return a @ b one member (column of b) at a time.
+
+    The same matrix-vector product for one member alone as for each of M: a product of all M
+    at once may take another kernel and round otherwise.
+    """
+    out = np.empty((a.shape[0], b.shape[1]))
+    for j in range(b.shape[1]):
+        out[:, j] = a @ np.ascontiguousarray(b[:, j])
+    return out
+
+
+def _row_sum(x: FloatArray) -> FloatArray:
+    """
+    Return the sum over the first axis, row after row in their order, whatever the shape.
+
+    (``sum(axis=0)`` may pair the rows differently when the other axes hold one element: one
+    member would not compute what each of M members computes.)
+    """
+    return np.asarray(np.cumsum(x, axis=0)[-1], dtype=np.float64)
+
+
+class PhaseLearning:
+    r"""
+    A learned table that belongs to the phase of a period of any length, for M members.
+
+    The table is a band-limited periodic function of the phase phi in [0, 1) of the period
+    P, held as its harmonics: L(phi) = sum_h alpha_h cos(2 pi h phi) + beta_h sin(2 pi h phi)
+    over the harmonics h that Q keeps (no DC, at most ``learning_bandwidth_hz`` and below
+    the Nyquist frequency). Why harmonics and not a table of samples: when P/T is not a
+    whole number the samples fall at other phases every period, so a table of samples would
+    need an interpolation in playback and its transpose in the update, which low-pass and
+    alias what is learned; the learning filter gamma Q / P_s acts on harmonics of the period
+    anyway, so on harmonics it is exact, Q holds by construction (the table never holds a
+    component Q drops, however it was limited) and playback at any phase is exact.
+
+    Sample k lies in period floor(k T / P) at phase frac(k T / P). The error's harmonics over
+    a period, E_h = (1/P) int e(t) exp(-2 pi j h t / P) dt, are summed as the samples come by
+    the trapezoid rule with the samples just outside the period interpolated to its ends
+    (:func:`boundary_weights`), and the table takes c_h <- c_h - gamma E_h / P_s(exp(2 pi j
+    h T / P)) once the first sample after the period is in (one sample after it ends). The
+    quadrature leaks a little between harmonics when the period is not whole:
+    :func:`phase_learning_convergence` takes it into the convergence ratio.
+
+    The work is spread over runs of up to :data:`LEARN_CHUNK` samples inside one period (a
+    period's first sample is a run of its own): at the start of a run its playback is
+    computed (the phasors of its first sample times those of the run's constant steps) and
+    the errors of the run before are summed into the update; a period's update costs O(H).
+    Every sum runs over a leading axis with the members last (row after row, no BLAS), so
+    that one member computes what each of M members computes.
+
+    Parameters
+    ----------
+    filter_gains : ndarray
+        gamma / P_s at the kept harmonics (complex, shape (H,)).
+    harmonics : ndarray
+        The kept harmonics h (shape (H,), whole numbers >= 1).
+    samples : float
+        n = P/T, the samples of one period (> 2 h for every h kept).
+    members : int
+        M, the tables learned side by side.
+    limit_v : float
+        Bound on the table's amplitude: the sum over h of sqrt(alpha_h^2 + beta_h^2), which
+        bounds |L| everywhere, is kept at or below it by scaling the table down (it stays
+        in Q's band, with no DC).
+    start_periods : int
+        Whole periods before the first error is learned.
+
+    """
+
+    def __init__(self, filter_gains: ComplexArray, harmonics: FloatArray, samples: float,
+                 members: int, limit_v: float, start_periods: int) -> None:
+        self.samples = float(samples)
+        self.r = 1.0 / self.samples
+        self._starts: dict[int, int] = {}
+        self.harmonics = np.asarray(harmonics, dtype=np.float64)
+        if self.harmonics.size and 2.0 * float(np.max(self.harmonics)) >= self.samples:
+            raise ParameterError('learned harmonics', float(np.max(self.harmonics)),
+                                 f'below {self.samples / 2:g} (the Nyquist frequency)',
+                                 'cannot be drawn at this sample rate')
+        g = 2.0 * self.r * np.asarray(filter_gains, dtype=np.complex128)
+        self._g_re = g.real[:, None]
+        self._g_im = g.imag[:, None]
+        self.members = int(members)
+        self.limit_v = float(limit_v)
+        self.start_periods = int(start_periods)
+        h = self.harmonics
+        steps = 2.0 * math.pi * np.multiply.outer(h, np.arange(LEARN_CHUNK) * self.r)
+        # cos and sin of the run's constant steps i T / P, rows h: (2H, chunk), and its
+        # transpose for the playback
+        self._steps = np.concatenate([np.cos(steps), np.sin(steps)])
+        self._steps_t = np.ascontiguousarray(self._steps.T)
+        size = h.size
+        #: The harmonics of every member's table: alpha_h rows, then beta_h rows (2H, M).
+        self.coefficients = np.zeros((2 * size, self.members))
+        #: A constant added to the table, never learned: the mean of a table loaded.
+        self.offset = np.zeros(self.members)
+        self._sums: dict[int, FloatArray] = {}
+        self._errors = np.zeros((LEARN_CHUNK, self.members))
+        self._error_column = self._errors[:, 0]
+        #: Kept instead of the error after a clip, times the table [m/V] (the wrapper's).
+        self.leak = 0.0
+        # what the amplifier's range clipped off the table (:meth:`record_excess`): its
+        # harmonics are taken out of the table at the period's end
+        self._excess = np.zeros((LEARN_CHUNK, self.members))
+        self._excess_sums: dict[int, FloatArray] = {}
+        self._excess_run = False
+        # cos and sin of the present run's first phase, (H, 1) each
+        self._c0 = np.ones((size, 1))
+        self._s0 = np.zeros((size, 1))
+        self._play = np.zeros((LEARN_CHUNK, self.members))
+        self._play_one: list[float] = []
+        self._run_start = 0
+        self._run_end = 0  # no run yet
+        self._run_period = 0
+        self._run_length = 0
+        self._recorded = 0
+        self._stale = True
+        #: The first sample whose error is learned.
+        self.learn_from = self.period_start(self.start_periods)
+        self.periods_learned = 0
+        #: Updates after which a member's table was scaled to stay within ``limit_v``.
+        self.limited = 0
+
+    def period_start(self, period: int) -> int:
+        """Return the first sample of period ``period`` (the first k with k T / P >= it)."""
+        cached = self._starts.get(period)
+        if cached is not None:
+            return cached
+        if len(self._starts) > 8:
+            self._starts.clear()
+        k = max(int(math.ceil(period * self.samples)) - 1, 0)
+        while period_index(k, self.r) < period:
+            k += 1
+        while k > 0 and period_index(k - 1, self.r) >= period:
+            k -= 1
+        self._starts[period] = k
+        return k
+
+    def reset(self) -> None:
+        """Restart at sample 0: the table stays, the errors of unfinished periods go."""
+        self._recorded = 0
+        self._errors.fill(0.0)
+        self._excess.fill(0.0)
+        self._excess_run = False
+        self._sums.clear()
+        self._excess_sums.clear()
+        self._run_end = self._run_start = 0
+        self._stale = True
+
+    def play(self, k: int) -> FloatArray:
+        """
+        Return every member's table at sample ``k`` [V], shape (M,) (a row of a buffer).
+
+        Called once per sample, in sample order (a gap is allowed: skipped samples add no
+        error); a new run starts here when ``k`` leaves the present one, and a finished
+        period's update is applied there.
+        """
+        if self._stale or not self._run_start <= k < self._run_end:
+            self._start_run(k)
+        row: FloatArray = self._play[k - self._run_start]
+        return row
+
+    def learn_one(self, k: int, error: float, masked: bool) -> float:
+        """
+        Return the first member's table at sample ``k`` [V] and keep the sample's error [m].
+
+        :meth:`play` and :meth:`record` of one member, as floats (the real-time step); the
+        error is not kept before :attr:`learn_from`, and ``masked`` keeps
+        :attr:`leak` times the table instead (an error a clip made).
+        """
+        if self._stale or not self._run_start <= k < self._run_end:
+            self._start_run(k)
+            self._play_one = self._play[:, 0].tolist()
+        i = k - self._run_start
+        value = self._play_one[i]
+        if k >= self.learn_from:
+            self._error_column[i] = self.leak * value if masked else error
+            if i >= self._recorded:
+                self._recorded = i + 1
+        return value
+
+    def record(self, k: int, error: Any) -> None:
+        """Keep the error of sample ``k`` [m] (after :meth:`play` of the same sample)."""
+        if k >= self.learn_from:
+            i = k - self._run_start
+            self._errors[i] = error
+            if i >= self._recorded:
+                self._recorded = i + 1
+
+    def record_excess(self, k: int, excess: Any) -> None:
+        """
+        Keep what the range clipped off the table at sample ``k`` [V] (after :meth:`play`).
+
+        The table then takes, at the period's end, the input that was applied: the excess's
+        harmonics in Q's band (the same quadrature as the errors) are subtracted, so the
+        table does not wind up against a limit and Q holds after the clip.
+        """
+        i = k - self._run_start
+        self._excess[i] += excess
+        self._excess_run = True
+        if i >= self._recorded:
+            self._recorded = i + 1
+
+    def values(self, first: int, count: int) -> FloatArray:
+        """Return the present table at samples first .. first + count - 1, shape (count, M)."""
+        return self._evaluate(np.arange(first, first + count, dtype=np.float64) * self.r % 1.0)
+
+    def on_grid(self, points: int) -> FloatArray:
+        """Return the table at phases i / ``points``, i = 0 .. points - 1, shape (points, M)."""
+        return self._evaluate(np.arange(points) / points)
+
+    def _evaluate(self, phases: FloatArray) -> FloatArray:
+        ang = 2.0 * math.pi * np.multiply.outer(self.harmonics, phases)
+        phasors = np.concatenate([np.cos(ang), np.sin(ang)])
+        return _row_sum(phasors[:, :, None] * self.coefficients[:, None, :]) + self.offset
+
+    def load_grid(self, table: FloatArray) -> None:
+        """
+        Start every member from a table given at phases i / N, keeping Q's harmonics.
+
+        The grid's DFT gives the harmonics; those Q drops are left out. Its mean becomes
+        :attr:`offset` (a saved table holds what the RAC's estimates had added, a constant
+        among it; the learning itself adds no DC), within the ``limit_v``.
+        """
+        table = np.asarray(table, dtype=np.float64).reshape(-1)
+        points = table.size
+        spectrum = np.fft.rfft(table) / points
+        size = self.harmonics.size
+        coef = np.zeros(2 * size)
+        for j, h in enumerate(self.harmonics.astype(int)):
+            if h < points / 2:
+                coef[j] = 2.0 * spectrum[h].real
+                coef[size + j] = -2.0 * spectrum[h].imag
+        self.coefficients[:] = coef[:, None]
+        self.offset[:] = min(max(float(spectrum[0].real), -self.limit_v), self.limit_v)
+        self._limit()
+        self._stale = True
+
+    def _start_run(self, k: int) -> None:
+        """Sum the last run's errors, apply the finished periods' updates, then play from k."""
+        self._flush()
+        period = period_index(k, self.r)
+        first = self.period_start(period)
+        for q in sorted(self._sums):
+            # period q is finished once the first sample of q + 1 has passed
+            if q < period - 1 or (q == period - 1 and k > first):
+                sums = self._sums.pop(q)
+                excess = self._excess_sums.pop(q, None)
+                if q >= self.start_periods:
+                    self._apply(sums, excess)
+        end = k + 1 if k == first else min(k + LEARN_CHUNK, self.period_start(period + 1))
+        ang = 2.0 * math.pi * (k * self.r - period) * self.harmonics
+        self._c0 = c0 = np.cos(ang)[:, None]
+        self._s0 = s0 = np.sin(ang)[:, None]
+        size = self.harmonics.size
+        # the table from the run's first phase a: alpha cos(a + b) + beta sin(a + b) is
+        # (alpha cos a + beta sin a) cos b + (beta cos a - alpha sin a) sin b, b the steps
+        alpha = self.coefficients[:size]
+        beta = self.coefficients[size:]
+        turned = np.concatenate([c0 * alpha + s0 * beta, c0 * beta - s0 * alpha])
+        self._play = _member_products(self._steps_t, turned)
+        self._play += self.offset
+        self._run_start = k
+        self._run_end = end
+        self._run_period = period
+        self._run_length = end - k
+        self._stale = False
+
+    def _sum_of(self, period: int, sums: dict[int, FloatArray] | None = None) -> FloatArray:
+        table = self._sums if sums is None else sums
+        out = table.get(period)
+        if out is None:
+            out = table[period] = np.zeros((2 * self.harmonics.size, self.members))
+        return out
+
+    def _flush(self) -> None:
+        """Add the errors kept in the present run to its period's sums (and its neighbours')."""
+        m = self._recorded
+        if not m:
+            return
+        self._recorded = 0
+        self._flush_rows(self._errors[:m], self._sums)
+        if self._excess_run:
+            self._flush_rows(self._excess[:m], self._excess_sums)
+            self._excess_run = False
+
+    def _flush_rows(self, rows: FloatArray, sums: dict[int, FloatArray]) -> None:
+        """Add the trapezoid sums of ``rows`` (samples of the present run) to ``sums``."""
+        m = len(rows)
+        period = self._run_period
+        k0 = self._run_start
+        weighted = rows.copy()
+        if k0 == self.period_start(period):
+            # the period's first sample: its own weight and its share of the period before
+            a = k0 - period * self.samples
+            _, _, own, back = boundary_weights(a)
+            weighted[0] *= own
+            self._sum_of(period - 1, sums)[:] += self._phasor(0) * (rows[0] * back)
+        last = k0 + m - 1
+        if m == self._run_length and last + 1 == self.period_start(period + 1):
+            # the period's last sample: its own weight and its share of the period after
+            own, ahead, _, _ = boundary_weights(last + 1 - (period + 1) * self.samples)
+            weighted[m - 1] *= own
+            self._sum_of(period + 1, sums)[:] += self._phasor(m - 1) * (rows[m - 1] * ahead)
+        # sums over the run at its steps b, then turned to its first phase a:
+        # sum w cos(a + b) = cos a sum w cos b - sin a sum w sin b, and the sin likewise
+        size = self.harmonics.size
+        at_steps = _member_products(self._steps[:, :m], weighted)
+        c0, s0 = self._c0, self._s0
+        self._sum_of(period, sums)[:] += np.concatenate([
+            c0 * at_steps[:size] - s0 * at_steps[size:],
+            s0 * at_steps[:size] + c0 * at_steps[size:]])
+        rows.fill(0.0)
+
+    def _phasor(self, i: int) -> FloatArray:
+        """Return cos and sin of every harmonic at sample i of the present run, (2H, 1)."""
+        size = self.harmonics.size
+        cos_b = self._steps[:size, i:i + 1]
+        sin_b = self._steps[size:, i:i + 1]
+        c0, s0 = self._c0, self._s0
+        return np.concatenate([c0 * cos_b - s0 * sin_b, s0 * cos_b + c0 * sin_b])
+
+    def _apply(self, sums: FloatArray, excess: FloatArray | None = None) -> None:
+        """
+        Apply a period's update, c_h <- c_h - gamma E_h / P_s, on the cos and sin rows.
+
+        With what the range clipped off the table (``excess``'s sums), its harmonics first:
+        the table takes the input applied, projected on Q's band.
+        """
+        size = self.harmonics.size
+        coef = self.coefficients
+        if excess is not None:
+            coef -= (2.0 * self.r) * excess
+        cos_sum = sums[:size]
+        sin_sum = sums[size:]
+        coef[:size] -= self._g_re * cos_sum + self._g_im * sin_sum
+        coef[size:] -= self._g_re * sin_sum - self._g_im * cos_sum
+        self._limit()
+        self.periods_learned += 1
+        self._stale = True
+
+    def amplitude_bound(self) -> FloatArray:
+        """Return sum_h sqrt(alpha_h^2 + beta_h^2) per member [V]: |L| stays below it."""
+        size = self.harmonics.size
+        if not size:
+            return np.zeros(self.members)
+        return _row_sum(np.hypot(self.coefficients[:size], self.coefficients[size:]))
+
+    def _limit(self) -> None:
+        """Scale a member's table down to the amplitude bound (in band, no DC)."""
+        bound = self.amplitude_bound()
+        over = bound > self.limit_v
+        if np.any(over):
+            scale = np.where(over, self.limit_v / np.where(over, bound, 1.0), 1.0)
+            self.coefficients *= scale[None, :]
+            self.limited += 1
 
 
 # --------------------------------------------------------------------------------------------
@@ -724,9 +1297,17 @@ def shape_jumps(x: FloatArray, v: FloatArray, sample_time_s: float, transition_s
     """
     Replace each ideal jump of a sampled reference by a quintic S-curve starting at it.
 
-    A jump is a step x_{k+1} - x_k that its velocity does not explain by more than
-    ``tolerance_m``. Returns the shaped position and velocity and the number of jumps; the
-    reference is unchanged outside [t_jump, t_jump + transition_s] of each jump.
+    A jump is a step x_{k+1} - x_k that its velocity does not explain. The trapezoid
+    T (v_k + v_{k+1}) / 2 leaves T^3 / 12 times the third derivative on a smooth path, that is
+    T d2 / 12 with d2 the velocity's second difference around the step (the larger of its
+    two), and at most T |v_{k+1} - v_k| / 2 at a corner of the velocity (a triangle's turn),
+    where that difference is as large as d2; a step off by more than twice
+    T (min(|v_{k+1} - v_k|, d2) / 2 + d2 / 12) plus ``tolerance_m`` is a jump. The test
+    scales with the sample time and the reference's own motion: a fast smooth reference (a
+    sine of a fifth of the sample rate) is never taken for jumps, a jump of a reference at
+    rest is found down to ``tolerance_m``, one riding on a moving reference above the
+    motion's own allowance. Returns the shaped position and velocity and the number of
+    jumps; the reference is unchanged outside [t_jump, t_jump + transition_s] of each jump.
     """
     x = np.asarray(x, dtype=np.float64)
     v = np.asarray(v, dtype=np.float64)
@@ -734,7 +1315,14 @@ def shape_jumps(x: FloatArray, v: FloatArray, sample_time_s: float, transition_s
         return x, v, 0
     explained = 0.5 * sample_time_s * (v[1:] + v[:-1])
     jump = np.diff(x) - explained
-    where = np.flatnonzero(np.abs(jump) > tolerance_m)
+    dv = np.abs(np.diff(v))
+    turn = dv.copy()  # two samples: no second difference, a corner's bound
+    if len(v) >= 3:
+        second = np.abs(np.diff(v, 2))
+        turn[:-1] = second
+        turn[1:] = np.maximum(turn[1:], second)
+    smooth = 2.0 * sample_time_s * (0.5 * np.minimum(dv, turn) + turn / 12.0)
+    where = np.flatnonzero(np.abs(jump) > tolerance_m + smooth)
     if where.size == 0:
         return x, v, 0
     xs, vs = x.copy(), v.copy()
@@ -802,6 +1390,11 @@ class FeedForwardController:
         self._vmax = float(output_max_v)
         self._inverse_on = params.inverse
         self._learning_on = params.learning
+        #: The S-curve's duration a jump is shaped over [s] (module doc, Jumps).
+        self.transition_s = params.transition_s
+        if self._learning_on and not self._inverse_on and params.transition_s > 0.0:
+            self.transition_s = max(params.transition_s,
+                                    LEARNING_SHAPE_CYCLES / params.learning_bandwidth_hz)
         self.plant_inverse = PreviewInverse(plant, self._t, params.preview_samples)
         # the plant seen from v_lin: c G with the compensator (inverse modes), about c G
         # (hysteresis slope) without
@@ -826,10 +1419,35 @@ class FeedForwardController:
             self._share_notch = type(notch)(notch.num, notch.den)
         self._share_fresh = True
         self._trajectory: Trajectory | None = None
+        # the segments of a trajectory still to come: (start [s], trajectory), and when the
+        # next one starts [samples from the present segment's start]
+        self._segments: list[tuple[float, Trajectory]] = []
+        self._segment_start_k = 0
+        self._switch_in = 0
         self.mismatches = 0
         self.periods_learned = 0
         self.last_period_rms_m = math.nan
         self._period_n = 0
+        #: The period learned over [s] (0 when the mode does not learn or nothing is bound).
+        self.period_s = 0.0
+        # a period that is not a whole number of samples: the table on its phase
+        self._phase: PhaseLearning | None = None
+        self._next_period_k = 0
+        self._sync_k = 0
+        self._sq_count = 0
+        self._last_learned = 0.0
+        # the amplifier's range: the last sample it clipped, the linear input asked then, and
+        # what it clipped off the table's entries this period (projected out at its end)
+        self._clip_k = -(1 << 62)
+        self._asked = 0.0
+        #: Commands the amplifier's range clipped since the controller was bound.
+        self.clipped_samples = 0
+        #: Learning updates the table's bound ``learning_limit_v`` scaled down.
+        self.limited_updates = 0
+        self._excess_table: FloatArray = np.zeros(0)
+        self._excess_any = False
+        self._kept: Any = None
+        self._leak = 0.0
         self._learned: FloatArray = np.zeros(0)
         self._ll: list[float] = []
         # learning, spread over the period: the errors of each run of LEARN_CHUNK samples go
@@ -848,6 +1466,9 @@ class FeedForwardController:
         self._lw: list[float] = []
         self._block_start = 0
         self._filter_state: Any = None
+        # the next block, computed ahead for predict: (start, tables, filter state before it)
+        self._block_ahead: tuple[int, tuple[FloatArray, FloatArray, FloatArray, FloatArray],
+                                 Any] | None = None
         self._k = 0
         self._matched = False
         self._u = 0.0
@@ -863,33 +1484,141 @@ class FeedForwardController:
         """
         Take the reference ahead from ``trajectory`` (t = 0 at the first step after reset).
 
-        A new trajectory starts the learned table afresh.
+        A new trajectory starts the learned table afresh. A trajectory of segments (a line
+        rate changed during the run, :class:`~piezo_stage_ros.core.loop.switched.
+        LineRateChange`) is bound one segment at a time, each at the sample it starts
+        (:meth:`switch`).
         """
+        segments = getattr(trajectory, 'segments', None)
+        for start_s, _ in (segments or ())[1:]:
+            k = round(start_s / self._t)
+            if abs(k * self._t - start_s) > 1e-9 * self._t:
+                raise ParameterError('line_rate_change.at_s', start_s,
+                                     f'a whole number of samples (T = {self._t:g} s)',
+                                     'would start the new line between two samples')
+        self._segments = list(segments[1:]) if segments else []
+        self._segment_start_k = 0
+        self._switch_in = self._sample_at(self._segments[0][0]) if self._segments else 0
+        self._bind_one(segments[0][1] if segments else trajectory, load_file=True)
+
+    def _sample_at(self, time_s: float) -> int:
+        """Return the first sample k with k T >= ``time_s`` (the loop's own rounding)."""
+        k = max(int(math.ceil(time_s / self._t)) - 1, 0)
+        while k * self._t < time_s:
+            k += 1
+        return k
+
+    def switch(self, trajectory: Trajectory) -> None:
+        """
+        Bind a new trajectory from the next step on, at its t = 0, without a reset.
+
+        A new line rate: the feedback, the inverse hysteresis and the estimates go on; the
+        model inverse of the new reference acts from its first sample and the learned table
+        starts afresh for the new period (a table file is not loaded again: it belongs to the
+        first trajectory). Nothing is refused that :meth:`bind` of the first one accepted,
+        except a period the learning cannot use (its error names the range).
+        """
+        self._segments = []
+        self._bind_one(trajectory, load_file=False)
+        self._k = 0
+        self._seen_k = -1
+        self._hold(False)
+        if self._learning_on and not self._inverse_on:
+            self._seed_from_model()
+
+    def _seed_from_model(self) -> None:
+        """
+        Start ``learning`` (no model inverse) from the design model's input for the reference.
+
+        The table converges to what the loop lacks for the reference, which on the design
+        model is its inverse, X_h / (c G(z_h)), less the RAC's own share at its initial
+        estimates, k (theta_0 X_h + phi_0 V_h) through the notch; Q's harmonics of that are the
+        table a new line rate starts from, so that its first line is not feedback alone.
+        """
+        points = self.table_points()
+        samples = self._phase.samples if self._phase is not None else float(points)
+        x, v = self._grid_reference() if self._phase is not None else \
+            (np.asarray(self._lx, dtype=np.float64), np.asarray(self._lv, dtype=np.float64))
+        if self._phase is not None:
+            x, v = self._shape_periodic(x, v)
+        z = np.exp(2j * math.pi * np.arange(points // 2 + 1) / samples)
+        kept = np.zeros(z.size, dtype=bool)
+        if self._phase is not None:
+            kept[self._phase.harmonics.astype(int)] = True
+        else:
+            kept[:len(self._kept)] = self._kept
+        g = self.slope * self.plant_inverse.frequency_response(z)
+        share = self._ksens * (self._theta0 * np.fft.rfft(x) + self._phi0 * np.fft.rfft(v))
+        if self._notch_coeffs is not None:
+            num, den = self._notch_coeffs
+            share = share * np.polyval(num, z) / np.polyval(den, z)
+        with np.errstate(divide='ignore', invalid='ignore'):
+            seed = np.where(kept, np.fft.rfft(x) / np.where(kept, g, 1.0) - share, 0.0)
+        table = np.fft.irfft(seed, points)
+        peak = float(np.max(np.abs(table)))
+        limit = self.params.learning_limit_v
+        if peak > limit:
+            table *= limit / peak
+        self.load_table(table)
+
+    def _next_segment(self, k: int) -> int:
+        """Bind the next segment of the trajectory at sample ``k``; return k in it."""
+        start_s, trajectory = self._segments.pop(0)
+        start_k = self._sample_at(start_s)
+        local = k - (start_k - self._segment_start_k)
+        rest = self._segments
+        self.switch(trajectory)
+        self._segments = rest
+        self._segment_start_k = start_k
+        self._switch_in = self._sample_at(rest[0][0]) - start_k if rest else 0
+        return local
+
+    def _bind_one(self, trajectory: Trajectory, *, load_file: bool) -> None:
+        """Bind one trajectory: its tables, a fresh table, the table file when asked."""
         self._trajectory = trajectory
         period = self.params.period_s or getattr(trajectory, 'period_s', None) or 0.0
-        n = int(round(period / self._t)) if period > 0.0 else 0
-        exact = n >= 4 and abs(n * self._t - period) <= 1e-9 * period
-        if self._learning_on and not exact:
-            raise ParameterError('feedforward.period_s', period,
-                                 'a period of a whole number (>= 4) of samples',
-                                 'learning needs a periodic reference')
+        n, samples = whole_period(period, self._t)
+        if 0.0 < period <= 2.0 * self._t:
+            raise ParameterError('feedforward.period_s' if self.params.period_s else
+                                 'trajectory period', period,
+                                 f'> {2.0 * self._t:g} s (a line rate below the Nyquist '
+                                 f'frequency, {0.5 / self._t:g} Hz)',
+                                 f'is {period / self._t:.3g} samples: the sample rate cannot '
+                                 'draw it')
+        if self._learning_on:
+            check_learning_period(period, self._t)
+        exact = n >= 4
         self._period_n = n if exact else 0
+        self._phase = None
+        self.period_s = period if self._learning_on else 0.0
         self._learned = np.zeros(self._period_n)
         self._ll = self._learned.tolist()
+        self._excess_table = np.zeros(self._period_n)
+        self._excess_any = False
+        self._clip_k = -(1 << 62)
+        self.clipped_samples = 0
+        self.limited_updates = 0
         self._delta = np.zeros(self._period_n)
         self._errors = [0.0] * self._period_n
         self._pending = 0
         self._sq = 0.0
         if self._learning_on:
+            self._set_leak(n if exact else samples)
+        if self._learning_on and exact:
             # designed here, on the controller's initial estimates: nothing of it in the loop
-            kernel = np.fft.irfft(self._learning_filter(), n)
+            filt = self._learning_filter(n)
+            self._kept = filt != 0.0
+            kernel = np.fft.irfft(filt, n)
             self._kernel2 = np.concatenate([kernel, kernel])
             self._columns = learning_columns(self._kernel2)
+        elif self._learning_on:
+            # a period of any length: the table on the period's harmonics (PhaseLearning)
+            self._phase = self.phase_learning(samples, 1)
         self.periods_learned = 0
         self._prepare_tables()
         self.design = self.design_summary()
         self.table_source = ''
-        if self.params.table_file:
+        if self.params.table_file and load_file:
             if not self._learning_on:
                 raise ParameterError('feedforward.table_file', self.params.table_file,
                                      "'' unless feedforward.mode learns",
@@ -904,6 +1633,11 @@ class FeedForwardController:
         if self._learning_on and self._period_n:
             self._accumulate(self._k % self._period_n)  # the errors so far stay in the update
             self._pending = 0
+        if self._phase is not None:
+            self._phase.reset()
+            self._next_period_k = 0
+            self._sq = 0.0
+            self._sq_count = 0
         self._k = 0
         self._seen_k = -1
         self._share_fresh = True
@@ -928,6 +1662,8 @@ class FeedForwardController:
         the feedback controller.
         """
         k = self._k
+        if self._segments and k >= self._switch_in:
+            k = self._next_segment(k)
         self._k = k + 1
         if self._trajectory is None:
             return self._plain(position_m, reference_m, reference_velocity_mps, dt_s)
@@ -958,25 +1694,92 @@ class FeedForwardController:
                 share = notch.step(share)
             u = u - share + self._lw[i]
         if self._learning_on:
-            u += self._ll[i]
-            e = position_m - xd
+            if not n:
+                return self._phase_step(k, u, position_m - x_ref)
+            table = self._ll[i]
+            u += table
+            e = position_m - x_ref  # the shaped path, the one the feedback follows
             self._sq += e * e
             if k >= self._learn_from:
                 if not self._holding:
                     self._hold(True)
-                self._errors[i] = e
+                # no error learned from a clipped command's samples
+                self._errors[i] = e if k - self._clip_k > CLIP_SETTLE_SAMPLES \
+                    else self._leak * table
                 if i % LEARN_CHUNK == LEARN_CHUNK - 1 or i == n - 1:
                     self._accumulate(i + 1)
             if i == n - 1:
                 self._learn(k)
+            v = self._output(u)
+            if self._clip_k == k:
+                self._fold_excess(i, table)
+            return v
         return self._output(u)
+
+    def _phase_step(self, k: int, u: float, e: float) -> float:
+        """Return the command of sample ``k`` with the table of a period of any length."""
+        phase = self._phase
+        assert phase is not None
+        value = phase.learn_one(k, e, k - self._clip_k <= CLIP_SETTLE_SAMPLES)
+        if k >= self._next_period_k:
+            self._end_phase_period(k)
+        elif k == self._sync_k:  # a period's update is applied one sample after its end
+            self.periods_learned = phase.periods_learned
+        self._sq += e * e
+        self._sq_count += 1
+        if not self._holding and k >= phase.learn_from:
+            self._hold(True)
+        self._last_learned = value
+        v = self._output(u + value)
+        if self._clip_k == k:
+            phase.record_excess(k, self._excess(value))
+        return v
+
+    def _excess(self, table: float) -> float:
+        """Return the part of the table's entry the amplifier's range clipped off [V]."""
+        hyst = self.hysteresis_inverse
+        applied = hyst.output_v / self.slope if hyst is not None else self._u
+        return float(clipped_excess(np.float64(self._asked - applied), np.float64(table)))
+
+    def limit_terms(self) -> tuple[float, Any]:
+        """
+        Return what the learning does at the range's limits, for the batched loop.
+
+        (the leak of an entry whose error is not learned [m/V], Q on the period's harmonics
+        of a whole period).
+        """
+        return self._leak, self._kept
+
+    def _fold_excess(self, i: int, table: float) -> None:
+        """Keep what the range clipped off entry ``i`` (the table is projected at the end)."""
+        fold = self._excess(table)
+        if fold != 0.0:
+            self._excess_table[i] += fold
+            self._excess_any = True
+
+    def _end_phase_period(self, k: int) -> None:
+        """Close a period of any length that ended before sample ``k``: its rms, its updates."""
+        phase = self._phase
+        assert phase is not None
+        if self._sq_count:
+            self.last_period_rms_m = math.sqrt(self._sq / self._sq_count)
+        self._sq = 0.0
+        self._sq_count = 0
+        self.periods_learned = phase.periods_learned
+        self.limited_updates = phase.limited
+        self._sync_k = k + 1
+        self._next_period_k = phase.period_start(period_index(k, phase.r) + 1)
 
     def _output(self, u: float) -> float:
         """Return the command for the linear input ``u``: inverse hysteresis, then the range."""
         hyst = self.hysteresis_inverse
+        self._asked = u
         if hyst is not None:
             u = hyst.invert(self.slope * u)
         v = self._vmax if u > self._vmax else (self._vmin if u < self._vmin else u)
+        if v != u:
+            self._clip_k = self._k - 1
+            self.clipped_samples += 1
         if hyst is not None:
             hyst.commit(v)
         self._u = v
@@ -1009,8 +1812,9 @@ class FeedForwardController:
         replaces) on the shaped reference, the model inverse and the learned table; the
         feedback part held, the inverse hysteresis taken with its secant from the present
         state to the largest change ahead (one solve, not one a sample). A periodic reference
-        wraps around its period; an aperiodic one is read up to the end of the block computed,
-        then held. Held throughout when the last step was feedback alone (no reference bound,
+        wraps around its period; an aperiodic one (and one whose period is not a whole number
+        of samples) is read on into the next block, computed ahead once when needed. Held
+        throughout when the last step was feedback alone (no reference bound,
         or not the one bound).
         """
         v = self._u
@@ -1020,6 +1824,12 @@ class FeedForwardController:
         x, xv, wl = self._ahead_tables(count)
         n = self._period_n
         i = k % n if n else k - self._block_start
+        if not n and i + 1 + count > len(x):
+            # an aperiodic reference's block ends within the count: the next one, ahead
+            _, nx, nv, nw = self._peek_block()
+            x = np.concatenate([x, nx])
+            xv = np.concatenate([xv, nv])
+            wl = np.concatenate([wl, nw if self._inverse_on else np.zeros(len(nw))])
         stop = min(i + 1 + count, len(x))
         a, b = getattr(self.inner, 'reference_gains', lambda: (0.0, 0.0))()
         if self._inverse_on:
@@ -1029,6 +1839,8 @@ class FeedForwardController:
         ahead *= a
         ahead += b * (xv[i + 1:stop] - xv[i])
         ahead += wl[i + 1:stop] - wl[i]
+        if self._phase is not None and len(ahead):
+            ahead += self._phase.values(k + 1, len(ahead))[:, 0] - self._last_learned
         hyst = self.hysteresis_inverse
         if hyst is not None and len(ahead):
             # through the inverse hysteresis: its secant from here to the largest change ahead
@@ -1041,7 +1853,7 @@ class FeedForwardController:
         np.minimum(ahead, self._vmax, out=ahead)
         np.maximum(ahead, self._vmin, out=ahead)
         if len(ahead) < count:
-            # an aperiodic reference's block ends here: its last prediction is held
+            # more than a block ahead: the last prediction is held
             ahead = np.concatenate([ahead, np.full(count - len(ahead),
                                                    ahead[-1] if len(ahead) else v)])
         return ahead
@@ -1098,9 +1910,9 @@ class FeedForwardController:
         return x, v
 
     def _shape(self, x: FloatArray, v: FloatArray) -> tuple[FloatArray, FloatArray]:
-        if not self._inverse_on:
+        if not (self._inverse_on or self._learning_on):
             return x, v
-        xs, vs, _ = shape_jumps(x, v, self._t, self.params.transition_s)
+        xs, vs, _ = shape_jumps(x, v, self._t, self.transition_s)
         return xs, vs
 
     def _prepare_tables(self) -> None:
@@ -1111,24 +1923,42 @@ class FeedForwardController:
             # that is not yet periodic (a square wave's first transition); those samples are
             # told apart by the reference check in step
             x, v = self._evaluate(n, n)
-            # a jump across the period's end is a jump too: shape on three periods, keep the
-            # middle one
-            x3, v3 = self._shape(np.tile(x, 3), np.tile(v, 3))
-            xs = x3[n:2 * n]
+            xs, vs = self._shape_periodic(x, v)
             w = self.plant_inverse.periodic(xs) / self.slope if self._inverse_on \
                 else np.zeros(n)
-            self._set_tables(x, xs, v3[n:2 * n], w)
+            self._set_tables(x, xs, vs, w)
             return
         self._block_start = 0
         self._filter_state = None
+        self._block_ahead = None
         self._lx = []
 
     def _next_block(self, k: int) -> None:
-        """Compute the feed-forward of samples k .. k + block - 1 (aperiodic references)."""
+        """Install the feed-forward of samples k .. k + block - 1 (aperiodic references)."""
+        ahead = self._block_ahead
+        self._block_ahead = None
+        if ahead is not None and ahead[0] == k:
+            tables = ahead[1]
+        else:
+            if ahead is not None:
+                self._filter_state = ahead[2]  # the block read ahead was not used
+            tables = self._compute_block(k)
+        self._set_tables(*tables)
+        self._block_start = k
+
+    def _peek_block(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Return the next block's tables ahead of time (:meth:`predict` at a block's end)."""
+        k = self._block_start + len(self._lx)
+        if self._block_ahead is None or self._block_ahead[0] != k:
+            state = self._filter_state
+            self._block_ahead = (k, self._compute_block(k), state)
+        return self._block_ahead[1]
+
+    def _compute_block(self, k: int) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Return x_d, shaped x_d, x_d', w of samples k .. k + block - 1 (the filter goes on)."""
         inv = self.plant_inverse
         size = self.params.block_samples
-        half = int(math.ceil(self.params.transition_s / self._t)) + 2 \
-            if self._inverse_on else 0
+        half = int(math.ceil(self.transition_s / self._t)) + 2
         first = k - inv.back - half
         raw_x, raw_v = self._evaluate(first, size + inv.back + inv.lead + 2 * half)
         xs, vs = self._shape(raw_x, raw_v)
@@ -1140,8 +1970,7 @@ class FeedForwardController:
                 self._filter_state = inv.start(float(seq[0]))
             w, self._filter_state = inv.block(seq, self._filter_state)
             w = w / self.slope
-        self._set_tables(raw_x[core], xs[core], vs[core], w)
-        self._block_start = k
+        return raw_x[core], xs[core], vs[core], w
 
     def _set_tables(self, x_raw: FloatArray, x: FloatArray, v: FloatArray,
                     w: FloatArray) -> None:
@@ -1185,9 +2014,26 @@ class FeedForwardController:
         """Return the first sample whose error is learned (after the start periods)."""
         return self.params.learning_start_periods * self._period_n
 
-    def _learning_filter(self) -> ComplexArray:
-        """Return gamma Q / P_s on the period's harmonics (0 on those Q drops)."""
-        n = self._period_n
+    def _set_leak(self, n: float) -> None:
+        """|P_s| at the period's first harmonic [m/V]: see ``CLIP_SETTLE_SAMPLES``."""
+        z = period_harmonics(n)[1:2]
+        k_p, k_i = self.inner.linear_gains()
+        g = self.slope * self.plant_inverse.frequency_response(z)
+        ps = process_sensitivity(g, z, k_p, k_i, self._ksens, self._t, self._notch_coeffs)
+        self._leak = float(np.abs(ps[0])) if ps.size else 0.0
+
+    def phase_learning(self, samples: float, members: int) -> PhaseLearning:
+        """Return the learning of a period of ``samples`` samples (any length), M members."""
+        filt = self._learning_filter(samples)
+        kept = np.flatnonzero(filt != 0.0)
+        table = PhaseLearning(filt[kept], kept.astype(np.float64), samples, members,
+                              self.params.learning_limit_v,
+                              self.params.learning_start_periods)
+        table.leak = self._leak
+        return table
+
+    def _learning_filter(self, n: float) -> ComplexArray:
+        """Return gamma Q / P_s on the harmonics of a period of n samples (0 where Q drops)."""
         z = period_harmonics(n)
         # the plant seen from v_lin: c G (the compensator removes the hysteresis; without it,
         # the hysteresis slope c is its gain)
@@ -1214,20 +2060,52 @@ class FeedForwardController:
         limit = self.params.learning_limit_v
         learned = self._learned
         learned -= self._delta
-        np.clip(learned, -limit, limit, out=learned)
+        if self._excess_any:
+            # what the range clipped off the table: the table takes the input that was
+            # applied, then Q (band, no DC)
+            learned -= self._excess_table
+            self._excess_table.fill(0.0)
+            self._excess_any = False
+            learned[:] = np.fft.irfft(np.fft.rfft(learned) * self._kept, len(learned))
+        peak = float(np.max(np.abs(learned)))
+        if peak > limit:
+            # scaled, not clipped: the table stays in Q's band with no DC
+            learned *= limit / peak
+            self.limited_updates += 1
         self._delta.fill(0.0)
         self._ll = learned.tolist()
         self.periods_learned += 1
 
     # -- tables for others ---------------------------------------------------------------------
 
+    def table_points(self) -> int:
+        """
+        Return N, the points of one period in :meth:`learned_table` and in a table file.
+
+        A whole period: its n samples. Any other: ceil(P/T) points evenly spaced in phase,
+        at least one per sample (the table is band-limited below the Nyquist frequency, so
+        they hold it whole).
+        """
+        if self._phase is not None:
+            return int(math.ceil(self._phase.samples - 1e-9))
+        return self._period_n
+
     def learned_table(self) -> FloatArray:
-        """Return a copy of the learned table (one period) [V]."""
+        """Return a copy of the learned table (one period, :meth:`table_points`) [V]."""
+        if self._phase is not None:
+            return np.asarray(self._phase.on_grid(self.table_points())[:, 0], dtype=np.float64)
         return self._learned.copy()
 
     def load_table(self, table: FloatArray) -> None:
         """Start from a saved learned table (same period) [V]."""
         table = np.asarray(table, dtype=np.float64)
+        if self._phase is not None:
+            if table.shape != (self.table_points(),):
+                raise ParameterError('learned table', f'{table.shape[0]} points',
+                                     f'{self.table_points()} points (one period)',
+                                     'has the wrong length')
+            self._phase.load_grid(table)
+            return
         if table.shape != (self._period_n,):
             raise ParameterError('learned table', f'{table.shape[0]} samples',
                                  f'{self._period_n} samples (one period)', 'has the wrong length')
@@ -1268,12 +2146,19 @@ class FeedForwardController:
             If the mode does not learn or the controller is not bound to a periodic reference.
 
         """
-        if not self._learning_on or not self._period_n:
+        if not self._learning_on or not (self._period_n or self._phase is not None):
             raise PiezoStageError(f'feed-forward mode {self.params.mode!r}: no learned table '
                                   '(the mode does not learn, or no trajectory is bound)')
-        return LearnedTable(table_v=self._learned + self._estimate_drift(),
-                            reference_m=np.asarray(self._lx_raw, dtype=np.float64),
-                            sample_time_s=self._t, period_s=self._period_n * self._t,
+        if self._phase is not None:
+            x, _ = self._grid_reference()
+            table = self.learned_table() + self._estimate_drift()
+            period = self.period_s
+        else:
+            x = np.asarray(self._lx_raw, dtype=np.float64)
+            table = self._learned + self._estimate_drift()
+            period = self._period_n * self._t
+        return LearnedTable(table_v=table, reference_m=x,
+                            sample_time_s=self._t, period_s=period,
                             mode=self.params.mode, design=self.design,
                             periods_learned=self.periods_learned,
                             period_rms_m=self.last_period_rms_m)
@@ -1289,17 +2174,38 @@ class FeedForwardController:
         """
         rac = getattr(self.inner, 'inner', self.inner)
         values = dict(rac.diagnostics()) if hasattr(rac, 'diagnostics') else {}
+        n = self.table_points()
         if 'theta_hat' not in values or 'phi_hat' not in values:
-            return np.zeros(self._period_n)
+            return np.zeros(n)
         d_theta = float(values['theta_hat']) - self._theta0
         d_phi = float(values['phi_hat']) - self._phi0
-        drift = self._ksens * (d_theta * np.asarray(self._lx) + d_phi * np.asarray(self._lv))
+        if self._phase is not None:
+            x, v = self._grid_reference()
+            x, v = self._shape_periodic(x, v)
+        else:
+            x, v = np.asarray(self._lx), np.asarray(self._lv)
+        drift = self._ksens * (d_theta * x + d_phi * v)
         if self._notch_coeffs is not None:
-            n = self._period_n
-            z = np.exp(2j * math.pi * np.arange(n // 2 + 1) / n)
+            # the harmonics of the period: h / (P/T) cycles a sample
+            samples = self._phase.samples if self._phase is not None else n
+            z = np.exp(2j * math.pi * np.arange(n // 2 + 1) / samples)
             num, den = self._notch_coeffs
             drift = np.fft.irfft(np.fft.rfft(drift) * np.polyval(num, z) / np.polyval(den, z), n)
         return np.asarray(drift, dtype=np.float64)
+
+    def _grid_reference(self) -> tuple[FloatArray, FloatArray]:
+        """Return x_d, x_d' at the phases of :meth:`table_points` of the second period."""
+        assert self._trajectory is not None
+        n = self.table_points()
+        t = self.period_s * (1.0 + np.arange(n) / n)
+        x, v = self._trajectory.evaluate(t)
+        return np.asarray(x, dtype=np.float64).copy(), np.asarray(v, dtype=np.float64).copy()
+
+    def _shape_periodic(self, x: FloatArray, v: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Shape the jumps of one period (a jump across its end too: three periods shaped)."""
+        n = len(x)
+        x3, v3 = self._shape(np.tile(x, 3), np.tile(v, 3))
+        return x3[n:2 * n], v3[n:2 * n]
 
     def save_table_file(self, path: str | Path) -> Path:
         """Write :meth:`learned` to ``path`` (:func:`write_learned_table`) and return it."""
@@ -1336,6 +2242,11 @@ class FeedForwardController:
                 f'{here.sample_time_s:g} s (period {here.period_s:g} s, the bound trajectory)',
                 f'holds {saved.samples} samples of T = {saved.sample_time_s:g} s (period '
                 f'{saved.period_s:g} s)')
+        if abs(saved.period_s - here.period_s) > 1e-9 * here.period_s:
+            raise ParameterError(
+                name, str(path), f'a table of the period {here.period_s!r} s (the bound '
+                'trajectory)', f'was learned for a period of {saved.period_s!r} s: a table '
+                'belongs to one line rate (learn it again at this one)')
         gap = np.abs(saved.reference_m - here.reference_m)
         bad = gap > 1e-12 + 1e-9 * np.abs(here.reference_m)
         if np.any(bad):
@@ -1390,6 +2301,11 @@ class FeedForwardController:
                                  'reference')
         self._lw = (np.asarray(self._lw) + table).tolist()
 
+    @property
+    def phase_table(self) -> PhaseLearning | None:
+        """Return the learning of a period that is not a whole number of samples (or None)."""
+        return self._phase
+
     def learning_kernel(self) -> FloatArray:
         """Return the learning operator's impulse response over two periods (a copy)."""
         return self._kernel2.copy()
@@ -1430,6 +2346,8 @@ class FeedForwardController:
         n = self._period_n
         i = k % n if n else k - self._block_start
         u = self._lw[i] if self._inverse_on else 0.0
+        if self._phase is not None:
+            return u + self._last_learned
         if self._learning_on:
             table = self._ll
             if i == n - 1 and table is not self._seen_table and self._seen_k >= k - i:

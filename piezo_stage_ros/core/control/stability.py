@@ -92,9 +92,11 @@ from piezo_stage_ros.core.control.feedforward import (
     FeedForwardController,
     FeedForwardParams,
     kept_harmonics,
-    learning_convergence,
+    MIN_PERIOD_SAMPLES,
     period_harmonics,
+    phase_learning_convergence,
     process_sensitivity,
+    whole_period,
 )
 from piezo_stage_ros.core.model.family import default_family, member_params
 from piezo_stage_ros.core.model.hysteresis import HysteresisParams, make_hysteresis, NoHysteresis
@@ -422,8 +424,9 @@ class LearningConvergence:
     def text(self) -> str:
         """Return the verdict in one paragraph."""
         head = (f'Learning (gamma {self.gain:g}, Q to {self.bandwidth_hz:g} Hz: {self.harmonics} '
-                f'harmonics of {self.period_s:g} s): per-period ratio max|1 - gamma P_true/P_s| '
-                f'= {self.design_ratio:.3f} on the design model')
+                f'harmonics of {self.period_s:g} s; assumes a linear loop: the command inside '
+                'the amplifier range, the table inside learning_limit_v): per-period ratio '
+                f'max|1 - gamma P_true/P_s| = {self.design_ratio:.3f} on the design model')
         if self.slopes:
             worst = max(self.slopes, key=lambda c: c[1])
             head += (f', {worst[1]:.3f} at worst over the hysteresis slopes '
@@ -842,7 +845,9 @@ def learning_check(controller_params: ControllerParams, plant_params: PlantParam
         T [s].
     period_s : float
         The period learned over [s] (``feedforward.period_s`` when set, else the
-        trajectory's); None is returned when it is not a whole number (>= 4) of samples.
+        trajectory's), any length of at least four samples (None is returned for a shorter
+        one or none); a period that is not a whole number of samples adds the leakage of its
+        windows (:func:`~piezo_stage_ros.core.control.feedforward.phase_learning_convergence`).
     stage : StageParams, optional
         The configured stage: its hysteresis is the design hysteresis (slope c), and the
         stage family of ``robustness`` is built from it; default the paper's stage, without
@@ -859,8 +864,8 @@ def learning_check(controller_params: ControllerParams, plant_params: PlantParam
     if not ff.learning:
         return None
     period = ff.period_s or period_s
-    n = int(round(period / sample_time_s)) if period > 0.0 else 0
-    if n < 4 or abs(n * sample_time_s - period) > 1e-9 * period:
+    whole, n = whole_period(period, sample_time_s)
+    if n < MIN_PERIOD_SAMPLES:
         return None
     opts = options if options is not None else StabilityParams()
     hysteresis = make_hysteresis(stage.hysteresis if stage is not None
@@ -882,12 +887,16 @@ def learning_check(controller_params: ControllerParams, plant_params: PlantParam
         return process_sensitivity(g, z, k_p, k_i, k, sample_time_s, notch)
     design = sensitivity(plant, c)
     kept = kept_harmonics(design, n, sample_time_s, ff.learning_bandwidth_hz)
+
+    def convergence(design: ComplexArray, true: ComplexArray, gain: float,
+                    kept: FloatArray) -> float:
+        return phase_learning_convergence(design, true, gain, kept, n)
     # with the inverse the compensator removes the design hysteresis; without it the loop
     # sees the hysteresis' incremental slope
     slopes = () if ff.inverse else opts.slopes()
 
     def ratio(model: LinearPlant) -> float:
-        return max(learning_convergence(design, sensitivity(model, s), ff.learning_gain, kept)
+        return max(convergence(design, sensitivity(model, s), ff.learning_gain, kept)
                    for s in (slopes or (c,)))
     members: list[tuple[str, float]] = []
     note = ''
@@ -899,10 +908,11 @@ def learning_check(controller_params: ControllerParams, plant_params: PlantParam
         members = [(m.name, ratio(stability_plant(member_params(stage, m).plant)))
                    for m in default_family()]
     return LearningConvergence(
-        period_s=n * sample_time_s, harmonics=int(np.sum(kept)), gain=ff.learning_gain,
+        period_s=whole * sample_time_s if whole else period, harmonics=int(np.sum(kept)),
+        gain=ff.learning_gain,
         bandwidth_hz=ff.learning_bandwidth_hz,
-        design_ratio=learning_convergence(design, design, ff.learning_gain, kept),
-        slopes=tuple((s, learning_convergence(design, sensitivity(plant, s), ff.learning_gain,
+        design_ratio=convergence(design, design, ff.learning_gain, kept),
+        slopes=tuple((s, convergence(design, sensitivity(plant, s), ff.learning_gain,
                                               kept)) for s in slopes),
         members=tuple(members), note=note)
 

@@ -63,6 +63,8 @@ from piezo_stage_ros.core.control.controllers import (
 )
 from piezo_stage_ros.core.control.feedforward import (
     BacklashInverse,
+    CLIP_SETTLE_SAMPLES,
+    clipped_excess,
     FeedForwardController,
     LEARN_CHUNK,
     learning_columns,
@@ -656,6 +658,11 @@ class FeedForwardBatch:
     def __init__(self, params: ControllerParams, ctrl: ControllerBatch,
                  plant: LinearPlant | None, hysteresis: HysteresisModel,
                  trajectory: Trajectory) -> None:
+        if getattr(trajectory, 'segments', None):
+            raise ParameterError('trajectory', type(trajectory).__name__,
+                                 'one trajectory for the whole run',
+                                 'changes its line rate: the batched loop binds one reference '
+                                 '(run one closed loop per stage)')
         template = build_controller(params, ctrl.sample_time_s, plant, hysteresis)
         assert isinstance(template, FeedForwardController)
         self.template = template
@@ -713,6 +720,17 @@ class FeedForwardBatch:
         self._columns = learning_columns(self.template.learning_kernel()) if self._learning \
             else np.zeros((0, 0))
         self._learn_from = self._start_periods * period
+        # the amplifier's range, per member (the scalar wrapper's _clip_k, _excess_table)
+        self._clip_k = np.full(n, -(1 << 62), dtype=np.int64)
+        self._excess = np.zeros((period, n))
+        self._excess_any = np.zeros(n, dtype=bool)
+        self._leak, self._kept = self.template.limit_terms()
+        #: Commands the amplifier's range clipped, per member.
+        self.clipped_samples = np.zeros(n, dtype=np.int64)
+        # a period that is not a whole number of samples: every member's table on its phase
+        template_phase = self.template.phase_table
+        self._phase = None if template_phase is None or not self._learning else \
+            self.template.phase_learning(template_phase.samples, n)
         if self._jump is not None:
             # BacklashInverse.reset at position / (dc gain slope): at rest, e = 0
             self._hv = np.asarray(position_m, dtype=np.float64) / self._rest_gain
@@ -721,7 +739,14 @@ class FeedForwardBatch:
         self.periods_learned = 0
 
     def learned_table(self) -> FloatArray:
-        """Return a copy of every member's learned table [V], shape (period, n)."""
+        """
+        Return a copy of every member's learned table [V], shape (period, n).
+
+        A period that is not a whole number of samples: the table at the phases of
+        :meth:`~piezo_stage_ros.core.control.feedforward.FeedForwardController.table_points`.
+        """
+        if self._phase is not None:
+            return self._phase.on_grid(self.template.table_points())
         return self._learned.copy()
 
     def step(self, position_m: FloatArray, reference_m: float,
@@ -764,22 +789,63 @@ class FeedForwardBatch:
         if self._inverse:
             u = u - self._share(x_ref, v_ref)
             u += lw[i]
+        phase = self._phase
+        if phase is not None:
+            value = phase.play(k)
+            u = u + value
+            if k >= phase.learn_from:
+                if not self._holding:
+                    self._holding = True
+                    self.ctrl.hold_estimates(True)
+                phase.record(k, np.where(k - self._clip_k > CLIP_SETTLE_SAMPLES,
+                                         position_m - x_ref, self._leak * value))
+            self.periods_learned = phase.periods_learned
+            v = self._output(u)
+            if self._clipped.any():
+                phase.record_excess(k, np.where(self._clipped, self._fold(value), 0.0))
+            return v
         if self._learning:
-            u = u + self._learned[i]
+            table = self._learned[i]
+            u = u + table
             if k >= self._learn_from:
                 if not self._holding:
                     self._holding = True
                     self.ctrl.hold_estimates(True)
-                self._errors[i] = position_m - xd
+                self._errors[i] = np.where(k - self._clip_k > CLIP_SETTLE_SAMPLES,
+                                           position_m - x_ref, self._leak * table)
                 if i % LEARN_CHUNK == LEARN_CHUNK - 1 or i == n - 1:
                     self._accumulate(i + 1)
             if i == n - 1 and k >= self._learn_from:
-                learned = self._learned
-                learned -= self._delta.T
-                _clip(learned, -self._limit, self._limit)
-                self._delta.fill(0.0)
-                self.periods_learned += 1
+                self._update()
+            v = self._output(u)
+            if self._clipped.any():
+                fold = np.where(self._clipped, self._fold(table), 0.0)
+                self._excess[i] += fold
+                self._excess_any |= fold != 0.0
+            return v
         return self._output(u)
+
+    def _fold(self, table: FloatArray) -> FloatArray:
+        """Return what the range clipped off each member's table entry (the scalar's)."""
+        jump = self._jump
+        applied = (jump[1] * self._hv + self._he) / self._slope if jump is not None \
+            else self._v
+        return np.asarray(clipped_excess(self._asked - applied, table), dtype=np.float64)
+
+    def _update(self) -> None:
+        """Apply the period's update to every member's table, as the scalar wrapper's _learn."""
+        learned = self._learned
+        learned -= self._delta.T
+        for j in np.flatnonzero(self._excess_any):
+            column = learned[:, j] - self._excess[:, j]
+            learned[:, j] = np.fft.irfft(np.fft.rfft(column) * self._kept, len(column))
+        self._excess.fill(0.0)
+        self._excess_any.fill(False)
+        peak = np.max(np.abs(learned), axis=0)
+        for j in np.flatnonzero(peak > self._limit):
+            learned[:, j] *= self._limit / float(peak[j])
+        self._delta.fill(0.0)
+        self.periods_learned += 1
 
     def _accumulate(self, end: int) -> None:
         """
@@ -813,11 +879,17 @@ class FeedForwardBatch:
     def _output(self, u: FloatArray) -> FloatArray:
         """Return the commands for the linear inputs ``u``: inverse hysteresis, the range."""
         jump = self._jump
+        self._asked = u
         if jump is not None:
             u = self._invert(self._slope * u)
         v = np.minimum(np.maximum(u, self._vmin), self._vmax)
+        self._clipped = v != u
+        if self._clipped.any():
+            self._clip_k[self._clipped] = self._k - 1
+            self.clipped_samples += self._clipped
         if jump is not None:
             self._commit(v)
+        self._v = v
         return v
 
     def _invert(self, w_target: FloatArray) -> FloatArray:

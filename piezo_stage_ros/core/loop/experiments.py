@@ -33,6 +33,7 @@ import math
 from typing import Any, Callable, Sequence
 
 import numpy as np
+from piezo_stage_ros.core.contracts.interfaces import Trajectory
 from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
 from piezo_stage_ros.core.loop import closed_loop, metrics
 from piezo_stage_ros.core.loop.record import RunRecord
@@ -151,8 +152,8 @@ def run_one(stage_params: StageParams, controller_params: ControllerParams,
             trajectory_params: TrajectoryParams, *, duration_s: float | None = None,
             chunk_callback: closed_loop.ChunkCallback | None = None, keep: bool = True,
             meta: dict[str, Any] | None = None, design_plant: PlantParams | None = None,
-            diagnostics_every: int = 10, built: Callable[[Any], None] | None = None
-            ) -> RunRecord:
+            diagnostics_every: int = 10, built: Callable[[Any], None] | None = None,
+            trajectory: Trajectory | None = None) -> RunRecord:
     """
     Build a stage, a controller and a trajectory and run one closed loop.
 
@@ -180,6 +181,10 @@ def run_one(stage_params: StageParams, controller_params: ControllerParams,
     built : callable, optional
         Called with the controller before the run (a caller that reads its state afterwards:
         a feed-forward's learned table).
+    trajectory : Trajectory, optional
+        The reference itself (a line rate changed during the run,
+        :class:`~piezo_stage_ros.core.loop.switched.LineRateChange`); default the one of
+        ``trajectory_params``.
 
     Returns
     -------
@@ -191,9 +196,11 @@ def run_one(stage_params: StageParams, controller_params: ControllerParams,
     plant = linear_plant(stage_params.plant if design_plant is None else design_plant)
     controller = build_controller(controller_params, stage_params.sample_time_s, plant,
                                   make_hysteresis(stage_params.hysteresis))
-    trajectory = make_trajectory(trajectory_params, sample_rate_hz=stage_params.sample_rate_hz)
+    base = make_trajectory(trajectory_params, sample_rate_hz=stage_params.sample_rate_hz)
+    if trajectory is None:
+        trajectory = base
     if duration_s is None:
-        duration_s = default_duration_s(trajectory, trajectory_params)
+        duration_s = default_duration_s(base, trajectory_params)
     run_meta: dict[str, Any] = {
         'plant': stage_params.plant.model, 'hysteresis': stage_params.hysteresis.model,
         'controller': controller_params.type, 'trajectory': trajectory_params.kind,

@@ -67,6 +67,10 @@ CASES: dict[str, tuple[dict[str, Any], str]] = {
     'sine_10': ({'kind': 'sine', 'sine.frequency_hz': 10.0}, 'periodic'),
     'sine_50': ({'kind': 'sine', 'sine.frequency_hz': 50.0}, 'periodic'),
     'sine_100': ({'kind': 'sine', 'sine.frequency_hz': 100.0}, 'periodic'),
+    # line rates that are not a whole number of samples a period (72.99 and 33.33 at 10 kHz)
+    'sine_137': ({'kind': 'sine', 'sine.frequency_hz': 137.0}, 'periodic'),
+    'sine_300': ({'kind': 'sine', 'sine.frequency_hz': 300.0}, 'periodic'),
+    'triangle_70': ({'kind': 'triangle', 'triangle.frequency_hz': 70.0}, 'periodic'),
     'multisine': ({'kind': 'multisine'}, 'periodic'),
     'square': ({'kind': 'square', 'square.transition_s': 0.0}, 'square'),
     'square_2ms': ({'kind': 'square', 'square.transition_s': 2e-3}, 'square'),

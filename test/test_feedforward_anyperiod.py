@@ -1,0 +1,460 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Learning on a period of any length (core/control/feedforward.py, PhaseLearning): the table on
+the period's harmonics, its convergence and its check, the wrapper, table files.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.control.feedforward import (
+    boundary_weights,
+    FeedForwardController,
+    phase_learning_convergence,
+    PhaseLearning,
+    whole_period,
+)
+from piezo_stage_ros.core.control.stability import learning_check
+from piezo_stage_ros.core.loop import experiments
+from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
+import pytest
+from test_feedforward import _bound, _controller, LOOP, T
+from tolerances import EPS
+
+# 300 Hz (33.3 samples), 70 Hz (142.86), a short odd one and a whole one
+PERIODS = [1e4 / 300.0, 1e4 / 70.0, 7.3, 40.0]
+
+
+def _signal(harmonics: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return rng.standard_normal(harmonics.size), rng.standard_normal(harmonics.size)
+
+
+def _at(phases: np.ndarray, harmonics: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    ang = 2.0 * math.pi * np.multiply.outer(phases, harmonics)
+    return np.asarray(np.cos(ang) @ a + np.sin(ang) @ b)
+
+
+@pytest.mark.parametrize('samples', PERIODS)
+def test_a_phase_table_plays_a_band_limited_periodic_signal_at_every_sample(samples) -> None:
+    # a signal of the kept harmonics, given on the grid of ceil(n) phases, is held exactly:
+    # played at the samples of many periods (whatever phase they fall at) it is the signal
+    h = np.arange(1.0, min(5, int((samples - 1e-9) // 2)) + 1)
+    a, b = _signal(h, 1)
+    table = PhaseLearning(np.ones(h.size, dtype=complex), h, samples, 1, 1e3, 0)
+    points = int(math.ceil(samples))
+    table.load_grid(_at(np.arange(points) / points, h, a, b))
+    k = np.arange(int(20 * samples))
+    played = np.array([float(table.play(int(i))[0]) for i in k])
+    expected = _at(k / samples % 1.0, h, a, b)
+    # phases of k/n to ~k EPS, each term's rounding: a few EPS of the amplitude sum
+    scale = float(np.sum(np.hypot(a, b)))
+    bound = 8 * h.size * EPS * scale * (1 + float(2 * math.pi * h.max() * k.max() / samples))
+    assert np.max(np.abs(played - expected)) <= bound
+    assert np.allclose(table.on_grid(points)[:, 0], _at(np.arange(points) / points, h, a, b),
+                       rtol=0, atol=bound)
+
+
+def test_the_trapezoid_weights_integrate_linear_functions_over_a_cut_period() -> None:
+    # the boundary weights make the sum over a period's samples the integral of the linear
+    # interpolant: exact for a linear integrand across both ends, and the plain sum for a
+    # whole period
+    assert boundary_weights(0.0) == (1.0, 0.0, 0.5, 0.5)
+    for samples in (33.3, 142.857, 7.3):
+        for a in (0.0, 0.25, 0.9):
+            m = int(math.ceil(samples - a - 1e-12))
+            t = a + np.arange(-1, m + 1, dtype=float)  # samples -1 .. m, boundary at 0 and n
+            w = np.ones(m + 2)
+            w[0] = w[-1] = 0.0
+            _, back, own_first, _ = boundary_weights(a)
+            own_last, _, _, ahead = boundary_weights(a + m - samples)
+            w[0], w[1] = back, own_first
+            w[m], w[m + 1] = own_last, ahead
+            for slope in (0.0, 1.0):
+                f = 2.0 + slope * t
+                exact = 2.0 * samples + slope * samples ** 2 / 2.0
+                assert float(np.dot(w, f)) == pytest.approx(exact, rel=64 * EPS * samples)
+
+
+@pytest.mark.parametrize('samples', PERIODS)
+def test_on_a_unit_process_the_table_converges_at_the_checked_ratio(samples) -> None:
+    # e = L - d with the process sensitivity 1 and F = gamma: the table's harmonics move
+    # towards d's by the map phase_learning_convergence bounds, period after period, down to
+    # rounding
+    gamma = 0.5
+    h = np.arange(1.0, min(5, int((samples - 1e-9) // 2)) + 1)
+    a, b = _signal(h, 2)
+    table = PhaseLearning(np.full(h.size, gamma + 0j), h, samples, 1, 1e3, 0)
+    ones = np.ones(int(samples // 2) + 1, dtype=complex)
+    kept = np.zeros(ones.size)
+    kept[h.astype(int)] = 1.0
+    ratio = phase_learning_convergence(ones, ones, gamma, kept, samples)
+    assert ratio < 1.0
+    if samples.is_integer():
+        assert ratio == 1.0 - gamma
+    target = np.concatenate([a, b])
+    gaps = []
+    period = 0
+    for k in range(int(45 * samples)):
+        value = float(table.play(k)[0])
+        if table.periods_learned > period:
+            period = table.periods_learned
+            gaps.append(float(np.linalg.norm(table.coefficients[:, 0] - target)))
+        table.record(k, value - float(_at(np.array([k / samples % 1.0]), h, a, b)[0]))
+    gaps_a = np.asarray(gaps)
+    steps = gaps_a[1:] / gaps_a[:-1]
+    # the map is the period's steady state; the table changes one sample after the period
+    # ends (the sample after it is in the sums), which perturbs one of ~n weights by at most
+    # 1.5 times the change: 1.5 (1 + ratio) / n on top
+    slack = 1.5 * (1.0 + ratio) / samples
+    live = gaps_a[:-1] > 1e-9 * gaps_a[0]
+    assert np.all(steps[live] <= ratio + slack)
+    assert gaps_a[-1] <= 1e-9 * gaps_a[0]
+
+
+@pytest.mark.parametrize('period_s', [1 / 70, 1 / 300, 1 / 137, 1 / 37.3])
+def test_the_learning_check_covers_any_period_and_says_it_converges(period_s) -> None:
+    check = learning_check(_controller('inverse_learning'), LOOP.design_plant, T, period_s,
+                           stage=LOOP.stage)
+    assert check is not None and check.ok
+    assert check.period_s == period_s and check.harmonics >= 1
+    # the design model: gamma's ratio and the leakage of windows that cut the period
+    assert 0.5 - 1e-9 <= check.design_ratio < 0.6
+
+
+def test_whole_periods_keep_the_table_of_samples() -> None:
+    assert whole_period(0.01, T) == (100, 100.0)
+    assert whole_period(1 / 70, T)[0] == 0
+    whole = _bound('learning', {'kind': 'sine', 'sine.frequency_hz': 100.0})
+    assert whole.phase_table is None and whole.learned_table().size == 100
+    cut = _bound('learning', {'kind': 'sine', 'sine.frequency_hz': 300.0})
+    assert cut.phase_table is not None and cut.learned_table().size == 34
+
+
+@pytest.mark.parametrize('period_s', [3.5e-4, 2.5e-4])
+def test_a_period_too_short_to_learn_is_refused_with_the_range(period_s) -> None:
+    with pytest.raises(ParameterError, match=r'feedforward.period_s.*at least 4 samples '
+                       r'\(>= 0.0004 s, a line rate <= 2500 Hz'):
+        _bound('learning', {'kind': 'sine'}, **{'feedforward.period_s': period_s})
+
+
+def _true_rms_tail(rec: experiments.RunRecord, tail_s: float) -> float:
+    assert rec.true_position_m is not None
+    sel = rec.time_s - rec.time_s[0] >= rec.time_s[-1] - rec.time_s[0] - tail_s
+    return float(np.sqrt(np.mean((rec.true_position_m - rec.reference_m)[sel] ** 2)))
+
+
+def test_learning_at_300_hz_removes_what_the_inverse_leaves_in_its_band() -> None:
+    tp = TrajectoryParams.from_flat({**LOOP.trajectory.to_flat(), 'kind': 'sine',
+                                     'sine.frequency_hz': 300.0})
+    runs = {mode: experiments.run_one(LOOP.stage, _controller(mode), tp, duration_s=0.5,
+                                      design_plant=LOOP.design_plant)
+            for mode in ('inverse', 'inverse_learning')}
+    inverse = _true_rms_tail(runs['inverse'], 0.1)
+    learned = _true_rms_tail(runs['inverse_learning'], 0.1)
+    # 150 periods at a ratio of 0.5: the four learned harmonics of the error are gone; what
+    # stays lies above Q (1.2 kHz) and under the converters
+    assert learned <= 0.5 * inverse
+    diag = runs['inverse_learning'].diagnostics
+    assert diag['ff_periods_learned'][-1] >= 140
+
+
+def test_a_table_file_of_a_cut_period_round_trips_and_another_rate_is_refused(tmp_path) -> None:
+    sine = {'kind': 'sine', 'sine.frequency_hz': 300.0}
+    tp = TrajectoryParams.from_flat({**LOOP.trajectory.to_flat(), **sine})
+    kept: list[FeedForwardController] = []
+    experiments.run_one(LOOP.stage, _controller('inverse_learning'), tp, duration_s=0.1,
+                        design_plant=LOOP.design_plant, built=kept.append)
+    path = kept[0].save_table_file(tmp_path / 'table.npz')
+    loaded = _bound('inverse_learning', sine, **{'feedforward.table_file': str(path)})
+    saved = kept[0].learned()
+    assert loaded.learned().period_s == saved.period_s == 1 / 300.0
+    # grid -> DFT -> harmonics -> grid: a few rounding steps of the table's size
+    bound = 64 * EPS * float(np.sum(np.abs(saved.table_v)))
+    assert np.max(np.abs(loaded.learned_table() - saved.table_v)) <= bound
+    assert np.max(np.abs(saved.table_v)) > 1e6 * bound  # not a table of zeros
+    with pytest.raises(ParameterError, match=r'feedforward.table_file.*learned for a period '
+                       r'of 0.00333'):
+        _bound('inverse_learning', {'kind': 'sine', 'sine.frequency_hz': 301.0},
+               **{'feedforward.table_file': str(path)})
+
+
+# -- the limits: the amplifier's range and the table's bound ---------------------------------
+
+SATURATING = {'kind': 'sine', 'sine.amplitude_m': 14.3e-6, 'sine.offset_m': 15e-6}
+
+
+def _saturating(mode: str, frequency: float, duration_s: float,
+                **flat: object) -> tuple[experiments.RunRecord, object]:
+    tp = TrajectoryParams.from_flat({**LOOP.trajectory.to_flat(), **SATURATING,
+                                     'sine.frequency_hz': frequency})
+    kept: list[object] = []
+    rec = experiments.run_one(LOOP.stage, _controller(mode, **flat), tp,
+                              duration_s=duration_s, design_plant=LOOP.design_plant,
+                              built=kept.append)
+    return rec, kept[0]
+
+
+@pytest.mark.parametrize('frequency', [50.0, 47.3])  # a whole period and a cut one
+def test_at_the_amplifiers_limit_learning_is_no_worse_than_feedback_alone(frequency) -> None:
+    # the sine's top needs more than the amplifier's 10 V: no table can follow it there.
+    # Feedback alone is the floor a learning that stays right at the limit must not leave
+    runs = {mode: _saturating(mode, frequency, 1.5)
+            for mode in ('none', 'learning', 'inverse_learning')}
+    alone = _true_rms_tail(runs['none'][0], 0.5)
+    for mode in ('learning', 'inverse_learning'):
+        rec, ctrl = runs[mode]
+        assert isinstance(ctrl, FeedForwardController)
+        assert ctrl.clipped_samples > 0  # the limit was active, and the run knows it
+        assert _true_rms_tail(rec, 0.5) <= alone
+        # the table holds no DC: the learning filter has none and the clipped-off part is
+        # projected on Q's band
+        table = ctrl.learned_table()
+        assert abs(float(np.mean(table))) <= 4 * table.size * EPS * float(np.max(np.abs(table)))
+
+
+def test_the_tables_bound_scales_it_inside_q_and_without_dc() -> None:
+    limit = 0.02
+    for frequency in (50.0, 47.3):
+        _, ctrl = _saturating('learning', frequency, 0.3,
+                              **{'feedforward.learning_limit_v': limit})
+        assert isinstance(ctrl, FeedForwardController)
+        table = ctrl.learned_table()
+        assert ctrl.limited_updates > 0
+        assert np.max(np.abs(table)) <= limit * (1 + 4 * EPS)
+        assert abs(float(np.mean(table))) <= 4 * table.size * EPS * limit
+
+
+def test_simulate_reports_the_limit_and_the_learning_checks_assumption(capsys) -> None:
+    from piezo_stage_ros import simulate
+    assert simulate.main(['--trajectory', 'sine', '--frequency', '50', '--amplitude',
+                          '14.3e-6', '--offset', '15e-6', '--duration', '0.2',
+                          '--feedforward', 'learning']) == 0
+    out = capsys.readouterr().out
+    assert 'assumes a linear loop: the command inside the amplifier range' in out
+    assert 'LIMIT ACTIVE: the amplifier range clipped' in out
+    assert simulate.main(['--trajectory', 'sine', '--frequency', '50', '--duration', '0.2',
+                          '--feedforward', 'learning']) == 0
+    assert 'LIMIT ACTIVE' not in capsys.readouterr().out
+
+
+# -- references with jumps ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize('sample_time_s', [1e-5, 1e-4, 1e-3])
+def test_the_jump_test_scales_with_the_sampling(sample_time_s) -> None:
+    from piezo_stage_ros.core.control.feedforward import shape_jumps
+    t = np.arange(4000) * sample_time_s
+    fs = 1.0 / sample_time_s
+    for fraction in (0.001, 0.03, 0.1, 0.2):  # sines up to a fifth of the sample rate
+        w = 2 * math.pi * fraction * fs
+        for amplitude in (1e-9, 1e-6, 19e-6):
+            x = 19e-6 + amplitude * np.sin(w * t)
+            v = amplitude * w * np.cos(w * t)
+            assert shape_jumps(x, v, sample_time_s, 10 * sample_time_s)[2] == 0
+    # a triangle's corners are turns of the velocity, not jumps of the position
+    tri = make_trajectory(TrajectoryParams.from_flat({'kind': 'triangle',
+                                                      'triangle.frequency_hz': 0.05 * fs}))
+    x, v = tri.evaluate(t)
+    assert shape_jumps(np.asarray(x), np.asarray(v), sample_time_s, 10 * sample_time_s)[2] == 0
+    # a jump of a reference at rest is found at the tolerance, whatever the sampling
+    rest = np.where(t >= t[2000], 4e-6 + 1.01e-9, 4e-6)
+    assert shape_jumps(rest, np.zeros_like(t), sample_time_s, 10 * sample_time_s)[2] == 1
+    # and one riding on a fast sine (300 Hz at 10 kHz), above the motion's own allowance:
+    # 2 T (d2 / 2 + d2 / 12) with d2 = A w (w T)^2 is 7/6 (w T)^3 = 0.8 % of the amplitude
+    w = 2 * math.pi * 0.03 * fs
+    x = 3.8e-6 * np.sin(w * t) + np.where(t >= t[2000], 0.1e-6, 0.0)
+    assert shape_jumps(x, 3.8e-6 * w * np.cos(w * t), sample_time_s,
+                       10 * sample_time_s)[2] == 1
+
+
+@pytest.mark.parametrize('mode', ['learning', 'inverse_learning'])
+def test_a_square_wave_is_learned_on_the_shaped_path(mode) -> None:
+    # Fig. 10: 7.8 um, 0.5 s. Learning against the path the feedback follows: no overshoot to
+    # learn, and nothing to move before an edge (the S-curve starts at it)
+    tp = TrajectoryParams.from_flat({**LOOP.trajectory.to_flat(), 'kind': 'square'})
+    sq = tp.square
+    periods = 3
+    rec = experiments.run_one(LOOP.stage, _controller(mode), tp,
+                              duration_s=periods * sq.period_s,
+                              design_plant=LOOP.design_plant)
+    assert rec.true_position_m is not None
+    t = rec.time_s - rec.time_s[0]
+    y = rec.true_position_m
+    low, high = sq.low_m, sq.low_m + sq.peak_to_peak_m
+    last = periods - 1
+    for edge, before, after in (((last + 1 - sq.duty) * sq.period_s, low, high),
+                                (last * sq.period_s, high, low)):
+        k = int(np.searchsorted(t, edge - 0.5 * T))
+        ahead = y[k - int(0.05 / T):k]
+        assert np.max(np.abs(ahead - before)) <= 5e-9
+        over = (np.max(y[k:k + 1000]) - high if after > before else low - np.min(y[k:k + 1000]))
+        assert over <= 0.02 * sq.peak_to_peak_m
+
+
+# -- a change of line rate while running -----------------------------------------------------
+
+
+def _rate_change(mode: str, first_hz: float, second_hz: float, at_s: float,
+                 lines: int) -> list[float]:
+    from piezo_stage_ros.core.loop.switched import LineRateChange
+    tp = TrajectoryParams.from_flat({**LOOP.trajectory.to_flat(), 'kind': 'sine',
+                                     'sine.frequency_hz': first_hz})
+    traj = LineRateChange(make_trajectory(tp),
+                          make_trajectory(tp.with_flat({'sine.frequency_hz': second_hz})), at_s)
+    rec = experiments.run_one(LOOP.stage, _controller(mode), tp,
+                              duration_s=at_s + lines / second_hz,
+                              design_plant=LOOP.design_plant, trajectory=traj)
+    assert rec.true_position_m is not None
+    assert rec.diagnostics['ff_mismatches'][-1] == 0  # every sample had the feed-forward
+    t = rec.time_s - rec.time_s[0]
+    e = rec.true_position_m - rec.reference_m
+    line = np.floor((t - at_s) * second_hz + 1e-9).astype(int)
+    return [float(np.sqrt(np.mean(e[line == j] ** 2))) for j in range(lines)]
+
+
+def test_a_new_line_rate_starts_from_the_model_inverse_and_learns_again() -> None:
+    # 100 Hz (100 samples a line) to 137 Hz (72.99): the second period is not whole
+    learned = _rate_change('inverse_learning', 100.0, 137.0, 0.5, 50)
+    inverse = _rate_change('inverse', 100.0, 137.0, 0.5, 50)
+    # the first new line: the model inverse and a table started afresh at zero, as the inverse
+    # alone (the RAC's estimates differ by their history, held or adapting: a few per cent)
+    assert learned[0] <= 1.05 * inverse[0]
+    # the new sine starts at its t = 0 with another velocity: the first line holds that
+    # transient; from then on the new table learns
+    assert max(learned[-5:]) <= 1e-9
+    assert np.mean(learned[-5:]) < np.mean(inverse[-5:])
+
+
+def test_a_line_rate_change_is_refused_by_the_batch_and_checked_at_its_time() -> None:
+    from piezo_stage_ros.core.loop.switched import LineRateChange
+    sine = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine'}))
+    with pytest.raises(ParameterError, match=r'line_rate_change.at_s.*whole number of the '
+                       r'first line period \(0.01 s\)'):
+        LineRateChange(sine, sine, 0.015)
+    with pytest.raises(ParameterError, match=r'line_rate_change.at_s'):
+        LineRateChange(sine, sine, 0.0)
+    # 73 periods of 137 Hz end between two samples: the new line would start between them
+    fast = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine',
+                                                       'sine.frequency_hz': 137.0}))
+    with pytest.raises(ParameterError, match=r'line_rate_change.at_s.*a whole number of '
+                       r'samples \(T = 0.0001 s\)'):
+        _bound('inverse', {'kind': 'sine'}).bind(LineRateChange(fast, sine, 73 / 137.0))
+
+
+def test_the_controller_logic_binds_a_new_trajectory_where_it_starts() -> None:
+    from piezo_stage_ros.nodes.logic import ControllerLogic, TrajectoryLogic
+    first = make_trajectory(TrajectoryParams.from_flat({**LOOP.trajectory.to_flat(),
+                                                        'kind': 'sine'}))
+    second = make_trajectory(TrajectoryParams.from_flat({**LOOP.trajectory.to_flat(),
+                                                         'kind': 'sine',
+                                                         'sine.frequency_hz': 137.0}))
+    ctrl = _bound('inverse_learning', {'kind': 'sine'})
+    logic = ControllerLogic(ctrl)
+    refs = TrajectoryLogic(first, sample_rate_hz=1e4)
+    y = 3.8e-6
+    for k in range(600):
+        if k == 250:
+            refs.switch(second)
+            logic.request_trajectory(second)
+        stamp = k * 100_000
+        x, v = refs.on_position(stamp)
+        logic.on_reference(stamp, x, v)
+        command = logic.on_position(stamp, y, k * 1e-4)
+        assert command is not None
+        y = x  # a stage that follows: only the reference bookkeeping is checked
+    assert ctrl.mismatches == 0
+    assert ctrl.learned().period_s == 1 / 137.0
+    assert ctrl.periods_learned >= 3
+
+
+def test_a_line_rate_above_the_nyquist_frequency_is_refused_in_every_mode() -> None:
+    for mode in ('inverse', 'learning'):
+        # a sine at 5 kHz is two samples a period: drawn at its zero crossings, it is nothing
+        with pytest.raises(ParameterError, match=r"'trajectory period'.*is 2 samples.*allowed: "
+                           r'> 0.0002 s \(a line rate below the Nyquist frequency, 5000 Hz\)'):
+            _bound(mode, {'kind': 'sine', 'sine.frequency_hz': 5000.0})
+        with pytest.raises(ParameterError, match=r"'feedforward.period_s'.*1.5 samples"):
+            _bound(mode, {'kind': 'sine'}, **{'feedforward.period_s': 1.5e-4})
+
+
+def test_a_70_hz_triangle_is_learned_in_the_middle_of_its_lines() -> None:
+    # 142.86 samples a line pair; its corners are turns of the velocity, not jumps (nothing
+    # shaped): the middle 80 % of each line, trace and retrace, within 2 nm
+    tp = TrajectoryParams.from_flat({**LOOP.trajectory.to_flat(), 'kind': 'triangle',
+                                     'triangle.frequency_hz': 70.0})
+    rec = experiments.run_one(LOOP.stage, _controller('inverse_learning'), tp, duration_s=1.0,
+                              design_plant=LOOP.design_plant)
+    period = 1.0 / 70.0
+    t = rec.time_s - rec.time_s[0]
+    phase = ((t - period / 4) % (period / 2)) / (period / 2)
+    middle = (phase > 0.1) & (phase < 0.9) & (t >= 0.5)
+    e = rec.position_m - rec.reference_m
+    assert float(np.sqrt(np.mean(e[middle] ** 2))) <= 2e-9
+    assert rec.true_position_m is not None  # and the true position everywhere in them
+    assert float(np.max(np.abs((rec.true_position_m - rec.reference_m)[middle]))) <= 2e-9
+
+
+def test_commands_ahead_at_a_period_that_is_not_whole_follow_the_phase_table() -> None:
+    # the servo with commands ahead: at 137 Hz the learned table is read ahead on the period's
+    # phase; the commands predicted for the next 32 samples against those then given
+    import dataclasses
+
+    from piezo_stage_ros.bench.servo import loop_config
+    from test_commands_ahead import servo_predictions
+    loop = loop_config()
+    ff = dataclasses.replace(loop.controller.feedforward, mode='inverse_learning')
+    loop = dataclasses.replace(
+        loop, controller=dataclasses.replace(loop.controller, feedforward=ff),
+        trajectory=loop.trajectory.with_flat({'kind': 'sine', 'sine.frequency_hz': 137.0}))
+    predictions, commands, servo = servo_predictions(loop, 0.12, (700, 725, 750, 1100))
+    assert servo.controller is not None
+    assert servo.controller.controller.phase_table is not None
+    for k, predicted in predictions.items():
+        actual = commands[k + 1:k + 33]
+        held = np.abs(actual - commands[k]).max()
+        assert np.abs(predicted - actual).max() < 0.05 * held
+
+
+def test_simulate_changes_the_line_rate_and_checks_the_new_period(capsys) -> None:
+    from piezo_stage_ros import simulate
+    # the issue's figure: within 50 lines of the new rate (0.2 + 50 / 137 s), <= 1 nm
+    assert simulate.main(['--trajectory', 'sine', '--frequency', '100', '--duration', '0.7',
+                          '--feedforward', 'inverse_learning', '--line-rate-change',
+                          '0.2:137', '--steady-state-start', '0.565', '--json']) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out['e_rms_m'] <= 1e-9 and out['e_rms_true_m'] <= 1e-9
+    assert simulate.main(['--trajectory', 'sine', '--frequency', '100', '--duration', '0.4',
+                          '--feedforward', 'inverse_learning', '--line-rate-change',
+                          '0.2:137']) == 0
+    assert 'learning check after the line-rate change: Learning (gamma 0.5, Q to 1200 Hz: 8 ' \
+        'harmonics of 0.00729927 s' in capsys.readouterr().out
+    assert simulate.main(['--trajectory', 'sine', '--frequency', '100', '--duration', '0.4',
+                          '--line-rate-change', '0.205:137']) != 0
+    assert 'whole number of the first line period' in capsys.readouterr().err
+
+
+def test_learning_alone_starts_a_new_line_rate_from_the_design_models_input() -> None:
+    # without the model inverse in the loop, the new table starts at the design model's input
+    # for the new reference (in Q's band): the first new line is not feedback alone
+    learned = _rate_change('learning', 100.0, 137.0, 0.5, 50)
+    inverse = _rate_change('inverse', 100.0, 137.0, 0.5, 2)
+    assert learned[0] <= inverse[0]
+    assert max(learned[-5:]) <= 1e-9
