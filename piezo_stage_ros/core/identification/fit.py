@@ -76,9 +76,10 @@ from piezo_stage_ros.core.model.stage import amplifier_input, SignalChainParams,
 from scipy import optimize, signal
 
 __all__ = [
-    'FrequencyFit', 'FrequencyResponse', 'HysteresisFit', 'IdentificationError',
+    'DELAYS_TRIED', 'FrequencyFit', 'FrequencyResponse', 'HysteresisFit', 'IdentificationError',
     'IdentificationParams', 'IdentificationResult', 'LinearFactors', 'ROLES', 'StepFit',
-    'applied_voltage', 'classify_run', 'discrete_frequency_response',
+    'applied_voltage', 'choose_delay', 'classify_run', 'classify_signal',
+    'discrete_frequency_response',
     'estimate_frequency_response', 'factors_of', 'fit_frequency_response', 'fit_hysteresis',
     'fit_step_response', 'identify', 'pscm_gain', 'sample_time_of', 'third_order_of',
 ]
@@ -153,6 +154,9 @@ class LinearFactors:
     omega_n_rad_s: float
     zeta: float
     tau_s: float
+    #: Loop delay beyond the sample-and-hold, in samples (0: the command of sample k is held
+    #: over sample k); not part of the stage's plant, the signal chain's.
+    delay_samples: float = 0.0
 
 
 def third_order_of(f: LinearFactors) -> ThirdOrderParams:
@@ -262,8 +266,15 @@ def sample_time_of(record: RunRecord) -> float:
     n = len(record)
     if n < 16:
         raise IdentificationError(f'run {_name(record)}: {n} samples, need at least 16')
-    dt = np.diff(np.asarray(record.time_s, dtype=np.float64))
+    time_s = np.asarray(record.time_s, dtype=np.float64)
+    dt = np.diff(time_s)
     period = float(np.median(dt))
+    # stamps in seconds since the epoch are rounded to ~0.24 us: every step, and so their
+    # median, is off by up to that (0.24 % of 100 us), which moves w_n and tau by as much;
+    # the whole span over the steps is exact to that rounding over n samples
+    span = float(time_s[-1] - time_s[0]) / (n - 1)
+    if abs(period - span) > 1e-9 * span:
+        period = span
     # 5 %: stamps in seconds since the epoch carry ~0.2 us of rounding (0.5 % of 50 us), while
     # a lost sample is a step of 200 %
     if not period > 0.0 or float(np.max(np.abs(dt - period))) > 0.05 * period:
@@ -337,10 +348,31 @@ def classify_run(record: RunRecord, chain: SignalChainParams | None = None) -> s
     if isinstance(role, str) and role in ROLES:
         return role
     v = applied_voltage(record, chain or SignalChainParams())
-    jumps = int(np.count_nonzero(np.diff(v)))
-    if jumps == 0:
+    if int(np.count_nonzero(np.diff(v))) == 0:
         raise IdentificationError(f'run {_name(record)}: the command never changes; '
                                   'there is no excitation to identify from')
+    return classify_signal(v)
+
+
+def classify_signal(v: FloatArray) -> str:
+    """
+    Say what a designed input signal is: a step train, a sine, or broadband.
+
+    Parameters
+    ----------
+    v : ndarray
+        The signal (an applied voltage, or the reference of a closed loop), not constant.
+
+    Returns
+    -------
+    str
+        ``'step'`` when it is piecewise constant with few jumps (at most 1 % of the samples),
+        ``'hysteresis'`` when one frequency holds more than 90 % of its variance, else
+        ``'frequency'``.
+
+    """
+    v = np.asarray(v, dtype=np.float64)
+    jumps = int(np.count_nonzero(np.diff(v)))
     if jumps <= max(1, len(v) // 100):
         return 'step'
     power = np.abs(np.fft.rfft(v - v.mean())) ** 2
@@ -361,8 +393,42 @@ def _discrete(p: ThirdOrderParams, sample_time_s: float) -> tuple[FloatArray, Fl
     return d.ad, d.bd[:, 0], d.c
 
 
+def _delayed(p: ThirdOrderParams, sample_time_s: float, delay_samples: float
+             ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, int]:
+    """
+    Return (Ad, B0, B1, C, n): the exact sampled plant behind a held input delayed d samples.
+
+    With d = n + f (n whole, 0 <= f < 1) the input held over sample k is u[k - n - 1] for the
+    first f T and u[k - n] for the rest, so x[k+1] = Ad x[k] + B0 u[k - n] + B1 u[k - n - 1],
+    B0 = int_0^((1-f)T) e^(As) ds B, B1 = e^(A(1-f)T) int_0^(fT) e^(As) ds B (the modified
+    z-transform). A fraction of a sample is thus modelled as what it is, not as e^(-j w f T),
+    which the resonance near the Nyquist frequency would alias.
+    """
+    from scipy.linalg import expm
+    plant = third_order_plant(p)
+    a = np.asarray(plant.a, dtype=np.float64)
+    b = np.asarray(plant.b, dtype=np.float64)[:, :1]
+    c = np.asarray(plant.c, dtype=np.float64).reshape(-1)
+    n = int(math.floor(delay_samples))
+    frac = float(delay_samples - n)
+    m = a.shape[0]
+
+    def phi_gamma(t: float) -> tuple[FloatArray, FloatArray]:
+        big = np.zeros((m + 1, m + 1))
+        big[:m, :m] = a * t
+        big[:m, m:] = b * t
+        e = expm(big)
+        return e[:m, :m], e[:m, m]
+
+    ad, _ = phi_gamma(sample_time_s)
+    p_rest, g_rest = phi_gamma((1.0 - frac) * sample_time_s)
+    _, g_head = phi_gamma(frac * sample_time_s)
+    return ad, g_rest, p_rest @ g_head, c, n
+
+
 def discrete_frequency_response(p: ThirdOrderParams, sample_time_s: float,
-                                frequency_hz: FloatArray) -> ComplexArray:
+                                frequency_hz: FloatArray, delay_samples: float = 0.0
+                                ) -> ComplexArray:
     """
     Return the response of the ZOH-discretized plant, C (zI - Ad)^-1 Bd at z = exp(j w T).
 
@@ -374,6 +440,8 @@ def discrete_frequency_response(p: ThirdOrderParams, sample_time_s: float,
         Sample and hold period T [s].
     frequency_hz : ndarray
         Frequencies [Hz], below the Nyquist frequency 1/(2T).
+    delay_samples : float
+        Loop delay beyond the hold [samples], whole or not (see :func:`_delayed`).
 
     Returns
     -------
@@ -382,20 +450,35 @@ def discrete_frequency_response(p: ThirdOrderParams, sample_time_s: float,
         comparable with an H1 estimate from recorded (command_v, position_m).
 
     """
-    ad, bd, c = _discrete(p, sample_time_s)
     z = np.exp(2j * math.pi * np.asarray(frequency_hz, dtype=np.float64) * sample_time_s)
+    if delay_samples == 0.0:
+        ad, bd, c = _discrete(p, sample_time_s)
+        mats = z[:, None, None] * np.eye(3)[None, :, :] - ad[None, :, :]
+        x = np.linalg.solve(mats, np.broadcast_to(bd.astype(np.complex128),
+                                                  (z.size, 3))[..., None])
+        return np.asarray(x[..., 0] @ c, dtype=np.complex128)
+    ad, b0, b1, c, n = _delayed(p, sample_time_s, delay_samples)
     mats = z[:, None, None] * np.eye(3)[None, :, :] - ad[None, :, :]
-    x = np.linalg.solve(mats, np.broadcast_to(bd.astype(np.complex128), (z.size, 3))[..., None])
-    return np.asarray(x[..., 0] @ c, dtype=np.complex128)
+    rhs = b0[None, :] + b1[None, :] / z[:, None]
+    x = np.linalg.solve(mats, rhs.astype(np.complex128)[..., None])
+    return np.asarray((x[..., 0] @ c) * z ** (-n), dtype=np.complex128)
 
 
 def _unit_filter(shape: LinearFactors, sample_time_s: float) -> tuple[FloatArray, FloatArray]:
     """Return (num, den) of the discretized plant with unit DC gain."""
     unit = LinearFactors(1.0, shape.omega_n_rad_s, shape.zeta, shape.tau_s)
-    ad, bd, c = _discrete(third_order_of(unit), sample_time_s)
-    num, den = signal.ss2tf(ad, bd[:, None], c[None, :], np.zeros((1, 1)))
-    num = np.asarray(num[0], dtype=np.float64)
-    den = np.asarray(den, dtype=np.float64)
+    if shape.delay_samples == 0.0:
+        ad, bd, c = _discrete(third_order_of(unit), sample_time_s)
+        num, den = signal.ss2tf(ad, bd[:, None], c[None, :], np.zeros((1, 1)))
+        num = np.asarray(num[0], dtype=np.float64)
+        den = np.asarray(den, dtype=np.float64)
+        return num / (num.sum() / den.sum()), den
+    ad, b0, b1, c, n = _delayed(third_order_of(unit), sample_time_s, shape.delay_samples)
+    n0, den = signal.ss2tf(ad, b0[:, None], c[None, :], np.zeros((1, 1)))
+    n1, _ = signal.ss2tf(ad, b1[:, None], c[None, :], np.zeros((1, 1)))
+    num = np.concatenate([np.zeros(n), np.asarray(n0[0], dtype=np.float64), [0.0]])
+    num[n + 1:] += np.asarray(n1[0], dtype=np.float64)
+    den = np.concatenate([np.asarray(den, dtype=np.float64), np.zeros(num.size - len(den))])
     return num / (num.sum() / den.sum()), den
 
 
@@ -650,27 +733,100 @@ def fit_frequency_response(data: FrequencyResponse, params: IdentificationParams
     weight = np.sqrt(coh / (1.0 - coh))
     t = data.sample_time_s
 
-    def residual(x: FloatArray) -> FloatArray:
-        model = discrete_frequency_response(third_order_of(_factors(x)), t, fu)
-        r = np.log(model / hu) * weight
-        return np.asarray(np.concatenate([r.real, r.imag]), dtype=np.float64)
+    zu = np.exp(2j * math.pi * fu * t)
 
-    starts = [initial] if initial is not None else _grid_starts(fu, hu, weight, t)
-    best: Any = None
-    for start in starts:
-        x0 = np.log([start.gain_m_per_v, start.omega_n_rad_s, start.zeta, start.tau_s])
-        sol = optimize.least_squares(residual, x0, x_scale=1.0, method='lm')
-        if best is None or sol.cost < best.cost:
-            best = sol
+    def residual_at(delay: float) -> Callable[[FloatArray], FloatArray]:
+        def residual(x: FloatArray) -> FloatArray:
+            d = delay if x.size == 4 else float(x[4])
+            try:
+                with np.errstate(over='ignore', invalid='ignore'):
+                    model = discrete_frequency_response(third_order_of(_factors(x[:4])), t, fu,
+                                                        d)
+            except (PiezoStageError, np.linalg.LinAlgError):
+                model = np.full(fu.size, np.nan + 0j)
+            if not np.all(np.isfinite(model)) or np.any(model == 0.0):
+                # a search that left the physical range (a wrong delay tried): a large, finite
+                # residual sends it back
+                return np.full(2 * fu.size, 1e6)
+            r = np.log(model / hu) * weight
+            return np.asarray(np.concatenate([r.real, r.imag]), dtype=np.float64)
+        return residual
+
+    def fit_at(delay: float) -> Any:
+        residual = residual_at(delay)
+        # the grid searches the data with the delay's whole samples taken out
+        starts = [initial] if initial is not None else _grid_starts(
+            fu, hu * zu ** round(delay), weight, t)
+        best: Any = None
+        for start in starts:
+            x0 = np.log([start.gain_m_per_v, start.omega_n_rad_s, start.zeta, start.tau_s])
+            sol = optimize.least_squares(residual, x0, x_scale=1.0, method='lm')
+            if best is None or sol.cost < best.cost:
+                best = sol
+        return best
+
+    best, delay = choose_delay(fit_at, residual_at(0.0))
     cov = _covariance(best.jac, best.fun)
-    fac = _factors(best.x)
+    fac = _factors(best.x[:4])
     rel = np.sqrt(np.maximum(np.diag(cov), 0.0))  # log-space std = relative std
+    fac = LinearFactors(fac.gain_m_per_v, fac.omega_n_rad_s, fac.zeta, fac.tau_s, delay)
     std = LinearFactors(fac.gain_m_per_v * rel[0], fac.omega_n_rad_s * rel[1],
-                        fac.zeta * rel[2], fac.tau_s * rel[3])
-    model = discrete_frequency_response(third_order_of(fac), t, f)
+                        fac.zeta * rel[2], fac.tau_s * rel[3],
+                        float(rel[4]) if rel.size > 4 else 0.0)
+    model = discrete_frequency_response(third_order_of(fac), t, f, delay)
     err = np.log(model[used] / hu)
     return FrequencyFit(factors=fac, std=std, data=data, used=used, model=model,
                         rms_log_error=float(np.sqrt(np.mean(np.abs(err) ** 2))))
+
+
+#: Whole samples of loop delay tried beyond the sample-and-hold.
+DELAYS_TRIED = (0.0, 1.0, 2.0)
+
+
+def choose_delay(fit_at: Callable[[float], Any], free_residual: Callable[[FloatArray], FloatArray]
+                 ) -> tuple[Any, float]:
+    """
+    Return the fit and the loop delay [samples]: the best whole delay, or a fraction if shown.
+
+    Parameters
+    ----------
+    fit_at : callable
+        ``fit_at(delay)`` fits with the delay fixed and returns a ``least_squares`` result
+        whose ``x`` does not hold the delay.
+    free_residual : callable
+        The residual of ``x`` with the delay appended as its last element.
+
+    Returns
+    -------
+    solution, delay
+        The solution (its ``x`` holds the delay last when the delay was fitted free) and the
+        delay.
+
+    Notes
+    -----
+    A delay of whole samples (a DAQ pipeline, a filter of the sensor module) is the common
+    case: each of :data:`DELAYS_TRIED` is fitted and the best kept. The delay is then freed
+    (0 to 4 samples) and a fraction kept only when its 95 % interval leaves out the whole
+    delay, so a run without a delay keeps exactly the fit it had.
+
+    """
+    best: Any = None
+    delay = 0.0
+    for d in DELAYS_TRIED:
+        sol = fit_at(d)
+        if best is None or sol.cost < best.cost:
+            best, delay = sol, d
+    x0 = np.append(best.x, delay)
+    lower = np.full(x0.size, -np.inf)
+    upper = np.full(x0.size, np.inf)
+    lower[-1], upper[-1] = 0.0, 4.0
+    free = optimize.least_squares(free_residual, x0, bounds=(lower, upper), method='trf',
+                                  x_scale='jac')
+    cov = _covariance(free.jac, free.fun)
+    sd = math.sqrt(max(float(cov[-1, -1]), 0.0))
+    if free.cost < best.cost and abs(float(free.x[-1]) - delay) > 1.959964 * sd:
+        return free, float(free.x[-1])
+    return best, delay
 
 
 # --------------------------------------------------------------------------------------------
@@ -784,8 +940,9 @@ def fit_step_response(records: Sequence[RunRecord], chain: SignalChainParams,
     def unpack(x: FloatArray) -> LinearFactors:
         if fix:
             return LinearFactors(1.0, initial.omega_n_rad_s, float(np.exp(x[0])),
-                                 float(np.exp(x[1])))
-        return LinearFactors(1.0, *(float(v) for v in np.exp(x)))
+                                 float(np.exp(x[1])), initial.delay_samples)
+        w, z, tau = (float(v) for v in np.exp(x))
+        return LinearFactors(1.0, w, z, tau, initial.delay_samples)
 
     def solve(x: FloatArray) -> tuple[FloatArray, list[FloatArray], list[FloatArray]]:
         fac = unpack(x)
@@ -818,7 +975,8 @@ def fit_step_response(records: Sequence[RunRecord], chain: SignalChainParams,
     else:
         std = LinearFactors(0.0, fac.omega_n_rad_s * rel[0], fac.zeta * rel[1],
                             fac.tau_s * rel[2])
-    return StepFit(factors=LinearFactors(gain, fac.omega_n_rad_s, fac.zeta, fac.tau_s),
+    return StepFit(factors=LinearFactors(gain, fac.omega_n_rad_s, fac.zeta, fac.tau_s,
+                                         fac.delay_samples),
                    std=std, records=[p[0] for p in prepared], models=models,
                    masks=[p[4] for p in prepared],
                    residual_rms_m=float(np.sqrt(np.mean(res ** 2))), jumps_v=jv, jumps_m=jm)
@@ -959,8 +1117,9 @@ def fit_hysteresis(records: Sequence[RunRecord], chain: SignalChainParams,
         res, models, coefs = [], [], []
         for _, num, den, v, y, free in runs:
             w = normalized(x, v)
-            # F[w] from rest at 0, plus the free response of the unknown level before the run
-            cols = np.vstack([signal.lfilter(num, den, w), free])
+            # F[w] from rest at 0, the free response of the unknown level before the run, and
+            # a constant: the sensor's zero is not the stage's rest at 0 V
+            cols = np.vstack([signal.lfilter(num, den, w), free, np.ones(v.size)])
             coef, *_ = np.linalg.lstsq(cols.T, y, rcond=None)
             model_y = coef @ cols
             res.append(y - model_y)
@@ -974,24 +1133,30 @@ def fit_hysteresis(records: Sequence[RunRecord], chain: SignalChainParams,
     # Covariance of every parameter, the linear ones included: Jacobian of the full residual.
     g0s = [float(c[0]) for c in coefs]
     g0 = float(np.mean(g0s))
-    full_x = np.concatenate([sol.x, [g0]])
+    offsets = np.array([float(c[2]) for c in coefs])
+    nx = sol.x.size
+    full_x = np.concatenate([sol.x, [g0], offsets])
 
     def full(xf: FloatArray) -> FloatArray:
         out = []
-        for (_, num, den, v, y, free), coef in zip(runs, coefs):
-            w = normalized(xf[:-1], v)
-            model_y = xf[-1] * signal.lfilter(num, den, w) + coef[1] * free
+        for i, ((_, num, den, v, y, free), coef) in enumerate(zip(runs, coefs)):
+            w = normalized(xf[:nx], v)
+            model_y = xf[nx] * signal.lfilter(num, den, w) + coef[1] * free + xf[nx + 1 + i]
             out.append(y - model_y)
         return np.concatenate(out)
 
-    jac = _numeric_jacobian(full, full_x, np.concatenate([np.maximum(np.abs(sol.x), 1e-3) * 1e-6,
-                                                          [abs(g0) * 1e-6]]))
+    jac = _numeric_jacobian(full, full_x, np.concatenate([
+        np.maximum(np.abs(sol.x), 1e-3) * 1e-6, [abs(g0) * 1e-6],
+        np.full(offsets.size, 1e-9)]))
     cov = _covariance(jac, full(full_x))
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     est = {n: float(v) for n, v in zip(names, sol.x)}
-    std = {n: float(s) for n, s in zip(names, sd[:-1])}
+    std = {n: float(s) for n, s in zip(names, sd[:nx])}
     est['static_gain_m_per_v'] = g0
-    std['static_gain_m_per_v'] = float(sd[-1])
+    std['static_gain_m_per_v'] = float(sd[nx])
+    # the sensor offset of the first run (each run has its own, in ``offsets_m``)
+    est['sensor_offset_m'] = float(offsets[0])
+    std['sensor_offset_m'] = float(sd[nx + 1])
     if model == 'backlash_like':
         group = BacklashLikeParams(alpha=est['alpha'], c=slope, b1=est['b1_over_c'] * slope)
         hyst = base.replace(model=model, backlash_like=group)
@@ -1031,7 +1196,10 @@ def _fit_pi(runs: list[Any], slope: float, base: HysteresisParams) -> Hysteresis
             plays[:, k] = state[1]
         inputs = np.vstack([v[None, :], plays])
         filt = signal.lfilter(num, den, inputs, axis=-1)
-        # the free response column (unknown level before the run) may take either sign
+        # the free response column (unknown level before the run) may take either sign; no
+        # sensor offset here: a play whose threshold the run never reaches holds its initial
+        # output, a constant column, so an offset would be confounded with its weight (and
+        # the static gain, their sum, left undetermined)
         extra = np.zeros((2 * len(runs), v.size))
         extra[2 * idx] = free
         extra[2 * idx + 1] = -free
@@ -1221,7 +1389,12 @@ def identify(records: Sequence[RunRecord], base: StageParams | None = None,
             notes.append('no sine run: hysteresis kept from the base configuration, static '
                          'gain from the step heights')
         gain = static / slope
-    factors = LinearFactors(gain, shape.omega_n_rad_s, shape.zeta, shape.tau_s)
+    factors = LinearFactors(gain, shape.omega_n_rad_s, shape.zeta, shape.tau_s,
+                            shape.delay_samples)
+    if shape.delay_samples != 0.0:
+        notes.append(f'loop delay: {shape.delay_samples:.3g} samples between a command and the '
+                     'sample it is held over, beyond the sample-and-hold (fitted with the '
+                     'model; a signal-chain delay, not part of the stage)')
     third = third_order_of(factors)
     plant = base.plant.replace(model='third_order', third_order=third, reduced=third.reduced())
     noise = _noise_estimate(step_fit, chain)

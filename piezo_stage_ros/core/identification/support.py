@@ -57,11 +57,14 @@ import math
 from typing import Any, Sequence
 
 import numpy as np
+from piezo_stage_ros.core.contracts.errors import PiezoStageError
 from piezo_stage_ros.core.contracts.params import param, Params
-from piezo_stage_ros.core.contracts.types import BoolArray, FloatArray
+from piezo_stage_ros.core.contracts.types import BoolArray, ComplexArray, FloatArray
 from piezo_stage_ros.core.identification.fit import (
     applied_voltage,
+    choose_delay,
     classify_run,
+    classify_signal,
     discrete_frequency_response,
     factors_of,
     fit_hysteresis,
@@ -87,8 +90,8 @@ from piezo_stage_ros.core.model.stage import SignalChainParams, StageParams
 from scipy import optimize, signal
 
 __all__ = ['CheckedIdentification', 'LineAnalysis', 'RefusedError', 'RunSupport', 'SupportParams',
-           'analyse_run', 'fit_periodic_response', 'identify_checked', 'loop_kind',
-           'refusals']
+           'analyse_run', 'content_role', 'fit_periodic_response', 'identify_checked',
+           'loop_kind', 'refusals']
 
 #: 95 % two-sided normal quantile: the bounds are +- this many standard deviations.
 Z95 = 1.959964
@@ -181,7 +184,11 @@ def loop_kind(record: RunRecord, chain: SignalChainParams, *, order: int = 8,
     at lag 0 to 2; in open loop the command does not see the sensor noise.
 
     """
-    u = applied_voltage(record, chain)
+    # the controller's own output, clipped but not through the DAC: an integral action moves
+    # the command by far less than one DAC step per sample of sensor noise, so the applied
+    # (quantized) voltage would hide the feedback
+    u = np.clip(np.asarray(record.command_v, dtype=np.float64), chain.amplifier_min_v,
+                chain.amplifier_max_v)
     su = float(np.std(u))
     if not su > 0.0:
         return 'open', 'the command never changes'
@@ -211,6 +218,45 @@ def loop_kind(record: RunRecord, chain: SignalChainParams, *, order: int = 8,
         return 'closed', (f'the command follows the position noise (innovation correlation '
                           f'{best:.2f})')
     return 'open', f'the command does not follow the position noise (correlation {best:.2f})'
+
+
+def content_role(record: RunRecord, chain: SignalChainParams) -> str:
+    """
+    Say what a run can be used for from what its excitation holds.
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run; ``meta['identification_role']``, when present, decides.
+    chain : SignalChainParams
+        Signal chain giving the applied voltage.
+
+    Returns
+    -------
+    str
+        One of :data:`~piezo_stage_ros.core.identification.fit.ROLES`. The excitation is the
+        reference when it changes (in closed loop the command is not a designed input), else
+        the applied command. A step train is ``'step'``; a periodic excitation with 8 or more
+        lines is ``'frequency'`` even when a slow sine holds most of its power (a multisine on
+        a sine serves both); otherwise one dominant frequency is ``'hysteresis'``, and
+        broadband is ``'frequency'``.
+
+    """
+    role = record.meta.get('identification_role')
+    if isinstance(role, str) and role in ROLES:
+        return role
+    r = np.asarray(record.reference_m, dtype=np.float64)
+    if not float(np.ptp(r)) > 0.0:
+        return classify_run(record, chain)
+    kind = classify_signal(r)
+    if kind == 'step':
+        return kind
+    period = detect_period(r)
+    if period is not None:
+        lines = np.abs(np.fft.rfft(r[:period] - float(np.mean(r[:period]))))[1:]
+        if int(np.count_nonzero(excited_lines(lines))) >= 8:
+            return 'frequency'
+    return kind
 
 
 @dataclass(frozen=True)
@@ -337,7 +383,9 @@ def analyse_run(record: RunRecord, chain: SignalChainParams, role: str,
         if period is not None and len(u) // period >= 2:
             spec = periodic_spectra(u, y, excitation, period, t)
             exc = excited_lines(spec.r)
-            snr_u = spec.snr_u if closed else np.full(exc.size, np.inf)
+            # measured in open loop too: a loop whose feedback the verdict missed still
+            # scatters the input over the periods
+            snr_u = spec.snr_u
             lines = LineAnalysis(spec.frequency_hz, exc, snr_u, spec.snr_y, 'periodic',
                                  period, spec.periods, spec)
         elif closed:
@@ -437,9 +485,11 @@ def refusals(runs: Sequence[RunSupport], base: StageParams, params: Identificati
     }
     for run in runs:
         names = ', '.join(uses[run.role])
-        if closed_loop and run.loop == 'open' and run.role == 'frequency':
-            out.append(f'closed loop: run {run.name!r} is open loop ({run.loop_reason}); drop '
-                       '--closed-loop, or record it under feedback')
+        if closed_loop and run.loop == 'open' and run.role == 'frequency' and \
+                run.lines.method != 'periodic':
+            out.append(f'closed loop: run {run.name!r} is open loop ({run.loop_reason}) and '
+                       'its excitation does not repeat over two whole periods; drop '
+                       '--closed-loop, or record it under feedback with a periodic reference')
             continue
         if run.saturated_fraction > support.saturation_max:
             out.append(f'{names}: run {run.name!r} ({run.role}) is saturated: '
@@ -448,8 +498,8 @@ def refusals(runs: Sequence[RunSupport], base: StageParams, params: Identificati
             continue
         if run.role == 'frequency':
             out += _frequency_refusals(run, uses['frequency'], params, support, fn, fc)
-        if run.role == 'hysteresis' or (run.role == 'frequency' and run.loop == 'closed'
-                                        and not has['hysteresis']):
+        if run.role == 'hysteresis' or (run.role == 'frequency' and run.lines.method ==
+                                        'periodic' and not has['hysteresis']):
             # a closed-loop run without a sine run gives the hysteresis too
             bl = base.hysteresis.backlash_like
             need = support.alpha_range_fraction / bl.alpha if params.hysteresis_model == \
@@ -552,6 +602,21 @@ class PeriodicFit:
     feedback_bias: float
 
 
+def _model_or_none(x: FloatArray, t: float, fu: FloatArray, delay: float
+                   ) -> ComplexArray | None:
+    """Return the model response of log-parameters ``x[:4]``, None outside the physical range."""
+    with np.errstate(over='ignore', invalid='ignore'):
+        values = np.exp(np.asarray(x[:4], dtype=np.float64))
+    if not np.all(np.isfinite(values)) or not np.all(values > 0.0):
+        return None
+    try:
+        model = discrete_frequency_response(third_order_of(LinearFactors(
+            *(float(v) for v in values))), t, fu, delay)
+    except (PiezoStageError, np.linalg.LinAlgError):
+        return None
+    return model if bool(np.all(np.isfinite(model))) and bool(np.all(model != 0.0)) else None
+
+
 def fit_periodic_response(spectra: PeriodicSpectra, params: IdentificationParams,
                           initial: LinearFactors, *, u: FloatArray | None = None,
                           y: FloatArray | None = None) -> PeriodicFit:
@@ -592,21 +657,39 @@ def fit_periodic_response(spectra: PeriodicSpectra, params: IdentificationParams
     sig = np.sqrt(np.maximum(var, 1e-300)) / np.abs(g)
     fu, gu, su = f[used], g[used], np.maximum(sig[used], 1e-6)
 
-    # the lowest used line scales the relaxation term: x[5] is its phase lag there [rad]
+    # the lowest used line scales the relaxation term: x[6] is its phase lag there [rad]
     lag = 1.0 / (1j * fu / fu[0])
 
-    def residual(x: FloatArray) -> FloatArray:
-        fac = LinearFactors(*(float(v) for v in np.exp(x[:4])))
-        model = discrete_frequency_response(third_order_of(fac), t, fu) * np.exp(-1j * x[4])
-        if x.size > 5:
-            model = model * (1.0 + x[5] * lag)
-        r = np.log(model / gu) / su
-        return np.asarray(np.concatenate([r.real, r.imag]), dtype=np.float64)
+    def residual_at(delay: float | None, relax: bool = False) -> Any:
+        # x: log k_p, log w_n, log zeta, log tau, phase, [delay when free], [relaxation]
+        def residual(x: FloatArray) -> FloatArray:
+            d = float(x[5]) if delay is None else delay
+            model = _model_or_none(x, t, fu, d)
+            if model is None:
+                # a search that left the physical range (a wrong delay tried): a large, finite
+                # residual sends it back
+                return np.full(2 * fu.size, 1e6)
+            model = model * np.exp(-1j * x[4])
+            if relax:
+                model = model * (1.0 + x[-1] * lag)
+            r = np.log(model / gu) / su
+            return np.asarray(np.concatenate([r.real, r.imag]), dtype=np.float64)
+        return residual
 
-    x0 = np.append(np.log([initial.gain_m_per_v, initial.omega_n_rad_s, initial.zeta,
-                           initial.tau_s]), 0.0)
-    sol = optimize.least_squares(residual, x0, method='lm')
-    dof = max(sol.fun.size - x0.size, 1)
+    start = np.log([initial.gain_m_per_v, initial.omega_n_rad_s, initial.zeta,
+                    initial.tau_s])
+
+    def fit_at(delay: float) -> Any:
+        # from the configured model (the delay is in the model's phase)
+        return optimize.least_squares(residual_at(delay), np.append(start, 0.0), method='lm')
+
+    sol, delay = choose_delay(fit_at, residual_at(None))
+    free = sol.x.size == 6
+
+    def residual(x: FloatArray) -> FloatArray:
+        return np.asarray(residual_at(None if free else delay)(x), dtype=np.float64)
+
+    dof = max(sol.fun.size - sol.x.size, 1)
     chi2 = float(sol.fun @ sol.fun) / dof
     jac = np.asarray(sol.jac, dtype=np.float64)
     cov = np.linalg.pinv(jac.T @ jac) * max(chi2, 1.0)
@@ -615,15 +698,29 @@ def fit_periodic_response(spectra: PeriodicSpectra, params: IdentificationParams
     # phase with the relaxation of the linearised dynamic backlash around the slow motion,
     # (B s + kappa c) / (s + kappa) ~ B (1 + kappa (c / B - 1) / s) on lines far above kappa
     # (a lag falling as 1 / f that the constant phase alone leaves to zeta and tau)
-    alt = optimize.least_squares(lambda x: residual(np.append(x, 0.0)), sol.x[:4], method='lm')
-    relax = optimize.least_squares(residual, np.append(sol.x, 0.0), method='lm')
-    structure = np.append(np.maximum(np.abs(alt.x - sol.x[:4]),
-                                     np.abs(relax.x[:4] - sol.x[:4])), 0.0)
+    fixed_phase = sol.x.copy()
+
+    def no_phase(x: FloatArray) -> FloatArray:
+        xf = fixed_phase.copy()
+        xf[:4] = x[:4]
+        xf[4] = 0.0
+        if free:
+            xf[5] = x[4]
+        return residual(xf)
+
+    alt_x0 = np.append(sol.x[:4], sol.x[5:6]) if free else sol.x[:4]
+    alt = optimize.least_squares(no_phase, alt_x0, method='lm')
+    relax = optimize.least_squares(residual_at(None if free else delay, relax=True),
+                                   np.append(sol.x, 0.0), method='lm')
+    structure = np.zeros(sol.x.size)
+    structure[:4] = np.maximum(np.abs(alt.x[:4] - sol.x[:4]), np.abs(relax.x[:4] - sol.x[:4]))
     rel = np.sqrt(np.maximum(np.diag(cov), 0.0) + structure ** 2)
-    fac = LinearFactors(*(float(v) for v in np.exp(sol.x[:4])))
+    k, w, z, tau = (float(v) for v in np.exp(sol.x[:4]))
+    fac = LinearFactors(k, w, z, tau, delay)
     std = LinearFactors(fac.gain_m_per_v * rel[0], fac.omega_n_rad_s * rel[1],
-                        fac.zeta * rel[2], fac.tau_s * rel[3])
-    model = discrete_frequency_response(third_order_of(fac), t, f) * np.exp(-1j * sol.x[4])
+                        fac.zeta * rel[2], fac.tau_s * rel[3], float(rel[5]) if free else 0.0)
+    model = discrete_frequency_response(third_order_of(fac), t, f, delay) * \
+        np.exp(-1j * sol.x[4])
     snr = np.abs(g) ** 2 / np.maximum(var, 1e-300)
     data = FrequencyResponse(frequency_hz=f, response=g, coherence=snr / (1.0 + snr),
                              sample_time_s=t, segments=spectra.periods)
@@ -720,18 +817,10 @@ def identify_checked(records: Sequence[RunRecord], base: StageParams | None = No
     for i, rec in enumerate(records):
         forced = roles[i] if roles is not None and i < len(roles) else None
         loop = loop_kind(rec, chain, corr_min=support.innovation_corr_min)
-        if closed_loop and forced in (None, 'frequency') and loop[0] == 'open' and \
-                forced is None:
-            forced = 'frequency'
-        if loop[0] == 'closed' and forced is None:
-            # a closed-loop command is not a designed input: its role comes from the reference
-            role = 'frequency'
-        else:
-            role = forced if forced is not None else classify_run(rec, chain)
+        # what the run holds decides its role, not the loop verdict nor its place in the list
+        role = forced if forced is not None else content_role(rec, chain)
         if role not in ROLES:
             raise IdentificationError(f'role {role!r} is not one of {ROLES}')
-        if closed_loop and role == 'frequency' and loop[0] == 'closed':
-            loop = ('closed', loop[1])
         resolved.append(role)
         loops.append(loop)
         runs.append(analyse_run(rec, chain, role, loop, segment_s=params.segment_s,
@@ -747,8 +836,12 @@ def identify_checked(records: Sequence[RunRecord], base: StageParams | None = No
     if lines:
         raise RefusedError(lines)
     warnings: list[str] = []
+    # the periodic reference is the instrument: averaged over whole periods, the response from
+    # the applied input to the position is consistent whatever share of the input the feedback
+    # makes, so the same estimate serves open and closed loops and the verdict is only reported
     closed = [(rec, run) for rec, run in zip(records, runs)
-              if run.role == 'frequency' and run.loop == 'closed']
+              if run.role == 'frequency' and run.lines.method == 'periodic']
+    closed.sort(key=lambda item: -int(np.count_nonzero(item[1].lines.good(support.snr_min))))
     periodic = None
     if closed:
         rec, run = closed[0]
@@ -758,8 +851,12 @@ def identify_checked(records: Sequence[RunRecord], base: StageParams | None = No
         y = np.asarray(rec.position_m, dtype=np.float64)
         periodic = fit_periodic_response(spec, params, factors_of(base.plant.third_order),
                                          u=u, y=y)
+        if closed_loop and run.loop == 'open':
+            warnings.append(f'run {run.name!r} was given as closed loop, but its commands do '
+                            f'not show the feedback ({run.loop_reason}); the periodic '
+                            'estimate used holds either way')
         warnings.append(
-            f'run {run.name!r} is closed loop ({run.loop_reason}): the usual H1 = S_uy/S_uu '
+            f'run {run.name!r} is {run.loop} loop ({run.loop_reason}): the usual H1 = S_uy/S_uu '
             'of these data differs from the periodic estimate by '
             f'{100 * periodic.h1_deviation:.1f} % '
             '(median over the excited lines; feedback bias toward -1/C where the fed-back noise '
@@ -767,14 +864,15 @@ def identify_checked(records: Sequence[RunRecord], base: StageParams | None = No
             f'{spec.period_samples * run.sample_time_s:g} s averaged, remaining bias of the '
             f'order of {100 * periodic.feedback_bias:.2g} %')
         if len(closed) > 1:
-            warnings.append('only the first closed-loop frequency run is used: '
-                            + ', '.join(repr(r.name) for _, r in closed[1:]) + ' left out')
+            warnings.append(f'the periodic frequency run {run.name!r} has the most lines '
+                            'above the noise and is used; left out: '
+                            + ', '.join(repr(r.name) for _, r in closed[1:]))
         use_roles: list[str | None] = []
         keep: list[RunRecord] = []
         hyst_given = bool(by['hysteresis'])
         for rec2, run2 in zip(records, runs):
-            if run2.role == 'frequency' and run2.loop == 'closed':
-                # the same closed-loop run gives the hysteresis when no sine run is given
+            if run2.role == 'frequency' and run2.lines.method == 'periodic':
+                # the same periodic run gives the hysteresis when no sine run is given
                 if not hyst_given and rec2 is rec:
                     keep.append(rec2)
                     use_roles.append('hysteresis')
@@ -782,9 +880,10 @@ def identify_checked(records: Sequence[RunRecord], base: StageParams | None = No
             keep.append(rec2)
             use_roles.append(run2.role)
         result = identify(keep, base, params, use_roles, frequency_fit=periodic.fit)
-        result.loop = 'closed'
+        result.loop = run.loop
+        result.roles['frequency'] = [run.name]
         if not hyst_given:
-            result.notes.append(f'hysteresis fitted on the closed-loop run {run.name!r} '
+            result.notes.append(f'hysteresis fitted on the periodic run {run.name!r} '
                                 f'(its first {params.hysteresis_max_s:g} s)')
     else:
         result = identify(records, base, params, resolved)
