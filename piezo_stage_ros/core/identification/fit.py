@@ -407,18 +407,30 @@ def _delayed(p: ThirdOrderParams, sample_time_s: float, delay_samples: float
     from scipy.linalg import expm
     plant = third_order_plant(p)
     a = np.asarray(plant.a, dtype=np.float64)
-    b = np.asarray(plant.b, dtype=np.float64)[:, :1]
+    b = np.asarray(plant.b, dtype=np.float64)[:, 0]
     c = np.asarray(plant.c, dtype=np.float64).reshape(-1)
     n = int(math.floor(delay_samples))
     frac = float(delay_samples - n)
     m = a.shape[0]
+    # distinct poles (the usual case): e^(At) and its integral from the eigenvalues, far
+    # cheaper than a matrix exponential per call inside the fits
+    lam, vec = np.linalg.eig(a)
+    well = np.linalg.cond(vec) < 1e8 and bool(np.all(np.abs(lam) > 0.0))
+    vb = np.linalg.solve(vec, b.astype(np.complex128)) if well else None
+    vinv = np.linalg.inv(vec) if well else None
 
     def phi_gamma(t: float) -> tuple[FloatArray, FloatArray]:
+        if vb is not None and vinv is not None:
+            e = np.exp(lam * t)
+            phi = (vec * e[None, :]) @ vinv
+            gamma = vec @ (vb * (e - 1.0) / lam)
+            return np.asarray(phi.real, dtype=np.float64), np.asarray(gamma.real,
+                                                                      dtype=np.float64)
         big = np.zeros((m + 1, m + 1))
         big[:m, :m] = a * t
-        big[:m, m:] = b * t
-        e = expm(big)
-        return e[:m, :m], e[:m, m]
+        big[:m, m] = b * t
+        ex = expm(big)
+        return ex[:m, :m], ex[:m, m]
 
     ad, _ = phi_gamma(sample_time_s)
     p_rest, g_rest = phi_gamma((1.0 - frac) * sample_time_s)
@@ -1079,8 +1091,11 @@ def fit_hysteresis(records: Sequence[RunRecord], chain: SignalChainParams,
     runs = []
     for rec in records:
         t = sample_time_of(rec)
-        # one pass of the exact hysteresis stepping per evaluation: bound its length
-        rec = _head(rec, max(int(round(params.hysteresis_max_s / t)), 16))
+        # one pass of the exact hysteresis stepping per evaluation: bound its length, but
+        # keep two cycles of the input's main line: the first from rest leaves the initial
+        # state, the sensor offset and the curvature of the loop partly confounded
+        rec = _head(rec, max(int(round(params.hysteresis_max_s / t)), 16,
+                             _two_cycles(applied_voltage(rec, chain))))
         num, den = _unit_filter(shape, t)
         v = applied_voltage(rec, chain)
         y = np.asarray(rec.position_m, dtype=np.float64)
@@ -1168,6 +1183,16 @@ def fit_hysteresis(records: Sequence[RunRecord], chain: SignalChainParams,
                          linear_gain_m_per_v=g0 / slope, estimates=est, std=std,
                          records=[r[0] for r in runs], voltages=[r[3] for r in runs],
                          models=models, residual_rms_m=float(np.sqrt(np.mean(res ** 2))))
+
+
+def _two_cycles(v: FloatArray) -> int:
+    """Return the samples of two cycles of the strongest line of ``v`` (0 for none)."""
+    power = np.abs(np.fft.rfft(v - float(np.mean(v)))) ** 2
+    if power.size < 2:
+        return 0
+    power[0] = 0.0
+    k = int(np.argmax(power))
+    return int(math.ceil(2.0 * v.size / k)) if k > 0 else 0
 
 
 def _numeric_jacobian(fun: Callable[[FloatArray], FloatArray], x: FloatArray,

@@ -30,7 +30,7 @@ test the identification against them and to measure how often its bounds hold
 - :func:`foreign_runs`: the two runs of a closed-loop identification with such a loop: a
   periodic multisine on the reference around a hold (``excite``), and a slow sine around the
   hold (``sine``, for the hysteresis).
-- :func:`shifted`: an open-loop record with a sensor offset and a command delay added exactly.
+- :func:`shifted`: a record with a sensor offset added to its positions.
 """
 
 from __future__ import annotations
@@ -311,29 +311,23 @@ def foreign_runs(stage_params: StageParams, params: ForeignLoopParams | None = N
     return out
 
 
-def shifted(record: RunRecord, *, offset_m: float = 0.0, delay_samples: int = 0) -> RunRecord:
+def shifted(record: RunRecord, *, offset_m: float = 0.0) -> RunRecord:
     """
-    Return an open-loop record as a signal chain with a sensor offset and a delay records it.
+    Return a record with a sensor offset added to its positions.
 
     Parameters
     ----------
     record : RunRecord
-        An open-loop run (the commands do not depend on the positions).
+        A run.
     offset_m : float
-        Added to every position [m].
-    delay_samples : int
-        The stage applies each command this many samples later: the record keeps each
-        position with the command recorded that many samples after the one it responds to
-        (the last samples are dropped).
+        Added to every position [m] (in open loop this is exactly what a sensor whose zero is
+        not the stage's rest records; in closed loop use :class:`SignalPath`).
 
     Returns
     -------
     RunRecord
 
     """
-    n = len(record) - delay_samples
-    d = delay_samples
-    return RunRecord(record.time_s[:n], record.position_m[:n] + offset_m,
-                     record.reference_m[d:d + n], record.reference_velocity_mps[d:d + n],
-                     record.command_v[d:d + n], {}, dict(record.meta),
-                     None if record.true_position_m is None else record.true_position_m[:n])
+    return RunRecord(record.time_s, record.position_m + offset_m, record.reference_m,
+                     record.reference_velocity_mps, record.command_v, {}, dict(record.meta),
+                     record.true_position_m)

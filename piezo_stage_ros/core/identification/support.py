@@ -52,7 +52,7 @@ What recorded data can support, closed-loop identification on purpose, and refus
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import math
 from typing import Any, Sequence
 
@@ -61,6 +61,7 @@ from piezo_stage_ros.core.contracts.errors import PiezoStageError
 from piezo_stage_ros.core.contracts.params import param, Params
 from piezo_stage_ros.core.contracts.types import BoolArray, ComplexArray, FloatArray
 from piezo_stage_ros.core.identification.fit import (
+    _unit_filter,
     applied_voltage,
     choose_delay,
     classify_run,
@@ -86,6 +87,7 @@ from piezo_stage_ros.core.identification.periodic import (
     PeriodicSpectra,
 )
 from piezo_stage_ros.core.loop.record import RunRecord
+from piezo_stage_ros.core.model.hysteresis import make_hysteresis
 from piezo_stage_ros.core.model.stage import SignalChainParams, StageParams
 from scipy import optimize, signal
 
@@ -619,7 +621,8 @@ def _model_or_none(x: FloatArray, t: float, fu: FloatArray, delay: float
 
 def fit_periodic_response(spectra: PeriodicSpectra, params: IdentificationParams,
                           initial: LinearFactors, *, u: FloatArray | None = None,
-                          y: FloatArray | None = None) -> PeriodicFit:
+                          y: FloatArray | None = None,
+                          delay_samples: float | None = None) -> PeriodicFit:
     """
     Fit k_p, w_n, zeta, tau and a constant phase to the averaged frequency response.
 
@@ -633,6 +636,10 @@ def fit_periodic_response(spectra: PeriodicSpectra, params: IdentificationParams
         Start of the search (the configured model).
     u, y : ndarray, optional
         The applied input and position of the run, to compare with the H1 estimate.
+    delay_samples : float, optional
+        Loop delay beyond the hold [samples], kept fixed; default: the best whole delay of
+        :data:`~piezo_stage_ros.core.identification.fit.DELAYS_TRIED`, or a fraction when the
+        data show one (:func:`~piezo_stage_ros.core.identification.fit.choose_delay`).
 
     Returns
     -------
@@ -683,7 +690,10 @@ def fit_periodic_response(spectra: PeriodicSpectra, params: IdentificationParams
         # from the configured model (the delay is in the model's phase)
         return optimize.least_squares(residual_at(delay), np.append(start, 0.0), method='lm')
 
-    sol, delay = choose_delay(fit_at, residual_at(None))
+    if delay_samples is None:
+        sol, delay = choose_delay(fit_at, residual_at(None))
+    else:
+        sol, delay = fit_at(delay_samples), delay_samples
     free = sol.x.size == 6
 
     def residual(x: FloatArray) -> FloatArray:
@@ -887,14 +897,115 @@ def identify_checked(records: Sequence[RunRecord], base: StageParams | None = No
                                 f'(its first {params.hysteresis_max_s:g} s)')
     else:
         result = identify(records, base, params, resolved)
+    structure: dict[str, float] = {}
+    if periodic is not None and result.hysteresis is not None:
+        rec, run = closed[0]
+        structure = _correct_structure_bias(result, rec, run, base, params)
+    elif result.frequency is not None and result.hysteresis is not None:
+        freq = [rec for rec, r in zip(records, runs) if r.role == 'frequency']
+        if freq:
+            structure = _correct_structure_bias(result, freq[0], None, base, params)
     _fill_bounds(result)
-    if periodic is not None:
-        _widen_for_shape(result, base, params)
+    for name, delta in structure.items():
+        if name in result.bounds:
+            lo, hi = result.bounds[name]
+            mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+            half = math.hypot(half, delta * abs(mid))
+            result.bounds[name] = (mid - half, mid + half)
+    # the hysteresis fit holds the linear shape fixed, open loop or closed
+    _widen_for_shape(result, base, params)
     post = _post_fit_refusals(result, support)
     if post:
         raise RefusedError(post)
     return CheckedIdentification(result=result, runs=runs, periodic=periodic,
                                  warnings=warnings)
+
+
+def replay(result: IdentificationResult, v: FloatArray, sample_time_s: float) -> FloatArray:
+    """
+    Return the position the identified model gives for applied voltages ``v``, from rest.
+
+    Parameters
+    ----------
+    result : IdentificationResult
+        The identified stage: hysteresis, k_p, w_n, zeta, tau and the loop delay.
+    v : ndarray
+        Applied voltages [V], one per sample.
+    sample_time_s : float
+        Sample period [s].
+
+    Returns
+    -------
+    ndarray
+        Noise-free position [m] (rest at v[0] before the run).
+
+    """
+    h = make_hysteresis(result.stage.hysteresis)
+    state = h.rest_state(float(v[0]))
+    w = np.empty(v.size)
+    step = h.step
+    for k, vk in enumerate(np.asarray(v, dtype=np.float64).tolist()):
+        state, wk = step(state, vk)
+        w[k] = float(wk)
+    f = result.factors
+    num, den = _unit_filter(f, sample_time_s)
+    w0 = float(w[0])
+    return np.asarray(f.gain_m_per_v * (signal.lfilter(num, den, w - w0) + w0),
+                      dtype=np.float64)
+
+
+def _correct_structure_bias(result: IdentificationResult, record: RunRecord,
+                            run: RunSupport | None, base: StageParams,
+                            params: IdentificationParams) -> dict[str, float]:
+    """
+    Remove from w_n, zeta and tau the bias the hysteresis leaves in the linear fit; return it.
+
+    The linear fits see the hysteresis through its describing function at the excitation's
+    amplitude, which no frequency-independent factor captures exactly. The identified model
+    (hysteresis included) is replayed on the run's own applied voltages and the same estimate
+    and fit are made on that noise-free answer: how far they land from the model's own w_n,
+    zeta and tau is the bias at this amplitude, this input and this sampling (the DAC steps are
+    in the applied voltages). It is taken off the estimates; half of it, relative, is returned
+    per parameter as the model-structure term of the bounds (what the correction itself may
+    miss where the identified hysteresis is not the stage's).
+    """
+    t = sample_time_of(record)
+    u = applied_voltage(record, base.chain)
+    y_sim = replay(result, u, t)
+    f = result.factors
+    names: tuple[str, ...]
+    if run is not None:
+        spec = run.lines.spectra
+        assert spec is not None
+        r = np.asarray(record.reference_m, dtype=np.float64)
+        excitation = r if float(np.ptp(r)) > 0.0 else u
+        sim = periodic_spectra(u, y_sim, excitation, spec.period_samples, t)
+        got = fit_periodic_response(sim, params, f, delay_samples=f.delay_samples).fit.factors
+        names = ('omega_n_rad_s', 'zeta', 'tau_s')
+    else:
+        from piezo_stage_ros.core.identification.fit import (
+            estimate_frequency_response,
+            fit_frequency_response,
+        )
+        replayed = RunRecord(record.time_s, y_sim, record.reference_m,
+                             record.reference_velocity_mps, record.command_v, meta=record.meta)
+        data = estimate_frequency_response([replayed], base.chain, segment_s=params.segment_s)
+        got = fit_frequency_response(data, params, initial=f).factors
+        # with a step run, zeta and tau come from it (the step fit has no describing function)
+        names = ('omega_n_rad_s',) if result.step is not None else (
+            'omega_n_rad_s', 'zeta', 'tau_s')
+    bias = {n: math.log(getattr(got, n) / getattr(f, n)) for n in names}
+    values = {n: getattr(f, n) * math.exp(-b) for n, b in bias.items()}
+    fixed = replace(f, **values)
+    third = third_order_of(fixed)
+    plant = result.stage.plant.replace(third_order=third, reduced=third.reduced())
+    result.factors = fixed
+    result.third_order = third
+    result.stage = result.stage.replace(plant=plant)
+    result.notes.append('hysteresis bias of the linear fit removed (the identified model '
+                        'replayed on the applied input): ' + ', '.join(
+                            f'{n} {-100 * b:+.3g} %' for n, b in bias.items()))
+    return {n: 0.5 * abs(b) for n, b in bias.items()}
 
 
 def _fill_bounds(result: IdentificationResult) -> None:
@@ -938,7 +1049,7 @@ def _widen_for_shape(result: IdentificationResult, base: StageParams,
         if not tau > 0.0:
             continue
         alt = fit_hysteresis(hy.records, base.chain, params,
-                             LinearFactors(f.gain_m_per_v, f.omega_n_rad_s, f.zeta, tau),
+                             replace(f, tau_s=tau),
                              base.hysteresis)
         for name, value in alt.estimates.items():
             if name in hy.estimates:
