@@ -78,10 +78,10 @@ from scipy import optimize, signal
 __all__ = [
     'DELAYS_TRIED', 'FrequencyFit', 'FrequencyResponse', 'HysteresisFit', 'IdentificationError',
     'IdentificationParams', 'IdentificationResult', 'LinearFactors', 'ROLES', 'StepFit',
-    'applied_voltage', 'choose_delay', 'classify_run', 'classify_signal',
-    'discrete_frequency_response',
-    'estimate_frequency_response', 'factors_of', 'fit_frequency_response', 'fit_hysteresis',
-    'fit_step_response', 'identify', 'pscm_gain', 'sample_time_of', 'third_order_of',
+    'WHITE_LAG1_MAX', 'applied_voltage', 'choose_delay', 'classify_run', 'classify_signal',
+    'discrete_frequency_response', 'estimate_frequency_response', 'factors_of',
+    'fit_frequency_response', 'fit_hysteresis', 'fit_step_response', 'identify', 'pscm_gain',
+    'residual_whiteness', 'sample_time_of', 'third_order_of',
 ]
 
 ComplexArray = ComplexArray
@@ -1422,7 +1422,7 @@ def identify(records: Sequence[RunRecord], base: StageParams | None = None,
                      'model; a signal-chain delay, not part of the stage)')
     third = third_order_of(factors)
     plant = base.plant.replace(model='third_order', third_order=third, reduced=third.reduced())
-    noise = _noise_estimate(step_fit, chain)
+    noise = _noise_estimate(step_fit, chain, notes)
     stage = base.replace(plant=plant, hysteresis=hyst,
                          chain=chain if noise is None else chain.replace(
                              sensor_noise_std_m=noise))
@@ -1442,9 +1442,37 @@ def _slope(h: HysteresisParams) -> float:
     return 1.0
 
 
-def _noise_estimate(step_fit: StepFit | None, chain: SignalChainParams) -> float | None:
-    """Return the sensor noise [m rms] the step residual shows, quantization removed."""
+#: Largest lag-1 correlation of a fit's residual still taken as sensor noise: white noise
+#: has none, a model error (a wrong delay, a missing mode) is smooth and near 1.
+WHITE_LAG1_MAX = 0.5
+
+
+def residual_whiteness(residual: FloatArray) -> float:
+    """Return the lag-1 correlation coefficient of a residual (0 for white noise)."""
+    r = np.asarray(residual, dtype=np.float64) - float(np.mean(residual))
+    den = float(r @ r)
+    return float(r[1:] @ r[:-1]) / den if den > 0.0 else 0.0
+
+
+def _noise_estimate(step_fit: StepFit | None, chain: SignalChainParams,
+                    notes: list[str] | None = None) -> float | None:
+    """
+    Return the sensor noise [m rms] the step residual shows, quantization removed.
+
+    None when there is no step fit, or when its residual is not white: then it is model error,
+    not the sensor's noise, and is reported in ``notes`` instead of being stored.
+    """
     if step_fit is None:
+        return None
+    res = np.concatenate([(np.asarray(r.position_m, dtype=np.float64) - m)[k]
+                          for r, m, k in zip(step_fit.records, step_fit.models,
+                                             step_fit.masks)])
+    lag1 = residual_whiteness(res)
+    if lag1 > WHITE_LAG1_MAX:
+        if notes is not None:
+            notes.append(f'the step fit leaves {step_fit.residual_rms_m * 1e9:.3g} nm rms that '
+                         f'is not white (lag-1 correlation {lag1:.2f}): model error, not the '
+                         'sensor noise; the configured sensor noise is kept')
         return None
     lsb = chain.adc_lsb_m if chain.quantize else 0.0
     var = step_fit.residual_rms_m ** 2 - lsb * lsb / 12.0
