@@ -55,7 +55,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import math
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
@@ -1053,7 +1053,8 @@ def _run_model(step: Callable[[Any, float], tuple[Any, Any]], state: Any,
 
 def fit_hysteresis(records: Sequence[RunRecord], chain: SignalChainParams,
                    params: IdentificationParams, shape: LinearFactors,
-                   base: HysteresisParams | None = None) -> HysteresisFit:
+                   base: HysteresisParams | None = None, *,
+                   start: Mapping[str, float] | None = None) -> HysteresisFit:
     """
     Fit the hysteresis model and the static gain to sine runs, the linear shape fixed.
 
@@ -1069,6 +1070,8 @@ def fit_hysteresis(records: Sequence[RunRecord], chain: SignalChainParams,
         w_n, zeta, tau of the linear part (its gain is not used).
     base : HysteresisParams, optional
         Groups not fitted are copied from it; Prandtl-Ishlinskii thresholds come from it.
+    start : Mapping, optional
+        Start of the search by name (``estimates`` of an earlier fit); default a generic one.
 
     Returns
     -------
@@ -1142,6 +1145,9 @@ def fit_hysteresis(records: Sequence[RunRecord], chain: SignalChainParams,
             coefs.append(coef)
         return np.concatenate(res), models, coefs
 
+    if start is not None:
+        x0 = np.clip(np.array([float(start.get(n, v)) for n, v in zip(names, x0)]), lower,
+                     upper)
     sol = optimize.least_squares(lambda x: solve(x)[0] * _NM, x0, bounds=(lower, upper),
                                  x_scale='jac', method='trf')
     res, models, coefs = solve(sol.x)

@@ -914,6 +914,7 @@ def identify_checked(records: Sequence[RunRecord], base: StageParams | None = No
             result.bounds[name] = (mid - half, mid + half)
     # the hysteresis fit holds the linear shape fixed, open loop or closed
     _widen_for_shape(result, base, params)
+    _widen_by_replay(result, base, params)
     post = _post_fit_refusals(result, support)
     if post:
         raise RefusedError(post)
@@ -1060,6 +1061,55 @@ def _widen_for_shape(result: IdentificationResult, base: StageParams,
             mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
             half = math.hypot(half, delta)
             result.bounds[name] = (mid - half, mid + half)
+
+
+#: Refits of the hysteresis on replays of the identified model with fresh noise.
+REPLAYS = 8
+#: Student-t 97.5 % quantile for REPLAYS - 1 degrees of freedom, over the normal one: the
+#: spread of a few replays is itself uncertain.
+_T_OVER_Z = 2.3646 / Z95
+
+
+def _widen_by_replay(result: IdentificationResult, base: StageParams,
+                     params: IdentificationParams) -> None:
+    """
+    Widen the hysteresis bounds to the spread of the fit over replays with fresh noise.
+
+    The Jacobian of the hysteresis fit understates its spread where the input is dithered by
+    noise (every small reversal moves the loop's state, and the estimates of alpha, the gain,
+    the offset and the initial state trade off nonlinearly): on a closed-loop sine the spread
+    over noise realizations was several times the Jacobian's. The fitted model's answer to the
+    run's own applied input (its initial state, offset and level included) is given fresh
+    white noise of the fit's residual level, :data:`REPLAYS` times, and refitted; where the spread of the refits (times the Student-t
+    over the normal quantile) exceeds the half-width, it replaces it. Deterministic (fixed
+    seeds); backlash-like and Bouc-Wen only.
+    """
+    hy = result.hysteresis
+    if hy is None or hy.model == 'prandtl_ishlinskii':
+        return
+    rng = np.random.default_rng(20260525)
+    # the fitted model's own answer: its initial state, offset and level before the run too
+    clean = hy.models
+    draws: dict[str, list[float]] = {}
+    for _ in range(REPLAYS):
+        recs = [RunRecord(rec.time_s, y + hy.residual_rms_m * rng.standard_normal(y.size),
+                          rec.reference_m, rec.reference_velocity_mps, rec.command_v,
+                          meta=rec.meta) for rec, y in zip(hy.records, clean)]
+        try:
+            alt = fit_hysteresis(recs, base.chain, params, result.factors, base.hysteresis,
+                                 start=hy.estimates)
+        except IdentificationError:
+            continue
+        for name, value in alt.estimates.items():
+            draws.setdefault(name, []).append(value)
+    for name, values in draws.items():
+        if name not in result.bounds or len(values) < 3:
+            continue
+        half_replay = Z95 * _T_OVER_Z * float(np.std(values, ddof=1))
+        lo, hi = result.bounds[name]
+        mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+        if half_replay > half:
+            result.bounds[name] = (mid - half_replay, mid + half_replay)
 
 
 def _post_fit_refusals(result: IdentificationResult, support: SupportParams) -> list[str]:
