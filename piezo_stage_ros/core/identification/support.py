@@ -1080,8 +1080,9 @@ def _widen_by_replay(result: IdentificationResult, base: StageParams,
     the offset and the initial state trade off nonlinearly): on a closed-loop sine the spread
     over noise realizations was several times the Jacobian's. The fitted model's answer to the
     run's own applied input (its initial state, offset and level included) is given fresh
-    white noise of the fit's residual level, :data:`REPLAYS` times, and refitted; where the spread of the refits (times the Student-t
-    over the normal quantile) exceeds the half-width, it replaces it. Deterministic (fixed
+    white noise of the fit's residual level, :data:`REPLAYS` times, and refitted; where the
+    spread of the refits (times the Student-t over the normal quantile) exceeds the
+    half-width, it replaces it. Deterministic (fixed
     seeds); backlash-like and Bouc-Wen only.
     """
     hy = result.hysteresis
