@@ -169,6 +169,9 @@ def build_parser() -> argparse.ArgumentParser:
                    'write (integral + feed-forward, PI + feed-forward, lead-lag), 0.5 to 3 nm '
                    'of noise, some with a sensor offset or a sample of delay; prints a line '
                    'per case and a Markdown table; writes no file.')
+    p.add_argument('--open-loop', action='store_true',
+                   help="With --coverage: the package's open-loop runs (noise, step, sine) "
+                   'instead of the foreign loops.')
     p.add_argument('--jobs', type=int, default=1, metavar='J',
                    help='Processes for --coverage (default 1).')
     p.add_argument('--survey', action='store_true',
@@ -391,7 +394,7 @@ def _coverage(args: argparse.Namespace, loop: LoopConfig) -> int:
         run_case,
         summarize,
     )
-    cases = coverage_cases(args.coverage, args.seed, loop.stage)
+    cases = coverage_cases(args.coverage, args.seed, loop.stage, open_loop=args.open_loop)
     progress = cli.Progress(PROG)
     results: list[dict[str, Any]] = []
     units = {'sensor_offset_m': 'nm'}

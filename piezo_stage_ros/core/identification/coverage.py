@@ -34,6 +34,7 @@ import math
 from typing import Any, Sequence
 
 import numpy as np
+from piezo_stage_ros.core.identification.experiments import run_experiments
 from piezo_stage_ros.core.identification.fit import factors_of
 from piezo_stage_ros.core.identification.foreign import (
     foreign_runs,
@@ -66,6 +67,9 @@ class CoverageCase:
         The loop, flat (:class:`ForeignLoopParams`).
     label : str
         Short description for the progress lines.
+    open_loop : bool
+        Record the package's three open-loop runs (noise, step, sine) instead of the foreign
+        loop's two; the loop's offset and delay still apply.
 
     """
 
@@ -73,10 +77,11 @@ class CoverageCase:
     stage: dict[str, Any]
     loop: dict[str, Any]
     label: str
+    open_loop: bool = False
 
 
-def coverage_cases(n: int, seed: int = 0, base: StageParams | None = None
-                   ) -> list[CoverageCase]:
+def coverage_cases(n: int, seed: int = 0, base: StageParams | None = None, *,
+                   open_loop: bool = False) -> list[CoverageCase]:
     """
     Return ``n`` cases: family members x foreign loops x noise, offsets and delays.
 
@@ -88,6 +93,8 @@ def coverage_cases(n: int, seed: int = 0, base: StageParams | None = None
         Seed of the draw (members, noise, crossover, offset, multisine phases).
     base : StageParams, optional
         The nominal stage of the family; default the paper's.
+    open_loop : bool
+        Open-loop cases (the package's noise, step and sine runs) instead of foreign loops.
 
     Returns
     -------
@@ -108,10 +115,11 @@ def coverage_cases(n: int, seed: int = 0, base: StageParams | None = None
                                  crossover_hz=float(rng.uniform(70.0, 130.0)),
                                  sensor_offset_m=offset, delay_samples=1 if i % 4 == 3 else 0,
                                  seed=seed * 1009 + i + 1)
-        label = (f'{member.name} {loop.kind} noise {noise * 1e9:.2f} nm, crossover '
+        kind = 'open loop' if open_loop else loop.kind
+        label = (f'{member.name} {kind} noise {noise * 1e9:.2f} nm, crossover '
                  f'{loop.crossover_hz:.0f} Hz, offset {offset * 1e9:.0f} nm, delay '
                  f'{loop.delay_samples}')
-        out.append(CoverageCase(i, stage.to_flat(), loop.to_flat(), label))
+        out.append(CoverageCase(i, stage.to_flat(), loop.to_flat(), label, open_loop))
     return out
 
 
@@ -154,11 +162,14 @@ def run_case(case: CoverageCase, base: StageParams | None = None) -> dict[str, A
     """
     stage = StageParams.from_flat(case.stage)
     loop = ForeignLoopParams.from_flat(case.loop)
-    runs = foreign_runs(stage, loop)
+    if case.open_loop:
+        runs = run_experiments(stage, sensor_offset_m=loop.sensor_offset_m,
+                               delay_samples=loop.delay_samples)
+    else:
+        runs = foreign_runs(stage, loop)
     out: dict[str, Any] = {'index': case.index, 'label': case.label}
     try:
-        checked = identify_checked([_bare(runs['excite']), _bare(runs['sine'])],
-                                   base or StageParams())
+        checked = identify_checked([_bare(r) for r in runs.values()], base or StageParams())
     except RefusedError as exc:
         out.update(accepted=False, refused=exc.lines)
         return out

@@ -1131,13 +1131,15 @@ def fit_hysteresis(records: Sequence[RunRecord], chain: SignalChainParams,
             _, h0 = h.rest_state(float(v[0]))
             return _run_model(h.step, (float(v[0]), float(x[3]) * h.bound + h0), v)
 
-    def solve(x: FloatArray) -> tuple[FloatArray, list[FloatArray], list[FloatArray]]:
+    def solve(x: FloatArray, offset: bool = True
+              ) -> tuple[FloatArray, list[FloatArray], list[FloatArray]]:
         res, models, coefs = [], [], []
         for _, num, den, v, y, free in runs:
             w = normalized(x, v)
             # F[w] from rest at 0, the free response of the unknown level before the run, and
-            # a constant: the sensor's zero is not the stage's rest at 0 V
-            cols = np.vstack([signal.lfilter(num, den, w), free, np.ones(v.size)])
+            # a constant: the sensor's zero need not be the stage's rest at 0 V
+            cols = np.vstack([signal.lfilter(num, den, w), free,
+                              np.ones(v.size) if offset else np.zeros(v.size)])
             coef, *_ = np.linalg.lstsq(cols.T, y, rcond=None)
             model_y = coef @ cols
             res.append(y - model_y)
@@ -1148,36 +1150,53 @@ def fit_hysteresis(records: Sequence[RunRecord], chain: SignalChainParams,
     if start is not None:
         x0 = np.clip(np.array([float(start.get(n, v)) for n, v in zip(names, x0)]), lower,
                      upper)
-    sol = optimize.least_squares(lambda x: solve(x)[0] * _NM, x0, bounds=(lower, upper),
-                                 x_scale='jac', method='trf')
-    res, models, coefs = solve(sol.x)
+    nx = x0.size
+    # The offset is tested, not assumed: a sine around a level gives the static gain from the
+    # level (the volts and the metres at rest) unless an offset is free, when the gain must
+    # come from the swing, which the curvature of the loop shares; so it is kept only where
+    # the data show it (likelihood ratio at 95 %: the drop of the residual sum of squares
+    # over the noise variance above chi^2(1) = 3.84).
+    sol = optimize.least_squares(lambda x: solve(x, False)[0] * _NM, x0,
+                                 bounds=(lower, upper), x_scale='jac', method='trf')
+    sol_off = optimize.least_squares(lambda x: solve(x)[0] * _NM, sol.x,
+                                     bounds=(lower, upper), x_scale='jac', method='trf')
+    rss0, rss1 = 2.0 * float(sol.cost), 2.0 * float(sol_off.cost)
+    dof = max(int(sol_off.fun.size) - nx - 3 * len(runs), 1)
+    with_offset = rss1 > 0.0 and (rss0 - rss1) / (rss1 / dof) > 3.84
+    if with_offset:
+        sol = sol_off
+    res, models, coefs = solve(sol.x, with_offset)
     # Covariance of every parameter, the linear ones included: Jacobian of the full residual.
     g0s = [float(c[0]) for c in coefs]
     g0 = float(np.mean(g0s))
     offsets = np.array([float(c[2]) for c in coefs])
-    nx = sol.x.size
-    full_x = np.concatenate([sol.x, [g0], offsets])
 
     def full(xf: FloatArray) -> FloatArray:
         out = []
         for i, ((_, num, den, v, y, free), coef) in enumerate(zip(runs, coefs)):
             w = normalized(xf[:nx], v)
-            model_y = xf[nx] * signal.lfilter(num, den, w) + coef[1] * free + xf[nx + 1 + i]
+            model_y = xf[nx] * signal.lfilter(num, den, w) + coef[1] * free
+            if xf.size > nx + 1:
+                model_y = model_y + xf[nx + 1 + i]
             out.append(y - model_y)
         return np.concatenate(out)
 
-    jac = _numeric_jacobian(full, full_x, np.concatenate([
-        np.maximum(np.abs(sol.x), 1e-3) * 1e-6, [abs(g0) * 1e-6],
-        np.full(offsets.size, 1e-9)]))
-    cov = _covariance(jac, full(full_x))
+    steps = np.concatenate([np.maximum(np.abs(sol.x), 1e-3) * 1e-6, [abs(g0) * 1e-6]])
+    x_full = np.concatenate([sol.x, [g0]])
+    # the offset's standard deviation always (how large an offset could hide when not kept)
+    x_off = np.concatenate([x_full, offsets])
+    cov_off = _covariance(_numeric_jacobian(full, x_off, np.concatenate([
+        steps, np.full(offsets.size, 1e-9)])), full(x_off))
+    cov = cov_off if with_offset else _covariance(_numeric_jacobian(full, x_full, steps),
+                                                  full(x_full))
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     est = {n: float(v) for n, v in zip(names, sol.x)}
     std = {n: float(s) for n, s in zip(names, sd[:nx])}
     est['static_gain_m_per_v'] = g0
     std['static_gain_m_per_v'] = float(sd[nx])
-    # the sensor offset of the first run (each run has its own, in ``offsets_m``)
+    # the sensor offset of the first run (0 when the data do not show one)
     est['sensor_offset_m'] = float(offsets[0])
-    std['sensor_offset_m'] = float(sd[nx + 1])
+    std['sensor_offset_m'] = float(np.sqrt(max(float(cov_off[nx + 1, nx + 1]), 0.0)))
     if model == 'backlash_like':
         group = BacklashLikeParams(alpha=est['alpha'], c=slope, b1=est['b1_over_c'] * slope)
         hyst = base.replace(model=model, backlash_like=group)
