@@ -33,6 +33,8 @@ come from ``config/default.yaml`` and ``--config FILE``. Examples::
     identify --sine sine_bag --noise noise_bag --step step_bag --output stage.yaml
     identify --simulate /tmp/idbags --perturb 3     # simulated bags of a perturbed stage,
                                                     # identified, with a recovered-vs-true table
+    identify cl_excite cl_sine --json               # last line: one JSON object, every
+                                                    # parameter with its 95 % bounds
 
 Exit status: 0 on success, 1 on bad data or parameters (missing bag, no excitation, failed fit),
 2 on bad command-line usage; the error is one line on stderr.
@@ -83,9 +85,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--sine', action='append', default=[], metavar='BAG',
                    help='Bag of a sine run (hysteresis).')
     p.add_argument('--closed-loop', action='store_true',
-                   help='The frequency runs were recorded in closed loop (detected otherwise): '
-                   'estimate the response averaged over whole periods of the periodic '
-                   'reference; an open-loop run is refused.')
+                   help='The frequency runs were recorded in closed loop (detected otherwise; '
+                   'the verdict is reported, the estimate does not need it): the response is '
+                   'averaged over whole periods of the periodic reference whenever it repeats; '
+                   'a run that the verdict finds open and whose excitation does not repeat is '
+                   'refused.')
     p.add_argument('--drift', action='append', default=[], metavar='BAG',
                    help='Operation bag (ordinary tracking, no added excitation): report the DC '
                    'gain and the lag at the reference frequency against the configured model '

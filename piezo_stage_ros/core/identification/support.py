@@ -17,11 +17,14 @@ What recorded data can support, closed-loop identification on purpose, and refus
 
 :func:`identify_checked` wraps :func:`piezo_stage_ros.core.identification.fit.identify`:
 
-1. **Loop.** Each run is open loop when its command is a fixed function of its reference (the
-   ``open_loop`` controller: v = g x_d + offset) or when the command's innovations do not
-   follow the position's (:func:`loop_kind`); otherwise closed loop: the sensor noise enters
-   the command through the controller, and the H1 estimate S_uy / S_uu is biased toward -1/C
-   wherever that noise dominates.
+1. **Loop and role.** Each run's role comes from what it holds (:func:`content_role`): the
+   reference when it changes (a closed loop's command is not a designed input), else the
+   command; a step train, a sine (hysteresis), or broadband / a periodic multisine
+   (frequency), whatever the order of the runs. The loop verdict (:func:`loop_kind`: open
+   when the command is a fixed function of the reference or its innovations do not follow
+   the position's) is reported, never needed: in closed loop the sensor noise enters the
+   command and the H1 estimate S_uy / S_uu is biased toward -1/C, so whenever the reference
+   repeats the estimate averaged over whole periods is used, open loop or closed.
 2. **Excitation per line** (:func:`analyse_run`). The excitation is the reference (closed
    loop), or the reference / command (open loop). When it repeats over at least two whole
    periods, the DFT of every period gives the lines the excitation drives and, from the scatter
@@ -36,18 +39,23 @@ What recorded data can support, closed-loop identification on purpose, and refus
    cycle; a saturated run supports nothing; ``closed_loop=True`` on an open-loop run is
    refused. A refused parameter gives one line naming it and the reason
    (:class:`RefusedError`); nothing is fitted.
-4. **Closed loop** (:func:`fit_periodic_response`). The frequency response from the applied
-   input to the position averaged over whole periods of the periodic reference, with a
-   variance per line (noise from the scatter over periods, nonlinear distortion from the lines
-   the excitation leaves out), fitted by weighted least squares with a frequency-independent
-   complex factor for the hysteresis (its describing function: a gain and a phase lag that do
-   not depend on frequency, which a linear model would otherwise absorb into tau). The
-   hysteresis is fitted in the time domain on the applied input, which stays consistent in
-   closed loop (the position noise at sample k is independent of the inputs before k).
+4. **Periodic reference: the instrument** (:func:`fit_periodic_response`). The frequency
+   response from the applied input to the position averaged over whole periods of the
+   periodic reference (indirect in spirit: only what repeats with the reference is kept, so
+   the feedback's share of the input does not matter), with a variance per line, fitted by
+   weighted least squares with a frequency-independent complex factor for the hysteresis
+   (its describing function) and the loop's delay (whole samples tried, a fraction kept when
+   shown). The hysteresis is fitted in the time domain on the applied input, which stays
+   consistent in closed loop (the position noise at sample k is independent of the inputs
+   before k), with a sensor offset where the data show one.
 5. **Bounds.** Every parameter gets 95 % bounds, +-1.96 sigma from the Jacobian of its fit
    (the frequency fit's covariance scaled up by chi^2/dof when the residuals exceed the
-   variance per line, plus a model-structure term: the largest move of each parameter under
-   two other describing functions of the hysteresis).
+   variance per line), plus model-structure terms: the largest move of each parameter under
+   two other describing functions of the hysteresis; the bias the hysteresis leaves in the
+   linear fit at the run's own amplitude, found by replaying the identified model on the
+   applied input (taken off, half kept in the bound); the tau the hysteresis fit holds fixed;
+   and for the hysteresis, the spread of refits on its own answer with fresh noise where it
+   exceeds the Jacobian's.
 """
 
 from __future__ import annotations
