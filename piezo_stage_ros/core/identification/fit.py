@@ -81,7 +81,7 @@ __all__ = [
     'WHITE_LAG1_MAX', 'applied_voltage', 'choose_delay', 'classify_run', 'classify_signal',
     'discrete_frequency_response', 'estimate_frequency_response', 'factors_of',
     'fit_frequency_response', 'fit_hysteresis', 'fit_step_response', 'identify', 'pscm_gain',
-    'residual_whiteness', 'sample_time_of', 'third_order_of',
+    'residual_whiteness', 'sample_time_of', 'third_order_of', 'whole_delay_shift',
 ]
 
 ComplexArray = ComplexArray
@@ -780,7 +780,11 @@ def fit_frequency_response(data: FrequencyResponse, params: IdentificationParams
     best, delay = choose_delay(fit_at, residual_at(0.0))
     cov = _covariance(best.jac, best.fun)
     fac = _factors(best.x[:4])
-    rel = np.sqrt(np.maximum(np.diag(cov), 0.0))  # log-space std = relative std
+    shift = np.zeros(best.x.size)
+    if best.x.size > 4:
+        shift[:4] = whole_delay_shift(fit_at, best, delay)[:4]
+    # log-space std = relative std
+    rel = np.sqrt(np.maximum(np.diag(cov), 0.0) + shift ** 2)
     fac = LinearFactors(fac.gain_m_per_v, fac.omega_n_rad_s, fac.zeta, fac.tau_s, delay)
     std = LinearFactors(fac.gain_m_per_v * rel[0], fac.omega_n_rad_s * rel[1],
                         fac.zeta * rel[2], fac.tau_s * rel[3],
@@ -839,6 +843,22 @@ def choose_delay(fit_at: Callable[[float], Any], free_residual: Callable[[FloatA
     if free.cost < best.cost and abs(float(free.x[-1]) - delay) > 1.959964 * sd:
         return free, float(free.x[-1])
     return best, delay
+
+
+def whole_delay_shift(fit_at: Callable[[float], Any], solution: Any, delay: float
+                      ) -> FloatArray:
+    """
+    Return how far the parameters move when a fractional delay is replaced by the nearest whole.
+
+    A fraction kept by :func:`choose_delay` may stand for something else with a phase that
+    grows with frequency (the hysteresis, a filter); the move of the other parameters between
+    the two delay models is a model-structure term of their bounds. Zeros for a whole delay.
+    """
+    n = solution.x.size - 1
+    if delay == round(delay):
+        return np.zeros(n)
+    whole = fit_at(float(round(delay)))
+    return np.asarray(np.abs(whole.x[:n] - solution.x[:n]), dtype=np.float64)
 
 
 # --------------------------------------------------------------------------------------------

@@ -87,6 +87,7 @@ from piezo_stage_ros.core.identification.fit import (
     ROLES,
     sample_time_of,
     third_order_of,
+    whole_delay_shift,
 )
 from piezo_stage_ros.core.identification.periodic import (
     detect_period,
@@ -732,6 +733,9 @@ def fit_periodic_response(spectra: PeriodicSpectra, params: IdentificationParams
                                    np.append(sol.x, 0.0), method='lm')
     structure = np.zeros(sol.x.size)
     structure[:4] = np.maximum(np.abs(alt.x[:4] - sol.x[:4]), np.abs(relax.x[:4] - sol.x[:4]))
+    if free:
+        # a fraction of a sample may stand for another phase that grows with frequency
+        structure[:4] = np.maximum(structure[:4], whole_delay_shift(fit_at, sol, delay)[:4])
     rel = np.sqrt(np.maximum(np.diag(cov), 0.0) + structure ** 2)
     k, w, z, tau = (float(v) for v in np.exp(sol.x[:4]))
     fac = LinearFactors(k, w, z, tau, delay)
