@@ -670,7 +670,8 @@ def fit_periodic_response(spectra: PeriodicSpectra, params: IdentificationParams
         raise IdentificationError(f'closed-loop frequency response: {int(used.sum())} excited '
                                   'lines in the band, need 8')
     var = var_n + var_d
-    sig = np.sqrt(np.maximum(var, 1e-300)) / np.abs(g)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        sig = np.sqrt(np.maximum(var, 1e-300)) / np.abs(g)
     fu, gu, su = f[used], g[used], np.maximum(sig[used], 1e-6)
 
     # the lowest used line scales the relaxation term: x[6] is its phase lag there [rad]
@@ -743,7 +744,8 @@ def fit_periodic_response(spectra: PeriodicSpectra, params: IdentificationParams
                         fac.zeta * rel[2], fac.tau_s * rel[3], float(rel[5]) if free else 0.0)
     model = discrete_frequency_response(third_order_of(fac), t, f, delay) * \
         np.exp(-1j * sol.x[4])
-    snr = np.abs(g) ** 2 / np.maximum(var, 1e-300)
+    with np.errstate(invalid='ignore'):
+        snr = np.abs(g) ** 2 / np.maximum(var, 1e-300)
     data = FrequencyResponse(frequency_hz=f, response=g, coherence=snr / (1.0 + snr),
                              sample_time_s=t, segments=spectra.periods)
     err = np.log(model[used] / gu)
@@ -758,7 +760,8 @@ def fit_periodic_response(spectra: PeriodicSpectra, params: IdentificationParams
                               detrend='constant')
         h1 = puy[1:n // 2 + 1] / np.maximum(puu[1:n // 2 + 1], 1e-300)
         h1_dev = float(np.median(np.abs(h1[used] / gu - 1.0)))
-    bias = np.abs(spectra.cov_yu / np.abs(spectra.u) ** 2) / np.abs(g)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        bias = np.abs(spectra.cov_yu / np.abs(spectra.u) ** 2) / np.abs(g)
     return PeriodicFit(fit=ffit, phase_rad=float(sol.x[4]), chi2_per_dof=chi2,
                        relative_std_noise=float(np.median(np.sqrt(var_n[used]) / np.abs(gu))),
                        relative_std_distortion=float(np.median(np.sqrt(var_d[used])
