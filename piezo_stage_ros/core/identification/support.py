@@ -77,6 +77,7 @@ from piezo_stage_ros.core.identification.fit import (
     discrete_frequency_response,
     factors_of,
     fit_hysteresis,
+    fit_step_response,
     FrequencyFit,
     FrequencyResponse,
     IdentificationError,
@@ -927,6 +928,7 @@ def identify_checked(records: Sequence[RunRecord], base: StageParams | None = No
             mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
             half = math.hypot(half, delta * abs(mid))
             result.bounds[name] = (mid - half, mid + half)
+    _widen_step_for_omega(result, base, params)
     # the hysteresis fit holds the linear shape fixed, open loop or closed
     _widen_for_shape(result, base, params)
     _widen_by_replay(result, base, params)
@@ -1044,6 +1046,38 @@ def _fill_bounds(result: IdentificationResult) -> None:
             if name in hy.std:
                 b[name] = _bounds(value, hy.std[name])
     result.bounds = b
+
+
+def _widen_step_for_omega(result: IdentificationResult, base: StageParams,
+                          params: IdentificationParams) -> None:
+    """
+    Widen zeta's and tau's bounds by what the step fit's fixed w_n and delay move them.
+
+    The step fit keeps w_n and the delay from the frequency response; its own standard
+    deviations do not carry their uncertainty. It is refitted with w_n at both ends of its
+    bounds (and with the nearest whole delay when a fraction was kept), and the largest change
+    of zeta and tau is added in quadrature to their half-widths.
+    """
+    st = result.step
+    if st is None or st.std.omega_n_rad_s > 0.0 or 'omega_n_rad_s' not in result.bounds:
+        return
+    f = result.factors
+    moved = {'zeta': 0.0, 'tau_s': 0.0}
+    variants = [replace(f, omega_n_rad_s=w) for w in result.bounds['omega_n_rad_s'] if w > 0.0]
+    if f.delay_samples != round(f.delay_samples):
+        # a fraction of a sample may stand for another phase: the nearest whole delay too
+        variants.append(replace(f, delay_samples=float(round(f.delay_samples))))
+    for variant in variants:
+        alt = fit_step_response(st.records, base.chain, params, variant,
+                                fix_omega=True).factors
+        moved['zeta'] = max(moved['zeta'], abs(alt.zeta - st.factors.zeta))
+        moved['tau_s'] = max(moved['tau_s'], abs(alt.tau_s - st.factors.tau_s))
+    for name, delta in moved.items():
+        if name in result.bounds:
+            lo, hi = result.bounds[name]
+            mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+            half = math.hypot(half, delta)
+            result.bounds[name] = (mid - half, mid + half)
 
 
 def _widen_for_shape(result: IdentificationResult, base: StageParams,
