@@ -455,8 +455,12 @@ def _region(run: RunSupport, params: IdentificationParams, support: SupportParam
     what = (f'the {run.role} run {run.name!r} excites {_describe(f)} above the noise '
             f'(signal-to-noise >= {support.snr_min:g})')
     if need_high <= need_low:
-        return f'{what}; needs {count} or more below {_hz(need_low)}'
-    return f'{what}; needs {count} or more from {_hz(need_low)} to {_hz(need_high)}'
+        return (f'{what}; needs {count} or more below {_hz(need_low)} (fix: a run with a '
+                f'periodic multisine on the reference from {_hz(params.band_low_hz)} to '
+                f'{_hz(need_low)} or beyond, repeated over two or more whole periods)')
+    return (f'{what}; needs {count} or more from {_hz(need_low)} to {_hz(need_high)} (fix: a '
+            'run with a periodic multisine on the reference over that band, repeated over two '
+            'or more whole periods, loud enough to stand above the noise there)')
 
 
 def refusals(runs: Sequence[RunSupport], base: StageParams, params: IdentificationParams,
@@ -520,7 +524,9 @@ def refusals(runs: Sequence[RunSupport], base: StageParams, params: Identificati
                 out.append(f'alpha: the {run.role} run {run.name!r} spans '
                            f'{run.input_range_v:.3g} V of input; the curvature of the loop '
                            f'needs about {need:.3g} V or more (1/alpha = '
-                           f'{1.0 / bl.alpha:.3g} V for the configured stage)')
+                           f'{1.0 / bl.alpha:.3g} V for the configured stage; fix: a slow '
+                           f'sine run spanning {need:.3g} V or more of input, two whole '
+                           'cycles)')
     return out
 
 
