@@ -917,7 +917,7 @@ def identify_checked(records: Sequence[RunRecord], base: StageParams | None = No
         if not hyst_given:
             result.notes.append(f'hysteresis fitted on the periodic run {run.name!r} '
                                 f'(its first {params.hysteresis_max_s:g} s, or two cycles of its '
-                                'slowest strong line when longer)')
+                                'strongest line when longer)')
     else:
         result = identify(records, base, params, resolved)
     structure: dict[str, float] = {}
