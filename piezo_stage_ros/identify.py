@@ -33,6 +33,8 @@ come from ``config/default.yaml`` and ``--config FILE``. Examples::
     identify --sine sine_bag --noise noise_bag --step step_bag --output stage.yaml
     identify --simulate /tmp/idbags --perturb 3     # simulated bags of a perturbed stage,
                                                     # identified, with a recovered-vs-true table
+    identify cl_excite cl_sine --json               # last line: one JSON object, every
+                                                    # parameter with its 95 % bounds
 
 Exit status: 0 on success, 1 on bad data or parameters (missing bag, no excitation, failed fit),
 2 on bad command-line usage; the error is one line on stderr.
@@ -41,10 +43,11 @@ Exit status: 0 on success, 1 on bad data or parameters (missing bag, no excitati
 from __future__ import annotations
 
 import argparse
+import json
 import math
 from pathlib import Path
 import sys
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping, Sequence, TYPE_CHECKING
 
 from piezo_stage_ros import cli
 from piezo_stage_ros.core.contracts.config import nest
@@ -59,7 +62,11 @@ from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.model.stage import StageParams
 import yaml
 
-__all__ = ['build_parser', 'controller_values', 'main', 'parameter_file_text']
+if TYPE_CHECKING:
+    from piezo_stage_ros.core.identification.support import CheckedIdentification
+
+__all__ = ['JSON_KEYS', 'build_parser', 'controller_values', 'json_summary', 'main',
+           'parameter_file_text']
 
 PROG = 'identify'
 
@@ -78,9 +85,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--sine', action='append', default=[], metavar='BAG',
                    help='Bag of a sine run (hysteresis).')
     p.add_argument('--closed-loop', action='store_true',
-                   help='The frequency runs were recorded in closed loop (detected otherwise): '
-                   'estimate the response averaged over whole periods of the periodic '
-                   'reference; an open-loop run is refused.')
+                   help='The frequency runs were recorded in closed loop (detected otherwise; '
+                   'the verdict is reported, the estimate does not need it): the response is '
+                   'averaged over whole periods of the periodic reference whenever it repeats; '
+                   'a run that the verdict finds open and whose excitation does not repeat is '
+                   'refused.')
     p.add_argument('--drift', action='append', default=[], metavar='BAG',
                    help='Operation bag (ordinary tracking, no added excitation): report the DC '
                    'gain and the lag at the reference frequency against the configured model '
@@ -105,6 +114,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--free-omega', action='store_true',
                    help='Fit w_n in the step fit too (the paper keeps it from the frequency '
                    'response).')
+    p.add_argument('--json', action='store_true',
+                   help='Print one JSON object on the last line: every identified parameter '
+                   'as {"value", "low", "high"} (95 %%), the loop verdict and which run gave '
+                   'what (or the refusals).')
     p.add_argument('--simulate', metavar='DIR',
                    help='First simulate the three identification runs of a stage (the '
                    'configured one, or --perturb) as bags in DIR, then identify them.')
@@ -301,7 +314,8 @@ def _bound_lines(result: IdentificationResult) -> list[str]:
     if not result.bounds:
         return []
     names = {'static_gain_m_per_v': 'static gain k_p c [m/V]', 'omega_n_rad_s': 'w_n [rad/s]',
-             'zeta': 'zeta', 'tau_s': 'tau [s]', 'alpha': 'alpha [1/V]', 'b1_over_c': 'B1/c'}
+             'zeta': 'zeta', 'tau_s': 'tau [s]', 'alpha': 'alpha [1/V]', 'b1_over_c': 'B1/c',
+             'sensor_offset_m': 'sensor offset [m]'}
     out = []
     for key, label in names.items():
         if key in result.bounds:
@@ -358,6 +372,8 @@ def _run(args: argparse.Namespace) -> int:
         # one line per parameter the data cannot support; no parameter file
         for line in exc.lines:
             cli.error(PROG, line)
+        if args.json:
+            print(json.dumps({'accepted': False, 'refused': exc.lines}))
         return 1
     result = checked.result
     stage = result.stage
@@ -392,7 +408,57 @@ def _run(args: argparse.Namespace) -> int:
         from piezo_stage_ros.analysis.identification_report import comparison_rows, format_table
         print()
         print(format_table(comparison_rows(result, true_stage)))
+    if args.json:
+        print(json.dumps(json_summary(checked)))
     return 0
+
+
+#: JSON key of each identified quantity, by its name in the result's summary and bounds.
+JSON_KEYS = {'static_gain_m_per_v': 'static_gain_m_per_v', 'gain_m_per_v': 'gain_m_per_v',
+             'omega_n_rad_s': 'omega_n_rad_s', 'zeta': 'zeta', 'tau_s': 'tau_s',
+             'alpha': 'alpha_per_v', 'b1_over_c': 'b1_over_c',
+             'sensor_offset_m': 'sensor_offset_m', 'delay_samples': 'delay_samples'}
+
+
+def json_summary(checked: CheckedIdentification) -> dict[str, Any]:
+    """
+    Return what ``identify --json`` prints: parameters with 95 % bounds and the verdicts.
+
+    Parameters
+    ----------
+    checked : CheckedIdentification
+        The identification.
+
+    Returns
+    -------
+    dict
+        ``accepted`` (true), ``loop`` (``'open'`` or ``'closed'``, the verdict on the
+        frequency run: reported, the estimate does not depend on it), ``parameters`` (name ->
+        ``{"value", "low", "high"}``; low = high = value for a quantity without bounds, e.g.
+        a whole-sample delay chosen among whole delays, or the small-signal k_p),
+        ``roles`` (role -> runs), ``runs`` (each run's role, loop verdict and its reason),
+        ``warnings`` and ``notes``.
+
+    """
+    result = checked.result
+    s = result.summary()
+    values: dict[str, float] = {k: float(v) for k, v in s.items()}
+    h = result.hysteresis
+    if h is not None:
+        values.update({k: float(v) for k, v in h.estimates.items()})
+    values['delay_samples'] = float(result.factors.delay_samples)
+    params: dict[str, dict[str, float]] = {}
+    for name, key in JSON_KEYS.items():
+        if name not in values:
+            continue
+        value = values[name]
+        low, high = result.bounds.get(name, (value, value))
+        params[key] = {'value': value, 'low': float(low), 'high': float(high)}
+    return {'accepted': True, 'loop': result.loop, 'parameters': params,
+            'roles': {k: list(v) for k, v in result.roles.items() if v},
+            'runs': [{'name': r.name, 'role': r.role, 'loop': r.loop, 'why': r.loop_reason,
+                      'excitation': r.lines.method} for r in checked.runs],
+            'warnings': list(checked.warnings), 'notes': list(result.notes)}
 
 
 def _model_slope(base: StageParams, model: str) -> float:

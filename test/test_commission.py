@@ -239,3 +239,23 @@ def test_write_excitation_refuses_beyond_the_limit(tmp_path: Path,
     assert main(['--write-excitation', str(tmp_path / 'x'), '--slow-amplitude', '0.95e-6']) == 1
     assert "parameter 'multisine_rms_m'" in capsys.readouterr().err
     assert not (tmp_path / 'x' / 'excitation.csv').exists()
+
+
+def test_coverage_study_reports_each_case_and_a_table(capsys: pytest.CaptureFixture[str]
+                                                      ) -> None:
+    # the three foreign loops in turn; the fourth case carries a sample of delay
+    assert main(['--coverage', '4', '--seed', '5']) == 0
+    out = capsys.readouterr()
+    progress = [line for line in out.err.splitlines() if ' case ' in line]
+    assert len(progress) == 4 and all('refused' not in line for line in progress)
+    assert all(kind in ''.join(progress) for kind in ('integral_ff', 'pi_ff', 'lead_lag'))
+    assert '(true 1)' in progress[3] and 'delay 1):' in progress[3]
+    rows = {line.split('|')[1].strip(): line for line in out.out.splitlines()
+            if line.startswith('| ') and ' % |' in line}
+    assert {'static_gain_m_per_v', 'omega_n_rad_s', 'zeta', 'tau_s', 'alpha'} <= set(rows)
+    assert '(4/4 accepted)' in out.out
+    assert 'loop delay found (within half a sample) in 4 of 4' in out.out
+
+
+def test_coverage_needs_a_positive_count(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(['--coverage', '0']) == 2

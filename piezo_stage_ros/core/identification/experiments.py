@@ -47,6 +47,7 @@ from piezo_stage_ros.core.control.controllers import (
 )
 from piezo_stage_ros.core.identification.excitation import NoiseExcitation, NoiseParams
 from piezo_stage_ros.core.identification.fit import factors_of, LinearFactors, third_order_of
+from piezo_stage_ros.core.identification.foreign import SignalPath
 from piezo_stage_ros.core.loop.closed_loop import run
 from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.loop.trajectories import (
@@ -122,7 +123,8 @@ def _trajectories(plan: ExperimentPlan, gain_m_per_v: float) -> dict[str, Trajec
 
 
 def run_experiments(stage_params: StageParams, plan: ExperimentPlan | None = None, *,
-                    open_loop_gain_m_per_v: float | None = None) -> dict[str, RunRecord]:
+                    open_loop_gain_m_per_v: float | None = None, sensor_offset_m: float = 0.0,
+                    delay_samples: int = 0) -> dict[str, RunRecord]:
     """
     Run the three identification experiments open loop on a simulated stage.
 
@@ -135,6 +137,11 @@ def run_experiments(stage_params: StageParams, plan: ExperimentPlan | None = Non
     open_loop_gain_m_per_v : float, optional
         Metres of trajectory per volt of command (any positive value: the recorded commands are
         the plan's volts); default the nominal static gain of the paper's stage.
+    sensor_offset_m : float
+        Added to every measured position (a sensor whose zero is not the stage's rest) [m].
+    delay_samples : int
+        Extra whole samples between a command and the sample it is held over (a DAQ
+        pipeline), see :class:`~piezo_stage_ros.core.identification.foreign.SignalPath`.
 
     Returns
     -------
@@ -152,7 +159,10 @@ def run_experiments(stage_params: StageParams, plan: ExperimentPlan | None = Non
     out: dict[str, RunRecord] = {}
     for i, (name, traj) in enumerate(_trajectories(plan, g).items()):
         # each run on a fresh stage at rest where the nominal model puts the first command
-        stage = Stage(params.replace(seed=params.seed + i))
+        bare = Stage(params.replace(seed=params.seed + i))
+        stage: Stage | SignalPath = bare
+        if sensor_offset_m != 0.0 or delay_samples != 0:
+            stage = SignalPath(bare, sensor_offset_m, delay_samples)
         first = float(traj.evaluate(np.zeros(1))[0][0])
         controller = OpenLoopController(OpenLoopParams(gain_v_per_m=1.0 / g),
                                         params.sample_time_s)

@@ -55,7 +55,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import math
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
@@ -76,11 +76,12 @@ from piezo_stage_ros.core.model.stage import amplifier_input, SignalChainParams,
 from scipy import optimize, signal
 
 __all__ = [
-    'FrequencyFit', 'FrequencyResponse', 'HysteresisFit', 'IdentificationError',
+    'DELAYS_TRIED', 'FrequencyFit', 'FrequencyResponse', 'HysteresisFit', 'IdentificationError',
     'IdentificationParams', 'IdentificationResult', 'LinearFactors', 'ROLES', 'StepFit',
-    'applied_voltage', 'classify_run', 'discrete_frequency_response',
-    'estimate_frequency_response', 'factors_of', 'fit_frequency_response', 'fit_hysteresis',
-    'fit_step_response', 'identify', 'pscm_gain', 'sample_time_of', 'third_order_of',
+    'WHITE_LAG1_MAX', 'applied_voltage', 'choose_delay', 'classify_run', 'classify_signal',
+    'discrete_frequency_response', 'estimate_frequency_response', 'factors_of',
+    'fit_frequency_response', 'fit_hysteresis', 'fit_step_response', 'identify', 'pscm_gain',
+    'residual_whiteness', 'sample_time_of', 'third_order_of', 'whole_delay_shift',
 ]
 
 ComplexArray = ComplexArray
@@ -153,6 +154,9 @@ class LinearFactors:
     omega_n_rad_s: float
     zeta: float
     tau_s: float
+    #: Loop delay beyond the sample-and-hold, in samples (0: the command of sample k is held
+    #: over sample k); not part of the stage's plant, the signal chain's.
+    delay_samples: float = 0.0
 
 
 def third_order_of(f: LinearFactors) -> ThirdOrderParams:
@@ -262,8 +266,15 @@ def sample_time_of(record: RunRecord) -> float:
     n = len(record)
     if n < 16:
         raise IdentificationError(f'run {_name(record)}: {n} samples, need at least 16')
-    dt = np.diff(np.asarray(record.time_s, dtype=np.float64))
+    time_s = np.asarray(record.time_s, dtype=np.float64)
+    dt = np.diff(time_s)
     period = float(np.median(dt))
+    # stamps in seconds since the epoch are rounded to ~0.24 us: every step, and so their
+    # median, is off by up to that (0.24 % of 100 us), which moves w_n and tau by as much;
+    # the whole span over the steps is exact to that rounding over n samples
+    span = float(time_s[-1] - time_s[0]) / (n - 1)
+    if abs(period - span) > 1e-9 * span:
+        period = span
     # 5 %: stamps in seconds since the epoch carry ~0.2 us of rounding (0.5 % of 50 us), while
     # a lost sample is a step of 200 %
     if not period > 0.0 or float(np.max(np.abs(dt - period))) > 0.05 * period:
@@ -337,10 +348,31 @@ def classify_run(record: RunRecord, chain: SignalChainParams | None = None) -> s
     if isinstance(role, str) and role in ROLES:
         return role
     v = applied_voltage(record, chain or SignalChainParams())
-    jumps = int(np.count_nonzero(np.diff(v)))
-    if jumps == 0:
+    if int(np.count_nonzero(np.diff(v))) == 0:
         raise IdentificationError(f'run {_name(record)}: the command never changes; '
                                   'there is no excitation to identify from')
+    return classify_signal(v)
+
+
+def classify_signal(v: FloatArray) -> str:
+    """
+    Say what a designed input signal is: a step train, a sine, or broadband.
+
+    Parameters
+    ----------
+    v : ndarray
+        The signal (an applied voltage, or the reference of a closed loop), not constant.
+
+    Returns
+    -------
+    str
+        ``'step'`` when it is piecewise constant with few jumps (at most 1 % of the samples),
+        ``'hysteresis'`` when one frequency holds more than 90 % of its variance, else
+        ``'frequency'``.
+
+    """
+    v = np.asarray(v, dtype=np.float64)
+    jumps = int(np.count_nonzero(np.diff(v)))
     if jumps <= max(1, len(v) // 100):
         return 'step'
     power = np.abs(np.fft.rfft(v - v.mean())) ** 2
@@ -361,8 +393,54 @@ def _discrete(p: ThirdOrderParams, sample_time_s: float) -> tuple[FloatArray, Fl
     return d.ad, d.bd[:, 0], d.c
 
 
+def _delayed(p: ThirdOrderParams, sample_time_s: float, delay_samples: float
+             ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, int]:
+    """
+    Return (Ad, B0, B1, C, n): the exact sampled plant behind a held input delayed d samples.
+
+    With d = n + f (n whole, 0 <= f < 1) the input held over sample k is u[k - n - 1] for the
+    first f T and u[k - n] for the rest, so x[k+1] = Ad x[k] + B0 u[k - n] + B1 u[k - n - 1],
+    B0 = int_0^((1-f)T) e^(As) ds B, B1 = e^(A(1-f)T) int_0^(fT) e^(As) ds B (the modified
+    z-transform). A fraction of a sample is thus modelled as what it is, not as e^(-j w f T),
+    which the resonance near the Nyquist frequency would alias.
+    """
+    from scipy.linalg import expm
+    plant = third_order_plant(p)
+    a = np.asarray(plant.a, dtype=np.float64)
+    b = np.asarray(plant.b, dtype=np.float64)[:, 0]
+    c = np.asarray(plant.c, dtype=np.float64).reshape(-1)
+    n = int(math.floor(delay_samples))
+    frac = float(delay_samples - n)
+    m = a.shape[0]
+    # distinct poles (the usual case): e^(At) and its integral from the eigenvalues, far
+    # cheaper than a matrix exponential per call inside the fits
+    lam, vec = np.linalg.eig(a)
+    well = np.linalg.cond(vec) < 1e8 and bool(np.all(np.abs(lam) > 0.0))
+    vb = np.linalg.solve(vec, b.astype(np.complex128)) if well else None
+    vinv = np.linalg.inv(vec) if well else None
+
+    def phi_gamma(t: float) -> tuple[FloatArray, FloatArray]:
+        if vb is not None and vinv is not None:
+            e = np.exp(lam * t)
+            phi = (vec * e[None, :]) @ vinv
+            gamma = vec @ (vb * (e - 1.0) / lam)
+            return np.asarray(phi.real, dtype=np.float64), np.asarray(gamma.real,
+                                                                      dtype=np.float64)
+        big = np.zeros((m + 1, m + 1))
+        big[:m, :m] = a * t
+        big[:m, m] = b * t
+        ex = expm(big)
+        return ex[:m, :m], ex[:m, m]
+
+    ad, _ = phi_gamma(sample_time_s)
+    p_rest, g_rest = phi_gamma((1.0 - frac) * sample_time_s)
+    _, g_head = phi_gamma(frac * sample_time_s)
+    return ad, g_rest, p_rest @ g_head, c, n
+
+
 def discrete_frequency_response(p: ThirdOrderParams, sample_time_s: float,
-                                frequency_hz: FloatArray) -> ComplexArray:
+                                frequency_hz: FloatArray, delay_samples: float = 0.0
+                                ) -> ComplexArray:
     """
     Return the response of the ZOH-discretized plant, C (zI - Ad)^-1 Bd at z = exp(j w T).
 
@@ -374,6 +452,8 @@ def discrete_frequency_response(p: ThirdOrderParams, sample_time_s: float,
         Sample and hold period T [s].
     frequency_hz : ndarray
         Frequencies [Hz], below the Nyquist frequency 1/(2T).
+    delay_samples : float
+        Loop delay beyond the hold [samples], whole or not (see :func:`_delayed`).
 
     Returns
     -------
@@ -382,20 +462,35 @@ def discrete_frequency_response(p: ThirdOrderParams, sample_time_s: float,
         comparable with an H1 estimate from recorded (command_v, position_m).
 
     """
-    ad, bd, c = _discrete(p, sample_time_s)
     z = np.exp(2j * math.pi * np.asarray(frequency_hz, dtype=np.float64) * sample_time_s)
+    if delay_samples == 0.0:
+        ad, bd, c = _discrete(p, sample_time_s)
+        mats = z[:, None, None] * np.eye(3)[None, :, :] - ad[None, :, :]
+        x = np.linalg.solve(mats, np.broadcast_to(bd.astype(np.complex128),
+                                                  (z.size, 3))[..., None])
+        return np.asarray(x[..., 0] @ c, dtype=np.complex128)
+    ad, b0, b1, c, n = _delayed(p, sample_time_s, delay_samples)
     mats = z[:, None, None] * np.eye(3)[None, :, :] - ad[None, :, :]
-    x = np.linalg.solve(mats, np.broadcast_to(bd.astype(np.complex128), (z.size, 3))[..., None])
-    return np.asarray(x[..., 0] @ c, dtype=np.complex128)
+    rhs = b0[None, :] + b1[None, :] / z[:, None]
+    x = np.linalg.solve(mats, rhs.astype(np.complex128)[..., None])
+    return np.asarray((x[..., 0] @ c) * z ** (-n), dtype=np.complex128)
 
 
 def _unit_filter(shape: LinearFactors, sample_time_s: float) -> tuple[FloatArray, FloatArray]:
     """Return (num, den) of the discretized plant with unit DC gain."""
     unit = LinearFactors(1.0, shape.omega_n_rad_s, shape.zeta, shape.tau_s)
-    ad, bd, c = _discrete(third_order_of(unit), sample_time_s)
-    num, den = signal.ss2tf(ad, bd[:, None], c[None, :], np.zeros((1, 1)))
-    num = np.asarray(num[0], dtype=np.float64)
-    den = np.asarray(den, dtype=np.float64)
+    if shape.delay_samples == 0.0:
+        ad, bd, c = _discrete(third_order_of(unit), sample_time_s)
+        num, den = signal.ss2tf(ad, bd[:, None], c[None, :], np.zeros((1, 1)))
+        num = np.asarray(num[0], dtype=np.float64)
+        den = np.asarray(den, dtype=np.float64)
+        return num / (num.sum() / den.sum()), den
+    ad, b0, b1, c, n = _delayed(third_order_of(unit), sample_time_s, shape.delay_samples)
+    n0, den = signal.ss2tf(ad, b0[:, None], c[None, :], np.zeros((1, 1)))
+    n1, _ = signal.ss2tf(ad, b1[:, None], c[None, :], np.zeros((1, 1)))
+    num = np.concatenate([np.zeros(n), np.asarray(n0[0], dtype=np.float64), [0.0]])
+    num[n + 1:] += np.asarray(n1[0], dtype=np.float64)
+    den = np.concatenate([np.asarray(den, dtype=np.float64), np.zeros(num.size - len(den))])
     return num / (num.sum() / den.sum()), den
 
 
@@ -650,27 +745,120 @@ def fit_frequency_response(data: FrequencyResponse, params: IdentificationParams
     weight = np.sqrt(coh / (1.0 - coh))
     t = data.sample_time_s
 
-    def residual(x: FloatArray) -> FloatArray:
-        model = discrete_frequency_response(third_order_of(_factors(x)), t, fu)
-        r = np.log(model / hu) * weight
-        return np.asarray(np.concatenate([r.real, r.imag]), dtype=np.float64)
+    zu = np.exp(2j * math.pi * fu * t)
 
-    starts = [initial] if initial is not None else _grid_starts(fu, hu, weight, t)
-    best: Any = None
-    for start in starts:
-        x0 = np.log([start.gain_m_per_v, start.omega_n_rad_s, start.zeta, start.tau_s])
-        sol = optimize.least_squares(residual, x0, x_scale=1.0, method='lm')
-        if best is None or sol.cost < best.cost:
-            best = sol
+    def residual_at(delay: float) -> Callable[[FloatArray], FloatArray]:
+        def residual(x: FloatArray) -> FloatArray:
+            d = delay if x.size == 4 else float(x[4])
+            try:
+                with np.errstate(over='ignore', invalid='ignore'):
+                    model = discrete_frequency_response(third_order_of(_factors(x[:4])), t, fu,
+                                                        d)
+            except (PiezoStageError, np.linalg.LinAlgError):
+                model = np.full(fu.size, np.nan + 0j)
+            if not np.all(np.isfinite(model)) or np.any(model == 0.0):
+                # a search that left the physical range (a wrong delay tried): a large, finite
+                # residual sends it back
+                return np.full(2 * fu.size, 1e6)
+            r = np.log(model / hu) * weight
+            return np.asarray(np.concatenate([r.real, r.imag]), dtype=np.float64)
+        return residual
+
+    def fit_at(delay: float) -> Any:
+        residual = residual_at(delay)
+        # the grid searches the data with the delay's whole samples taken out
+        starts = [initial] if initial is not None else _grid_starts(
+            fu, hu * zu ** round(delay), weight, t)
+        best: Any = None
+        for start in starts:
+            x0 = np.log([start.gain_m_per_v, start.omega_n_rad_s, start.zeta, start.tau_s])
+            sol = optimize.least_squares(residual, x0, x_scale=1.0, method='lm')
+            if best is None or sol.cost < best.cost:
+                best = sol
+        return best
+
+    best, delay = choose_delay(fit_at, residual_at(0.0))
     cov = _covariance(best.jac, best.fun)
-    fac = _factors(best.x)
-    rel = np.sqrt(np.maximum(np.diag(cov), 0.0))  # log-space std = relative std
+    fac = _factors(best.x[:4])
+    shift = np.zeros(best.x.size)
+    if best.x.size > 4:
+        shift[:4] = whole_delay_shift(fit_at, best, delay)[:4]
+    # log-space std = relative std
+    rel = np.sqrt(np.maximum(np.diag(cov), 0.0) + shift ** 2)
+    fac = LinearFactors(fac.gain_m_per_v, fac.omega_n_rad_s, fac.zeta, fac.tau_s, delay)
     std = LinearFactors(fac.gain_m_per_v * rel[0], fac.omega_n_rad_s * rel[1],
-                        fac.zeta * rel[2], fac.tau_s * rel[3])
-    model = discrete_frequency_response(third_order_of(fac), t, f)
+                        fac.zeta * rel[2], fac.tau_s * rel[3],
+                        float(rel[4]) if rel.size > 4 else 0.0)
+    model = discrete_frequency_response(third_order_of(fac), t, f, delay)
     err = np.log(model[used] / hu)
     return FrequencyFit(factors=fac, std=std, data=data, used=used, model=model,
                         rms_log_error=float(np.sqrt(np.mean(np.abs(err) ** 2))))
+
+
+#: Whole samples of loop delay tried beyond the sample-and-hold.
+DELAYS_TRIED = (0.0, 1.0, 2.0)
+
+
+def choose_delay(fit_at: Callable[[float], Any], free_residual: Callable[[FloatArray], FloatArray]
+                 ) -> tuple[Any, float]:
+    """
+    Return the fit and the loop delay [samples]: the best whole delay, or a fraction if shown.
+
+    Parameters
+    ----------
+    fit_at : callable
+        ``fit_at(delay)`` fits with the delay fixed and returns a ``least_squares`` result
+        whose ``x`` does not hold the delay.
+    free_residual : callable
+        The residual of ``x`` with the delay appended as its last element.
+
+    Returns
+    -------
+    solution, delay
+        The solution (its ``x`` holds the delay last when the delay was fitted free) and the
+        delay.
+
+    Notes
+    -----
+    A delay of whole samples (a DAQ pipeline, a filter of the sensor module) is the common
+    case: each of :data:`DELAYS_TRIED` is fitted and the best kept. The delay is then freed
+    (0 to 4 samples) and a fraction kept only when its 95 % interval leaves out the whole
+    delay, so a run without a delay keeps exactly the fit it had.
+
+    """
+    best: Any = None
+    delay = 0.0
+    for d in DELAYS_TRIED:
+        sol = fit_at(d)
+        if best is None or sol.cost < best.cost:
+            best, delay = sol, d
+    x0 = np.append(best.x, delay)
+    lower = np.full(x0.size, -np.inf)
+    upper = np.full(x0.size, np.inf)
+    lower[-1], upper[-1] = 0.0, 4.0
+    free = optimize.least_squares(free_residual, x0, bounds=(lower, upper), method='trf',
+                                  x_scale='jac')
+    cov = _covariance(free.jac, free.fun)
+    sd = math.sqrt(max(float(cov[-1, -1]), 0.0))
+    if free.cost < best.cost and abs(float(free.x[-1]) - delay) > 1.959964 * sd:
+        return free, float(free.x[-1])
+    return best, delay
+
+
+def whole_delay_shift(fit_at: Callable[[float], Any], solution: Any, delay: float
+                      ) -> FloatArray:
+    """
+    Return how far the parameters move when a fractional delay is replaced by the nearest whole.
+
+    A fraction kept by :func:`choose_delay` may stand for something else with a phase that
+    grows with frequency (the hysteresis, a filter); the move of the other parameters between
+    the two delay models is a model-structure term of their bounds. Zeros for a whole delay.
+    """
+    n = solution.x.size - 1
+    if delay == round(delay):
+        return np.zeros(n)
+    whole = fit_at(float(round(delay)))
+    return np.asarray(np.abs(whole.x[:n] - solution.x[:n]), dtype=np.float64)
 
 
 # --------------------------------------------------------------------------------------------
@@ -784,8 +972,9 @@ def fit_step_response(records: Sequence[RunRecord], chain: SignalChainParams,
     def unpack(x: FloatArray) -> LinearFactors:
         if fix:
             return LinearFactors(1.0, initial.omega_n_rad_s, float(np.exp(x[0])),
-                                 float(np.exp(x[1])))
-        return LinearFactors(1.0, *(float(v) for v in np.exp(x)))
+                                 float(np.exp(x[1])), initial.delay_samples)
+        w, z, tau = (float(v) for v in np.exp(x))
+        return LinearFactors(1.0, w, z, tau, initial.delay_samples)
 
     def solve(x: FloatArray) -> tuple[FloatArray, list[FloatArray], list[FloatArray]]:
         fac = unpack(x)
@@ -818,7 +1007,8 @@ def fit_step_response(records: Sequence[RunRecord], chain: SignalChainParams,
     else:
         std = LinearFactors(0.0, fac.omega_n_rad_s * rel[0], fac.zeta * rel[1],
                             fac.tau_s * rel[2])
-    return StepFit(factors=LinearFactors(gain, fac.omega_n_rad_s, fac.zeta, fac.tau_s),
+    return StepFit(factors=LinearFactors(gain, fac.omega_n_rad_s, fac.zeta, fac.tau_s,
+                                         fac.delay_samples),
                    std=std, records=[p[0] for p in prepared], models=models,
                    masks=[p[4] for p in prepared],
                    residual_rms_m=float(np.sqrt(np.mean(res ** 2))), jumps_v=jv, jumps_m=jm)
@@ -883,7 +1073,8 @@ def _run_model(step: Callable[[Any, float], tuple[Any, Any]], state: Any,
 
 def fit_hysteresis(records: Sequence[RunRecord], chain: SignalChainParams,
                    params: IdentificationParams, shape: LinearFactors,
-                   base: HysteresisParams | None = None) -> HysteresisFit:
+                   base: HysteresisParams | None = None, *,
+                   start: Mapping[str, float] | None = None) -> HysteresisFit:
     """
     Fit the hysteresis model and the static gain to sine runs, the linear shape fixed.
 
@@ -899,6 +1090,8 @@ def fit_hysteresis(records: Sequence[RunRecord], chain: SignalChainParams,
         w_n, zeta, tau of the linear part (its gain is not used).
     base : HysteresisParams, optional
         Groups not fitted are copied from it; Prandtl-Ishlinskii thresholds come from it.
+    start : Mapping, optional
+        Start of the search by name (``estimates`` of an earlier fit); default a generic one.
 
     Returns
     -------
@@ -921,8 +1114,11 @@ def fit_hysteresis(records: Sequence[RunRecord], chain: SignalChainParams,
     runs = []
     for rec in records:
         t = sample_time_of(rec)
-        # one pass of the exact hysteresis stepping per evaluation: bound its length
-        rec = _head(rec, max(int(round(params.hysteresis_max_s / t)), 16))
+        # one pass of the exact hysteresis stepping per evaluation: bound its length, but
+        # keep two cycles of the input's main line: the first from rest leaves the initial
+        # state, the sensor offset and the curvature of the loop partly confounded
+        rec = _head(rec, max(int(round(params.hysteresis_max_s / t)), 16,
+                             _two_cycles(applied_voltage(rec, chain))))
         num, den = _unit_filter(shape, t)
         v = applied_voltage(rec, chain)
         y = np.asarray(rec.position_m, dtype=np.float64)
@@ -955,12 +1151,15 @@ def fit_hysteresis(records: Sequence[RunRecord], chain: SignalChainParams,
             _, h0 = h.rest_state(float(v[0]))
             return _run_model(h.step, (float(v[0]), float(x[3]) * h.bound + h0), v)
 
-    def solve(x: FloatArray) -> tuple[FloatArray, list[FloatArray], list[FloatArray]]:
+    def solve(x: FloatArray, offset: bool = True
+              ) -> tuple[FloatArray, list[FloatArray], list[FloatArray]]:
         res, models, coefs = [], [], []
         for _, num, den, v, y, free in runs:
             w = normalized(x, v)
-            # F[w] from rest at 0, plus the free response of the unknown level before the run
-            cols = np.vstack([signal.lfilter(num, den, w), free])
+            # F[w] from rest at 0, the free response of the unknown level before the run, and
+            # a constant: the sensor's zero need not be the stage's rest at 0 V
+            cols = np.vstack([signal.lfilter(num, den, w), free,
+                              np.ones(v.size) if offset else np.zeros(v.size)])
             coef, *_ = np.linalg.lstsq(cols.T, y, rcond=None)
             model_y = coef @ cols
             res.append(y - model_y)
@@ -968,30 +1167,56 @@ def fit_hysteresis(records: Sequence[RunRecord], chain: SignalChainParams,
             coefs.append(coef)
         return np.concatenate(res), models, coefs
 
-    sol = optimize.least_squares(lambda x: solve(x)[0] * _NM, x0, bounds=(lower, upper),
-                                 x_scale='jac', method='trf')
-    res, models, coefs = solve(sol.x)
+    if start is not None:
+        x0 = np.clip(np.array([float(start.get(n, v)) for n, v in zip(names, x0)]), lower,
+                     upper)
+    nx = x0.size
+    # The offset is tested, not assumed: a sine around a level gives the static gain from the
+    # level (the volts and the metres at rest) unless an offset is free, when the gain must
+    # come from the swing, which the curvature of the loop shares; so it is kept only where
+    # the data show it (likelihood ratio at 95 %: the drop of the residual sum of squares
+    # over the noise variance above chi^2(1) = 3.84).
+    sol = optimize.least_squares(lambda x: solve(x, False)[0] * _NM, x0,
+                                 bounds=(lower, upper), x_scale='jac', method='trf')
+    sol_off = optimize.least_squares(lambda x: solve(x)[0] * _NM, sol.x,
+                                     bounds=(lower, upper), x_scale='jac', method='trf')
+    rss0, rss1 = 2.0 * float(sol.cost), 2.0 * float(sol_off.cost)
+    dof = max(int(sol_off.fun.size) - nx - 3 * len(runs), 1)
+    with_offset = rss1 > 0.0 and (rss0 - rss1) / (rss1 / dof) > 3.84
+    if with_offset:
+        sol = sol_off
+    res, models, coefs = solve(sol.x, with_offset)
     # Covariance of every parameter, the linear ones included: Jacobian of the full residual.
     g0s = [float(c[0]) for c in coefs]
     g0 = float(np.mean(g0s))
-    full_x = np.concatenate([sol.x, [g0]])
+    offsets = np.array([float(c[2]) for c in coefs])
 
     def full(xf: FloatArray) -> FloatArray:
         out = []
-        for (_, num, den, v, y, free), coef in zip(runs, coefs):
-            w = normalized(xf[:-1], v)
-            model_y = xf[-1] * signal.lfilter(num, den, w) + coef[1] * free
+        for i, ((_, num, den, v, y, free), coef) in enumerate(zip(runs, coefs)):
+            w = normalized(xf[:nx], v)
+            model_y = xf[nx] * signal.lfilter(num, den, w) + coef[1] * free
+            if xf.size > nx + 1:
+                model_y = model_y + xf[nx + 1 + i]
             out.append(y - model_y)
         return np.concatenate(out)
 
-    jac = _numeric_jacobian(full, full_x, np.concatenate([np.maximum(np.abs(sol.x), 1e-3) * 1e-6,
-                                                          [abs(g0) * 1e-6]]))
-    cov = _covariance(jac, full(full_x))
+    steps = np.concatenate([np.maximum(np.abs(sol.x), 1e-3) * 1e-6, [abs(g0) * 1e-6]])
+    x_full = np.concatenate([sol.x, [g0]])
+    # the offset's standard deviation always (how large an offset could hide when not kept)
+    x_off = np.concatenate([x_full, offsets])
+    cov_off = _covariance(_numeric_jacobian(full, x_off, np.concatenate([
+        steps, np.full(offsets.size, 1e-9)])), full(x_off))
+    cov = cov_off if with_offset else _covariance(_numeric_jacobian(full, x_full, steps),
+                                                  full(x_full))
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     est = {n: float(v) for n, v in zip(names, sol.x)}
-    std = {n: float(s) for n, s in zip(names, sd[:-1])}
+    std = {n: float(s) for n, s in zip(names, sd[:nx])}
     est['static_gain_m_per_v'] = g0
-    std['static_gain_m_per_v'] = float(sd[-1])
+    std['static_gain_m_per_v'] = float(sd[nx])
+    # the sensor offset of the first run (0 when the data do not show one)
+    est['sensor_offset_m'] = float(offsets[0])
+    std['sensor_offset_m'] = float(np.sqrt(max(float(cov_off[nx + 1, nx + 1]), 0.0)))
     if model == 'backlash_like':
         group = BacklashLikeParams(alpha=est['alpha'], c=slope, b1=est['b1_over_c'] * slope)
         hyst = base.replace(model=model, backlash_like=group)
@@ -1003,6 +1228,16 @@ def fit_hysteresis(records: Sequence[RunRecord], chain: SignalChainParams,
                          linear_gain_m_per_v=g0 / slope, estimates=est, std=std,
                          records=[r[0] for r in runs], voltages=[r[3] for r in runs],
                          models=models, residual_rms_m=float(np.sqrt(np.mean(res ** 2))))
+
+
+def _two_cycles(v: FloatArray) -> int:
+    """Return the samples of two cycles of the strongest line of ``v`` (0 for none)."""
+    power = np.abs(np.fft.rfft(v - float(np.mean(v)))) ** 2
+    if power.size < 2:
+        return 0
+    power[0] = 0.0
+    k = int(np.argmax(power))
+    return int(math.ceil(2.0 * v.size / k)) if k > 0 else 0
 
 
 def _numeric_jacobian(fun: Callable[[FloatArray], FloatArray], x: FloatArray,
@@ -1031,7 +1266,10 @@ def _fit_pi(runs: list[Any], slope: float, base: HysteresisParams) -> Hysteresis
             plays[:, k] = state[1]
         inputs = np.vstack([v[None, :], plays])
         filt = signal.lfilter(num, den, inputs, axis=-1)
-        # the free response column (unknown level before the run) may take either sign
+        # the free response column (unknown level before the run) may take either sign; no
+        # sensor offset here: a play whose threshold the run never reaches holds its initial
+        # output, a constant column, so an offset would be confounded with its weight (and
+        # the static gain, their sum, left undetermined)
         extra = np.zeros((2 * len(runs), v.size))
         extra[2 * idx] = free
         extra[2 * idx + 1] = -free
@@ -1221,10 +1459,15 @@ def identify(records: Sequence[RunRecord], base: StageParams | None = None,
             notes.append('no sine run: hysteresis kept from the base configuration, static '
                          'gain from the step heights')
         gain = static / slope
-    factors = LinearFactors(gain, shape.omega_n_rad_s, shape.zeta, shape.tau_s)
+    factors = LinearFactors(gain, shape.omega_n_rad_s, shape.zeta, shape.tau_s,
+                            shape.delay_samples)
+    if shape.delay_samples != 0.0:
+        notes.append(f'loop delay: {shape.delay_samples:.3g} samples between a command and the '
+                     'sample it is held over, beyond the sample-and-hold (fitted with the '
+                     'model; a signal-chain delay, not part of the stage)')
     third = third_order_of(factors)
     plant = base.plant.replace(model='third_order', third_order=third, reduced=third.reduced())
-    noise = _noise_estimate(step_fit, chain)
+    noise = _noise_estimate(step_fit, chain, notes)
     stage = base.replace(plant=plant, hysteresis=hyst,
                          chain=chain if noise is None else chain.replace(
                              sensor_noise_std_m=noise))
@@ -1244,9 +1487,37 @@ def _slope(h: HysteresisParams) -> float:
     return 1.0
 
 
-def _noise_estimate(step_fit: StepFit | None, chain: SignalChainParams) -> float | None:
-    """Return the sensor noise [m rms] the step residual shows, quantization removed."""
+#: Largest lag-1 correlation of a fit's residual still taken as sensor noise: white noise
+#: has none, a model error (a wrong delay, a missing mode) is smooth and near 1.
+WHITE_LAG1_MAX = 0.5
+
+
+def residual_whiteness(residual: FloatArray) -> float:
+    """Return the lag-1 correlation coefficient of a residual (0 for white noise)."""
+    r = np.asarray(residual, dtype=np.float64) - float(np.mean(residual))
+    den = float(r @ r)
+    return float(r[1:] @ r[:-1]) / den if den > 0.0 else 0.0
+
+
+def _noise_estimate(step_fit: StepFit | None, chain: SignalChainParams,
+                    notes: list[str] | None = None) -> float | None:
+    """
+    Return the sensor noise [m rms] the step residual shows, quantization removed.
+
+    None when there is no step fit, or when its residual is not white: then it is model error,
+    not the sensor's noise, and is reported in ``notes`` instead of being stored.
+    """
     if step_fit is None:
+        return None
+    res = np.concatenate([(np.asarray(r.position_m, dtype=np.float64) - m)[k]
+                          for r, m, k in zip(step_fit.records, step_fit.models,
+                                             step_fit.masks)])
+    lag1 = residual_whiteness(res)
+    if lag1 > WHITE_LAG1_MAX:
+        if notes is not None:
+            notes.append(f'the step fit leaves {step_fit.residual_rms_m * 1e9:.3g} nm rms that '
+                         f'is not white (lag-1 correlation {lag1:.2f}): model error, not the '
+                         'sensor noise; the configured sensor noise is kept')
         return None
     lsb = chain.adc_lsb_m if chain.quantize else 0.0
     var = step_fit.residual_rms_m ** 2 - lsb * lsb / 12.0

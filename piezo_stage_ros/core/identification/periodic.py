@@ -165,9 +165,12 @@ class PeriodicSpectra:
             through G, over |mean U|^2; zeros when every line is excited.
 
         """
-        g = self.y / self.u
-        rel_var = (self.var_y / np.abs(self.y) ** 2 + self.var_u / np.abs(self.u) ** 2
-                   - 2.0 * np.real(self.cov_yu / (self.y * np.conj(self.u))))
+        # a line the excitation leaves out may hold exactly nothing (a pure sine's reference):
+        # its ratio is not a number, and is never used as an excited line
+        with np.errstate(divide='ignore', invalid='ignore'):
+            g = self.y / self.u
+            rel_var = (self.var_y / np.abs(self.y) ** 2 + self.var_u / np.abs(self.u) ** 2
+                       - 2.0 * np.real(self.cov_yu / (self.y * np.conj(self.u))))
         var_noise = np.abs(g) ** 2 * np.maximum(rel_var, 0.0)
         quiet = ~excited_lines(self.r)
         if int(quiet.sum()) < 2:

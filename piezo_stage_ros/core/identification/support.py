@@ -17,11 +17,14 @@ What recorded data can support, closed-loop identification on purpose, and refus
 
 :func:`identify_checked` wraps :func:`piezo_stage_ros.core.identification.fit.identify`:
 
-1. **Loop.** Each run is open loop when its command is a fixed function of its reference (the
-   ``open_loop`` controller: v = g x_d + offset) or when the command's innovations do not
-   follow the position's (:func:`loop_kind`); otherwise closed loop: the sensor noise enters
-   the command through the controller, and the H1 estimate S_uy / S_uu is biased toward -1/C
-   wherever that noise dominates.
+1. **Loop and role.** Each run's role comes from what it holds (:func:`content_role`): the
+   reference when it changes (a closed loop's command is not a designed input), else the
+   command; a step train, a sine (hysteresis), or broadband / a periodic multisine
+   (frequency), whatever the order of the runs. The loop verdict (:func:`loop_kind`: open
+   when the command is a fixed function of the reference or its innovations do not follow
+   the position's) is reported, never needed: in closed loop the sensor noise enters the
+   command and the H1 estimate S_uy / S_uu is biased toward -1/C, so whenever the reference
+   repeats the estimate averaged over whole periods is used, open loop or closed.
 2. **Excitation per line** (:func:`analyse_run`). The excitation is the reference (closed
    loop), or the reference / command (open loop). When it repeats over at least two whole
    periods, the DFT of every period gives the lines the excitation drives and, from the scatter
@@ -36,35 +39,45 @@ What recorded data can support, closed-loop identification on purpose, and refus
    cycle; a saturated run supports nothing; ``closed_loop=True`` on an open-loop run is
    refused. A refused parameter gives one line naming it and the reason
    (:class:`RefusedError`); nothing is fitted.
-4. **Closed loop** (:func:`fit_periodic_response`). The frequency response from the applied
-   input to the position averaged over whole periods of the periodic reference, with a
-   variance per line (noise from the scatter over periods, nonlinear distortion from the lines
-   the excitation leaves out), fitted by weighted least squares with a frequency-independent
-   complex factor for the hysteresis (its describing function: a gain and a phase lag that do
-   not depend on frequency, which a linear model would otherwise absorb into tau). The
-   hysteresis is fitted in the time domain on the applied input, which stays consistent in
-   closed loop (the position noise at sample k is independent of the inputs before k).
+4. **Periodic reference: the instrument** (:func:`fit_periodic_response`). The frequency
+   response from the applied input to the position averaged over whole periods of the
+   periodic reference (indirect in spirit: only what repeats with the reference is kept, so
+   the feedback's share of the input does not matter), with a variance per line, fitted by
+   weighted least squares with a frequency-independent complex factor for the hysteresis
+   (its describing function) and the loop's delay (whole samples tried, a fraction kept when
+   shown). The hysteresis is fitted in the time domain on the applied input, which stays
+   consistent in closed loop (the position noise at sample k is independent of the inputs
+   before k), with a sensor offset where the data show one.
 5. **Bounds.** Every parameter gets 95 % bounds, +-1.96 sigma from the Jacobian of its fit
    (the frequency fit's covariance scaled up by chi^2/dof when the residuals exceed the
-   variance per line, plus a model-structure term: the largest move of each parameter under
-   two other describing functions of the hysteresis).
+   variance per line), plus model-structure terms: the largest move of each parameter under
+   two other describing functions of the hysteresis; the bias the hysteresis leaves in the
+   linear fit at the run's own amplitude, found by replaying the identified model on the
+   applied input (taken off, half kept in the bound); the tau the hysteresis fit holds fixed;
+   and for the hysteresis, the spread of refits on its own answer with fresh noise where it
+   exceeds the Jacobian's.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import math
 from typing import Any, Sequence
 
 import numpy as np
+from piezo_stage_ros.core.contracts.errors import PiezoStageError
 from piezo_stage_ros.core.contracts.params import param, Params
-from piezo_stage_ros.core.contracts.types import BoolArray, FloatArray
+from piezo_stage_ros.core.contracts.types import BoolArray, ComplexArray, FloatArray
 from piezo_stage_ros.core.identification.fit import (
+    _unit_filter,
     applied_voltage,
+    choose_delay,
     classify_run,
+    classify_signal,
     discrete_frequency_response,
     factors_of,
     fit_hysteresis,
+    fit_step_response,
     FrequencyFit,
     FrequencyResponse,
     IdentificationError,
@@ -75,6 +88,7 @@ from piezo_stage_ros.core.identification.fit import (
     ROLES,
     sample_time_of,
     third_order_of,
+    whole_delay_shift,
 )
 from piezo_stage_ros.core.identification.periodic import (
     detect_period,
@@ -83,12 +97,13 @@ from piezo_stage_ros.core.identification.periodic import (
     PeriodicSpectra,
 )
 from piezo_stage_ros.core.loop.record import RunRecord
+from piezo_stage_ros.core.model.hysteresis import make_hysteresis
 from piezo_stage_ros.core.model.stage import SignalChainParams, StageParams
 from scipy import optimize, signal
 
 __all__ = ['CheckedIdentification', 'LineAnalysis', 'RefusedError', 'RunSupport', 'SupportParams',
-           'analyse_run', 'fit_periodic_response', 'identify_checked', 'loop_kind',
-           'refusals']
+           'analyse_run', 'content_role', 'fit_periodic_response', 'identify_checked',
+           'loop_kind', 'refusals']
 
 #: 95 % two-sided normal quantile: the bounds are +- this many standard deviations.
 Z95 = 1.959964
@@ -181,7 +196,11 @@ def loop_kind(record: RunRecord, chain: SignalChainParams, *, order: int = 8,
     at lag 0 to 2; in open loop the command does not see the sensor noise.
 
     """
-    u = applied_voltage(record, chain)
+    # the controller's own output, clipped but not through the DAC: an integral action moves
+    # the command by far less than one DAC step per sample of sensor noise, so the applied
+    # (quantized) voltage would hide the feedback
+    u = np.clip(np.asarray(record.command_v, dtype=np.float64), chain.amplifier_min_v,
+                chain.amplifier_max_v)
     su = float(np.std(u))
     if not su > 0.0:
         return 'open', 'the command never changes'
@@ -211,6 +230,45 @@ def loop_kind(record: RunRecord, chain: SignalChainParams, *, order: int = 8,
         return 'closed', (f'the command follows the position noise (innovation correlation '
                           f'{best:.2f})')
     return 'open', f'the command does not follow the position noise (correlation {best:.2f})'
+
+
+def content_role(record: RunRecord, chain: SignalChainParams) -> str:
+    """
+    Say what a run can be used for from what its excitation holds.
+
+    Parameters
+    ----------
+    record : RunRecord
+        The run; ``meta['identification_role']``, when present, decides.
+    chain : SignalChainParams
+        Signal chain giving the applied voltage.
+
+    Returns
+    -------
+    str
+        One of :data:`~piezo_stage_ros.core.identification.fit.ROLES`. The excitation is the
+        reference when it changes (in closed loop the command is not a designed input), else
+        the applied command. A step train is ``'step'``; a periodic excitation with 8 or more
+        lines is ``'frequency'`` even when a slow sine holds most of its power (a multisine on
+        a sine serves both); otherwise one dominant frequency is ``'hysteresis'``, and
+        broadband is ``'frequency'``.
+
+    """
+    role = record.meta.get('identification_role')
+    if isinstance(role, str) and role in ROLES:
+        return role
+    r = np.asarray(record.reference_m, dtype=np.float64)
+    if not float(np.ptp(r)) > 0.0:
+        return classify_run(record, chain)
+    kind = classify_signal(r)
+    if kind == 'step':
+        return kind
+    period = detect_period(r)
+    if period is not None:
+        lines = np.abs(np.fft.rfft(r[:period] - float(np.mean(r[:period]))))[1:]
+        if int(np.count_nonzero(excited_lines(lines))) >= 8:
+            return 'frequency'
+    return kind
 
 
 @dataclass(frozen=True)
@@ -337,7 +395,9 @@ def analyse_run(record: RunRecord, chain: SignalChainParams, role: str,
         if period is not None and len(u) // period >= 2:
             spec = periodic_spectra(u, y, excitation, period, t)
             exc = excited_lines(spec.r)
-            snr_u = spec.snr_u if closed else np.full(exc.size, np.inf)
+            # measured in open loop too: a loop whose feedback the verdict missed still
+            # scatters the input over the periods
+            snr_u = spec.snr_u
             lines = LineAnalysis(spec.frequency_hz, exc, snr_u, spec.snr_y, 'periodic',
                                  period, spec.periods, spec)
         elif closed:
@@ -395,8 +455,12 @@ def _region(run: RunSupport, params: IdentificationParams, support: SupportParam
     what = (f'the {run.role} run {run.name!r} excites {_describe(f)} above the noise '
             f'(signal-to-noise >= {support.snr_min:g})')
     if need_high <= need_low:
-        return f'{what}; needs {count} or more below {_hz(need_low)}'
-    return f'{what}; needs {count} or more from {_hz(need_low)} to {_hz(need_high)}'
+        return (f'{what}; needs {count} or more below {_hz(need_low)} (fix: a run with a '
+                f'periodic multisine on the reference from {_hz(params.band_low_hz)} to '
+                f'{_hz(need_low)} or beyond, repeated over two or more whole periods)')
+    return (f'{what}; needs {count} or more from {_hz(need_low)} to {_hz(need_high)} (fix: a '
+            'run with a periodic multisine on the reference over that band, repeated over two '
+            'or more whole periods, loud enough to stand above the noise there)')
 
 
 def refusals(runs: Sequence[RunSupport], base: StageParams, params: IdentificationParams,
@@ -437,9 +501,11 @@ def refusals(runs: Sequence[RunSupport], base: StageParams, params: Identificati
     }
     for run in runs:
         names = ', '.join(uses[run.role])
-        if closed_loop and run.loop == 'open' and run.role == 'frequency':
-            out.append(f'closed loop: run {run.name!r} is open loop ({run.loop_reason}); drop '
-                       '--closed-loop, or record it under feedback')
+        if closed_loop and run.loop == 'open' and run.role == 'frequency' and \
+                run.lines.method != 'periodic':
+            out.append(f'closed loop: run {run.name!r} is open loop ({run.loop_reason}) and '
+                       'its excitation does not repeat over two whole periods; drop '
+                       '--closed-loop, or record it under feedback with a periodic reference')
             continue
         if run.saturated_fraction > support.saturation_max:
             out.append(f'{names}: run {run.name!r} ({run.role}) is saturated: '
@@ -448,8 +514,8 @@ def refusals(runs: Sequence[RunSupport], base: StageParams, params: Identificati
             continue
         if run.role == 'frequency':
             out += _frequency_refusals(run, uses['frequency'], params, support, fn, fc)
-        if run.role == 'hysteresis' or (run.role == 'frequency' and run.loop == 'closed'
-                                        and not has['hysteresis']):
+        if run.role == 'hysteresis' or (run.role == 'frequency' and run.lines.method ==
+                                        'periodic' and not has['hysteresis']):
             # a closed-loop run without a sine run gives the hysteresis too
             bl = base.hysteresis.backlash_like
             need = support.alpha_range_fraction / bl.alpha if params.hysteresis_model == \
@@ -458,7 +524,9 @@ def refusals(runs: Sequence[RunSupport], base: StageParams, params: Identificati
                 out.append(f'alpha: the {run.role} run {run.name!r} spans '
                            f'{run.input_range_v:.3g} V of input; the curvature of the loop '
                            f'needs about {need:.3g} V or more (1/alpha = '
-                           f'{1.0 / bl.alpha:.3g} V for the configured stage)')
+                           f'{1.0 / bl.alpha:.3g} V for the configured stage; fix: a slow '
+                           f'sine run spanning {need:.3g} V or more of input, two whole '
+                           'cycles)')
     return out
 
 
@@ -552,9 +620,25 @@ class PeriodicFit:
     feedback_bias: float
 
 
+def _model_or_none(x: FloatArray, t: float, fu: FloatArray, delay: float
+                   ) -> ComplexArray | None:
+    """Return the model response of log-parameters ``x[:4]``, None outside the physical range."""
+    with np.errstate(over='ignore', invalid='ignore'):
+        values = np.exp(np.asarray(x[:4], dtype=np.float64))
+    if not np.all(np.isfinite(values)) or not np.all(values > 0.0):
+        return None
+    try:
+        model = discrete_frequency_response(third_order_of(LinearFactors(
+            *(float(v) for v in values))), t, fu, delay)
+    except (PiezoStageError, np.linalg.LinAlgError):
+        return None
+    return model if bool(np.all(np.isfinite(model))) and bool(np.all(model != 0.0)) else None
+
+
 def fit_periodic_response(spectra: PeriodicSpectra, params: IdentificationParams,
                           initial: LinearFactors, *, u: FloatArray | None = None,
-                          y: FloatArray | None = None) -> PeriodicFit:
+                          y: FloatArray | None = None,
+                          delay_samples: float | None = None) -> PeriodicFit:
     """
     Fit k_p, w_n, zeta, tau and a constant phase to the averaged frequency response.
 
@@ -568,6 +652,10 @@ def fit_periodic_response(spectra: PeriodicSpectra, params: IdentificationParams
         Start of the search (the configured model).
     u, y : ndarray, optional
         The applied input and position of the run, to compare with the H1 estimate.
+    delay_samples : float, optional
+        Loop delay beyond the hold [samples], kept fixed; default: the best whole delay of
+        :data:`~piezo_stage_ros.core.identification.fit.DELAYS_TRIED`, or a fraction when the
+        data show one (:func:`~piezo_stage_ros.core.identification.fit.choose_delay`).
 
     Returns
     -------
@@ -589,24 +677,46 @@ def fit_periodic_response(spectra: PeriodicSpectra, params: IdentificationParams
         raise IdentificationError(f'closed-loop frequency response: {int(used.sum())} excited '
                                   'lines in the band, need 8')
     var = var_n + var_d
-    sig = np.sqrt(np.maximum(var, 1e-300)) / np.abs(g)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        sig = np.sqrt(np.maximum(var, 1e-300)) / np.abs(g)
     fu, gu, su = f[used], g[used], np.maximum(sig[used], 1e-6)
 
-    # the lowest used line scales the relaxation term: x[5] is its phase lag there [rad]
+    # the lowest used line scales the relaxation term: x[6] is its phase lag there [rad]
     lag = 1.0 / (1j * fu / fu[0])
 
-    def residual(x: FloatArray) -> FloatArray:
-        fac = LinearFactors(*(float(v) for v in np.exp(x[:4])))
-        model = discrete_frequency_response(third_order_of(fac), t, fu) * np.exp(-1j * x[4])
-        if x.size > 5:
-            model = model * (1.0 + x[5] * lag)
-        r = np.log(model / gu) / su
-        return np.asarray(np.concatenate([r.real, r.imag]), dtype=np.float64)
+    def residual_at(delay: float | None, relax: bool = False) -> Any:
+        # x: log k_p, log w_n, log zeta, log tau, phase, [delay when free], [relaxation]
+        def residual(x: FloatArray) -> FloatArray:
+            d = float(x[5]) if delay is None else delay
+            model = _model_or_none(x, t, fu, d)
+            if model is None:
+                # a search that left the physical range (a wrong delay tried): a large, finite
+                # residual sends it back
+                return np.full(2 * fu.size, 1e6)
+            model = model * np.exp(-1j * x[4])
+            if relax:
+                model = model * (1.0 + x[-1] * lag)
+            r = np.log(model / gu) / su
+            return np.asarray(np.concatenate([r.real, r.imag]), dtype=np.float64)
+        return residual
 
-    x0 = np.append(np.log([initial.gain_m_per_v, initial.omega_n_rad_s, initial.zeta,
-                           initial.tau_s]), 0.0)
-    sol = optimize.least_squares(residual, x0, method='lm')
-    dof = max(sol.fun.size - x0.size, 1)
+    start = np.log([initial.gain_m_per_v, initial.omega_n_rad_s, initial.zeta,
+                    initial.tau_s])
+
+    def fit_at(delay: float) -> Any:
+        # from the configured model (the delay is in the model's phase)
+        return optimize.least_squares(residual_at(delay), np.append(start, 0.0), method='lm')
+
+    if delay_samples is None:
+        sol, delay = choose_delay(fit_at, residual_at(None))
+    else:
+        sol, delay = fit_at(delay_samples), delay_samples
+    free = sol.x.size == 6
+
+    def residual(x: FloatArray) -> FloatArray:
+        return np.asarray(residual_at(None if free else delay)(x), dtype=np.float64)
+
+    dof = max(sol.fun.size - sol.x.size, 1)
     chi2 = float(sol.fun @ sol.fun) / dof
     jac = np.asarray(sol.jac, dtype=np.float64)
     cov = np.linalg.pinv(jac.T @ jac) * max(chi2, 1.0)
@@ -615,16 +725,34 @@ def fit_periodic_response(spectra: PeriodicSpectra, params: IdentificationParams
     # phase with the relaxation of the linearised dynamic backlash around the slow motion,
     # (B s + kappa c) / (s + kappa) ~ B (1 + kappa (c / B - 1) / s) on lines far above kappa
     # (a lag falling as 1 / f that the constant phase alone leaves to zeta and tau)
-    alt = optimize.least_squares(lambda x: residual(np.append(x, 0.0)), sol.x[:4], method='lm')
-    relax = optimize.least_squares(residual, np.append(sol.x, 0.0), method='lm')
-    structure = np.append(np.maximum(np.abs(alt.x - sol.x[:4]),
-                                     np.abs(relax.x[:4] - sol.x[:4])), 0.0)
+    fixed_phase = sol.x.copy()
+
+    def no_phase(x: FloatArray) -> FloatArray:
+        xf = fixed_phase.copy()
+        xf[:4] = x[:4]
+        xf[4] = 0.0
+        if free:
+            xf[5] = x[4]
+        return residual(xf)
+
+    alt_x0 = np.append(sol.x[:4], sol.x[5:6]) if free else sol.x[:4]
+    alt = optimize.least_squares(no_phase, alt_x0, method='lm')
+    relax = optimize.least_squares(residual_at(None if free else delay, relax=True),
+                                   np.append(sol.x, 0.0), method='lm')
+    structure = np.zeros(sol.x.size)
+    structure[:4] = np.maximum(np.abs(alt.x[:4] - sol.x[:4]), np.abs(relax.x[:4] - sol.x[:4]))
+    if free:
+        # a fraction of a sample may stand for another phase that grows with frequency
+        structure[:4] = np.maximum(structure[:4], whole_delay_shift(fit_at, sol, delay)[:4])
     rel = np.sqrt(np.maximum(np.diag(cov), 0.0) + structure ** 2)
-    fac = LinearFactors(*(float(v) for v in np.exp(sol.x[:4])))
+    k, w, z, tau = (float(v) for v in np.exp(sol.x[:4]))
+    fac = LinearFactors(k, w, z, tau, delay)
     std = LinearFactors(fac.gain_m_per_v * rel[0], fac.omega_n_rad_s * rel[1],
-                        fac.zeta * rel[2], fac.tau_s * rel[3])
-    model = discrete_frequency_response(third_order_of(fac), t, f) * np.exp(-1j * sol.x[4])
-    snr = np.abs(g) ** 2 / np.maximum(var, 1e-300)
+                        fac.zeta * rel[2], fac.tau_s * rel[3], float(rel[5]) if free else 0.0)
+    model = discrete_frequency_response(third_order_of(fac), t, f, delay) * \
+        np.exp(-1j * sol.x[4])
+    with np.errstate(invalid='ignore'):
+        snr = np.abs(g) ** 2 / np.maximum(var, 1e-300)
     data = FrequencyResponse(frequency_hz=f, response=g, coherence=snr / (1.0 + snr),
                              sample_time_s=t, segments=spectra.periods)
     err = np.log(model[used] / gu)
@@ -639,7 +767,8 @@ def fit_periodic_response(spectra: PeriodicSpectra, params: IdentificationParams
                               detrend='constant')
         h1 = puy[1:n // 2 + 1] / np.maximum(puu[1:n // 2 + 1], 1e-300)
         h1_dev = float(np.median(np.abs(h1[used] / gu - 1.0)))
-    bias = np.abs(spectra.cov_yu / np.abs(spectra.u) ** 2) / np.abs(g)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        bias = np.abs(spectra.cov_yu / np.abs(spectra.u) ** 2) / np.abs(g)
     return PeriodicFit(fit=ffit, phase_rad=float(sol.x[4]), chi2_per_dof=chi2,
                        relative_std_noise=float(np.median(np.sqrt(var_n[used]) / np.abs(gu))),
                        relative_std_distortion=float(np.median(np.sqrt(var_d[used])
@@ -720,18 +849,10 @@ def identify_checked(records: Sequence[RunRecord], base: StageParams | None = No
     for i, rec in enumerate(records):
         forced = roles[i] if roles is not None and i < len(roles) else None
         loop = loop_kind(rec, chain, corr_min=support.innovation_corr_min)
-        if closed_loop and forced in (None, 'frequency') and loop[0] == 'open' and \
-                forced is None:
-            forced = 'frequency'
-        if loop[0] == 'closed' and forced is None:
-            # a closed-loop command is not a designed input: its role comes from the reference
-            role = 'frequency'
-        else:
-            role = forced if forced is not None else classify_run(rec, chain)
+        # what the run holds decides its role, not the loop verdict nor its place in the list
+        role = forced if forced is not None else content_role(rec, chain)
         if role not in ROLES:
             raise IdentificationError(f'role {role!r} is not one of {ROLES}')
-        if closed_loop and role == 'frequency' and loop[0] == 'closed':
-            loop = ('closed', loop[1])
         resolved.append(role)
         loops.append(loop)
         runs.append(analyse_run(rec, chain, role, loop, segment_s=params.segment_s,
@@ -747,8 +868,12 @@ def identify_checked(records: Sequence[RunRecord], base: StageParams | None = No
     if lines:
         raise RefusedError(lines)
     warnings: list[str] = []
+    # the periodic reference is the instrument: averaged over whole periods, the response from
+    # the applied input to the position is consistent whatever share of the input the feedback
+    # makes, so the same estimate serves open and closed loops and the verdict is only reported
     closed = [(rec, run) for rec, run in zip(records, runs)
-              if run.role == 'frequency' and run.loop == 'closed']
+              if run.role == 'frequency' and run.lines.method == 'periodic']
+    closed.sort(key=lambda item: -int(np.count_nonzero(item[1].lines.good(support.snr_min))))
     periodic = None
     if closed:
         rec, run = closed[0]
@@ -758,8 +883,12 @@ def identify_checked(records: Sequence[RunRecord], base: StageParams | None = No
         y = np.asarray(rec.position_m, dtype=np.float64)
         periodic = fit_periodic_response(spec, params, factors_of(base.plant.third_order),
                                          u=u, y=y)
+        if closed_loop and run.loop == 'open':
+            warnings.append(f'run {run.name!r} was given as closed loop, but its commands do '
+                            f'not show the feedback ({run.loop_reason}); the periodic '
+                            'estimate used holds either way')
         warnings.append(
-            f'run {run.name!r} is closed loop ({run.loop_reason}): the usual H1 = S_uy/S_uu '
+            f'run {run.name!r} is {run.loop} loop ({run.loop_reason}): the usual H1 = S_uy/S_uu '
             'of these data differs from the periodic estimate by '
             f'{100 * periodic.h1_deviation:.1f} % '
             '(median over the excited lines; feedback bias toward -1/C where the fed-back noise '
@@ -767,14 +896,15 @@ def identify_checked(records: Sequence[RunRecord], base: StageParams | None = No
             f'{spec.period_samples * run.sample_time_s:g} s averaged, remaining bias of the '
             f'order of {100 * periodic.feedback_bias:.2g} %')
         if len(closed) > 1:
-            warnings.append('only the first closed-loop frequency run is used: '
-                            + ', '.join(repr(r.name) for _, r in closed[1:]) + ' left out')
+            warnings.append(f'the periodic frequency run {run.name!r} has the most lines '
+                            'above the noise and is used; left out: '
+                            + ', '.join(repr(r.name) for _, r in closed[1:]))
         use_roles: list[str | None] = []
         keep: list[RunRecord] = []
         hyst_given = bool(by['hysteresis'])
         for rec2, run2 in zip(records, runs):
-            if run2.role == 'frequency' and run2.loop == 'closed':
-                # the same closed-loop run gives the hysteresis when no sine run is given
+            if run2.role == 'frequency' and run2.lines.method == 'periodic':
+                # the same periodic run gives the hysteresis when no sine run is given
                 if not hyst_given and rec2 is rec:
                     keep.append(rec2)
                     use_roles.append('hysteresis')
@@ -782,20 +912,125 @@ def identify_checked(records: Sequence[RunRecord], base: StageParams | None = No
             keep.append(rec2)
             use_roles.append(run2.role)
         result = identify(keep, base, params, use_roles, frequency_fit=periodic.fit)
-        result.loop = 'closed'
+        result.loop = run.loop
+        result.roles['frequency'] = [run.name]
         if not hyst_given:
-            result.notes.append(f'hysteresis fitted on the closed-loop run {run.name!r} '
-                                f'(its first {params.hysteresis_max_s:g} s)')
+            result.notes.append(f'hysteresis fitted on the periodic run {run.name!r} '
+                                f'(its first {params.hysteresis_max_s:g} s, or two cycles of its '
+                                'strongest line when longer)')
     else:
         result = identify(records, base, params, resolved)
+    structure: dict[str, float] = {}
+    if periodic is not None and result.hysteresis is not None:
+        rec, run = closed[0]
+        structure = _correct_structure_bias(result, rec, run, base, params)
+    elif result.frequency is not None and result.hysteresis is not None:
+        freq = [rec for rec, r in zip(records, runs) if r.role == 'frequency']
+        if freq:
+            structure = _correct_structure_bias(result, freq[0], None, base, params)
     _fill_bounds(result)
-    if periodic is not None:
-        _widen_for_shape(result, base, params)
+    for name, delta in structure.items():
+        if name in result.bounds:
+            lo, hi = result.bounds[name]
+            mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+            half = math.hypot(half, delta * abs(mid))
+            result.bounds[name] = (mid - half, mid + half)
+    _widen_step_for_omega(result, base, params)
+    # the hysteresis fit holds the linear shape fixed, open loop or closed
+    _widen_for_shape(result, base, params)
+    _widen_by_replay(result, base, params)
     post = _post_fit_refusals(result, support)
     if post:
         raise RefusedError(post)
     return CheckedIdentification(result=result, runs=runs, periodic=periodic,
                                  warnings=warnings)
+
+
+def replay(result: IdentificationResult, v: FloatArray, sample_time_s: float) -> FloatArray:
+    """
+    Return the position the identified model gives for applied voltages ``v``, from rest.
+
+    Parameters
+    ----------
+    result : IdentificationResult
+        The identified stage: hysteresis, k_p, w_n, zeta, tau and the loop delay.
+    v : ndarray
+        Applied voltages [V], one per sample.
+    sample_time_s : float
+        Sample period [s].
+
+    Returns
+    -------
+    ndarray
+        Noise-free position [m] (rest at v[0] before the run).
+
+    """
+    h = make_hysteresis(result.stage.hysteresis)
+    state = h.rest_state(float(v[0]))
+    w = np.empty(v.size)
+    step = h.step
+    for k, vk in enumerate(np.asarray(v, dtype=np.float64).tolist()):
+        state, wk = step(state, vk)
+        w[k] = float(wk)
+    f = result.factors
+    num, den = _unit_filter(f, sample_time_s)
+    w0 = float(w[0])
+    return np.asarray(f.gain_m_per_v * (signal.lfilter(num, den, w - w0) + w0),
+                      dtype=np.float64)
+
+
+def _correct_structure_bias(result: IdentificationResult, record: RunRecord,
+                            run: RunSupport | None, base: StageParams,
+                            params: IdentificationParams) -> dict[str, float]:
+    """
+    Remove from w_n, zeta and tau the bias the hysteresis leaves in the linear fit; return it.
+
+    The linear fits see the hysteresis through its describing function at the excitation's
+    amplitude, which no frequency-independent factor captures exactly. The identified model
+    (hysteresis included) is replayed on the run's own applied voltages and the same estimate
+    and fit are made on that noise-free answer: how far they land from the model's own w_n,
+    zeta and tau is the bias at this amplitude, this input and this sampling (the DAC steps are
+    in the applied voltages). It is taken off the estimates; half of it, relative, is returned
+    per parameter as the model-structure term of the bounds (what the correction itself may
+    miss where the identified hysteresis is not the stage's).
+    """
+    t = sample_time_of(record)
+    u = applied_voltage(record, base.chain)
+    y_sim = replay(result, u, t)
+    f = result.factors
+    names: tuple[str, ...]
+    if run is not None:
+        spec = run.lines.spectra
+        assert spec is not None
+        r = np.asarray(record.reference_m, dtype=np.float64)
+        excitation = r if float(np.ptp(r)) > 0.0 else u
+        sim = periodic_spectra(u, y_sim, excitation, spec.period_samples, t)
+        got = fit_periodic_response(sim, params, f, delay_samples=f.delay_samples).fit.factors
+        names = ('omega_n_rad_s', 'zeta', 'tau_s')
+    else:
+        from piezo_stage_ros.core.identification.fit import (
+            estimate_frequency_response,
+            fit_frequency_response,
+        )
+        replayed = RunRecord(record.time_s, y_sim, record.reference_m,
+                             record.reference_velocity_mps, record.command_v, meta=record.meta)
+        data = estimate_frequency_response([replayed], base.chain, segment_s=params.segment_s)
+        got = fit_frequency_response(data, params, initial=f).factors
+        # with a step run, zeta and tau come from it (the step fit has no describing function)
+        names = ('omega_n_rad_s',) if result.step is not None else (
+            'omega_n_rad_s', 'zeta', 'tau_s')
+    bias = {n: math.log(getattr(got, n) / getattr(f, n)) for n in names}
+    values = {n: getattr(f, n) * math.exp(-b) for n, b in bias.items()}
+    fixed = replace(f, **values)
+    third = third_order_of(fixed)
+    plant = result.stage.plant.replace(third_order=third, reduced=third.reduced())
+    result.factors = fixed
+    result.third_order = third
+    result.stage = result.stage.replace(plant=plant)
+    result.notes.append('hysteresis bias of the linear fit removed (the identified model '
+                        'replayed on the applied input): ' + ', '.join(
+                            f'{n} {-100 * b:+.3g} %' for n, b in bias.items()))
+    return {n: 0.5 * abs(b) for n, b in bias.items()}
 
 
 def _fill_bounds(result: IdentificationResult) -> None:
@@ -820,6 +1055,38 @@ def _fill_bounds(result: IdentificationResult) -> None:
     result.bounds = b
 
 
+def _widen_step_for_omega(result: IdentificationResult, base: StageParams,
+                          params: IdentificationParams) -> None:
+    """
+    Widen zeta's and tau's bounds by what the step fit's fixed w_n and delay move them.
+
+    The step fit keeps w_n and the delay from the frequency response; its own standard
+    deviations do not carry their uncertainty. It is refitted with w_n at both ends of its
+    bounds (and with the nearest whole delay when a fraction was kept), and the largest change
+    of zeta and tau is added in quadrature to their half-widths.
+    """
+    st = result.step
+    if st is None or st.std.omega_n_rad_s > 0.0 or 'omega_n_rad_s' not in result.bounds:
+        return
+    f = result.factors
+    moved = {'zeta': 0.0, 'tau_s': 0.0}
+    variants = [replace(f, omega_n_rad_s=w) for w in result.bounds['omega_n_rad_s'] if w > 0.0]
+    if f.delay_samples != round(f.delay_samples):
+        # a fraction of a sample may stand for another phase: the nearest whole delay too
+        variants.append(replace(f, delay_samples=float(round(f.delay_samples))))
+    for variant in variants:
+        alt = fit_step_response(st.records, base.chain, params, variant,
+                                fix_omega=True).factors
+        moved['zeta'] = max(moved['zeta'], abs(alt.zeta - st.factors.zeta))
+        moved['tau_s'] = max(moved['tau_s'], abs(alt.tau_s - st.factors.tau_s))
+    for name, delta in moved.items():
+        if name in result.bounds:
+            lo, hi = result.bounds[name]
+            mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+            half = math.hypot(half, delta)
+            result.bounds[name] = (mid - half, mid + half)
+
+
 def _widen_for_shape(result: IdentificationResult, base: StageParams,
                      params: IdentificationParams) -> None:
     """
@@ -839,7 +1106,7 @@ def _widen_for_shape(result: IdentificationResult, base: StageParams,
         if not tau > 0.0:
             continue
         alt = fit_hysteresis(hy.records, base.chain, params,
-                             LinearFactors(f.gain_m_per_v, f.omega_n_rad_s, f.zeta, tau),
+                             replace(f, tau_s=tau),
                              base.hysteresis)
         for name, value in alt.estimates.items():
             if name in hy.estimates:
@@ -850,6 +1117,56 @@ def _widen_for_shape(result: IdentificationResult, base: StageParams,
             mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
             half = math.hypot(half, delta)
             result.bounds[name] = (mid - half, mid + half)
+
+
+#: Refits of the hysteresis on replays of the identified model with fresh noise.
+REPLAYS = 8
+#: Student-t 97.5 % quantile for REPLAYS - 1 degrees of freedom, over the normal one: the
+#: spread of a few replays is itself uncertain.
+_T_OVER_Z = 2.3646 / Z95
+
+
+def _widen_by_replay(result: IdentificationResult, base: StageParams,
+                     params: IdentificationParams) -> None:
+    """
+    Widen the hysteresis bounds to the spread of the fit over replays with fresh noise.
+
+    The Jacobian of the hysteresis fit understates its spread where the input is dithered by
+    noise (every small reversal moves the loop's state, and the estimates of alpha, the gain,
+    the offset and the initial state trade off nonlinearly): on a closed-loop sine the spread
+    over noise realizations was several times the Jacobian's. The fitted model's answer to the
+    run's own applied input (its initial state, offset and level included) is given fresh
+    white noise of the fit's residual level, :data:`REPLAYS` times, and refitted; where the
+    spread of the refits (times the Student-t over the normal quantile) exceeds the
+    half-width, it replaces it. Deterministic (fixed
+    seeds); backlash-like and Bouc-Wen only.
+    """
+    hy = result.hysteresis
+    if hy is None or hy.model == 'prandtl_ishlinskii':
+        return
+    rng = np.random.default_rng(20260525)
+    # the fitted model's own answer: its initial state, offset and level before the run too
+    clean = hy.models
+    draws: dict[str, list[float]] = {}
+    for _ in range(REPLAYS):
+        recs = [RunRecord(rec.time_s, y + hy.residual_rms_m * rng.standard_normal(y.size),
+                          rec.reference_m, rec.reference_velocity_mps, rec.command_v,
+                          meta=rec.meta) for rec, y in zip(hy.records, clean)]
+        try:
+            alt = fit_hysteresis(recs, base.chain, params, result.factors, base.hysteresis,
+                                 start=hy.estimates)
+        except IdentificationError:
+            continue
+        for name, value in alt.estimates.items():
+            draws.setdefault(name, []).append(value)
+    for name, values in draws.items():
+        if name not in result.bounds or len(values) < 3:
+            continue
+        half_replay = Z95 * _T_OVER_Z * float(np.std(values, ddof=1))
+        lo, hi = result.bounds[name]
+        mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+        if half_replay > half:
+            result.bounds[name] = (mid - half_replay, mid + half_replay)
 
 
 def _post_fit_refusals(result: IdentificationResult, support: SupportParams) -> list[str]:
