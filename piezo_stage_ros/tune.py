@@ -359,7 +359,7 @@ def square_steady_state(params: ControllerParams, model: str, *, high_m: float =
 
 
 def verdict(params: ControllerParams, model: str, sample_time_s: float = 1e-4,
-            delay_samples: int = 0) -> str:
+            delay_samples: float = 0.0) -> str:
     """Return 'stable (GM x dB, PM y deg)' or 'UNSTABLE (radius r)' over every loop case."""
     rep = check_stability(params, PlantParams(model=model), sample_time_s,
                           options=StabilityParams(delay_samples=delay_samples))

@@ -15,16 +15,19 @@
 """
 Stability of the linearized discrete-time loop: controller + ZOH plant at the sample rate.
 
-The loop is built exactly as it runs (see :mod:`piezo_stage_ros.core.contracts.interfaces`): the
-controller sees y_k and returns u_k, which the plant holds over [t_k, t_k+1) (optionally after
-``delay_samples`` more samples of computational delay). With the hysteresis replaced by a
-gain (its local slope dw/dv) and the controller by its linear part, the loop transfer at the
-plant input is::
+The loop is built as it runs (see :mod:`piezo_stage_ros.core.contracts.interfaces`): the
+controller sees y_k and returns u_k, which reaches the plant ``delay_samples`` = d sample
+periods later (the computational delay: the time to read, compute and write; 0 in the offline
+runner, a fraction of a period in a servo that computes within the period, one period in a
+target that applies the answer at its next tick) and is held until u_k+1 replaces it. With the
+hysteresis replaced by a gain (its local slope dw/dv) and the controller by its linear part,
+the loop transfer at the plant input is::
 
-    L(z) = z^-delay * N(z) * C(z) * slope * K_PSCM * G(z)
+    L(z) = N(z) * C(z) * slope * K_PSCM * G_d(z)
 
-with G(z) the ZOH discretization of the plant model from w [V] to x [m]
-(:meth:`piezo_stage_ros.core.model.linear.LinearPlant.discretize`), N(z) the notch filter and C(z)
+with G_d(z) the exact discretization of the plant model from w [V] to x [m] under that delayed
+hold (:func:`_plant_tf`: the modified z-transform, exact for a fractional d; d = 0 is
+:meth:`piezo_stage_ros.core.model.linear.LinearPlant.discretize`), N(z) the notch filter and C(z)
 the controller from sensor volts to the command (negative feedback)::
 
     PI:   C(z) = k_p + k_i T z/(z - 1)
@@ -132,8 +135,15 @@ class StabilityParams(Params):
                              '(c for the default backlash-like model).', low=0.0, low_open=True)
     slope_points: int = param(5, unit='-', description='Slopes checked, evenly spaced over '
                               '[slope_min, slope_max].', low=1, high=101)
-    delay_samples: int = param(0, unit='-', description='Extra computational delay of the loop '
-                               '(0: u_k is applied at t_k).', low=0, high=10)
+    delay_samples: float = param(0.0, unit='samples', description='Computational delay of the '
+                                 'loop: u_k reaches the plant this many sample periods after y_k '
+                                 'is read (0: at t_k, as the offline runner applies it; a '
+                                 'fraction: computed within the period; 1: at t_k+1). '
+                                 'Fractional delays are discretised exactly (zero-order hold '
+                                 'switched part-way through the period). 0.5 covers the '
+                                 'in-process servo, which reads, computes and writes within '
+                                 'the first half of the period; a UDP target that applies the '
+                                 'answer at its next tick needs 1.', low=0.0, high=10.0)
     design_model: str = param('plant', unit='-', description='Model the check and a notch in '
                               'model mode use: plant takes plant.* of the plant_node section of '
                               'the same parameter files, own takes stability.plant.* (a real '
@@ -595,9 +605,58 @@ def stability_plant(plant_params: PlantParams) -> LinearPlant:
     return linear_plant(plant_params)
 
 
-def _plant_tf(plant: LinearPlant, sample_time_s: float) -> tuple[FloatArray, FloatArray]:
-    """Return (num, den) of the ZOH G(z) from w [V] to x [m], powers of z, highest first."""
-    return plant.discretize(sample_time_s).transfer_function()
+def _plant_tf(plant: LinearPlant, sample_time_s: float, delay_samples: float = 0.0
+              ) -> tuple[FloatArray, FloatArray]:
+    """
+    Return (num, den) of G(z) from w [V] to x [m] with the loop's delay, powers of z.
+
+    Parameters
+    ----------
+    plant : LinearPlant
+        Continuous-time model.
+    sample_time_s : float
+        T [s].
+    delay_samples : float
+        d = m + delta >= 0 [samples]: u_k is held from t_k + d T to t_k+1 + d T.
+
+    Returns
+    -------
+    num, den : ndarray
+        The exact discretisation (the modified z-transform of the held input): over
+        [t_k, t_k+1) the plant sees u_k-m-1 until t_k + delta T and u_k-m after, so with
+        Phi = exp(A T)::
+
+            x_k+1 = Phi x_k + Gamma_0 u_k-m + Gamma_1 u_k-m-1
+            Gamma_0 = int_0^((1 - delta) T) exp(A s) ds B
+            Gamma_1 = exp(A (1 - delta) T) int_0^(delta T) exp(A s) ds B
+
+        and G(z) = z^-m C (z I - Phi)^-1 (Gamma_0 + Gamma_1 / z). delta = 0 is the
+        zero-order hold at the sample instants; delta -> 1 tends to one more whole sample.
+
+    """
+    m = math.floor(delay_samples)
+    delta = delay_samples - m
+    if delta == 0.0:
+        num, den = plant.discretize(sample_time_s).transfer_function()
+    else:
+        from scipy.signal import ss2tf
+        late = plant.discretize((1.0 - delta) * sample_time_s)
+        early = plant.discretize(delta * sample_time_s)
+        n = plant.order
+        # state (x_k, u_k-m-1): the held command of the previous sample is a state
+        ad = np.zeros((n + 1, n + 1))
+        ad[:n, :n] = late.ad @ early.ad
+        ad[:n, n] = late.ad @ early.bd[:, 0]
+        bd = np.zeros((n + 1, 1))
+        bd[:n, 0] = late.bd[:, 0]
+        bd[n, 0] = 1.0
+        c = np.r_[plant.c, 0.0]
+        num2, den2 = ss2tf(ad, bd, c[None, :], np.zeros((1, 1)))
+        num = np.asarray(num2, dtype=np.float64).ravel()
+        den = np.asarray(den2, dtype=np.float64).ravel()
+    if m:
+        den = np.convolve(den, np.r_[1.0, np.zeros(m)])
+    return np.asarray(num, dtype=np.float64), np.asarray(den, dtype=np.float64)
 
 
 def _rac_pairs(r: RACParams, estimates: str) -> list[tuple[float, float]]:
@@ -735,7 +794,7 @@ def _loop_parts(controller_params: ControllerParams, plant_params: PlantParams,
         raise ParameterError('sample_time_s', sample_time_s, '(0, inf)')
     opts = options if options is not None else StabilityParams()
     plant = stability_plant(plant_params)
-    g_num, g_den = _plant_tf(plant, sample_time_s)
+    g_num, g_den = _plant_tf(plant, sample_time_s, opts.delay_samples)
     return opts, plant, g_num, g_den, notch_design(controller_params.notch, sample_time_s, plant)
 
 
@@ -772,9 +831,9 @@ def check_stability(controller_params: ControllerParams, plant_params: PlantPara
     """
     opts, plant, g_num, g_den, notch = _loop_parts(controller_params, plant_params,
                                                    sample_time_s, options)
-    # frequency response of everything but the controller, once: G(z) N(z) z^-delay
+    # frequency response of everything but the controller, once: G(z) N(z), the delay in G
     z = _unit_circle(sample_time_s)
-    rest = np.polyval(g_num, z) / np.polyval(g_den, z) * z ** (-float(opts.delay_samples))
+    rest = np.polyval(g_num, z) / np.polyval(g_den, z)
     if notch is not None:
         rest = rest * np.polyval(notch[0], z) / np.polyval(notch[1], z)
     cases: list[LoopCase] = []
@@ -783,8 +842,7 @@ def check_stability(controller_params: ControllerParams, plant_params: PlantPara
     grid = _circle_grid()
 
     def char(kp: float, ki: float, slope: float) -> FloatArray:
-        num, den = loop_polynomials(kp, ki, k_sensor * slope, g_num, g_den, sample_time_s, notch,
-                                    opts.delay_samples)
+        num, den = loop_polynomials(kp, ki, k_sensor * slope, g_num, g_den, sample_time_s, notch)
         return _padd(den, num)
 
     for family, ki, members in _controller_families(controller_params, opts.estimates):
@@ -797,7 +855,7 @@ def check_stability(controller_params: ControllerParams, plant_params: PlantPara
                     gm, pm = math.inf, math.inf
                 else:
                     num, den = loop_polynomials(kp, ki, gain, g_num, g_den, sample_time_s,
-                                                notch, opts.delay_samples)
+                                                notch)
                     lz = gain * (kp + ki * sample_time_s * z / (z - 1.0)) * rest
                     gm, pm = _margins(lz, num, den)
                 cases.append(LoopCase(label=f'{label}, slope={slope:.4g}', slope=slope,
@@ -876,11 +934,14 @@ def learning_check(controller_params: ControllerParams, plant_params: PlantParam
     notch = notch_design(controller_params.notch, sample_time_s, plant)
     k = controller_params.sensor_gain_v_per_m
 
-    def sensitivity(model: LinearPlant, slope: float) -> ComplexArray:
-        num, den = _plant_tf(model, sample_time_s)
+    def sensitivity(model: LinearPlant, slope: float,
+                    delay: float = opts.delay_samples) -> ComplexArray:
+        # the learning filter is designed without the computational delay; the loop it
+        # learns on has it
+        num, den = _plant_tf(model, sample_time_s, delay)
         g = slope * np.polyval(num, z) / np.polyval(den, z)
         return process_sensitivity(g, z, k_p, k_i, k, sample_time_s, notch)
-    design = sensitivity(plant, c)
+    design = sensitivity(plant, c, 0.0)
     kept = kept_harmonics(design, n, sample_time_s, ff.learning_bandwidth_hz)
     # with the inverse the compensator removes the design hysteresis; without it the loop
     # sees the hysteresis' incremental slope
@@ -901,7 +962,8 @@ def learning_check(controller_params: ControllerParams, plant_params: PlantParam
     return LearningConvergence(
         period_s=n * sample_time_s, harmonics=int(np.sum(kept)), gain=ff.learning_gain,
         bandwidth_hz=ff.learning_bandwidth_hz,
-        design_ratio=learning_convergence(design, design, ff.learning_gain, kept),
+        design_ratio=learning_convergence(design, sensitivity(plant, c), ff.learning_gain,
+                                          kept),
         slopes=tuple((s, learning_convergence(design, sensitivity(plant, s), ff.learning_gain,
                                               kept)) for s in slopes),
         members=tuple(members), note=note)
@@ -960,7 +1022,7 @@ def _adaptation(params: ControllerParams, plant: LinearPlant, g_num: FloatArray,
         # H(z) = h_num / char_l, and the adaptation loop is (z - 1) char_l + g h_num = 0
         gain = k_sensor * slope
         l_num, l_den = loop_polynomials(kp, k * r.lambda_per_s, gain, g_num, g_den,
-                                        sample_time_s, notch, opts.delay_samples)
+                                        sample_time_s, notch)
         h_num = np.convolve(g_num * gain, s_num)
         if notch is not None:
             h_num = np.convolve(h_num, np.asarray(notch[0], dtype=np.float64))
