@@ -127,3 +127,52 @@ def test_the_delay_boundary_of_a_first_order_loop_is_the_analytic_one(loop_gain,
     wc = math.sqrt(loop_gain ** 2 - 1.0) / TAU_S
     margin = (math.pi - math.atan(wc * TAU_S)) / wc / t - 0.5
     assert found == pytest.approx(margin, rel=0.01)
+
+
+@pytest.mark.parametrize('model', ['reduced', 'third_order', 'electromechanical'])
+def test_the_default_controller_passes_with_one_sample_of_computational_delay(model):
+    # the default must hold on a target that applies each command at its next tick: every
+    # frozen loop of the box stable, the adaptation within its bound, and the design rule's
+    # margins (2 dB, 25 deg) on every sampled loop
+    opts = StabilityParams(delay_samples=1.0)
+    rep = check_stability(ControllerParams(), PlantParams(model=model), 1e-4, options=opts)
+    assert rep.certified, rep.text()
+    assert rep.gain_margin_db > 2.0 and rep.phase_margin_deg > 25.0
+    assert rep.delay_samples == 1.0 and '1 sample of computational delay' in rep.text()
+
+
+def test_the_default_delay_covers_the_in_process_servo():
+    assert StabilityParams().delay_samples == 0.5
+    rep = check_stability(ControllerParams(), PlantParams(model='third_order'), 1e-4)
+    assert rep.certified and rep.delay_samples == 0.5
+
+
+def test_the_words_printed_match_the_box_checked():
+    params = ControllerParams()
+    r = params.rac
+    third = PlantParams(model='third_order')
+    box = check_stability(params, third, 1e-4, options=StabilityParams(delay_samples=1.0))
+    text = box.text()
+    assert 'Frozen-parameter robust stability over the box' in text
+    assert f'theta_hat in [{r.theta_min:g}, {r.theta_max:g}]' in text
+    assert f'phi_hat in [{r.phi_min:g}, {r.phi_max:g}] s' in text
+    assert 'Not proven: the running loop' in text
+    assert 'certified' not in text.lower() and 'guarantee' not in text.lower()
+    assert box.box.estimates == 'corners' and box.box.theta == (r.theta_min, r.theta_max)
+    # the initial pair only: the sentence says so and names the box it left out
+    one = check_stability(params, third, 1e-4, options=StabilityParams(estimates='initial'))
+    text = one.text()
+    assert 'Stable at the initial estimates only' in text
+    assert f'theta_hat = {r.theta_init:g}, phi_hat = {r.phi_init:g} s' in text
+    assert 'was NOT checked' in text and 'over the box:' not in text
+    assert one.box.theta == (r.theta_init, r.theta_init)
+    assert len(one.cases) == 2 * StabilityParams().slope_points
+    # a controller without estimates: only the slopes are frozen
+    pi = check_stability(ControllerParams(type='pi'), third, 1e-4)
+    assert 'over the slopes' in pi.text() and 'theta_hat' not in pi.scope()
+    # a failing box says NOT stable, with what was checked
+    fast = params.replace(rac=r.replace(lambda_per_s=3000.0, epsilon_v=0.2))
+    bad = check_stability(fast, third, 1e-4, options=StabilityParams(delay_samples=1.0))
+    assert not bad.stable
+    assert 'NOT stable over what was checked' in bad.text()
+    assert 'NOT STABLE OVER THE BOX' in bad.text()

@@ -13,7 +13,20 @@
 # limitations under the License.
 
 """
-Stability of the linearized discrete-time loop: controller + ZOH plant at the sample rate.
+Frozen-parameter robust stability of the discrete-time loop: controller + held plant.
+
+What the check proves, and what it does not. It proves that every *linear time-invariant*
+loop obtained by freezing the RAC's estimates anywhere in their projection box (or at their
+initial pair only, ``estimates: initial``), the hysteresis slope anywhere in
+``[slope_min, slope_max]`` and the boundary layer in either region, with the configured
+computational delay, has its closed-loop poles inside the unit circle: frozen-parameter
+robust stability over the box. It does not prove that the running loop is stable: there the
+estimates move, the robust term switches between sat(s/epsilon) = s/epsilon and +-1, the
+hysteresis slope jumps at every reversal and the command saturates; a loop whose every frozen
+member is stable can still be destabilised by such variation (slow variation cannot, fast
+variation can). No circle or Popov criterion is applied here. The adaptation bound below is a
+frozen-regressor linearization with a 2x gain margin, not a proof either. Words used in the
+report: "stable over the box" for this verdict, never "guaranteed".
 
 The loop is built as it runs (see :mod:`piezo_stage_ros.core.contracts.interfaces`): the
 controller sees y_k and returns u_k, which reaches the plant ``delay_samples`` = d sample
@@ -41,7 +54,7 @@ The check samples every combination of: hysteresis slope on a grid over
 ``[slope_min, slope_max]`` (for eq. (21) the incremental slope dw/dv lies in [2 B1 - c, c]),
 the RAC estimates at the four corners of their projection box and at their initial values
 (``estimates: corners``) or only at their initial values, and both RAC regions, and reports
-the poles and margins of each. It then *certifies* the whole set, not only the samples: the
+the poles and margins of each. It then checks the whole set, not only the samples: the
 estimates enter the linear loop only through its proportional gain k_p = k + phi_hat lambda -
 theta_hat, affine in them, so the box maps onto an interval of k_p, and the characteristic
 polynomial den_L + num_L is affine in (slope k_p, slope k lambda). The family "every estimate
@@ -49,7 +62,8 @@ of the box x every slope" is therefore a polytope of polynomials (a trapezoid), 
 theorem (Bartlett, Hollot and Huang 1988) every member has its roots inside the unit circle if
 and only if its four edges do: a stable vertex and no edge along which a root reaches the
 circle (:func:`_polytope_failure`, a frequency sweep with the exact crossing parameter). The
-verdict :attr:`StabilityReport.stable` is the sampled cases and these certificates.
+verdict :attr:`StabilityReport.stable` is the sampled cases and these box checks (each a
+:class:`BoxCertificate`: a certificate of the frozen family, not of the time-varying loop).
 
 The RAC's adaptation is a second, discrete loop (:func:`adaptation_bound`): where |s| exceeds
 the adaptation's dead zone epsilon_a the updates theta_hat += -(T/n) gamma y s_a and
@@ -63,7 +77,7 @@ command disturbance in the loop above (H(1) = 1/k). Every root must lie inside t
 circle: g_eff < g_crit, the smallest critical gain over the estimate box, the slopes and the
 regions where the adaptation acts (outside the boundary layer, k = k_d; and inside it,
 k = k_d + k*/epsilon, when epsilon_a < epsilon); for a fixed g the family is again a polytope,
-certified by its edges. The dead zone does not change this linear loop: for |s| > epsilon_a,
+checked on its edges. The dead zone does not change this linear loop: for |s| > epsilon_a,
 s_a = s - epsilon_a sign(s) has slope 1, inside it the adaptation stops (slope 0), a sector
 [0, 1] nonlinearity whose every gain g' in [0, g] is below the first crossing g_crit. The
 report requires g_eff <= g_crit / ADAPTATION_MARGIN at the largest regressors the stage can
@@ -104,7 +118,8 @@ from piezo_stage_ros.core.model.hysteresis import HysteresisParams, make_hystere
 from piezo_stage_ros.core.model.linear import LinearPlant, third_order_plant
 from piezo_stage_ros.core.model.stage import linear_plant, PlantParams, StageParams
 
-__all__ = ['ADAPTATION_MARGIN', 'AdaptationBound', 'BoxCertificate', 'LearningConvergence',
+__all__ = ['ADAPTATION_MARGIN', 'AdaptationBound', 'BoxCertificate', 'CheckedBox',
+           'LearningConvergence',
            'LoopCase', 'StabilityParams', 'StabilityReport', 'StabilityWarning',
            'adaptation_bound', 'check_stability', 'enforce', 'learning_check', 'loop_polynomials',
            'stability_plant']
@@ -135,7 +150,7 @@ class StabilityParams(Params):
                              '(c for the default backlash-like model).', low=0.0, low_open=True)
     slope_points: int = param(5, unit='-', description='Slopes checked, evenly spaced over '
                               '[slope_min, slope_max].', low=1, high=101)
-    delay_samples: float = param(0.0, unit='samples', description='Computational delay of the '
+    delay_samples: float = param(0.5, unit='samples', description='Computational delay of the '
                                  'loop: u_k reaches the plant this many sample periods after y_k '
                                  'is read (0: at t_k, as the offline runner applies it; a '
                                  'fraction: computed within the period; 1: at t_k+1). '
@@ -202,9 +217,65 @@ class LoopCase:
 
 
 @dataclass(frozen=True)
+class CheckedBox:
+    """
+    What the frozen-parameter check covered: the estimates, the slopes and the delay.
+
+    Attributes
+    ----------
+    estimates : str
+        ``'corners'`` (the whole projection box), ``'initial'`` (the initial pair only) or
+        ``'none'`` (a controller without estimates).
+    theta : tuple of float
+        The theta_hat interval checked [V/V] (both ends the initial value with ``'initial'``).
+    phi_s : tuple of float
+        The phi_hat interval checked [s].
+    slope : tuple of float
+        The hysteresis slope interval [-].
+    slope_points : int
+        Slopes sampled for the margins (the interval itself is checked whole).
+    delay_samples : float
+        Computational delay assumed [samples].
+    box_theta : tuple of float
+        The projection bounds of theta_hat (what ``'initial'`` leaves out).
+    box_phi_s : tuple of float
+        The projection bounds of phi_hat [s].
+
+    """
+
+    estimates: str
+    theta: tuple[float, float]
+    phi_s: tuple[float, float]
+    slope: tuple[float, float]
+    slope_points: int
+    delay_samples: float
+    box_theta: tuple[float, float] = (0.0, 0.0)
+    box_phi_s: tuple[float, float] = (0.0, 0.0)
+
+    def text(self) -> str:
+        """Return what was frozen where, in one clause."""
+        lo, hi = self.slope
+        slope = f'the hysteresis slope frozen anywhere in [{lo:.4g}, {hi:.4g}]'
+        if self.estimates == 'none':
+            return slope
+        if self.estimates == 'initial':
+            return (f'the estimates at their initial pair only (theta_hat = {self.theta[0]:g}, '
+                    f'phi_hat = {self.phi_s[0]:g} s; the projection box theta_hat in '
+                    f'[{self.box_theta[0]:g}, {self.box_theta[1]:g}] x phi_hat in '
+                    f'[{self.box_phi_s[0]:g}, {self.box_phi_s[1]:g}] s was NOT checked), '
+                    f'{slope} and either boundary-layer region')
+        return (f'the estimates frozen anywhere in the box theta_hat in [{self.theta[0]:g}, '
+                f'{self.theta[1]:g}] x phi_hat in [{self.phi_s[0]:g}, {self.phi_s[1]:g}] s, '
+                f'{slope} and either boundary-layer region')
+
+
+@dataclass(frozen=True)
 class BoxCertificate:
     """
-    Whether every linear loop of one controller family is stable, not only the sampled ones.
+    Whether every frozen linear loop of one controller family is stable, not only the sampled.
+
+    A certificate of the frozen-parameter family (edge theorem), not of the running loop
+    whose parameters vary (module docstring).
 
     Attributes
     ----------
@@ -475,6 +546,12 @@ class StabilityReport:
     adaptation : AdaptationBound or None
         The discrete adaptation loop of a RAC (None for the other controllers); it does not
         enter the verdict :attr:`stable` (see :func:`enforce`).
+    certificates : tuple of BoxCertificate
+        The frozen families checked whole (edge theorem).
+    learning : LearningConvergence or None
+        The learning feed-forward's convergence, when it learns.
+    box : CheckedBox or None
+        What was frozen where, and the delay assumed.
 
     """
 
@@ -485,17 +562,100 @@ class StabilityReport:
     adaptation: AdaptationBound | None = None
     certificates: tuple[BoxCertificate, ...] = ()
     learning: LearningConvergence | None = None
+    box: CheckedBox | None = None
 
     @property
     def stable(self) -> bool:
-        """Return whether every sampled case is stable and every family is certified."""
+        """Return whether every sampled frozen loop and every frozen family is stable."""
         return (all(c.stable for c in self.cases)
                 and all(c.certified for c in self.certificates))
 
     @property
     def certified(self) -> bool:
-        """Return whether the loops are stable and the adaptation is within its bound."""
+        """
+        Return whether the frozen loops are stable and the adaptation is within its bound.
+
+        Frozen-parameter robust stability over the checked box plus the linearized adaptation
+        bound: what the check can say, not a guarantee for the running loop.
+        """
         return self.stable and (self.adaptation is None or self.adaptation.ok)
+
+    @property
+    def delay_samples(self) -> float:
+        """Return the computational delay the check assumed [samples]."""
+        return self.box.delay_samples if self.box is not None else 0.0
+
+    def scope(self) -> str:
+        """Return one sentence: what is proven (or failed) and what is not proven."""
+        failed = [c for c in self.certificates if not c.certified]
+        what = self.box.text() if self.box is not None else 'the sampled loops'
+        delay = _delay_text(self.delay_samples)
+        n = len(self.certificates)
+        if not self.stable:
+            proven = f'NOT stable over what was checked ({what}, {delay}).'
+        else:
+            estimates = self.box.estimates if self.box is not None else 'none'
+            kind = {'initial': 'Stable at the initial estimates only',
+                    'corners': 'Frozen-parameter robust stability over the box'}.get(
+                        estimates, 'Frozen-parameter robust stability over the slopes')
+            proven = (f'{kind}: every linear time-invariant loop with {what} is stable with '
+                      f'{delay} (edge theorem over {n} famil{"y" if n == 1 else "ies"}).')
+        varying = ('estimates that move, a boundary layer that switches, '
+                   if self.adaptation is not None else '')
+        unproven = (f' Not proven: the running loop, with {varying}a hysteresis slope that '
+                    'jumps at reversals and a command that saturates (no circle or Popov '
+                    'criterion is applied).')
+        fails = ''.join(f' NOT STABLE OVER THE BOX: {c.label}, {c.detail}.' for c in failed)
+        return proven + fails + unproven
+
+    def as_dict(self) -> dict[str, object]:
+        """
+        Return the report as plain JSON-ready values.
+
+        Returns
+        -------
+        dict
+            Verdicts, margins, the worst case, the binding constraint, what was checked
+            (``box``), the families, the adaptation bound, the learning and the words of
+            :meth:`scope`.
+
+        """
+        w = self.worst
+
+        def num(x: float) -> float | str:
+            return x if math.isfinite(x) else ('inf' if x > 0 else '-inf')
+        out: dict[str, object] = {
+            'controller': self.controller, 'plant': self.plant,
+            'sample_time_s': self.sample_time_s, 'delay_samples': self.delay_samples,
+            'stable_over_box': self.stable, 'certified': self.certified,
+            'spectral_radius': w.spectral_radius, 'worst_case': w.label,
+            'gain_margin_db': num(self.gain_margin_db),
+            'phase_margin_deg': num(self.phase_margin_deg),
+            'worst_gain_margin_db': num(w.gain_margin_db),
+            'worst_phase_margin_deg': num(w.phase_margin_deg),
+            'loops_checked': len(self.cases),
+            'loops_stable': sum(c.stable for c in self.cases),
+            'binding': self.binding(), 'scope': self.scope(),
+            'families': [{'label': c.label, 'stable': c.certified, 'detail': c.detail}
+                         for c in self.certificates],
+        }
+        if self.box is not None:
+            b = self.box
+            out['box'] = {'estimates': b.estimates, 'theta': list(b.theta),
+                          'phi_s': list(b.phi_s), 'slope': list(b.slope),
+                          'slope_points': b.slope_points, 'delay_samples': b.delay_samples,
+                          'projection_theta': list(b.box_theta),
+                          'projection_phi_s': list(b.box_phi_s)}
+        a = self.adaptation
+        if a is not None:
+            out['adaptation'] = {'ok': a.ok, 'gain': a.gain, 'effective_gain': a.effective_gain,
+                                 'critical_gain': num(a.critical_gain),
+                                 'margin_db': num(a.margin_db), 'worst_case': a.worst_label,
+                                 'normalisation': a.normalisation, 'text': a.text()}
+        if self.learning is not None:
+            out['learning'] = {'ok': self.learning.ok, 'ratio': self.learning.ratio,
+                               'text': self.learning.text()}
+        return out
 
     def binding(self) -> str:
         """
@@ -550,8 +710,9 @@ class StabilityReport:
         rate = 1.0 / self.sample_time_s
         unstable = [c for c in self.cases if not c.stable]
         head = (f'{self.controller} on the {self.plant} model at {rate:g} Hz: '
-                f'{"STABLE" if self.stable else "UNSTABLE"} '
-                f'({len(self.cases) - len(unstable)}/{len(self.cases)} linearized loops '
+                f'{"STABLE" if self.stable else "UNSTABLE"} with parameters frozen, '
+                f'{_delay_text(self.delay_samples)} '
+                f'({len(self.cases) - len(unstable)}/{len(self.cases)} sampled linear loops '
                 f'stable).')
         worst = (f' Worst case: {w.label}: spectral radius {w.spectral_radius:.4f}, gain '
                  f'margin {_fmt(w.gain_margin_db)} dB, phase margin '
@@ -559,13 +720,7 @@ class StabilityReport:
         margins = (f' Over all cases: smallest gain margin {_fmt(self.gain_margin_db)} dB, '
                    f'smallest phase margin {_fmt(self.phase_margin_deg)} deg (closest to 0).')
         extra = '' if self.adaptation is None else ' ' + self.adaptation.text()
-        failed = [c for c in self.certificates if not c.certified]
-        if self.certificates and not failed:
-            box = (f' Every loop of the box certified ({len(self.certificates)} families, '
-                   'every estimate x every slope, edge theorem).')
-        else:
-            box = ''.join(f' NOT CERTIFIED: {c.label}, {c.detail}.' for c in failed)
-        extra = box + extra + ' ' + self.binding()
+        extra = ' ' + self.scope() + extra + ' ' + self.binding()
         if self.learning is not None:
             extra += ' ' + self.learning.text()
         if self.stable:
@@ -579,6 +734,12 @@ class StabilityReport:
                   'feedback gain (RAC: raise epsilon or lower k_d; PI: lower k_p/k_i), tighten '
                   'the projection bounds, or add a notch filter against a resonance.')
         return head + worst + advice + extra
+
+
+def _delay_text(delay_samples: float) -> str:
+    """Return e.g. '1 sample of computational delay'."""
+    unit = 'sample' if delay_samples == 1.0 else 'samples'
+    return f'{delay_samples:g} {unit} of computational delay'
 
 
 def _fmt(value: float) -> str:
@@ -881,7 +1042,24 @@ def check_stability(controller_params: ControllerParams, plant_params: PlantPara
                               period_s or 0.0, stage=stage, options=opts)
     return StabilityReport(controller=desc, plant=plant.name, sample_time_s=sample_time_s,
                            cases=tuple(cases), adaptation=adaptation,
-                           certificates=tuple(certificates), learning=learning)
+                           certificates=tuple(certificates), learning=learning,
+                           box=_checked_box(controller_params, opts))
+
+
+def _checked_box(params: ControllerParams, opts: StabilityParams) -> CheckedBox:
+    """Return what a check of ``params`` with ``opts`` freezes where."""
+    r = params.rac
+    slope = (opts.slope_min, opts.slope_max)
+    if params.type != 'rac':
+        return CheckedBox('none', (0.0, 0.0), (0.0, 0.0), slope, opts.slope_points,
+                          opts.delay_samples)
+    box_theta, box_phi = (r.theta_min, r.theta_max), (r.phi_min, r.phi_max)
+    if opts.estimates == 'initial':
+        theta, phi = (r.theta_init, r.theta_init), (r.phi_init, r.phi_init)
+    else:
+        theta, phi = box_theta, box_phi
+    return CheckedBox(opts.estimates, theta, phi, slope, opts.slope_points, opts.delay_samples,
+                      box_theta, box_phi)
 
 
 def learning_check(controller_params: ControllerParams, plant_params: PlantParams,
