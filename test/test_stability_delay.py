@@ -176,3 +176,66 @@ def test_the_words_printed_match_the_box_checked():
     assert not bad.stable
     assert 'NOT stable over what was checked' in bad.text()
     assert 'NOT STABLE OVER THE BOX' in bad.text()
+
+
+# -- the time-varying loop: a common quadratic Lyapunov function -----------------------------
+
+
+def _vertices(params, plant, delay):
+    from piezo_stage_ros.core.control import stability as st
+    opts = StabilityParams(delay_samples=delay)
+    _, _, g_num, g_den, notch = st._loop_parts(params, plant, 1e-4, opts)
+    return st._vertex_matrices(params, g_num, g_den, notch, 1e-4, opts)
+
+
+@pytest.mark.parametrize('delay', [0.0, 0.5, 1.0])
+def test_the_vertex_matrices_are_the_frozen_loops_of_the_check(delay):
+    # each vertex (a corner of k_p, each region, the end slopes) is a frozen loop the check
+    # also samples: the same poles, from a state space instead of a polynomial
+    params = ControllerParams()
+    third = PlantParams(model='third_order')
+    rep = check_stability(params, third, 1e-4, options=StabilityParams(delay_samples=delay))
+    radii = [c.spectral_radius for c in rep.cases]
+    for a in _vertices(params, third, delay):
+        r = float(np.max(np.abs(np.linalg.eigvals(a))))
+        # eigenvalues of an 8 x 8 matrix against polynomial roots: both ~1e-12 here
+        assert min(abs(r - x) for x in radii) < 1e-8
+
+
+def test_a_p_loop_has_a_common_lyapunov_function_exactly_when_every_vertex_is_stable():
+    # P control of the reduced plant, no delay: one state, A = a - K b k_p slope, and
+    # V = x^2 works for every sequence exactly when |A| < 1 at both slope ends
+    from piezo_stage_ros.core.control.stability import varying_check
+    red = ReducedParams()
+    a = math.exp(-1e-4 / red.tau_s)
+    kb = K_SENSOR * red.gain_m_per_v * (1.0 - a)
+    kp = 10.0
+    limit = (1.0 + a) / (kb * kp)
+    params = ControllerParams(type='pi', notch=NotchParams(mode='off'),
+                              pi=PIParams(k_p=kp, k_i=0.0))
+    for top, ok in ((0.98 * limit, True), (1.02 * limit, False)):
+        cert = varying_check(params, PlantParams(model='reduced'), 1e-4, options=StabilityParams(
+            slope_min=0.5 * limit, slope_max=top, slope_points=2, delay_samples=0.0))
+        assert cert.vertices == 2 and cert.found == ok
+        assert cert.contraction == pytest.approx(abs(a - kb * kp * top), rel=1e-6)
+
+
+def test_the_default_is_proven_for_the_time_varying_loop_at_the_default_delay():
+    from piezo_stage_ros.core.control.stability import varying_check
+    params = ControllerParams()
+    third = PlantParams(model='third_order')
+    cert = varying_check(params, third, 1e-4)
+    assert cert.found and cert.vertices == 8 and cert.contraction < 1.0
+    # what the certificate promises: every product of vertex matrices shrinks in the P-norm
+    # by at most contraction^n, so its spectral radius is below that
+    rng = np.random.default_rng(7)
+    matrices = _vertices(params, third, 0.5)
+    for _ in range(20):
+        prod = np.eye(matrices[0].shape[0])
+        for i in rng.integers(0, len(matrices), 40):
+            prod = matrices[i] @ prod
+        assert np.max(np.abs(np.linalg.eigvals(prod))) <= cert.contraction ** 40 * (1 + 1e-6)
+    rep = check_stability(params, third, 1e-4, varying=True)
+    assert rep.varying == cert
+    assert 'Time-varying loop: a common quadratic Lyapunov function' in rep.text()
+    assert 'Not proven: the loop while the command saturates' in rep.text()

@@ -24,9 +24,18 @@ robust stability over the box. It does not prove that the running loop is stable
 estimates move, the robust term switches between sat(s/epsilon) = s/epsilon and +-1, the
 hysteresis slope jumps at every reversal and the command saturates; a loop whose every frozen
 member is stable can still be destabilised by such variation (slow variation cannot, fast
-variation can). No circle or Popov criterion is applied here. The adaptation bound below is a
-frozen-regressor linearization with a 2x gain margin, not a proof either. Words used in the
-report: "stable over the box" for this verdict, never "guaranteed".
+variation can). The adaptation bound below is a frozen-regressor linearization with a 2x gain
+margin, not a proof either. Words used in the report: "stable over the box" for this verdict,
+never "guaranteed".
+
+On request (``check_stability(..., varying=True)``, :func:`varying_check`, and the ``check``
+command by default) the check goes further: it searches a common quadratic Lyapunov function
+for the loop whose estimates, robust-term gain sat(s/epsilon)/(s/epsilon) in [0, 1] and
+hysteresis slope all vary in time inside their ranges (the estimates stay in the box whatever
+the adaptation does: the projection). One found proves that loop exponentially stable for
+every such sequence, and its signals bounded under bounded inputs (the reference, the
+quantisers, the hysteresis' bounded part d): a real nonlinear certificate, short of the command
+limits. The search is local: one not found proves nothing either way.
 
 The loop is built as it runs (see :mod:`piezo_stage_ros.core.contracts.interfaces`): the
 controller sees y_k and returns u_k, which reaches the plant ``delay_samples`` = d sample
@@ -119,7 +128,7 @@ from piezo_stage_ros.core.model.linear import LinearPlant, third_order_plant
 from piezo_stage_ros.core.model.stage import linear_plant, PlantParams, StageParams
 
 __all__ = ['ADAPTATION_MARGIN', 'AdaptationBound', 'BoxCertificate', 'CheckedBox',
-           'LearningConvergence',
+           'LearningConvergence', 'VaryingCertificate', 'varying_check',
            'LoopCase', 'StabilityParams', 'StabilityReport', 'StabilityWarning',
            'adaptation_bound', 'check_stability', 'enforce', 'learning_check', 'loop_polynomials',
            'stability_plant']
@@ -529,6 +538,63 @@ class LearningConvergence:
 
 
 @dataclass(frozen=True)
+class VaryingCertificate:
+    """
+    A common quadratic Lyapunov function of the loop whose parameters vary in time.
+
+    The loop x_k+1 = A(p_k) x_k with p_k = (hysteresis slope, boundary-layer gain, estimates)
+    anywhere in their box, in any sequence: A is multi-affine in p, so A(p) is a convex
+    combination of the vertex matrices A_i, and V = x' P x with A_i' P A_i < P at every vertex
+    decreases along every such sequence (:func:`varying_check`).
+
+    Attributes
+    ----------
+    found : bool
+        A P was found and verified at every vertex.
+    contraction : float
+        max_i ||A_i||_P, the largest factor by which sqrt(V) shrinks in one sample (< 1 when
+        found) [-]; the best found when not.
+    vertices : int
+        Vertex matrices checked.
+    estimates : str
+        ``'corners'``, ``'initial'`` or ``'none'``: whether the estimates vary over the box.
+    slope : tuple of float
+        The interval the hysteresis slope varies in [-].
+    layer : bool
+        Whether the robust term's gain varies (a RAC: sat(s/epsilon)/(s/epsilon) in [0, 1]).
+
+    """
+
+    found: bool
+    contraction: float
+    vertices: int
+    estimates: str
+    slope: tuple[float, float]
+    layer: bool
+
+    def text(self) -> str:
+        """Return what the certificate covers, or that none was found."""
+        varying = []
+        if self.estimates == 'corners':
+            varying.append('the estimates varying anywhere in the box')
+        if self.layer:
+            varying.append('the robust term switching in and out of the boundary layer')
+        varying.append(f'the hysteresis slope varying in [{self.slope[0]:.4g}, '
+                       f'{self.slope[1]:.4g}]')
+        what = ', '.join(varying)
+        if not self.found:
+            return (f'Time-varying loop: no common quadratic Lyapunov function found over '
+                    f'{self.vertices} vertices (best contraction {self.contraction:.4f} per '
+                    'sample; the search is not exhaustive), so its stability with '
+                    f'{what} is not proven.')
+        return (f'Time-varying loop: a common quadratic Lyapunov function over {self.vertices} '
+                f'vertices (contraction {self.contraction:.4f} per sample) proves the loop '
+                f'exponentially stable with {what} in any sequence, and every signal bounded '
+                'under the bounded inputs (reference, quantisation, and the hysteresis as '
+                'c v + d with |d| <= rho, c in that interval).')
+
+
+@dataclass(frozen=True)
 class StabilityReport:
     """
     Verdict over every case of one controller configuration on one plant model.
@@ -563,6 +629,7 @@ class StabilityReport:
     certificates: tuple[BoxCertificate, ...] = ()
     learning: LearningConvergence | None = None
     box: CheckedBox | None = None
+    varying: VaryingCertificate | None = None
 
     @property
     def stable(self) -> bool:
@@ -600,12 +667,18 @@ class StabilityReport:
                         estimates, 'Frozen-parameter robust stability over the slopes')
             proven = (f'{kind}: every linear time-invariant loop with {what} is stable with '
                       f'{delay} (edge theorem over {n} famil{"y" if n == 1 else "ies"}).')
+        fails = ''.join(f' NOT STABLE OVER THE BOX: {c.label}, {c.detail}.' for c in failed)
+        v = self.varying
+        if v is not None and v.found:
+            return (proven + fails + ' ' + v.text() + ' Not proven: the loop while the '
+                    'command saturates (clipping and conditional integration), and any '
+                    'convergence of the error or the estimates.')
         varying = ('estimates that move, a boundary layer that switches, '
                    if self.adaptation is not None else '')
+        searched = (' ' + v.text()) if v is not None else (
+            ' (no time-varying check was run: check --varying, or varying_check)')
         unproven = (f' Not proven: the running loop, with {varying}a hysteresis slope that '
-                    'jumps at reversals and a command that saturates (no circle or Popov '
-                    'criterion is applied).')
-        fails = ''.join(f' NOT STABLE OVER THE BOX: {c.label}, {c.detail}.' for c in failed)
+                    f'jumps at reversals and a command that saturates.{searched}')
         return proven + fails + unproven
 
     def as_dict(self) -> dict[str, object]:
@@ -655,6 +728,10 @@ class StabilityReport:
         if self.learning is not None:
             out['learning'] = {'ok': self.learning.ok, 'ratio': self.learning.ratio,
                                'text': self.learning.text()}
+        if self.varying is not None:
+            v = self.varying
+            out['varying'] = {'found': v.found, 'contraction': v.contraction,
+                              'vertices': v.vertices, 'text': v.text()}
         return out
 
     def binding(self) -> str:
@@ -961,8 +1038,8 @@ def _loop_parts(controller_params: ControllerParams, plant_params: PlantParams,
 
 def check_stability(controller_params: ControllerParams, plant_params: PlantParams,
                     sample_time_s: float, *, options: StabilityParams | None = None,
-                    period_s: float | None = None, stage: StageParams | None = None
-                    ) -> StabilityReport:
+                    period_s: float | None = None, stage: StageParams | None = None,
+                    varying: bool = False) -> StabilityReport:
     """
     Check the linearized discrete-time loop of a controller on a plant model.
 
@@ -982,12 +1059,16 @@ def check_stability(controller_params: ControllerParams, plant_params: PlantPara
         convergence (:func:`learning_check`; ``feedforward.period_s`` takes precedence).
     stage : StageParams, optional
         The configured stage, for the learning's design hysteresis and stage family.
+    varying : bool
+        Also search a common quadratic Lyapunov function of the time-varying loop
+        (:func:`varying_check`, seconds rather than milliseconds).
 
     Returns
     -------
     StabilityReport
         Closed-loop poles, spectral radius and margins of every case, and the verdict; the
-        learning's convergence does not enter :attr:`StabilityReport.stable`.
+        learning's convergence and the time-varying certificate do not enter
+        :attr:`StabilityReport.stable`.
 
     """
     opts, plant, g_num, g_den, notch = _loop_parts(controller_params, plant_params,
@@ -1043,7 +1124,197 @@ def check_stability(controller_params: ControllerParams, plant_params: PlantPara
     return StabilityReport(controller=desc, plant=plant.name, sample_time_s=sample_time_s,
                            cases=tuple(cases), adaptation=adaptation,
                            certificates=tuple(certificates), learning=learning,
-                           box=_checked_box(controller_params, opts))
+                           box=_checked_box(controller_params, opts),
+                           varying=(_varying(controller_params, plant, g_num, g_den, notch,
+                                             sample_time_s, opts) if varying else None))
+
+
+def varying_check(controller_params: ControllerParams, plant_params: PlantParams,
+                  sample_time_s: float, *, options: StabilityParams | None = None
+                  ) -> VaryingCertificate:
+    """
+    Search a common quadratic Lyapunov function of the loop with time-varying parameters.
+
+    Parameters
+    ----------
+    controller_params : ControllerParams
+        Controller configuration (type, gains, box, notch).
+    plant_params : PlantParams
+        Plant model.
+    sample_time_s : float
+        T [s], > 0.
+    options : StabilityParams, optional
+        Slopes, estimates and delay; default :class:`StabilityParams`.
+
+    Returns
+    -------
+    VaryingCertificate
+
+    Notes
+    -----
+    The loop of the module docstring in state space (plant with its delayed hold, the
+    integral, the notch), with the reference terms as bounded inputs, is x_k+1 = A x_k with
+    the command v_k = -k_p e_k - k_i I_k; the time-varying parameters enter only through
+    slope (k_p, k_i): the RAC's k_p = k + phi_hat lambda - theta_hat and k_i = k lambda with
+    k = k_d + sigma k*/epsilon, sigma = sat(z)/z in [0, 1] for z = s/epsilon, and the slope
+    multiplies the command. A is affine in each of slope, sigma and phi_hat lambda - theta_hat,
+    so its values lie in the convex hull of the 2 x 2 x 2 vertex matrices, and
+    [[P, A' P], [P A, P]] > 0 is affine in A: a P found at the vertices holds for every
+    sequence. The search (BFGS on a smooth maximum of ||A_i||_P^2 over the Cholesky factor
+    of P, from the Lyapunov solution of the mean vertex) may miss a P that exists; the one it
+    returns is verified directly: P - A_i' P A_i positive definite at every vertex.
+
+    """
+    opts, plant, g_num, g_den, notch = _loop_parts(controller_params, plant_params,
+                                                   sample_time_s, options)
+    return _varying(controller_params, plant, g_num, g_den, notch, sample_time_s, opts)
+
+
+def _varying(params: ControllerParams, plant: LinearPlant, g_num: FloatArray,
+             g_den: FloatArray, notch: tuple[Sequence[float], Sequence[float]] | None,
+             sample_time_s: float, opts: StabilityParams) -> VaryingCertificate:
+    """Return the :class:`VaryingCertificate` of a loop (see varying_check)."""
+    matrices = _vertex_matrices(params, g_num, g_den, notch, sample_time_s, opts)
+    found, contraction = _common_lyapunov(matrices)
+    box = _checked_box(params, opts)
+    return VaryingCertificate(found=found, contraction=contraction, vertices=len(matrices),
+                              estimates=box.estimates, slope=box.slope,
+                              layer=params.type == 'rac')
+
+
+def _vertex_matrices(params: ControllerParams, g_num: FloatArray, g_den: FloatArray,
+                     notch: tuple[Sequence[float], Sequence[float]] | None,
+                     sample_time_s: float, opts: StabilityParams) -> list[FloatArray]:
+    """Return the closed-loop state matrices at the vertices of (k_p, k_i) x slope."""
+    from scipy.signal import tf2ss
+    num = np.trim_zeros(np.asarray(g_num, dtype=np.float64), 'f')
+    a, b, c, d = tf2ss(num, g_den)
+    if np.any(d):  # the hold makes G(z) strictly proper; a feedthrough would close a loop
+        raise ValueError('the discretized plant has a direct feedthrough')
+    if notch is not None:
+        an, bn, cn, dn = tf2ss(np.asarray(notch[0], dtype=np.float64),
+                               np.asarray(notch[1], dtype=np.float64))
+    else:
+        an, bn, cn, dn = (np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)),
+                          np.ones((1, 1)))
+    n, m = a.shape[0], an.shape[0]
+    t = sample_time_s
+    kc = params.sensor_gain_v_per_m * c[0]          # e_k = K C x_k (the reference aside)
+    gains: list[tuple[float, float]] = []
+    for _, ki, members in _controller_families(params, opts.estimates):
+        kps = [kp for _, kp in members]
+        for kp in sorted({min(kps), max(kps)}):
+            gains.append((kp, ki))
+    out = []
+    # without integral action the integral is no state of the loop (an idle integrator would
+    # sit on the unit circle)
+    integral = any(ki != 0.0 for _, ki in gains)
+    for slope in sorted({opts.slope_min, opts.slope_max}):
+        for kp, ki in gains:
+            # v_k = -(k_p + k_i T) K C x_k - k_i I_k-1;  I_k = I_k-1 + T K C x_k
+            v_x = -(kp + ki * t) * kc
+            big = np.zeros((n + 1 + m, n + 1 + m))
+            big[:n, :n] = a + slope * dn[0, 0] * np.outer(b[:, 0], v_x)
+            big[:n, n] = slope * dn[0, 0] * b[:, 0] * -ki
+            big[:n, n + 1:] = slope * np.outer(b[:, 0], cn[0])
+            big[n, :n] = t * kc
+            big[n, n] = 1.0
+            big[n + 1:, :n] = np.outer(bn[:, 0], v_x)
+            big[n + 1:, n] = bn[:, 0] * -ki
+            big[n + 1:, n + 1:] = an
+            out.append(big if integral else np.delete(np.delete(big, n, 0), n, 1))
+    return out
+
+
+def _common_lyapunov(matrices: Sequence[FloatArray]) -> tuple[bool, float]:
+    """
+    Return (verified, max_i ||A_i||_P) for the best P a local search finds.
+
+    The search minimises a smooth maximum (log-sum-exp, sharpened in steps) of the largest
+    eigenvalue of L^-1 A_i' P A_i L^-T over the Cholesky factor L of P = L L'. The P it ends
+    with counts only if P - A_i' P A_i is positive definite at every vertex with a margin of
+    1e-9 of ||P|| (rounding of the 2-norm products is near 1e-15 of it) and P is not
+    ill-conditioned (condition number below 1e12).
+    """
+    from scipy.linalg import (
+        cho_factor,
+        matrix_balance,
+        solve_discrete_lyapunov,
+        solve_triangular,
+    )
+    from scipy.optimize import minimize
+    size = matrices[0].shape[0]
+    # a diagonal similarity by powers of two (exact in floating point) evens the states'
+    # scales (plant states in metres, the integral in volt-seconds): a P for the balanced
+    # matrices is one for the originals
+    _, (scale_vec, _) = matrix_balance(np.mean(np.stack(matrices), axis=0), permute=False,
+                                      separate=True)
+    matrices = [a * scale_vec[None, :] / scale_vec[:, None] for a in matrices]
+    mean = np.mean(np.stack(matrices), axis=0)
+    try:
+        start = solve_discrete_lyapunov(mean.T, np.eye(size))
+        chol = np.linalg.cholesky(start / (np.trace(start) / size))
+    except (np.linalg.LinAlgError, ValueError):
+        chol = np.eye(size)
+    lower = np.tril_indices(size)
+
+    def norms(x: FloatArray) -> FloatArray:
+        factor = np.zeros((size, size))
+        factor[lower] = x
+        p = factor @ factor.T
+        try:
+            lc = np.linalg.cholesky(p)
+        except np.linalg.LinAlgError:
+            return np.full(len(matrices), 1e6)
+        out = []
+        for a in matrices:
+            m = solve_triangular(lc, a.T @ p @ a, lower=True)
+            m = solve_triangular(lc, m.T, lower=True)
+            out.append(np.linalg.eigvalsh(0.5 * (m + m.T))[-1])
+        return np.asarray(out)
+
+    x = chol[lower]
+
+    def feasible(x: FloatArray) -> bool:
+        return bool(np.max(norms(x)) < 1.0 - 1e-6)
+
+    for sharpness in (30.0, 300.0):
+        if feasible(x):
+            break
+
+        def smooth_max(x: FloatArray, beta: float = sharpness) -> float:
+            v = norms(x)
+            top = float(np.max(v))
+            return top + float(np.log(np.sum(np.exp(beta * (v - top))))) / beta
+
+        best = [x]
+
+        def stop(xk: FloatArray, best: list[FloatArray] = best) -> None:
+            # feasibility, not the optimum, is what is asked: stop at the first P that holds
+            best[0] = np.array(xk, copy=True)
+            if feasible(xk):
+                raise StopIteration
+        try:
+            x = minimize(smooth_max, x, method='BFGS', callback=stop,
+                         options={'maxiter': 120}).x
+        except StopIteration:  # scipy before 1.11 lets it through
+            x = best[0]
+        if feasible(best[0]):
+            x = best[0]
+    factor = np.zeros((size, size))
+    factor[lower] = x
+    p = factor @ factor.T
+    contraction = math.sqrt(max(float(np.max(norms(x))), 0.0))
+    scale = float(np.linalg.norm(p, 2))
+    ok = scale > 0.0 and np.linalg.cond(p) < 1e12
+    for a in matrices if ok else []:
+        gap = p - a.T @ p @ a
+        ok = ok and float(np.linalg.eigvalsh(0.5 * (gap + gap.T))[0]) > 1e-9 * scale
+    try:
+        cho_factor(p)
+    except np.linalg.LinAlgError:
+        ok = False
+    return bool(ok and contraction < 1.0), contraction
 
 
 def _checked_box(params: ControllerParams, opts: StabilityParams) -> CheckedBox:
