@@ -391,6 +391,12 @@ class RACController:
     """
     The robust adaptive controller of eqs. (33)-(40), one step per sample.
 
+    The law is the paper's (36) with the generalised update of the module docstring; it is
+    the paper's (38)-(40) only with ``adaptation_dead_zone_v = epsilon_v``, the measured
+    regressors and no normalisation, and even then the paper's Theorem 1 is a continuous-time
+    result for the first-order model, not a guarantee for this sampled loop (module
+    docstring).
+
     Parameters
     ----------
     params : RACParams
