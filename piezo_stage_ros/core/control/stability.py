@@ -676,7 +676,7 @@ class StabilityReport:
         varying = ('estimates that move, a boundary layer that switches, '
                    if self.adaptation is not None else '')
         searched = (' ' + v.text()) if v is not None else (
-            ' (no time-varying check was run: check --varying, or varying_check)')
+            ' (the time-varying check was not run: the check command runs it)')
         unproven = (f' Not proven: the running loop, with {varying}a hysteresis slope that '
                     f'jumps at reversals and a command that saturates.{searched}')
         return proven + fails + unproven
