@@ -53,6 +53,7 @@ setup(
             'tune = piezo_stage_ros.tune:main',
             'commission = piezo_stage_ros.commission:main',
             'robustness = piezo_stage_ros.robustness:main',
+            'check = piezo_stage_ros.check:main',
             'plant_node = piezo_stage_ros.nodes.plant_node:main',
             'controller_node = piezo_stage_ros.nodes.controller_node:main',
             'trajectory_node = piezo_stage_ros.nodes.trajectory_node:main',

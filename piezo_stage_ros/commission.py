@@ -17,8 +17,8 @@
 
 Holds the stage at a safe position under a conservative PI, adds a small periodic multisine to
 its reference (at most 1 um from the hold, at most 10 s), identifies the stage in closed loop
-with 95 % bounds, designs the notch and gains on the identified model, certifies them with the
-stability check over the bounds, runs a 100 Hz verification sine, and writes
+with 95 % bounds, designs the notch and gains on the identified model, checks them with the
+frozen-parameter stability check over the bounds, runs a 100 Hz verification sine, and writes
 
 - a ROS 2 parameter file (``--output``, default ``commissioned.yaml``): the identified stage in
   ``plant_node`` (as ``identify`` writes it) and the commissioned controller in
@@ -324,7 +324,9 @@ def _single(args: argparse.Namespace, loop: LoopConfig) -> int:
     print(f'design: {result.design.label}, notch '
           f'{result.design.controller.notch.frequency_hz:.1f} Hz (zero damping '
           f'{result.design.controller.notch.zero_damping:.4g})')
-    print(f'certification: {"certified" if cert.certified else "NOT certified"} on '
+    print(f'stability check (parameters frozen, {cert.nominal.delay_samples:g} samples of '
+          'computational delay): '
+          f'{"stable over the box" if cert.certified else "NOT stable over the box"} on '
           f'{cert.corners} plants (identified model and the corners of its 95 % bounds), '
           f'slopes {cert.slope_range[0]:.4g} ... {cert.slope_range[1]:.4g}; smallest gain '
           f'margin {cert.gain_margin_db:.1f} dB, phase margin {cert.phase_margin_deg:.0f} deg')

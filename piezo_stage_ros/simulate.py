@@ -321,7 +321,10 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
     print(f'{ctrl.type} on the {stage.plant.model} plant with {stage.hysteresis.model} '
           f'hysteresis, trajectory {traj.kind}'
           + (f' (period {period:g} s)' if period else ''))
-    print(f'stability check: {"stable" if report.stable else "UNSTABLE"}')
+    print(f'stability check: {"stable" if report.stable else "UNSTABLE"} over the box with '
+          f'the parameters frozen, at {report.delay_samples:g} samples of computational delay '
+          '(the simulated loop applies each command at its sample; not a proof for the '
+          'running loop)')
     if report.learning is not None:
         print(f'learning check: {report.learning.text()}')
     if args.line_rate_change is not None and after is not None:

@@ -257,9 +257,10 @@ def _first_step(p, x, xd, vd):
 @pytest.mark.parametrize('offset_m, moves', [(0.3e-9, False), (-0.3e-9, False),
                                              (1.9e-9, False), (3e-9, True), (-3e-9, True)])
 def test_the_adaptation_dead_zone_freezes_the_estimates_inside_it(offset_m, moves):
-    # a boundary layer much narrower than the dead zone: only epsilon_a decides
+    # a boundary layer much narrower than the dead zone: only epsilon_a decides (lambda set
+    # here, so that the offsets below fall on either side of it as the comment computes)
     p = RACParams(epsilon_v=1e-5, adaptation_dead_zone_v=0.001, gamma=1e3, eta=1e-3,
-                  adaptation_regressor='measured', normalisation=0.0)
+                  adaptation_regressor='measured', normalisation=0.0, lambda_per_s=3000.0)
     y, u_fd, s, d = _first_step(p, 3.8e-6 + offset_m, 3.8e-6, 0.0)
     # s = (1 + lambda T) K offset: 0.10 mV at 0.3 nm, 0.65 mV at 1.9 nm, 1.03 mV at 3 nm
     assert (abs(s) > p.adaptation_dead_zone_v) == moves

@@ -135,9 +135,9 @@ def test_square_reports_the_ideal_and_the_shaped_wave_beside_the_paper() -> None
         # cycle bangs between them, 0.9 ... 1.7 with the paper's rates)
         assert r.theta_min < row['theta_hat_min'] and row['theta_hat_max'] < r.theta_max
     # the ideal 7.8 um jump through the PI zero overshoots (physics, not hidden); the S-curve
-    # overshoots far less (a few %: phi_hat(0) = 2.5e-4 starts below the feedforward gain the
-    # ramp's velocity needs, and adapts towards it on the edges; 7.5 % with the adaptation
-    # off), and its rise is that of the reference itself (0.48 T_r = 0.96 ms, +-10 %)
+    # overshoots far less (a few %: phi_hat(0), the model's 1/(b c), starts below the gain the
+    # ramp's velocity needs, and adapts towards it on the edges), and its rise is that of the
+    # reference itself (0.48 T_r = 0.96 ms, +-10 %)
     assert 10.0 < ideal['overshoot_pct'] < 60.0
     assert shaped['overshoot_pct'] < 0.2 * ideal['overshoot_pct']
     assert shaped['rise_time_s'] == pytest.approx(0.48 * 2e-3, rel=0.1)

@@ -62,6 +62,9 @@ from tolerances import EPS
 
 T = 1e-4
 LOOP = load_loop_config([])
+#: the check without computational delay: the loop the learning filter is designed for, where
+#: the ratios below have closed forms
+NO_DELAY = LOOP.stability.replace(delay_samples=0.0)
 
 
 def _controller(mode: str, **flat: object) -> ControllerParams:
@@ -389,7 +392,9 @@ def test_a_saved_table_starts_a_run_at_the_learned_error(tmp_path, mode: str) ->
     # from the second period on (the first holds the start from rest with the sine's full
     # velocity) at the learned level, where a fresh table needs several periods
     assert max(after[1:]) <= 1.25 * floor
-    assert after[0] <= before[0]
+    # the first period is the start from rest, which no table removes; the loaded table adds
+    # at most its own correction, of the size of the learned level, to it
+    assert after[0] <= before[0] + floor
     if mode == 'learning':  # the inverse alone is at the floor from the second period
         assert before[1] >= 10.0 * floor
     saved = read_learned_table(path)
@@ -461,7 +466,8 @@ def test_a_table_file_needs_a_learning_mode(tmp_path) -> None:
 @pytest.mark.parametrize('kind', ['rac', 'pi'])
 def test_on_the_design_model_the_ratio_is_one_minus_gamma(gain: float, kind: str) -> None:
     params = _controller('inverse_learning', type=kind, **{'feedforward.learning_gain': gain})
-    check = learning_check(params, LOOP.design_plant, T, 0.01, stage=LOOP.stage)
+    check = learning_check(params, LOOP.design_plant, T, 0.01, stage=LOOP.stage,
+                           options=NO_DELAY)
     assert check is not None
     # P_true / P_s = 1 up to the rounding of one complex division
     assert check.design_ratio == pytest.approx(abs(1.0 - gain), abs=4 * EPS)
@@ -477,7 +483,7 @@ def test_without_feedback_the_ratio_is_one_minus_gamma_times_the_gain_change(
     # of c) has P_true / P_s = a s / c exactly, on every harmonic
     params = _controller('learning', type='open_loop', **{'feedforward.learning_gain': gain})
     check = learning_check(params, LOOP.design_plant, T, 0.01, stage=LOOP.stage,
-                           options=LOOP.stability)
+                           options=NO_DELAY)
     assert check is not None
     c = make_hysteresis(LOOP.stage.hysteresis).slope  # the design hysteresis' c
     members = dict(check.members)

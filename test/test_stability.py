@@ -43,10 +43,12 @@ REDUCED = PlantParams(model='reduced')
 THIRD = PlantParams(model='third_order')
 NO_NOTCH = NotchParams(mode='off')
 PAPER_PI = ControllerParams(type='pi', notch=NO_NOTCH)
+#: the loop as the offline runner closes it: u_k applied at t_k (the analytic answers below)
+NO_DELAY = StabilityParams(delay_samples=0.0)
 
 
 def test_paper_pi_is_unstable_on_the_paper_third_order_model():
-    rep = check_stability(PAPER_PI, THIRD, T)
+    rep = check_stability(PAPER_PI, THIRD, T, options=NO_DELAY)
     assert not rep.stable
     assert rep.spectral_radius > 1.0
     assert 'UNSTABLE' in rep.text() and 'third_order' in rep.text()
@@ -95,7 +97,7 @@ def test_p_only_loop_on_the_reduced_model_matches_the_analytic_pole_and_gain_mar
     d = reduced_plant(ReducedParams()).discretize(T)
     ad, gd = float(d.ad[0, 0]), float(d.c[0] * d.bd[0, 0])   # G(z) = gd / (z - ad)
     k = ControllerParams().sensor_gain_v_per_m
-    opts = StabilityParams(slope_min=slope, slope_max=slope, slope_points=1)
+    opts = StabilityParams(slope_min=slope, slope_max=slope, slope_points=1, delay_samples=0.0)
     rep = check_stability(ControllerParams(type='pi', pi=PIParams(k_p=kp, k_i=0.0),
                                            notch=NO_NOTCH), REDUCED, T, options=opts)
     (case,) = rep.cases
@@ -130,7 +132,7 @@ def test_enforce_is_silent_on_a_stable_loop_and_checks_its_action():
 
 
 def test_a_computational_delay_costs_margin():
-    base = check_stability(PAPER_PI, REDUCED, T)
+    base = check_stability(PAPER_PI, REDUCED, T, options=NO_DELAY)
     delayed = check_stability(PAPER_PI, REDUCED, T, options=StabilityParams(delay_samples=1))
     assert delayed.gain_margin_db < base.gain_margin_db
     assert delayed.phase_margin_deg < base.phase_margin_deg
@@ -215,7 +217,7 @@ def test_the_certificate_covers_every_slope_between_the_sampled_ones():
     params = ControllerParams(type='pi', pi=PIParams(k_p=kp, k_i=0.0), notch=NO_NOTCH)
     for top, ok in ((0.999 * limit, True), (1.001 * limit, False)):
         rep = check_stability(params, REDUCED, T, options=StabilityParams(
-            slope_min=0.5 * limit, slope_max=top, slope_points=2))
+            slope_min=0.5 * limit, slope_max=top, slope_points=2, delay_samples=0.0))
         assert all(c.certified for c in rep.certificates) == ok
         assert rep.stable == ok
 

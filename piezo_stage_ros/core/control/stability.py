@@ -13,18 +13,43 @@
 # limitations under the License.
 
 """
-Stability of the linearized discrete-time loop: controller + ZOH plant at the sample rate.
+Frozen-parameter robust stability of the discrete-time loop: controller + held plant.
 
-The loop is built exactly as it runs (see :mod:`piezo_stage_ros.core.contracts.interfaces`): the
-controller sees y_k and returns u_k, which the plant holds over [t_k, t_k+1) (optionally after
-``delay_samples`` more samples of computational delay). With the hysteresis replaced by a
-gain (its local slope dw/dv) and the controller by its linear part, the loop transfer at the
-plant input is::
+What the check proves, and what it does not. It proves that every *linear time-invariant*
+loop obtained by freezing the RAC's estimates anywhere in their projection box (or at their
+initial pair only, ``estimates: initial``), the hysteresis slope anywhere in
+``[slope_min, slope_max]`` and the boundary layer in either region, with the configured
+computational delay, has its closed-loop poles inside the unit circle: frozen-parameter
+robust stability over the box. It does not prove that the running loop is stable: there the
+estimates move, the robust term switches between sat(s/epsilon) = s/epsilon and +-1, the
+hysteresis slope jumps at every reversal and the command saturates; a loop whose every frozen
+member is stable can still be destabilised by such variation (slow variation cannot, fast
+variation can). The adaptation bound below is a frozen-regressor linearization with a 2x gain
+margin, not a proof either. Words used in the report: "stable over the box" for this verdict,
+never "guaranteed".
 
-    L(z) = z^-delay * N(z) * C(z) * slope * K_PSCM * G(z)
+On request (``check_stability(..., varying=True)``, :func:`varying_check`, and the ``check``
+command by default) the check goes further: it searches a common quadratic Lyapunov function
+for the loop whose estimates, robust-term gain sat(s/epsilon)/(s/epsilon) in [0, 1] and
+hysteresis slope all vary in time inside their ranges (the estimates stay in the box whatever
+the adaptation does: the projection). One found proves that loop exponentially stable for
+every such sequence, and its signals bounded under bounded inputs (the reference, the
+quantisers, the hysteresis' bounded part d): a real nonlinear certificate, short of the command
+limits. The search is local: one not found proves nothing either way.
 
-with G(z) the ZOH discretization of the plant model from w [V] to x [m]
-(:meth:`piezo_stage_ros.core.model.linear.LinearPlant.discretize`), N(z) the notch filter and C(z)
+The loop is built as it runs (see :mod:`piezo_stage_ros.core.contracts.interfaces`): the
+controller sees y_k and returns u_k, which reaches the plant ``delay_samples`` = d sample
+periods later (the computational delay: the time to read, compute and write; 0 in the offline
+runner, a fraction of a period in a servo that computes within the period, one period in a
+target that applies the answer at its next tick) and is held until u_k+1 replaces it. With the
+hysteresis replaced by a gain (its local slope dw/dv) and the controller by its linear part,
+the loop transfer at the plant input is::
+
+    L(z) = N(z) * C(z) * slope * K_PSCM * G_d(z)
+
+with G_d(z) the exact discretization of the plant model from w [V] to x [m] under that delayed
+hold (:func:`_plant_tf`: the modified z-transform, exact for a fractional d; d = 0 is
+:meth:`piezo_stage_ros.core.model.linear.LinearPlant.discretize`), N(z) the notch filter and C(z)
 the controller from sensor volts to the command (negative feedback)::
 
     PI:   C(z) = k_p + k_i T z/(z - 1)
@@ -38,7 +63,7 @@ The check samples every combination of: hysteresis slope on a grid over
 ``[slope_min, slope_max]`` (for eq. (21) the incremental slope dw/dv lies in [2 B1 - c, c]),
 the RAC estimates at the four corners of their projection box and at their initial values
 (``estimates: corners``) or only at their initial values, and both RAC regions, and reports
-the poles and margins of each. It then *certifies* the whole set, not only the samples: the
+the poles and margins of each. It then checks the whole set, not only the samples: the
 estimates enter the linear loop only through its proportional gain k_p = k + phi_hat lambda -
 theta_hat, affine in them, so the box maps onto an interval of k_p, and the characteristic
 polynomial den_L + num_L is affine in (slope k_p, slope k lambda). The family "every estimate
@@ -46,7 +71,8 @@ of the box x every slope" is therefore a polytope of polynomials (a trapezoid), 
 theorem (Bartlett, Hollot and Huang 1988) every member has its roots inside the unit circle if
 and only if its four edges do: a stable vertex and no edge along which a root reaches the
 circle (:func:`_polytope_failure`, a frequency sweep with the exact crossing parameter). The
-verdict :attr:`StabilityReport.stable` is the sampled cases and these certificates.
+verdict :attr:`StabilityReport.stable` is the sampled cases and these box checks (each a
+:class:`BoxCertificate`: a certificate of the frozen family, not of the time-varying loop).
 
 The RAC's adaptation is a second, discrete loop (:func:`adaptation_bound`): where |s| exceeds
 the adaptation's dead zone epsilon_a the updates theta_hat += -(T/n) gamma y s_a and
@@ -60,7 +86,7 @@ command disturbance in the loop above (H(1) = 1/k). Every root must lie inside t
 circle: g_eff < g_crit, the smallest critical gain over the estimate box, the slopes and the
 regions where the adaptation acts (outside the boundary layer, k = k_d; and inside it,
 k = k_d + k*/epsilon, when epsilon_a < epsilon); for a fixed g the family is again a polytope,
-certified by its edges. The dead zone does not change this linear loop: for |s| > epsilon_a,
+checked on its edges. The dead zone does not change this linear loop: for |s| > epsilon_a,
 s_a = s - epsilon_a sign(s) has slope 1, inside it the adaptation stops (slope 0), a sector
 [0, 1] nonlinearity whose every gain g' in [0, g] is below the first crossing g_crit. The
 report requires g_eff <= g_crit / ADAPTATION_MARGIN at the largest regressors the stage can
@@ -103,7 +129,8 @@ from piezo_stage_ros.core.model.hysteresis import HysteresisParams, make_hystere
 from piezo_stage_ros.core.model.linear import LinearPlant, third_order_plant
 from piezo_stage_ros.core.model.stage import linear_plant, PlantParams, StageParams
 
-__all__ = ['ADAPTATION_MARGIN', 'AdaptationBound', 'BoxCertificate', 'LearningConvergence',
+__all__ = ['ADAPTATION_MARGIN', 'AdaptationBound', 'BoxCertificate', 'CheckedBox',
+           'LearningConvergence', 'VaryingCertificate', 'varying_check',
            'LoopCase', 'StabilityParams', 'StabilityReport', 'StabilityWarning',
            'adaptation_bound', 'check_stability', 'enforce', 'learning_check', 'loop_polynomials',
            'stability_plant']
@@ -134,8 +161,15 @@ class StabilityParams(Params):
                              '(c for the default backlash-like model).', low=0.0, low_open=True)
     slope_points: int = param(5, unit='-', description='Slopes checked, evenly spaced over '
                               '[slope_min, slope_max].', low=1, high=101)
-    delay_samples: int = param(0, unit='-', description='Extra computational delay of the loop '
-                               '(0: u_k is applied at t_k).', low=0, high=10)
+    delay_samples: float = param(0.5, unit='samples', description='Computational delay of the '
+                                 'loop: u_k reaches the plant this many sample periods after y_k '
+                                 'is read (0: at t_k, as the offline runner applies it; a '
+                                 'fraction: computed within the period; 1: at t_k+1). '
+                                 'Fractional delays are discretised exactly (zero-order hold '
+                                 'switched part-way through the period). 0.5 covers the '
+                                 'in-process servo, which reads, computes and writes within '
+                                 'the first half of the period; a UDP target that applies the '
+                                 'answer at its next tick needs 1.', low=0.0, high=10.0)
     design_model: str = param('plant', unit='-', description='Model the check and a notch in '
                               'model mode use: plant takes plant.* of the plant_node section of '
                               'the same parameter files, own takes stability.plant.* (a real '
@@ -194,9 +228,65 @@ class LoopCase:
 
 
 @dataclass(frozen=True)
+class CheckedBox:
+    """
+    What the frozen-parameter check covered: the estimates, the slopes and the delay.
+
+    Attributes
+    ----------
+    estimates : str
+        ``'corners'`` (the whole projection box), ``'initial'`` (the initial pair only) or
+        ``'none'`` (a controller without estimates).
+    theta : tuple of float
+        The theta_hat interval checked [V/V] (both ends the initial value with ``'initial'``).
+    phi_s : tuple of float
+        The phi_hat interval checked [s].
+    slope : tuple of float
+        The hysteresis slope interval [-].
+    slope_points : int
+        Slopes sampled for the margins (the interval itself is checked whole).
+    delay_samples : float
+        Computational delay assumed [samples].
+    box_theta : tuple of float
+        The projection bounds of theta_hat (what ``'initial'`` leaves out).
+    box_phi_s : tuple of float
+        The projection bounds of phi_hat [s].
+
+    """
+
+    estimates: str
+    theta: tuple[float, float]
+    phi_s: tuple[float, float]
+    slope: tuple[float, float]
+    slope_points: int
+    delay_samples: float
+    box_theta: tuple[float, float] = (0.0, 0.0)
+    box_phi_s: tuple[float, float] = (0.0, 0.0)
+
+    def text(self) -> str:
+        """Return what was frozen where, in one clause."""
+        lo, hi = self.slope
+        slope = f'the hysteresis slope frozen anywhere in [{lo:.4g}, {hi:.4g}]'
+        if self.estimates == 'none':
+            return slope
+        if self.estimates == 'initial':
+            return (f'the estimates at their initial pair only (theta_hat = {self.theta[0]:g}, '
+                    f'phi_hat = {self.phi_s[0]:g} s; the projection box theta_hat in '
+                    f'[{self.box_theta[0]:g}, {self.box_theta[1]:g}] x phi_hat in '
+                    f'[{self.box_phi_s[0]:g}, {self.box_phi_s[1]:g}] s was NOT checked), '
+                    f'{slope} and either boundary-layer region')
+        return (f'the estimates frozen anywhere in the box theta_hat in [{self.theta[0]:g}, '
+                f'{self.theta[1]:g}] x phi_hat in [{self.phi_s[0]:g}, {self.phi_s[1]:g}] s, '
+                f'{slope} and either boundary-layer region')
+
+
+@dataclass(frozen=True)
 class BoxCertificate:
     """
-    Whether every linear loop of one controller family is stable, not only the sampled ones.
+    Whether every frozen linear loop of one controller family is stable, not only the sampled.
+
+    A certificate of the frozen-parameter family (edge theorem), not of the running loop
+    whose parameters vary (module docstring).
 
     Attributes
     ----------
@@ -451,6 +541,63 @@ class LearningConvergence:
 
 
 @dataclass(frozen=True)
+class VaryingCertificate:
+    """
+    A common quadratic Lyapunov function of the loop whose parameters vary in time.
+
+    The loop x_k+1 = A(p_k) x_k with p_k = (hysteresis slope, boundary-layer gain, estimates)
+    anywhere in their box, in any sequence: A is multi-affine in p, so A(p) is a convex
+    combination of the vertex matrices A_i, and V = x' P x with A_i' P A_i < P at every vertex
+    decreases along every such sequence (:func:`varying_check`).
+
+    Attributes
+    ----------
+    found : bool
+        A P was found and verified at every vertex.
+    contraction : float
+        max_i ||A_i||_P, the largest factor by which sqrt(V) shrinks in one sample (< 1 when
+        found) [-]; the best found when not.
+    vertices : int
+        Vertex matrices checked.
+    estimates : str
+        ``'corners'``, ``'initial'`` or ``'none'``: whether the estimates vary over the box.
+    slope : tuple of float
+        The interval the hysteresis slope varies in [-].
+    layer : bool
+        Whether the robust term's gain varies (a RAC: sat(s/epsilon)/(s/epsilon) in [0, 1]).
+
+    """
+
+    found: bool
+    contraction: float
+    vertices: int
+    estimates: str
+    slope: tuple[float, float]
+    layer: bool
+
+    def text(self) -> str:
+        """Return what the certificate covers, or that none was found."""
+        varying = []
+        if self.estimates == 'corners':
+            varying.append('the estimates varying anywhere in the box')
+        if self.layer:
+            varying.append('the robust term switching in and out of the boundary layer')
+        varying.append(f'the hysteresis slope varying in [{self.slope[0]:.4g}, '
+                       f'{self.slope[1]:.4g}]')
+        what = ', '.join(varying)
+        if not self.found:
+            return (f'Time-varying loop: no common quadratic Lyapunov function found over '
+                    f'{self.vertices} vertices (best contraction {self.contraction:.4f} per '
+                    'sample; the search is not exhaustive), so its stability with '
+                    f'{what} is not proven.')
+        return (f'Time-varying loop: a common quadratic Lyapunov function over {self.vertices} '
+                f'vertices (contraction {self.contraction:.4f} per sample) proves the loop '
+                f'exponentially stable with {what} in any sequence, and every signal bounded '
+                'under the bounded inputs (reference, quantisation, and the hysteresis as '
+                'c v + d with |d| <= rho, c in that interval).')
+
+
+@dataclass(frozen=True)
 class StabilityReport:
     """
     Verdict over every case of one controller configuration on one plant model.
@@ -468,6 +615,12 @@ class StabilityReport:
     adaptation : AdaptationBound or None
         The discrete adaptation loop of a RAC (None for the other controllers); it does not
         enter the verdict :attr:`stable` (see :func:`enforce`).
+    certificates : tuple of BoxCertificate
+        The frozen families checked whole (edge theorem).
+    learning : LearningConvergence or None
+        The learning feed-forward's convergence, when it learns.
+    box : CheckedBox or None
+        What was frozen where, and the delay assumed.
 
     """
 
@@ -478,17 +631,111 @@ class StabilityReport:
     adaptation: AdaptationBound | None = None
     certificates: tuple[BoxCertificate, ...] = ()
     learning: LearningConvergence | None = None
+    box: CheckedBox | None = None
+    varying: VaryingCertificate | None = None
 
     @property
     def stable(self) -> bool:
-        """Return whether every sampled case is stable and every family is certified."""
+        """Return whether every sampled frozen loop and every frozen family is stable."""
         return (all(c.stable for c in self.cases)
                 and all(c.certified for c in self.certificates))
 
     @property
     def certified(self) -> bool:
-        """Return whether the loops are stable and the adaptation is within its bound."""
+        """
+        Return whether the frozen loops are stable and the adaptation is within its bound.
+
+        Frozen-parameter robust stability over the checked box plus the linearized adaptation
+        bound: what the check can say, not a guarantee for the running loop.
+        """
         return self.stable and (self.adaptation is None or self.adaptation.ok)
+
+    @property
+    def delay_samples(self) -> float:
+        """Return the computational delay the check assumed [samples]."""
+        return self.box.delay_samples if self.box is not None else 0.0
+
+    def scope(self) -> str:
+        """Return one sentence: what is proven (or failed) and what is not proven."""
+        failed = [c for c in self.certificates if not c.certified]
+        what = self.box.text() if self.box is not None else 'the sampled loops'
+        delay = _delay_text(self.delay_samples)
+        n = len(self.certificates)
+        if not self.stable:
+            proven = f'NOT stable over what was checked ({what}, {delay}).'
+        else:
+            estimates = self.box.estimates if self.box is not None else 'none'
+            kind = {'initial': 'Stable at the initial estimates only',
+                    'corners': 'Frozen-parameter robust stability over the box'}.get(
+                        estimates, 'Frozen-parameter robust stability over the slopes')
+            proven = (f'{kind}: every linear time-invariant loop with {what} is stable with '
+                      f'{delay} (edge theorem over {n} famil{"y" if n == 1 else "ies"}).')
+        fails = ''.join(f' NOT STABLE OVER THE BOX: {c.label}, {c.detail}.' for c in failed)
+        v = self.varying
+        if v is not None and v.found:
+            return (proven + fails + ' ' + v.text() + ' Not proven: the loop while the '
+                    'command saturates (clipping and conditional integration), and any '
+                    'convergence of the error or the estimates.')
+        varying = ('estimates that move, a boundary layer that switches, '
+                   if self.adaptation is not None else '')
+        searched = (' ' + v.text()) if v is not None else (
+            ' (the time-varying check was not run: the check command runs it)')
+        unproven = (f' Not proven: the running loop, with {varying}a hysteresis slope that '
+                    f'jumps at reversals and a command that saturates.{searched}')
+        return proven + fails + unproven
+
+    def as_dict(self) -> dict[str, object]:
+        """
+        Return the report as plain JSON-ready values.
+
+        Returns
+        -------
+        dict
+            Verdicts, margins, the worst case, the binding constraint, what was checked
+            (``box``), the families, the adaptation bound, the learning and the words of
+            :meth:`scope`.
+
+        """
+        w = self.worst
+
+        def num(x: float) -> float | str:
+            return x if math.isfinite(x) else ('inf' if x > 0 else '-inf')
+        out: dict[str, object] = {
+            'controller': self.controller, 'plant': self.plant,
+            'sample_time_s': self.sample_time_s, 'delay_samples': self.delay_samples,
+            'stable_over_box': self.stable, 'certified': self.certified,
+            'spectral_radius': w.spectral_radius, 'worst_case': w.label,
+            'gain_margin_db': num(self.gain_margin_db),
+            'phase_margin_deg': num(self.phase_margin_deg),
+            'worst_gain_margin_db': num(w.gain_margin_db),
+            'worst_phase_margin_deg': num(w.phase_margin_deg),
+            'loops_checked': len(self.cases),
+            'loops_stable': sum(c.stable for c in self.cases),
+            'binding': self.binding(), 'scope': self.scope(),
+            'families': [{'label': c.label, 'stable': c.certified, 'detail': c.detail}
+                         for c in self.certificates],
+        }
+        if self.box is not None:
+            b = self.box
+            out['box'] = {'estimates': b.estimates, 'theta': list(b.theta),
+                          'phi_s': list(b.phi_s), 'slope': list(b.slope),
+                          'slope_points': b.slope_points, 'delay_samples': b.delay_samples,
+                          'projection_theta': list(b.box_theta),
+                          'projection_phi_s': list(b.box_phi_s)}
+        a = self.adaptation
+        if a is not None:
+            out['adaptation'] = {'ok': a.ok, 'gain': a.gain, 'effective_gain': a.effective_gain,
+                                 'critical_gain': num(a.critical_gain),
+                                 'margin_db': num(a.margin_db), 'worst_case': a.worst_label,
+                                 'normalisation': a.normalisation, 'text': a.text()}
+        if self.learning is not None:
+            out['learning'] = {'ok': self.learning.ok, 'ratio': self.learning.ratio,
+                               'text': self.learning.text()}
+        if self.varying is not None:
+            v = self.varying
+            out['varying'] = {'found': v.found, 'contraction': v.contraction,
+                              'vertices': v.vertices, 'text': v.text()}
+        return out
 
     def binding(self) -> str:
         """
@@ -543,8 +790,9 @@ class StabilityReport:
         rate = 1.0 / self.sample_time_s
         unstable = [c for c in self.cases if not c.stable]
         head = (f'{self.controller} on the {self.plant} model at {rate:g} Hz: '
-                f'{"STABLE" if self.stable else "UNSTABLE"} '
-                f'({len(self.cases) - len(unstable)}/{len(self.cases)} linearized loops '
+                f'{"STABLE" if self.stable else "UNSTABLE"} with parameters frozen, '
+                f'{_delay_text(self.delay_samples)} '
+                f'({len(self.cases) - len(unstable)}/{len(self.cases)} sampled linear loops '
                 f'stable).')
         worst = (f' Worst case: {w.label}: spectral radius {w.spectral_radius:.4f}, gain '
                  f'margin {_fmt(w.gain_margin_db)} dB, phase margin '
@@ -552,13 +800,7 @@ class StabilityReport:
         margins = (f' Over all cases: smallest gain margin {_fmt(self.gain_margin_db)} dB, '
                    f'smallest phase margin {_fmt(self.phase_margin_deg)} deg (closest to 0).')
         extra = '' if self.adaptation is None else ' ' + self.adaptation.text()
-        failed = [c for c in self.certificates if not c.certified]
-        if self.certificates and not failed:
-            box = (f' Every loop of the box certified ({len(self.certificates)} families, '
-                   'every estimate x every slope, edge theorem).')
-        else:
-            box = ''.join(f' NOT CERTIFIED: {c.label}, {c.detail}.' for c in failed)
-        extra = box + extra + ' ' + self.binding()
+        extra = ' ' + self.scope() + extra + ' ' + self.binding()
         if self.learning is not None:
             extra += ' ' + self.learning.text()
         if self.stable:
@@ -572,6 +814,12 @@ class StabilityReport:
                   'feedback gain (RAC: raise epsilon or lower k_d; PI: lower k_p/k_i), tighten '
                   'the projection bounds, or add a notch filter against a resonance.')
         return head + worst + advice + extra
+
+
+def _delay_text(delay_samples: float) -> str:
+    """Return e.g. '1 sample of computational delay'."""
+    unit = 'sample' if delay_samples == 1.0 else 'samples'
+    return f'{delay_samples:g} {unit} of computational delay'
 
 
 def _fmt(value: float) -> str:
@@ -598,9 +846,58 @@ def stability_plant(plant_params: PlantParams) -> LinearPlant:
     return linear_plant(plant_params)
 
 
-def _plant_tf(plant: LinearPlant, sample_time_s: float) -> tuple[FloatArray, FloatArray]:
-    """Return (num, den) of the ZOH G(z) from w [V] to x [m], powers of z, highest first."""
-    return plant.discretize(sample_time_s).transfer_function()
+def _plant_tf(plant: LinearPlant, sample_time_s: float, delay_samples: float = 0.0
+              ) -> tuple[FloatArray, FloatArray]:
+    """
+    Return (num, den) of G(z) from w [V] to x [m] with the loop's delay, powers of z.
+
+    Parameters
+    ----------
+    plant : LinearPlant
+        Continuous-time model.
+    sample_time_s : float
+        T [s].
+    delay_samples : float
+        d = m + delta >= 0 [samples]: u_k is held from t_k + d T to t_k+1 + d T.
+
+    Returns
+    -------
+    num, den : ndarray
+        The exact discretisation (the modified z-transform of the held input): over
+        [t_k, t_k+1) the plant sees u_k-m-1 until t_k + delta T and u_k-m after, so with
+        Phi = exp(A T)::
+
+            x_k+1 = Phi x_k + Gamma_0 u_k-m + Gamma_1 u_k-m-1
+            Gamma_0 = int_0^((1 - delta) T) exp(A s) ds B
+            Gamma_1 = exp(A (1 - delta) T) int_0^(delta T) exp(A s) ds B
+
+        and G(z) = z^-m C (z I - Phi)^-1 (Gamma_0 + Gamma_1 / z). delta = 0 is the
+        zero-order hold at the sample instants; delta -> 1 tends to one more whole sample.
+
+    """
+    m = math.floor(delay_samples)
+    delta = delay_samples - m
+    if delta == 0.0:
+        num, den = plant.discretize(sample_time_s).transfer_function()
+    else:
+        from scipy.signal import ss2tf
+        late = plant.discretize((1.0 - delta) * sample_time_s)
+        early = plant.discretize(delta * sample_time_s)
+        n = plant.order
+        # state (x_k, u_k-m-1): the held command of the previous sample is a state
+        ad = np.zeros((n + 1, n + 1))
+        ad[:n, :n] = late.ad @ early.ad
+        ad[:n, n] = late.ad @ early.bd[:, 0]
+        bd = np.zeros((n + 1, 1))
+        bd[:n, 0] = late.bd[:, 0]
+        bd[n, 0] = 1.0
+        c = np.r_[plant.c, 0.0]
+        num2, den2 = ss2tf(ad, bd, c[None, :], np.zeros((1, 1)))
+        num = np.asarray(num2, dtype=np.float64).ravel()
+        den = np.asarray(den2, dtype=np.float64).ravel()
+    if m:
+        den = np.convolve(den, np.r_[1.0, np.zeros(m)])
+    return np.asarray(num, dtype=np.float64), np.asarray(den, dtype=np.float64)
 
 
 def _rac_pairs(r: RACParams, estimates: str) -> list[tuple[float, float]]:
@@ -738,14 +1035,14 @@ def _loop_parts(controller_params: ControllerParams, plant_params: PlantParams,
         raise ParameterError('sample_time_s', sample_time_s, '(0, inf)')
     opts = options if options is not None else StabilityParams()
     plant = stability_plant(plant_params)
-    g_num, g_den = _plant_tf(plant, sample_time_s)
+    g_num, g_den = _plant_tf(plant, sample_time_s, opts.delay_samples)
     return opts, plant, g_num, g_den, notch_design(controller_params.notch, sample_time_s, plant)
 
 
 def check_stability(controller_params: ControllerParams, plant_params: PlantParams,
                     sample_time_s: float, *, options: StabilityParams | None = None,
-                    period_s: float | None = None, stage: StageParams | None = None
-                    ) -> StabilityReport:
+                    period_s: float | None = None, stage: StageParams | None = None,
+                    varying: bool = False) -> StabilityReport:
     """
     Check the linearized discrete-time loop of a controller on a plant model.
 
@@ -765,19 +1062,23 @@ def check_stability(controller_params: ControllerParams, plant_params: PlantPara
         convergence (:func:`learning_check`; ``feedforward.period_s`` takes precedence).
     stage : StageParams, optional
         The configured stage, for the learning's design hysteresis and stage family.
+    varying : bool
+        Also search a common quadratic Lyapunov function of the time-varying loop
+        (:func:`varying_check`, seconds rather than milliseconds).
 
     Returns
     -------
     StabilityReport
         Closed-loop poles, spectral radius and margins of every case, and the verdict; the
-        learning's convergence does not enter :attr:`StabilityReport.stable`.
+        learning's convergence and the time-varying certificate do not enter
+        :attr:`StabilityReport.stable`.
 
     """
     opts, plant, g_num, g_den, notch = _loop_parts(controller_params, plant_params,
                                                    sample_time_s, options)
-    # frequency response of everything but the controller, once: G(z) N(z) z^-delay
+    # frequency response of everything but the controller, once: G(z) N(z), the delay in G
     z = _unit_circle(sample_time_s)
-    rest = np.polyval(g_num, z) / np.polyval(g_den, z) * z ** (-float(opts.delay_samples))
+    rest = np.polyval(g_num, z) / np.polyval(g_den, z)
     if notch is not None:
         rest = rest * np.polyval(notch[0], z) / np.polyval(notch[1], z)
     cases: list[LoopCase] = []
@@ -786,8 +1087,7 @@ def check_stability(controller_params: ControllerParams, plant_params: PlantPara
     grid = _circle_grid()
 
     def char(kp: float, ki: float, slope: float) -> FloatArray:
-        num, den = loop_polynomials(kp, ki, k_sensor * slope, g_num, g_den, sample_time_s, notch,
-                                    opts.delay_samples)
+        num, den = loop_polynomials(kp, ki, k_sensor * slope, g_num, g_den, sample_time_s, notch)
         return _padd(den, num)
 
     for family, ki, members in _controller_families(controller_params, opts.estimates):
@@ -800,7 +1100,7 @@ def check_stability(controller_params: ControllerParams, plant_params: PlantPara
                     gm, pm = math.inf, math.inf
                 else:
                     num, den = loop_polynomials(kp, ki, gain, g_num, g_den, sample_time_s,
-                                                notch, opts.delay_samples)
+                                                notch)
                     lz = gain * (kp + ki * sample_time_s * z / (z - 1.0)) * rest
                     gm, pm = _margins(lz, num, den)
                 cases.append(LoopCase(label=f'{label}, slope={slope:.4g}', slope=slope,
@@ -826,7 +1126,214 @@ def check_stability(controller_params: ControllerParams, plant_params: PlantPara
                               period_s or 0.0, stage=stage, options=opts)
     return StabilityReport(controller=desc, plant=plant.name, sample_time_s=sample_time_s,
                            cases=tuple(cases), adaptation=adaptation,
-                           certificates=tuple(certificates), learning=learning)
+                           certificates=tuple(certificates), learning=learning,
+                           box=_checked_box(controller_params, opts),
+                           varying=(_varying(controller_params, plant, g_num, g_den, notch,
+                                             sample_time_s, opts) if varying else None))
+
+
+def varying_check(controller_params: ControllerParams, plant_params: PlantParams,
+                  sample_time_s: float, *, options: StabilityParams | None = None
+                  ) -> VaryingCertificate:
+    """
+    Search a common quadratic Lyapunov function of the loop with time-varying parameters.
+
+    Parameters
+    ----------
+    controller_params : ControllerParams
+        Controller configuration (type, gains, box, notch).
+    plant_params : PlantParams
+        Plant model.
+    sample_time_s : float
+        T [s], > 0.
+    options : StabilityParams, optional
+        Slopes, estimates and delay; default :class:`StabilityParams`.
+
+    Returns
+    -------
+    VaryingCertificate
+
+    Notes
+    -----
+    The loop of the module docstring in state space (plant with its delayed hold, the
+    integral, the notch), with the reference terms as bounded inputs, is x_k+1 = A x_k with
+    the command v_k = -k_p e_k - k_i I_k; the time-varying parameters enter only through
+    slope (k_p, k_i): the RAC's k_p = k + phi_hat lambda - theta_hat and k_i = k lambda with
+    k = k_d + sigma k*/epsilon, sigma = sat(z)/z in [0, 1] for z = s/epsilon, and the slope
+    multiplies the command. A is affine in each of slope, sigma and phi_hat lambda - theta_hat,
+    so its values lie in the convex hull of the 2 x 2 x 2 vertex matrices, and
+    [[P, A' P], [P A, P]] > 0 is affine in A: a P found at the vertices holds for every
+    sequence. The search (BFGS on a smooth maximum of ||A_i||_P^2 over the Cholesky factor
+    of P, from the Lyapunov solution of the mean vertex) may miss a P that exists; the one it
+    returns is verified directly: P - A_i' P A_i positive definite at every vertex.
+
+    """
+    opts, plant, g_num, g_den, notch = _loop_parts(controller_params, plant_params,
+                                                   sample_time_s, options)
+    return _varying(controller_params, plant, g_num, g_den, notch, sample_time_s, opts)
+
+
+def _varying(params: ControllerParams, plant: LinearPlant, g_num: FloatArray,
+             g_den: FloatArray, notch: tuple[Sequence[float], Sequence[float]] | None,
+             sample_time_s: float, opts: StabilityParams) -> VaryingCertificate:
+    """Return the :class:`VaryingCertificate` of a loop (see varying_check)."""
+    matrices = _vertex_matrices(params, g_num, g_den, notch, sample_time_s, opts)
+    found, contraction = _common_lyapunov(matrices)
+    box = _checked_box(params, opts)
+    return VaryingCertificate(found=found, contraction=contraction, vertices=len(matrices),
+                              estimates=box.estimates, slope=box.slope,
+                              layer=params.type == 'rac')
+
+
+def _vertex_matrices(params: ControllerParams, g_num: FloatArray, g_den: FloatArray,
+                     notch: tuple[Sequence[float], Sequence[float]] | None,
+                     sample_time_s: float, opts: StabilityParams) -> list[FloatArray]:
+    """Return the closed-loop state matrices at the vertices of (k_p, k_i) x slope."""
+    from scipy.signal import tf2ss
+    num = np.trim_zeros(np.asarray(g_num, dtype=np.float64), 'f')
+    a, b, c, d = tf2ss(num, g_den)
+    if np.any(d):  # the hold makes G(z) strictly proper; a feedthrough would close a loop
+        raise ValueError('the discretized plant has a direct feedthrough')
+    if notch is not None:
+        an, bn, cn, dn = tf2ss(np.asarray(notch[0], dtype=np.float64),
+                               np.asarray(notch[1], dtype=np.float64))
+    else:
+        an, bn, cn, dn = (np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)),
+                          np.ones((1, 1)))
+    n, m = a.shape[0], an.shape[0]
+    t = sample_time_s
+    kc = params.sensor_gain_v_per_m * c[0]          # e_k = K C x_k (the reference aside)
+    gains: list[tuple[float, float]] = []
+    for _, ki, members in _controller_families(params, opts.estimates):
+        kps = [kp for _, kp in members]
+        for kp in sorted({min(kps), max(kps)}):
+            gains.append((kp, ki))
+    out = []
+    # without integral action the integral is no state of the loop (an idle integrator would
+    # sit on the unit circle)
+    integral = any(ki != 0.0 for _, ki in gains)
+    for slope in sorted({opts.slope_min, opts.slope_max}):
+        for kp, ki in gains:
+            # v_k = -(k_p + k_i T) K C x_k - k_i I_k-1;  I_k = I_k-1 + T K C x_k
+            v_x = -(kp + ki * t) * kc
+            big = np.zeros((n + 1 + m, n + 1 + m))
+            big[:n, :n] = a + slope * dn[0, 0] * np.outer(b[:, 0], v_x)
+            big[:n, n] = slope * dn[0, 0] * b[:, 0] * -ki
+            big[:n, n + 1:] = slope * np.outer(b[:, 0], cn[0])
+            big[n, :n] = t * kc
+            big[n, n] = 1.0
+            big[n + 1:, :n] = np.outer(bn[:, 0], v_x)
+            big[n + 1:, n] = bn[:, 0] * -ki
+            big[n + 1:, n + 1:] = an
+            out.append(big if integral else np.delete(np.delete(big, n, 0), n, 1))
+    return out
+
+
+def _common_lyapunov(matrices: Sequence[FloatArray]) -> tuple[bool, float]:
+    """
+    Return (verified, max_i ||A_i||_P) for the best P a local search finds.
+
+    The search minimises a smooth maximum (log-sum-exp, sharpened in steps) of the largest
+    eigenvalue of L^-1 A_i' P A_i L^-T over the Cholesky factor L of P = L L'. The P it ends
+    with counts only if P - A_i' P A_i is positive definite at every vertex with a margin of
+    1e-9 of ||P|| (rounding of the 2-norm products is near 1e-15 of it) and P is not
+    ill-conditioned (condition number below 1e12).
+    """
+    from scipy.linalg import (
+        cho_factor,
+        matrix_balance,
+        solve_discrete_lyapunov,
+        solve_triangular,
+    )
+    from scipy.optimize import minimize
+    size = matrices[0].shape[0]
+    # a diagonal similarity by powers of two (exact in floating point) evens the states'
+    # scales (plant states in metres, the integral in volt-seconds): a P for the balanced
+    # matrices is one for the originals
+    _, (scale_vec, _) = matrix_balance(np.mean(np.stack(matrices), axis=0), permute=False,
+                                      separate=True)
+    matrices = [a * scale_vec[None, :] / scale_vec[:, None] for a in matrices]
+    mean = np.mean(np.stack(matrices), axis=0)
+    try:
+        start = solve_discrete_lyapunov(mean.T, np.eye(size))
+        chol = np.linalg.cholesky(start / (np.trace(start) / size))
+    except (np.linalg.LinAlgError, ValueError):
+        chol = np.eye(size)
+    lower = np.tril_indices(size)
+
+    def norms(x: FloatArray) -> FloatArray:
+        factor = np.zeros((size, size))
+        factor[lower] = x
+        p = factor @ factor.T
+        try:
+            lc = np.linalg.cholesky(p)
+        except np.linalg.LinAlgError:
+            return np.full(len(matrices), 1e6)
+        out = []
+        for a in matrices:
+            m = solve_triangular(lc, a.T @ p @ a, lower=True)
+            m = solve_triangular(lc, m.T, lower=True)
+            out.append(np.linalg.eigvalsh(0.5 * (m + m.T))[-1])
+        return np.asarray(out)
+
+    x = chol[lower]
+
+    def feasible(x: FloatArray) -> bool:
+        return bool(np.max(norms(x)) < 1.0 - 1e-6)
+
+    for sharpness in (30.0, 300.0):
+        if feasible(x):
+            break
+
+        def smooth_max(x: FloatArray, beta: float = sharpness) -> float:
+            v = norms(x)
+            top = float(np.max(v))
+            return top + float(np.log(np.sum(np.exp(beta * (v - top))))) / beta
+
+        best = [x]
+
+        def stop(xk: FloatArray, best: list[FloatArray] = best) -> None:
+            # feasibility, not the optimum, is what is asked: stop at the first P that holds
+            best[0] = np.array(xk, copy=True)
+            if feasible(xk):
+                raise StopIteration
+        try:
+            x = minimize(smooth_max, x, method='BFGS', callback=stop,
+                         options={'maxiter': 120}).x
+        except StopIteration:  # scipy before 1.11 lets it through
+            x = best[0]
+        if feasible(best[0]):
+            x = best[0]
+    factor = np.zeros((size, size))
+    factor[lower] = x
+    p = factor @ factor.T
+    contraction = math.sqrt(max(float(np.max(norms(x))), 0.0))
+    scale = float(np.linalg.norm(p, 2))
+    ok = scale > 0.0 and np.linalg.cond(p) < 1e12
+    for a in matrices if ok else []:
+        gap = p - a.T @ p @ a
+        ok = ok and float(np.linalg.eigvalsh(0.5 * (gap + gap.T))[0]) > 1e-9 * scale
+    try:
+        cho_factor(p)
+    except np.linalg.LinAlgError:
+        ok = False
+    return bool(ok and contraction < 1.0), contraction
+
+
+def _checked_box(params: ControllerParams, opts: StabilityParams) -> CheckedBox:
+    """Return what a check of ``params`` with ``opts`` freezes where."""
+    r = params.rac
+    slope = (opts.slope_min, opts.slope_max)
+    if params.type != 'rac':
+        return CheckedBox('none', (0.0, 0.0), (0.0, 0.0), slope, opts.slope_points,
+                          opts.delay_samples)
+    box_theta, box_phi = (r.theta_min, r.theta_max), (r.phi_min, r.phi_max)
+    if opts.estimates == 'initial':
+        theta, phi = (r.theta_init, r.theta_init), (r.phi_init, r.phi_init)
+    else:
+        theta, phi = box_theta, box_phi
+    return CheckedBox(opts.estimates, theta, phi, slope, opts.slope_points, opts.delay_samples,
+                      box_theta, box_phi)
 
 
 def learning_check(controller_params: ControllerParams, plant_params: PlantParams,
@@ -881,11 +1388,14 @@ def learning_check(controller_params: ControllerParams, plant_params: PlantParam
     notch = notch_design(controller_params.notch, sample_time_s, plant)
     k = controller_params.sensor_gain_v_per_m
 
-    def sensitivity(model: LinearPlant, slope: float) -> ComplexArray:
-        num, den = _plant_tf(model, sample_time_s)
+    def sensitivity(model: LinearPlant, slope: float,
+                    delay: float = opts.delay_samples) -> ComplexArray:
+        # the learning filter is designed without the computational delay; the loop it
+        # learns on has it
+        num, den = _plant_tf(model, sample_time_s, delay)
         g = slope * np.polyval(num, z) / np.polyval(den, z)
         return process_sensitivity(g, z, k_p, k_i, k, sample_time_s, notch)
-    design = sensitivity(plant, c)
+    design = sensitivity(plant, c, 0.0)
     kept = kept_harmonics(design, n, sample_time_s, ff.learning_bandwidth_hz)
 
     def convergence(design: ComplexArray, true: ComplexArray, gain: float,
@@ -911,9 +1421,9 @@ def learning_check(controller_params: ControllerParams, plant_params: PlantParam
         period_s=whole * sample_time_s if whole else period, harmonics=int(np.sum(kept)),
         gain=ff.learning_gain,
         bandwidth_hz=ff.learning_bandwidth_hz,
-        design_ratio=convergence(design, design, ff.learning_gain, kept),
+        design_ratio=convergence(design, sensitivity(plant, c), ff.learning_gain, kept),
         slopes=tuple((s, convergence(design, sensitivity(plant, s), ff.learning_gain,
-                                              kept)) for s in slopes),
+                                     kept)) for s in slopes),
         members=tuple(members), note=note)
 
 
@@ -970,7 +1480,7 @@ def _adaptation(params: ControllerParams, plant: LinearPlant, g_num: FloatArray,
         # H(z) = h_num / char_l, and the adaptation loop is (z - 1) char_l + g h_num = 0
         gain = k_sensor * slope
         l_num, l_den = loop_polynomials(kp, k * r.lambda_per_s, gain, g_num, g_den,
-                                        sample_time_s, notch, opts.delay_samples)
+                                        sample_time_s, notch)
         h_num = np.convolve(g_num * gain, s_num)
         if notch is not None:
             h_num = np.convolve(h_num, np.asarray(notch[0], dtype=np.float64))
