@@ -59,7 +59,7 @@ def test_the_base_of_a_multi_axis_file_is_still_a_one_axis_configuration():
     config = cli.read_config(['config/xy_stage.yaml'])
     assert has_axes(config) and not has_axes(cli.read_config([]))
     base = LoopConfig.from_config(config)
-    assert base.trajectory.kind == 'triangle'
+    assert base.trajectory.kind == 'scan_line'
 
 
 @pytest.mark.parametrize('param, name, match', [
