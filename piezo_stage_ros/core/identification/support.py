@@ -998,7 +998,6 @@ def _correct_structure_bias(result: IdentificationResult, record: RunRecord,
     u = applied_voltage(record, base.chain)
     y_sim = replay(result, u, t)
     f = result.factors
-    names: tuple[str, ...]
     if run is not None:
         spec = run.lines.spectra
         assert spec is not None
@@ -1006,7 +1005,6 @@ def _correct_structure_bias(result: IdentificationResult, record: RunRecord,
         excitation = r if float(np.ptp(r)) > 0.0 else u
         sim = periodic_spectra(u, y_sim, excitation, spec.period_samples, t)
         got = fit_periodic_response(sim, params, f, delay_samples=f.delay_samples).fit.factors
-        names = ('omega_n_rad_s', 'zeta', 'tau_s')
     else:
         from piezo_stage_ros.core.identification.fit import (
             estimate_frequency_response,
@@ -1016,9 +1014,9 @@ def _correct_structure_bias(result: IdentificationResult, record: RunRecord,
                              record.reference_velocity_mps, record.command_v, meta=record.meta)
         data = estimate_frequency_response([replayed], base.chain, segment_s=params.segment_s)
         got = fit_frequency_response(data, params, initial=f).factors
-        # with a step run, zeta and tau come from it (the step fit has no describing function)
-        names = ('omega_n_rad_s',) if result.step is not None else (
-            'omega_n_rad_s', 'zeta', 'tau_s')
+    # with a step run, zeta and tau come from it (the step fit has no describing function):
+    # the frequency run's bias is taken off w_n alone, whichever estimate the run gave
+    names = ('omega_n_rad_s',) if result.step is not None else ('omega_n_rad_s', 'zeta', 'tau_s')
     bias = {n: math.log(getattr(got, n) / getattr(f, n)) for n in names}
     values = {n: getattr(f, n) * math.exp(-b) for n, b in bias.items()}
     fixed = replace(f, **values)
