@@ -41,7 +41,7 @@ The files are read and validated once here by the loader every command uses
 before any process starts. The controller's stability check runs against the plant model the plant
 node runs, as ``simulate`` does: all three nodes get one merged parameter file, and the controller
 takes the design model from its plant_node section (``stability.design_model: plant``, the
-default; docs/nodes.md). When the plant ends its run the launch ends.
+default; docs/reference/ros-interface.md). When the plant ends its run the launch ends.
 """
 
 # ruff takes `launch` for this repository's launch/ folder; for ament (flake8) it is the
@@ -177,7 +177,7 @@ def _launch(context: LaunchContext) -> list[Any]:
             cmd += ['--output', arg['bag']]
         # no --use-sim-time: that recorder waits for a non-zero /clock, and lockstep time starts
         # at 0 (as offline); the header stamps carry the sample times, and the analysis aligns
-        # by them (docs/bags.md)
+        # by them (docs/reference/bags.md)
         qos_file = os.path.join(os.path.dirname(files[0]), 'record_qos.yaml')
         if os.path.isfile(qos_file):
             cmd += ['--qos-profile-overrides-path', qos_file]

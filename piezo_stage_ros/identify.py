@@ -384,7 +384,7 @@ def _run(args: argparse.Namespace) -> int:
     header = ['Identified by: identify ' + ' '.join(sys.argv[1:] if args.argv is None
                                                     else args.argv),
               f'Hysteresis slope convention: {slope:g} (only k_p times the slope is '
-              'identifiable, see docs/identification.md).']
+              'identifiable, see docs/explanation/model.md).']
     if result.loop == 'closed':
         header.append('Closed-loop data: frequency response averaged over whole periods of the '
                       'reference; 95 % bounds: ' + ', '.join(

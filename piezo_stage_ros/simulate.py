@@ -93,7 +93,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--steady-state-start', type=float, metavar='S', dest='steady_state_start_s',
                    help='Start of the steady-state window of e_m and e_rms, seconds after the '
                    'first sample, in [0, duration) (default: the reference period decides; '
-                   'see docs/simulate.md). Stored in a bag, so analyze uses the same window.')
+                   'see docs/howto/simulate.md). Stored in a bag, so analyze uses the same '
+                   'window.')
     cli.add_line_options(p, 'Measure')
     p.add_argument('--seed', type=int, metavar='N', help='Seed of the sensor noise.')
     p.add_argument('--noise', type=float, metavar='M',
@@ -112,8 +113,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--overwrite', action='store_true', help='Replace an existing bag.')
     p.add_argument('--save-table', metavar='FILE', dest='save_table',
                    help="Write the learning feed-forward's table at the end of the run to FILE "
-                   '(.npz, docs/controllers.md); controller_node feedforward.table_file loads '
-                   'it. A bag of the run holds it too (analyze --export-table).')
+                   '(.npz, docs/explanation/feedforward.md); controller_node '
+                   'feedforward.table_file loads it. A bag of the run holds it too (analyze '
+                   '--export-table).')
     p.add_argument('--line-rate-change', metavar='S:HZ', dest='line_rate_change',
                    help='Change the line rate of a sine or triangle to HZ at S seconds (a '
                    'whole number of its periods): the new line starts at its own t = 0 and '
@@ -122,7 +124,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--bag-topics', choices=('samples', 'block', 'both'), default='samples',
                    help='What the bag holds: the per-sample topics (default), the block topic '
                    'stage/block (many samples per message, as a real-time loop records them; '
-                   'docs/bags.md), or both.')
+                   'docs/reference/bags.md), or both.')
     return p
 
 

@@ -15,9 +15,9 @@
 """
 The discrete-time tuning study of the RAC: ``python3 -m piezo_stage_ros.tune``.
 
-It reproduces the table of docs/controllers.md: the Table III sines x_d = 3.8 + 3.8 sin(2 pi f t)
-um at 1, 10, 50 and 100 Hz, on the default stage (10 kHz, 16-bit converters, backlash-like
-hysteresis) with the reduced plant (25) and the third-order plant (20), for
+It reproduces the table of docs/explanation/controllers.md: the Table III sines x_d = 3.8 + 3.8
+sin(2 pi f t) um at 1, 10, 50 and 100 Hz, on the default stage (10 kHz, 16-bit converters,
+backlash-like hysteresis) with the reduced plant (25) and the third-order plant (20), for
 
 1. the stability verdict of the paper's gains and of the default tuning (every linearized loop of
    :mod:`piezo_stage_ros.core.control.stability`);

@@ -15,9 +15,9 @@
 """
 Print one line: numpy/scipy versions, each loaded BLAS (version, kernel in use, threads), SIMD.
 
-`make test-matrix` prints it before each run, so the table in docs/testing.md shows whether an
-OPENBLAS_CORETYPE or NPY_DISABLE_CPU_FEATURES setting really took effect (not a test module:
-pytest collects ``test_*.py`` only).
+`make test-matrix` prints it before each run, so the test-matrix table in docs/results.md shows
+whether an OPENBLAS_CORETYPE or NPY_DISABLE_CPU_FEATURES setting really took effect (not a test
+module: pytest collects ``test_*.py`` only).
 """
 
 from pathlib import Path

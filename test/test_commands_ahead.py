@@ -254,7 +254,7 @@ def test_a_missed_sample_is_never_worse_with_the_commands_ahead_than_held(at, sk
     # timeout is 10 ms). Not claimed: a stall of a whole period of the reference (100 samples),
     # after which the held command happens to be right again, and the PI, whose predictions
     # (the trend of its command, no model part) cost up to a quarter more than holding at some
-    # phases (docs/nodes.md)
+    # phases (docs/explanation/realtime.md)
     ahead, held = _stall_costs('rac', at, skip)
     assert ahead <= held
 

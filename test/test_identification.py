@@ -18,7 +18,7 @@ Identification (section III-D) against stages with known parameters.
 The runs are simulated open loop with 2 nm rms sensor noise and the 16-bit DAC and ADC on. The
 tolerances are those of the issue: w_n and tau within 2 %, the DC gain within 1 %, zeta within
 10 %, alpha, c and B1 within 5 %. Only k_p c is identifiable from v_in -> x (see
-docs/identification.md), so c is compared under the convention ``hysteresis_slope = true c``;
+docs/explanation/model.md), so c is compared under the convention ``hysteresis_slope = true c``;
 the gauge-free quantities (static gain k_p c, alpha, B1/c) are checked without it.
 """
 

@@ -124,8 +124,8 @@ def test_a_corner_combines_its_factors():
 
 def test_true_estimates_of_the_nominal_stage_are_those_of_the_docs():
     theta, phi = true_estimates(BASE)
-    # docs/controllers.md: theta = a/(b c) = 1.29, phi = 1/(b c) = 3.16e-4 s, from the reduced
-    # model (25), whose tau is a1/a2 of (20) to four digits
+    # docs/explanation/controllers.md: theta = a/(b c) = 1.29, phi = 1/(b c) = 3.16e-4 s, from the
+    # reduced model (25), whose tau is a1/a2 of (20) to four digits
     assert theta == pytest.approx(1.2927, abs=1e-4)
     assert phi == pytest.approx(3.1605e-4, rel=1e-4)
     reduced = BASE.with_flat({'plant.model': 'reduced'})

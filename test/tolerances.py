@@ -18,7 +18,8 @@ Rounding-error bounds for the tests' floating-point comparisons.
 A tolerance between two computations of the same quantity is the sum of the rounding errors of
 both, and those are fixed by the conditioning of each computation, not by what one machine printed:
 BLAS kernels (OPENBLAS_CORETYPE), thread counts, numpy's SIMD level and library versions change
-the order of operations and so the last bits, always within these bounds. See docs/testing.md.
+the order of operations and so the last bits, always within these bounds. See
+docs/explanation/testing.md.
 """
 
 import math

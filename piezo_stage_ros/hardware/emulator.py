@@ -462,7 +462,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog='stage_emulator',
         description='Real-time I/O target emulator on 127.0.0.1: the stage model behind the '
-                    'UDP protocol of piezo_stage_ros.hardware.udp (docs/nodes.md).')
+                    'UDP protocol of piezo_stage_ros.hardware.udp '
+                    '(docs/reference/udp-protocol.md).')
     parser.add_argument('--config', action='append', default=[], metavar='FILE',
                         help='ROS parameter file on top of config/default.yaml (repeatable); '
                         'the plant_node section is the stage')

@@ -355,7 +355,7 @@ class UdpBridge:
                 raise BridgeError(f'UDP bridge: the target at {self.address[0]}:'
                                   f'{self.address[1]} speaks protocol version {version}, '
                                   f'this host version {VERSION}; update one of them '
-                                  '(docs/nodes.md, UDP protocol)')
+                                  '(docs/reference/udp-protocol.md)')
             self.malformed += 1
             return None
         _, rseq, position, status, missing = reply
@@ -371,7 +371,7 @@ class UdpBridge:
         if status & STATUS_VERSION:
             raise BridgeError(f'UDP bridge: the target at {self.address[0]}:'
                               f'{self.address[1]} refused protocol version {VERSION}; '
-                              'update one of them (docs/nodes.md, UDP protocol)')
+                              'update one of them (docs/reference/udp-protocol.md)')
         if status & STATUS_REFUSED:
             raise BridgeError(f'UDP bridge: target refused request kind {kind}')
         return rseq, position

@@ -51,7 +51,7 @@ __all__ = ['ControllerLogic', 'Gate', 'LATE_COMMAND_LIMIT', 'LATE_HALF_LIMIT', '
            'rebuild_or_learn_afresh', 'sample_count', 'save_learned_table']
 
 #: End of a run: more than this fraction of the samples taken late by more than T/2 makes the
-#: end-of-run line a warning (docs/nodes.md, "Warnings").
+#: end-of-run line a warning (docs/reference/ros-interface.md, "Status counters").
 LATE_HALF_LIMIT = 0.001
 #: End of a run: more than this fraction of the samples served with the previous command (no
 #: new one had come: a controller in another node that answers late) makes it a warning.

@@ -20,7 +20,7 @@ The parameter tables and the typed loader live in :mod:`piezo_stage_ros.core.con
 (every command, the emulator, the launch file and the nodes build their objects there); this
 module names them for the nodes and adds what only a node needs: the parameter files on its
 command line (:func:`params_files`), from which the controller node takes the plant node's
-model (docs/nodes.md, "Which model the controller checks").
+model (docs/reference/ros-interface.md, "Parameters at run time").
 """
 
 from __future__ import annotations

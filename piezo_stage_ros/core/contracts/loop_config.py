@@ -42,7 +42,8 @@ print that note once.
 
 The design model (the plant the controller's stability check and a ``model`` notch use) is the
 plant node's ``plant.*`` unless ``controller_node stability.design_model: own`` selects the
-controller's own ``stability.plant.*`` (:attr:`LoopConfig.design_plant`, docs/nodes.md).
+controller's own ``stability.plant.*`` (:attr:`LoopConfig.design_plant`,
+docs/reference/ros-interface.md).
 
 Every parameter is declared with dynamic typing in the nodes and validated here, because ROS
 would otherwise refuse an integer written in YAML for a double parameter (``0`` instead of
@@ -96,7 +97,7 @@ class LockstepParams(Params):
 
 @dataclass(frozen=True)
 class BridgeParams(Params):
-    """The UDP hardware bridge (backend 'udp'); protocol in docs/nodes.md."""
+    """The UDP hardware bridge (backend 'udp'); protocol in docs/reference/udp-protocol.md."""
 
     host: str = param('127.0.0.1', unit='-', description='Address of the real-time I/O target.',
                       read_only=True)
@@ -153,7 +154,7 @@ class RecordingParams(Params):
     block: bool = param(True, unit='-', description='Real time with the servo loop running '
                         'trajectory and controller (stage_servo --direct): publish every sample '
                         'on stage/block, block_samples to a std_msgs/Float64MultiArray (the '
-                        'recording that keeps every sample under load; docs/bags.md).',
+                        'recording that keeps every sample under load; docs/reference/bags.md).',
                         read_only=True)
     block_samples: int = param(100, unit='-', description='Samples a stage/block message '
                                'carries (100: 10 ms at 10 kHz, 100 messages a second).', low=1,
@@ -414,7 +415,8 @@ class NodeTable:
             owner = self._owner.get(name)
             if owner is None:
                 raise ParameterError(name, value, 'a parameter of ' + self.node_name +
-                                     ' (see docs/nodes.md)', 'is not a parameter of this node')
+                                     ' (see docs/reference/ros-interface.md)',
+                                     'is not a parameter of this node')
             parts[owner][name] = value
         return parts
 

@@ -31,7 +31,8 @@ RAC, eqs. (33)-(40), in sensor volts (e = y - y_d is the paper's x tilde)::
     dtheta_hat/dt = proj(theta_hat, -gamma y    s_eps)              (39)
 
 The package's discrete adaptive law generalises (38)-(39) in two ways, each of which reduces to
-the paper's law with its parameter at the neutral value (docs/controllers.md derives them)::
+the paper's law with its parameter at the neutral value (docs/explanation/controllers.md
+derives them)::
 
     s_a   = s - eps_a * sat(s / eps_a)       (eps_a = 0: s_a = s)   dead zone of its own
     (r_theta, r_phi) = (y, u_fd) measured, or (y_d, dy_d/dt) desired  regressors
@@ -81,18 +82,18 @@ Edge-case contract (all controllers, tested in ``test/test_controllers.py``):
 - the optional notch filter on the command starts at rest at the first command it filters.
 
 The default RAC gains are the discrete-time tuning of ``python3 -m piezo_stage_ros.tune``
-(docs/controllers.md), not the paper's: its epsilon = 0.005 makes the boundary-layer gain
-k*/epsilon = 40, which is unstable at 10 kHz, and its unnormalised adaptation rates gamma = 3000,
-eta = 0.01 close a discrete loop through v (the update is an integrator whose per-sample gain is
-g = T (gamma y^2 + eta u_fd^2) times the response of s to v) that limit-cycles on a plateau of a
+(docs/explanation/controllers.md), not the paper's: its epsilon = 0.005 makes the boundary-layer
+gain k*/epsilon = 40, which is unstable at 10 kHz, and its unnormalised adaptation rates gamma =
+3000, eta = 0.01 close a discrete loop through v (the update is an integrator whose per-sample gain
+is g = T (gamma y^2 + eta u_fd^2) times the response of s to v) that limit-cycles on a plateau of a
 few volts; :func:`piezo_stage_ros.core.control.stability.adaptation_bound` derives the largest
 stable per-sample gain g_crit from the plant model, and the default normalisation kappa = 40 >=
-2/g_crit keeps g/(1 + kappa g) below half of it for every regressor. The gains k_d, lambda,
-epsilon and kappa are sized so that the stability check passes with one whole sample of
-computational delay (a target that applies each command at its next tick), not only with the
-fraction of a sample an in-process servo takes: a larger lambda or a narrower boundary layer
-tracks a fast sine more closely and fails that check. The rates, the dead zone, the regressors
-and the box were chosen on a family of stages unlike the model (tune section 9).
+2/g_crit keeps g/(1 + kappa g) below half of it for every regressor. The gains k_d, lambda, epsilon
+and kappa are sized so that the stability check passes with one whole sample of computational delay
+(a target that applies each command at its next tick), not only with the fraction of a sample an
+in-process servo takes: a larger lambda or a narrower boundary layer tracks a fast sine more
+closely and fails that check. The rates, the dead zone, the regressors and the box were chosen on a
+family of stages unlike the model (tune section 9).
 
 Which law this is, and what the paper's Theorem 1 covers. Theorem 1 is a continuous-time
 Lyapunov argument for the first-order model (28) with the hysteresis written as c v + d,
@@ -216,8 +217,8 @@ class RACParams(Params):
     Gains and bounds of the RAC, eqs. (33)-(40), in the paper's units (sensor volts in).
 
     Defaults are the discrete-time tuning found by ``python3 -m piezo_stage_ros.tune`` (see
-    docs/controllers.md); the paper's values are quoted in each description. They are outside
-    the paper's Theorem 1 (module docstring): the law reduces to the paper's only with
+    docs/explanation/controllers.md); the paper's values are quoted in each description. They
+    are outside the paper's Theorem 1 (module docstring): the law reduces to the paper's only with
     ``adaptation_dead_zone_v = epsilon_v``, ``adaptation_regressor = 'measured'`` and
     ``normalisation = 0``, and the theorem also needs the true parameters inside the box.
     """

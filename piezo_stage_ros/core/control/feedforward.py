@@ -145,7 +145,7 @@ class FeedForwardParams(Params):
                                          'harmonics of the period above this frequency are '
                                          'not learned (1200: the learning contracts by 0.84 '
                                          'or less a period on every member of the stage '
-                                         'family, docs/robustness.md).',
+                                         'family, docs/explanation/robustness.md).',
                                          low=0.0, low_open=True)
     learning_start_periods: int = param(1, unit='periods', description='Whole periods run '
                                         'before the first update (the start transient is not '

@@ -1452,7 +1452,7 @@ def identify(records: Sequence[RunRecord], base: StageParams | None = None,
             static = freq_fit.factors.gain_m_per_v * slope
             notes.append('no sine run: hysteresis kept from the base configuration, static '
                          'gain from the small-signal k_p of the frequency response (biased by '
-                         'the hysteresis, see docs/identification.md)')
+                         'the hysteresis, see docs/explanation/model.md)')
         else:
             assert step_fit is not None
             static = step_fit.factors.gain_m_per_v

@@ -415,8 +415,8 @@ class ControllerBatch:
         self._inv_eps = 1.0 / rac.epsilon_v
         self._kstar = rac.k_star_v
         self._gamma, self._eta = rac.gamma, rac.eta
-        # the adaptive law of issue 10 (docs/controllers.md): its own dead zone eps_a, the
-        # normalisation kappa, measured or desired regressors
+        # the adaptive law of issue 10 (docs/explanation/controllers.md): its own dead zone
+        # eps_a, the normalisation kappa, measured or desired regressors
         eps_a = rac.adaptation_dead_zone_v
         inv = 1.0 / eps_a if eps_a > 0.0 else math.inf
         # as the controller: a dead zone whose inverse overflows (subnormal) is no dead zone

@@ -45,7 +45,7 @@ volts is dy/dt = -a y + b c v with a = 1/T_1 and b = a K_PSCM g, so
 
     theta = a/(b c) = 1/(K_PSCM g c),        phi = 1/(b c) = T_1 theta,
 
-which gives the nominal theta = 1.293 and phi = 3.161e-4 s of docs/controllers.md.
+which gives the nominal theta = 1.293 and phi = 3.161e-4 s of docs/explanation/controllers.md.
 """
 
 from __future__ import annotations
