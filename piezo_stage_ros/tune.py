@@ -440,22 +440,6 @@ def errors_row(params: ControllerParams, model: str, *, with_max: bool = False,
     return cells
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """
-    Run the study and print its Markdown tables.
-
-    Parameters
-    ----------
-    argv : sequence of str, optional
-        Command-line arguments (default ``sys.argv[1:]``).
-
-    Returns
-    -------
-    int
-        Exit status.
-
-    """
-    return cli.run_command(PROG, build_parser(), _study, argv)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -633,6 +617,9 @@ def _study(args: argparse.Namespace) -> int:
         delay_table()
     print(f'\n(study took {time.monotonic() - start:.0f} s)')
     return 0
+
+
+main = cli.command_main(PROG, build_parser, _study, '0 success, 1 bad parameter, 2 bad usage')
 
 
 if __name__ == '__main__':
