@@ -34,7 +34,6 @@ bag, naming it and the problem; the other bags are still analysed), 2 for bad op
 from __future__ import annotations
 
 import argparse
-from collections.abc import Sequence
 import json
 import math
 from pathlib import Path
@@ -89,7 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help='start of the metrics window, seconds after the first sample '
                              '(default: the one stored by simulate, else the same default as '
                              'simulate)')
-    cli.add_line_options(parser, 'Measure and plot')
+    cli.add_line_options(parser, 'measure and plot')
     bode = parser.add_mutually_exclusive_group()
     bode.add_argument('--bode', dest='bode', action='store_true', default=None,
                       help='always estimate the frequency response v_in -> x')
@@ -104,22 +103,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """
-    Run ``analyze``.
-
-    Parameters
-    ----------
-    argv : sequence of str, optional
-        Arguments without the program name (default: ``sys.argv[1:]``).
-
-    Returns
-    -------
-    int
-        Exit status: 0 all bags analysed, 1 some bag failed, 2 bad options.
-
-    """
-    return cli.run_command(PROG, build_parser(), _analyze, argv)
 
 
 def _export(analysis: object, path: Path) -> None:
@@ -228,6 +211,10 @@ def _analyze(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f'{PROG}: report written to {path}', file=sys.stderr)
     return 1 if failed else 0
+
+
+main = cli.command_main(PROG, build_parser, _analyze,
+                        '0 all bags analysed, 1 some bag failed, 2 bad options')
 
 
 if __name__ == '__main__':

@@ -39,7 +39,7 @@ import importlib.util
 import json
 import math
 import sys
-from typing import Any, Sequence
+from typing import Any
 
 from piezo_stage_ros import cli
 
@@ -87,22 +87,6 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """
-    Run ``benchmark``.
-
-    Parameters
-    ----------
-    argv : sequence of str, optional
-        Arguments without the program name; default ``sys.argv[1:]``.
-
-    Returns
-    -------
-    int
-        0 on success, 1 when a suite is unavailable or fails, 2 on bad usage.
-
-    """
-    return cli.run_command(PROG, _parser(), _bench, argv)
 
 
 def _bench(args: argparse.Namespace) -> int:
@@ -158,6 +142,10 @@ def _bench(args: argparse.Namespace) -> int:
 def _rclpy_available() -> bool:
     """Return whether rclpy can be imported (ROS 2 sourced)."""
     return importlib.util.find_spec('rclpy') is not None
+
+
+main = cli.command_main(PROG, _parser, _bench,
+                        '0 success, 1 a suite unavailable or failed, 2 bad usage')
 
 
 if __name__ == '__main__':

@@ -83,9 +83,6 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Run ``check`` on ``argv`` (default ``sys.argv[1:]``); return the documented status."""
-    return cli.run_command(PROG, build_parser(), _run, argv)
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -237,6 +234,11 @@ def format_report(report: StabilityReport, *, sources: Sequence[str] = (), model
 
 def _num(value: float, digits: int = 1) -> str:
     return f'{value:.{digits}f}' if math.isfinite(value) else ('inf' if value > 0 else '-inf')
+
+
+main = cli.command_main(PROG, build_parser, _run,
+                        '0 stable, 3 a frozen loop unstable, 4 the adaptation bound '
+                        'exceeded, 1 bad file or value, 2 bad usage')
 
 
 if __name__ == '__main__':

@@ -21,7 +21,7 @@ What every command-line program shares: parser, exit status, configuration, prog
 - :func:`run_command`: parse, run, and map errors to the documented exit status: 0 success,
   1 a bad parameter, configuration, file or refused run (:class:`PiezoStageError`,
   ``OSError``), 2 bad command-line usage, 130 interrupted; the error is one line on stderr,
-  ``PROG: error: ...``;
+  ``PROG: error: ...``; :func:`command_main` makes a command's ``main(argv)`` of it;
 - :func:`choices`: the allowed strings of a declared parameter, for ``choices=`` (a command
   never retypes them);
 - :func:`add_config_options` and :func:`read_config`: ``--config FILE`` on top of
@@ -39,7 +39,7 @@ import os
 from pathlib import Path
 import sys
 import time
-from typing import Any, Callable, NoReturn, Sequence, TextIO
+from typing import Any, Callable, NoReturn, Protocol, Sequence, TextIO
 
 from piezo_stage_ros.core.contracts.config import Config, find_config, load_config
 from piezo_stage_ros.core.contracts.errors import ConfigError, ParameterError, PiezoStageError
@@ -47,9 +47,9 @@ from piezo_stage_ros.core.contracts.loop_config import LoopConfig
 from piezo_stage_ros.core.contracts.params import Params, ParamSpec
 import yaml
 
-__all__ = ['Parser', 'Progress', 'UsageError', 'add_config_options', 'choices', 'error',
-           'loop_overrides', 'note', 'offline_loop', 'parse_param', 'read_config',
-           'run_command']
+__all__ = ['Main', 'Parser', 'Progress', 'UsageError', 'add_config_options', 'choices',
+           'command_main', 'error', 'loop_overrides', 'note', 'offline_loop', 'parse_param',
+           'read_config', 'run_command']
 
 
 class UsageError(Exception):
@@ -115,6 +115,52 @@ def run_command(prog: str, parser: argparse.ArgumentParser,
         return 130
 
 
+class Main(Protocol):
+    """The entry point of a command: ``main(argv)`` returns the exit status."""
+
+    def __call__(self, argv: Sequence[str] | None = None) -> int: ...
+
+
+def command_main(prog: str, build_parser: Callable[[], argparse.ArgumentParser],
+                 body: Callable[[argparse.Namespace], int], statuses: str, *,
+                 keep_argv: bool = False) -> Main:
+    """
+    Return the ``main(argv)`` of a command: :func:`run_command` on its parser and body.
+
+    Every console script's entry point is this one function, so that parsing, the exit
+    statuses and the error lines cannot drift apart between commands.
+
+    Parameters
+    ----------
+    prog : str
+        Program name, for messages and the docstring.
+    build_parser : callable
+        Returns the command's parser; called once a run, so ``main`` can be called again.
+    body : callable
+        ``body(args)`` returns the exit status of a normal end.
+    statuses : str
+        The command's exit statuses, for the docstring of ``main``.
+    keep_argv : bool
+        Store the arguments as ``args.argv`` (``None`` for ``sys.argv[1:]``), for commands
+        that write their own command line into what they produce.
+
+    Returns
+    -------
+    Main
+
+    """
+    def main(argv: Sequence[str] | None = None) -> int:
+        def run(args: argparse.Namespace) -> int:
+            if keep_argv:
+                args.argv = None if argv is None else list(argv)
+            return body(args)
+        return run_command(prog, build_parser(), run, argv)
+    main.__doc__ = (f'Run ``{prog}`` on ``argv`` (default ``sys.argv[1:]``); exit status: '
+                    f'{statuses}.')
+    main.__module__ = getattr(body, '__module__', __name__)
+    return main
+
+
 def choices(cls: type[Params], name: str) -> tuple[str, ...]:
     """
     Return the allowed strings of parameter ``name`` of group ``cls``, as declared.
@@ -170,7 +216,9 @@ def add_line_options(parser: argparse.ArgumentParser, what: str) -> None:
     parser : argparse.ArgumentParser
         The command's parser.
     what : str
-        What the command does with them, ending the help (e.g. ``'measure'``).
+        What the command does with them, in the case of the command's other help texts: a
+        capital starts a sentence (``'Measure'``), a small letter a phrase (``'measure and
+        plot'``).
 
     """
     def fraction(text: str) -> float:
@@ -191,12 +239,14 @@ def add_line_options(parser: argparse.ArgumentParser, what: str) -> None:
             raise argparse.ArgumentTypeError(f'{text!r} is out of range; allowed: a whole '
                                              'number in [1, 1000000]')
         return value
+    also = 'Also' if what[:1].isupper() else 'also'
     parser.add_argument('--line-middle', type=fraction, metavar='F', dest='line_middle',
                         help=f'{what} the middle F (0 < F <= 1) of the linear part of each '
                         'line, trace and retrace apart (a scan line: without asking, F = 1; '
                         'a triangle: only when asked).')
     parser.add_argument('--pixels', type=pixels, metavar='N',
-                        help=f'Also {what} the error at N pixels a line over that part.')
+                        help=f'{also} {what.lower()} the error at N pixels a line over that '
+                        'part.')
 
 
 def parse_param(text: str) -> tuple[str, str, Any]:

@@ -445,36 +445,23 @@ def _coverage(args: argparse.Namespace, loop: LoopConfig) -> int:
     return 0
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """
-    Run ``commission``.
+def _commission(args: argparse.Namespace) -> int:
+    loop = cli.offline_loop(PROG, cli.read_config(args.config, args.param))
+    if args.write_excitation is not None:
+        return _write_excitation(args, loop)
+    if args.coverage is not None:
+        if args.coverage < 1 or args.jobs < 1:
+            raise cli.UsageError('--coverage and --jobs need a positive count')
+        return _coverage(args, loop)
+    if args.survey:
+        if args.bag is not None:
+            raise cli.UsageError('--survey simulates the family: no --bag')
+        return _survey(args, loop)
+    return _single(args, loop)
 
-    Parameters
-    ----------
-    argv : sequence of str, optional
-        Command-line arguments without the program name; default ``sys.argv[1:]``.
 
-    Returns
-    -------
-    int
-        Exit status: 0 commissioned, 1 refused or failed, 2 bad usage.
-
-    """
-    def body(args: argparse.Namespace) -> int:
-        args.argv = None if argv is None else list(argv)
-        loop = cli.offline_loop(PROG, cli.read_config(args.config, args.param))
-        if args.write_excitation is not None:
-            return _write_excitation(args, loop)
-        if args.coverage is not None:
-            if args.coverage < 1 or args.jobs < 1:
-                raise cli.UsageError('--coverage and --jobs need a positive count')
-            return _coverage(args, loop)
-        if args.survey:
-            if args.bag is not None:
-                raise cli.UsageError('--survey simulates the family: no --bag')
-            return _survey(args, loop)
-        return _single(args, loop)
-    return cli.run_command(PROG, build_parser(), body, argv)
+main = cli.command_main(PROG, build_parser, _commission,
+                        '0 commissioned, 1 refused or failed, 2 bad usage', keep_argv=True)
 
 
 if __name__ == '__main__':

@@ -471,25 +471,9 @@ def _model_slope(base: StageParams, model: str) -> float:
     return p.p0 + sum(p.weights)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """
-    Run ``identify``.
-
-    Parameters
-    ----------
-    argv : sequence of str, optional
-        Command-line arguments without the program name; default ``sys.argv[1:]``.
-
-    Returns
-    -------
-    int
-        Exit status: 0 success, 1 bad data / parameters / failed fit, 2 bad usage.
-
-    """
-    def body(args: argparse.Namespace) -> int:
-        args.argv = None if argv is None else list(argv)
-        return _run(args)
-    return cli.run_command(PROG, build_parser(), body, argv)
+main = cli.command_main(PROG, build_parser, _run,
+                        '0 success, 1 bad data / parameters / failed '
+                        'fit, 2 bad usage', keep_argv=True)
 
 
 if __name__ == '__main__':

@@ -298,9 +298,7 @@ def _results(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``python -m piezo_stage_ros.results``; returns the exit status."""
-    return cli.run_command(PROG, _parser(), _results, argv)
+main = cli.command_main(PROG, _parser, _results, '0 success, 1 a study failed, 2 bad usage')
 
 
 if __name__ == '__main__':

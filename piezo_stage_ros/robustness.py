@@ -139,23 +139,9 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """
-    Run ``robustness``.
-
-    Parameters
-    ----------
-    argv : sequence of str, optional
-        Arguments without the program name; default ``sys.argv[1:]``.
-
-    Returns
-    -------
-    int
-        0 on success, 1 on a bad parameter, configuration or file, 2 on bad usage, 130 on
-        Ctrl-C.
-
-    """
-    return cli.run_command(PROG, _parser(), _run, argv)
+main = cli.command_main(PROG, _parser, _run,
+                        '0 success, 1 a bad parameter, configuration or '
+                        'file, 2 bad usage, 130 Ctrl-C')
 
 
 if __name__ == '__main__':

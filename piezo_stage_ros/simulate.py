@@ -45,7 +45,7 @@ import json
 import math
 import sys
 import time
-from typing import Any, Sequence
+from typing import Any
 import warnings
 
 from piezo_stage_ros import cli
@@ -129,19 +129,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def build_config(args: argparse.Namespace) -> Config:
-    """
-    Return the parameters of the run: files, then ``--param``, then the short flags.
-
-    Parameters
-    ----------
-    args : argparse.Namespace
-        Parsed command line of ``simulate``.
-
-    Returns
-    -------
-    Config
-
-    """
+    """Return the parameters of the parsed ``args``: files, then ``--param``, then short flags."""
     return cli.loop_overrides(
         cli.read_config(args.config, args.param), plant=args.plant, hysteresis=args.hysteresis,
         controller=args.controller, trajectory=args.trajectory, frequencies=args.frequency,
@@ -448,22 +436,8 @@ def _main(args: argparse.Namespace) -> int:
     return _run_single(args, loop)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """
-    Run ``simulate``.
-
-    Parameters
-    ----------
-    argv : sequence of str, optional
-        Command-line arguments without the program name; default ``sys.argv[1:]``.
-
-    Returns
-    -------
-    int
-        Exit status: 0 success, 1 bad parameter / configuration / refused run, 2 bad usage.
-
-    """
-    return cli.run_command(PROG, build_parser(), _main, argv)
+main = cli.command_main(PROG, build_parser, _main,
+                        '0 success, 1 bad parameter / configuration / refused run, 2 bad usage')
 
 
 if __name__ == '__main__':

@@ -301,22 +301,8 @@ def _main(args: argparse.Namespace) -> int:
                       as_json=args.json)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """
-    Run ``simulate_axes``.
-
-    Parameters
-    ----------
-    argv : sequence of str, optional
-        Arguments without the program name; default ``sys.argv[1:]``.
-
-    Returns
-    -------
-    int
-        0 success, 1 bad parameter or configuration, 2 bad usage.
-
-    """
-    return cli.run_command(PROG, build_parser(), _main, argv)
+main = cli.command_main(PROG, build_parser, _main,
+                        '0 success, 1 bad parameter or configuration, 2 bad usage')
 
 
 if __name__ == '__main__':

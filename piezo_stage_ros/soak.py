@@ -36,7 +36,7 @@ import json
 import math
 import resource
 import sys
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 from piezo_stage_ros import cli
@@ -259,22 +259,9 @@ def _print(rows: list[dict[str, Any]], s: dict[str, Any]) -> None:
     print(f'verdict: {"PASSED" if s["passed"] else "FAILED"} ({s["criteria"]})')
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """
-    Run ``soak``.
-
-    Parameters
-    ----------
-    argv : sequence of str, optional
-        Arguments without the program name; default ``sys.argv[1:]``.
-
-    Returns
-    -------
-    int
-        0 passed, 1 bad parameter or configuration, 2 bad usage, 3 the soak failed a criterion.
-
-    """
-    return cli.run_command(PROG, _parser(), _soak, argv)
+main = cli.command_main(PROG, _parser, _soak,
+                        '0 passed, 1 bad parameter or configuration, 2 bad usage, '
+                        '3 the soak failed a criterion')
 
 
 if __name__ == '__main__':

@@ -34,9 +34,10 @@ backlash-like hysteresis) with the reduced plant (25) and the third-order plant 
 8. the discrete adaptation loop: the bound of :func:`piezo_stage_ros.core.control.stability.
    adaptation_bound` per model, and the square-wave steady state (Fig. 10, and a 3.8 -> 28 um
    square wave near the top of the reachable range) against the adaptation rates gamma, eta;
-9. the stage family (issue 10, :mod:`piezo_stage_ros.core.model.family`): the worst stage of each
-   case for the default, for the old default, for the issue's reference and for one change at
-   a time from the default (``--family`` runs only this section, about 3 minutes);
+9. the stage family (:mod:`piezo_stage_ros.core.model.family`): the worst stage of each case
+   for the default, for the wide-dead-zone tuning :data:`OLD_DEFAULT`, for the reference
+   tuning :data:`REFERENCE_TUNING` and for one change at a time from the default
+   (``--family`` runs only this section, about 3 minutes);
 10. the delay trade (``--delay`` runs only this section): tunings that pass the check with one
    sample of computational delay against what they cost on the Table III sines and on the stage
    family, and the largest delay each keeps its frozen loops stable at.
@@ -96,22 +97,24 @@ NOTCH_OFF = NotchParams(mode='off')
 FAST = RACParams(lambda_per_s=3000.0, epsilon_v=0.2, normalisation=20.0, phi_init=2.5e-4)
 
 
-#: The RAC defaults before issue 10: a 0.2 V dead zone (the boundary layer) that kept the
-#: estimates still while tracking, the paper's measured regressors, no normalisation.
+#: A comparison case: the RAC with its adaptation dead zone as wide as the boundary layer
+#: (0.2 V), which keeps the estimates still while tracking, the paper's measured regressors
+#: and no normalisation; it shows what the default's narrow dead zone and law buy.
 OLD_DEFAULT = RACParams(gamma=10.0, eta=1e-6, adaptation_dead_zone_v=0.2,
                         adaptation_regressor='measured', normalisation=0.0, theta_min=0.9,
                         theta_max=1.7, phi_min=2.2e-4, phi_max=5.5e-4, phi_init=5e-4)
-#: The notch of the old default (narrower).
+#: The narrower notch that :data:`OLD_DEFAULT` runs with.
 OLD_NOTCH = NotchParams(pole_damping=1.0)
 
 #: The best tuning found that is stable on the third-order model (20) *without* the notch
-#: (every corner, >= 3 dB and >= 35 deg, with the old default's box and law, whose estimates
-#: do not move); the old default differs in k_d, lambda, epsilon, phi_hat(0).
+#: (every corner, >= 3 dB and >= 35 deg, with :data:`OLD_DEFAULT`'s box and law, whose
+#: estimates do not move); it differs from :data:`OLD_DEFAULT` in k_d, lambda, epsilon,
+#: phi_hat(0).
 WITHOUT_NOTCH = OLD_DEFAULT.replace(k_d=0.4, lambda_per_s=2000.0, epsilon_v=0.6,
                                     phi_init=4.2e-4)
-#: The starting point of issue 10 (a reference simulation on the reduced plant): its own 2 mV
-#: dead zone, gamma 300, eta 1e-4, a wider box; the paper's measured regressors.
-ISSUE_REFERENCE = OLD_DEFAULT.replace(gamma=300.0, eta=1e-4, adaptation_dead_zone_v=0.002,
+#: A reference tuning for the reduced plant, the paper's measured regressors adapting fast:
+#: its own 2 mV dead zone, gamma 300, eta 1e-4, a wider box.
+REFERENCE_TUNING = OLD_DEFAULT.replace(gamma=300.0, eta=1e-4, adaptation_dead_zone_v=0.002,
                                       theta_max=2.0, phi_min=2e-4, phi_max=6e-4)
 
 #: Cases of section 9 (keys of :data:`piezo_stage_ros.core.loop.robustness.CASES`), with the sensor
@@ -175,10 +178,10 @@ def family_table() -> None:
     d = default.rac
     rows: list[tuple[str, ControllerParams]] = [
         ('default', default),
-        ('old default (issue 10: never adapts)', controller('rac', rac=OLD_DEFAULT).replace(
+        ('wide dead zone (never adapts)', controller('rac', rac=OLD_DEFAULT).replace(
             notch=OLD_NOTCH)),
-        ("issue's reference (measured regressors)", controller(
-            'rac', rac=ISSUE_REFERENCE).replace(notch=OLD_NOTCH)),
+        ('reference tuning (measured regressors)', controller(
+            'rac', rac=REFERENCE_TUNING).replace(notch=OLD_NOTCH)),
         ('measured regressors', controller('rac', rac=d.replace(
             adaptation_regressor='measured'))),
         ('gamma 300', controller('rac', rac=d.replace(gamma=300.0))),
@@ -440,22 +443,6 @@ def errors_row(params: ControllerParams, model: str, *, with_max: bool = False,
     return cells
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """
-    Run the study and print its Markdown tables.
-
-    Parameters
-    ----------
-    argv : sequence of str, optional
-        Command-line arguments (default ``sys.argv[1:]``).
-
-    Returns
-    -------
-    int
-        Exit status.
-
-    """
-    return cli.run_command(PROG, build_parser(), _study, argv)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -633,6 +620,9 @@ def _study(args: argparse.Namespace) -> int:
         delay_table()
     print(f'\n(study took {time.monotonic() - start:.0f} s)')
     return 0
+
+
+main = cli.command_main(PROG, build_parser, _study, '0 success, 1 bad parameter, 2 bad usage')
 
 
 if __name__ == '__main__':

@@ -19,7 +19,8 @@ With the paper's rates (gamma = 3000, eta = 0.01) the Euler updates of theta_hat
 close a discrete loop through the command that limit-cycles on the high plateau of Fig. 10
 (theta_hat banging between 0.9 and 1.7, 1.2 um rms). The default rates keep the per-sample
 gain T (gamma y_max^2 + eta (lambda y_max)^2) below half the critical gain the stability check
-derives from the model; these tests fail on the old default.
+derives from the model; these tests fail with the paper's rates or with a dead zone as wide as
+the boundary layer.
 """
 
 import math
@@ -227,7 +228,7 @@ def test_default_rac_has_no_limit_cycle_on_a_square_wave(model, low_m, high_m, p
                                                           periods):
     m, theta, pp = _square(model, low_m, high_m, period_s, periods)
     r = ControllerParams().rac
-    # old default: 1.2 um rms, 2.6 um peak (Fig. 10) and 2.3 um rms (28 um) on the plateaus
+    # the paper's rates limit-cycle here, by about a micrometre on the plateaus (Fig. 10)
     assert m.ss_e_rms_m < 3e-9      # a few ADC steps (1.16 nm)
     assert m.ss_e_max_m < 10e-9
     assert np.max(pp) < 10e-9          # no oscillation left on any plateau

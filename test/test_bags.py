@@ -471,15 +471,21 @@ def _storage_file(bag):
     return next(p for p in bag.iterdir() if p.suffix in ('.mcap', '.db3'))
 
 
+def _write_bag(bag, topics):
+    # an MCAP bag with a connection per (topic, type, message) and that message, if any, at t = 0
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conns = [(writer.add_connection(topic, msgtype, typestore=STORE), raw)
+                 for topic, msgtype, raw in topics]
+        for conn, raw in conns:
+            if raw is not None:
+                writer.write(conn, 0, raw)
+
+
 def test_missing_topic(tmp_path):
     bag = tmp_path / 'nocmd'
-    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        c = writer.add_connection('/stage/position', JS, typestore=STORE)
-        r = writer.add_connection('/stage/reference', JS, typestore=STORE)
-        c2 = writer.add_connection('/other/command', F64, typestore=STORE)
-        writer.write(c, 0, _js(0, [0.0]))
-        writer.write(r, 0, _js(0, [0.0], [0.0]))
-        writer.write(c2, 0, _f64(1.0))
+    _write_bag(bag, [('/stage/position', JS, _js(0, [0.0])),
+                     ('/stage/reference', JS, _js(0, [0.0], [0.0])),
+                     ('/other/command', F64, _f64(1.0))])
     with pytest.raises(BagError, match=r'nocmd: no stage topics found'):
         read_run(bag)
     with pytest.raises(BagError, match=r'nocmd: topic /stage/command is missing'):
@@ -495,11 +501,8 @@ def test_empty_bag(tmp_path):
 
 def test_required_topic_without_messages(tmp_path):
     bag = tmp_path / 'silent'
-    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        conns = [writer.add_connection(f'/stage/{k}', wire.BAG_TOPICS[k], typestore=STORE)
-                 for k in ('position', 'reference', 'command')]
-        writer.write(conns[0], 0, _js(0, [0.0]))
-        writer.write(conns[1], 0, _js(0, [0.0], [0.0]))
+    _write_bag(bag, [(f'/stage/{k}', wire.BAG_TOPICS[k], raw) for k, raw in (
+        ('position', _js(0, [0.0])), ('reference', _js(0, [0.0], [0.0])), ('command', None))])
     with pytest.raises(BagError, match=r'silent: topic /stage/command has no messages'):
         read_run(bag)
 
@@ -545,12 +548,9 @@ def test_unknown_storage_format(tmp_path):
 
 def test_wrong_type_on_known_topic(tmp_path):
     bag = tmp_path / 'wrongtype'
-    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        c = writer.add_connection('/stage/position', F64, typestore=STORE)
-        r = writer.add_connection('/stage/reference', JS, typestore=STORE)
-        k = writer.add_connection('/stage/command', F64, typestore=STORE)
-        for conn, raw in ((c, _f64(1.0)), (r, _js(0, [0.0], [0.0])), (k, _f64(1.0))):
-            writer.write(conn, 0, raw)
+    _write_bag(bag, [('/stage/position', F64, _f64(1.0)),
+                     ('/stage/reference', JS, _js(0, [0.0], [0.0])),
+                     ('/stage/command', F64, _f64(1.0))])
     match = (r'wrongtype: topic /stage/position has type std_msgs/msg/Float64, '
              r'expected sensor_msgs/msg/JointState')
     with pytest.raises(BagError, match=match):

@@ -175,7 +175,7 @@ def test_the_batch_refuses_members_it_cannot_step_together():
                   duration_s=0.01)
 
 
-# -- feed-forward (issue 16) ---------------------------------------------------------------------
+# -- feed-forward ------------------------------------------------------------------------------
 
 # members the model inverse fits badly (gain 1.4x, the most lag) beside the nominal one, two of
 # them with sensor noise

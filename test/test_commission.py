@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-Commissioning (issue 18 item 2): excite in closed loop, identify, design, certify, verify.
+Commissioning: excite in closed loop, identify, design, certify, verify.
 
 One end-to-end run of the command on a member of the stage family (fast settings: 1 s of
 excitation), shared by the tests that read its parameter file and report; the refusals run

@@ -120,8 +120,9 @@ def test_table3_summary_matrix() -> None:
 
 
 def test_square_reports_the_ideal_and_the_shaped_wave_beside_the_paper() -> None:
-    # Fig. 10 with the default RAC: no limit cycle on either reference (old default: 1.2 um
-    # rms on the plateaus); the 2 ms S-curve removes the overshoot of the ideal jump
+    # Fig. 10 with the default RAC: no limit cycle on either reference (the paper's adaptation
+    # rates limit-cycle on the plateaus); the 2 ms S-curve removes the overshoot of the ideal
+    # jump
     result = ex.run_square(StageParams(), ControllerParams(), plants=('reduced',), periods=2,
                            transitions_s=(0.0, 2e-3))
     paper, ideal, shaped = result.rows

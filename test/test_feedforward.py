@@ -290,7 +290,7 @@ def test_learning_update_is_the_circular_convolution_of_the_stepped_errors() -> 
 def test_inverse_tracks_100_hz_at_the_converter_floor_from_the_second_period() -> None:
     rec = _run('inverse', {'kind': 'sine', 'sine.frequency_hz': 100.0}, 0.1)
     e = rec.position_m - rec.reference_m
-    # issue 16: <= 4 nm from the first period; the first 10 ms include the start from rest
+    # the first 10 ms include the start from rest
     # with the sine's full velocity (an infeasible first sample); the rest sits at the
     # converters' floor (ADC step 1.16 nm, about 0.33 nm rms)
     assert _rms(e[100:]) <= 1.0e-9
@@ -323,7 +323,7 @@ def test_raster_line_with_learning_holds_the_estimates_and_meets_the_target() ->
     # converged, not drifting: at the converters' floor each period's rms scatters by some
     # 10 % (the ADC's and DAC's rounding), so the drift is judged on means of ten periods
     assert np.mean(per_period[-10:]) <= 1.1 * np.mean(per_period[2:12])
-    # issue 16: middle 80 % of each line (away from the turnarounds at P/4 + j P/2) <= 2 nm
+    # a scan uses the middle 80 % of each line (away from the turnarounds at P/4 + j P/2)
     period = 1.0 / 50.0
     phase = ((rec.time_s - period / 4) % (period / 2)) / (period / 2)
     middle = (phase > 0.1) & (phase < 0.9) & (rec.time_s >= 0.5)

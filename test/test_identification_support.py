@@ -13,7 +13,7 @@
 # limitations under the License.
 
 """
-What data support (issue 18): refusals, closed-loop identification, drift from operation bags.
+What data support: refusals, closed-loop identification, drift from operation bags.
 
 Bags are made with the offline runner as ``test_identify.py`` makes them (no role, no true
 parameters in the bag), on stages the package was not configured for.

@@ -99,7 +99,7 @@ def test_every_command_refuses_a_bad_node_setting(
 
 
 def test_design_model_follows_the_plant_unless_own(tmp_path: Path) -> None:
-    # the ros2 run case of issue 11: default.yaml + table3_pi.yaml runs the reduced plant
+    # as ros2 run reads them: default.yaml + table3_pi.yaml runs the reduced plant
     loop = load_loop_config([DEFAULT, PI])
     assert loop.stage.plant.model == 'reduced' and loop.design_plant == loop.stage.plant
     own = _file(tmp_path, 'controller_node:\n  ros__parameters:\n    stability:\n'

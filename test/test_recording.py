@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 
+from fake_clock import FakeClock
 import numpy as np
 from piezo_stage_ros.analysis.bagread import read_run
 from piezo_stage_ros.core.contracts import cdr, wire
@@ -59,23 +60,8 @@ STORE = get_typestore(Stores.ROS2_JAZZY)
 T0 = 1_700_000_000_123_456_700  # stamps since the epoch: must stay exact
 
 
-class FakeClock:
-    """A monotonic clock in ns that moves by a fixed step per read and when slept on."""
-
-    def __init__(self, per_read: int = 300) -> None:
-        self.now = 10**9
-        self.per_read = per_read
-
-    def __call__(self) -> int:
-        self.now += self.per_read
-        return self.now
-
-    def sleep(self, seconds: float) -> None:
-        self.now += int(seconds * 1e9)
-
-
 def servo(duration_s: float, diagnostics_every: int = 10) -> tuple[ServoLoop, FakeClock]:
-    clock = FakeClock()
+    clock = FakeClock(per_read=300)
     params = StageParams.from_flat({'plant.model': 'reduced', 'chain.sensor_noise_std_m': 1e-9,
                                     'seed': 3})
     ctrl = build_controller(ControllerParams.from_flat({'type': 'rac'}), 1e-4)

@@ -21,6 +21,7 @@ import os
 import threading
 import time
 
+from fake_clock import FakeClock
 import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.contracts.loop_config import ServoParams
@@ -37,26 +38,6 @@ from piezo_stage_ros.nodes.servo import apply_change, servo_from_config, ServoLo
 import pytest
 
 PERIOD = 100_000  # ns, 10 kHz
-
-
-class FakeClock:
-    """A monotonic clock in ns that moves only when slept on, or by a scripted delay per read."""
-
-    def __init__(self, start: int = 10**9, per_read: int = 0) -> None:
-        self.now = start
-        self.per_read = per_read
-        self.sleeps: list[float] = []
-        self.stalls: dict[int, int] = {}  # read number -> extra ns added at that read
-        self.reads = 0
-
-    def __call__(self) -> int:
-        self.reads += 1
-        self.now += self.per_read + self.stalls.pop(self.reads, 0)
-        return self.now
-
-    def sleep(self, seconds: float) -> None:
-        self.sleeps.append(seconds)
-        self.now += int(seconds * 1e9)
 
 
 # --- the clock -------------------------------------------------------------------------------

@@ -79,9 +79,9 @@ def test_default_rac_is_stable_on_every_model_at_every_corner(plant):
     # (4 corners + the initial estimates) x 2 regions x 5 slopes
     assert len(rep.cases) == 50
     # the design rule of docs/explanation/controllers.md: the whole box certified, and at least 2.5
-    # dB and 25 deg on every sampled loop (the old default's narrower box kept 3 dB and 35 deg; the
-    # family needs theta_hat up to 2 and phi_hat up to 9e-4, and the box's corner theta_min,
-    # phi_max, which no stage has, sets these margins)
+    # dB and 25 deg on every sampled loop (lower than a narrow box would give: the family needs
+    # theta_hat up to 2 and phi_hat up to 9e-4, and the box's corner theta_min, phi_max, which
+    # no stage has, sets these margins)
     assert all(c.certified for c in rep.certificates)
     assert rep.gain_margin_db > 2.5 and rep.phase_margin_deg > 25.0
 

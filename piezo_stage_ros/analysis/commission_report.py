@@ -37,7 +37,8 @@ matplotlib.use('Agg')  # files only; never a window
 
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from piezo_stage_ros.analysis.plots import plot_tracking  # noqa: E402
+from piezo_stage_ros.analysis.identification_report import save_figure  # noqa: E402
+from piezo_stage_ros.analysis.plots import dress, plot_tracking  # noqa: E402
 from piezo_stage_ros.core.identification.commission import (  # noqa: E402
     CommissionResult,
     corner_plants,
@@ -103,19 +104,12 @@ def plot_closed_loop_frf(result: CommissionResult, path: Path) -> Path | None:
     phase.semilogx(f, np.degrees(np.unwrap(np.angle(fit.model))), color='tab:red',
                    linestyle='--', linewidth=1.2)
     mag.set_xscale('log')
-    mag.set_ylabel('magnitude [dB re 1 um/V]')
-    mag.legend(fontsize=8, loc='lower left')
-    mag.grid(True, which='both', alpha=0.3)
-    phase.set_ylabel('phase [deg]')
-    phase.set_xlabel('frequency [Hz]')
-    phase.grid(True, which='both', alpha=0.3)
+    dress(mag, None, 'magnitude [dB re 1 um/V]', legend='lower left', which='both', fontsize=8)
+    dress(phase, 'frequency [Hz]', 'phase [deg]', which='both')
     wn = result.checked.result.factors.omega_n_rad_s
     mag.set_title(f'Closed-loop frequency response: {data.segments} periods averaged, w_n = '
                   f'{wn:.5g} rad/s, chi2/dof {periodic.chi2_per_dof:.2f}', fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def write_commission_report(result: CommissionResult, out_dir: str | Path, *,

@@ -36,8 +36,10 @@ import matplotlib
 
 matplotlib.use('Agg')  # files only; never a window
 
+from matplotlib.figure import Figure  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from piezo_stage_ros.analysis.plots import dress  # noqa: E402
 from piezo_stage_ros.core.identification.fit import (  # noqa: E402
     discrete_frequency_response,
     factors_of,
@@ -48,11 +50,33 @@ from piezo_stage_ros.core.identification.fit import (  # noqa: E402
 from piezo_stage_ros.core.model.stage import StageParams  # noqa: E402
 
 __all__ = ['comparison_rows', 'format_table', 'plot_frequency_response', 'plot_hysteresis',
-           'plot_step_response', 'write_report']
+           'plot_step_response', 'save_figure', 'write_report']
 
 
 _MODEL_STYLE: dict[str, Any] = {'color': 'tab:red', 'linestyle': '--', 'linewidth': 1.4}
 _DATA_STYLE: dict[str, Any] = {'color': 'tab:blue', 'linewidth': 1.2}
+
+
+def save_figure(fig: Figure, path: Path) -> Path:
+    """
+    Write a report's figure (tight layout, 110 dpi) to ``path``, close it and return ``path``.
+
+    Parameters
+    ----------
+    fig : Figure
+        A figure made with ``pyplot``; closed here so that a long study does not keep them.
+    path : Path
+        PNG file to write.
+
+    Returns
+    -------
+    Path
+
+    """
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def plot_frequency_response(result: IdentificationResult, path: Path) -> Path | None:
@@ -94,25 +118,17 @@ def plot_frequency_response(result: IdentificationResult, path: Path) -> Path | 
     skipped = ~fit.used
     mag.semilogx(f[skipped], 20.0 * np.log10(np.abs(data.response[skipped]) * 1e6), '.',
                  color='0.6', markersize=3, label='not fitted (band, coherence)')
-    mag.set_ylabel('magnitude [dB re 1 um/V]')
-    mag.legend(fontsize=8, loc='lower left')
-    mag.grid(True, which='both', alpha=0.3)
-    phase.set_ylabel('phase [deg]')
-    phase.grid(True, which='both', alpha=0.3)
+    dress(mag, None, 'magnitude [dB re 1 um/V]', legend='lower left', which='both', fontsize=8)
+    dress(phase, None, 'phase [deg]', which='both')
     coh.semilogx(f, data.coherence, color='0.3', linewidth=1.0)
     coh.set_ylim(0.0, 1.05)
-    coh.set_ylabel('coherence')
-    coh.set_xlabel('frequency [Hz]')
-    coh.grid(True, which='both', alpha=0.3)
+    dress(coh, 'frequency [Hz]', 'coherence', which='both')
     wn_hz = result.factors.omega_n_rad_s / (2.0 * math.pi)
     for ax in axes:
         ax.axvline(wn_hz, color='0.5', linewidth=0.8, linestyle=':')
     mag.set_title(f'Frequency response (Fig. 4): w_n = {result.factors.omega_n_rad_s:.5g} rad/s '
                   f'({wn_hz:.0f} Hz), sampled at {1.0 / data.sample_time_s:.0f} Hz', fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def plot_step_response(result: IdentificationResult, path: Path,
@@ -150,20 +166,13 @@ def plot_step_response(result: IdentificationResult, path: Path,
                                   gridspec_kw={'height_ratios': [3, 1.3]})
     ax.plot(ts, y[sel] * 1e6, label='measured', **_DATA_STYLE)
     ax.plot(ts, model[sel] * 1e6, label='identified model', **_MODEL_STYLE)
-    ax.set_ylabel('position [um]')
-    ax.legend(fontsize=8)
-    ax.grid(True, alpha=0.3)
+    dress(ax, None, 'position [um]', legend='best', fontsize=8)
     dv = float(u[k0] - u[k0 - 1]) if k0 > 0 else float('nan')
     ax.set_title(f'Step response (Fig. 5): {dv:.3g} V step; zeta = {result.factors.zeta:.4g}, '
                  f'tau = {result.factors.tau_s * 1e3:.4g} ms', fontsize=10)
     res.plot(ts, (y[sel] - model[sel]) * 1e9, color='0.3', linewidth=0.8)
-    res.set_ylabel('residual [nm]')
-    res.set_xlabel('time after the step [ms]')
-    res.grid(True, alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    dress(res, 'time after the step [ms]', 'residual [nm]')
+    return save_figure(fig, path)
 
 
 def plot_hysteresis(result: IdentificationResult, path: Path) -> Path | None:
@@ -192,20 +201,12 @@ def plot_hysteresis(result: IdentificationResult, path: Path) -> Path | None:
                                     gridspec_kw={'height_ratios': [3, 1.3]})
     loop.plot(v, y * 1e6, label='measured', **_DATA_STYLE)
     loop.plot(v, model * 1e6, label='identified model', **_MODEL_STYLE)
-    loop.set_xlabel('amplifier input v_in [V]')
-    loop.set_ylabel('position [um]')
-    loop.legend(fontsize=8)
-    loop.grid(True, alpha=0.3)
+    dress(loop, 'amplifier input v_in [V]', 'position [um]', legend='best', fontsize=8)
     loop.set_title(f'Hysteresis (Fig. 6): {fit.model}, residual rms '
                    f'{fit.residual_rms_m * 1e9:.3g} nm', fontsize=10)
     res.plot((t - t[0]) * 1e3, (y - model) * 1e9, color='0.3', linewidth=0.8)
-    res.set_xlabel('time [ms]')
-    res.set_ylabel('residual [nm]')
-    res.grid(True, alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    dress(res, 'time [ms]', 'residual [nm]')
+    return save_figure(fig, path)
 
 
 def comparison_rows(result: IdentificationResult, true_stage: StageParams

@@ -41,6 +41,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 import math
 from pathlib import Path
+from typing import Any, Literal
 
 import matplotlib
 
@@ -65,6 +66,7 @@ from piezo_stage_ros.core.loop.metrics import (  # noqa: E402
 from piezo_stage_ros.core.loop.record import RunRecord  # noqa: E402
 
 __all__ = [
+    'dress',
     'error_trace',
     'find_step',
     'plot_bode',
@@ -131,6 +133,35 @@ def _relative_time(record: RunRecord) -> FloatArray:
     return t - t[0] if t.size else t
 
 
+def dress(ax: Axes, xlabel: str | None = None, ylabel: str | None = None, *,
+          legend: str | None = None, which: Literal['major', 'both'] = 'major',
+          **legend_options: Any) -> None:
+    """
+    Label an axis, draw its grid and, when asked, its legend: the finish all figures share.
+
+    Parameters
+    ----------
+    ax : Axes
+        The axis, its curves drawn (the legend collects them).
+    xlabel, ylabel : str, optional
+        Axis labels; None leaves a label unset.
+    legend : str, optional
+        Where the legend goes (a matplotlib ``loc``); None draws none.
+    which : str
+        Grid lines: ``'major'``, or ``'both'`` for a logarithmic axis.
+    **legend_options
+        More arguments of ``Axes.legend`` (e.g. ``fontsize``).
+
+    """
+    if xlabel is not None:
+        ax.set_xlabel(xlabel)
+    if ylabel is not None:
+        ax.set_ylabel(ylabel)
+    ax.grid(True, which=which, alpha=0.3)
+    if legend is not None:
+        ax.legend(**{'loc': legend, **legend_options})
+
+
 def plot_tracking(record: RunRecord, path: Path, title: str = '') -> Path:
     """
     Draw x and x_d versus time (paper Fig. 11(a)).
@@ -142,7 +173,7 @@ def plot_tracking(record: RunRecord, path: Path, title: str = '') -> Path:
     path : Path
         PNG file to write.
     title : str
-        Figure title (e.g. the bag name).
+        Figure title (e.g. the bag name); empty: 'Trajectory tracking'.
 
     Returns
     -------
@@ -156,11 +187,8 @@ def plot_tracking(record: RunRecord, path: Path, title: str = '') -> Path:
             label='desired $x_d$')
     ax.plot(*_envelope(t, record.position_m * 1e6), color='tab:red', lw=0.8,
             label='measured $x$')
-    ax.set_xlabel('time [s]')
-    ax.set_ylabel('position [µm]')
     ax.set_title(title or 'Trajectory tracking')
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc='upper right')
+    dress(ax, 'time [s]', 'position [µm]', legend='upper right')
     return _save(fig, path)
 
 
@@ -176,7 +204,7 @@ def plot_error(record: RunRecord, path: Path, title: str = '',
     path : Path
         PNG file to write.
     title : str
-        Figure title.
+        Figure title; empty: 'Tracking error'.
     steady_state_start_s : float, optional
         Start of the window the metrics use, relative to the first sample [s]; shaded.
 
@@ -189,14 +217,13 @@ def plot_error(record: RunRecord, path: Path, title: str = '',
     fig, (ax,) = _new()
     t = _relative_time(record)
     ax.plot(*_envelope(t, record.error_m * 1e9), color='tab:red', lw=0.8)
+    legend = None
     if steady_state_start_s is not None and t.size:
         ax.axvspan(steady_state_start_s, t[-1], color='0.9', zorder=0,
                    label='metrics window')
-        ax.legend(loc='upper right')
-    ax.set_xlabel('time [s]')
-    ax.set_ylabel('error $x - x_d$ [nm]')
+        legend = 'upper right'
     ax.set_title(title or 'Tracking error')
-    ax.grid(True, alpha=0.3)
+    dress(ax, 'time [s]', 'error $x - x_d$ [nm]', legend=legend)
     return _save(fig, path)
 
 
@@ -211,7 +238,7 @@ def plot_io_curves(record: RunRecord, path: Path, title: str = '') -> Path:
     path : Path
         PNG file to write.
     title : str
-        Figure title.
+        Figure title above both plots; empty: none.
 
     Returns
     -------
@@ -225,16 +252,12 @@ def plot_io_curves(record: RunRecord, path: Path, title: str = '') -> Path:
     left.plot(xd, x, color='tab:red', lw=0.7)
     lo, hi = float(np.nanmin(xd)), float(np.nanmax(xd))
     left.plot([lo, hi], [lo, hi], color='0.5', lw=0.8, ls='--', label='$x = x_d$')
-    left.set_xlabel('desired position $x_d$ [µm]')
-    left.set_ylabel('measured position $x$ [µm]')
     left.set_title('closed loop: $x$ vs $x_d$')
-    left.legend(loc='upper left')
+    dress(left, 'desired position $x_d$ [µm]', 'measured position $x$ [µm]',
+          legend='upper left')
     right.plot(v, x, color='tab:blue', lw=0.7)
-    right.set_xlabel('amplifier input $v_{in}$ [V]')
-    right.set_ylabel('measured position $x$ [µm]')
     right.set_title('plant: $x$ vs $v_{in}$')
-    for ax in (left, right):
-        ax.grid(True, alpha=0.3)
+    dress(right, 'amplifier input $v_{in}$ [V]', 'measured position $x$ [µm]')
     if title:
         fig.suptitle(title)
     return _save(fig, path)
@@ -285,7 +308,7 @@ def plot_step_zoom(record: RunRecord, path: Path, title: str = '',
     path : Path
         PNG file to write.
     title : str
-        Figure title.
+        Figure title; empty: 'Step at t = ...'.
     window_s : float
         Time shown after the step [s] (10 % of it is shown before).
 
@@ -305,14 +328,10 @@ def plot_step_zoom(record: RunRecord, path: Path, title: str = '',
     tm = (t[sel] - t0) * 1e3
     ax.plot(tm, record.reference_m[sel] * 1e6, color='tab:blue', lw=1.2, label='desired $x_d$')
     ax.plot(tm, record.position_m[sel] * 1e6, color='tab:red', lw=0.9, label='measured $x$')
-    ax.set_ylabel('position [µm]')
     ax.set_title(title or f'Step at t = {t0:.4f} s')
-    ax.legend(loc='lower right')
+    dress(ax, None, 'position [µm]', legend='lower right')
     ax_v.plot(tm, record.command_v[sel], color='tab:green', lw=0.9)
-    ax_v.set_ylabel('$v_{in}$ [V]')
-    ax_v.set_xlabel('time after the step [ms]')
-    for a in (ax, ax_v):
-        a.grid(True, alpha=0.3)
+    dress(ax_v, 'time after the step [ms]', '$v_{in}$ [V]')
     return _save(fig, path)
 
 
@@ -327,7 +346,7 @@ def plot_bode(estimate: BodeEstimate, path: Path, title: str = '') -> Path:
     path : Path
         PNG file to write.
     title : str
-        Figure title.
+        Figure title; empty: 'Frequency response estimate' and the estimate's label.
 
     Returns
     -------
@@ -348,20 +367,17 @@ def plot_bode(estimate: BodeEstimate, path: Path, title: str = '') -> Path:
     phase = np.degrees(np.unwrap(np.angle(response)))
     ax_m.semilogx(f, mag_db, color='0.7', lw=0.8, label='coherence < 0.8')
     ax_m.semilogx(f[good], mag_db[good], '.', color='tab:blue', ms=2.5, label='coherence >= 0.8')
-    ax_m.set_ylabel(f'magnitude [dB re 1 {estimate.unit}]')
-    ax_m.legend(loc='lower left')
+    dress(ax_m, None, f'magnitude [dB re 1 {estimate.unit}]', legend='lower left',
+          which='both')
     ax_p.semilogx(f, phase, color='0.7', lw=0.8)
     ax_p.semilogx(f[good], phase[good], '.', color='tab:blue', ms=2.5)
-    ax_p.set_ylabel('phase [deg]')
-    ax_p.set_xlabel('frequency [Hz]')
+    dress(ax_p, 'frequency [Hz]', 'phase [deg]', which='both')
     if good.any():
         for ax, values in ((ax_m, mag_db), (ax_p, phase)):
             lo, hi = float(values[good].min()), float(values[good].max())
             pad = 0.15 * max(hi - lo, 10.0)
             ax.set_ylim(lo - pad, hi + pad)
     ax_m.set_title(title or f'Frequency response estimate: {estimate.label}')
-    for a in (ax_m, ax_p):
-        a.grid(True, which='both', alpha=0.3)
     return _save(fig, path)
 
 
@@ -377,7 +393,7 @@ def plot_learning_curve(rows: PeriodErrors, path: Path, title: str = '',
     path : Path
         PNG file to write.
     title : str
-        Figure title.
+        Figure title; empty: 'Learning curve: error per period'.
     first_update : int, optional
         The period at whose end a learning feed-forward first updated its table (a dotted
         line).
@@ -404,11 +420,9 @@ def plot_learning_curve(rows: PeriodErrors, path: Path, title: str = '',
     if first_update is not None:
         ax.axvline(first_update + 0.5, color='0.4', ls=':', lw=1.0,
                    label=f'first table update (end of period {first_update})')
-    ax.set_xlabel(f'period (of {rows.period_s * 1e3:g} ms)')
-    ax.set_ylabel('error per period [nm]')
     ax.set_title(title or 'Learning curve: error per period')
-    ax.grid(True, which='both', alpha=0.3)
-    ax.legend(loc='upper right')
+    dress(ax, f'period (of {rows.period_s * 1e3:g} ms)', 'error per period [nm]',
+          legend='upper right', which='both')
     return _save(fig, path)
 
 
@@ -423,7 +437,7 @@ def plot_lines(profile: LineProfile, path: Path, title: str = '') -> Path:
     path : Path
         PNG file to write.
     title : str
-        Figure title.
+        Figure title; empty: 'Error over the linear part of each line'.
 
     Returns
     -------
@@ -443,11 +457,9 @@ def plot_lines(profile: LineProfile, path: Path, title: str = '') -> Path:
             ax.plot(xs, ys, '.', ms=1.5, color=color, alpha=0.5,
                     label=f'{label} ({pos.size} samples)')
     ax.set_xlim(profile.low_m * 1e6, profile.high_m * 1e6)
-    ax.set_xlabel('x_d along the line [µm]')
-    ax.set_ylabel(f'error, {which} [nm]')
     ax.set_title(title or 'Error over the linear part of each line')
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc='upper right', markerscale=6)
+    dress(ax, 'x_d along the line [µm]', f'error, {which} [nm]', legend='upper right',
+          markerscale=6)
     if pixels:
         ax = axes[1]
         index = np.arange(pixels, dtype=np.float64)
@@ -467,11 +479,9 @@ def plot_lines(profile: LineProfile, path: Path, title: str = '') -> Path:
                     label=f'{label}: mean over {image.shape[0]} lines')
             ax.fill_between(index, low * 1e9, high * 1e9, color=color, alpha=0.2,
                             label=f'{label}: lowest to highest line')
-        ax.set_xlabel(f'pixel (of {pixels}, {(profile.high_m - profile.low_m) * 1e9 / pixels:.4g}'
-                      ' nm each)')
-        ax.set_ylabel(f'pixel error, {which} [nm]')
-        ax.grid(True, alpha=0.3)
-        ax.legend(loc='upper right')
+        size_nm = (profile.high_m - profile.low_m) * 1e9 / pixels
+        dress(ax, f'pixel (of {pixels}, {size_nm:.4g} nm each)', f'pixel error, {which} [nm]',
+              legend='upper right')
     return _save(fig, path)
 
 
@@ -521,7 +531,7 @@ def plot_feedforward(record: RunRecord, path: Path, title: str = '') -> Path | N
     path : Path
         PNG file to write.
     title : str
-        Figure title.
+        Figure title; empty: 'Feed-forward and command'.
 
     Returns
     -------
@@ -536,10 +546,8 @@ def plot_feedforward(record: RunRecord, path: Path, title: str = '') -> Path | N
     t = _relative_time(record)
     ax.plot(*_envelope(t, record.command_v), color='0.6', lw=0.8, label='command $v$')
     ax.plot(*_envelope(t, u_ff), color='tab:green', lw=0.8, label='feed-forward $u_{ff}$')
-    ax.set_xlabel('time [s]')
-    ax.set_ylabel('[V]')
     ax.set_title(title or 'Feed-forward and command')
-    ax.legend(loc='upper right')
+    dress(ax, 'time [s]', '[V]', legend='upper right')
     period = meta_period(record.meta)
     dt = float(t[1] - t[0]) if t.size > 1 else 0.0
     n = int(round(period / dt)) if period is not None and dt > 0.0 else 0
@@ -548,16 +556,13 @@ def plot_feedforward(record: RunRecord, path: Path, title: str = '') -> Path | N
         phase = (t[last] - t[last][0]) * 1e3
         ax_p.plot(phase, record.command_v[last], color='0.6', lw=1.0, label='command $v$')
         ax_p.plot(phase, u_ff[last], color='tab:green', lw=1.2, label='$u_{ff}$')
-        ax_p.set_xlabel('time in the last period [ms]')
+        xlabel = 'time in the last period [ms]'
     else:
         tail = slice(max(t.size - 1000, 0), t.size)
         ax_p.plot(t[tail], record.command_v[tail], color='0.6', lw=1.0, label='command $v$')
         ax_p.plot(t[tail], u_ff[tail], color='tab:green', lw=1.2, label='$u_{ff}$')
-        ax_p.set_xlabel('time [s] (last 1000 samples)')
-    ax_p.set_ylabel('[V]')
-    ax_p.legend(loc='upper right')
-    for a in (ax, ax_p):
-        a.grid(True, alpha=0.3)
+        xlabel = 'time [s] (last 1000 samples)'
+    dress(ax_p, xlabel, '[V]', legend='upper right')
     return _save(fig, path)
 
 
@@ -602,11 +607,8 @@ def plot_comparison(traces: Sequence[tuple[FloatArray, FloatArray]], labels: Seq
     fig, (ax,) = _new()
     for (t, err), label in zip(traces, labels):
         ax.plot(t, err * 1e9, lw=0.8, label=label)
-    ax.set_xlabel('time [s]')
-    ax.set_ylabel('error $x - x_d$ [nm]')
     ax.set_title('Tracking error, run by run')
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc='upper right')
+    dress(ax, 'time [s]', 'error $x - x_d$ [nm]', legend='upper right')
     return _save(fig, path)
 
 

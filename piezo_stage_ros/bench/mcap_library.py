@@ -15,7 +15,7 @@
 """
 What Foxglove's ``mcap`` library reaches on the loop's messages through its public API.
 
-The question (issue 11): could ``mcap`` carry the fast MCAP path instead of rosbags' private
+The question: could ``mcap`` carry the fast MCAP path instead of rosbags' private
 storage classes (``analysis/bagfast.py``)? Its public writer takes one message per
 ``add_message`` call and its reader yields one Python object per message; this prints the
 messages per second of both on records of the loop's sizes, to compare with

@@ -36,16 +36,15 @@ Run ``python3 -m piezo_stage_ros.bench.ros`` in a sourced Jazzy environment. Cas
   (as ``ros2 run`` of the three nodes), lockstep, both ways;
 - ``pingpong``: the yardstick of the machine's state: two nodes in this process bounce a
   ``Float64`` (serialized) on one EventsExecutor; the median round trip in microseconds;
-- ``recorded-realtime``: issue 12's target run, as a user runs it: ``ros2 launch piezo_stage_ros
-  closed_loop.launch.py mode:=realtime direct:=true record:=true scenario:=table3_rac.yaml
-  duration_s:=<--realtime-s>`` (``stage_servo --direct``, the servo loop as a process of its
-  own, ``ros2 bag record`` of every stage topic), then the bag analysed as ``analyze`` does:
-  the servo's counters (end-of-run log), the samples in the bag, e_rms over the whole run beside
-  the offline runner's (lockstep) on the same configuration and length, and the machine's
-  floor measured just before (``bench.servo.machine_floor``: a bare spin as long, the periods
-  a loop would lose to the machine alone); once on the idle
-  machine and once with ``--load`` CPU-bound processes beside it
-  (``recorded-realtime-loaded``).
+- ``recorded-realtime``: the real-time run with recording, as a user runs it: ``ros2 launch
+  piezo_stage_ros closed_loop.launch.py mode:=realtime direct:=true record:=true
+  scenario:=table3_rac.yaml duration_s:=<--realtime-s>`` (``stage_servo --direct``, the servo loop
+  as a process of its own, ``ros2 bag record`` of every stage topic), then the bag analysed as
+  ``analyze`` does: the servo's counters (end-of-run log), the samples in the bag, e_rms over the
+  whole run beside the offline runner's (lockstep) on the same configuration and length, and the
+  machine's floor measured just before (``bench.servo.machine_floor``: a bare spin as long, the
+  periods a loop would lose to the machine alone); once on the idle machine and once with
+  ``--load`` CPU-bound processes beside it (``recorded-realtime-loaded``).
 
 The runs use a ROS domain of their own (``--domain-id``) and localhost discovery, so that they
 neither see nor disturb other ROS graphs on the machine. Timings are those of a shared machine:

@@ -212,20 +212,11 @@ class TargetEmulator:
         """
         sock = self._sock
         sock.settimeout(min(self.idle_timeout_s, 0.1))
-        idle = 0.0
-        while not self._halt.is_set():
-            try:
-                data, peer = sock.recvfrom(_DATAGRAM)
-            except TimeoutError:
-                idle += sock.gettimeout() or 0.0
-                if idle >= self.idle_timeout_s:
-                    self.stop_reason = 'idle'
-                    break
-                continue
-            except OSError:
-                self.stop_reason = 'closed'
+        while True:
+            got = self._receive(0.0)
+            if got is None:
                 break
-            idle = 0.0
+            data, peer, _ = got
             self.requests += 1
             reply, done = self._handle(data)
             if reply is not None:
@@ -236,10 +227,44 @@ class TargetEmulator:
             if self.max_requests and self.requests >= self.max_requests:
                 self.stop_reason = 'limit'
                 break
-        else:
-            self.stop_reason = 'closed'
         sock.close()
         return self.stop_reason
+
+    def _receive(self, idle_s: float) -> tuple[bytes, Any, float] | None:
+        """
+        Wait for the next datagram on the blocking socket; None when waiting has to end.
+
+        Both ways of serving wait alike, so a host that goes silent or a :meth:`close` ends
+        either the same way.
+
+        Parameters
+        ----------
+        idle_s : float
+            Time already waited without a datagram that counts [s].
+
+        Returns
+        -------
+        tuple or None
+            The datagram, its sender and the idle time counted so far [s] (what came before
+            it included); None with :attr:`stop_reason` ``'idle'`` after ``idle_timeout_s``
+            without a datagram, or ``'closed'`` when the socket is closed or the server halted.
+
+        """
+        sock = self._sock
+        while not self._halt.is_set():
+            try:
+                data, peer = sock.recvfrom(_DATAGRAM)
+            except TimeoutError:
+                idle_s += sock.gettimeout() or 0.0
+                if idle_s >= self.idle_timeout_s:
+                    self.stop_reason = 'idle'
+                    return None
+                continue
+            except OSError:
+                break
+            return data, peer, idle_s
+        self.stop_reason = 'closed'
+        return None
 
     def serve_paced(self, pacer: Pacer | None = None) -> str:
         """
@@ -262,19 +287,14 @@ class TargetEmulator:
         sock = self._sock
         sock.settimeout(min(self.idle_timeout_s, 0.1))
         peer = None
-        idle = 0.0
-        while peer is None and not self._halt.is_set():
-            try:
-                data, addr = sock.recvfrom(_DATAGRAM)
-            except TimeoutError:
-                idle += sock.gettimeout() or 0.0
-                if idle >= self.idle_timeout_s:
-                    self.stop_reason = 'idle'
-                    sock.close()
-                    return self.stop_reason
-                continue
-            except OSError:
-                break
+        # a datagram other than STREAM does not restart the idle time
+        idle_s = 0.0
+        while peer is None:
+            got = self._receive(idle_s)
+            if got is None:
+                sock.close()
+                return self.stop_reason
+            data, addr, idle_s = got
             request = unpack_request(data)
             if request is not None and request[0] == STREAM:
                 peer = addr
@@ -284,10 +304,6 @@ class TargetEmulator:
                 refusal = self._refuse_version(data)
                 if refusal is not None:
                     sock.sendto(refusal, addr)
-        if peer is None:
-            self.stop_reason = 'closed'
-            sock.close()
-            return self.stop_reason
         self.requests += 1
         self._position_m = self.stage.reset()
         self.missing = 0

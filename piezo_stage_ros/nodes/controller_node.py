@@ -36,7 +36,6 @@ from typing import Any, Callable, Sequence
 
 from piezo_stage_ros.core.contracts import wire
 from piezo_stage_ros.core.contracts.cdr import (
-    CdrError,
     encode_float64,
     JointStateDecoder,
     JointStateEncoder,
@@ -64,7 +63,7 @@ from piezo_stage_ros.nodes.logic import (
     save_learned_table,
 )
 from piezo_stage_ros.nodes.parameters import ParameterBinding
-from piezo_stage_ros.nodes.runner import run
+from piezo_stage_ros.nodes.runner import decode_or_drop, run, stops_quietly
 from piezo_stage_ros.nodes.tables import (
     controller_table,
     ControllerNodeParams,
@@ -253,31 +252,18 @@ class ControllerNode(Node):
             self._diag_pub.publish(self._diag.encode(sec, nanosec, out.diagnostics))
 
     def _decode(self, data: bytes, topic: str) -> tuple[int, int, float, float] | None:
-        try:
-            if topic == wire.POSITION:
-                return self._positions.decode(data)
-            return self._references.decode(data)
-        except CdrError as exc:
-            self.malformed += 1
-            self.get_logger().warning(f'{topic}: {exc}; dropped', throttle_duration_sec=1.0)
-            return None
+        decoder = self._positions if topic == wire.POSITION else self._references
+        return decode_or_drop(self, topic, decoder.decode, data)
 
-    def _on_position(self, data: bytes) -> None:
-        try:
-            self._position(data)
-        except KeyboardInterrupt:
-            return  # Ctrl-C inside a callback: rclpy shuts down, the runner stops cleanly
-
+    @stops_quietly
     def _on_reference(self, data: bytes) -> None:
-        try:
-            msg = self._decode(data, wire.REFERENCE)
-            if msg is not None:
-                self.publish(self.logic.on_reference(wire.stamp_to_ns(msg[0], msg[1]), msg[2],
-                                                      msg[3]))
-        except KeyboardInterrupt:
-            return
+        msg = self._decode(data, wire.REFERENCE)
+        if msg is not None:
+            self.publish(self.logic.on_reference(wire.stamp_to_ns(msg[0], msg[1]), msg[2],
+                                                  msg[3]))
 
-    def _position(self, data: bytes) -> None:
+    @stops_quietly
+    def _on_position(self, data: bytes) -> None:
         if self._lockstep and not self._matched:
             if self._cmd_pub.get_subscription_count() == 0:
                 # the command would reach nobody yet; the plant publishes this sample again

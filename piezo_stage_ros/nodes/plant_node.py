@@ -35,7 +35,6 @@ from typing import Any, Callable, Sequence
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from piezo_stage_ros.core.contracts import wire
 from piezo_stage_ros.core.contracts.cdr import (
-    CdrError,
     decode_float64,
     encode_clock,
     JointStateEncoder,
@@ -56,7 +55,7 @@ from piezo_stage_ros.nodes.logic import (
 )
 from piezo_stage_ros.nodes.parameters import ParameterBinding
 from piezo_stage_ros.nodes.recording import backlog_samples, Handover, SampleBatch
-from piezo_stage_ros.nodes.runner import run
+from piezo_stage_ros.nodes.runner import decode_or_drop, run
 from piezo_stage_ros.nodes.servo import (
     make_bridge,
     samples_of,
@@ -392,11 +391,8 @@ class PlantNode(Node):
             self._fault(exc)
 
     def _on_command(self, data: bytes) -> None:
-        try:
-            command_v = decode_float64(data)
-        except CdrError as exc:
-            self.malformed += 1
-            self.get_logger().warning(f'{wire.COMMAND}: {exc}; dropped', throttle_duration_sec=1.0)
+        command_v = decode_or_drop(self, wire.COMMAND, decode_float64, data)
+        if command_v is None:
             return
         try:
             if self.servo is not None:

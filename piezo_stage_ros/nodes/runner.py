@@ -25,9 +25,11 @@ plant drives its safe voltage there) and shuts rclpy down.
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
-from typing import Callable, Sequence
+from typing import Any, Callable, Protocol, Sequence, TypeVar
 
+from piezo_stage_ros.core.contracts.cdr import CdrError
 from piezo_stage_ros.core.contracts.errors import PiezoStageError
 import rclpy
 from rclpy.exceptions import ParameterException
@@ -36,9 +38,74 @@ from rclpy.node import Node
 from rclpy.task import Future
 from rclpy.utilities import remove_ros_args
 
-__all__ = ['make_executor', 'run']
+__all__ = ['decode_or_drop', 'make_executor', 'run', 'stops_quietly']
 
 NodeFactory = Callable[[], Node]
+_Message = TypeVar('_Message')
+
+
+class _CountsMalformed(Protocol):
+    malformed: int
+
+    def get_logger(self) -> Any: ...
+
+
+def stops_quietly(callback: Callable[[Any, bytes], None]) -> Callable[[Any, bytes], None]:
+    """
+    Wrap a node's subscription callback so that Ctrl-C inside it ends it without a trace.
+
+    rclpy shuts down on the interrupt and :func:`run` stops cleanly; a traceback out of the
+    executor would only hide that.
+
+    Parameters
+    ----------
+    callback : callable
+        A node's method taking the serialized message.
+
+    Returns
+    -------
+    callable
+
+    """
+    @functools.wraps(callback)
+    def guarded(node: Any, data: bytes) -> None:
+        try:
+            callback(node, data)
+        except KeyboardInterrupt:
+            return
+    return guarded
+
+
+def decode_or_drop(node: _CountsMalformed, topic: str, decode: Callable[[bytes], _Message],
+                   data: bytes) -> _Message | None:
+    """
+    Return ``decode(data)``, or None for a malformed message, counted and dropped.
+
+    One bad publisher must neither stop a node's loop nor flood its log: the message is
+    counted in ``node.malformed`` and warned about at most once a second.
+
+    Parameters
+    ----------
+    node : Node
+        The receiving node, with a ``malformed`` counter.
+    topic : str
+        The topic, for the warning.
+    decode : callable
+        The message's decoder (raises ``CdrError``).
+    data : bytes
+        The serialized message.
+
+    Returns
+    -------
+    object or None
+
+    """
+    try:
+        return decode(data)
+    except CdrError as exc:
+        node.malformed += 1
+        node.get_logger().warning(f'{topic}: {exc}; dropped', throttle_duration_sec=1.0)
+        return None
 
 
 def make_executor(kind: str = 'events', context: rclpy.context.Context | None = None

@@ -29,12 +29,12 @@ from __future__ import annotations
 from typing import Any, Callable, Sequence
 
 from piezo_stage_ros.core.contracts import wire
-from piezo_stage_ros.core.contracts.cdr import CdrError, JointStateDecoder, JointStateEncoder
+from piezo_stage_ros.core.contracts.cdr import JointStateDecoder, JointStateEncoder
 from piezo_stage_ros.core.loop.trajectories import make_trajectory
 from piezo_stage_ros.nodes import qos
 from piezo_stage_ros.nodes.logic import Gate, TrajectoryLogic
 from piezo_stage_ros.nodes.parameters import ParameterBinding
-from piezo_stage_ros.nodes.runner import run
+from piezo_stage_ros.nodes.runner import decode_or_drop, run, stops_quietly
 from piezo_stage_ros.nodes.tables import trajectory_table, TrajectoryNodeParams
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -137,20 +137,12 @@ class TrajectoryNode(Node):
             self._pub.publish(self._encoder.encode(sec, nanosec, (reference_m,),
                                                    (velocity_mps,)))
 
+    @stops_quietly
     def _on_position(self, data: bytes) -> None:
-        try:
-            self._answer(data)
-        except KeyboardInterrupt:
-            return  # Ctrl-C inside a callback: rclpy shuts down, the runner stops cleanly
-
-    def _answer(self, data: bytes) -> None:
-        try:
-            sec, nanosec, _, _ = self._decoder.decode(data)
-        except CdrError as exc:
-            self.malformed += 1
-            self.get_logger().warning(f'{wire.POSITION}: {exc}; dropped',
-                                      throttle_duration_sec=1.0)
+        msg = decode_or_drop(self, wire.POSITION, self._decoder.decode, data)
+        if msg is None:
             return
+        sec, nanosec, _, _ = msg
         stamp = wire.stamp_to_ns(sec, nanosec)
         try:
             if self._ahead:
