@@ -1528,12 +1528,15 @@ class FeedForwardController:
 
     def _seed_from_model(self) -> None:
         """
-        Start ``learning`` (no model inverse) from the design model's input for the reference.
+        Start ``learning`` (no model inverse) from the model inverse's command for the reference.
 
-        The table converges to what the loop lacks for the reference, which on the design
-        model is its inverse, X_h / (c G(z_h)), less the RAC's own share at its initial
-        estimates, k (theta_0 X_h + phi_0 V_h) through the notch; Q's harmonics of that are the
-        table a new line rate starts from, so that its first line is not feedback alone.
+        What the table converges to on the design model is the command that makes the stage
+        follow the reference, H^-1(G^-1 x_d) (the stable inverse of the linear part, then the
+        inverse hysteresis, run over the period until its orbit repeats), less what the RAC
+        adds at tracking with its estimates where they now stand, k (theta_hat x_d +
+        phi_hat x_d') through the notch. Q's harmonics of that (no DC: the feedback holds it)
+        are the table a new line rate starts from, so that its first line has the model
+        inverse's hysteresis compensation in the band the table can hold.
         """
         points = self.table_points()
         samples = self._phase.samples if self._phase is not None else float(points)
@@ -1547,19 +1550,44 @@ class FeedForwardController:
             kept[self._phase.harmonics.astype(int)] = True
         else:
             kept[:len(self._kept)] = self._kept
-        g = self.slope * self.plant_inverse.frequency_response(z)
+        g = self.plant_inverse.frequency_response(z)
+        w = np.fft.irfft(np.fft.rfft(x) / g, points)
+        command = self._periodic_hysteresis_inverse(w)
         share = self._ksens * (self._theta0 * np.fft.rfft(x) + self._phi0 * np.fft.rfft(v))
         if self._notch_coeffs is not None:
             num, den = self._notch_coeffs
             share = share * np.polyval(num, z) / np.polyval(den, z)
-        with np.errstate(divide='ignore', invalid='ignore'):
-            seed = np.where(kept, np.fft.rfft(x) / np.where(kept, g, 1.0) - share, 0.0)
+        share = share + np.fft.rfft(self._estimate_drift())
+        seed = np.where(kept, np.fft.rfft(command) - share, 0.0)
         table = np.fft.irfft(seed, points)
         peak = float(np.max(np.abs(table)))
         limit = self.params.learning_limit_v
         if peak > limit:
             table *= limit / peak
         self.load_table(table)
+
+    def _periodic_hysteresis_inverse(self, w: FloatArray) -> FloatArray:
+        """
+        Return the inputs v of the design hysteresis's periodic orbit through outputs ``w``.
+
+        The hysteresis is rate-independent, so one period on the table's phase grid stands
+        for the period; it is run from rest at the first point until an orbit repeats to
+        1e-9 of the command's span (at most 20 periods), and the last is returned.
+        """
+        inverse = make_hysteresis_inverse(self._hysteresis_model)
+        slope = inverse.slope if inverse.slope > 0.0 else 1.0
+        inverse.reset(float(w[0]) / slope)
+        out = np.zeros(len(w))
+        last = np.full(len(w), np.inf)
+        for _ in range(20):
+            for i, target in enumerate(w):
+                out[i] = inverse.invert(float(target))
+                inverse.commit(float(out[i]))
+            span = float(np.ptp(out)) if len(out) else 0.0
+            if np.max(np.abs(out - last)) <= 1e-9 * max(span, 1e-12):
+                break
+            last = out.copy()
+        return out
 
     def _next_segment(self, k: int) -> int:
         """Bind the next segment of the trajectory at sample ``k``; return k in it."""
