@@ -1418,6 +1418,13 @@ class FeedForwardController:
         if notch is not None:
             self._share_notch = type(notch)(notch.num, notch.den)
         self._share_fresh = True
+        # inverse modes: what the held estimates add over the initial ones, k (d_theta x_d +
+        # d_phi x_d'), is taken off through its own copy of the notch (see _hold)
+        self._drift_gains = (0.0, 0.0)
+        self._drift_notch: Any = None
+        if notch is not None:
+            self._drift_notch = type(notch)(notch.num, notch.den)
+        self._drift_fresh = True
         self._trajectory: Trajectory | None = None
         # the segments of a trajectory still to come: (start [s], trajectory), and when the
         # next one starts [samples from the present segment's start]
@@ -1721,6 +1728,8 @@ class FeedForwardController:
                     self._share_fresh = False
                 share = notch.step(share)
             u = u - share + self._lw[i]
+            if self._drift_gains != (0.0, 0.0):
+                u = u - self._drift(x_ref, v_ref)
         if self._learning_on:
             if not n:
                 return self._phase_step(k, u, position_m - x_ref)
@@ -2011,12 +2020,40 @@ class FeedForwardController:
     # -- learning ----------------------------------------------------------------------------
 
     def _hold(self, hold: bool) -> None:
-        """Hold the RAC's estimates while the table learns (see ``hold_estimates``)."""
+        """
+        Hold the RAC's estimates while the table learns (see ``hold_estimates``).
+
+        With the model inverse, the estimates are held where the start's transient left them,
+        and at tracking they add k ((theta_hat - theta_0) x_d + (phi_hat - phi_0) x_d') to the
+        command: the table takes that off in Q's band, but above it (a fast line's
+        turnarounds, drawn by the model inverse alone) it would stay as an error. So while
+        held, that term is taken off the command too: the loop at tracking is the model
+        inverse and the table, whatever the estimates were held at.
+        """
         self._holding = hold
-        hold_estimates = getattr(getattr(self.inner, 'inner', self.inner), 'hold_estimates',
-                                 None)
+        rac = getattr(self.inner, 'inner', self.inner)
+        hold_estimates = getattr(rac, 'hold_estimates', None)
         if hold_estimates is not None:
             hold_estimates(hold)
+        self._drift_gains = (0.0, 0.0)
+        if hold and self._inverse_on and hasattr(rac, 'diagnostics'):
+            values = dict(rac.diagnostics())
+            if 'theta_hat' in values and 'phi_hat' in values:
+                self._drift_gains = (float(values['theta_hat']) - self._theta0,
+                                     float(values['phi_hat']) - self._phi0)
+                self._drift_fresh = True
+
+    def _drift(self, x_ref: float, v_ref: float) -> float:
+        """Return what the held estimates add over the initial ones at x_ref, through the notch."""
+        d_theta, d_phi = self._drift_gains
+        drift = (d_theta * x_ref + d_phi * v_ref) * self._ksens
+        notch = self._drift_notch
+        if notch is None:
+            return drift
+        if self._drift_fresh:  # at rest on the present value, as the share's notch starts
+            self._drift_fresh = False
+            notch.reset(drift)
+        return float(notch.step(drift))
 
     def _accumulate(self, end: int) -> None:
         """
@@ -2177,13 +2214,17 @@ class FeedForwardController:
         if not self._learning_on or not (self._period_n or self._phase is not None):
             raise PiezoStageError(f'feed-forward mode {self.params.mode!r}: no learned table '
                                   '(the mode does not learn, or no trajectory is bound)')
+        # with the model inverse the held estimates' term is taken off the command (_hold):
+        # the table holds nothing of it
+        drift = np.zeros(self.table_points()) if self._inverse_on and self._holding \
+            else self._estimate_drift()
         if self._phase is not None:
             x, _ = self._grid_reference()
-            table = self.learned_table() + self._estimate_drift()
+            table = self.learned_table() + drift
             period = self.period_s
         else:
             x = np.asarray(self._lx_raw, dtype=np.float64)
-            table = self._learned + self._estimate_drift()
+            table = self._learned + drift
             period = self._period_n * self._t
         return LearnedTable(table_v=table, reference_m=x,
                             sample_time_s=self._t, period_s=period,
