@@ -93,7 +93,7 @@ __all__ = ['FeedForwardController', 'FeedForwardParams', 'HysteresisInverse', 'L
            'MIN_PERIOD_SAMPLES', 'MODES', 'PhaseLearning', 'PreviewInverse', 'TABLE_FORMAT',
            'TABLE_META_KEY', 'TABLE_VERSION', 'boundary_weights', 'check_learning_period',
            'CLIP_SETTLE_SAMPLES', 'clipped_excess', 'LEARNING_SHAPE_CYCLES',
-           'kept_harmonics',
+           'BANDWIDTH_STRETCH', 'kept_harmonics', 'MIN_LEARNED_HARMONICS',
            'learning_columns', 'learning_convergence', 'make_hysteresis_inverse',
            'period_harmonics', 'phase_learning_convergence', 'phase_windows',
            'process_sensitivity', 'read_learned_table', 'shape_jumps', 'whole_period',
@@ -109,6 +109,17 @@ LEARN_CHUNK = 16
 #: ``learning_bandwidth_hz``: the quintic S-curve's content above Q is then below 5e-4 of the
 #: jump (3 cycles: 1e-3; 1.2: 2e-2), the part the table cannot learn.
 LEARNING_SHAPE_CYCLES = 3.6
+
+#: A line's first harmonics carry its hysteresis distortion (odd harmonics, the 3rd and the
+#: 5th foremost): Q keeps the first this many of a line even a little above
+#: ``learning_bandwidth_hz`` (a fast line, whose 5th harmonic would otherwise be the first one
+#: dropped, and which ``learning`` alone could not draw at all). A line slow enough to hold
+#: them below the edge is unchanged.
+MIN_LEARNED_HARMONICS = 5
+
+#: How far above ``learning_bandwidth_hz`` Q reaches for those first harmonics: the 5th of a
+#: line whose 4th lies on the edge. The learning check covers the harmonics kept.
+BANDWIDTH_STRETCH = 1.25
 
 #: Samples after a command the amplifier's range clipped whose errors are not learned: the
 #: clip's own transient (the closed loop settles from a lost input within a few samples at the
@@ -576,11 +587,15 @@ def kept_harmonics(ps: ComplexArray, samples: float, sample_time_s: float,
     sample_time_s : float
         T [s].
     bandwidth_hz : float
-        ``learning_bandwidth_hz``: Q keeps 0 < h / (n T) <= it, where P_s is not 0.
+        ``learning_bandwidth_hz``: Q keeps 0 < h / (n T) <= it, where P_s is not 0, and the
+        harmonics h <= :data:`MIN_LEARNED_HARMONICS` up to :data:`BANDWIDTH_STRETCH` times it.
 
     """
-    freq = np.arange(len(ps)) / (samples * sample_time_s)
-    kept = (freq > 0.0) & (freq <= bandwidth_hz) & (np.abs(ps) > 0.0)
+    harmonic = np.arange(len(ps))
+    freq = harmonic / (samples * sample_time_s)
+    band = (freq <= bandwidth_hz) | ((harmonic <= MIN_LEARNED_HARMONICS)
+                                     & (freq <= BANDWIDTH_STRETCH * bandwidth_hz))
+    kept = (freq > 0.0) & band & (np.abs(ps) > 0.0)
     return kept.astype(np.float64)
 
 
