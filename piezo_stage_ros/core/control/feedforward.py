@@ -1544,7 +1544,11 @@ class FeedForwardController:
         self._bind_one(trajectory, load_file=False)
         self._k = 0
         self._seen_k = -1
+        # the estimates adapt again from where they were held; with the model inverse the term
+        # they held stays taken off (the new line starts from the model inverse, as a run does)
+        drift = self._drift_gains
         self._hold(False)
+        self._drift_gains = drift
         if self._learning_on and not self._inverse_on:
             self._seed_from_model()
 
