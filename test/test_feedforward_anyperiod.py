@@ -141,7 +141,7 @@ def test_the_learning_check_covers_any_period_and_says_it_converges(period_s) ->
     top_hz = check.harmonics / period_s
     assert 0.5 - 1e-9 <= check.design_ratio < (0.6 if top_hz <= 1200.0 else 1.0)
     # the text says when Q reached above its edge for a fast line's first harmonics
-    assert ("first harmonics to 1500 Hz" in check.text()) == (top_hz > 1200.0)
+    assert ('first harmonics to 1500 Hz' in check.text()) == (top_hz > 1200.0)
 
 
 @pytest.mark.parametrize('frequency_hz,harmonics', [
