@@ -25,7 +25,9 @@ markers and left alone.
 
 Sections: ``table3`` (the paper's Table III, ``simulate --experiment table3``),
 ``feedforward`` (the feed-forward modes on the 100 Hz and 200 Hz sines), ``speed``
-(``benchmark --suite sim``). ``--quick`` runs the feed-forward at 100 Hz only and the
+(``benchmark --suite sim``), ``scan`` (lines at any rate against the scanning targets:
+triangles, raster lines up to 1 kHz, fast sines, a line-rate change, the amplifier's
+limit). ``--quick`` runs the feed-forward at 100 Hz only and the
 benchmark with one repeat and fewer controller steps; ``--sections`` picks some.
 """
 
@@ -225,6 +227,111 @@ def speed_section(data: Any) -> str:
 
 
 @dataclass(frozen=True)
+class ScanCase:
+    """
+    One row of the ``scan`` section: a ``simulate`` run, its figure and its target.
+
+    ``figure`` is ``'line'`` (the larger of the trace and retrace e_rms over the measured part
+    of the lines, of the true position when the run has one), ``'true'`` (e_rms of the true
+    position) or ``'measured'`` (e_rms). The target is ``target_m``, or the figure of the
+    row labelled ``against`` (no worse than it), or none.
+    """
+
+    label: str
+    args: tuple[str, ...]
+    figure: str
+    target_m: float | None = None
+    against: str = ''
+
+
+def _sine(f: float, mode: str, duration_s: float = 2.0) -> tuple[str, ...]:
+    return ('--trajectory', 'sine', '--frequency', f'{f:g}', '--feedforward', mode,
+            '--duration', f'{duration_s:g}')
+
+
+def _line(kind: str, f: float, mode: str, *more: str) -> tuple[str, ...]:
+    return ('--trajectory', kind, '--frequency', f'{f:g}', '--feedforward', mode,
+            '--duration', '3', '--steady-state-start', '2', *more)
+
+
+_SAT = ('--trajectory', 'sine', '--frequency', '50', '--amplitude', '14.3e-6', '--offset',
+        '15e-6', '--duration', '10', '--feedforward')
+_CHANGE = ('--trajectory', 'sine', '--frequency', '100', '--line-rate-change', '1.0:137')
+#: The first line after the change: the window is the one whole 137 Hz line from 1 s.
+_FIRST_LINE = ('--steady-state-start', '1.0', '--duration', '1.0074')
+
+_FIRST_INVERSE = '100 -> 137 Hz at 1 s, first new line, `inverse`, true'
+_SAT_NONE = '50 Hz sine of 14.3 um around 15 um (to the amplifier limit), `none`, true'
+
+#: The rows of the ``scan`` section.
+SCAN_CASES = (
+    ScanCase('triangle 70 Hz, `inverse_learning`, middle 80 %',
+             _line('triangle', 70.0, 'inverse_learning', '--line-middle', '0.8'), 'line', 2e-9),
+    ScanCase('triangle 80 Hz, `inverse_learning`, middle 80 %',
+             _line('triangle', 80.0, 'inverse_learning', '--line-middle', '0.8'), 'line', 2e-9),
+    ScanCase('sine 300 Hz, `learning`, true', _sine(300.0, 'learning'), 'true', 1e-9),
+    ScanCase('raster line 100 Hz, `inverse_learning`, linear part',
+             _line('scan_line', 100.0, 'inverse_learning'), 'line', 0.5e-9),
+    ScanCase('raster line 300 Hz, `inverse_learning`, linear part',
+             _line('scan_line', 300.0, 'inverse_learning'), 'line', 1e-9),
+    ScanCase('raster line 1 kHz, `inverse_learning`, linear part',
+             _line('scan_line', 1000.0, 'inverse_learning'), 'line', 3e-9),
+    ScanCase('raster line 300 Hz, `inverse`, linear part',
+             _line('scan_line', 300.0, 'inverse'), 'line'),
+    ScanCase('raster line 1 kHz, `inverse`, linear part',
+             _line('scan_line', 1000.0, 'inverse'), 'line'),
+    ScanCase(_FIRST_INVERSE, (*_CHANGE, '--feedforward', 'inverse', *_FIRST_LINE), 'true'),
+    ScanCase('the same, `learning`, true',
+             (*_CHANGE, '--feedforward', 'learning', *_FIRST_LINE), 'true',
+             against=_FIRST_INVERSE),
+    ScanCase('the same, `inverse_learning`, true',
+             (*_CHANGE, '--feedforward', 'inverse_learning', *_FIRST_LINE), 'true',
+             against=_FIRST_INVERSE),
+    ScanCase('100 -> 137 Hz, from the 50th new line, `inverse_learning`, true',
+             (*_CHANGE, '--feedforward', 'inverse_learning', '--duration', '2',
+              '--steady-state-start', '1.365'), 'true', 1e-9),
+    ScanCase('sine 300 Hz, `inverse`, true', _sine(300.0, 'inverse'), 'true', 1.6e-9),
+    ScanCase('sine 500 Hz, `inverse`, true', _sine(500.0, 'inverse'), 'true', 2.4e-9),
+    ScanCase(_SAT_NONE, (*_SAT, 'none'), 'true'),
+    ScanCase('the same, `learning`, true', (*_SAT, 'learning'), 'true', against=_SAT_NONE),
+    ScanCase('the same, `inverse_learning`, true', (*_SAT, 'inverse_learning'), 'true',
+             against=_SAT_NONE),
+)
+
+
+def scan_figure(case: ScanCase, data: Any) -> float:
+    """Return the figure of one ``scan`` row from its ``simulate --json`` output [m]."""
+    if case.figure == 'line':
+        suffix = '_true_m' if data.get('line_trace_e_rms_true_m') is not None else '_m'
+        return max(float(data[f'line_trace_e_rms{suffix}']),
+                   float(data[f'line_retrace_e_rms{suffix}']))
+    key = 'e_rms_true_m' if case.figure == 'true' else 'e_rms_m'
+    return float(data[key])
+
+
+def scan_section(runs: Sequence[tuple[ScanCase, Any]]) -> str:
+    """
+    Return the ``scan`` rows: figure, target and whether it is met, in nm.
+
+    A run that clipped commands says how many (the run reports it).
+    """
+    lines = ['| case | e_rms [nm] | target [nm] | met |', '| --- | ---: | ---: | --- |']
+    seen: dict[str, float] = {}
+    for case, data in runs:
+        value = scan_figure(case, data)
+        seen[case.label] = value
+        bound = seen[case.against] if case.against else case.target_m
+        goal = '-' if bound is None else f'<= {bound * 1e9:.2f}'
+        met = '-' if bound is None else ('yes' if value <= bound else '**no**')
+        label = case.label
+        clipped = data.get('ff_clipped_samples')
+        if clipped:
+            label += f' ({int(clipped)} commands clipped, reported)'
+        lines.append(f'| {label} | {value * 1e9:.2f} | {goal} | {met} |')
+    return '\n'.join(lines)
+
+
+@dataclass(frozen=True)
 class Study:
     """A generated section: how to run it, and how to turn its output into Markdown."""
 
@@ -262,10 +369,17 @@ def _speed(quick: bool) -> tuple[list[str], str]:
             speed_section(run_json('benchmark', args)))
 
 
+def _scan(quick: bool) -> tuple[list[str], str]:
+    runs = [(case, run_json('simulate', case.args)) for case in SCAN_CASES]
+    return ['simulate ' + ' '.join(case.args) + ' --json' for case in SCAN_CASES], \
+        scan_section(runs)
+
+
 STUDIES = (
     Study('table3', 'Table III', _table3),
     Study('feedforward', 'feed-forward', _feedforward),
     Study('speed', 'offline speed', _speed),
+    Study('scan', 'lines at any rate', _scan),
 )
 
 

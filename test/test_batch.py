@@ -202,6 +202,8 @@ def _ff_singles(stages, cp, tp, duration_s, hysteresis):
     # periods that are not a whole number of samples: the tables on the period's phase
     ('learning', {}, {'kind': 'sine', 'sine.frequency_hz': 300.0}),
     ('inverse_learning', {}, {'kind': 'triangle', 'triangle.frequency_hz': 70.0}),
+    # a fast raster line: the held estimates' term taken off, member by member
+    ('inverse_learning', {}, {'kind': 'scan_line', 'scan_line.frequency_hz': 300.0}),
 ])
 def test_the_batch_equals_single_runs_with_feedforward(mode, controller, trajectory):
     # Bit for bit, as without feed-forward: the tables are the scalar wrapper's own, the learning

@@ -27,6 +27,7 @@ from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.control.feedforward import (
     boundary_weights,
     FeedForwardController,
+    kept_harmonics,
     phase_learning_convergence,
     PhaseLearning,
     whole_period,
@@ -135,8 +136,26 @@ def test_the_learning_check_covers_any_period_and_says_it_converges(period_s) ->
                            stage=LOOP.stage)
     assert check is not None and check.ok
     assert check.period_s == period_s and check.harmonics >= 1
-    # the design model: gamma's ratio and the leakage of windows that cut the period
-    assert 0.5 - 1e-9 <= check.design_ratio < 0.6
+    # the design model: gamma's ratio and the leakage of windows that cut the period, and the
+    # computational delay the check assumes, whose phase grows with the highest harmonic kept
+    top_hz = check.harmonics / period_s
+    assert 0.5 - 1e-9 <= check.design_ratio < (0.6 if top_hz <= 1200.0 else 1.0)
+    # the text says when Q reached above its edge for a fast line's first harmonics
+    assert ('first harmonics to 1500 Hz' in check.text()) == (top_hz > 1200.0)
+
+
+@pytest.mark.parametrize('frequency_hz,harmonics', [
+    (100.0, 12), (137.0, 8), (240.0, 5), (250.0, 5), (300.0, 5), (400.0, 3), (500.0, 3),
+    (1000.0, 1)])
+def test_q_keeps_a_fast_line_first_harmonics_a_little_above_its_edge(frequency_hz,
+                                                                    harmonics) -> None:
+    # up to 1.2 kHz as set; beyond it, the first five harmonics of a line as far as 1.5 kHz
+    # (a 300 Hz line keeps its 5th, 1.5 kHz; a 400 Hz line's 4th, 1.6 kHz, stays out)
+    samples = 1.0 / (frequency_hz * T)
+    ps = np.ones(int(samples // 2) + 1, dtype=complex)
+    kept = kept_harmonics(ps, samples, T, 1200.0)
+    assert int(np.sum(kept)) == harmonics and kept[0] == 0.0
+    assert np.array_equal(np.flatnonzero(kept), np.arange(1, harmonics + 1))
 
 
 def test_whole_periods_keep_the_table_of_samples() -> None:
@@ -458,10 +477,56 @@ def test_learning_alone_learns_a_new_line_rate_again() -> None:
     assert max(learned[-5:]) <= 1e-9
 
 
-@pytest.mark.xfail(strict=True, reason='the seed of learning alone has no hysteresis '
-                   'compensation: with the delay-safe default gains its first line after '
-                   '100 -> 137 Hz is worse than the model inverse alone')
 def test_learning_alone_first_new_line_no_worse_than_the_inverse_alone() -> None:
-    learned = _rate_change('learning', 100.0, 137.0, 0.5, 2)
-    inverse = _rate_change('inverse', 100.0, 137.0, 0.5, 2)
-    assert learned[0] <= inverse[0]
+    # the new table starts from the model inverse's command (its hysteresis compensation in
+    # Q's band), so the first line of the new rate is no worse than the inverse alone, both
+    # ways: to a period that is not whole (137 Hz) and to a whole one (100 Hz)
+    for first_hz, second_hz, at_s in ((100.0, 137.0, 0.5), (137.0, 100.0, 1.0)):
+        learned = _rate_change('learning', first_hz, second_hz, at_s, 2)
+        inverse = _rate_change('inverse', first_hz, second_hz, at_s, 2)
+        assert learned[0] <= inverse[0]
+
+
+def test_the_seed_command_is_a_periodic_orbit_of_the_design_hysteresis() -> None:
+    # the seed's command v, played period after period through the design hysteresis from
+    # rest, settles on the outputs asked (its memory fades within a few periods); the solve's
+    # tolerance is 1e-10 V on w and the orbit is taken once it repeats to 1e-9 of its span
+    ctrl = _bound('learning', {'kind': 'sine', 'sine.frequency_hz': 137.0})
+    w = 3.0 + 2.5 * np.sin(2.0 * math.pi * np.arange(73) / 73.0)
+    v = ctrl._periodic_hysteresis_inverse(w)
+    model = ctrl._hysteresis_model
+    state = model.rest_state(float(v[0]))
+    outputs = []
+    for _ in range(12):
+        out = []
+        for value in v:
+            state, y = model.step(state, float(value))
+            out.append(float(y))
+        outputs.append(np.array(out))
+    assert np.max(np.abs(outputs[-1] - w)) <= 4e-9 * float(np.ptp(w))
+    assert np.max(np.abs(outputs[-1] - outputs[-2])) <= 4e-9 * float(np.ptp(w))
+    # backlash-like hysteresis lags: the orbit's input is not the output scaled by the slope
+    assert np.max(np.abs(v - w / model.slope)) > 1e-3
+
+
+def test_a_fast_raster_line_is_learned_to_the_nanometre_on_its_linear_part() -> None:
+    # 300 Hz, 80 % linear (33.3 samples a line): the turnarounds' harmonics above Q are the
+    # model inverse's alone, so the term the held estimates add there must not stay in the
+    # command; on the design stage the linear part is then within the issue's 1 nm
+    from piezo_stage_ros.core.loop import metrics
+    tp = TrajectoryParams.from_flat({**LOOP.trajectory.to_flat(), 'kind': 'scan_line',
+                                     'scan_line.frequency_hz': 300.0})
+    box: dict[str, FeedForwardController] = {}
+    rec = experiments.run_one(LOOP.stage, _controller('inverse_learning'), tp, duration_s=0.6,
+                              design_plant=LOOP.design_plant,
+                              built=lambda c: box.setdefault('c', c))
+    window = metrics.window_slice(rec.time_s - rec.time_s[0], 0.4, 1.0 / 300.0)
+    lm = metrics.line_metrics(rec, window)
+    assert lm.trace_e_rms_true_m is not None and lm.retrace_e_rms_true_m is not None
+    assert max(lm.trace_e_rms_true_m, lm.retrace_e_rms_true_m) <= 1e-9
+    # the estimates were held away from their initial values: the term was there to take off
+    ctrl = box['c']
+    assert ctrl._drift_gains != (0.0, 0.0)
+    # and the table saved for a later run holds none of it (relative to the initial
+    # estimates, with which a loaded table starts held)
+    assert np.array_equal(ctrl.learned().table_v, ctrl.learned_table())

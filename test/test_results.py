@@ -78,3 +78,32 @@ def test_the_machine_line_names_the_versions():
     import numpy
     line = results.machine()
     assert f'numpy {numpy.__version__}' in line and 'Python' in line and 'commit' in line
+
+
+def test_scan_rows_take_their_figure_and_compare_it_with_the_target():
+    line = results.ScanCase('line', ('--x',), 'line', 1e-9)
+    base = results.ScanCase('base', ('--y',), 'true')
+    against = results.ScanCase('against', ('--z',), 'true', against='base')
+    runs = [
+        # a line's figure is the larger of trace and retrace, of the true position
+        (line, {'line_trace_e_rms_true_m': 0.5e-9, 'line_retrace_e_rms_true_m': 2e-9,
+                'line_trace_e_rms_m': 0.1e-9, 'line_retrace_e_rms_m': 0.1e-9}),
+        (base, {'e_rms_true_m': 3e-9, 'e_rms_m': 9e-9}),
+        (against, {'e_rms_true_m': 3e-9, 'e_rms_m': 1e-9, 'ff_clipped_samples': 12.0}),
+    ]
+    lines = results.scan_section(runs).splitlines()
+    assert lines[2] == '| line | 2.00 | <= 1.00 | **no** |'
+    assert lines[3] == '| base | 3.00 | - | - |'
+    # no worse than the row it names (equal passes); a run that clipped says so
+    assert lines[4] == '| against (12 commands clipped, reported) | 3.00 | <= 3.00 | yes |'
+    # without a true position, the measured one
+    measured = {'line_trace_e_rms_m': 1e-9, 'line_retrace_e_rms_m': 0.5e-9}
+    assert results.scan_figure(line, measured) == 1e-9
+
+
+def test_every_scan_row_against_another_names_an_earlier_row():
+    seen: set[str] = set()
+    for case in results.SCAN_CASES:
+        assert not case.against or case.against in seen, case.label
+        assert case.figure in ('line', 'true', 'measured')
+        seen.add(case.label)

@@ -25,6 +25,7 @@ from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.control.controllers import ControllerParams, plant_resonance
 from piezo_stage_ros.core.identification.fit import factors_of
 from piezo_stage_ros.core.loop import metrics
+from piezo_stage_ros.core.loop import robustness as robustness_core
 from piezo_stage_ros.core.loop.experiments import run_one
 from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
 from piezo_stage_ros.core.model.family import (
@@ -288,3 +289,31 @@ def test_the_study_at_line_rates_that_are_not_whole_samples(feedforward, capsys)
     single = json.loads(capsys.readouterr().out)
     assert batch['rows'] == single['rows'] and len(batch['rows']) == 6
     assert all(math.isfinite(r['e_rms_m']) for r in batch['rows'])
+
+
+def test_a_lines_case_measures_where_an_image_is_taken(capsys):
+    # the triangle's middle 80 % and the raster line's linear part of the steady-state window,
+    # trace and retrace together, as the line metrics of the same run give them
+    assert robustness.main(['--stages', 'nominal', '--cases', 'triangle_80,scan_line_137',
+                            '--duration', '0.3', '--settle', '0.1', '--feedforward', 'inverse',
+                            '--quiet', '--json']) == 0
+    rows = {r['case']: r for r in json.loads(capsys.readouterr().out)['rows']}
+    cp = ControllerParams.from_flat({'feedforward.mode': 'inverse'})
+    for case, middle in (('triangle_80', 0.8), ('scan_line_137', 1.0)):
+        tp = robustness_core.case_trajectory(case, TrajectoryParams(), 0.3)
+        rec = run_one(BASE, cp, tp, duration_s=0.3)
+        period = 1.0 / (80.0 if case == 'triangle_80' else 137.0)
+        window = metrics.window_slice(rec.time_s - rec.time_s[0], 0.1, period)
+        lm = metrics.line_metrics(rec, window, metrics.LineOptions(middle, 0))
+        n_tr, n_re = lm.trace_samples, lm.retrace_samples
+        assert n_tr > 0 and n_re > 0
+        expected = math.sqrt((n_tr * lm.trace_e_rms_m ** 2 + n_re * lm.retrace_e_rms_m ** 2)
+                             / (n_tr + n_re))
+        row = rows[case]
+        # the same samples, summed in another order: a few rounding errors of the squares
+        assert row['e_rms_m'] == pytest.approx(expected, rel=1e-12)
+        assert row['e_max_m'] == max(lm.trace_e_max_m, lm.retrace_e_max_m)
+        if case == 'triangle_80':
+            # away from the corners the error is smaller than over the whole line
+            whole = metrics.summarize(rec, steady_state_start_s=0.1, period_s=period)
+            assert row['e_rms_m'] < whole.e_rms_m

@@ -93,7 +93,7 @@ __all__ = ['FeedForwardController', 'FeedForwardParams', 'HysteresisInverse', 'L
            'MIN_PERIOD_SAMPLES', 'MODES', 'PhaseLearning', 'PreviewInverse', 'TABLE_FORMAT',
            'TABLE_META_KEY', 'TABLE_VERSION', 'boundary_weights', 'check_learning_period',
            'CLIP_SETTLE_SAMPLES', 'clipped_excess', 'LEARNING_SHAPE_CYCLES',
-           'kept_harmonics',
+           'BANDWIDTH_STRETCH', 'kept_harmonics', 'MIN_LEARNED_HARMONICS',
            'learning_columns', 'learning_convergence', 'make_hysteresis_inverse',
            'period_harmonics', 'phase_learning_convergence', 'phase_windows',
            'process_sensitivity', 'read_learned_table', 'shape_jumps', 'whole_period',
@@ -109,6 +109,17 @@ LEARN_CHUNK = 16
 #: ``learning_bandwidth_hz``: the quintic S-curve's content above Q is then below 5e-4 of the
 #: jump (3 cycles: 1e-3; 1.2: 2e-2), the part the table cannot learn.
 LEARNING_SHAPE_CYCLES = 3.6
+
+#: A line's first harmonics carry its hysteresis distortion (odd harmonics, the 3rd and the
+#: 5th foremost): Q keeps the first this many of a line even a little above
+#: ``learning_bandwidth_hz`` (a fast line, whose 5th harmonic would otherwise be the first one
+#: dropped, and which ``learning`` alone could not draw at all). A line slow enough to hold
+#: them below the edge is unchanged.
+MIN_LEARNED_HARMONICS = 5
+
+#: How far above ``learning_bandwidth_hz`` Q reaches for those first harmonics: the 5th of a
+#: line whose 4th lies on the edge. The learning check covers the harmonics kept.
+BANDWIDTH_STRETCH = 1.25
 
 #: Samples after a command the amplifier's range clipped whose errors are not learned: the
 #: clip's own transient (the closed loop settles from a lost input within a few samples at the
@@ -576,11 +587,15 @@ def kept_harmonics(ps: ComplexArray, samples: float, sample_time_s: float,
     sample_time_s : float
         T [s].
     bandwidth_hz : float
-        ``learning_bandwidth_hz``: Q keeps 0 < h / (n T) <= it, where P_s is not 0.
+        ``learning_bandwidth_hz``: Q keeps 0 < h / (n T) <= it, where P_s is not 0, and the
+        harmonics h <= :data:`MIN_LEARNED_HARMONICS` up to :data:`BANDWIDTH_STRETCH` times it.
 
     """
-    freq = np.arange(len(ps)) / (samples * sample_time_s)
-    kept = (freq > 0.0) & (freq <= bandwidth_hz) & (np.abs(ps) > 0.0)
+    harmonic = np.arange(len(ps))
+    freq = harmonic / (samples * sample_time_s)
+    band = (freq <= bandwidth_hz) | ((harmonic <= MIN_LEARNED_HARMONICS)
+                                     & (freq <= BANDWIDTH_STRETCH * bandwidth_hz))
+    kept = (freq > 0.0) & band & (np.abs(ps) > 0.0)
     return kept.astype(np.float64)
 
 
@@ -1418,6 +1433,13 @@ class FeedForwardController:
         if notch is not None:
             self._share_notch = type(notch)(notch.num, notch.den)
         self._share_fresh = True
+        # inverse modes: what the held estimates add over the initial ones, k (d_theta x_d +
+        # d_phi x_d'), is taken off through its own copy of the notch (see _hold)
+        self._drift_gains = (0.0, 0.0)
+        self._drift_notch: Any = None
+        if notch is not None:
+            self._drift_notch = type(notch)(notch.num, notch.den)
+        self._drift_fresh = True
         self._trajectory: Trajectory | None = None
         # the segments of a trajectory still to come: (start [s], trajectory), and when the
         # next one starts [samples from the present segment's start]
@@ -1522,18 +1544,25 @@ class FeedForwardController:
         self._bind_one(trajectory, load_file=False)
         self._k = 0
         self._seen_k = -1
+        # the estimates adapt again from where they were held; with the model inverse the term
+        # they held stays taken off (the new line starts from the model inverse, as a run does)
+        drift = self._drift_gains
         self._hold(False)
+        self._drift_gains = drift
         if self._learning_on and not self._inverse_on:
             self._seed_from_model()
 
     def _seed_from_model(self) -> None:
         """
-        Start ``learning`` (no model inverse) from the design model's input for the reference.
+        Start ``learning`` (no model inverse) from the model inverse's command for the reference.
 
-        The table converges to what the loop lacks for the reference, which on the design
-        model is its inverse, X_h / (c G(z_h)), less the RAC's own share at its initial
-        estimates, k (theta_0 X_h + phi_0 V_h) through the notch; Q's harmonics of that are the
-        table a new line rate starts from, so that its first line is not feedback alone.
+        What the table converges to on the design model is the command that makes the stage
+        follow the reference, H^-1(G^-1 x_d) (the stable inverse of the linear part, then the
+        inverse hysteresis, run over the period until its orbit repeats), less what the RAC
+        adds at tracking with its estimates where they now stand, k (theta_hat x_d +
+        phi_hat x_d') through the notch. Q's harmonics of that (no DC: the feedback holds it)
+        are the table a new line rate starts from, so that its first line has the model
+        inverse's hysteresis compensation in the band the table can hold.
         """
         points = self.table_points()
         samples = self._phase.samples if self._phase is not None else float(points)
@@ -1547,19 +1576,44 @@ class FeedForwardController:
             kept[self._phase.harmonics.astype(int)] = True
         else:
             kept[:len(self._kept)] = self._kept
-        g = self.slope * self.plant_inverse.frequency_response(z)
+        g = self.plant_inverse.frequency_response(z)
+        w = np.fft.irfft(np.fft.rfft(x) / g, points)
+        command = self._periodic_hysteresis_inverse(w)
         share = self._ksens * (self._theta0 * np.fft.rfft(x) + self._phi0 * np.fft.rfft(v))
         if self._notch_coeffs is not None:
             num, den = self._notch_coeffs
             share = share * np.polyval(num, z) / np.polyval(den, z)
-        with np.errstate(divide='ignore', invalid='ignore'):
-            seed = np.where(kept, np.fft.rfft(x) / np.where(kept, g, 1.0) - share, 0.0)
+        share = share + np.fft.rfft(self._estimate_drift())
+        seed = np.where(kept, np.fft.rfft(command) - share, 0.0)
         table = np.fft.irfft(seed, points)
         peak = float(np.max(np.abs(table)))
         limit = self.params.learning_limit_v
         if peak > limit:
             table *= limit / peak
         self.load_table(table)
+
+    def _periodic_hysteresis_inverse(self, w: FloatArray) -> FloatArray:
+        """
+        Return the inputs v of the design hysteresis's periodic orbit through outputs ``w``.
+
+        The hysteresis is rate-independent, so one period on the table's phase grid stands
+        for the period; it is run from rest at the first point until an orbit repeats to
+        1e-9 of the command's span (at most 20 periods), and the last is returned.
+        """
+        inverse = make_hysteresis_inverse(self._hysteresis_model)
+        slope = inverse.slope if inverse.slope > 0.0 else 1.0
+        inverse.reset(float(w[0]) / slope)
+        out = np.zeros(len(w))
+        last = np.full(len(w), np.inf)
+        for _ in range(20):
+            for i, target in enumerate(w):
+                out[i] = inverse.invert(float(target))
+                inverse.commit(float(out[i]))
+            span = float(np.ptp(out)) if len(out) else 0.0
+            if np.max(np.abs(out - last)) <= 1e-9 * max(span, 1e-12):
+                break
+            last = out.copy()
+        return out
 
     def _next_segment(self, k: int) -> int:
         """Bind the next segment of the trajectory at sample ``k``; return k in it."""
@@ -1693,6 +1747,8 @@ class FeedForwardController:
                     self._share_fresh = False
                 share = notch.step(share)
             u = u - share + self._lw[i]
+            if self._drift_gains != (0.0, 0.0):
+                u = u - self._drift(x_ref, v_ref)
         if self._learning_on:
             if not n:
                 return self._phase_step(k, u, position_m - x_ref)
@@ -1983,12 +2039,40 @@ class FeedForwardController:
     # -- learning ----------------------------------------------------------------------------
 
     def _hold(self, hold: bool) -> None:
-        """Hold the RAC's estimates while the table learns (see ``hold_estimates``)."""
+        """
+        Hold the RAC's estimates while the table learns (see ``hold_estimates``).
+
+        With the model inverse, the estimates are held where the start's transient left them,
+        and at tracking they add k ((theta_hat - theta_0) x_d + (phi_hat - phi_0) x_d') to the
+        command: the table takes that off in Q's band, but above it (a fast line's
+        turnarounds, drawn by the model inverse alone) it would stay as an error. So while
+        held, that term is taken off the command too: the loop at tracking is the model
+        inverse and the table, whatever the estimates were held at.
+        """
         self._holding = hold
-        hold_estimates = getattr(getattr(self.inner, 'inner', self.inner), 'hold_estimates',
-                                 None)
+        rac = getattr(self.inner, 'inner', self.inner)
+        hold_estimates = getattr(rac, 'hold_estimates', None)
         if hold_estimates is not None:
             hold_estimates(hold)
+        self._drift_gains = (0.0, 0.0)
+        if hold and self._inverse_on and hasattr(rac, 'diagnostics'):
+            values = dict(rac.diagnostics())
+            if 'theta_hat' in values and 'phi_hat' in values:
+                self._drift_gains = (float(values['theta_hat']) - self._theta0,
+                                     float(values['phi_hat']) - self._phi0)
+                self._drift_fresh = True
+
+    def _drift(self, x_ref: float, v_ref: float) -> float:
+        """Return what the held estimates add over the initial ones at x_ref, through the notch."""
+        d_theta, d_phi = self._drift_gains
+        drift = (d_theta * x_ref + d_phi * v_ref) * self._ksens
+        notch = self._drift_notch
+        if notch is None:
+            return drift
+        if self._drift_fresh:  # at rest on the present value, as the share's notch starts
+            self._drift_fresh = False
+            notch.reset(drift)
+        return float(notch.step(drift))
 
     def _accumulate(self, end: int) -> None:
         """
@@ -2149,13 +2233,17 @@ class FeedForwardController:
         if not self._learning_on or not (self._period_n or self._phase is not None):
             raise PiezoStageError(f'feed-forward mode {self.params.mode!r}: no learned table '
                                   '(the mode does not learn, or no trajectory is bound)')
+        # with the model inverse the held estimates' term is taken off the command (_hold):
+        # the table holds nothing of it
+        drift = np.zeros(self.table_points()) if self._inverse_on and self._holding \
+            else self._estimate_drift()
         if self._phase is not None:
             x, _ = self._grid_reference()
-            table = self.learned_table() + self._estimate_drift()
+            table = self.learned_table() + drift
             period = self.period_s
         else:
             x = np.asarray(self._lx_raw, dtype=np.float64)
-            table = self._learned + self._estimate_drift()
+            table = self._learned + drift
             period = self._period_n * self._t
         return LearnedTable(table_v=table, reference_m=x,
                             sample_time_s=self._t, period_s=period,

@@ -513,7 +513,12 @@ class LearningConvergence:
 
     def text(self) -> str:
         """Return the verdict in one paragraph."""
-        head = (f'Learning (gamma {self.gain:g}, Q to {self.bandwidth_hz:g} Hz: {self.harmonics} '
+        top_hz = self.harmonics / self.period_s if self.period_s > 0.0 else 0.0
+        # Q reaches a little above its edge for a fast line's first harmonics: say how far
+        reach = (f", a fast line's first harmonics to {top_hz:.0f} Hz"
+                 if top_hz > self.bandwidth_hz * (1.0 + 1e-9) else '')
+        head = (f'Learning (gamma {self.gain:g}, Q to {self.bandwidth_hz:g} Hz{reach}: '
+                f'{self.harmonics} '
                 f'harmonics of {self.period_s:g} s; assumes a linear loop: the command inside '
                 'the amplifier range, the table inside learning_limit_v): per-period ratio '
                 f'max|1 - gamma P_true/P_s| = {self.design_ratio:.3f} on the design model')

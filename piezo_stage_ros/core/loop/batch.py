@@ -684,6 +684,10 @@ class FeedForwardBatch:
             self._rest_gain = template.plant_inverse.dc_gain * hyst.slope
         coeffs = notch_design(params.notch, ctrl.sample_time_s, plant)
         self._share_notch = None if coeffs is None else NotchFilter(*coeffs)
+        # what the held estimates add over the initial ones, per member (the scalar's _drift)
+        self._drift_notch: Any = None if coeffs is None else NotchFilter(*coeffs)
+        self._drift_gains: tuple[FloatArray, FloatArray] | None = None
+        self._drift_fresh = True
         self._limit = ff.learning_limit_v
         self._start_periods = ff.learning_start_periods
         self._exp = _exp_function()
@@ -712,6 +716,7 @@ class FeedForwardBatch:
         self._share_fresh = True
         self._holding = False
         self.ctrl.hold_estimates(False)
+        self._drift_gains = None
         self._learned = np.zeros((period, n))
         self._delta = np.zeros((n, period))
         self._errors = np.zeros((period, n))
@@ -789,14 +794,15 @@ class FeedForwardBatch:
         if self._inverse:
             u = u - self._share(x_ref, v_ref)
             u += lw[i]
+            if self._drift_gains is not None:
+                u = u - self._drift(x_ref, v_ref)
         phase = self._phase
         if phase is not None:
             value = phase.play(k)
             u = u + value
             if k >= phase.learn_from:
                 if not self._holding:
-                    self._holding = True
-                    self.ctrl.hold_estimates(True)
+                    self._hold()
                 phase.record(k, np.where(k - self._clip_k > CLIP_SETTLE_SAMPLES,
                                          position_m - x_ref, self._leak * value))
             self.periods_learned = phase.periods_learned
@@ -809,8 +815,7 @@ class FeedForwardBatch:
             u = u + table
             if k >= self._learn_from:
                 if not self._holding:
-                    self._holding = True
-                    self.ctrl.hold_estimates(True)
+                    self._hold()
                 self._errors[i] = np.where(k - self._clip_k > CLIP_SETTLE_SAMPLES,
                                            position_m - x_ref, self._leak * table)
                 if i % LEARN_CHUNK == LEARN_CHUNK - 1 or i == n - 1:
@@ -864,6 +869,29 @@ class FeedForwardBatch:
             np.multiply(chunk[c][:, None], rows[c], out=term)
             acc += term
         self._delta += acc
+
+    def _hold(self) -> None:
+        """Hold every member's estimates; with the model inverse, take off what they add."""
+        self._holding = True
+        self.ctrl.hold_estimates(True)
+        estimates = self.ctrl.diagnostic_values()
+        if self._inverse and len(estimates) == 2:
+            theta, phi = estimates
+            self._drift_gains = (theta - self._theta0, phi - self._phi0)
+            self._drift_fresh = True
+
+    def _drift(self, x_ref: float, v_ref: float) -> FloatArray:
+        """Return what each member's held estimates add at x_ref, through the notch (scalar's)."""
+        assert self._drift_gains is not None
+        d_theta, d_phi = self._drift_gains
+        drift = (d_theta * x_ref + d_phi * v_ref) * self._ksens
+        notch = self._drift_notch
+        if notch is None:
+            return np.asarray(drift, dtype=np.float64)
+        if self._drift_fresh:
+            self._drift_fresh = False
+            notch.reset(drift)
+        return np.asarray(notch.step(drift), dtype=np.float64)
 
     def _share(self, x_ref: float, v_ref: float) -> float:
         """Return the RAC's share at its initial estimates (one for all), through the notch."""

@@ -22,6 +22,9 @@ steady state, after ``settle_s`` (1 s by default):
 
 - sines and multi-sine: e_m and e_rms of :func:`piezo_stage_ros.core.loop.metrics.summarize` over
   the whole periods after ``settle_s``;
+- lines (a triangle's middle 80 %, a raster line's linear part): e_m and e_rms over those
+  samples of the whole periods after ``settle_s``, trace and retrace together
+  (:func:`piezo_stage_ros.core.loop.metrics.line_metrics`);
 - square wave: e_m and e_rms over the last half of every plateau after ``settle_s`` (the plateau
   error of :func:`piezo_stage_ros.core.loop.experiments.square_edge_metrics`), with overshoot and
   settling time of the edges there;
@@ -71,11 +74,18 @@ CASES: dict[str, tuple[dict[str, Any], str]] = {
     'sine_137': ({'kind': 'sine', 'sine.frequency_hz': 137.0}, 'periodic'),
     'sine_300': ({'kind': 'sine', 'sine.frequency_hz': 300.0}, 'periodic'),
     'triangle_70': ({'kind': 'triangle', 'triangle.frequency_hz': 70.0}, 'periodic'),
+    # measured where an image is taken: the middle 80 % of a triangle's lines, the linear
+    # part of a raster line (trace and retrace together)
+    'triangle_80': ({'kind': 'triangle', 'triangle.frequency_hz': 80.0}, 'lines'),
+    'scan_line_137': ({'kind': 'scan_line', 'scan_line.frequency_hz': 137.0}, 'lines'),
     'multisine': ({'kind': 'multisine'}, 'periodic'),
     'square': ({'kind': 'square', 'square.transition_s': 0.0}, 'square'),
     'square_2ms': ({'kind': 'square', 'square.transition_s': 2e-3}, 'square'),
     'staircase': ({'kind': 'staircase', 'staircase.transition_s': 0.0}, 'staircase'),
 }
+
+#: The share of the linear range measured by the ``lines`` cases (the rest: all of it).
+LINE_MIDDLE = {'triangle_80': 0.8}
 
 #: Columns of the per-case table: (key, header, scale, format, how the worst is chosen).
 COLUMNS: tuple[tuple[str, str, float, str, str], ...] = (
@@ -124,6 +134,25 @@ def _nan_metrics() -> dict[str, float]:
     return {'e_max_m': math.nan, 'e_rms_m': math.nan}
 
 
+def _line_figures(record: RunRecord, start_s: float, period_s: float | None,
+                  middle: float) -> dict[str, float]:
+    """Return e_m and e_rms over the lines' measured samples, trace and retrace together."""
+    window = metrics.window_slice(record.time_s - record.time_s[0], start_s, period_s)
+    lm = metrics.line_metrics(record, window, metrics.LineOptions(middle, 0))
+    out: dict[str, float] = {}
+    for suffix in ('', '_true'):
+        figures = [getattr(lm, f'{side}_e_{what}{suffix}_m') for what in ('rms', 'max')
+                   for side in ('trace', 'retrace')]
+        if any(value is None for value in figures):
+            continue
+        rms_tr, rms_re, max_tr, max_re = (float(value) for value in figures)
+        n_tr, n_re = lm.trace_samples, lm.retrace_samples
+        out[f'e_rms{suffix}_m'] = math.sqrt((n_tr * rms_tr ** 2 + n_re * rms_re ** 2)
+                                            / max(n_tr + n_re, 1))
+        out[f'e_max{suffix}_m'] = max(max_tr, max_re)
+    return out
+
+
 def case_metrics(case: str, record: RunRecord, trajectory: TrajectoryParams, *,
                  settle_s: float) -> dict[str, float]:
     """
@@ -153,7 +182,7 @@ def case_metrics(case: str, record: RunRecord, trajectory: TrajectoryParams, *,
     how = CASES[case][1]
     t = record.time_s
     out: dict[str, float] = {}
-    if how == 'periodic':
+    if how in ('periodic', 'lines'):
         period = make_trajectory(trajectory).period_s
         # a record may start late (window_only): the start is counted from its first sample
         s = metrics.summarize(record, steady_state_start_s=settle_s - float(t[0]),
@@ -164,6 +193,9 @@ def case_metrics(case: str, record: RunRecord, trajectory: TrajectoryParams, *,
         if s.e_rms_true_m is not None and s.e_max_true_m is not None:
             out.update({'e_max_true_m': s.e_max_true_m, 'e_rms_true_m': s.e_rms_true_m}
                        if late else {'e_max_true_m': math.nan, 'e_rms_true_m': math.nan})
+        if how == 'lines' and late:
+            out.update(_line_figures(record, settle_s - float(t[0]), period,
+                                     LINE_MIDDLE.get(case, 1.0)))
     elif how == 'square':
         sq = trajectory.square
         start = math.ceil(settle_s / sq.period_s - 1e-9) * sq.period_s
@@ -321,7 +353,7 @@ def run_study(stage: StageParams, controller: ControllerParams, trajectory: Traj
         raise ParameterError('stages', names, 'at least one, names unique')
     for case in cases:
         case_trajectory(case, trajectory, duration_s)  # refuse an unknown case up front
-        if window_only and CASES[case][1] != 'periodic':
+        if window_only and CASES[case][1] not in ('periodic', 'lines'):
             raise ParameterError('--cases', case, 'sines and multisine with a window only')
     result = RobustnessResult(cases=list(cases), meta={
         'controller': controller.type, 'feedforward': controller.feedforward.mode,
