@@ -35,8 +35,9 @@ from piezo_stage_ros.core.loop.goals import (
     validate_goal,
 )
 from piezo_stage_ros.core.loop.splines import segment_coefficients, Spline
-from piezo_stage_ros.core.loop.trajectories import make_trajectory, s_curve
+from piezo_stage_ros.core.loop.trajectories import make_trajectory
 from piezo_stage_ros.core.model.stage import PlantParams, Stage, StageParams
+from piezo_stage_ros.core.signals.shapes import s_curve
 import pytest
 from tolerances import EPS
 
