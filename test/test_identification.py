@@ -332,7 +332,7 @@ def test_rac_tuned_on_the_identified_model_tracks_like_on_the_true_model(
 
 def test_a_chirp_run_gives_the_frequency_response_too() -> None:
     from piezo_stage_ros.core.control.controllers import OpenLoopController, OpenLoopParams
-    from piezo_stage_ros.core.identification.excitation import ChirpExcitation, ChirpParams
+    from piezo_stage_ros.core.signals.excitation import ChirpExcitation, ChirpParams
     stage, runs, _ = identified(3, 20000.0)
     stage = stage.replace(sample_rate_hz=20000.0)
     g = 2.843e-6 * 1.0341  # trajectory metres per command volt of the open-loop controller

@@ -74,7 +74,6 @@ from piezo_stage_ros.core.control.stability import (
     StabilityParams,
     StabilityReport,
 )
-from piezo_stage_ros.core.identification.excitation import NoiseExcitation, NoiseParams
 from piezo_stage_ros.core.identification.fit import (
     factors_of,
     IdentificationParams,
@@ -93,6 +92,7 @@ from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
 from piezo_stage_ros.core.model.family import true_estimates
 from piezo_stage_ros.core.model.stage import linear_plant, Stage, StageParams
+from piezo_stage_ros.core.signals.excitation import NoiseExcitation, NoiseParams
 
 __all__ = ['CommissionParams', 'CommissionRefusedError', 'CommissionResult', 'Certification',
            'Design', 'Excitation', 'KAPPA_MARGIN', 'LADDER', 'Verification', 'certify',

@@ -67,7 +67,7 @@ from numpy.typing import ArrayLike
 from piezo_stage_ros.core.contracts.errors import ConfigError, ParameterError
 from piezo_stage_ros.core.contracts.params import group, param, Params
 from piezo_stage_ros.core.contracts.types import FloatArray
-from piezo_stage_ros.core.identification.excitation import (
+from piezo_stage_ros.core.signals.excitation import (
     ChirpExcitation,
     ChirpParams,
     NoiseExcitation,
@@ -253,9 +253,9 @@ class TrajectoryParams(Params):
                                       'trace and retrace, smooth turnarounds)')
     hold: HoldParams = group(HoldParams, 'kind hold')
     noise: NoiseParams = group(NoiseParams, 'kind noise (band-limited white noise, '
-                               'identification: core/identification/excitation.py)')
+                               'identification: core/signals/excitation.py)')
     chirp: ChirpParams = group(ChirpParams, 'kind chirp (sine sweep, identification: '
-                               'core/identification/excitation.py)')
+                               'core/signals/excitation.py)')
 
     def _check(self) -> None:
         for name, fits, room in (
@@ -593,7 +593,7 @@ class _Hold(TrajectoryBase):
 
 
 class _Excitation(TrajectoryBase):
-    """An identification excitation (core/identification/excitation.py) as a trajectory."""
+    """An identification excitation (core/signals/excitation.py) as a trajectory."""
 
     def __init__(self, inner: NoiseExcitation | ChirpExcitation) -> None:
         self._inner = inner

@@ -32,6 +32,10 @@ position reference for the trajectory node and the closed loop, ``simulate --tra
 For an open-loop (voltage) run, the ``open_loop`` controller turns them into volts
 (v = gain x_d + offset); identification uses the recorded command, whatever produced it. Every
 signal is deterministic: the same parameters (and seed) give the same samples.
+
+They live with the signals, below the model, rather than with identification: the trajectories
+(:mod:`piezo_stage_ros.core.loop.trajectories`, a floor below identification) offer them as the
+``noise`` and ``chirp`` kinds, and a floor may only use the floors under it.
 """
 
 from __future__ import annotations
