@@ -53,12 +53,12 @@ from piezo_stage_ros import cli
 from piezo_stage_ros.core.contracts.config import nest
 from piezo_stage_ros.core.contracts.errors import ConfigError, PiezoStageError
 from piezo_stage_ros.core.identification.fit import (
-    factors_of,
     IdentificationParams,
     IdentificationResult,
     pscm_gain,
 )
 from piezo_stage_ros.core.loop.record import RunRecord
+from piezo_stage_ros.core.model.linear import factors_of
 from piezo_stage_ros.core.model.stage import StageParams
 import yaml
 

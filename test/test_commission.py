@@ -39,9 +39,9 @@ from piezo_stage_ros.core.identification.commission import (
     Excitation,
     loop_gain_ratio,
 )
-from piezo_stage_ros.core.identification.fit import factors_of
 from piezo_stage_ros.core.identification.support import loop_kind
 from piezo_stage_ros.core.model.family import member_params
+from piezo_stage_ros.core.model.linear import factors_of
 from piezo_stage_ros.core.model.stage import StageParams
 from piezo_stage_ros.identify import controller_values
 import pytest

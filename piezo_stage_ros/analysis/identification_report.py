@@ -38,13 +38,11 @@ matplotlib.use('Agg')  # files only; never a window
 
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from piezo_stage_ros.core.identification.fit import (  # noqa: E402
+from piezo_stage_ros.core.identification.fit import (
     discrete_frequency_response,
-    factors_of,
     IdentificationResult,
-    LinearFactors,
-    third_order_of,
 )
+from piezo_stage_ros.core.model.linear import factors_of, LinearFactors, third_order_of
 from piezo_stage_ros.core.model.stage import StageParams  # noqa: E402
 
 __all__ = ['comparison_rows', 'format_table', 'plot_frequency_response', 'plot_hysteresis',

@@ -44,7 +44,6 @@ from piezo_stage_ros.core.control.controllers import (
     OpenLoopController,
     OpenLoopParams,
 )
-from piezo_stage_ros.core.identification.fit import factors_of, LinearFactors, third_order_of
 from piezo_stage_ros.core.identification.foreign import SignalPath
 from piezo_stage_ros.core.loop.closed_loop import run
 from piezo_stage_ros.core.loop.record import RunRecord
@@ -54,6 +53,7 @@ from piezo_stage_ros.core.loop.trajectories import (
     SquareParams,
     TrajectoryParams,
 )
+from piezo_stage_ros.core.model.linear import factors_of, LinearFactors, third_order_of
 from piezo_stage_ros.core.model.stage import linear_plant, Stage, StageParams
 from piezo_stage_ros.core.signals.excitation import NoiseExcitation, NoiseParams
 
