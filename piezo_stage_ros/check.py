@@ -89,7 +89,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from piezo_stage_ros.core.contracts.loop_config import LoopConfig
+    from piezo_stage_ros.core.config.loader import LoopConfig
     from piezo_stage_ros.core.control.stability import check_stability
     from piezo_stage_ros.core.loop.trajectories import make_trajectory
 

@@ -28,8 +28,7 @@ from typing import Any
 
 import numpy as np
 from piezo_stage_ros.commission import main, member
-from piezo_stage_ros.core.contracts.config import find_config
-from piezo_stage_ros.core.contracts.loop_config import load_loop_config
+from piezo_stage_ros.core.config.loader import find_config, load_loop_config
 from piezo_stage_ros.core.control.stability import check_stability, StabilityParams
 from piezo_stage_ros.core.identification.commission import (
     CommissionParams,

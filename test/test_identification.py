@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from piezo_stage_ros.core.contracts.config import find_config, load_config
+from piezo_stage_ros.core.config.loader import find_config, load_config
 from piezo_stage_ros.core.contracts.errors import IdentificationError, ParameterError
 from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
 from piezo_stage_ros.core.identification.experiments import (

@@ -27,8 +27,7 @@ from pathlib import Path
 
 import numpy as np
 from piezo_stage_ros.analysis.bagwrite import write_run
-from piezo_stage_ros.core.contracts.config import find_config, load_config
-from piezo_stage_ros.core.contracts.loop_config import LoopConfig
+from piezo_stage_ros.core.config.loader import find_config, load_config, LoopConfig
 from piezo_stage_ros.core.identification.experiments import (
     ClosedLoopPlan,
     ExperimentPlan,

@@ -22,8 +22,8 @@ import threading
 import time
 
 import numpy as np
+from piezo_stage_ros.core.config.nodes import ServoParams
 from piezo_stage_ros.core.contracts.errors import ParameterError
-from piezo_stage_ros.core.contracts.loop_config import ServoParams
 from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
 from piezo_stage_ros.core.loop.closed_loop import run
 from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
