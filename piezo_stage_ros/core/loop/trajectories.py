@@ -61,6 +61,7 @@ from fractions import Fraction
 import math
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -86,6 +87,12 @@ TRAVEL_MAX_M = 38e-6
 
 KINDS = ('sine', 'multisine', 'square', 'staircase', 'step', 'triangle', 'csv', 'noise', 'chirp',
          'scan_line', 'hold')
+
+
+def _transition() -> Any:
+    """Declare ``transition_s`` of a kind with jumps (a fresh field each: fields are per class)."""
+    return param(0.0, unit='s', description='Duration of the quintic S-curve that replaces each '
+                 'jump (0: ideal jump, as in the paper).', low=0.0)
 
 
 @dataclass(frozen=True)
@@ -126,9 +133,7 @@ class SquareParams(Params):
     period_s: float = param(0.5, unit='s', description='Period.', low=0.0, low_open=True)
     duty: float = param(0.5, unit='-', description='Fraction of the period at the high level.',
                         low=0.0, high=1.0, low_open=True, high_open=True)
-    transition_s: float = param(0.0, unit='s', description='Duration of the quintic S-curve '
-                                'that replaces each jump (0: ideal jump, as in the paper).',
-                                low=0.0)
+    transition_s: float = _transition()
 
 
 @dataclass(frozen=True)
@@ -140,9 +145,7 @@ class StaircaseParams(Params):
     steps: int = param(10, unit='-', description='Number of steps.', low=1, high=100000)
     dwell_s: float = param(0.05, unit='s', description='Time on each level.', low=0.0,
                            low_open=True)
-    transition_s: float = param(0.0, unit='s', description='Duration of the quintic S-curve '
-                                'that replaces each jump (0: ideal jump, as in the paper).',
-                                low=0.0)
+    transition_s: float = _transition()
 
 
 @dataclass(frozen=True)
@@ -152,9 +155,7 @@ class StepParams(Params):
     initial_m: float = param(3.8e-6, unit='m', description='Level before the step.')
     final_m: float = param(11.6e-6, unit='m', description='Level after the step.')
     time_s: float = param(0.01, unit='s', description='Time of the step.', low=0.0)
-    transition_s: float = param(0.0, unit='s', description='Duration of the quintic S-curve '
-                                'that replaces each jump (0: ideal jump, as in the paper).',
-                                low=0.0)
+    transition_s: float = _transition()
 
 
 @dataclass(frozen=True)

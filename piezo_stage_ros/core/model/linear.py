@@ -391,7 +391,7 @@ def factors_of(p: ThirdOrderParams) -> LinearFactors:
     Parameters
     ----------
     p : ThirdOrderParams
-        K, a0, a1, a2.
+        The plant of eq. (17): K / (s^3 + a0 s^2 + a1 s + a2).
 
     Returns
     -------
