@@ -36,7 +36,7 @@ module:
    parameter.
 2. **Merge overrides** (:func:`merge_overrides`, :meth:`Config.with_overrides`): values given
    on a command line or by a launch file go on top of the files' section of a node.
-3. **Validate** each node's section against its table (:func:`plant_table`,
+3. **Validate** each node's section against its table (:func:`validate`; :func:`plant_table`,
    :func:`controller_table`, :func:`trajectory_table`; the tables themselves are
    :class:`~piezo_stage_ros.core.config.nodes.NodeTable`): which names belong to the node
    (:meth:`~piezo_stage_ros.core.config.nodes.NodeTable.select`) is a name whose first dotted
@@ -53,7 +53,8 @@ module:
 Why here, on top of core/: the loader builds the stage (model), the controller and its stability
 check (control) and the trajectory (loop), so it stands above all of them; below, every floor
 (contracts <- signals <- model <- control <- loop <- identification) uses only the floors under
-it, and none needs the loader.
+it, and none needs the loader. The folder is named after what it reads (the ``config/`` files),
+so whoever looks for where a YAML file becomes objects finds it there.
 
 Node settings without meaning offline (rule, the same for every offline command): ``mode``,
 ``backend``, ``duration_s``, the timeouts, ``lockstep.*`` and ``bridge.*`` are validated like
@@ -99,7 +100,7 @@ import yaml
 
 __all__ = ['Config', 'LoopConfig', 'TABLES', 'controller_table', 'design_plant', 'find_config',
            'flatten', 'load_config', 'load_loop_config', 'merge_overrides', 'nest', 'plant_table',
-           'trajectory_table']
+           'trajectory_table', 'validate']
 
 
 # --------------------------------------------------------------------------------------------
@@ -338,6 +339,40 @@ TABLES = {'plant_node': plant_table, 'controller_node': controller_table,
           'trajectory_node': trajectory_table}
 
 
+def validate(config: Config) -> dict[str, Any]:
+    """
+    Validate each node's section against its table: plant, controller, trajectory, in this order.
+
+    Parameters
+    ----------
+    config : Config
+        The files' sections (and any overrides merged into them).
+
+    Returns
+    -------
+    dict
+        The validated objects by their :class:`LoopConfig` field: ``stage``, ``plant_node``,
+        ``controller``, ``stability``, ``controller_node``, ``trajectory``, ``trajectory_node``.
+
+    Raises
+    ------
+    ParameterError
+        On the first bad value, or an unknown name under a known group, of any node, or a
+        trajectory the sample rate cannot draw.
+
+    """
+    stage, plant_node = plant_table().build(plant_table().select(config.node('plant_node')))
+    table = controller_table()
+    controller, stability, controller_node = table.build(
+        table.select(config.node('controller_node')))
+    table = trajectory_table()
+    trajectory, trajectory_node = table.build(table.select(config.node('trajectory_node')))
+    check_sampling(trajectory, trajectory_node.sample_rate_hz)
+    return {'stage': stage, 'plant_node': plant_node, 'controller': controller,
+            'stability': stability, 'controller_node': controller_node,
+            'trajectory': trajectory, 'trajectory_node': trajectory_node}
+
+
 # --------------------------------------------------------------------------------------------
 # 4. Build the objects
 
@@ -381,35 +416,8 @@ class LoopConfig:
 
     @classmethod
     def from_config(cls, config: Config) -> LoopConfig:
-        """
-        Build every object of the loop from parameter files already read.
-
-        Parameters
-        ----------
-        config : Config
-            The files' sections (and any overrides applied to them).
-
-        Returns
-        -------
-        LoopConfig
-
-        Raises
-        ------
-        ParameterError
-            On the first bad value, or an unknown name under a known group, of any node.
-
-        """
-        stage, plant_node = plant_table().build(plant_table().select(config.node('plant_node')))
-        table = controller_table()
-        controller, stability, controller_node = table.build(
-            table.select(config.node('controller_node')))
-        table = trajectory_table()
-        trajectory, trajectory_node = table.build(table.select(config.node('trajectory_node')))
-        check_sampling(trajectory, trajectory_node.sample_rate_hz)
-        return cls(stage=stage, plant_node=plant_node, controller=controller,
-                   stability=stability, controller_node=controller_node,
-                   trajectory=trajectory, trajectory_node=trajectory_node,
-                   sources=config.sources)
+        """Build every object of the loop from files already read; errors as :func:`validate`."""
+        return cls(**validate(config), sources=config.sources)
 
     def replace(self, **changes: Any) -> LoopConfig:
         """Return a copy with some objects changed (like ``dataclasses.replace``)."""

@@ -352,7 +352,7 @@ class NodeTable:
 
     def select(self, values: Mapping[str, Any]) -> dict[str, Any]:
         """
-        Return the values of a node section that belong to this node (module docstring).
+        Return the values of a node section that belong to this node (the loader's step 3).
 
         Parameters
         ----------
