@@ -37,7 +37,7 @@ Arguments (``ros2 launch piezo_stage_ros closed_loop.launch.py --show-args``):
   plant owns simulation time and keeps its own clock either way.
 
 The files are read and validated once here by the loader every command uses
-(:class:`piezo_stage_ros.core.contracts.loop_config.LoopConfig`): a bad value stops the launch
+(:class:`piezo_stage_ros.core.config.loader.LoopConfig`): a bad value stops the launch
 before any process starts. The controller's stability check runs against the plant model the plant
 node runs, as ``simulate`` does: all three nodes get one merged parameter file, and the controller
 takes the design model from its plant_node section (``stability.design_model: plant``, the
@@ -66,9 +66,9 @@ from launch.events import Shutdown
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 from piezo_stage_ros.cli import choices
-from piezo_stage_ros.core.contracts.config import Config, find_config, load_config
+from piezo_stage_ros.core.config.loader import Config, find_config, load_config, LoopConfig
+from piezo_stage_ros.core.config.nodes import MODES
 from piezo_stage_ros.core.control.controllers import ControllerParams
-from piezo_stage_ros.core.contracts.loop_config import LoopConfig, MODES
 from piezo_stage_ros.core.contracts.wire import BLOCK_RECORDED_TOPICS, RECORDED_TOPICS
 import yaml
 

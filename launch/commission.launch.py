@@ -43,8 +43,7 @@ from launch import LaunchContext, LaunchDescription
 from launch.actions import DeclareLaunchArgument, IncludeLaunchDescription, OpaqueFunction
 from launch.launch_description_sources import PythonLaunchDescriptionSource
 from launch.substitutions import LaunchConfiguration
-from piezo_stage_ros.core.contracts.config import find_config, load_config
-from piezo_stage_ros.core.contracts.loop_config import LoopConfig
+from piezo_stage_ros.core.config.loader import find_config, load_config, LoopConfig
 from piezo_stage_ros.commission import write_excitation
 from piezo_stage_ros.core.identification.commission import CommissionParams
 

@@ -86,7 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from piezo_stage_ros.core.contracts.loop_config import LoopConfig
+    from piezo_stage_ros.core.config.loader import LoopConfig
     from piezo_stage_ros.core.control.stability import check_stability
     from piezo_stage_ros.core.loop.trajectories import make_trajectory
 

@@ -27,7 +27,7 @@ What every command-line program shares: parser, exit status, configuration, prog
 - :func:`add_config_options` and :func:`read_config`: ``--config FILE`` on top of
   ``config/default.yaml`` and ``--param NODE:NAME=VALUE``, and :func:`loop_overrides`, the short
   flags (``--plant``, ``--controller``, ``--trajectory`` ...) as parameter values; the objects
-  come from :class:`piezo_stage_ros.core.contracts.loop_config.LoopConfig`, as everywhere else;
+  come from :class:`piezo_stage_ros.core.config.loader.LoopConfig`, as everywhere else;
 - :class:`Progress`: one progress display on stderr (elapsed-time lines, or a percentage that
   rewrites itself on a terminal).
 """
@@ -41,9 +41,8 @@ import sys
 import time
 from typing import Any, Callable, NoReturn, Protocol, Sequence, TextIO
 
-from piezo_stage_ros.core.contracts.config import Config, find_config, load_config
+from piezo_stage_ros.core.config.loader import Config, find_config, load_config, LoopConfig
 from piezo_stage_ros.core.contracts.errors import ConfigError, ParameterError, PiezoStageError
-from piezo_stage_ros.core.contracts.loop_config import LoopConfig
 from piezo_stage_ros.core.contracts.params import Params, ParamSpec
 import yaml
 
@@ -300,7 +299,7 @@ def read_config(files: Sequence[str], params: Sequence[str] = ()) -> Config:
     ----------
     files : sequence of str
         ``--config`` files, in order: paths, or names of files in the package's ``config/``
-        (:func:`~piezo_stage_ros.core.contracts.config.find_config`).
+        (:func:`~piezo_stage_ros.core.config.loader.find_config`).
     params : sequence of str
         ``--param`` texts, in order.
 

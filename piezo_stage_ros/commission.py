@@ -52,9 +52,8 @@ import sys
 from typing import Any, Sequence
 
 from piezo_stage_ros import cli
-from piezo_stage_ros.core.contracts.config import nest
+from piezo_stage_ros.core.config.loader import LoopConfig, nest
 from piezo_stage_ros.core.contracts.errors import ConfigError
-from piezo_stage_ros.core.contracts.loop_config import LoopConfig
 from piezo_stage_ros.core.identification.commission import (
     commission,
     commission_record,

@@ -50,15 +50,15 @@ import sys
 from typing import Any, Mapping, Sequence, TYPE_CHECKING
 
 from piezo_stage_ros import cli
-from piezo_stage_ros.core.contracts.config import nest
+from piezo_stage_ros.core.config.loader import nest
 from piezo_stage_ros.core.contracts.errors import ConfigError, PiezoStageError
 from piezo_stage_ros.core.identification.fit import (
-    factors_of,
     IdentificationParams,
     IdentificationResult,
     pscm_gain,
 )
 from piezo_stage_ros.core.loop.record import RunRecord
+from piezo_stage_ros.core.model.linear import factors_of
 from piezo_stage_ros.core.model.stage import StageParams
 import yaml
 
@@ -225,7 +225,7 @@ def parameter_file_text(stage: StageParams, *, header: Sequence[str] = (),
     Returns
     -------
     str
-        YAML text; :func:`piezo_stage_ros.core.contracts.loop_config.load_loop_config` reads it
+        YAML text; :func:`piezo_stage_ros.core.config.loader.load_loop_config` reads it
         and its ``stage`` is ``stage`` (the loop rate aside).
 
     """

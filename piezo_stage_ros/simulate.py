@@ -49,9 +49,8 @@ from typing import Any
 import warnings
 
 from piezo_stage_ros import cli
-from piezo_stage_ros.core.contracts.config import Config
+from piezo_stage_ros.core.config.loader import Config, LoopConfig
 from piezo_stage_ros.core.contracts.errors import ConfigError, ParameterError
-from piezo_stage_ros.core.contracts.loop_config import LoopConfig
 from piezo_stage_ros.core.contracts.wire import STORAGE_IDS
 from piezo_stage_ros.core.control.controllers import ControllerParams
 from piezo_stage_ros.core.control.feedforward import TABLE_META_KEY, write_learned_table
@@ -351,7 +350,7 @@ def _run_single(args: argparse.Namespace, loop: LoopConfig) -> int:
 
 
 def _run_experiments(args: argparse.Namespace, loop: LoopConfig) -> int:
-    from piezo_stage_ros.core.contracts.loop_config import design_plant
+    from piezo_stage_ros.core.config.loader import design_plant
     from piezo_stage_ros.core.control.stability import check_stability
     from piezo_stage_ros.core.loop import experiments as ex
 
@@ -415,7 +414,7 @@ def _run_experiments(args: argparse.Namespace, loop: LoopConfig) -> int:
 
 
 def _main(args: argparse.Namespace) -> int:
-    from piezo_stage_ros.core.contracts.axes_config import has_axes
+    from piezo_stage_ros.core.config.axes import has_axes
     config = build_config(args)
     if has_axes(config):
         # a multi-axis stage (plant_node axes.names): the multi-axis loop, the flags setting

@@ -16,7 +16,7 @@
 Command-line program ``simulate_axes``: the multi-axis closed loop offline, per-axis metrics.
 
 Reads the parameter files of a multi-axis stage (``plant_node axes.names``, see
-:mod:`piezo_stage_ros.core.contracts.axes_config`), runs every axis' controller on the coupled
+:mod:`piezo_stage_ros.core.config.axes`), runs every axis' controller on the coupled
 stage and prints, per axis, the tracking error over the last ``--window`` seconds: the measured
 position (sensor, noise, ADC) and the true one. A raster's fast axis is measured over the middle
 80 % of its lines (its turn-arounds left out). ``simulate --config FILE`` runs this for such a
@@ -34,8 +34,8 @@ from typing import Any, Sequence
 import warnings
 
 from piezo_stage_ros import cli
-from piezo_stage_ros.core.contracts.axes_config import axes_loop_config, AxesLoopConfig
-from piezo_stage_ros.core.contracts.config import Config
+from piezo_stage_ros.core.config.axes import axes_loop_config, AxesLoopConfig
+from piezo_stage_ros.core.config.loader import Config
 from piezo_stage_ros.core.contracts.errors import ConfigError, ParameterError
 from piezo_stage_ros.core.model.axes import AxesStageParams
 

@@ -463,7 +463,7 @@ def _study(args: argparse.Namespace) -> int:
     """Print the study's tables (or the parameter table)."""
     if args.params_table:
         # the node's own table (docs/parameters.md is generated from the same declarations)
-        from piezo_stage_ros.core.contracts.loop_config import controller_table
+        from piezo_stage_ros.core.config.loader import controller_table
         print(controller_table().markdown())
         return 0
     start = time.monotonic()

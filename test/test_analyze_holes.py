@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 from piezo_stage_ros.analysis.bagwrite import write_run
 from piezo_stage_ros.analysis.replay import analyze_bag, find_period
-from piezo_stage_ros.core.contracts.loop_config import ControllerParams
+from piezo_stage_ros.core.control.controllers import ControllerParams
 from piezo_stage_ros.core.loop.experiments import run_one
 from piezo_stage_ros.core.loop.metrics import (
     error_metrics,

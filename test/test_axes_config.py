@@ -18,9 +18,9 @@ import json
 
 import numpy as np
 from piezo_stage_ros import cli, simulate
-from piezo_stage_ros.core.contracts.axes_config import axes_loop_config, has_axes
+from piezo_stage_ros.core.config.axes import axes_loop_config, has_axes
+from piezo_stage_ros.core.config.loader import LoopConfig
 from piezo_stage_ros.core.contracts.errors import ParameterError
-from piezo_stage_ros.core.contracts.loop_config import LoopConfig
 import pytest
 
 
@@ -108,8 +108,7 @@ def test_a_multi_axis_file_is_not_a_one_axis_node_file(name):
     # test_nodes_logic validates the others), the axes are refused by name. ROS itself ignores
     # a parameter no node declares, so a node started with such a file would still run axis x
     # on the base parameters: the nodes of several axes are to declare axes.names
-    from piezo_stage_ros.core.contracts.config import load_config
-    from piezo_stage_ros.core.contracts.loop_config import plant_table
+    from piezo_stage_ros.core.config.loader import load_config, plant_table
     config = load_config(['config/default.yaml', f'config/{name}'])
     values = {k: v for k, v in config.node('plant_node').items() if k != 'use_sim_time'}
     with pytest.raises(ParameterError, match="'axes.names'.*is not a parameter of this node"):

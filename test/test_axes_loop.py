@@ -15,8 +15,8 @@
 """The multi-axis closed loop: one axis as today, coupling compensation, per-axis metrics."""
 
 import numpy as np
+from piezo_stage_ros.core.config.loader import load_loop_config
 from piezo_stage_ros.core.contracts.errors import ParameterError
-from piezo_stage_ros.core.contracts.loop_config import load_loop_config
 from piezo_stage_ros.core.control.axes import AxesController, coupled_displacement
 from piezo_stage_ros.core.control.controllers import build_controller
 from piezo_stage_ros.core.loop import closed_loop

@@ -28,8 +28,7 @@ from typing import Any
 
 import numpy as np
 from piezo_stage_ros.commission import main, member
-from piezo_stage_ros.core.contracts.config import find_config
-from piezo_stage_ros.core.contracts.loop_config import load_loop_config
+from piezo_stage_ros.core.config.loader import find_config, load_loop_config
 from piezo_stage_ros.core.control.stability import check_stability, StabilityParams
 from piezo_stage_ros.core.identification.commission import (
     CommissionParams,
@@ -39,9 +38,9 @@ from piezo_stage_ros.core.identification.commission import (
     Excitation,
     loop_gain_ratio,
 )
-from piezo_stage_ros.core.identification.fit import factors_of
 from piezo_stage_ros.core.identification.support import loop_kind
 from piezo_stage_ros.core.model.family import member_params
+from piezo_stage_ros.core.model.linear import factors_of
 from piezo_stage_ros.core.model.stage import StageParams
 from piezo_stage_ros.identify import controller_values
 import pytest

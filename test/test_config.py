@@ -14,7 +14,7 @@
 
 """ROS 2 parameter files map onto the parameter groups."""
 
-from piezo_stage_ros.core.contracts.config import find_config, flatten, load_config
+from piezo_stage_ros.core.config.loader import find_config, flatten, load_config
 from piezo_stage_ros.core.contracts.errors import ConfigError
 from piezo_stage_ros.core.model.stage import StageParams
 import pytest

@@ -14,7 +14,7 @@
 
 """The controller_node section of the default config holds every parameter at its default."""
 
-from piezo_stage_ros.core.contracts.config import find_config, load_config
+from piezo_stage_ros.core.config.loader import find_config, load_config
 from piezo_stage_ros.core.control.controllers import ControllerParams
 from piezo_stage_ros.core.control.stability import StabilityParams
 

@@ -21,7 +21,7 @@ import math
 import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.contracts.interfaces import Trajectory
-from piezo_stage_ros.core.identification.excitation import (
+from piezo_stage_ros.core.signals.excitation import (
     ChirpExcitation,
     ChirpParams,
     make_excitation,

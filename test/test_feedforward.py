@@ -24,8 +24,8 @@ import math
 from hypothesis import given, settings
 from hypothesis import strategies as st
 import numpy as np
+from piezo_stage_ros.core.config.loader import load_loop_config
 from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
-from piezo_stage_ros.core.contracts.loop_config import load_loop_config
 from piezo_stage_ros.core.control.controllers import (
     build_controller,
     ControllerParams,

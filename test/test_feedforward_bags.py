@@ -26,7 +26,7 @@ from piezo_stage_ros import analyze, simulate
 from piezo_stage_ros.analysis.bagread import read_run
 from piezo_stage_ros.analysis.plots import first_update_period, plot_run
 from piezo_stage_ros.analysis.replay import analyze_bag, learning_metrics
-from piezo_stage_ros.core.contracts.loop_config import load_loop_config
+from piezo_stage_ros.core.config.loader import load_loop_config
 from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
 from piezo_stage_ros.core.control.feedforward import read_learned_table
 from piezo_stage_ros.core.loop import closed_loop

@@ -20,8 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from piezo_stage_ros.core.contracts.config import load_config
-from piezo_stage_ros.core.contracts.loop_config import LoopConfig
+from piezo_stage_ros.core.config.loader import load_config, LoopConfig
 from piezo_stage_ros.core.contracts.wire import JOINT_NAME
 from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
 from piezo_stage_ros.core.loop import closed_loop

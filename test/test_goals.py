@@ -22,8 +22,7 @@ from pathlib import Path
 import re
 
 import numpy as np
-from piezo_stage_ros.core.contracts.config import load_config
-from piezo_stage_ros.core.contracts.loop_config import LoopConfig
+from piezo_stage_ros.core.config.loader import load_config, LoopConfig
 from piezo_stage_ros.core.contracts.wire import JOINT_NAME
 from piezo_stage_ros.core.loop.goals import (
     AxisLimits,
@@ -35,8 +34,9 @@ from piezo_stage_ros.core.loop.goals import (
     validate_goal,
 )
 from piezo_stage_ros.core.loop.splines import segment_coefficients, Spline
-from piezo_stage_ros.core.loop.trajectories import make_trajectory, s_curve
+from piezo_stage_ros.core.loop.trajectories import make_trajectory
 from piezo_stage_ros.core.model.stage import PlantParams, Stage, StageParams
+from piezo_stage_ros.core.signals.shapes import s_curve
 import pytest
 from tolerances import EPS
 

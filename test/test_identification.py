@@ -27,8 +27,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from piezo_stage_ros.core.contracts.config import find_config, load_config
-from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.config.loader import find_config, load_config
+from piezo_stage_ros.core.contracts.errors import IdentificationError, ParameterError
 from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
 from piezo_stage_ros.core.identification.experiments import (
     ExperimentPlan,
@@ -39,21 +39,23 @@ from piezo_stage_ros.core.identification.fit import (
     applied_voltage,
     classify_run,
     discrete_frequency_response,
-    factors_of,
-    IdentificationError,
     IdentificationParams,
     IdentificationResult,
     identify,
-    LinearFactors,
     pscm_gain,
     sample_time_of,
-    third_order_of,
 )
 from piezo_stage_ros.core.loop.closed_loop import run
 from piezo_stage_ros.core.loop.metrics import summarize
 from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
-from piezo_stage_ros.core.model.linear import third_order_plant, ThirdOrderParams
+from piezo_stage_ros.core.model.linear import (
+    factors_of,
+    LinearFactors,
+    third_order_of,
+    third_order_plant,
+    ThirdOrderParams,
+)
 from piezo_stage_ros.core.model.stage import linear_plant, Stage, StageParams
 from piezo_stage_ros.identify import controller_values
 import pytest
@@ -332,7 +334,7 @@ def test_rac_tuned_on_the_identified_model_tracks_like_on_the_true_model(
 
 def test_a_chirp_run_gives_the_frequency_response_too() -> None:
     from piezo_stage_ros.core.control.controllers import OpenLoopController, OpenLoopParams
-    from piezo_stage_ros.core.identification.excitation import ChirpExcitation, ChirpParams
+    from piezo_stage_ros.core.signals.excitation import ChirpExcitation, ChirpParams
     stage, runs, _ = identified(3, 20000.0)
     stage = stage.replace(sample_rate_hz=20000.0)
     g = 2.843e-6 * 1.0341  # trajectory metres per command volt of the open-loop controller

@@ -27,8 +27,7 @@ from pathlib import Path
 
 import numpy as np
 from piezo_stage_ros.analysis.bagwrite import write_run
-from piezo_stage_ros.core.contracts.config import find_config, load_config
-from piezo_stage_ros.core.contracts.loop_config import LoopConfig
+from piezo_stage_ros.core.config.loader import find_config, load_config, LoopConfig
 from piezo_stage_ros.core.identification.experiments import (
     ClosedLoopPlan,
     ExperimentPlan,
@@ -36,11 +35,11 @@ from piezo_stage_ros.core.identification.experiments import (
     run_experiments,
     run_tracking,
 )
-from piezo_stage_ros.core.identification.fit import factors_of
 from piezo_stage_ros.core.identification.periodic import detect_period
 from piezo_stage_ros.core.identification.support import identify_checked, loop_kind
 from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.model.family import member_params, StageVariation
+from piezo_stage_ros.core.model.linear import factors_of
 from piezo_stage_ros.core.model.stage import StageParams
 from piezo_stage_ros.identify import main
 import pytest

@@ -21,11 +21,10 @@ import re
 
 import numpy as np
 from piezo_stage_ros.analysis.bagwrite import write_run
-from piezo_stage_ros.core.contracts.config import load_config
-from piezo_stage_ros.core.contracts.loop_config import LoopConfig
+from piezo_stage_ros.core.config.loader import load_config, LoopConfig
 from piezo_stage_ros.core.identification.experiments import perturbed_stage, run_experiments
-from piezo_stage_ros.core.identification.fit import factors_of
 from piezo_stage_ros.core.loop.record import RunRecord
+from piezo_stage_ros.core.model.linear import factors_of
 from piezo_stage_ros.core.model.stage import StageParams
 from piezo_stage_ros.identify import main, parameter_file_text
 from piezo_stage_ros.simulate import main as simulate_main

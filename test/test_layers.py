@@ -12,7 +12,11 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""The layers go one way: core/ never needs rclpy, rosbags or matplotlib; analysis/ never rclpy."""
+"""
+The layers go one way: core/ never needs rclpy, rosbags or matplotlib; analysis/ never rclpy.
+
+Inside core/ the folders stack the same way: each imports only the folders below it.
+"""
 
 import ast
 from pathlib import Path
@@ -36,20 +40,59 @@ def _dotted(path):
     return '.'.join(path.relative_to(PACKAGE / 'core').with_suffix('').parts)
 
 
-def _imported_roots(path):
-    """Top-level names of every import in a file, wherever it is (functions included)."""
+def _imported_modules(path):
+    """Dotted names of every import in a file, wherever it is (functions, importlib calls)."""
     tree = ast.parse(path.read_text(encoding='utf8'), filename=str(path))
-    roots = set()
+    names = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
-            roots.update(alias.name.split('.')[0] for alias in node.names)
+            names.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            roots.add(node.module.split('.')[0])
+            names.add(node.module)
+            # 'from piezo_stage_ros.core import loop' imports the folder loop
+            names.update(f'{node.module}.{alias.name}' for alias in node.names)
         elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
               and node.func.attr == 'import_module' and node.args
               and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
-            roots.add(node.args[0].value.split('.')[0])
-    return roots
+            names.add(node.args[0].value)
+    return names
+
+
+def _imported_roots(path):
+    """Top-level names of every import in a file, wherever it is (functions included)."""
+    return {name.split('.')[0] for name in _imported_modules(path)}
+
+
+#: core/'s folders from the bottom up: a folder may import its own and those before it.
+CORE_STACK = ('contracts', 'signals', 'model', 'control', 'loop', 'identification', 'config')
+
+
+def _floor(dotted):
+    """
+    Height of a module of the package in the stack, None for a module outside the package.
+
+    A core folder's index in CORE_STACK; a module of the package outside core/ (analysis,
+    nodes, the commands) stands above every core folder.
+    """
+    parts = dotted.split('.')
+    if parts[0] != 'piezo_stage_ros' or len(parts) < 2:
+        return None
+    if parts[1] != 'core':
+        return len(CORE_STACK)
+    if len(parts) < 3:
+        return None
+    return CORE_STACK.index(parts[2]) if parts[2] in CORE_STACK else len(CORE_STACK)
+
+
+def _imports_above(path, folder):
+    """The folders above core/<folder> a file imports ('piezo_stage_ros.core.loop'), sorted."""
+    own = CORE_STACK.index(folder)
+    return sorted({'.'.join(name.split('.')[:3 if name.split('.')[1] == 'core' else 2])
+                   for name in _imported_modules(path) if (_floor(name) or 0) > own})
+
+
+def _core_folder_modules():
+    return [p for p in _modules('core') if len(p.relative_to(PACKAGE / 'core').parts) > 1]
 
 
 def test_there_is_a_core_to_check():
@@ -77,6 +120,43 @@ def test_the_static_check_can_fail(tmp_path):
             return importlib.import_module('matplotlib.pyplot'), Reader
     """))
     assert _imported_roots(bad) >= {'rosbags', 'matplotlib'}
+
+
+def test_every_core_folder_has_its_floor():
+    folders = {p.relative_to(PACKAGE / 'core').parts[0] for p in _core_folder_modules()}
+    assert folders == set(CORE_STACK)
+    loose = [p.name for p in (PACKAGE / 'core').glob('*.py') if p.name != '__init__.py']
+    assert not loose, f'core/ modules outside a folder have no floor: {loose}'
+    assert not _imports_above(PACKAGE / 'core' / '__init__.py', 'contracts')
+
+
+@pytest.mark.parametrize('path', _core_folder_modules(), ids=_dotted)
+def test_core_folders_import_only_the_floors_below(path):
+    folder = path.relative_to(PACKAGE / 'core').parts[0]
+    assert not _imports_above(path, folder), (
+        f'core/{folder} sits below {_imports_above(path, folder)} (stack: {CORE_STACK})')
+
+
+def test_the_stack_check_can_fail(tmp_path):
+    # A model-floor file reaching up three ways, one hidden in a function, one through importlib:
+    # the checker must see each, and nothing else.
+    bad = tmp_path / 'bad.py'
+    bad.write_text(textwrap.dedent("""
+        import importlib
+        from piezo_stage_ros.core import identification
+        from piezo_stage_ros.core.contracts.errors import ParameterError
+        from piezo_stage_ros.core.model.stage import StageParams
+        def later():
+            from piezo_stage_ros.core.loop.trajectories import make_trajectory
+            return importlib.import_module('piezo_stage_ros.core.config.loader'), make_trajectory
+    """))
+    assert _imports_above(bad, 'model') == [
+        'piezo_stage_ros.core.config', 'piezo_stage_ros.core.identification',
+        'piezo_stage_ros.core.loop']
+    assert _imports_above(bad, 'config') == []
+    # the rest of the package stands above every core folder
+    bad.write_text('from piezo_stage_ros.analysis import plots\n')
+    assert _imports_above(bad, 'config') == ['piezo_stage_ros.analysis']
 
 
 _BLOCKER = textwrap.dedent("""

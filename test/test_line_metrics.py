@@ -189,7 +189,7 @@ def test_a_triangle_bag_has_line_figures_only_when_asked(tmp_path: Path, capsys)
 
 def test_a_scan_line_recorded_without_description_is_found_from_its_velocity(
         tmp_path: Path) -> None:
-    from piezo_stage_ros.core.contracts.loop_config import ControllerParams
+    from piezo_stage_ros.core.control.controllers import ControllerParams
     from piezo_stage_ros.core.loop.experiments import run_one
     from piezo_stage_ros.core.model.stage import StageParams
     rec = run_one(StageParams(), ControllerParams().with_flat({'feedforward.mode': 'inverse'}),

@@ -21,9 +21,13 @@ import argparse
 from pathlib import Path
 
 from piezo_stage_ros import cli, identify, simulate, soak
-from piezo_stage_ros.core.contracts.config import find_config, load_config
+from piezo_stage_ros.core.config.loader import (
+    find_config,
+    load_config,
+    load_loop_config,
+    LoopConfig,
+)
 from piezo_stage_ros.core.contracts.errors import ConfigError, ParameterError
-from piezo_stage_ros.core.contracts.loop_config import load_loop_config, LoopConfig
 from piezo_stage_ros.core.control.controllers import ControllerParams
 from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
 from piezo_stage_ros.core.model.stage import PlantParams

@@ -19,8 +19,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from piezo_stage_ros.core.contracts.axes_config import has_axes
-from piezo_stage_ros.core.contracts.config import load_config
+from piezo_stage_ros.core.config.axes import has_axes
+from piezo_stage_ros.core.config.loader import load_config
 from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
 from piezo_stage_ros.core.contracts.params import param, Params
 from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams

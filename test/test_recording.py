@@ -27,9 +27,9 @@ import math
 from fake_clock import FakeClock
 import numpy as np
 from piezo_stage_ros.analysis.bagread import read_run
+from piezo_stage_ros.core.config.nodes import RecordingParams
 from piezo_stage_ros.core.contracts import cdr, wire
 from piezo_stage_ros.core.contracts.errors import ParameterError
-from piezo_stage_ros.core.contracts.loop_config import RecordingParams
 from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
 from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
 from piezo_stage_ros.core.model.stage import StageParams

@@ -23,7 +23,6 @@ import numpy as np
 from piezo_stage_ros import robustness
 from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.control.controllers import ControllerParams, plant_resonance
-from piezo_stage_ros.core.identification.fit import factors_of
 from piezo_stage_ros.core.loop import metrics
 from piezo_stage_ros.core.loop import robustness as robustness_core
 from piezo_stage_ros.core.loop.experiments import run_one
@@ -36,6 +35,7 @@ from piezo_stage_ros.core.model.family import (
     StageVariation,
     true_estimates,
 )
+from piezo_stage_ros.core.model.linear import factors_of
 from piezo_stage_ros.core.model.stage import linear_plant, StageParams
 import pytest
 

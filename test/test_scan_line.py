@@ -26,10 +26,10 @@ from piezo_stage_ros.core.contracts.interfaces import Trajectory
 from piezo_stage_ros.core.loop.trajectories import (
     make_trajectory,
     ScanLineParams,
-    smoothstep,
     TrajectoryBase,
     TrajectoryParams,
 )
+from piezo_stage_ros.core.signals.shapes import smoothstep
 from piezo_stage_ros.simulate import main as simulate_main
 import pytest
 

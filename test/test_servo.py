@@ -23,8 +23,8 @@ import time
 
 from fake_clock import FakeClock
 import numpy as np
+from piezo_stage_ros.core.config.nodes import ServoParams
 from piezo_stage_ros.core.contracts.errors import ParameterError
-from piezo_stage_ros.core.contracts.loop_config import ServoParams
 from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
 from piezo_stage_ros.core.loop.closed_loop import run
 from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams

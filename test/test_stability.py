@@ -237,7 +237,7 @@ def test_the_paper_rac_on_model_20_is_refused_and_names_the_binding_constraint()
 
 
 def test_config_rac_paper_is_the_paper_law_and_is_refused_on_model_20():
-    from piezo_stage_ros.core.contracts.config import find_config, load_config
+    from piezo_stage_ros.core.config.loader import find_config, load_config
     config = load_config([find_config('default.yaml'), find_config('rac_paper.yaml')])
     flat = {k: v for k, v in config.node('controller_node').items()
             if k.split('.')[0] in ('type', 'rac', 'notch')}

@@ -25,10 +25,10 @@ from piezo_stage_ros.core.contracts.interfaces import Trajectory
 from piezo_stage_ros.core.loop.trajectories import (
     load_table,
     make_trajectory,
-    s_curve,
     TableTrajectory,
     TrajectoryParams,
 )
+from piezo_stage_ros.core.signals.shapes import s_curve
 import pytest
 
 T = 1e-4

@@ -42,8 +42,10 @@ import numpy as np  # noqa: E402
 from piezo_stage_ros.analysis.plots import dress  # noqa: E402
 from piezo_stage_ros.core.identification.fit import (  # noqa: E402
     discrete_frequency_response,
-    factors_of,
     IdentificationResult,
+)
+from piezo_stage_ros.core.model.linear import (  # noqa: E402
+    factors_of,
     LinearFactors,
     third_order_of,
 )

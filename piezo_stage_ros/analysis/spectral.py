@@ -30,12 +30,9 @@ import re
 from typing import Any
 
 import numpy as np
-from piezo_stage_ros.core.contracts.errors import PiezoStageError
+from piezo_stage_ros.core.contracts.errors import IdentificationError, PiezoStageError
 from piezo_stage_ros.core.contracts.types import ComplexArray, FloatArray
-from piezo_stage_ros.core.identification.fit import (
-    estimate_frequency_response,
-    IdentificationError,
-)
+from piezo_stage_ros.core.identification.fit import estimate_frequency_response
 from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.model.stage import StageParams
 

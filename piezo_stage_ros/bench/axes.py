@@ -44,7 +44,7 @@ from typing import Any, Callable
 
 import numpy as np
 from piezo_stage_ros import cli
-from piezo_stage_ros.core.contracts.axes_config import axes_loop_config, AxesLoopConfig
+from piezo_stage_ros.core.config.axes import axes_loop_config, AxesLoopConfig
 from piezo_stage_ros.core.control.axes import AxesController
 from piezo_stage_ros.core.control.controllers import build_controller
 from piezo_stage_ros.core.model.axes import AxesStage

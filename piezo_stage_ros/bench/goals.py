@@ -43,7 +43,8 @@ from typing import Any, Sequence
 
 import numpy as np
 from piezo_stage_ros import cli
-from piezo_stage_ros.core.contracts.loop_config import LoopConfig, WatchdogParams
+from piezo_stage_ros.core.config.loader import LoopConfig
+from piezo_stage_ros.core.config.nodes import WatchdogParams
 from piezo_stage_ros.core.contracts.wire import JOINT_NAME
 from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
 from piezo_stage_ros.core.loop.follow import FollowParams, GoalFollower, GoalRun, run_goals

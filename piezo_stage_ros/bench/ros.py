@@ -260,7 +260,7 @@ def _recorded(duration_s: float, load: int = 0) -> dict[str, Any]:
     from piezo_stage_ros import cli
     from piezo_stage_ros.analysis.replay import analyze_bag
     from piezo_stage_ros.bench.servo import machine_floor
-    from piezo_stage_ros.core.contracts.loop_config import LoopConfig
+    from piezo_stage_ros.core.config.loader import LoopConfig
     from piezo_stage_ros.core.control.controllers import build_controller
     from piezo_stage_ros.core.loop.closed_loop import run
     from piezo_stage_ros.core.loop.metrics import error_metrics

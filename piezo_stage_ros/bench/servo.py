@@ -62,8 +62,9 @@ from typing import Any, Callable
 
 import numpy as np
 from piezo_stage_ros import cli
+from piezo_stage_ros.core.config.loader import LoopConfig
+from piezo_stage_ros.core.config.nodes import ServoParams
 from piezo_stage_ros.core.contracts.cdr import encode_float64, JointStateEncoder
-from piezo_stage_ros.core.contracts.loop_config import LoopConfig, ServoParams
 from piezo_stage_ros.core.control.controllers import build_controller
 from piezo_stage_ros.core.loop.closed_loop import run
 from piezo_stage_ros.core.loop.metrics import error_metrics, steady_state_start

@@ -15,17 +15,20 @@
 """
 ROS-free core: models, hysteresis, signal chain, controllers, trajectories, metrics, the wire.
 
-Grouped by job, one folder each:
+Grouped by job, one folder each, stacked: a folder imports only the folders below it (a test
+enforces this), from the bottom:
 
+- ``contracts``: parameters, types, interfaces, the wire and its CDR codec, errors;
+- ``signals``: signals in time that need no stage (the S-curve, the identification excitations);
 - ``model``: linear dynamics, hysteresis, the stage with its signal chain, a family of stages;
 - ``control``: the RAC, PI and open loop, the feed-forward, the stability check;
 - ``loop``: trajectories, the scalar and batched closed loops, the paper's experiments, the run
   record and its metrics, the robustness study;
-- ``identification``: excitation, the paper's procedure (``fit``), what closed-loop and operation
-  data support, drift;
-- ``contracts``: parameters and their YAML, the wire and its CDR codec, interfaces, types, errors.
+- ``identification``: the paper's procedure (``fit``), what closed-loop and operation data
+  support, drift, commissioning;
+- ``config``: the loader, from parameter files to the validated objects of every floor below.
 
-Imports numpy and scipy only (PyYAML in :mod:`piezo_stage_ros.core.contracts.config`); never
+Imports numpy and scipy only (PyYAML in :mod:`piezo_stage_ros.core.config.loader`); never
 rclpy, rosbags or matplotlib. A test enforces this. The wire contract (topics, stamps,
 diagnostics layout: :mod:`~piezo_stage_ros.core.contracts.wire`) and the CDR codec
 (:mod:`~piezo_stage_ros.core.contracts.cdr`) live here because both the nodes and the bag tools

@@ -42,8 +42,8 @@ import threading
 from typing import Any, Sequence
 
 from piezo_stage_ros import cli
+from piezo_stage_ros.core.config.nodes import ServoParams
 from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
-from piezo_stage_ros.core.contracts.loop_config import ServoParams
 from piezo_stage_ros.core.model.stage import Stage, StageParams
 from piezo_stage_ros.hardware.pacing import Pacer, servo_setup
 from piezo_stage_ros.hardware.udp import (

@@ -39,8 +39,8 @@ import sys
 import time
 from typing import Any, Callable, Sequence
 
+from piezo_stage_ros.core.config.nodes import ServoParams
 from piezo_stage_ros.core.contracts.errors import ParameterError
-from piezo_stage_ros.core.contracts.loop_config import ServoParams
 
 __all__ = ['LatenessStats', 'Pacer', 'realtime_setup', 'rt_throttling', 'servo_setup']
 

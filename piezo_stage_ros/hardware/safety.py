@@ -43,8 +43,8 @@ import math
 from typing import Any, Callable, Sequence
 
 import numpy as np
+from piezo_stage_ros.core.config.nodes import WatchdogParams
 from piezo_stage_ros.core.contracts.errors import ParameterError
-from piezo_stage_ros.core.contracts.loop_config import WatchdogParams
 from piezo_stage_ros.core.contracts.types import FloatArray
 from piezo_stage_ros.core.model.stage import SignalChainParams
 from piezo_stage_ros.hardware.bridge import Bridge

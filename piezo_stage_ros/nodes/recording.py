@@ -35,8 +35,8 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+from piezo_stage_ros.core.config.nodes import RecordingParams
 from piezo_stage_ros.core.contracts.cdr import encode_block
-from piezo_stage_ros.core.contracts.loop_config import RecordingParams
 from piezo_stage_ros.core.contracts.types import FloatArray, IntArray
 from piezo_stage_ros.core.contracts.wire import block_columns, BLOCK_SAMPLES, NS_PER_S
 

@@ -51,9 +51,10 @@ import time
 from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
+from piezo_stage_ros.core.config.loader import LoopConfig
+from piezo_stage_ros.core.config.nodes import PlantNodeParams
 from piezo_stage_ros.core.contracts.errors import PiezoStageError
 from piezo_stage_ros.core.contracts.interfaces import Controller
-from piezo_stage_ros.core.contracts.loop_config import LoopConfig, PlantNodeParams
 from piezo_stage_ros.core.contracts.wire import NS_PER_S
 from piezo_stage_ros.core.control.ahead import CommandPredictor
 from piezo_stage_ros.core.control.controllers import (

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 from typing import Sequence
 
-from piezo_stage_ros.core.contracts.loop_config import LoopConfig
+from piezo_stage_ros.core.config.loader import LoopConfig
 from piezo_stage_ros.nodes.controller_node import ControllerNode
 from piezo_stage_ros.nodes.controller_node import factory as controller_factory
 from piezo_stage_ros.nodes.logic import Command, Sample

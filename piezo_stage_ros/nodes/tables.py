@@ -16,7 +16,7 @@
 """
 The node side of the loop configuration (rclpy-free): the tables, and the files a node was given.
 
-The parameter tables and the typed loader live in :mod:`piezo_stage_ros.core.contracts.loop_config`
+The parameter tables and the typed loader live in :mod:`piezo_stage_ros.core.config.loader`
 (every command, the emulator, the launch file and the nodes build their objects there); this
 module names them for the nodes and adds what only a node needs: the parameter files on its
 command line (:func:`params_files`), from which the controller node takes the plant node's
@@ -27,21 +27,23 @@ from __future__ import annotations
 
 from typing import Any, Sequence
 
-from piezo_stage_ros.core.contracts.loop_config import (
-    BridgeParams,
+from piezo_stage_ros.core.config.loader import (
     controller_table,
+    design_plant,
+    load_loop_config,
+    plant_table,
+    trajectory_table,
+)
+from piezo_stage_ros.core.config.nodes import (
+    BridgeParams,
     ControllerNodeParams,
     Declaration,
     declaration,
-    design_plant,
     Group,
-    load_loop_config,
     LockstepParams,
     MODES,
     NodeTable,
-    plant_table,
     PlantNodeParams,
-    trajectory_table,
     TrajectoryNodeParams,
 )
 from piezo_stage_ros.core.control.stability import StabilityParams
@@ -92,7 +94,7 @@ def design_model(stability: StabilityParams, files: Sequence[str]
     """
     Return the controller node's design model and, in words, where it comes from.
 
-    The rule of :attr:`piezo_stage_ros.core.contracts.loop_config.LoopConfig.design_plant`, for a
+    The rule of :attr:`piezo_stage_ros.core.config.loader.LoopConfig.design_plant`, for a
     node that sees only its own parameters: with ``stability.design_model: plant`` the model is the
     ``plant.*`` of the plant_node section of the parameter files the node was given (the files
     the plant node reads, or the launch file's merged one); no file gives the plant node's

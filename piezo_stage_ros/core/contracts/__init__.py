@@ -13,4 +13,9 @@
 # limitations under the License.
 
 
-"""What the parts agree on: parameters, YAML, the wire and its codec, interfaces, errors."""
+"""
+What the parts agree on: parameters, types, interfaces, the wire and its codec, errors.
+
+The bottom floor of core/: data contracts that import nothing else of core, so every floor above
+(signals, model, control, loop, identification, config) may use them.
+"""

@@ -68,3 +68,12 @@ class StabilityError(PiezoStageError):
 
 class BagError(PiezoStageError):
     """A bag cannot be written or read; the message names the bag and the problem."""
+
+
+class IdentificationError(PiezoStageError):
+    """
+    The data or the model cannot give what was asked.
+
+    A missing run, no excitation, a failed fit, or a third-order plant without the resonance its
+    factored form needs (raised by the model's factor conversion as well as by identification).
+    """

@@ -85,9 +85,9 @@ from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageErro
 from piezo_stage_ros.core.contracts.interfaces import Trajectory
 from piezo_stage_ros.core.contracts.params import param, Params
 from piezo_stage_ros.core.contracts.types import ComplexArray, FloatArray
-from piezo_stage_ros.core.loop.trajectories import s_curve
 from piezo_stage_ros.core.model.hysteresis import BacklashLike, HysteresisModel, NoHysteresis
 from piezo_stage_ros.core.model.linear import LinearPlant
+from piezo_stage_ros.core.signals.shapes import s_curve
 
 __all__ = ['FeedForwardController', 'FeedForwardParams', 'HysteresisInverse', 'LearnedTable',
            'MIN_PERIOD_SAMPLES', 'MODES', 'PhaseLearning', 'PreviewInverse', 'TABLE_FORMAT',

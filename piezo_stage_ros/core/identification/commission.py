@@ -74,13 +74,7 @@ from piezo_stage_ros.core.control.stability import (
     StabilityParams,
     StabilityReport,
 )
-from piezo_stage_ros.core.identification.excitation import NoiseExcitation, NoiseParams
-from piezo_stage_ros.core.identification.fit import (
-    factors_of,
-    IdentificationParams,
-    LinearFactors,
-    third_order_of,
-)
+from piezo_stage_ros.core.identification.fit import IdentificationParams
 from piezo_stage_ros.core.identification.support import (
     CheckedIdentification,
     identify_checked,
@@ -92,7 +86,9 @@ from piezo_stage_ros.core.loop.metrics import summarize
 from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
 from piezo_stage_ros.core.model.family import true_estimates
+from piezo_stage_ros.core.model.linear import factors_of, LinearFactors, third_order_of
 from piezo_stage_ros.core.model.stage import linear_plant, Stage, StageParams
+from piezo_stage_ros.core.signals.excitation import NoiseExcitation, NoiseParams
 
 __all__ = ['CommissionParams', 'CommissionRefusedError', 'CommissionResult', 'Certification',
            'Design', 'Excitation', 'KAPPA_MARGIN', 'LADDER', 'Verification', 'certify',

@@ -35,7 +35,6 @@ from typing import Any, Sequence
 
 import numpy as np
 from piezo_stage_ros.core.identification.experiments import run_experiments
-from piezo_stage_ros.core.identification.fit import factors_of
 from piezo_stage_ros.core.identification.foreign import (
     foreign_runs,
     ForeignLoopParams,
@@ -44,6 +43,7 @@ from piezo_stage_ros.core.identification.foreign import (
 from piezo_stage_ros.core.identification.support import identify_checked, RefusedError
 from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.model.family import member_params, sample_family
+from piezo_stage_ros.core.model.linear import factors_of
 from piezo_stage_ros.core.model.stage import StageParams
 
 __all__ = ['COMPARED', 'CoverageCase', 'coverage_cases', 'run_case', 'summarize', 'truth_of']

@@ -37,19 +37,17 @@ from dataclasses import dataclass
 import math
 
 import numpy as np
+from piezo_stage_ros.core.contracts.errors import IdentificationError
 from piezo_stage_ros.core.contracts.types import FloatArray
 from piezo_stage_ros.core.identification.fit import (
     _unit_filter,
     applied_voltage,
     discrete_frequency_response,
-    factors_of,
-    IdentificationError,
-    LinearFactors,
     sample_time_of,
-    third_order_of,
 )
 from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.model.hysteresis import make_hysteresis
+from piezo_stage_ros.core.model.linear import factors_of, LinearFactors, third_order_of
 from piezo_stage_ros.core.model.stage import StageParams
 from scipy import optimize, signal
 

@@ -19,8 +19,7 @@ Three runs, all in amplifier volts through the ``open_loop`` controller (v = gai
 they are exactly the runs ``simulate --controller open_loop`` makes and the ROS nodes can stream:
 
 - ``noise``: small-amplitude band-limited white noise
-(:class:`~piezo_stage_ros.core.identification.excitation.
-  NoiseExcitation`), for the frequency response;
+(:class:`~piezo_stage_ros.core.signals.excitation.NoiseExcitation`), for the frequency response;
 - ``step``: a train of small steps (the ``square`` trajectory), for the transient response;
 - ``sine``: 1 + sin(2 pi 100 t) V (the ``sine`` trajectory), for the hysteresis.
 
@@ -45,8 +44,6 @@ from piezo_stage_ros.core.control.controllers import (
     OpenLoopController,
     OpenLoopParams,
 )
-from piezo_stage_ros.core.identification.excitation import NoiseExcitation, NoiseParams
-from piezo_stage_ros.core.identification.fit import factors_of, LinearFactors, third_order_of
 from piezo_stage_ros.core.identification.foreign import SignalPath
 from piezo_stage_ros.core.loop.closed_loop import run
 from piezo_stage_ros.core.loop.record import RunRecord
@@ -56,7 +53,9 @@ from piezo_stage_ros.core.loop.trajectories import (
     SquareParams,
     TrajectoryParams,
 )
+from piezo_stage_ros.core.model.linear import factors_of, LinearFactors, third_order_of
 from piezo_stage_ros.core.model.stage import linear_plant, Stage, StageParams
+from piezo_stage_ros.core.signals.excitation import NoiseExcitation, NoiseParams
 
 __all__ = ['ClosedLoopPlan', 'ExperimentPlan', 'FeedforwardIntegralController', 'SumTrajectory',
            'perturbed_stage', 'run_closed_loop_experiment', 'run_experiments',

@@ -58,7 +58,11 @@ import math
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
-from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
+from piezo_stage_ros.core.contracts.errors import (
+    IdentificationError,
+    ParameterError,
+    PiezoStageError,
+)
 from piezo_stage_ros.core.contracts.params import param, Params
 from piezo_stage_ros.core.contracts.types import BoolArray, ComplexArray, FloatArray
 from piezo_stage_ros.core.loop.record import RunRecord
@@ -71,17 +75,23 @@ from piezo_stage_ros.core.model.hysteresis import (
     PrandtlIshlinskii,
     PrandtlIshlinskiiParams,
 )
-from piezo_stage_ros.core.model.linear import third_order_plant, ThirdOrderParams
+from piezo_stage_ros.core.model.linear import (
+    factors_of,
+    LinearFactors,
+    third_order_of,
+    third_order_plant,
+    ThirdOrderParams,
+)
 from piezo_stage_ros.core.model.stage import amplifier_input, SignalChainParams, StageParams
 from scipy import optimize, signal
 
 __all__ = [
-    'DELAYS_TRIED', 'FrequencyFit', 'FrequencyResponse', 'HysteresisFit', 'IdentificationError',
-    'IdentificationParams', 'IdentificationResult', 'LinearFactors', 'ROLES', 'StepFit',
-    'WHITE_LAG1_MAX', 'applied_voltage', 'choose_delay', 'classify_run', 'classify_signal',
-    'discrete_frequency_response', 'estimate_frequency_response', 'factors_of',
-    'fit_frequency_response', 'fit_hysteresis', 'fit_step_response', 'identify', 'pscm_gain',
-    'residual_whiteness', 'sample_time_of', 'third_order_of', 'whole_delay_shift',
+    'DELAYS_TRIED', 'FrequencyFit', 'FrequencyResponse', 'HysteresisFit', 'IdentificationParams',
+    'IdentificationResult', 'ROLES', 'StepFit', 'WHITE_LAG1_MAX', 'applied_voltage',
+    'choose_delay', 'classify_run', 'classify_signal', 'discrete_frequency_response',
+    'estimate_frequency_response', 'fit_frequency_response', 'fit_hysteresis',
+    'fit_step_response', 'identify', 'pscm_gain', 'residual_whiteness', 'sample_time_of',
+    'whole_delay_shift',
 ]
 
 ComplexArray = ComplexArray
@@ -92,10 +102,6 @@ _NM = 1e9
 #: What a run is used for: the frequency response (noise or chirp), the step response, the
 #: hysteresis (a sine).
 ROLES = ('frequency', 'step', 'hysteresis')
-
-
-class IdentificationError(PiezoStageError):
-    """The data cannot give what was asked (missing run, no excitation, failed fit)."""
 
 
 @dataclass(frozen=True)
@@ -130,85 +136,6 @@ class IdentificationParams(Params):
     hysteresis_max_s: float = param(0.2, unit='s', description='Length of a sine run used by '
                                     'the hysteresis fit (from its start).', low=0.0,
                                     low_open=True)
-
-
-@dataclass(frozen=True)
-class LinearFactors:
-    """
-    The factored third-order plant k_p w_n^2 / ((tau s + 1)(s^2 + 2 zeta w_n s + w_n^2)).
-
-    Attributes
-    ----------
-    gain_m_per_v : float
-        k_p, the DC gain K/a2 [m/V].
-    omega_n_rad_s : float
-        w_n [rad/s].
-    zeta : float
-        Damping ratio [-].
-    tau_s : float
-        Time constant of the real pole [s].
-
-    """
-
-    gain_m_per_v: float
-    omega_n_rad_s: float
-    zeta: float
-    tau_s: float
-    #: Loop delay beyond the sample-and-hold, in samples (0: the command of sample k is held
-    #: over sample k); not part of the stage's plant, the signal chain's.
-    delay_samples: float = 0.0
-
-
-def third_order_of(f: LinearFactors) -> ThirdOrderParams:
-    """
-    Return K, a0, a1, a2 of eq. (17) for factored parameters.
-
-    Parameters
-    ----------
-    f : LinearFactors
-        k_p [m/V], w_n [rad/s], zeta [-], tau [s].
-
-    Returns
-    -------
-    ThirdOrderParams
-        a2 = w_n^2/tau, a1 = w_n^2 + 2 zeta w_n/tau, a0 = 1/tau + 2 zeta w_n, K = k_p a2.
-
-    """
-    w, z, t = f.omega_n_rad_s, f.zeta, f.tau_s
-    a2 = w * w / t
-    return ThirdOrderParams(gain=f.gain_m_per_v * a2, a0=1.0 / t + 2.0 * z * w,
-                            a1=w * w + 2.0 * z * w / t, a2=a2)
-
-
-def factors_of(p: ThirdOrderParams) -> LinearFactors:
-    """
-    Return the factored form of a third-order plant (the inverse of :func:`third_order_of`).
-
-    Parameters
-    ----------
-    p : ThirdOrderParams
-        K, a0, a1, a2.
-
-    Returns
-    -------
-    LinearFactors
-        From the roots of s^3 + a0 s^2 + a1 s + a2: the real pole gives tau, the complex pair
-        w_n = |p| and zeta = -Re p / |p|.
-
-    Raises
-    ------
-    IdentificationError
-        If the cubic has three real roots (no resonance to factor out).
-
-    """
-    roots = np.roots([1.0, p.a0, p.a1, p.a2])
-    cplx = roots[np.abs(roots.imag) > 1e-9 * np.abs(roots)]
-    if cplx.size != 2:
-        raise IdentificationError(f'third-order plant {p.to_flat()} has no complex pole pair')
-    real = roots[np.abs(roots.imag) <= 1e-9 * np.abs(roots)].real
-    wn = float(np.abs(cplx[0]))
-    return LinearFactors(gain_m_per_v=p.gain / p.a2, omega_n_rad_s=wn,
-                         zeta=float(-cplx[0].real / wn), tau_s=float(-1.0 / real[0]))
 
 
 def pscm_gain(x0_m: float, x10_m: float, *, span_v: float = 10.0) -> float:

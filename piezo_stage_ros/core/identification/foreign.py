@@ -43,10 +43,10 @@ from typing import Any, Mapping
 import numpy as np
 from piezo_stage_ros.core.contracts.params import param, Params
 from piezo_stage_ros.core.contracts.types import FloatArray
-from piezo_stage_ros.core.identification.excitation import NoiseExcitation, NoiseParams
 from piezo_stage_ros.core.loop.closed_loop import run
 from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.model.stage import Stage, StageParams
+from piezo_stage_ros.core.signals.excitation import NoiseExcitation, NoiseParams
 from scipy import signal
 
 __all__ = ['ForeignController', 'ForeignLoopParams', 'LOOP_KINDS', 'SignalPath',

@@ -65,7 +65,7 @@ import math
 from typing import Any, Sequence
 
 import numpy as np
-from piezo_stage_ros.core.contracts.errors import PiezoStageError
+from piezo_stage_ros.core.contracts.errors import IdentificationError, PiezoStageError
 from piezo_stage_ros.core.contracts.params import param, Params
 from piezo_stage_ros.core.contracts.types import BoolArray, ComplexArray, FloatArray
 from piezo_stage_ros.core.identification.fit import (
@@ -75,19 +75,15 @@ from piezo_stage_ros.core.identification.fit import (
     classify_run,
     classify_signal,
     discrete_frequency_response,
-    factors_of,
     fit_hysteresis,
     fit_step_response,
     FrequencyFit,
     FrequencyResponse,
-    IdentificationError,
     IdentificationParams,
     IdentificationResult,
     identify,
-    LinearFactors,
     ROLES,
     sample_time_of,
-    third_order_of,
     whole_delay_shift,
 )
 from piezo_stage_ros.core.identification.periodic import (
@@ -98,6 +94,7 @@ from piezo_stage_ros.core.identification.periodic import (
 )
 from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.model.hysteresis import make_hysteresis
+from piezo_stage_ros.core.model.linear import factors_of, LinearFactors, third_order_of
 from piezo_stage_ros.core.model.stage import SignalChainParams, StageParams
 from scipy import optimize, signal
 

@@ -175,7 +175,7 @@ def run_one(stage_params: StageParams, controller_params: ControllerParams,
         Extra description stored in the record.
     design_plant : PlantParams, optional
         The model a ``model`` notch is designed on; default the stage's plant
-        (:attr:`piezo_stage_ros.core.contracts.loop_config.LoopConfig.design_plant`).
+        (:attr:`piezo_stage_ros.core.config.loader.LoopConfig.design_plant`).
     diagnostics_every : int
         Passed to :func:`piezo_stage_ros.core.loop.closed_loop.run`.
     built : callable, optional

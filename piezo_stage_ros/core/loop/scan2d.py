@@ -50,12 +50,12 @@ from piezo_stage_ros.core.contracts.types import FloatArray
 from piezo_stage_ros.core.loop.trajectories import (
     _common_period,
     make_trajectory,
-    s_curve,
     TrajectoryBase,
     TrajectoryParams,
     TRAVEL_MAX_M,
 )
 from piezo_stage_ros.core.model.axes import AXIS_NAMES
+from piezo_stage_ros.core.signals.shapes import s_curve
 
 __all__ = ['LissajousParams', 'MovesParams', 'RasterParams', 'SCANS', 'SLOW_PROFILES',
            'ScanParams', 'SpiralParams', 'extent_m', 'lissajous', 'make_scan', 'moves',

@@ -61,23 +61,25 @@ from fractions import Fraction
 import math
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 from piezo_stage_ros.core.contracts.errors import ConfigError, ParameterError
 from piezo_stage_ros.core.contracts.params import group, param, Params
 from piezo_stage_ros.core.contracts.types import FloatArray
-from piezo_stage_ros.core.identification.excitation import (
+from piezo_stage_ros.core.signals.excitation import (
     ChirpExcitation,
     ChirpParams,
     NoiseExcitation,
     NoiseParams,
 )
+from piezo_stage_ros.core.signals.shapes import s_curve, smoothstep
 
 __all__ = ['CsvParams', 'HoldParams', 'MultisineParams', 'ScanLineParams', 'SineParams',
            'SquareParams', 'StaircaseParams', 'StepParams', 'TableTrajectory', 'TrajectoryBase',
            'TrajectoryParams', 'TriangleParams', 'check_sampling', 'load_table',
-           'make_trajectory', 's_curve', 'smoothstep']
+           'make_trajectory']
 
 
 #: Stage travel of the P-753.31C [m] (sensor 0 ... 10 V over 0 ... 38 um).
@@ -85,6 +87,12 @@ TRAVEL_MAX_M = 38e-6
 
 KINDS = ('sine', 'multisine', 'square', 'staircase', 'step', 'triangle', 'csv', 'noise', 'chirp',
          'scan_line', 'hold')
+
+
+def _transition() -> Any:
+    """Declare ``transition_s`` of a kind with jumps (a fresh field each: fields are per class)."""
+    return param(0.0, unit='s', description='Duration of the quintic S-curve that replaces each '
+                 'jump (0: ideal jump, as in the paper).', low=0.0)
 
 
 @dataclass(frozen=True)
@@ -125,9 +133,7 @@ class SquareParams(Params):
     period_s: float = param(0.5, unit='s', description='Period.', low=0.0, low_open=True)
     duty: float = param(0.5, unit='-', description='Fraction of the period at the high level.',
                         low=0.0, high=1.0, low_open=True, high_open=True)
-    transition_s: float = param(0.0, unit='s', description='Duration of the quintic S-curve '
-                                'that replaces each jump (0: ideal jump, as in the paper).',
-                                low=0.0)
+    transition_s: float = _transition()
 
 
 @dataclass(frozen=True)
@@ -139,9 +145,7 @@ class StaircaseParams(Params):
     steps: int = param(10, unit='-', description='Number of steps.', low=1, high=100000)
     dwell_s: float = param(0.05, unit='s', description='Time on each level.', low=0.0,
                            low_open=True)
-    transition_s: float = param(0.0, unit='s', description='Duration of the quintic S-curve '
-                                'that replaces each jump (0: ideal jump, as in the paper).',
-                                low=0.0)
+    transition_s: float = _transition()
 
 
 @dataclass(frozen=True)
@@ -151,9 +155,7 @@ class StepParams(Params):
     initial_m: float = param(3.8e-6, unit='m', description='Level before the step.')
     final_m: float = param(11.6e-6, unit='m', description='Level after the step.')
     time_s: float = param(0.01, unit='s', description='Time of the step.', low=0.0)
-    transition_s: float = param(0.0, unit='s', description='Duration of the quintic S-curve '
-                                'that replaces each jump (0: ideal jump, as in the paper).',
-                                low=0.0)
+    transition_s: float = _transition()
 
 
 @dataclass(frozen=True)
@@ -252,9 +254,9 @@ class TrajectoryParams(Params):
                                       'trace and retrace, smooth turnarounds)')
     hold: HoldParams = group(HoldParams, 'kind hold')
     noise: NoiseParams = group(NoiseParams, 'kind noise (band-limited white noise, '
-                               'identification: core/identification/excitation.py)')
+                               'identification: core/signals/excitation.py)')
     chirp: ChirpParams = group(ChirpParams, 'kind chirp (sine sweep, identification: '
-                               'core/identification/excitation.py)')
+                               'core/signals/excitation.py)')
 
     def _check(self) -> None:
         for name, fits, room in (
@@ -338,53 +340,6 @@ def _get(p: Params, dotted: str) -> object:
     for part in dotted.split('.'):
         obj = getattr(obj, part)
     return list(obj) if isinstance(obj, tuple) else obj
-
-
-def s_curve(u: ArrayLike) -> tuple[FloatArray, FloatArray]:
-    """
-    Return the quintic S-curve q(u) = 10 u^3 - 15 u^4 + 6 u^5 and q'(u), u clipped to [0, 1].
-
-    Parameters
-    ----------
-    u : array_like
-        Normalized time (t - t_0)/T_r of a transition [-].
-
-    Returns
-    -------
-    q, dq_du : ndarray
-        Fraction of the jump done (0 ... 1) and its derivative with respect to u (0 outside
-        (0, 1); 30 u^2 (1 - u)^2 inside).
-
-    """
-    v = np.clip(np.asarray(u, dtype=np.float64), 0.0, 1.0)
-    v2 = v * v
-    return v2 * v * (10.0 + v * (6.0 * v - 15.0)), 30.0 * v2 * (1.0 - v) ** 2
-
-
-def smoothstep(order: int) -> tuple[np.polynomial.Polynomial, np.polynomial.Polynomial,
-                                      np.polynomial.Polynomial]:
-    """
-    Return the smoothstep polynomial S_N, its derivative and its integral from 0.
-
-    Parameters
-    ----------
-    order : int
-        N >= 0: S_N rises from S(0) = 0 to S(1) = 1 with its first N derivatives 0 at both ends
-        (N = 0: s; N = 1: 3 s^2 - 2 s^3; N = 2: the quintic of :func:`s_curve`).
-
-    Returns
-    -------
-    q, dq_ds, integral : numpy.polynomial.Polynomial
-        S_N(s) = s^(N+1) sum_n C(N+n, n) C(2N+1, N-n) (-s)^n, S_N'(s) and int_0^s S_N; the
-        integral reaches 1/2 at s = 1 (S_N(1 - s) = 1 - S_N(s)).
-
-    """
-    coef = np.zeros(2 * order + 2)
-    for n in range(order + 1):
-        coef[order + 1 + n] = math.comb(order + n, n) * math.comb(2 * order + 1, order - n) * (
-            -1.0) ** n
-    q = np.polynomial.Polynomial(coef)
-    return q, q.deriv(), q.integ(lbnd=0.0)
 
 
 def check_sampling(params: TrajectoryParams, sample_rate_hz: float) -> None:
@@ -639,7 +594,7 @@ class _Hold(TrajectoryBase):
 
 
 class _Excitation(TrajectoryBase):
-    """An identification excitation (core/identification/excitation.py) as a trajectory."""
+    """An identification excitation (core/signals/excitation.py) as a trajectory."""
 
     def __init__(self, inner: NoiseExcitation | ChirpExcitation) -> None:
         self._inner = inner

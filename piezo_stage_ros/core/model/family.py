@@ -21,7 +21,7 @@ third-order plant (17) is varied in its factored form
     G(s) = K / (s^3 + a0 s^2 + a1 s + a2) = g a2 / ((s + 1/tau) (s^2 + 2 zeta w_n s + w_n^2))
 
 with the DC gain g = K/a2, so that omega_n, zeta and tau move one at a time and the others stay
-(:func:`piezo_stage_ros.core.identification.fit.factors_of` and ``third_order_of``):
+(:func:`piezo_stage_ros.core.model.linear.factors_of` and ``third_order_of``):
 
     a0 = 1/tau + 2 zeta w_n,   a1 = w_n^2 + 2 zeta w_n / tau,   a2 = w_n^2 / tau,   K = g a2.
 
@@ -55,8 +55,8 @@ import math
 
 import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError
-from piezo_stage_ros.core.identification.fit import factors_of, LinearFactors, third_order_of
 from piezo_stage_ros.core.model.hysteresis import make_hysteresis
+from piezo_stage_ros.core.model.linear import factors_of, LinearFactors, third_order_of
 from piezo_stage_ros.core.model.stage import linear_plant, StageParams
 
 __all__ = ['RANGES', 'StageVariation', 'default_family', 'member_params', 'sample_family',

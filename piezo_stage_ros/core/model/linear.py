@@ -23,7 +23,11 @@ Equations (numbers as in the paper):
       m d2x/dt2 + b_s dx/dt + kbar_s x = (T_em / C_A) q,     kbar_s = k_s + T_em^2 / C_A
 
 - third-order plant, eq. (17): G(s) = X(s)/W(s) = K / (s^3 + a0 s^2 + a1 s + a2);
-- reduced plant, eq. (25): G_r(s) = g / (tau s + 1).
+- reduced plant, eq. (25): G_r(s) = g / (tau s + 1);
+- the factored third-order plant k_p w_n^2 / ((tau s + 1)(s^2 + 2 zeta w_n s + w_n^2))
+  (:class:`LinearFactors`, :func:`factors_of`, :func:`third_order_of`): the family of stages
+  varies one factor at a time and identification fits them, so the conversions belong to the
+  model both use.
 
 Eliminating q from (11)-(12) with H = 0 gives (17) with
 
@@ -47,13 +51,15 @@ from typing import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
+from piezo_stage_ros.core.contracts.errors import IdentificationError
 from piezo_stage_ros.core.contracts.params import param, Params
 from piezo_stage_ros.core.contracts.types import ComplexArray, FloatArray
 from scipy.linalg import expm
 
 __all__ = [
-    'DiscreteLinearPlant', 'ElectromechanicalParams', 'LinearPlant', 'ReducedParams',
-    'ThirdOrderParams', 'electromechanical_plant', 'reduced_plant', 'third_order_plant',
+    'DiscreteLinearPlant', 'ElectromechanicalParams', 'LinearFactors', 'LinearPlant',
+    'ReducedParams', 'ThirdOrderParams', 'electromechanical_plant', 'factors_of', 'reduced_plant',
+    'third_order_of', 'third_order_plant',
 ]
 
 
@@ -328,6 +334,85 @@ def third_order_plant(p: ThirdOrderParams) -> LinearPlant:
     ws = p.a2 ** (1.0 / 3.0)
     g = p.gain / p.a2
     return _scaled(a, b, [1.0, 0.0, 0.0], [g, g * ws, g * ws * ws], 'third_order')
+
+
+@dataclass(frozen=True)
+class LinearFactors:
+    """
+    The factored third-order plant k_p w_n^2 / ((tau s + 1)(s^2 + 2 zeta w_n s + w_n^2)).
+
+    Attributes
+    ----------
+    gain_m_per_v : float
+        k_p, the DC gain K/a2 [m/V].
+    omega_n_rad_s : float
+        w_n [rad/s].
+    zeta : float
+        Damping ratio [-].
+    tau_s : float
+        Time constant of the real pole [s].
+
+    """
+
+    gain_m_per_v: float
+    omega_n_rad_s: float
+    zeta: float
+    tau_s: float
+    #: Loop delay beyond the sample-and-hold, in samples (0: the command of sample k is held
+    #: over sample k); not part of the stage's plant, the signal chain's.
+    delay_samples: float = 0.0
+
+
+def third_order_of(f: LinearFactors) -> ThirdOrderParams:
+    """
+    Return K, a0, a1, a2 of eq. (17) for factored parameters.
+
+    Parameters
+    ----------
+    f : LinearFactors
+        k_p [m/V], w_n [rad/s], zeta [-], tau [s].
+
+    Returns
+    -------
+    ThirdOrderParams
+        a2 = w_n^2/tau, a1 = w_n^2 + 2 zeta w_n/tau, a0 = 1/tau + 2 zeta w_n, K = k_p a2.
+
+    """
+    w, z, t = f.omega_n_rad_s, f.zeta, f.tau_s
+    a2 = w * w / t
+    return ThirdOrderParams(gain=f.gain_m_per_v * a2, a0=1.0 / t + 2.0 * z * w,
+                            a1=w * w + 2.0 * z * w / t, a2=a2)
+
+
+def factors_of(p: ThirdOrderParams) -> LinearFactors:
+    """
+    Return the factored form of a third-order plant (the inverse of :func:`third_order_of`).
+
+    Parameters
+    ----------
+    p : ThirdOrderParams
+        The plant of eq. (17): K / (s^3 + a0 s^2 + a1 s + a2).
+
+    Returns
+    -------
+    LinearFactors
+        From the roots of s^3 + a0 s^2 + a1 s + a2: the real pole gives tau, the complex pair
+        w_n = |p| and zeta = -Re p / |p|.
+
+    Raises
+    ------
+    IdentificationError
+        If the cubic has three real roots (no resonance to factor out).
+
+    """
+    roots = np.roots([1.0, p.a0, p.a1, p.a2])
+    cplx = roots[np.abs(roots.imag) > 1e-9 * np.abs(roots)]
+    if cplx.size != 2:
+        raise IdentificationError(f'third-order plant {p.to_flat()} has no complex pole pair')
+    real = roots[np.abs(roots.imag) <= 1e-9 * np.abs(roots)].real
+    wn = float(np.abs(cplx[0]))
+    return LinearFactors(gain_m_per_v=p.gain / p.a2, omega_n_rad_s=wn,
+                         zeta=float(-cplx[0].real / wn), tau_s=float(-1.0 / real[0]))
 
 
 def reduced_plant(p: ReducedParams) -> LinearPlant:

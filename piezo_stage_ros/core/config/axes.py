@@ -39,25 +39,30 @@ axis (the same dotted names, validated as strictly)::
         scan: {kind: raster, raster: {lines: 64}}
 
 The one-axis loader ignores ``axes.*`` and ``scan.*`` (not parameters of its tables), so the
-base of such a file is still a valid one-axis configuration.
+base of such a file is still a valid one-axis configuration. This is the loader's other entry
+(:mod:`piezo_stage_ros.core.config.loader`): the files are read and merged the same way, the base
+is the one-axis :class:`~piezo_stage_ros.core.config.loader.LoopConfig`, and each axis is that
+base with its ``axes.<name>.*`` applied by the base group's own validation.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any, Mapping, TypeVar
 
-from piezo_stage_ros.core.contracts.config import Config
+from piezo_stage_ros.core.config.loader import Config, LoopConfig
 from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.contracts.interfaces import Trajectory
-from piezo_stage_ros.core.contracts.loop_config import LoopConfig
+from piezo_stage_ros.core.contracts.params import Params
 from piezo_stage_ros.core.control.controllers import ControllerParams
 from piezo_stage_ros.core.loop.scan2d import make_scan, ScanParams
 from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
 from piezo_stage_ros.core.model.axes import AxesStageParams, check_axis_names, CouplingParams
 
 __all__ = ['AxesLoopConfig', 'axes_loop_config', 'has_axes']
+
+_P = TypeVar('_P', bound=Params)
 
 _COUPLING = ('gain', 'resonance_hz', 'damping', 'sensor_crosstalk')
 
@@ -106,9 +111,35 @@ class AxesLoopConfig:
         return dataclasses.replace(self, **changes)
 
 
-def _per_axis(section: Mapping[str, Any], names: tuple[str, ...], node: str,
-              extra: tuple[str, ...]) -> dict[str, dict[str, Any]]:
-    """Split ``axes.*`` of a node section per axis, refusing a name the stage lacks."""
+def _per_axis(base: _P, section: Mapping[str, Any], names: tuple[str, ...], node: str,
+              extra: tuple[str, ...]) -> tuple[_P, ...]:
+    """
+    Return ``base`` with each axis' ``axes.<name>.*`` of a node section applied, one per axis.
+
+    Parameters
+    ----------
+    base : Params
+        The one-axis object every axis starts from.
+    section : Mapping[str, Any]
+        The node's flat section.
+    names : tuple of str
+        The stage's axes.
+    node : str
+        Node name, for messages.
+    extra : tuple of str
+        Names under ``axes.`` that are not axes (``names``, ``coupling`` ...).
+
+    Returns
+    -------
+    tuple of Params
+        One per axis, in the order of ``names``.
+
+    Raises
+    ------
+    ParameterError
+        For ``axes.<name>`` naming no axis of the stage, or a bad per-axis value.
+
+    """
     out: dict[str, dict[str, Any]] = {n: {} for n in names}
     for key, value in section.items():
         if not key.startswith('axes.'):
@@ -121,7 +152,7 @@ def _per_axis(section: Mapping[str, Any], names: tuple[str, ...], node: str,
                                  f'{list(names)}, or axes.{{{", ".join(extra)}}}',
                                  'names no axis of this stage')
         out[head][key] = value
-    return out
+    return tuple(base.with_flat(out[n], prefix=f'axes.{n}.') for n in names)
 
 
 def axes_loop_config(config: Config) -> AxesLoopConfig:
@@ -151,8 +182,7 @@ def axes_loop_config(config: Config) -> AxesLoopConfig:
         raise ParameterError('plant_node axes.names', None, "a list of 1-3 axes out of "
                              "['x', 'y', 'z']", 'is not set: not a multi-axis stage')
     names = check_axis_names(plant['axes.names'], 'plant_node axes.names')
-    stage_over = _per_axis(plant, names, 'plant_node', ('names', 'coupling'))
-    stages = tuple(base.stage.with_flat(stage_over[n], prefix=f'axes.{n}.') for n in names)
+    stages = _per_axis(base.stage, plant, names, 'plant_node', ('names', 'coupling'))
     coupling_keys = {k: v for k, v in plant.items() if k.startswith('axes.coupling.')}
     for key, value in coupling_keys.items():
         if key[len('axes.coupling.'):] not in _COUPLING:
@@ -167,13 +197,10 @@ def axes_loop_config(config: Config) -> AxesLoopConfig:
     if not isinstance(compensate, bool):
         raise ParameterError('controller_node axes.coupling_compensation', compensate,
                              'true or false', 'is not a boolean')
-    ctrl_over = _per_axis(ctrl, names, 'controller_node', ('coupling_compensation',))
-    controllers = tuple(base.controller.with_flat(ctrl_over[n], prefix=f'axes.{n}.')
-                        for n in names)
+    controllers = _per_axis(base.controller, ctrl, names, 'controller_node',
+                            ('coupling_compensation',))
     traj = config.node('trajectory_node')
-    traj_over = _per_axis(traj, names, 'trajectory_node', ())
-    lines = tuple(base.trajectory.with_flat(traj_over[n], prefix=f'axes.{n}.')
-                  for n in names)
+    lines = _per_axis(base.trajectory, traj, names, 'trajectory_node', ())
     scan = ScanParams.from_flat({k: v for k, v in traj.items() if k.startswith('scan.')},
                                 prefix='scan.')
     out = AxesLoopConfig(base=base, stage=stage, controllers=controllers,

@@ -13,42 +13,16 @@
 # limitations under the License.
 
 """
-The loop configuration: every parameter of the three nodes, turned into typed objects one way.
+What each node declares: its own parameter groups and the table that joins them to the core's.
 
-The parameter files in ``config/`` configure three ROS nodes; the offline commands (``simulate``,
-``soak``, ``identify``, ``tune``), the emulator, the nodes and the launch file all turn them into
-objects here, so a file means the same thing everywhere:
-
-- a node's *table* (:class:`NodeTable`) is the core parameter group it configures (the stage, the
-  controller with its stability check, the trajectory) plus a node group (mode, timeouts,
-  bridge), all declared with :func:`~piezo_stage_ros.core.contracts.params.param`; from it come
-  the ROS parameter declarations (:meth:`NodeTable.declarations`), the validated objects
-  (:meth:`NodeTable.build`) and the validation of a run-time change (:meth:`NodeTable.change`);
-- :class:`LoopConfig` holds the objects of all three tables, built from a
-  :class:`~piezo_stage_ros.core.contracts.config.Config` by :meth:`LoopConfig.from_config` (or
-  from files by :func:`load_loop_config`).
-
-Which names of a node section belong to the node (:meth:`NodeTable.select`): a name whose first
-dotted part is a parameter or group of the node's table; it is validated strictly (a misspelt
-``rac.epsilon`` is refused). Other names (``use_sim_time`` in a ``/**`` wildcard section,
-``qos_overrides.*``) are left to ROS, which ignores what a node does not declare.
-
-Node settings without meaning offline (rule, the same for every offline command): ``mode``,
-``backend``, ``duration_s``, the timeouts, ``lockstep.*`` and ``bridge.*`` are validated like
-any other value (a bad one is refused everywhere), and an offline command runs the stage model
-in its own loop whatever they say; :meth:`LoopConfig.offline_notes` names the ones set to
-something an offline run cannot honour (``mode: realtime``, ``backend: udp``), and the commands
-print that note once.
-
-The design model (the plant the controller's stability check and a ``model`` notch use) is the
-plant node's ``plant.*`` unless ``controller_node stability.design_model: own`` selects the
-controller's own ``stability.plant.*`` (:attr:`LoopConfig.design_plant`,
-docs/reference/ros-interface.md).
-
-Every parameter is declared with dynamic typing in the nodes and validated here, because ROS
-would otherwise refuse an integer written in YAML for a double parameter (``0`` instead of
-``0.0``); the core validation accepts integers where floats are expected and refuses everything
-else with a reason.
+A node's *table* (:class:`NodeTable`) is the core parameter group it configures (the stage, the
+controller with its stability check, the trajectory) plus a node group of this module (mode,
+timeouts, bridge, servo, recording), all declared with
+:func:`~piezo_stage_ros.core.contracts.params.param`. From the table come the ROS parameter
+declarations (:meth:`NodeTable.declarations`), the validated objects (:meth:`NodeTable.build`)
+and the validation of a run-time change (:meth:`NodeTable.change`). Which core groups each node
+has is the loader's business (:mod:`piezo_stage_ros.core.config.loader`); this module needs
+nothing of core but the contracts.
 """
 
 from __future__ import annotations
@@ -56,27 +30,19 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 import math
-import os
-from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
-from piezo_stage_ros.core.contracts.config import Config, load_config
 from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.contracts.params import group, param, Params, ParamSpec
-from piezo_stage_ros.core.control.controllers import ControllerParams
-from piezo_stage_ros.core.control.stability import StabilityParams
-from piezo_stage_ros.core.loop.trajectories import check_sampling, TrajectoryParams
-from piezo_stage_ros.core.model.stage import PlantParams, StageParams
 
 __all__ = ['BridgeParams', 'ControllerNodeParams', 'Declaration', 'Group', 'LockstepParams',
-           'LoopConfig', 'MODES', 'NodeTable', 'PlantNodeParams', 'RecordingParams', 'ServoParams',
-           'TrajectoryNodeParams', 'WatchdogParams',
-           'TABLES', 'controller_table', 'design_plant', 'load_loop_config', 'plant_table',
-           'trajectory_table']
+           'MODES', 'NodeTable', 'PlantNodeParams', 'RecordingParams', 'ServoParams',
+           'TrajectoryNodeParams', 'WatchdogParams', 'declaration']
 
 MODES = ('lockstep', 'realtime')
 _MODE_DOC = ('Time: lockstep (the plant owns simulation time and waits for each command) or '
              'realtime (the plant samples on its own clock and holds the last command).')
+
 
 
 @dataclass(frozen=True)
@@ -386,13 +352,13 @@ class NodeTable:
 
     def select(self, values: Mapping[str, Any]) -> dict[str, Any]:
         """
-        Return the values of a node section that belong to this node (module docstring).
+        Return the values of a node section that belong to this node (the loader's step 3).
 
         Parameters
         ----------
         values : Mapping[str, Any]
             A node's section of parameter files, wildcard values included
-            (:meth:`piezo_stage_ros.core.contracts.config.Config.node`).
+            (:meth:`piezo_stage_ros.core.config.loader.Config.node`).
 
         Returns
         -------
@@ -494,183 +460,3 @@ class NodeTable:
                          f'{spec.allowed()} | {"yes" if spec.read_only else "no"} | '
                          f'{spec.description} |')
         return '\n'.join(lines) + '\n'
-
-
-def plant_table() -> NodeTable:
-    """Return the table of ``plant_node``: the stage (start-up only) and the node group."""
-    return NodeTable('plant_node', [Group(StageParams, frozen=True), Group(PlantNodeParams)])
-
-
-def controller_table() -> NodeTable:
-    """Return the table of ``controller_node``: controller, stability check, node group."""
-    return NodeTable('controller_node', [Group(ControllerParams),
-                                         Group(StabilityParams, prefix='stability.'),
-                                         Group(ControllerNodeParams)])
-
-
-def trajectory_table() -> NodeTable:
-    """Return the table of ``trajectory_node``: the trajectory and the node group."""
-    return NodeTable('trajectory_node', [Group(TrajectoryParams), Group(TrajectoryNodeParams)])
-
-
-#: The three nodes of the loop, by their node names.
-TABLES = {'plant_node': plant_table, 'controller_node': controller_table,
-          'trajectory_node': trajectory_table}
-
-
-@dataclass(frozen=True)
-class LoopConfig:
-    """
-    Every parameter of the loop, validated: the objects of the three node tables.
-
-    Attributes
-    ----------
-    stage : StageParams
-        The stage (plant node).
-    plant_node : PlantNodeParams
-        The plant node's own settings.
-    controller : ControllerParams
-        The controller.
-    stability : StabilityParams
-        The controller's stability check (and its own design model, ``stability.plant``).
-    controller_node : ControllerNodeParams
-        The controller node's own settings.
-    trajectory : TrajectoryParams
-        The reference.
-    trajectory_node : TrajectoryNodeParams
-        The trajectory node's own settings.
-    sources : tuple of Path
-        The parameter files read, in order.
-
-    """
-
-    stage: StageParams = dataclasses.field(default_factory=StageParams)
-    plant_node: PlantNodeParams = dataclasses.field(default_factory=PlantNodeParams)
-    controller: ControllerParams = dataclasses.field(default_factory=ControllerParams)
-    stability: StabilityParams = dataclasses.field(default_factory=StabilityParams)
-    controller_node: ControllerNodeParams = dataclasses.field(
-        default_factory=ControllerNodeParams)
-    trajectory: TrajectoryParams = dataclasses.field(default_factory=TrajectoryParams)
-    trajectory_node: TrajectoryNodeParams = dataclasses.field(
-        default_factory=TrajectoryNodeParams)
-    sources: tuple[Path, ...] = ()
-
-    @classmethod
-    def from_config(cls, config: Config) -> LoopConfig:
-        """
-        Build every object of the loop from parameter files already read.
-
-        Parameters
-        ----------
-        config : Config
-            The files' sections (and any overrides applied to them).
-
-        Returns
-        -------
-        LoopConfig
-
-        Raises
-        ------
-        ParameterError
-            On the first bad value, or an unknown name under a known group, of any node.
-
-        """
-        stage, plant_node = plant_table().build(plant_table().select(config.node('plant_node')))
-        table = controller_table()
-        controller, stability, controller_node = table.build(
-            table.select(config.node('controller_node')))
-        table = trajectory_table()
-        trajectory, trajectory_node = table.build(table.select(config.node('trajectory_node')))
-        check_sampling(trajectory, trajectory_node.sample_rate_hz)
-        return cls(stage=stage, plant_node=plant_node, controller=controller,
-                   stability=stability, controller_node=controller_node,
-                   trajectory=trajectory, trajectory_node=trajectory_node,
-                   sources=config.sources)
-
-    def replace(self, **changes: Any) -> LoopConfig:
-        """Return a copy with some objects changed (like ``dataclasses.replace``)."""
-        return dataclasses.replace(self, **changes)
-
-    @property
-    def design_plant(self) -> PlantParams:
-        """
-        Return the model the controller is checked (and a ``model`` notch designed) against.
-
-        The plant node's ``plant.*``, unless ``stability.design_model`` is ``'own'``: then the
-        controller's own ``stability.plant.*`` (a real stage: the identified model).
-        """
-        return design_plant(self.stability, self.stage.plant)
-
-    def offline_notes(self) -> list[str]:
-        """
-        Return what an offline run does not honour of the node settings (module docstring).
-
-        Returns
-        -------
-        list of str
-            One sentence per setting; empty when the files describe a lockstep model run.
-
-        """
-        notes = []
-        modes = [(name, obj.mode) for name, obj in (('plant_node', self.plant_node),
-                                                    ('controller_node', self.controller_node),
-                                                    ('trajectory_node', self.trajectory_node))
-                 if obj.mode != 'lockstep']
-        if modes:
-            said = ', '.join(f'{name} mode: {mode}' for name, mode in modes)
-            notes.append(f'{said} applies to the ROS nodes; an offline run steps the loop in '
-                         'its own time (as lockstep does)')
-        if self.plant_node.backend != 'model':
-            notes.append(f'plant_node backend: {self.plant_node.backend} applies to the ROS '
-                         'plant node; an offline run simulates the stage model')
-        return notes
-
-
-def design_plant(stability: StabilityParams, plant: PlantParams) -> PlantParams:
-    """
-    Return the controller's design model: ``plant`` or, on request, its own.
-
-    Parameters
-    ----------
-    stability : StabilityParams
-        The controller's stability options (``design_model``, ``plant``).
-    plant : PlantParams
-        The plant node's model.
-
-    Returns
-    -------
-    PlantParams
-        ``plant`` when ``stability.design_model`` is ``'plant'``, else ``stability.plant``.
-
-    """
-    return plant if stability.design_model == 'plant' else stability.plant
-
-
-def load_loop_config(paths: Iterable[str | os.PathLike[str]],
-                     overrides: Mapping[str, Mapping[str, Any]] | None = None) -> LoopConfig:
-    """
-    Read parameter files and build the loop configuration.
-
-    Parameters
-    ----------
-    paths : iterable of path-like
-        Parameter files, in order (later files win).
-    overrides : mapping, optional
-        ``{node name: {dotted name: value}}`` applied on top of the files.
-
-    Returns
-    -------
-    LoopConfig
-
-    Raises
-    ------
-    ConfigError
-        If a file cannot be read or is not a parameter file.
-    ParameterError
-        On a bad value.
-
-    """
-    config = load_config(paths)
-    for node, values in (overrides or {}).items():
-        config = config.with_overrides(node, values)
-    return LoopConfig.from_config(config)

@@ -32,6 +32,10 @@ position reference for the trajectory node and the closed loop, ``simulate --tra
 For an open-loop (voltage) run, the ``open_loop`` controller turns them into volts
 (v = gain x_d + offset); identification uses the recorded command, whatever produced it. Every
 signal is deterministic: the same parameters (and seed) give the same samples.
+
+They live with the signals, below the model, rather than with identification: the trajectories
+(:mod:`piezo_stage_ros.core.loop.trajectories`, a floor below identification) offer them as the
+``noise`` and ``chirp`` kinds, and a floor may only use the floors under it.
 """
 
 from __future__ import annotations
@@ -110,7 +114,7 @@ class ChirpParams(Params):
 
 
 class _ExcitationBase:
-    """Attributes shared with the trajectories: ``kind``, ``period_s`` and the extent."""
+    """Attributes shared with the trajectories: ``kind``, ``period_s``, the extent, evaluation."""
 
     kind = ''
     period_s: float | None = None
@@ -118,6 +122,28 @@ class _ExcitationBase:
     @property
     def extent_m(self) -> tuple[float, float]:
         """Return the lowest and highest value the signal takes [m]."""
+        raise NotImplementedError
+
+    def evaluate(self, time_s: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """
+        Return the signal and its derivative at ``time_s``.
+
+        Parameters
+        ----------
+        time_s : array_like
+            Times since the start [s].
+
+        Returns
+        -------
+        position_m, velocity_mps : ndarray
+            Same shape as ``time_s``.
+
+        """
+        pos, vel = self._evaluate(np.asarray(time_s, dtype=np.float64))
+        return np.asarray(pos, dtype=np.float64), np.asarray(vel, dtype=np.float64)
+
+    def _evaluate(self, t: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Return position [m] and velocity [m/s] at the times ``t`` [s]."""
         raise NotImplementedError
 
 
@@ -158,25 +184,10 @@ class NoiseExcitation(_ExcitationBase):
         """Return the lowest and highest value on the grid [m]."""
         return float(self._value.min()), float(self._value.max())
 
-    def evaluate(self, time_s: ArrayLike) -> tuple[FloatArray, FloatArray]:
-        """
-        Return the noise and its derivative at ``time_s``.
-
-        Parameters
-        ----------
-        time_s : array_like
-            Times since the start [s].
-
-        Returns
-        -------
-        position_m, velocity_mps : ndarray
-            Same shape as ``time_s``.
-
-        """
-        t = np.asarray(time_s, dtype=np.float64)
+    def _evaluate(self, t: FloatArray) -> tuple[FloatArray, FloatArray]:
         pos = np.interp(t, self._grid_s, self._value, period=self.period_s)
         vel = np.interp(t, self._grid_s, self._slope, period=self.period_s)
-        return np.asarray(pos, dtype=np.float64), np.asarray(vel, dtype=np.float64)
+        return pos, vel
 
 
 class ChirpExcitation(_ExcitationBase):
@@ -203,43 +214,16 @@ class ChirpExcitation(_ExcitationBase):
         return p.offset_m - p.amplitude_m, p.offset_m + p.amplitude_m
 
     def frequency_hz(self, time_s: ArrayLike) -> FloatArray:
-        """
-        Return the instantaneous frequency at ``time_s`` [Hz].
-
-        Parameters
-        ----------
-        time_s : array_like
-            Times since the start [s].
-
-        Returns
-        -------
-        ndarray
-            d phi/dt / (2 pi), same shape as ``time_s``.
-
-        """
+        """Return the instantaneous frequency d phi/dt / (2 pi) [Hz] at ``time_s`` [s]."""
         p = self.params
         tau = np.mod(np.asarray(time_s, dtype=np.float64), p.sweep_s) / p.sweep_s
         if p.method == 'linear' or p.f0_hz == p.f1_hz:
             return np.asarray(p.f0_hz + (p.f1_hz - p.f0_hz) * tau, dtype=np.float64)
         return np.asarray(p.f0_hz * (p.f1_hz / p.f0_hz) ** tau, dtype=np.float64)
 
-    def evaluate(self, time_s: ArrayLike) -> tuple[FloatArray, FloatArray]:
-        """
-        Return the sweep and its derivative at ``time_s``.
-
-        Parameters
-        ----------
-        time_s : array_like
-            Times since the start [s].
-
-        Returns
-        -------
-        position_m, velocity_mps : ndarray
-            Same shape as ``time_s``.
-
-        """
+    def _evaluate(self, t: FloatArray) -> tuple[FloatArray, FloatArray]:
         p = self.params
-        t = np.mod(np.asarray(time_s, dtype=np.float64), p.sweep_s)
+        t = np.mod(t, p.sweep_s)
         if p.method == 'linear' or p.f0_hz == p.f1_hz:
             phase = 2.0 * math.pi * (p.f0_hz * t + (p.f1_hz - p.f0_hz) * t * t / (2 * p.sweep_s))
         else:
@@ -247,9 +231,7 @@ class ChirpExcitation(_ExcitationBase):
             phase = 2.0 * math.pi * p.f0_hz * p.sweep_s / math.log(ratio) * (
                 ratio ** (t / p.sweep_s) - 1.0)
         omega = 2.0 * math.pi * self.frequency_hz(t)
-        pos = p.offset_m + p.amplitude_m * np.sin(phase)
-        vel = p.amplitude_m * omega * np.cos(phase)
-        return np.asarray(pos, dtype=np.float64), np.asarray(vel, dtype=np.float64)
+        return p.offset_m + p.amplitude_m * np.sin(phase), p.amplitude_m * omega * np.cos(phase)
 
 
 def make_excitation(kind: str, params: NoiseParams | ChirpParams
