@@ -126,17 +126,17 @@ def _section(text: str, title: str) -> str:
     return text[start:] if end < 0 else text[start:end]
 
 
-def test_the_readme_headline_rows_are_copies_of_the_docs():
-    # The README repeats the Table III rows of docs/results.md, where `python -m
+@pytest.mark.parametrize('section, least', [('Results beside the paper', 7), ('Speed', 4)])
+def test_the_readme_headline_rows_are_copies_of_the_docs(section, least):
+    # The README repeats the Table III and speed rows of docs/results.md, where `python -m
     # piezo_stage_ros.results` writes them with their command and machine; a rerun that moves a
     # figure makes this test name the copy left behind.
     readme = ROOT / 'README.md'
     docs_rows = set((ROOT / 'docs' / 'results.md').read_text(encoding='utf-8').splitlines())
     rows = [
-        line for line in _section(readme.read_text(encoding='utf-8'),
-                                  'Results beside the paper').splitlines()
+        line for line in _section(readme.read_text(encoding='utf-8'), section).splitlines()
         if line.startswith('| ') and not line.startswith('| ---')]
-    assert len(rows) >= 7  # the header, two paper rows and four project rows
+    assert len(rows) >= least  # the header and the figures
     stale = [row for row in rows if row not in docs_rows]
     assert not stale, ('README rows not in docs/results.md (copy them from there): '
                        + '; '.join(stale))
