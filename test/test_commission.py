@@ -258,3 +258,38 @@ def test_coverage_study_reports_each_case_and_a_table(capsys: pytest.CaptureFixt
 
 def test_coverage_needs_a_positive_count(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(['--coverage', '0']) == 2
+
+
+def test_a_loop_delay_the_run_shows_is_what_gets_certified() -> None:
+    # A target that applies each command at its next tick: the recorded run shows one sample
+    # of loop delay beyond the hold. The certificate must hold at that delay, not at the
+    # shorter one the configured check assumes (half a sample by default).
+    from piezo_stage_ros.core.contracts.loop_config import ControllerParams
+    from piezo_stage_ros.core.control.controllers import build_controller
+    from piezo_stage_ros.core.identification.commission import (
+        checked_excitation,
+        commission_record,
+        CommissionParams,
+        hold_controller,
+    )
+    from piezo_stage_ros.core.identification.foreign import SignalPath
+    from piezo_stage_ros.core.loop.closed_loop import run
+    from piezo_stage_ros.core.model.stage import Stage
+    true = StageParams().with_flat({'chain.sensor_noise_std_m': 2e-9, 'seed': 5})
+    configured, ctrl = StageParams(), ControllerParams()
+    assert StabilityParams().delay_samples < 1.0
+    params = CommissionParams(duration_s=1.0, verify_duration_s=0.2)
+    t = true.sample_time_s
+    whole = run(SignalPath(Stage(true), 0.0, 1),
+                build_controller(hold_controller(params, ctrl), t, None),
+                checked_excitation(params, true.sample_rate_hz),
+                duration_s=params.settle_s + params.duration_s,
+                initial_position_m=params.hold_m, record_diagnostics=False,
+                meta={'name': 'commission_excitation'})
+    result = commission_record(
+        whole, configured, ctrl,
+        lambda stage: controller_values(stage, ctrl.to_flat(), configured), params)
+    shown = result.checked.result.factors.delay_samples
+    assert shown == pytest.approx(1.0, abs=0.1)
+    assert result.design.certification.nominal.delay_samples == shown
+    assert any('loop delay the run shows' in note for note in result.notes)

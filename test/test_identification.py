@@ -388,3 +388,28 @@ def test_general_model_stage_gives_an_effective_model() -> None:
     assert rel(res.factors.tau_s, true.tau_s) < 0.05
     assert rel(res.static_gain_m_per_v, true.gain_m_per_v * 1.0341) < 0.01
     assert res.hysteresis is not None and res.hysteresis.residual_rms_m < 2.0 * NOISE_M
+
+
+def test_the_offset_test_holds_its_level_for_any_number_of_runs() -> None:
+    # One offset per run is freed: on runs without one, the likelihood-ratio test must keep
+    # offsets in 5 % of the draws whether one run or three are fitted (a single chi^2(1)
+    # threshold keeps them in 28 % with three). Least squares of white noise with the
+    # offsets free is exact: the drop is the runs' means squared times their lengths, and
+    # the statistic is runs * F(runs, dof), whose level at the chi^2(runs) quantile is known.
+    from piezo_stage_ros.core.identification.fit import _offsets_shown
+    from scipy import stats
+    rng = np.random.default_rng(20261126)
+    draws, n = 4000, 64
+    for runs in (1, 2, 3):
+        dof = runs * n - runs
+        level = float(stats.f.sf(stats.chi2.ppf(0.95, runs) / runs, runs, dof))
+        assert 0.05 < level < 0.056  # the chi^2 quantile against the F at 63+ dof
+        kept = 0
+        for _ in range(draws):
+            e = rng.standard_normal((runs, n))
+            rss0 = float(np.sum(e * e))
+            rss1 = float(np.sum((e - e.mean(axis=1, keepdims=True)) ** 2))
+            kept += _offsets_shown(rss0, rss1, dof, runs)
+        # 4 binomial standard deviations of the draws
+        assert abs(kept / draws - level) < 4.0 * math.sqrt(level * (1.0 - level) / draws), \
+            (runs, kept / draws, level)

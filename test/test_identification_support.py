@@ -218,3 +218,34 @@ def test_drift_from_an_operation_bag(tmp_path: Path, loop: LoopConfig,
     assert not (tmp_path / 'identified.yaml').exists()
     with contextlib.redirect_stderr(io.StringIO()):
         assert main(['--drift', bags[0], '--step', bags[1]]) == 2
+
+
+def test_replay_bounds_take_the_student_t_of_the_refits_that_came_back(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # Three of the eight refits come back: their spread has 2 degrees of freedom, and the
+    # 95 % half-width is t_0.975(2) = 4.303 standard deviations, not the 2.365 of 7.
+    from types import SimpleNamespace
+
+    from piezo_stage_ros.core.identification import support
+    from piezo_stage_ros.core.identification.fit import IdentificationError
+    from scipy import stats
+    values = iter([1.0, 1.3, 0.8])
+
+    def refit(*_args: object, **_kwargs: object) -> SimpleNamespace:
+        try:
+            return SimpleNamespace(estimates={'alpha': next(values)})
+        except StopIteration:
+            raise IdentificationError('refit failed') from None
+
+    monkeypatch.setattr(support, 'fit_hysteresis', refit)
+    n = 32
+    record = RunRecord(np.arange(n) * 1e-4, np.zeros(n), np.zeros(n), np.zeros(n),
+                       np.zeros(n), meta={'name': 'sine'})
+    hy = SimpleNamespace(model='backlash_like', models=[np.zeros(n)], records=[record],
+                         residual_rms_m=1e-9, estimates={'alpha': 1.0})
+    result = SimpleNamespace(hysteresis=hy, bounds={'alpha': (0.999, 1.001)}, factors=None)
+    support._widen_by_replay(result, StageParams(), None)
+    lo, hi = result.bounds['alpha']
+    expected = float(stats.t.ppf(0.975, 2)) * float(np.std([1.0, 1.3, 0.8], ddof=1))
+    assert 0.5 * (hi - lo) == pytest.approx(expected, rel=1e-12)
+    assert 0.5 * (lo + hi) == pytest.approx(1.0, rel=1e-12)

@@ -1101,15 +1101,14 @@ def fit_hysteresis(records: Sequence[RunRecord], chain: SignalChainParams,
     # The offset is tested, not assumed: a sine around a level gives the static gain from the
     # level (the volts and the metres at rest) unless an offset is free, when the gain must
     # come from the swing, which the curvature of the loop shares; so it is kept only where
-    # the data show it (likelihood ratio at 95 %: the drop of the residual sum of squares
-    # over the noise variance above chi^2(1) = 3.84).
+    # the data show it (likelihood ratio at 95 %, one offset per run: _offsets_shown).
     sol = optimize.least_squares(lambda x: solve(x, False)[0] * _NM, x0,
                                  bounds=(lower, upper), x_scale='jac', method='trf')
     sol_off = optimize.least_squares(lambda x: solve(x)[0] * _NM, sol.x,
                                      bounds=(lower, upper), x_scale='jac', method='trf')
     rss0, rss1 = 2.0 * float(sol.cost), 2.0 * float(sol_off.cost)
     dof = max(int(sol_off.fun.size) - nx - 3 * len(runs), 1)
-    with_offset = rss1 > 0.0 and (rss0 - rss1) / (rss1 / dof) > 3.84
+    with_offset = _offsets_shown(rss0, rss1, dof, len(runs))
     if with_offset:
         sol = sol_off
     res, models, coefs = solve(sol.x, with_offset)
@@ -1155,6 +1154,21 @@ def fit_hysteresis(records: Sequence[RunRecord], chain: SignalChainParams,
                          linear_gain_m_per_v=g0 / slope, estimates=est, std=std,
                          records=[r[0] for r in runs], voltages=[r[3] for r in runs],
                          models=models, residual_rms_m=float(np.sqrt(np.mean(res ** 2))))
+
+
+def _offsets_shown(rss_without: float, rss_with: float, dof: int, offsets: int) -> bool:
+    """
+    Return whether the data show sensor offsets: a likelihood-ratio test at 95 %.
+
+    ``offsets`` constants (one per run) freed in a least-squares fit whose noise is white with
+    the variance rss_with / dof: without offsets in the data, the drop of the residual sum of
+    squares over that variance is chi^2 with ``offsets`` degrees of freedom (one per constant
+    freed, not one for all).
+    """
+    from scipy.stats import chi2
+    if not rss_with > 0.0:
+        return False
+    return (rss_without - rss_with) / (rss_with / dof) > float(chi2.ppf(0.95, offsets))
 
 
 def _two_cycles(v: FloatArray) -> int:

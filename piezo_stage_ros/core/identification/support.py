@@ -1136,6 +1136,7 @@ def _widen_by_replay(result: IdentificationResult, base: StageParams,
     half-width, it replaces it. Deterministic (fixed
     seeds); backlash-like and Bouc-Wen only.
     """
+    from scipy.stats import t as student_t
     hy = result.hysteresis
     if hy is None or hy.model == 'prandtl_ishlinskii':
         return
@@ -1157,7 +1158,10 @@ def _widen_by_replay(result: IdentificationResult, base: StageParams,
     for name, values in draws.items():
         if name not in result.bounds or len(values) < 3:
             continue
-        half_replay = Z95 * _T_OVER_Z * float(np.std(values, ddof=1))
+        # the Student-t quantile of the refits that came back (a failed refit leaves fewer)
+        quantile = Z95 * _T_OVER_Z if len(values) == REPLAYS else float(
+            student_t.ppf(0.975, len(values) - 1))
+        half_replay = quantile * float(np.std(values, ddof=1))
         lo, hi = result.bounds[name]
         mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
         if half_replay > half:
