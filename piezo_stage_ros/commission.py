@@ -63,6 +63,7 @@ from piezo_stage_ros.core.identification.commission import (
     comparison,
     excitation_table,
     ros_overrides,
+    verification_failures,
 )
 from piezo_stage_ros.core.model.family import (
     default_family,
@@ -212,7 +213,9 @@ def parameter_text(result: CommissionResult, loop: LoopConfig, header: Sequence[
     doc = yaml.safe_load(text)
     lo, hi = result.design.certification.slope_range
     flat: dict[str, Any] = dict(result.design.controller.to_flat())
-    flat.update({'stability.slope_min': lo, 'stability.slope_max': hi})
+    # the check the node runs at start-up then holds the delay this one was certified at
+    flat.update({'stability.slope_min': lo, 'stability.slope_max': hi,
+                 'stability.delay_samples': result.design.certification.nominal.delay_samples})
     doc['controller_node'] = {'ros__parameters': nest(flat)}
     lines = [f'# {line}' for line in header]
     return '\n'.join(lines + [yaml.safe_dump(doc, sort_keys=False, default_flow_style=False)])
@@ -338,8 +341,9 @@ def _single(args: argparse.Namespace, loop: LoopConfig) -> int:
     if report:
         print(f'report: {files[-1]}')
     if not result.accepted:
-        cli.error(PROG, f'verification e_rms {ver.e_rms_m * 1e9:.1f} nm exceeds '
-                  f'{_params(args).verify_max_m * 1e9:g} nm: no parameter file written')
+        failed = verification_failures(ver, _params(args),
+                                       result.identified.chain.sensor_noise_std_m)
+        cli.error(PROG, '; '.join(failed or ['not accepted']) + ': no parameter file written')
         return 1
     header = ['Commissioned by: commission ' + ' '.join(sys.argv[1:] if args.argv is None
                                                         else args.argv),

@@ -37,6 +37,8 @@ from piezo_stage_ros.core.identification.commission import (
     design,
     Excitation,
     loop_gain_ratio,
+    Verification,
+    verification_failures,
 )
 from piezo_stage_ros.core.identification.support import loop_kind
 from piezo_stage_ros.core.model.family import member_params
@@ -84,6 +86,9 @@ def test_commission_end_to_end_writes_a_loadable_certified_file(
     assert rep.certified
     assert (loop.stability.slope_min, loop.stability.slope_max) == pytest.approx(
         tuple(doc['certification']['slope_range']), rel=1e-12)
+    # and at the computational delay it was certified at
+    assert loop.stability.delay_samples == doc['certification']['delay_samples']
+    assert rep.delay_samples == doc['certification']['delay_samples']
 
 
 def test_commission_targets_on_the_member(commissioned: dict[str, Any]) -> None:
@@ -264,8 +269,7 @@ def test_a_loop_delay_the_run_shows_is_what_gets_certified() -> None:
     # A target that applies each command at its next tick: the recorded run shows one sample
     # of loop delay beyond the hold. The certificate must hold at that delay, not at the
     # shorter one the configured check assumes (half a sample by default).
-    from piezo_stage_ros.core.contracts.loop_config import ControllerParams
-    from piezo_stage_ros.core.control.controllers import build_controller
+    from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
     from piezo_stage_ros.core.identification.commission import (
         checked_excitation,
         commission_record,
@@ -293,3 +297,25 @@ def test_a_loop_delay_the_run_shows_is_what_gets_certified() -> None:
     assert shown == pytest.approx(1.0, abs=0.1)
     assert result.design.certification.nominal.delay_samples == shown
     assert any('loop delay the run shows' in note for note in result.notes)
+
+
+def _verification(e_rms_nm: float, predicted_nm: float, on_stage: bool = True) -> Verification:
+    return Verification(frequency_hz=100.0, e_rms_m=e_rms_nm * 1e-9, e_max_m=2 * e_rms_nm * 1e-9,
+                        predicted_e_rms_m=predicted_nm * 1e-9,
+                        record=None,  # type: ignore[arg-type]  # not read by the limits
+                        on_stage=on_stage)
+
+
+@pytest.mark.parametrize('e_rms_nm, on_stage, limits', [
+    (30.0, True, []),                          # 30 <= 1.5 hypot(20, 3) = 30.34 and <= 35
+    (30.5, True, ['verify_max_ratio']),         # the stage tracks worse than its model says
+    (30.5, False, []),                          # on the model itself the ratio means nothing
+    (36.0, True, ['verify_max_m', 'verify_max_ratio']),
+    (36.0, False, ['verify_max_m']),
+])
+def test_the_verification_limits(e_rms_nm: float, on_stage: bool, limits: list[str]) -> None:
+    failed = verification_failures(_verification(e_rms_nm, 20.0, on_stage), CommissionParams(),
+                                   noise_std_m=3e-9)
+    assert [name for name in ('verify_max_m', 'verify_max_ratio')
+            if any(name in line for line in failed)] == limits
+    assert len(failed) == len(limits)
