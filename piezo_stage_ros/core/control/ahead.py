@@ -156,10 +156,9 @@ class Ahead(Sequence[float]):
 def _sensor_gain(controller: Any) -> float | None:
     """Return the sensor gain k [V/m] of a controller or of the one it wraps (None: none)."""
     for _ in range(3):
-        for name in ('_ksens', '_k'):
-            gain = getattr(controller, name, None)
-            if isinstance(gain, float) and gain > 0.0:
-                return gain
+        gain = getattr(controller, 'sensor_gain_v_per_m', None)
+        if isinstance(gain, float) and gain > 0.0:
+            return gain
         controller = getattr(controller, 'inner', None)
         if controller is None:
             break
@@ -281,8 +280,7 @@ class CommandPredictor:
                 self.reset()
             self._own = getattr(controller, 'predict', None)
             self._gains = getattr(controller, 'reference_gains', None)
-            self._limits = (getattr(controller, '_vmin', -math.inf),
-                            getattr(controller, '_vmax', math.inf))
+            self._limits = getattr(controller, 'output_limits_v', (-math.inf, math.inf))
 
     def observe(self, controller: Any, command_v: float, reference_m: float,
                 velocity_mps: float) -> None:
