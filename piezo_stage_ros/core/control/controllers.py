@@ -120,7 +120,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import math
-from typing import Any, Mapping
+from typing import Any, Generic, Mapping, TypeVar
 
 import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError
@@ -145,10 +145,9 @@ SENSOR_GAIN_V_PER_M = 10.0 / 38e-6
 
 #: Gain of the RAC's running mean of its error (an exponential window of 100 samples), and the
 #: factor a sample by which a stall's error relaxes from the last one to that mean (a time
-#: constant of 10 samples): :meth:`RACController.missed`. Checked over stalls of 1-120 samples
-#: at six phases of the 100 Hz sine, worst case against the last error carried: 1-20 samples
-#: about the same (34.3 against 32.6 nm at 10; at single phases up to 61 against 34 nm at 20),
-#: 40-90 samples 131-184 nm against 175-366 nm.
+#: constant of 10 samples): :meth:`RACController.missed`. Against the last error carried over
+#: the whole stall, this is about the same over short stalls and smaller over long ones
+#: (``benchmark --suite servo``, case ``stall``).
 _MEAN_GAIN = 1.0 / 100.0
 _MISSED_RELAX = math.exp(-1.0 / 10.0)
 
@@ -251,8 +250,9 @@ class RACParams(Params):
                                           's_eps (0: no dead zone; equal to epsilon_v: the '
                                           "paper's law). 2 mV = 7.6 nm: above the 16-bit "
                                           'ADC step (0.3 mV) and 2.5 times the s of 3 nm rms '
-                                          'sensor noise, far below the 0.2 V boundary layer '
-                                          'that kept the old default from adapting at all.',
+                                          'sensor noise, far below the boundary layer (as '
+                                          'wide as that, the estimates never move while '
+                                          'tracking).',
                                           low=0.0)
     adaptation_regressor: str = param('desired', unit='-', description='Regressors of '
                                       "(38)-(39): measured = the paper's y and u_fd = dy_d/dt "
@@ -406,12 +406,17 @@ class _Output:
         return self._vmin, self._vmax
 
 
-class _Feedback(_Output):
+_P = TypeVar('_P', bound=Params)
+
+
+class _Feedback(_Output, Generic[_P]):
     """
     What the three controllers share: sample time, command limits, counters, the last command.
 
     Parameters
     ----------
+    params : Params
+        The controller's own parameters (:attr:`params`).
     sample_time_s : float
         Sample period T [s], > 0.
     output_min_v, output_max_v : float
@@ -434,10 +439,11 @@ class _Feedback(_Output):
     #: place ('': none; every change rebuilds the controller).
     _kind = ''
 
-    def __init__(self, sample_time_s: float, output_min_v: float, output_max_v: float,
-                 built: ControllerParams | None,
+    def __init__(self, params: _P, sample_time_s: float, output_min_v: float,
+                 output_max_v: float, built: ControllerParams | None,
                  sensor_gain_v_per_m: float | None = None) -> None:
         _check_sample_time(sample_time_s)
+        self.params = params
         self._t = float(sample_time_s)
         self._k = 0.0 if sensor_gain_v_per_m is None else float(sensor_gain_v_per_m)
         self._vmin = float(output_min_v)
@@ -505,7 +511,42 @@ class _Feedback(_Output):
         raise NotImplementedError
 
 
-class RACController(_Feedback):
+class _InSensorVolts(_Feedback[_P]):
+    """
+    A controller on sensor volts, y = K_PSCM x: the RAC and the PI.
+
+    Parameters
+    ----------
+    params : RACParams or PIParams
+        Its gains.
+    sample_time_s : float
+        Sample period T [s], > 0.
+    sensor_gain_v_per_m : float
+        K_PSCM [V/m] converting positions to sensor volts.
+    output_min_v, output_max_v : float
+        Command limits [V].
+    built : ControllerParams, optional
+        The configuration :func:`build_controller` made it from.
+
+    """
+
+    def __init__(self, params: _P, sample_time_s: float, *,
+                 sensor_gain_v_per_m: float = SENSOR_GAIN_V_PER_M, output_min_v: float = -2.0,
+                 output_max_v: float = 10.0, built: ControllerParams | None = None) -> None:
+        super().__init__(params, sample_time_s, output_min_v, output_max_v, built,
+                         sensor_gain_v_per_m)
+        self._set_gains(params)
+        self.reset(0.0, 0.0)
+
+    def _set_gains(self, p: _P) -> None:
+        raise NotImplementedError
+
+    def reset(self, position_m: float, reference_m: float,
+              output_v: float | None = None) -> None:
+        raise NotImplementedError
+
+
+class RACController(_InSensorVolts[RACParams]):
     """
     The robust adaptive controller of eqs. (33)-(40), one step per sample.
 
@@ -530,19 +571,16 @@ class RACController(_Feedback):
     -----
     See the module docstring for the discretization, anti-windup and edge cases. The step
     works on plain floats (no numpy): it runs 10 000 times per simulated second.
+    :class:`piezo_stage_ros.core.loop.batch.ControllerBatch` repeats its arithmetic over many
+    stages at once, on purpose (see that module); a change here goes there too, and the
+    bit-for-bit tests of ``test/test_batch.py`` say where the two part.
 
     """
 
     _kind = 'rac'
 
-    def __init__(self, params: RACParams, sample_time_s: float, *,
-                 sensor_gain_v_per_m: float = SENSOR_GAIN_V_PER_M, output_min_v: float = -2.0,
-                 output_max_v: float = 10.0, built: ControllerParams | None = None) -> None:
-        super().__init__(sample_time_s, output_min_v, output_max_v, built, sensor_gain_v_per_m)
-        self.params = params
-        self._held = False
-        self._set_gains(params)
-        self.reset(0.0, 0.0)
+    #: Whether the estimates are held (:meth:`hold_estimates`).
+    _held = False
 
     def reset(self, position_m: float, reference_m: float,
               output_v: float | None = None) -> None:
@@ -593,6 +631,8 @@ class RACController(_Feedback):
             Amplifier input voltage v_k [V], finite, inside the output limits.
 
         """
+        # the refusals are written out in each controller's step, as the whole step is: it
+        # runs once per sample, and a shared helper would add a call to every one
         if dt_s is None:
             dt = self._t
         else:
@@ -679,9 +719,9 @@ class RACController(_Feedback):
 
         For a learning feed-forward: both would learn the same periodic error, and the estimates
         then drift along the direction where their effect and the learned table's cancel, to
-        their bounds (measured on a 50 Hz triangle: phi_hat to 9e-4, and the learning, whose
-        filter assumes the loop gain at the estimates, diverged). Held, the updates are exact
-        zeros: the estimates keep their values bit for bit.
+        their bounds, where the learning, whose filter assumes the loop gain at the estimates,
+        can diverge. Held, the updates are exact zeros: the estimates keep their values bit for
+        bit.
         """
         self._held = hold
         self._gamma, self._eta = (0.0, 0.0) if hold else (self.params.gamma, self.params.eta)
@@ -694,9 +734,9 @@ class RACController(_Feedback):
         where it was; without this it would lack their area for the rest of the run, an
         offset the loop then works off slowly), with the error it most likely had: the last
         one, relaxing to the recent mean (the last 100 samples, exponentially weighted) with
-        a time constant of 10 samples. The last error alone, carried over a long stall, put
-        the noise and the ripple of one sample into the integral 60-90 times: a kick of
-        0.2-0.37 um when the loop came back (``benchmark --suite servo``, case ``stall``).
+        a time constant of 10 samples. The last error alone, carried over a long stall, puts
+        the noise and the ripple of one sample into the integral once per missed sample: a
+        kick when the loop comes back (``benchmark --suite servo``, case ``stall``).
         """
         if samples > 0 and not self._saturated:
             mean = self._e_mean
@@ -749,7 +789,7 @@ class RACController(_Feedback):
 
 
 
-class PIController(_Feedback):
+class PIController(_InSensorVolts[PIParams]):
     """
     PI baseline v = k_p e + k_i int(e), e = y_d - y in sensor volts, with output limits.
 
@@ -774,15 +814,6 @@ class PIController(_Feedback):
 
     _kind = 'pi'
 
-    def __init__(self, params: PIParams, sample_time_s: float, *,
-                 sensor_gain_v_per_m: float = SENSOR_GAIN_V_PER_M, output_min_v: float = -2.0,
-                 output_max_v: float = 10.0, built: ControllerParams | None = None) -> None:
-        super().__init__(sample_time_s, output_min_v, output_max_v, built, sensor_gain_v_per_m)
-        self.params = params
-        self._kp = params.k_p
-        self._ki = params.k_i
-        self._conditional = params.anti_windup == 'conditional'
-        self.reset(0.0, 0.0)
 
     def reset(self, position_m: float, reference_m: float,
               output_v: float | None = None) -> None:
@@ -813,6 +844,8 @@ class PIController(_Feedback):
         A PI does not use the reference velocity, but a non-finite value is still refused, as
         for every controller.
         """
+        # the refusals are written out in each controller's step, as the whole step is: it
+        # runs once per sample, and a shared helper would add a call to every one
         if dt_s is None:
             dt = self._t
         else:
@@ -877,11 +910,15 @@ class PIController(_Feedback):
         if p.k_i > 0.0:
             self._i = self._i * self._ki / p.k_i
         self.params = p
+        self._set_gains(p)
+
+    def _set_gains(self, p: PIParams) -> None:
+        """Cache the gains and the anti-windup choice."""
         self._kp, self._ki = p.k_p, p.k_i
         self._conditional = p.anti_windup == 'conditional'
 
 
-class OpenLoopController(_Feedback):
+class OpenLoopController(_Feedback[OpenLoopParams]):
     """
     Open loop: v = gain * x_d + offset, clipped to the output limits.
 
@@ -901,8 +938,7 @@ class OpenLoopController(_Feedback):
     def __init__(self, params: OpenLoopParams, sample_time_s: float, *,
                  output_min_v: float = -2.0, output_max_v: float = 10.0,
                  built: ControllerParams | None = None) -> None:
-        super().__init__(sample_time_s, output_min_v, output_max_v, built)
-        self.params = params
+        super().__init__(params, sample_time_s, output_min_v, output_max_v, built)
 
     def reset(self, position_m: float, reference_m: float,
               output_v: float | None = None) -> None:
