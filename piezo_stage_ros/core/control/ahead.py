@@ -245,8 +245,7 @@ class CommandPredictor:
         (0, 0) until the fit has seen half its memory's weight of samples (70 of them at
         the default 100): a fit of the first few samples of a start, while the
         controller catches up with the reference, extrapolates its steep transient, and a
-        stall there cost up to 24 um with the trend against 0.7 um without it and 1.6-4.9 um
-        with the command held (a scripted stall of 10-60 samples at samples 2-60).
+        stall there costs far more with the trend than without it or with the command held.
         """
         s1, sx, sv, sf, sxx, sxv, svv, sxf, svf = self._sums
         if s1 < self._warm:
