@@ -515,19 +515,8 @@ class _InSensorVolts(_Feedback[_P]):
     """
     A controller on sensor volts, y = K_PSCM x: the RAC and the PI.
 
-    Parameters
-    ----------
-    params : RACParams or PIParams
-        Its gains.
-    sample_time_s : float
-        Sample period T [s], > 0.
-    sensor_gain_v_per_m : float
-        K_PSCM [V/m] converting positions to sensor volts.
-    output_min_v, output_max_v : float
-        Command limits [V].
-    built : ControllerParams, optional
-        The configuration :func:`build_controller` made it from.
-
+    The arguments are those :class:`RACController` lists, and ``built``, the configuration
+    :func:`build_controller` made it from (None when built directly).
     """
 
     def __init__(self, params: _P, sample_time_s: float, *,
@@ -566,6 +555,9 @@ class RACController(_InSensorVolts[RACParams]):
         K_PSCM [V/m] converting positions to sensor volts.
     output_min_v, output_max_v : float
         Command limits [V].
+    built : ControllerParams, optional
+        The whole configuration, from :func:`build_controller` (it compares run-time changes
+        with it).
 
     Notes
     -----
