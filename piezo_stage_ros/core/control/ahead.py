@@ -156,10 +156,9 @@ class Ahead(Sequence[float]):
 def _sensor_gain(controller: Any) -> float | None:
     """Return the sensor gain k [V/m] of a controller or of the one it wraps (None: none)."""
     for _ in range(3):
-        for name in ('_ksens', '_k'):
-            gain = getattr(controller, name, None)
-            if isinstance(gain, float) and gain > 0.0:
-                return gain
+        gain = getattr(controller, 'sensor_gain_v_per_m', None)
+        if isinstance(gain, float) and gain > 0.0:
+            return gain
         controller = getattr(controller, 'inner', None)
         if controller is None:
             break
@@ -246,8 +245,7 @@ class CommandPredictor:
         (0, 0) until the fit has seen half its memory's weight of samples (70 of them at
         the default 100): a fit of the first few samples of a start, while the
         controller catches up with the reference, extrapolates its steep transient, and a
-        stall there cost up to 24 um with the trend against 0.7 um without it and 1.6-4.9 um
-        with the command held (a scripted stall of 10-60 samples at samples 2-60).
+        stall there costs far more with the trend than without it or with the command held.
         """
         s1, sx, sv, sf, sxx, sxv, svv, sxf, svf = self._sums
         if s1 < self._warm:
@@ -281,8 +279,7 @@ class CommandPredictor:
                 self.reset()
             self._own = getattr(controller, 'predict', None)
             self._gains = getattr(controller, 'reference_gains', None)
-            self._limits = (getattr(controller, '_vmin', -math.inf),
-                            getattr(controller, '_vmax', math.inf))
+            self._limits = getattr(controller, 'output_limits_v', (-math.inf, math.inf))
 
     def observe(self, controller: Any, command_v: float, reference_m: float,
                 velocity_mps: float) -> None:

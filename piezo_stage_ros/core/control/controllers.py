@@ -120,7 +120,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import math
-from typing import Any, Mapping
+from typing import Any, Generic, Mapping, TypeVar
 
 import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError
@@ -145,10 +145,9 @@ SENSOR_GAIN_V_PER_M = 10.0 / 38e-6
 
 #: Gain of the RAC's running mean of its error (an exponential window of 100 samples), and the
 #: factor a sample by which a stall's error relaxes from the last one to that mean (a time
-#: constant of 10 samples): :meth:`RACController.missed`. Checked over stalls of 1-120 samples
-#: at six phases of the 100 Hz sine, worst case against the last error carried: 1-20 samples
-#: about the same (34.3 against 32.6 nm at 10; at single phases up to 61 against 34 nm at 20),
-#: 40-90 samples 131-184 nm against 175-366 nm.
+#: constant of 10 samples): :meth:`RACController.missed`. Against the last error carried over
+#: the whole stall, this is about the same over short stalls and smaller over long ones
+#: (``benchmark --suite servo``, case ``stall``).
 _MEAN_GAIN = 1.0 / 100.0
 _MISSED_RELAX = math.exp(-1.0 / 10.0)
 
@@ -251,8 +250,9 @@ class RACParams(Params):
                                           's_eps (0: no dead zone; equal to epsilon_v: the '
                                           "paper's law). 2 mV = 7.6 nm: above the 16-bit "
                                           'ADC step (0.3 mV) and 2.5 times the s of 3 nm rms '
-                                          'sensor noise, far below the 0.2 V boundary layer '
-                                          'that kept the old default from adapting at all.',
+                                          'sensor noise, far below the boundary layer (as '
+                                          'wide as that, the estimates never move while '
+                                          'tracking).',
                                           low=0.0)
     adaptation_regressor: str = param('desired', unit='-', description='Regressors of '
                                       "(38)-(39): measured = the paper's y and u_fd = dy_d/dt "
@@ -388,7 +388,154 @@ class ControllerParams(Params):
 # Controllers
 
 
-class RACController:
+class _Output:
+    """The last command and the limits of a controller, as its users read them."""
+
+    _u: float
+    _vmin: float
+    _vmax: float
+
+    @property
+    def output_v(self) -> float:
+        """Return the last command [V]: what a refused sample returns again."""
+        return self._u
+
+    @property
+    def output_limits_v(self) -> tuple[float, float]:
+        """Return the command limits (lowest, highest) [V]."""
+        return self._vmin, self._vmax
+
+
+_P = TypeVar('_P', bound=Params)
+
+
+class _Feedback(_Output, Generic[_P]):
+    """
+    What the three controllers share: sample time, command limits, counters, the last command.
+
+    Parameters
+    ----------
+    params : Params
+        The controller's own parameters (:attr:`params`).
+    sample_time_s : float
+        Sample period T [s], > 0.
+    output_min_v, output_max_v : float
+        Command limits [V].
+    built : ControllerParams, optional
+        The configuration :func:`build_controller` made it from (None when built directly):
+        what :meth:`update_params` compares a run-time change with.
+    sensor_gain_v_per_m : float, optional
+        K_PSCM [V/m] converting positions to sensor volts (None: a controller without it).
+
+    Notes
+    -----
+    Each controller's ``step`` stays written out in full, with its own refusal of a bad
+    ``dt_s`` and of non-finite inputs: it runs once per sample, and a shared helper would add a
+    call to every one.
+
+    """
+
+    #: The ``type`` of :class:`ControllerParams` whose gains :meth:`update_params` takes in
+    #: place ('': none; every change rebuilds the controller).
+    _kind = ''
+
+    def __init__(self, params: _P, sample_time_s: float, output_min_v: float,
+                 output_max_v: float, built: ControllerParams | None,
+                 sensor_gain_v_per_m: float | None = None) -> None:
+        _check_sample_time(sample_time_s)
+        self.params = params
+        self._t = float(sample_time_s)
+        self._k = 0.0 if sensor_gain_v_per_m is None else float(sensor_gain_v_per_m)
+        self._vmin = float(output_min_v)
+        self._vmax = float(output_max_v)
+        self._built = built
+        self._u = 0.0
+        self.nonfinite_inputs = 0
+        self.bad_dt = 0
+
+    @property
+    def sample_time_s(self) -> float:
+        """Return the sample period T [s]."""
+        return self._t
+
+    @property
+    def sensor_gain_v_per_m(self) -> float | None:
+        """Return K_PSCM [V/m], the conversion of positions to sensor volts (None: unused)."""
+        return self._k if self._k > 0.0 else None
+
+    @property
+    def built(self) -> ControllerParams | None:
+        """Return the configuration it was built from (None when built directly)."""
+        return self._built
+
+    def diagnostic_values(self) -> tuple[float, ...]:
+        raise NotImplementedError
+
+    #: Names of :meth:`diagnostic_values`, in order (the closed loop's cheap path).
+    diagnostic_names: tuple[str, ...] = ()
+
+    def diagnostics(self) -> Mapping[str, float]:
+        """Return :attr:`diagnostic_names` with their values (see each controller's list)."""
+        return dict(zip(self.diagnostic_names, self.diagnostic_values()))
+
+    def _held_output(self, output_v: float | None) -> float:
+        """Return the voltage held before a start, clipped to the limits (0 V when unknown)."""
+        out = 0.0 if output_v is None or not math.isfinite(output_v) else float(output_v)
+        return min(max(out, self._vmin), self._vmax)
+
+    def update_params(self, params: ControllerParams) -> bool:
+        """
+        Take new gains between two samples, keeping the state.
+
+        Parameters
+        ----------
+        params : ControllerParams
+            The whole new controller configuration.
+
+        Returns
+        -------
+        bool
+            True when applied in place; False when the change is structural (another type,
+            sensor gain or output limits, or a controller without state to keep) and the
+            caller must build a new controller.
+
+        """
+        if not self._kind or not _same_structure(self._built, params, self._kind):
+            return False
+        self._take(params)
+        self._built = params
+        return True
+
+    def _take(self, params: ControllerParams) -> None:
+        """Apply the gains of ``params`` (same structure) to the running controller."""
+        raise NotImplementedError
+
+
+class _InSensorVolts(_Feedback[_P]):
+    """
+    A controller on sensor volts, y = K_PSCM x: the RAC and the PI.
+
+    The arguments are those :class:`RACController` lists, and ``built``, the configuration
+    :func:`build_controller` made it from (None when built directly).
+    """
+
+    def __init__(self, params: _P, sample_time_s: float, *,
+                 sensor_gain_v_per_m: float = SENSOR_GAIN_V_PER_M, output_min_v: float = -2.0,
+                 output_max_v: float = 10.0, built: ControllerParams | None = None) -> None:
+        super().__init__(params, sample_time_s, output_min_v, output_max_v, built,
+                         sensor_gain_v_per_m)
+        self._set_gains(params)
+        self.reset(0.0, 0.0)
+
+    def _set_gains(self, p: _P) -> None:
+        raise NotImplementedError
+
+    def reset(self, position_m: float, reference_m: float,
+              output_v: float | None = None) -> None:
+        raise NotImplementedError
+
+
+class RACController(_InSensorVolts[RACParams]):
     """
     The robust adaptive controller of eqs. (33)-(40), one step per sample.
 
@@ -408,44 +555,24 @@ class RACController:
         K_PSCM [V/m] converting positions to sensor volts.
     output_min_v, output_max_v : float
         Command limits [V].
+    built : ControllerParams, optional
+        The whole configuration, from :func:`build_controller` (it compares run-time changes
+        with it).
 
     Notes
     -----
     See the module docstring for the discretization, anti-windup and edge cases. The step
     works on plain floats (no numpy): it runs 10 000 times per simulated second.
+    :class:`piezo_stage_ros.core.loop.batch.ControllerBatch` repeats its arithmetic over many
+    stages at once, on purpose (see that module); a change here goes there too, and the
+    bit-for-bit tests of ``test/test_batch.py`` say where the two part.
 
     """
 
-    #: The configuration :func:`build_controller` made it from (None when built directly).
-    _built: ControllerParams | None = None
+    _kind = 'rac'
 
-    def __init__(self, params: RACParams, sample_time_s: float, *,
-                 sensor_gain_v_per_m: float = SENSOR_GAIN_V_PER_M, output_min_v: float = -2.0,
-                 output_max_v: float = 10.0) -> None:
-        _check_sample_time(sample_time_s)
-        self.params = params
-        self._t = float(sample_time_s)
-        self._k = float(sensor_gain_v_per_m)
-        self._vmin = float(output_min_v)
-        self._vmax = float(output_max_v)
-        p = params
-        self._kd = p.k_d
-        self._lam = p.lambda_per_s
-        self._eps = p.epsilon_v
-        self._inv_eps = 1.0 / p.epsilon_v
-        self._kstar = p.k_star_v
-        self._gamma = p.gamma
-        self._eta = p.eta
-        self._held = False
-        self._set_adaptation(p)
-        self.nonfinite_inputs = 0
-        self.bad_dt = 0
-        self.reset(0.0, 0.0)
-
-    @property
-    def sample_time_s(self) -> float:
-        """Return the sample period T [s]."""
-        return self._t
+    #: Whether the estimates are held (:meth:`hold_estimates`).
+    _held = False
 
     def reset(self, position_m: float, reference_m: float,
               output_v: float | None = None) -> None:
@@ -469,8 +596,7 @@ class RACController:
         self._i = 0.0
         self._s = 0.0
         self._saturated = 0.0
-        out = 0.0 if output_v is None or not math.isfinite(output_v) else float(output_v)
-        self._u = min(max(out, self._vmin), self._vmax)
+        self._u = self._held_output(output_v)
         e = (position_m - reference_m) * self._k
         self._e = e if math.isfinite(e) else 0.0
         self._e_mean = self._e
@@ -497,6 +623,8 @@ class RACController:
             Amplifier input voltage v_k [V], finite, inside the output limits.
 
         """
+        # the refusals are written out in each controller's step, as the whole step is: it
+        # runs once per sample, and a shared helper would add a call to every one
         if dt_s is None:
             dt = self._t
         else:
@@ -583,9 +711,9 @@ class RACController:
 
         For a learning feed-forward: both would learn the same periodic error, and the estimates
         then drift along the direction where their effect and the learned table's cancel, to
-        their bounds (measured on a 50 Hz triangle: phi_hat to 9e-4, and the learning, whose
-        filter assumes the loop gain at the estimates, diverged). Held, the updates are exact
-        zeros: the estimates keep their values bit for bit.
+        their bounds, where the learning, whose filter assumes the loop gain at the estimates,
+        can diverge. Held, the updates are exact zeros: the estimates keep their values bit for
+        bit.
         """
         self._held = hold
         self._gamma, self._eta = (0.0, 0.0) if hold else (self.params.gamma, self.params.eta)
@@ -598,9 +726,9 @@ class RACController:
         where it was; without this it would lack their area for the rest of the run, an
         offset the loop then works off slowly), with the error it most likely had: the last
         one, relaxing to the recent mean (the last 100 samples, exponentially weighted) with
-        a time constant of 10 samples. The last error alone, carried over a long stall, put
-        the noise and the ripple of one sample into the integral 60-90 times: a kick of
-        0.2-0.37 um when the loop came back (``benchmark --suite servo``, case ``stall``).
+        a time constant of 10 samples. The last error alone, carried over a long stall, puts
+        the noise and the ripple of one sample into the integral once per missed sample: a
+        kick when the loop comes back (``benchmark --suite servo``, case ``stall``).
         """
         if samples > 0 and not self._saturated:
             mean = self._e_mean
@@ -624,42 +752,24 @@ class RACController:
         return rac_linear_gains(p.k_d + p.k_star_v / p.epsilon_v, p.lambda_per_s, self._theta,
                                 self._phi)
 
-    def update_params(self, params: ControllerParams) -> bool:
+    def _take(self, params: ControllerParams) -> None:
         """
-        Take new RAC gains between two samples, keeping the state (integral, estimates).
+        Take new RAC gains, keeping the integral and the estimates.
 
-        Parameters
-        ----------
-        params : ControllerParams
-            The whole new controller configuration.
-
-        Returns
-        -------
-        bool
-            True when applied in place; False when the change is structural (another type,
-            sensor gain or output limits) and the caller must build a new controller.
-
-        Notes
-        -----
         The estimates are clipped into the new projection bounds, so (P1)-(P2) keep holding.
-
         """
-        if not _same_structure(self._built, params, 'rac'):
-            return False
         p = params.rac
         self.params = p
+        self._set_gains(p)
+        self._theta = min(max(self._theta, p.theta_min), p.theta_max)
+        self._phi = min(max(self._phi, p.phi_min), p.phi_max)
+
+    def _set_gains(self, p: RACParams) -> None:
+        """Cache the gains of the law, the adaptation's dead zone and its normalisation."""
         self._kd, self._lam, self._eps = p.k_d, p.lambda_per_s, p.epsilon_v
         self._inv_eps = 1.0 / p.epsilon_v
         self._kstar = p.k_star_v
         self._gamma, self._eta = (0.0, 0.0) if self._held else (p.gamma, p.eta)
-        self._set_adaptation(p)
-        self._theta = min(max(self._theta, p.theta_min), p.theta_max)
-        self._phi = min(max(self._phi, p.phi_min), p.phi_max)
-        self._built = params
-        return True
-
-    def _set_adaptation(self, p: RACParams) -> None:
-        """Cache the adaptation's dead zone (and its inverse) and normalisation."""
         eps_a = p.adaptation_dead_zone_v
         inv = 1.0 / eps_a if eps_a > 0.0 else math.inf
         # a dead zone so narrow that its inverse overflows (subnormal) is no dead zone: s * inf
@@ -669,12 +779,9 @@ class RACController:
         self._kappa = p.normalisation
         self._desired = p.adaptation_regressor == 'desired'
 
-    def diagnostics(self) -> Mapping[str, float]:
-        """Return theta_hat, phi_hat, s [V], the integral [V s], error [V], flags, counters."""
-        return dict(zip(self.diagnostic_names, self.diagnostic_values()))
 
 
-class PIController:
+class PIController(_InSensorVolts[PIParams]):
     """
     PI baseline v = k_p e + k_i int(e), e = y_d - y in sensor volts, with output limits.
 
@@ -697,46 +804,16 @@ class PIController:
 
     """
 
-    #: The configuration :func:`build_controller` made it from (None when built directly).
-    _built: ControllerParams | None = None
+    _kind = 'pi'
 
-    def __init__(self, params: PIParams, sample_time_s: float, *,
-                 sensor_gain_v_per_m: float = SENSOR_GAIN_V_PER_M, output_min_v: float = -2.0,
-                 output_max_v: float = 10.0) -> None:
-        _check_sample_time(sample_time_s)
-        self.params = params
-        self._t = float(sample_time_s)
-        self._k = float(sensor_gain_v_per_m)
-        self._vmin = float(output_min_v)
-        self._vmax = float(output_max_v)
-        self._kp = params.k_p
-        self._ki = params.k_i
-        self._conditional = params.anti_windup == 'conditional'
-        self.nonfinite_inputs = 0
-        self.bad_dt = 0
-        self.reset(0.0, 0.0)
-
-    @property
-    def sample_time_s(self) -> float:
-        """Return the sample period T [s]."""
-        return self._t
 
     def reset(self, position_m: float, reference_m: float,
               output_v: float | None = None) -> None:
         """
-        Forget the history; optionally start bumpless from a held voltage.
+        Forget the history; with ``output_v`` [V] given, start bumpless from it.
 
-        Parameters
-        ----------
-        position_m : float
-            Measured position at the start [m].
-        reference_m : float
-            Reference at the start [m].
-        output_v : float, optional
-            Voltage held before the start [V]. When given, the integral is preset so that the
-            first output for this position and reference equals it (bumpless transfer);
-            otherwise the integral starts at zero.
-
+        The integral is then preset so that the first output for this position and reference
+        [m] equals the held voltage (bumpless transfer); otherwise it starts at zero.
         """
         e = (reference_m - position_m) * self._k
         e = e if math.isfinite(e) else 0.0
@@ -754,26 +831,13 @@ class PIController:
     def step(self, position_m: float, reference_m: float, reference_velocity_mps: float,
              dt_s: float | None = None) -> float:
         """
-        Compute the command for one sample.
+        Compute the command [V] for one sample, arguments as :meth:`RACController.step`.
 
-        Parameters
-        ----------
-        position_m : float
-            Measured position y_k [m].
-        reference_m : float
-            Desired position x_d(t_k) [m].
-        reference_velocity_mps : float
-            Desired velocity [m/s]; a PI does not use it, but a non-finite value is still
-            refused, as for every controller.
-        dt_s : float, optional
-            Time since the last step [s]; default the sample time.
-
-        Returns
-        -------
-        float
-            Amplifier input voltage [V], finite, inside the output limits.
-
+        A PI does not use the reference velocity, but a non-finite value is still refused, as
+        for every controller.
         """
+        # the refusals are written out in each controller's step, as the whole step is: it
+        # runs once per sample, and a shared helper would add a call to every one
         if dt_s is None:
             dt = self._t
         else:
@@ -826,45 +890,27 @@ class PIController:
         """Return (k_p, k_i) on the sensor-volt error."""
         return self.params.k_p, self.params.k_i
 
-    def update_params(self, params: ControllerParams) -> bool:
+    def _take(self, params: ControllerParams) -> None:
         """
-        Take new PI gains between two samples without a bump in the command.
+        Take new PI gains without a bump in the command.
 
-        Parameters
-        ----------
-        params : ControllerParams
-            The whole new controller configuration.
-
-        Returns
-        -------
-        bool
-            True when applied in place; False when the change is structural (another type,
-            sensor gain or output limits) and the caller must build a new controller.
-
-        Notes
-        -----
         The integral is rescaled so that k_i I, the part of the command it holds, is the same
         before and after (bumpless gain change); the proportional part changes with k_p at
         once, by k_p e, which is small while tracking.
-
         """
-        if not _same_structure(self._built, params, 'pi'):
-            return False
         p = params.pi
         if p.k_i > 0.0:
             self._i = self._i * self._ki / p.k_i
         self.params = p
+        self._set_gains(p)
+
+    def _set_gains(self, p: PIParams) -> None:
+        """Cache the gains and the anti-windup choice."""
         self._kp, self._ki = p.k_p, p.k_i
         self._conditional = p.anti_windup == 'conditional'
-        self._built = params
-        return True
-
-    def diagnostics(self) -> Mapping[str, float]:
-        """Return the error [V], the integral [V s], the saturation flag and the counters."""
-        return dict(zip(self.diagnostic_names, self.diagnostic_values()))
 
 
-class OpenLoopController:
+class OpenLoopController(_Feedback[OpenLoopParams]):
     """
     Open loop: v = gain * x_d + offset, clipped to the output limits.
 
@@ -879,64 +925,30 @@ class OpenLoopController:
 
     """
 
-    #: The configuration :func:`build_controller` made it from (None when built directly).
-    _built: ControllerParams | None = None
+    # _kind stays '': an open-loop gain change rebuilds the controller (it has no state)
 
     def __init__(self, params: OpenLoopParams, sample_time_s: float, *,
-                 output_min_v: float = -2.0, output_max_v: float = 10.0) -> None:
-        _check_sample_time(sample_time_s)
-        self.params = params
-        self._t = float(sample_time_s)
-        self._vmin = float(output_min_v)
-        self._vmax = float(output_max_v)
-        self.nonfinite_inputs = 0
-        self.bad_dt = 0
-        self._u = 0.0
-
-    @property
-    def sample_time_s(self) -> float:
-        """Return the sample period T [s]."""
-        return self._t
+                 output_min_v: float = -2.0, output_max_v: float = 10.0,
+                 built: ControllerParams | None = None) -> None:
+        super().__init__(params, sample_time_s, output_min_v, output_max_v, built)
 
     def reset(self, position_m: float, reference_m: float,
               output_v: float | None = None) -> None:
         """
         Forget the last output (open loop has no other state).
 
-        Parameters
-        ----------
-        position_m : float
-            Measured position at the start [m] (unused).
-        reference_m : float
-            Reference at the start [m] (unused).
-        output_v : float, optional
-            Voltage held before the start [V], returned on a non-finite first sample.
-
+        The positions [m] are unused; ``output_v`` [V], the voltage held before the start, is
+        returned on a non-finite first sample.
         """
-        out = 0.0 if output_v is None or not math.isfinite(output_v) else float(output_v)
-        self._u = min(max(out, self._vmin), self._vmax)
+        self._u = self._held_output(output_v)
 
     def step(self, position_m: float, reference_m: float, reference_velocity_mps: float,
              dt_s: float | None = None) -> float:
         """
-        Compute the command for one sample.
+        Return gain * x_d + offset [V], clipped; arguments as :meth:`RACController.step`.
 
-        Parameters
-        ----------
-        position_m : float
-            Measured position [m] (unused).
-        reference_m : float
-            Desired position [m].
-        reference_velocity_mps : float
-            Desired velocity [m/s] (unused).
-        dt_s : float, optional
-            Time since the last step [s]; dt_s <= 0 holds the last output.
-
-        Returns
-        -------
-        float
-            Amplifier input voltage [V].
-
+        The measurement and the reference velocity are unused; dt_s <= 0 holds the last
+        output.
         """
         if dt_s is not None and (not dt_s > 0.0 or dt_s - dt_s != 0.0):
             self.bad_dt += 1
@@ -966,13 +978,6 @@ class OpenLoopController:
         """Return (0, 0): no feedback."""
         return 0.0, 0.0
 
-    def update_params(self, params: ControllerParams) -> bool:
-        """Return False: an open-loop gain change rebuilds the controller (it has no state)."""
-        return False
-
-    def diagnostics(self) -> Mapping[str, float]:
-        """Return the counters."""
-        return dict(zip(self.diagnostic_names, self.diagnostic_values()))
 
 
 # --------------------------------------------------------------------------------------------
@@ -1091,7 +1096,7 @@ class NotchFilter:
         return y
 
 
-class NotchedController:
+class NotchedController(_Output):
     """
     A controller followed by a notch filter on its command, clipped again to the limits.
 
@@ -1112,7 +1117,7 @@ class NotchedController:
         self.notch = notch
         self._vmin = output_min_v
         self._vmax = output_max_v
-        self._u = inner._u
+        self._u = inner.output_v
         self._fresh = True
         self._gap = 0
         self._last_in = 0.0
@@ -1121,6 +1126,11 @@ class NotchedController:
     def sample_time_s(self) -> float:
         """Return the sample period [s]."""
         return self.inner.sample_time_s
+
+    @property
+    def sensor_gain_v_per_m(self) -> float | None:
+        """Return the inner controller's K_PSCM [V/m] (None: it has none)."""
+        return self.inner.sensor_gain_v_per_m
 
     def reset(self, position_m: float, reference_m: float,
               output_v: float | None = None) -> None:
@@ -1136,7 +1146,7 @@ class NotchedController:
 
         """
         self.inner.reset(position_m, reference_m, output_v)
-        self._u = self.inner._u
+        self._u = self.inner.output_v
         # Starting the filter at rest at 0 V (or at a held voltage that differs from the first
         # command) would put a step through it at t = 0, whose ringing the RAC reads as a
         # tracking error and adapts to; at rest at its first input the filter adds nothing.
@@ -1200,19 +1210,10 @@ class NotchedController:
         """
         Pass new gains to the inner controller when the notch stays as it is.
 
-        Parameters
-        ----------
-        params : ControllerParams
-            The whole new controller configuration.
-
-        Returns
-        -------
-        bool
-            True when applied in place (the filter keeps its state); False when the notch or
-            the structure changes and the caller must build a new controller.
-
+        As :meth:`RACController.update_params`, for the whole new configuration ``params``;
+        applied in place, the filter keeps its state; a changed notch returns False too.
         """
-        built = self.inner._built
+        built = self.inner.built
         if built is None or params.notch != built.notch:
             return False
         return self.inner.update_params(params)
@@ -1273,14 +1274,14 @@ def build_controller(params: ControllerParams, sample_time_s: float,
     inner: RACController | PIController | OpenLoopController
     if params.type == 'rac':
         inner = RACController(params.rac, sample_time_s,
-                              sensor_gain_v_per_m=params.sensor_gain_v_per_m, **limits)
+                              sensor_gain_v_per_m=params.sensor_gain_v_per_m, built=params,
+                              **limits)
     elif params.type == 'pi':
         inner = PIController(params.pi, sample_time_s,
-                             sensor_gain_v_per_m=params.sensor_gain_v_per_m, **limits)
+                             sensor_gain_v_per_m=params.sensor_gain_v_per_m, built=params,
+                             **limits)
     else:
-        inner = OpenLoopController(params.open_loop, sample_time_s, **limits)
-    # what update_params compares a run-time change with
-    inner._built = params
+        inner = OpenLoopController(params.open_loop, sample_time_s, built=params, **limits)
     coeffs = notch_design(params.notch, sample_time_s, plant)
     fb: RACController | PIController | OpenLoopController | NotchedController = inner
     if coeffs is not None:

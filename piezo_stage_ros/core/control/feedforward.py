@@ -1683,7 +1683,7 @@ class FeedForwardController:
               output_v: float | None = None) -> None:
         """Reset the inner controller and restart the feed-forward at sample 0."""
         self.inner.reset(position_m, reference_m, output_v)
-        self._u = self.inner._u
+        self._u = self.inner.output_v
         if self._learning_on and self._period_n:
             self._accumulate(self._k % self._period_n)  # the errors so far stay in the update
             self._pending = 0
@@ -2397,6 +2397,16 @@ class FeedForwardController:
     def learning_kernel(self) -> FloatArray:
         """Return the learning operator's impulse response over two periods (a copy)."""
         return self._kernel2.copy()
+
+    @property
+    def output_limits_v(self) -> tuple[float, float]:
+        """Return the command limits (lowest, highest) [V]."""
+        return self._vmin, self._vmax
+
+    @property
+    def sensor_gain_v_per_m(self) -> float:
+        """Return K_PSCM [V/m], the conversion of positions to sensor volts."""
+        return self._ksens
 
     def share_gains(self) -> tuple[float, float, float]:
         """Return (theta_0, phi_0, k): the share subtracted is (theta_0 x + phi_0 x') k."""

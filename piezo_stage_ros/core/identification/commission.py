@@ -920,9 +920,7 @@ def commission(true_stage: StageParams, configured: StageParams,
         One line: why the stage cannot be commissioned from this run.
 
     """
-    params = params or CommissionParams()
-    opts = stability or StabilityParams()
-    say = progress or (lambda _line: None)
+    params, opts, say = _or_defaults(params, stability, progress)
     say(f'hold {params.hold_m * 1e6:g} um for {params.settle_s:g} s, then excite for '
         f'{params.duration_s:g} s (PI k_p {params.hold_k_p:g}, k_i {params.hold_k_i:g})')
     whole, excited, hold_check = excitation_run(true_stage, configured, configured_controller,
@@ -990,13 +988,19 @@ def commission_record(record: RunRecord, configured: StageParams,
         One line: why the stage cannot be commissioned from this run.
 
     """
-    params = params or CommissionParams()
-    opts = stability or StabilityParams()
-    say = progress or (lambda _line: None)
+    params, opts, say = _or_defaults(params, stability, progress)
     excited = excitation_part(record)
     params = params.replace(hold_m=float(record.reference_m[0]))
     return _finish(record, excited, None, None, configured, configured_controller, derive,
                    params, opts, say)
+
+
+def _or_defaults(params: CommissionParams | None, stability: StabilityParams | None,
+                 progress: ProgressFn | None
+                 ) -> tuple[CommissionParams, StabilityParams, ProgressFn]:
+    """Return the options of a commissioning run, the defaults where one is not given."""
+    return (params or CommissionParams(), stability or StabilityParams(),
+            progress or (lambda _line: None))
 
 
 def _finish(whole: RunRecord, excited: RunRecord, hold_check: StabilityReport | None,

@@ -62,7 +62,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 import math
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from piezo_stage_ros.core.contracts.errors import IdentificationError, PiezoStageError
@@ -926,12 +926,7 @@ def identify_checked(records: Sequence[RunRecord], base: StageParams | None = No
         if freq:
             structure = _correct_structure_bias(result, freq[0], None, base, params)
     _fill_bounds(result)
-    for name, delta in structure.items():
-        if name in result.bounds:
-            lo, hi = result.bounds[name]
-            mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
-            half = math.hypot(half, delta * abs(mid))
-            result.bounds[name] = (mid - half, mid + half)
+    _widen_bounds(result.bounds, structure, relative=True)
     _widen_step_for_omega(result, base, params)
     # the hysteresis fit holds the linear shape fixed, open loop or closed
     _widen_for_shape(result, base, params)
@@ -1074,12 +1069,22 @@ def _widen_step_for_omega(result: IdentificationResult, base: StageParams,
                                 fix_omega=True).factors
         moved['zeta'] = max(moved['zeta'], abs(alt.zeta - st.factors.zeta))
         moved['tau_s'] = max(moved['tau_s'], abs(alt.tau_s - st.factors.tau_s))
+    _widen_bounds(result.bounds, moved)
+
+
+def _widen_bounds(bounds: dict[str, tuple[float, float]], moved: Mapping[str, float], *,
+                  relative: bool = False) -> None:
+    """
+    Add each estimate's change in ``moved`` in quadrature to the half-width of its bounds.
+
+    With ``relative`` the changes are fractions of the estimate (the bounds' middle).
+    """
     for name, delta in moved.items():
-        if name in result.bounds:
-            lo, hi = result.bounds[name]
+        if name in bounds:
+            lo, hi = bounds[name]
             mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
-            half = math.hypot(half, delta)
-            result.bounds[name] = (mid - half, mid + half)
+            half = math.hypot(half, delta * abs(mid) if relative else delta)
+            bounds[name] = (mid - half, mid + half)
 
 
 def _widen_for_shape(result: IdentificationResult, base: StageParams,
@@ -1106,12 +1111,7 @@ def _widen_for_shape(result: IdentificationResult, base: StageParams,
         for name, value in alt.estimates.items():
             if name in hy.estimates:
                 moved[name] = max(moved.get(name, 0.0), abs(value - hy.estimates[name]))
-    for name, delta in moved.items():
-        if name in result.bounds:
-            lo, hi = result.bounds[name]
-            mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
-            half = math.hypot(half, delta)
-            result.bounds[name] = (mid - half, mid + half)
+    _widen_bounds(result.bounds, moved)
 
 
 #: Refits of the hysteresis on replays of the identified model with fresh noise.

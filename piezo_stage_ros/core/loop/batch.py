@@ -20,18 +20,21 @@ The closed loop of N stages at once: stage and controller vectorized over the st
 :class:`~piezo_stage_ros.core.model.stage.Stage` and the controller of
 :func:`~piezo_stage_ros.core.control.controllers.build_controller`: the same IEEE operations in
 the same order, elementwise, so the samples agree bit for bit (tested, with the 16-bit converters
-and sensor noise on). How that is kept:
+and sensor noise on). The two loops are twins on purpose: the scalar one is the reference, read
+sample by sample and run by the nodes; this one runs a family of stages at a fraction of the
+cost a member, and repeating the scalar arithmetic (rather than calling it) is what makes it
+fast; the bit-for-bit tests keep the twins one. How that is kept:
 
 - every sum is written out left to right as the scalar code adds it (no matmul, einsum or
   reduction, whose summation order is the library's), every constant is the float the scalar
   code uses (:func:`piezo_stage_ros.core.model.stage.fused_constants`), products keep the scalar
   code's association ((dt eta) u_fd) s_a;
 - the exponential of the hysteresis jump is libm's ``exp``, as ``math.exp`` in the scalar
-  kernel: numpy's own float64 ``exp`` is a SIMD implementation (AVX-512 here) that differs from
-  libm by one ulp for about 5-10 % of arguments. Without the converters that ulp is in the
-  samples at once; with the 16-bit ADC it hides in the stage's state until the position lies
-  within that ulp of a code boundary, and then becomes a whole LSB (1.16 nm) after which the
-  runs part (rare: 20 stages x 2 s with numpy's exp gave no differing sample, but not never).
+  kernel: numpy's own float64 ``exp`` may be a SIMD implementation that differs from libm by
+  one ulp for some arguments. Without the converters that ulp is in the samples at once; with
+  the 16-bit ADC it hides in the stage's state until the position lies within that ulp of a
+  code boundary, and then becomes a whole LSB after which the runs part (rarely, but not
+  never).
   :func:`libm_exp` uses ``scipy.special.inv_boxcox(x, 0)``, a compiled loop that calls libm's
   ``exp``, after checking on 4096 arguments that it returns what ``math.exp`` returns; where it
   does not, it falls back to ``math.exp`` per element (exact, slower);
@@ -415,7 +418,7 @@ class ControllerBatch:
         self._inv_eps = 1.0 / rac.epsilon_v
         self._kstar = rac.k_star_v
         self._gamma, self._eta = rac.gamma, rac.eta
-        # the adaptive law of issue 10 (docs/explanation/controllers.md): its own dead zone
+        # the generalised adaptive law (docs/explanation/controllers.md): its own dead zone
         # eps_a, the normalisation kappa, measured or desired regressors
         eps_a = rac.adaptation_dead_zone_v
         inv = 1.0 / eps_a if eps_a > 0.0 else math.inf

@@ -18,6 +18,8 @@ The paper's experiments (sections III-D and V) run offline, with the paper's num
 Each ``run_*`` function takes the configured stage and controller parameters, runs the closed
 (or open) loop the experiment needs and returns an :class:`ExperimentResult`: rows of "project
 vs paper" that :func:`format_result` prints as a table and ``simulate --json`` prints as JSON.
+Their optional ``stability`` is a check run on each configuration, whose verdict goes in the
+rows, and their optional ``progress`` receives one line per run.
 
 Which plant: the paper designs its controller on the reduced model (25) preceded by the
 backlash-like hysteresis, and its PI gains land near its PIC row of Table III only there; the
@@ -402,10 +404,8 @@ def run_square(stage_params: StageParams, controller_params: ControllerParams, *
     transitions_s : sequence of float
         Reference shapes to run [s]: 0 is the paper's ideal square wave, T_r > 0 the same wave
         with every jump replaced by a quintic S-curve of duration T_r (``square.transition_s``).
-    stability : callable, optional
-        Stability check (verdict in the rows).
-    progress : callable, optional
-        Receives one line per run.
+    stability, progress : callable, optional
+        The stability check and the progress line (module docstring).
 
     Returns
     -------
@@ -491,10 +491,8 @@ def run_staircase(stage_params: StageParams, controller_params: ControllerParams
         Number of steps.
     dwell_s : float
         Time on each level [s].
-    stability : callable, optional
-        Stability check (verdict in the rows).
-    progress : callable, optional
-        Receives one line per run.
+    stability, progress : callable, optional
+        The stability check and the progress line (module docstring).
 
     Returns
     -------
@@ -564,10 +562,8 @@ def run_multisine(stage_params: StageParams, controller_params: ControllerParams
         The open-loop command (``type='open_loop'``: the static inverse v = x_d / (g c)).
     plants : sequence of str
         Plant models to run on.
-    stability : callable, optional
-        Stability check (verdict in the rows).
-    progress : callable, optional
-        Receives one line per run.
+    stability, progress : callable, optional
+        The stability check and the progress line (module docstring).
 
     Returns
     -------

@@ -1192,17 +1192,13 @@ def line_metrics(record: RunRecord, window: slice, options: LineOptions | None =
     """
     Return e_m and e_rms over the linear part of each line, trace and retrace, and per pixel.
 
-    The arguments are those of :func:`line_profile` (the same samples are measured); the
-    figures are of the measured error, and of the true one when the run has it.
+    The arguments, and the error raised when the run has no linear part, are those of
+    :func:`line_profile` (the same samples are measured); the figures are of the measured
+    error, and of the true one when the run has it.
 
     Returns
     -------
     LineMetrics
-
-    Raises
-    ------
-    PiezoStageError
-        If the run has no linear part.
 
     """
     found, opts, ref, trace, retrace, low, high = _line_parts(record, window, options, spec)

@@ -458,20 +458,11 @@ def worst(result: RobustnessResult, case: str) -> dict[str, Any]:
 
 def summary_table(result: RobustnessResult) -> list[str]:
     """
-    Return a Markdown table: per case the nominal stage and the worst of the family.
+    Return the lines of a Markdown table of the study: the nominal stage and the family's worst.
 
-    Parameters
-    ----------
-    result : RobustnessResult
-        The study.
-
-    Returns
-    -------
-    list of str
-        One row per case: e_rms of the nominal stage, median and worst over every member
-        (with its name), how many members exceed 1.5 times the nominal e_rms, the worst e_m,
-        the command range, the largest final estimate error against the truth [%].
-
+    One row per case: e_rms of the nominal stage, median and worst over every member (with its
+    name), how many members exceed 1.5 times the nominal e_rms, the worst e_m, the command
+    range, the largest final estimate error against the truth [%].
     """
     lines = ['| case | nominal e_rms [nm] | median [nm] | worst e_rms [nm] (stage) | '
              '> 1.5 x nominal | worst e_m [nm] | command [V] | theta_hat, phi_hat end vs true '
@@ -504,18 +495,9 @@ def summary_table(result: RobustnessResult) -> list[str]:
 
 def stage_table(result: RobustnessResult) -> list[str]:
     """
-    Return a Markdown table of e_rms [nm]: one row per listed stage, one column per case.
+    Return the lines of a Markdown table of the study's e_rms [nm], a row per listed stage.
 
-    Parameters
-    ----------
-    result : RobustnessResult
-        The study.
-
-    Returns
-    -------
-    list of str
-        Header and rows; the last row is the worst over every member (listed or not).
-
+    One column per case; the last row is the worst over every member (listed or not).
     """
     by = {(r['stage'], r['case']): r['e_rms_m'] for r in result.rows}
     lines = ['| e_rms [nm] | ' + ' | '.join(result.cases) + ' |',
