@@ -548,7 +548,7 @@ def test_the_recorded_feedforward_is_the_one_added_to_the_command(every: int) ->
     for k in range(600):
         u = ctrl.step(y, float(x[k]), float(v[k]))
         if k % every == 0 or k % 100 == 99:
-            feedback = ctrl.inner._u  # the RAC's own command (a private: what the test checks)
+            feedback = ctrl.inner.output_v  # the RAC's own command
             assert abs(ctrl.feedforward_v() - (u - feedback)) <= 4 * EPS * abs(u)
             checked += k % 100 == 99 and k >= 199  # a period's last sample, after an update
         y = stage.step(u)
