@@ -35,6 +35,8 @@ A two-degree-of-freedom structure around any controller of
   model inverse, (theta_hat - theta_0) y + (phi_hat - phi_0) dy_d/dt making up a gain or lag the
   model lacks. The feedback part is untouched: (theta_hat - phi_hat lambda) e - k_d s - k*
   sat(s/eps), the terms the stability check linearizes. A PI has no share (s = 0).
+  ``inverse`` alone holds the estimates over the start (:data:`START_HOLD_DECAY`): the error
+  there is the stage settling onto the model inverse's orbit, which no estimate explains.
 - **H^-1** (``inverse``): the inverse of the design hysteresis w = H(v), applied to the whole
   command, so that the plant seen from v_lin is c G with no hysteresis (c the model's slope,
   which keeps the RAC's estimates at their model values). Exact for backlash-like hysteresis
