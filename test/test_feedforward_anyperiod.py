@@ -30,6 +30,8 @@ from piezo_stage_ros.core.control.feedforward import (
     kept_harmonics,
     phase_learning_convergence,
     PhaseLearning,
+    START_HOLD_DECAY,
+    start_hold_samples,
     whole_period,
 )
 from piezo_stage_ros.core.control.stability import learning_check
@@ -583,3 +585,16 @@ def test_inverse_alone_leaves_no_error_at_the_fundamental(freq_hz, target_m) -> 
     # a quarter of the target: the rest is left to the harmonics and the converters
     assert _fundamental_rms(rec, freq_hz, 0.1) <= 0.25 * target_m
     assert _true_rms_tail(rec, 0.1) <= target_m
+
+
+def test_the_start_hold_lasts_until_the_slowest_mode_has_decayed() -> None:
+    # poles 0.5 and 0.9: the slower one decays to START_HOLD_DECAY after ln(d) / ln(0.9)
+    den = np.poly([0.5, 0.9])
+    n = start_hold_samples(den)
+    assert 0.9 ** n <= START_HOLD_DECAY < 0.9 ** (n - 1)
+    # nothing to wait for: no dynamics, or a mode that does not decay
+    assert start_hold_samples(np.ones(1)) == 0
+    assert start_hold_samples(np.poly([1.0, 0.5])) == 0
+    # learning modes never hold at the start (their own hold starts after the start periods)
+    assert _bound('inverse', {'kind': 'sine'}).start_hold > 0
+    assert _bound('inverse_learning', {'kind': 'sine'}).start_hold == 0
