@@ -35,6 +35,8 @@ A two-degree-of-freedom structure around any controller of
   model inverse, (theta_hat - theta_0) y + (phi_hat - phi_0) dy_d/dt making up a gain or lag the
   model lacks. The feedback part is untouched: (theta_hat - phi_hat lambda) e - k_d s - k*
   sat(s/eps), the terms the stability check linearizes. A PI has no share (s = 0).
+  ``inverse`` alone holds the estimates over the start (:data:`START_HOLD_DECAY`): the error
+  there is the stage settling onto the model inverse's orbit, which no estimate explains.
 - **H^-1** (``inverse``): the inverse of the design hysteresis w = H(v), applied to the whole
   command, so that the plant seen from v_lin is c G with no hysteresis (c the model's slope,
   which keeps the RAC's estimates at their model values). Exact for backlash-like hysteresis
@@ -96,8 +98,8 @@ __all__ = ['FeedForwardController', 'FeedForwardParams', 'HysteresisInverse', 'L
            'BANDWIDTH_STRETCH', 'kept_harmonics', 'MIN_LEARNED_HARMONICS',
            'learning_columns', 'learning_convergence', 'make_hysteresis_inverse',
            'period_harmonics', 'phase_learning_convergence', 'phase_windows',
-           'process_sensitivity', 'read_learned_table', 'shape_jumps', 'whole_period',
-           'write_learned_table']
+           'process_sensitivity', 'read_learned_table', 'shape_jumps', 'START_HOLD_DECAY',
+           'start_hold_samples', 'whole_period', 'write_learned_table']
 
 #: The feed-forward modes.
 MODES = ('none', 'inverse', 'learning', 'inverse_learning')
@@ -125,6 +127,36 @@ BANDWIDTH_STRETCH = 1.25
 #: clip's own transient (the closed loop settles from a lost input within a few samples at the
 #: resonance of the default stage) tells nothing about what the table could do.
 CLIP_SETTLE_SAMPLES = 8
+
+#: ``inverse`` alone holds the RAC's estimates from the start until the design model's slowest
+#: mode has decayed to this fraction: the model inverse of a periodic reference starts on its
+#: steady-state orbit while the stage rests, and the error of that start is the stage's own
+#: initial-condition response, not a wrong estimate. Adapted on, it moved the estimates where
+#: the dead zone kept them (a lasting error at the fundamental) or, on a line near the loop's
+#: limits, started a drift the adaptation did not come back from.
+START_HOLD_DECAY = 1e-3
+
+
+def start_hold_samples(den: FloatArray) -> int:
+    """
+    Return the samples until the slowest mode of a sampled model decays to START_HOLD_DECAY.
+
+    Parameters
+    ----------
+    den : ndarray
+        Denominator of the model's z-transfer function (descending powers).
+
+    Returns
+    -------
+    int
+        Samples (0 for a model without stable dynamics to wait for).
+
+    """
+    radii = np.abs(np.roots(den)) if len(den) > 1 else np.zeros(0)
+    slowest = float(np.max(radii)) if radii.size else 0.0
+    if not 0.0 < slowest < 1.0:
+        return 0
+    return int(math.ceil(math.log(START_HOLD_DECAY) / math.log(slowest)))
 
 
 @dataclass(frozen=True)
@@ -1411,6 +1443,10 @@ class FeedForwardController:
             self.transition_s = max(params.transition_s,
                                     LEARNING_SHAPE_CYCLES / params.learning_bandwidth_hz)
         self.plant_inverse = PreviewInverse(plant, self._t, params.preview_samples)
+        #: Samples from the start that ``inverse`` alone holds the estimates over.
+        self.start_hold = start_hold_samples(self.plant_inverse.den) \
+            if self._inverse_on and not self._learning_on else 0
+        self._start_holding = False
         # the plant seen from v_lin: c G with the compensator (inverse modes), about c G
         # (hysteresis slope) without
         self.slope = float(hysteresis.slope) if not isinstance(hysteresis, NoHysteresis) \
@@ -1698,6 +1734,9 @@ class FeedForwardController:
         # a table from a file was saved relative to the initial estimates (:meth:`learned`):
         # they are held from the first sample
         self._hold(bool(self.table_source))
+        self._start_holding = self.start_hold > 0
+        if self._start_holding:
+            self._hold_inner(True)
         if self.hysteresis_inverse is not None:
             # the stage rests with w = c v: the compensator starts where the stage does
             hyst = self.hysteresis_inverse
@@ -1719,6 +1758,9 @@ class FeedForwardController:
         if self._segments and k >= self._switch_in:
             k = self._next_segment(k)
         self._k = k + 1
+        if self._start_holding and k >= self.start_hold:
+            self._start_holding = False
+            self._hold_inner(False)
         if self._trajectory is None:
             return self._plain(position_m, reference_m, reference_velocity_mps, dt_s)
         n = self._period_n
@@ -2050,10 +2092,7 @@ class FeedForwardController:
         inverse and the table, whatever the estimates were held at.
         """
         self._holding = hold
-        rac = getattr(self.inner, 'inner', self.inner)
-        hold_estimates = getattr(rac, 'hold_estimates', None)
-        if hold_estimates is not None:
-            hold_estimates(hold)
+        rac = self._hold_inner(hold)
         self._drift_gains = (0.0, 0.0)
         if hold and self._inverse_on and hasattr(rac, 'diagnostics'):
             values = dict(rac.diagnostics())
@@ -2061,6 +2100,14 @@ class FeedForwardController:
                 self._drift_gains = (float(values['theta_hat']) - self._theta0,
                                      float(values['phi_hat']) - self._phi0)
                 self._drift_fresh = True
+
+    def _hold_inner(self, hold: bool) -> Any:
+        """Hold or release the RAC's estimates (nothing for a PI); return the RAC."""
+        rac = getattr(self.inner, 'inner', self.inner)
+        hold_estimates = getattr(rac, 'hold_estimates', None)
+        if hold_estimates is not None:
+            hold_estimates(hold)
+        return rac
 
     def _drift(self, x_ref: float, v_ref: float) -> float:
         """Return what the held estimates add over the initial ones at x_ref, through the notch."""

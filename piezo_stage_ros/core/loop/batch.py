@@ -695,6 +695,7 @@ class FeedForwardBatch:
         self._start_periods = ff.learning_start_periods
         self._exp = _exp_function()
         self.trajectory = trajectory
+        self._start_holding = False
         self.n = 0
         self.mismatches = 0
         self.periods_learned = 0
@@ -718,7 +719,9 @@ class FeedForwardBatch:
         self._k = 0
         self._share_fresh = True
         self._holding = False
-        self.ctrl.hold_estimates(False)
+        # inverse alone: the estimates held over the start-up transient (the scalar wrapper)
+        self._start_holding = self.template.start_hold > 0
+        self.ctrl.hold_estimates(self._start_holding)
         self._drift_gains = None
         self._learned = np.zeros((period, n))
         self._delta = np.zeros((n, period))
@@ -777,6 +780,9 @@ class FeedForwardBatch:
         """
         k = self._k
         self._k = k + 1
+        if self._start_holding and k >= self.template.start_hold:
+            self._start_holding = False
+            self.ctrl.hold_estimates(False)
         n = self._period
         if n:
             i = k % n
