@@ -618,3 +618,31 @@ def test_a_bad_announcement_names_its_form():
         parse_trajectory('{"trajectory": {}}')
     with pytest.raises(ParameterError, match='sine.frequency_hz'):
         parse_trajectory('{"stamp_ns": 0, "trajectory": {"sine.frequency_hz": -1.0}}')
+
+
+def test_a_trajectory_the_learning_cannot_take_leaves_the_loop_on_feedback():
+    # a step has no period: a learning feed-forward cannot take it; the loop must go on (the
+    # trajectory node plays it already), the reason reported, each sample fed back alone
+    from piezo_stage_ros.core.control.feedforward import FeedForwardController
+    from piezo_stage_ros.core.model.hysteresis import HysteresisParams, make_hysteresis
+    from piezo_stage_ros.core.model.stage import linear_plant
+    params = ControllerParams().with_flat({'feedforward.mode': 'inverse_learning'})
+    sine = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine'}))
+    step = make_trajectory(TrajectoryParams.from_flat({'kind': 'step'}))
+    ctrl = build_controller(params, 1e-4, linear_plant(StageParams().plant),
+                            make_hysteresis(HysteresisParams()))
+    assert isinstance(ctrl, FeedForwardController)
+    ctrl.bind(sine)
+    reasons: list[str] = []
+    logic = ControllerLogic(ctrl, on_refused=reasons.append)
+    refs = TrajectoryLogic(sine, sample_rate_hz=1e4)
+    for k in range(300):
+        if k == 100:
+            refs.switch(step)
+            logic.request_trajectory(step, 100 * 100_000)
+        x, v = refs.on_position(k * 100_000)
+        logic.on_reference(k * 100_000, x, v)
+        command = logic.on_position(k * 100_000, x, k * 1e-4)
+        assert command is not None and np.isfinite(command.voltage_v)
+    assert len(reasons) == 1 and 'learning needs a periodic reference' in reasons[0]
+    assert ctrl.mismatches > 0

@@ -124,7 +124,8 @@ class ControllerNode(Node):
                                      safe_voltage_v=opts.safe_voltage_v,
                                      position_timeout_s=opts.position_timeout_s,
                                      diagnostics_every=opts.diagnostics_every,
-                                     rebuild=self._rebuild)
+                                     rebuild=self._rebuild,
+                                     on_refused=self._log_error)
         self._stability = stability
         #: Where changes go besides ``logic``: a servo process that runs its own copy of it
         #: (``ServoProcess.change``; stage_servo --direct in real time).
@@ -155,6 +156,9 @@ class ControllerNode(Node):
         if not self._lockstep:
             self._watch = self.create_timer(opts.position_timeout_s / 2.0, self._check_watchdog,
                                             clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def _log_error(self, text: str) -> None:
+        self.get_logger().error(text)
 
     def _design(self, stability: StabilityParams) -> tuple[PlantParams, str]:
         return design_model(stability, self._files)

@@ -44,7 +44,7 @@ import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
 from piezo_stage_ros.core.contracts.interfaces import Controller, Trajectory
 from piezo_stage_ros.core.contracts.wire import diagnostic_reader, NS_PER_S
-from piezo_stage_ros.core.control.feedforward import FeedForwardController
+from piezo_stage_ros.core.control.feedforward import check_learning_period, FeedForwardController
 from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
 from piezo_stage_ros.hardware.safety import GuardedPlant, Trip, Watchdog
 
@@ -617,6 +617,18 @@ class TrajectoryLogic:
         return ref, vel
 
 
+def _learning_refuses(controller: Controller, trajectory: Trajectory) -> str | None:
+    """Return why a learning feed-forward cannot take ``trajectory`` (no period), else None."""
+    if not isinstance(controller, FeedForwardController) or not controller.params.learning:
+        return None
+    period = controller.params.period_s or getattr(trajectory, 'period_s', None) or 0.0
+    try:
+        check_learning_period(period, controller.sample_time_s)
+    except ParameterError as err:
+        return str(err)
+    return None
+
+
 def announce_trajectory(stamp_ns: int, params: TrajectoryParams) -> str:
     """
     Return the announcement of a new trajectory whose t = 0 is the sample ``stamp_ns``.
@@ -694,14 +706,20 @@ class ControllerLogic:
         ``rebuild(params) -> Controller`` for :meth:`request_change` when the controller has
         no ``update_params(params) -> bool`` or it returns False (a structural change: another
         type, notch, sensor gain or output limits).
+    on_refused : callable, optional
+        ``on_refused(reason)`` when a feed-forward cannot take a new trajectory (learning on
+        an aperiodic one): it keeps the one it has, which no longer matches the reference,
+        and the loop runs on feedback alone.
 
     """
 
     def __init__(self, controller: Controller, *, mode: str = 'lockstep',
                  safe_voltage_v: float = 0.0, position_timeout_s: float = 0.01,
                  diagnostics_every: int = 10,
-                 rebuild: Callable[[Any], Controller] | None = None) -> None:
+                 rebuild: Callable[[Any], Controller] | None = None,
+                 on_refused: Callable[[str], None] | None = None) -> None:
         self.controller = controller
+        self._on_refused = on_refused
         self.lockstep = mode == 'lockstep'
         self.safe_voltage_v = safe_voltage_v
         self.watchdog = Watchdog(position_timeout_s)
@@ -851,6 +869,14 @@ class ControllerLogic:
                 and self._trajectories[0][0] <= stamp:
             return  # a newer one has started by this sample already
         switch = getattr(self.controller, 'switch', None)
+        refused = _learning_refuses(self.controller, trajectory)
+        if refused is not None:
+            # the trajectory node plays it already: the feed-forward, on the one it has, finds
+            # the reference mismatched and leaves each sample to the feedback
+            if self._on_refused is not None:
+                self._on_refused(f'feed-forward: the new trajectory cannot be learned '
+                                 f'({refused}); feedback alone until one it can take')
+            return
         if switch is not None:
             switch(trajectory)
         # a restart goes on from the new trajectory's t = 0, or as far into it as the samples
