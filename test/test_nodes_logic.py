@@ -522,3 +522,127 @@ def test_the_ros_benchmark_reads_the_end_of_run_line_at_either_severity(verdict)
     assert end_of_run_figures(log) == stats
     with pytest.raises(RuntimeError, match='no end-of-run line'):
         end_of_run_figures('[INFO] nothing here')
+
+
+def test_references_ahead_go_on_after_a_switch_and_the_switch_says_where_it_started():
+    # lockstep_ahead: after a new trajectory the references ahead must go on from where they
+    # were (a stall would leave the controller without a reference until each resend)
+    first = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine'}))
+    second = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine',
+                                                         'sine.frequency_hz': 137.0}))
+    logic = TrajectoryLogic(first, sample_rate_hz=1e4)
+    period_ns = 100_000
+    sent = []
+    for k in range(60):
+        if k == 30:
+            logic.switch(second)
+        out = logic.ahead(k * period_ns, 4)
+        sent += [stamp // period_ns for stamp, _, _ in out]
+        if k == 30:
+            # the switch falls on the first sample not yet sent: 30 + 4
+            assert logic.take_switch() == 34 * period_ns
+        else:
+            assert logic.take_switch() is None
+    assert sent == list(range(64))
+    # the second trajectory from its t = 0 at sample 34, on the same stamps
+    again = TrajectoryLogic(second, sample_rate_hz=1e4)
+    again.on_position(34 * period_ns)
+    assert logic.on_position(50 * period_ns) == again.on_position(50 * period_ns)
+
+
+def test_references_ahead_while_inactive_hold_and_a_start_sends_them_again():
+    sine = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine'}))
+    logic = TrajectoryLogic(sine, sample_rate_hz=1e4, active=False)
+    first = [s for s, _, _ in logic.ahead(0, 3)] + [s for s, _, _ in logic.ahead(100_000, 3)]
+    assert first == [0, 100_000, 200_000, 300_000, 400_000]
+    logic.start()
+    again = logic.ahead(200_000, 3)
+    # t = 0 at the start's sample, and the samples after it again with the started reference
+    assert [s for s, _, _ in again] == [200_000, 300_000, 400_000, 500_000]
+    assert [x for _, x, _ in again] == sine.evaluate(np.arange(4) * 1e-4)[0].tolist()
+
+
+@pytest.mark.parametrize('late', [-3, 0, 2])
+def test_an_announced_trajectory_is_bound_at_the_stamp_of_its_t0(late):
+    # a controller in another node: the announcement of the new trajectory comes before its
+    # t = 0 (late < 0), at it, or after (late > 0 samples already stepped); the feed-forward
+    # must predict from the reference that plays at every stamp (a wrong one is a mismatch)
+    from piezo_stage_ros.core.control.feedforward import FeedForwardController
+    from piezo_stage_ros.core.model.hysteresis import HysteresisParams, make_hysteresis
+    from piezo_stage_ros.core.model.stage import linear_plant
+    from piezo_stage_ros.nodes.logic import announce_trajectory, parse_trajectory
+    params = ControllerParams().with_flat({'feedforward.mode': 'inverse_learning'})
+    first_p = TrajectoryParams.from_flat({'kind': 'sine'})
+    second_p = TrajectoryParams.from_flat({'kind': 'sine', 'sine.frequency_hz': 137.0})
+    first = make_trajectory(first_p)
+    ctrl = build_controller(params, 1e-4, linear_plant(StageParams().plant),
+                            make_hysteresis(HysteresisParams()))
+    assert isinstance(ctrl, FeedForwardController)
+    ctrl.bind(first)
+    logic = ControllerLogic(ctrl)
+    refs = TrajectoryLogic(first, sample_rate_hz=1e4)
+    # the text a trajectory node sends once t = 0 of the new one has its stamp (ahead of the
+    # controller's sample with lockstep_ahead: late < 0)
+    text = announce_trajectory(250 * 100_000, second_p)
+    switch_k = None
+    for k in range(700):
+        stamp = k * 100_000
+        if k == 250:
+            refs.switch(make_trajectory(second_p))
+        x, v = refs.on_position(stamp)
+        at = refs.take_switch()
+        if at is not None:
+            switch_k = k
+            assert at == stamp
+        if k == 250 + late:
+            at_ns, got = parse_trajectory(text)
+            assert got == second_p and at_ns == 250 * 100_000
+            logic.request_trajectory(make_trajectory(got), at_ns)
+        logic.on_reference(stamp, x, v)
+        assert logic.on_position(stamp, x, k * 1e-4) is not None
+        if late < 0 and k == 249:
+            # announced ahead: nothing changes before its stamp
+            assert ctrl.mismatches == 0 and ctrl.diagnostics()['ff_active'] == 1.0
+    assert switch_k == 250
+    # a late announcement: the samples stepped with the old copy are one mismatch (the
+    # feed-forward waits, off, for its next bind), and none after it
+    assert ctrl.mismatches == (1 if late > 0 else 0)
+    assert ctrl.diagnostics()['ff_active'] == 1.0
+    assert ctrl.learned().period_s == 1 / 137.0
+    assert ctrl.periods_learned >= 3
+
+
+def test_a_bad_announcement_names_its_form():
+    from piezo_stage_ros.nodes.logic import parse_trajectory
+    with pytest.raises(ParameterError, match='trajectory announcement.*stamp_ns'):
+        parse_trajectory('{"trajectory": {}}')
+    with pytest.raises(ParameterError, match='sine.frequency_hz'):
+        parse_trajectory('{"stamp_ns": 0, "trajectory": {"sine.frequency_hz": -1.0}}')
+
+
+def test_a_trajectory_the_learning_cannot_take_leaves_the_loop_on_feedback():
+    # a step has no period: a learning feed-forward cannot take it; the loop must go on (the
+    # trajectory node plays it already), the reason reported, each sample fed back alone
+    from piezo_stage_ros.core.control.feedforward import FeedForwardController
+    from piezo_stage_ros.core.model.hysteresis import HysteresisParams, make_hysteresis
+    from piezo_stage_ros.core.model.stage import linear_plant
+    params = ControllerParams().with_flat({'feedforward.mode': 'inverse_learning'})
+    sine = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine'}))
+    step = make_trajectory(TrajectoryParams.from_flat({'kind': 'step'}))
+    ctrl = build_controller(params, 1e-4, linear_plant(StageParams().plant),
+                            make_hysteresis(HysteresisParams()))
+    assert isinstance(ctrl, FeedForwardController)
+    ctrl.bind(sine)
+    reasons: list[str] = []
+    logic = ControllerLogic(ctrl, on_refused=reasons.append)
+    refs = TrajectoryLogic(sine, sample_rate_hz=1e4)
+    for k in range(300):
+        if k == 100:
+            refs.switch(step)
+            logic.request_trajectory(step, 100 * 100_000)
+        x, v = refs.on_position(k * 100_000)
+        logic.on_reference(k * 100_000, x, v)
+        command = logic.on_position(k * 100_000, x, k * 1e-4)
+        assert command is not None and np.isfinite(command.voltage_v)
+    assert len(reasons) == 1 and 'learning needs a periodic reference' in reasons[0]
+    assert ctrl.mismatches > 0

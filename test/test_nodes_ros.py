@@ -386,3 +386,52 @@ def test_the_controller_node_writes_its_learned_table_when_it_shuts_down(context
     # no parameter files: the default trajectory, a 100 Hz sine, 100 samples a period
     table = read_learned_table(path)
     assert table.samples == 100 and table.periods_learned == 0 and table.mode == 'learning'
+
+
+def switched_run(context, change: dict, ahead: int = 0):
+    """Run three nodes in lockstep for 0.3 s; ``change`` is set on the trajectory node at 0.1 s."""
+    controller = {**CONTROLLER, 'feedforward.mode': 'inverse_learning'}
+    plant = PlantNode(context=context, parameter_overrides=overrides(
+        {**STAGE, 'mode': 'lockstep', 'duration_s': 0.3, 'lockstep.subscribers': 3}))
+    probe = Probe(context)
+    # no parameter files: both take the default trajectory, a 100 Hz sine
+    traj = TrajectoryNode(context=context, parameter_overrides=overrides(
+        {'mode': 'lockstep', 'lockstep_ahead': ahead}))
+    ctrl = ControllerNode(context=context, parameter_overrides=overrides(
+        {**controller, 'mode': 'lockstep'}))
+    switched = []
+
+    def switch_at_a_tenth_of_a_second(msg: JointState) -> None:
+        stamp = msg.header.stamp.sec * 10 ** 9 + msg.header.stamp.nanosec
+        if stamp == 100_000_000 and not switched:
+            switched.append(traj.set_parameters(overrides(change))[0].successful)
+
+    probe.create_subscription(JointState, wire.POSITION, switch_at_a_tenth_of_a_second, RECORD)
+    spin(context, [plant, probe, traj, ctrl], plant.finished,
+         until=lambda: len(probe.commands) >= 3000)
+    stats = plant.finished.result()
+    assert switched == [True] and stats['resends'] == 0 and len(probe.commands) == 3000
+    return ctrl, probe
+
+
+@pytest.mark.parametrize('ahead', [0, 8])
+def test_the_controller_feedforward_follows_a_trajectory_switched_on_the_trajectory_node(
+        context, ahead):
+    # a new line rate set on the running trajectory node (ros2 param set): the controller in
+    # its own node predicts from its own copy of the trajectory, so it must bind the new one
+    # at the sample where it starts (announced on stage/trajectory), else its feed-forward
+    # mismatches the reference and switches itself off
+    ctrl, _ = switched_run(context, {'sine.frequency_hz': 137.0}, ahead)
+    ff = ctrl.logic.controller
+    assert ff.mismatches == 0 and ff.diagnostics()['ff_active'] == 1.0
+    # the new line rate learned: 137 Hz is 72.99 samples a line, > 20 lines after the switch
+    assert ff.learned().period_s == 1 / 137.0 and ff.periods_learned >= 3
+
+
+def test_a_trajectory_the_learning_cannot_take_is_logged_and_the_loop_goes_on(context):
+    # a step has no period to learn: the controller node says so and the run completes on
+    # feedback (before, the feed-forward's error would have ended the controller's callback)
+    _, probe = switched_run(context, {'kind': 'step'})
+    assert any(m.name == 'controller_node' and m.level == Log.ERROR
+               and 'cannot be learned' in m.msg for m in probe.logs)
+    assert np.all(np.isfinite(probe.commands))

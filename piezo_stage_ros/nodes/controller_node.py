@@ -24,7 +24,9 @@ against the design model (:func:`piezo_stage_ros.nodes.tables.design_model`: the
 (ranges, then the stability check again) and applied at the next sample; a refused value leaves
 everything as it was. Topics: subscribes to ``stage/position`` and ``stage/reference``,
 publishes ``stage/command`` and ``stage/diagnostics`` (controller internals: theta_hat,
-phi_hat, s, saturation ...).
+phi_hat, s, saturation ...). A feed-forward predicts from its own copy of the trajectory: a new
+one announced on ``stage/trajectory`` is bound at the sample of its t = 0 (model inverse at
+once, learning afresh).
 """
 
 from __future__ import annotations
@@ -51,7 +53,7 @@ from piezo_stage_ros.core.control.controllers import (
     ControllerParams,
 )
 from piezo_stage_ros.core.control.stability import check_stability, StabilityParams
-from piezo_stage_ros.core.loop.trajectories import TrajectoryBase
+from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryBase
 from piezo_stage_ros.core.model.hysteresis import HysteresisModel
 from piezo_stage_ros.core.model.stage import linear_plant, PlantParams
 from piezo_stage_ros.nodes import qos
@@ -59,6 +61,7 @@ from piezo_stage_ros.nodes.logic import (
     Command,
     ControllerLogic,
     Gate,
+    parse_trajectory,
     rebuild_or_learn_afresh,
     save_learned_table,
 )
@@ -74,7 +77,7 @@ from piezo_stage_ros.nodes.tables import (
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64
+from std_msgs.msg import Float64, String
 
 __all__ = ['ControllerNode', 'main']
 
@@ -120,7 +123,8 @@ class ControllerNode(Node):
                                      safe_voltage_v=opts.safe_voltage_v,
                                      position_timeout_s=opts.position_timeout_s,
                                      diagnostics_every=opts.diagnostics_every,
-                                     rebuild=self._rebuild)
+                                     rebuild=self._rebuild,
+                                     on_refused=self._log_error)
         self._stability = stability
         #: Where changes go besides ``logic``: a servo process that runs its own copy of it
         #: (``ServoProcess.change``; stage_servo --direct in real time).
@@ -140,6 +144,9 @@ class ControllerNode(Node):
                                      raw=True),
             self.create_subscription(JointState, wire.REFERENCE, self._on_reference,
                                      qos.LOOP, raw=True)]
+        if self._ff_context is not None:
+            self._trajectory_sub = self.create_subscription(String, wire.TRAJECTORY,
+                                                            self._on_trajectory, qos.ANNOUNCE)
         self._cmd_gate: Callable[[], bool] = lambda: True
         self._diag_gate: Callable[[], bool] = lambda: True
         self._last_u: float = opts.safe_voltage_v
@@ -148,6 +155,9 @@ class ControllerNode(Node):
         if not self._lockstep:
             self._watch = self.create_timer(opts.position_timeout_s / 2.0, self._check_watchdog,
                                             clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def _log_error(self, text: str) -> None:
+        self.get_logger().error(text)
 
     def _design(self, stability: StabilityParams) -> tuple[PlantParams, str]:
         return design_model(stability, self._files)
@@ -261,6 +271,24 @@ class ControllerNode(Node):
         if msg is not None:
             self.publish(self.logic.on_reference(wire.stamp_to_ns(msg[0], msg[1]), msg[2],
                                                   msg[3]))
+
+    @stops_quietly
+    def _on_trajectory(self, msg: String) -> None:
+        if self.forward is not None or self._ff_context is None:
+            return  # a servo process runs the controller: the trajectory node forwards to it
+        try:
+            stamp, params = parse_trajectory(msg.data)
+            trajectory = make_trajectory(params, sample_rate_hz=self.opts.sample_rate_hz)
+        except PiezoStageError as err:
+            self.get_logger().error(f'{wire.TRAJECTORY}: {err}; the feed-forward keeps '
+                                    'the trajectory it has')
+            return
+        # a rebuild (a structural gain change) binds the trajectory that plays, and the check
+        # judges the learning at its period
+        self._ff_context = (self._ff_context[0], trajectory)
+        self._check_context['period_s'] = trajectory.period_s
+        self.logic.request_trajectory(trajectory, stamp)
+        self.get_logger().info(f'feed-forward: trajectory {params.kind} from stamp {stamp} ns')
 
     @stops_quietly
     def _on_position(self, data: bytes) -> None:

@@ -37,18 +37,21 @@ twice for one stamp, so the plant receives exactly one command per sample.
 from __future__ import annotations
 
 from dataclasses import dataclass
+import json
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
 from piezo_stage_ros.core.contracts.interfaces import Controller, Trajectory
 from piezo_stage_ros.core.contracts.wire import diagnostic_reader, NS_PER_S
-from piezo_stage_ros.core.control.feedforward import FeedForwardController
+from piezo_stage_ros.core.control.feedforward import check_learning_period, FeedForwardController
+from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
 from piezo_stage_ros.hardware.safety import GuardedPlant, Trip, Watchdog
 
 __all__ = ['ControllerLogic', 'Gate', 'LATE_COMMAND_LIMIT', 'LATE_HALF_LIMIT', 'PlantLogic',
            'Sample', 'TrajectoryLogic', 'TripLog', 'realtime_warning', 'run_verdict',
-           'rebuild_or_learn_afresh', 'sample_count', 'save_learned_table']
+           'announce_trajectory', 'parse_trajectory', 'rebuild_or_learn_afresh',
+           'sample_count', 'save_learned_table']
 
 #: End of a run: more than this fraction of the samples taken late by more than T/2 makes the
 #: end-of-run line a warning (docs/reference/ros-interface.md, "Status counters").
@@ -476,6 +479,9 @@ class TrajectoryLogic:
         self.answered = 0
         self._ahead_sent = -1
         self._ahead_asked: int | None = None
+        self._grid_ns: int | None = None
+        self._switched = False
+        self._switch_ns: int | None = None
         self._window: tuple[int, Any, Any, Any] = (0, None, np.zeros(0), np.zeros(0))
 
     def start(self) -> None:
@@ -490,6 +496,17 @@ class TrajectoryLogic:
     def switch(self, trajectory: Trajectory) -> None:
         """Replace the trajectory at the next sample (it starts at its t = 0 there)."""
         self._pending = trajectory
+
+    def take_switch(self) -> int | None:
+        """
+        Return the stamp [ns] where the last new trajectory's t = 0 fell, once; else None.
+
+        For a controller that predicts from its own copy of the trajectory: it binds the new
+        one at that sample (:meth:`ControllerLogic.request_trajectory`). Inactive, the t = 0
+        of a new trajectory falls at the start.
+        """
+        stamp, self._switch_ns = self._switch_ns, None
+        return stamp
 
     def _evaluate(self, index: int) -> tuple[float, float]:
         chunk = index // self.chunk
@@ -517,9 +534,18 @@ class TrajectoryLogic:
             Oldest first; the sample ``stamp_ns`` itself when it was not sent yet.
 
         """
-        if self._start_ns is None:
+        first = self._grid_ns is None
+        if self._grid_ns is None:
+            self._grid_ns = stamp_ns
+        # the plant's stamp grid, from the first sample: a start or a new trajectory moves the
+        # trajectory's t = 0, not the stamps, nor what was sent already
+        grid = self._grid_ns
+        index = round((stamp_ns - grid) * self.rate_hz / NS_PER_S)
+        if first or (self.active and self._start_ns is None):
+            # a first sample, or t = 0 at this one after a start: what went out ahead of it
+            # held the reference, and goes again from the new start
             out = [(stamp_ns, *self.on_position(stamp_ns))]
-            self._ahead_sent = 0
+            self._ahead_sent = index
         elif stamp_ns == self._ahead_asked:
             # the same sample again (a lockstep resend: something of it was lost, perhaps its
             # reference): its reference goes again
@@ -527,11 +553,8 @@ class TrajectoryLogic:
         else:
             out = []
         self._ahead_asked = stamp_ns
-        start = self._start_ns
-        assert start is not None
-        index = round((stamp_ns - start) * self.rate_hz / NS_PER_S)
         for k in range(max(self._ahead_sent + 1, index), index + count + 1):
-            stamp = start + round(k * NS_PER_S / self.rate_hz)
+            stamp = grid + round(k * NS_PER_S / self.rate_hz)
             out.append((stamp, *self.on_position(stamp)))
             self._ahead_sent = k
         return out
@@ -575,12 +598,16 @@ class TrajectoryLogic:
             self._pending = None
             self._start_ns = None
             self._chunk_index = -1
+            self._switched = True
         self.answered += 1
         if not self.active:
             return self.hold_m, 0.0
         if self._start_ns is None:
             self._start_ns = stamp_ns
             self._chunk_index = -1
+            if self._switched:
+                self._switched = False
+                self._switch_ns = stamp_ns
         index = round((stamp_ns - self._start_ns) * self.rate_hz / NS_PER_S)
         if index < 0:
             # a sample older than the start (reordered): the start value
@@ -588,6 +615,48 @@ class TrajectoryLogic:
         ref, vel = self._evaluate(index)
         self.hold_m = ref
         return ref, vel
+
+
+def _learning_refuses(controller: Controller, trajectory: Trajectory) -> str | None:
+    """Return why a learning feed-forward cannot take ``trajectory`` (no period), else None."""
+    if not isinstance(controller, FeedForwardController) or not controller.params.learning:
+        return None
+    period = controller.params.period_s or getattr(trajectory, 'period_s', None) or 0.0
+    try:
+        check_learning_period(period, controller.sample_time_s)
+    except ParameterError as err:
+        return str(err)
+    return None
+
+
+def announce_trajectory(stamp_ns: int, params: TrajectoryParams) -> str:
+    """
+    Return the announcement of a new trajectory whose t = 0 is the sample ``stamp_ns``.
+
+    JSON text (the ``data`` of a ``std_msgs/msg/String``): ``stamp_ns`` and ``trajectory``,
+    the trajectory's parameters by their dotted names, as the trajectory node declares them.
+    """
+    return json.dumps({'stamp_ns': int(stamp_ns), 'trajectory': params.to_flat()})
+
+
+def parse_trajectory(text: str) -> tuple[int, TrajectoryParams]:
+    """
+    Return the stamp [ns] and the trajectory of an announcement (:func:`announce_trajectory`).
+
+    Raises
+    ------
+    ParameterError
+        If the text is not an announcement, or a trajectory parameter is bad.
+
+    """
+    try:
+        data = json.loads(text)
+        stamp, values = int(data['stamp_ns']), dict(data['trajectory'])
+    except (ValueError, TypeError, KeyError) as exc:
+        raise ParameterError('trajectory announcement', text[:80],
+                             'JSON {"stamp_ns": int, "trajectory": {name: value}}',
+                             f'is not one ({exc})') from None
+    return stamp, TrajectoryParams.from_flat(values)
 
 
 @dataclass(frozen=True)
@@ -637,14 +706,20 @@ class ControllerLogic:
         ``rebuild(params) -> Controller`` for :meth:`request_change` when the controller has
         no ``update_params(params) -> bool`` or it returns False (a structural change: another
         type, notch, sensor gain or output limits).
+    on_refused : callable, optional
+        ``on_refused(reason)`` when a feed-forward cannot take a new trajectory (learning on
+        an aperiodic one): it keeps the one it has, which no longer matches the reference,
+        and the loop runs on feedback alone.
 
     """
 
     def __init__(self, controller: Controller, *, mode: str = 'lockstep',
                  safe_voltage_v: float = 0.0, position_timeout_s: float = 0.01,
                  diagnostics_every: int = 10,
-                 rebuild: Callable[[Any], Controller] | None = None) -> None:
+                 rebuild: Callable[[Any], Controller] | None = None,
+                 on_refused: Callable[[str], None] | None = None) -> None:
         self.controller = controller
+        self._on_refused = on_refused
         self.lockstep = mode == 'lockstep'
         self.safe_voltage_v = safe_voltage_v
         self.watchdog = Watchdog(position_timeout_s)
@@ -660,7 +735,9 @@ class ControllerLogic:
         self._last_stamp: int | None = None
         self._index = 0  # samples since the first, skipped ones included
         self._pending: Any = None
-        self._pending_trajectory: Any = None
+        # new trajectories to bind, oldest first: (stamp of their t = 0, or None for the next
+        # sample; the trajectory)
+        self._trajectories: list[tuple[int | None, Any]] = []
         self._needs_reset = True
         self._safe = False
         self.steps = 0
@@ -684,15 +761,26 @@ class ControllerLogic:
         """Apply validated new controller parameters at the next sample boundary."""
         self._pending = params
 
-    def request_trajectory(self, trajectory: Any) -> None:
+    def request_trajectory(self, trajectory: Any, stamp_ns: int | None = None) -> None:
         """
-        Bind a new trajectory at the next sample, where the trajectory's t = 0 falls.
+        Bind a new trajectory at the sample where its t = 0 falls.
 
         What :meth:`TrajectoryLogic.switch` does to the reference: a feed-forward (its
         ``switch``) takes the new line from that sample on, its model inverse at once and its
         learning afresh; another controller just follows the new reference.
+
+        Parameters
+        ----------
+        trajectory : Trajectory
+            The new trajectory.
+        stamp_ns : int, optional
+            The stamp [ns] of its t = 0 (:meth:`TrajectoryLogic.take_switch`, announced by a
+            trajectory node in another process); None: the next sample. A stamp already
+            stepped (an announcement that came late) binds it at the next sample, that many
+            samples into it.
+
         """
-        self._pending_trajectory = trajectory
+        self._trajectories.append((stamp_ns, trajectory))
 
     def _apply_pending(self, position_m: float, reference_m: float) -> None:
         params, self._pending = self._pending, None
@@ -757,12 +845,9 @@ class ControllerLogic:
                 self._skip(gap)
             if self._missed is not None:
                 self._missed(gap)
-        if self._pending_trajectory is not None:
-            switch = getattr(self.controller, 'switch', None)
-            if switch is not None:
-                switch(self._pending_trajectory)
-            self._pending_trajectory = None
-            self._index = 0  # a restart goes on from the new trajectory's t = 0
+        while self._trajectories and (self._trajectories[0][0] is None
+                                      or self._trajectories[0][0] <= stamp):
+            self._bind_trajectory(stamp)
         if self._pending is not None:
             self._apply_pending(y, xd)
         if self._needs_reset:
@@ -776,6 +861,30 @@ class ControllerLogic:
             diagnostics = self._read()
         self.steps += 1
         return Command(stamp, u, diagnostics, self.names if diagnostics is not None else None)
+
+    def _bind_trajectory(self, stamp: int) -> None:
+        """Bind the oldest requested trajectory before stepping the sample ``stamp``."""
+        at, trajectory = self._trajectories.pop(0)
+        if self._trajectories and self._trajectories[0][0] is not None \
+                and self._trajectories[0][0] <= stamp:
+            return  # a newer one has started by this sample already
+        switch = getattr(self.controller, 'switch', None)
+        refused = _learning_refuses(self.controller, trajectory)
+        if refused is not None:
+            # the trajectory node plays it already: the feed-forward, on the one it has, finds
+            # the reference mismatched and leaves each sample to the feedback
+            if self._on_refused is not None:
+                self._on_refused(f'feed-forward: the new trajectory cannot be learned '
+                                 f'({refused}); feedback alone until one it can take')
+            return
+        if switch is not None:
+            switch(trajectory)
+        # a restart goes on from the new trajectory's t = 0, or as far into it as the samples
+        # already stepped with it (an announcement that came late)
+        late = 0 if at is None else round((stamp - at) / self._period_ns)
+        self._index = late
+        if late and self._skip is not None:
+            self._skip(late)
 
     def on_check(self, now_s: float) -> Command | None:
         """

@@ -32,13 +32,16 @@ The QoS profiles of every topic, chosen once here (imports rclpy).
   a reliable writer serves the best-effort subscription of every node's time source.
 - :data:`STATUS` (``stage/status``): reliable, transient local, keep last 1, so that a tool
   started late still gets the plant's latest counters.
+- :data:`ANNOUNCE` (``stage/trajectory``): reliable, transient local, keep last 10: a
+  controller that starts late, or is busy through several switches, still binds each new
+  trajectory at the stamp of its t = 0.
 """
 
 from __future__ import annotations
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-__all__ = ['BLOCK', 'CLOCK', 'LOOP', 'LOOP_OUT', 'STATUS']
+__all__ = ['ANNOUNCE', 'BLOCK', 'CLOCK', 'LOOP', 'LOOP_OUT', 'STATUS']
 
 LOOP = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                   reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
@@ -52,3 +55,6 @@ CLOCK = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 STATUS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                     reliability=ReliabilityPolicy.RELIABLE,
                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+ANNOUNCE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                      reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)

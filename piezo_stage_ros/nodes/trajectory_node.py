@@ -21,7 +21,8 @@ same stamp: x_d(t) and x_d'(t) at the trajectory's own time t (0 at the sample w
 Start and stop: the ``active`` parameter, or the services ``~/start`` and ``~/stop``
 (``std_srvs/srv/Trigger``). Switch: set any trajectory parameter (``kind``, ``sine.frequency_hz``
 ...); the new trajectory is validated, refused with the reason if bad, and starts at its t = 0
-at the next sample.
+at the next sample; ``stage/trajectory`` announces it with the stamp of that sample, for the
+controller's feed-forward, which predicts from its own copy of the trajectory.
 """
 
 from __future__ import annotations
@@ -32,13 +33,14 @@ from piezo_stage_ros.core.contracts import wire
 from piezo_stage_ros.core.contracts.cdr import JointStateDecoder, JointStateEncoder
 from piezo_stage_ros.core.loop.trajectories import make_trajectory
 from piezo_stage_ros.nodes import qos
-from piezo_stage_ros.nodes.logic import Gate, TrajectoryLogic
+from piezo_stage_ros.nodes.logic import announce_trajectory, Gate, TrajectoryLogic
 from piezo_stage_ros.nodes.parameters import ParameterBinding
 from piezo_stage_ros.nodes.runner import decode_or_drop, run, stops_quietly
 from piezo_stage_ros.nodes.tables import trajectory_table, TrajectoryNodeParams
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
+from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 __all__ = ['TrajectoryNode', 'main']
@@ -72,6 +74,8 @@ class TrajectoryNode(Node):
         self._decoder = JointStateDecoder([wire.JOINT_NAME])
         self.malformed = 0
         self._pub = self.create_publisher(JointState, wire.REFERENCE, qos.LOOP_OUT)
+        self._announce_pub = self.create_publisher(String, wire.TRAJECTORY, qos.ANNOUNCE)
+        self._params = params
         self._sub = self.create_subscription(JointState, wire.POSITION, self._on_position,
                                              qos.LOOP, raw=True)
         self._gate: Callable[[], bool] = lambda: True
@@ -89,6 +93,7 @@ class TrajectoryNode(Node):
         if params is not old[0]:
             # builds (and so checks) the new trajectory before accepting the change
             self.logic.switch(make_trajectory(params, sample_rate_hz=self.opts.sample_rate_hz))
+            self._params = params
             if self.forward is not None:
                 self.forward('trajectory', params)
             self.get_logger().info(f'trajectory switched to {params.kind} at the next sample')
@@ -127,8 +132,15 @@ class TrajectoryNode(Node):
     def answer(self, stamp_ns: int) -> tuple[float, float]:
         """Return x_d [m] and x_d' [m/s] for the sample stamped ``stamp_ns`` [ns]."""
         ref, vel = self.logic.on_position(stamp_ns)
+        self._announce()
         self.publish(stamp_ns, ref, vel)
         return ref, vel
+
+    def _announce(self) -> None:
+        """Announce a new trajectory once its t = 0 has a stamp (before its references)."""
+        stamp = self.logic.take_switch()
+        if stamp is not None:
+            self._announce_pub.publish(String(data=announce_trajectory(stamp, self._params)))
 
     def publish(self, stamp_ns: int, reference_m: float, velocity_mps: float) -> None:
         """Publish a reference computed by call, while an outside subscriber listens."""
@@ -149,11 +161,14 @@ class TrajectoryNode(Node):
                 # lockstep_ahead: x_d goes out ahead of its position (it does not depend on
                 # it); the controller pairs by stamp, so this node leaves the critical path
                 encode, publish = self._encoder.encode, self._pub.publish
-                for k_stamp, ref, vel in self.logic.ahead(stamp, self._ahead):
+                out = self.logic.ahead(stamp, self._ahead)
+                self._announce()
+                for k_stamp, ref, vel in out:
                     ksec, knsec = divmod(k_stamp, 1_000_000_000)
                     publish(encode(ksec, knsec, (ref,), (vel,)))
                 return
             ref, vel = self.logic.on_position(stamp)
+            self._announce()
             self._pub.publish(self._encoder.encode(sec, nanosec, (ref,), (vel,)))
         except Exception:
             if self.context.ok():

@@ -38,6 +38,9 @@ prefix ``stage/``; under the root namespace the bag of a run has them as ``/stag
 - ``stage/block``, ``std_msgs/msg/Float64MultiArray``: many samples per message (the recording
   path that keeps every sample under load, about 100 messages a second; layout below);
 - ``stage/status``, ``diagnostic_msgs/msg/DiagnosticStatus``: plant counters, about once a second;
+- ``stage/trajectory``, ``std_msgs/msg/String``: a new trajectory and the stamp of its t = 0,
+  from the trajectory node at each switch, for a controller that predicts from its own copy
+  (JSON, :func:`piezo_stage_ros.nodes.logic.announce_trajectory`);
 - ``/clock``, ``rosgraph_msgs/msg/Clock``: t_k, lockstep only (absolute: one clock per graph).
 
 Stamps are ``builtin_interfaces/msg/Time`` (int32 sec, uint32 nanosec) of the sample time;
@@ -81,7 +84,8 @@ __all__ = [
     'BLOCK_SEPARATOR', 'BLOCK_TYPE', 'CLOCK', 'CLOCK_TYPE', 'COMMAND', 'COMMAND_TYPE',
     'DEFAULT_NAMESPACE', 'DIAGNOSTICS', 'JOINT_NAME', 'JOINT_STATE_TYPE', 'META_KEY', 'NS_PER_S',
     'POSITION', 'RECORDED_TOPICS', 'REFERENCE', 'REQUIRED_TOPICS', 'SIMULATION_TOPICS', 'STAGE',
-    'STATUS', 'STATUS_TYPE', 'STORAGE_IDS', 'TOPIC_TYPES', 'TRUE_POSITION', 'BlockColumns',
+    'STATUS', 'STATUS_TYPE', 'STORAGE_IDS', 'TOPIC_TYPES', 'TRAJECTORY', 'TRAJECTORY_TYPE',
+    'TRUE_POSITION', 'BlockColumns',
     'block_columns', 'block_topic', 'diagnostic_reader', 'normalize_namespace', 'ns_to_stamp',
     'parse_block_columns', 'stamp_to_ns', 'topic_names',
 ]
@@ -91,6 +95,7 @@ COMMAND_TYPE: Final = 'std_msgs/msg/Float64'
 CLOCK_TYPE: Final = 'rosgraph_msgs/msg/Clock'
 STATUS_TYPE: Final = 'diagnostic_msgs/msg/DiagnosticStatus'
 BLOCK_TYPE: Final = 'std_msgs/msg/Float64MultiArray'
+TRAJECTORY_TYPE: Final = 'std_msgs/msg/String'
 
 #: The stage's topic prefix, and the name of its one joint in every JointState.
 STAGE: Final = 'stage'
@@ -124,6 +129,8 @@ APPLIED: Final = f'{STAGE}/applied'
 TRUE_POSITION: Final = f'{STAGE}/true_position'
 #: Plant counters (late samples, resends, watchdog trips, bridge losses), about once a second.
 STATUS: Final = f'{STAGE}/status'
+#: A new trajectory and the stamp of its t = 0, at each switch of the trajectory node.
+TRAJECTORY: Final = f'{STAGE}/trajectory'
 CLOCK: Final = '/clock'
 #: Many samples per message (``std_msgs/msg/Float64MultiArray``, the block layout above).
 BLOCK: Final = f'{STAGE}/block'
