@@ -80,7 +80,7 @@ from piezo_stage_ros.core.model.hysteresis import (
     NoHysteresis,
 )
 from piezo_stage_ros.core.model.linear import LinearPlant
-from piezo_stage_ros.core.model.stage import fused_constants, FusedConstants, Stage, StageParams
+from piezo_stage_ros.core.model.stage import FusedConstants, Stage, StageParams
 
 __all__ = ['ControllerBatch', 'FeedForwardBatch', 'StageFamilyBatch', 'libm_exp', 'run_batch']
 
@@ -185,7 +185,7 @@ class StageFamilyBatch:
         self._stages = [Stage(p) for p in self.params]
         consts: list[FusedConstants] = []
         for p, st in zip(self.params, self._stages):
-            k = fused_constants(st._core)
+            k = st.fused_constants()
             if k is None:
                 raise ParameterError('plant.model', p.plant.model,
                                      "'reduced' or 'third_order' with backlash_like or no "
@@ -261,7 +261,7 @@ class StageFamilyBatch:
 
     def _load_state(self) -> None:
         """Take over the state of the scalar stages (as their last reset left it)."""
-        states = [st._kernel.get() for st in self._stages]
+        states = [st.kernel_state() for st in self._stages]
         self._x = np.array([[s.x[i] for s in states] for i in range(self._order)],
                            dtype=np.float64)
         self._x_next = np.empty_like(self._x)

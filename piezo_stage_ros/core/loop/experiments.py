@@ -42,6 +42,7 @@ from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.loop.trajectories import (
     make_trajectory,
     SquareParams,
+    TableTrajectory,
     TrajectoryBase,
     TrajectoryParams,
 )
@@ -145,8 +146,8 @@ def default_duration_s(trajectory: TrajectoryBase, params: TrajectoryParams) -> 
     if params.kind == 'step':
         return params.step.time_s + 0.1
     if params.kind == 'csv':
-        t = getattr(trajectory, '_t', None)
-        return float(t[-1]) if t is not None and t[-1] > 0 else 1.0
+        end = trajectory.end_s if isinstance(trajectory, TableTrajectory) else 0.0
+        return end if end > 0 else 1.0
     return 1.0
 
 

@@ -635,6 +635,11 @@ class TableTrajectory(TrajectoryBase):
         self._slope = np.diff(self._x) / np.diff(self._t)
 
     @property
+    def end_s(self) -> float:
+        """Return the time of the table's last row [s]: where the recorded reference ends."""
+        return float(self._t[-1])
+
+    @property
     def extent_m(self) -> tuple[float, float]:
         """Return the lowest and highest position of the table [m]."""
         return float(np.min(self._x)), float(np.max(self._x))

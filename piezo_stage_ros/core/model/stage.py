@@ -654,6 +654,14 @@ class Stage:
         """Return the sample period [s]."""
         return self._core.sample_time_s
 
+    def fused_constants(self) -> FusedConstants | None:
+        """Return the fused kernel's constants, or None where no fused kernel serves the model."""
+        return fused_constants(self._core)
+
+    def kernel_state(self) -> _KernelState:
+        """Return the state the last reset or step left (a batch of stages takes it over)."""
+        return self._kernel.get()
+
     @property
     def position_m(self) -> float:
         """Return the true position x [m] (no noise, no quantization)."""
