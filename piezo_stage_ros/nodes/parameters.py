@@ -25,7 +25,7 @@ from __future__ import annotations
 import array
 from typing import Any, Callable, Sequence
 
-from piezo_stage_ros.core.config.unknown import check_given, ros_sources
+from piezo_stage_ros.core.config.unknown import check_given, MULTI_AXIS_PREFIXES, ros_sources
 from piezo_stage_ros.core.contracts.errors import PiezoStageError
 from piezo_stage_ros.nodes.tables import Declaration, NodeTable
 from rcl_interfaces.msg import (
@@ -37,7 +37,7 @@ from rcl_interfaces.msg import (
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-__all__ = ['ParameterBinding', 'check_undeclared', 'descriptor']
+__all__ = ['ParameterBinding', 'check_undeclared', 'descriptor', 'multi_axis_hint']
 
 
 def descriptor(decl: Declaration) -> ParameterDescriptor:
@@ -150,3 +150,23 @@ def check_undeclared(nodes: Sequence[Node], argv: Sequence[str]) -> None:
             messages.append(str(exc))
     if messages:
         raise PiezoStageError('; '.join(messages))
+
+
+def multi_axis_hint(argv: Sequence[str]) -> str:
+    """
+    Return why a parameter file rcl could not read may be a multi-axis one, or ''.
+
+    rcl's parser refuses some multi-axis files itself (``names: [x, y]``: YAML reads ``y`` as a
+    boolean) before a node could say that they run offline.
+    """
+    try:
+        sources = ros_sources(argv)
+    except PiezoStageError:
+        return ''
+    for source in sources:
+        names = [n for n in source.names if n.startswith(MULTI_AXIS_PREFIXES)]
+        if names:
+            return (f' ({source.where} has {names[0]!r}: a multi-axis stage, which runs '
+                    'offline (python -m piezo_stage_ros.simulate --config FILE), not yet on '
+                    'the nodes)')
+    return ''

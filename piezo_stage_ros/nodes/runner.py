@@ -32,7 +32,7 @@ from typing import Any, Callable, Protocol, Sequence, TypeVar
 
 from piezo_stage_ros.core.contracts.cdr import CdrError
 from piezo_stage_ros.core.contracts.errors import PiezoStageError
-from piezo_stage_ros.nodes.parameters import check_undeclared
+from piezo_stage_ros.nodes.parameters import check_undeclared, multi_axis_hint
 import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -177,7 +177,7 @@ def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
     try:
         own = remove_ros_args(args)
     except RuntimeError as exc:  # rclpy's UnknownROSArgsError is one
-        print(f'{prog}: ROS arguments refused: {exc}', file=sys.stderr)
+        print(f'{prog}: ROS arguments refused: {exc}{multi_axis_hint(args)}', file=sys.stderr)
         return 2
     opts = parser.parse_args(own[1:])
     chosen = [n.strip() for n in opts.nodes.split(',') if n.strip()]
@@ -194,7 +194,7 @@ def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
     try:
         rclpy.init(args=args)
     except RuntimeError as exc:
-        print(f'{prog}: ROS arguments refused: {exc}', file=sys.stderr)
+        print(f'{prog}: ROS arguments refused: {exc}{multi_axis_hint(args)}', file=sys.stderr)
         return 2
     nodes: list[Node] = []
     try:

@@ -46,6 +46,7 @@ from piezo_stage_ros.core.config.nodes import (
     PlantNodeParams,
     TrajectoryNodeParams,
 )
+from piezo_stage_ros.core.config.unknown import ros_options
 from piezo_stage_ros.core.control.stability import StabilityParams
 from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryBase
 from piezo_stage_ros.core.model.hysteresis import HysteresisModel, make_hysteresis
@@ -72,21 +73,7 @@ def params_files(argv: Sequence[str]) -> list[str]:
         The files, in the order ROS applies them (later ones win).
 
     """
-    files: list[str] = []
-    ros = False
-    args = list(argv)
-    i = 0
-    while i < len(args):
-        arg = args[i]
-        if arg == '--ros-args':
-            ros = True
-        elif arg == '--':
-            ros = False
-        elif ros and arg == '--params-file' and i + 1 < len(args):
-            files.append(args[i + 1])
-            i += 1
-        i += 1
-    return files
+    return [value for flag, value in ros_options(argv) if flag == '--params-file']
 
 
 def design_model(stability: StabilityParams, files: Sequence[str]

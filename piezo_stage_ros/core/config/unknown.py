@@ -31,7 +31,8 @@ from typing import Collection, Iterable, Sequence
 from piezo_stage_ros.core.config.loader import load_config, WILDCARD
 from piezo_stage_ros.core.contracts.errors import ConfigError
 
-__all__ = ['check_given', 'MULTI_AXIS_PREFIXES', 'ros_sources', 'RosSource', 'unknown_given']
+__all__ = ['check_given', 'MULTI_AXIS_PREFIXES', 'ros_options', 'ros_sources', 'RosSource',
+           'unknown_given']
 
 # what ROS itself reads on every node (declared by rclpy, or only on request)
 _ALWAYS = frozenset({'use_sim_time'})
@@ -61,6 +62,29 @@ class RosSource:
     names: tuple[str, ...]
 
 
+def ros_options(argv: Sequence[str]) -> list[tuple[str, str]]:
+    """
+    Return the ``(flag, value)`` pairs of a ROS command line's ``--params-file`` and ``-p``.
+
+    Only the parts between ``--ros-args`` and ``--`` (or the end) are ROS arguments.
+    """
+    pairs: list[tuple[str, str]] = []
+    ros = False
+    args = list(argv)
+    i = 0
+    while i < len(args):
+        arg = args[i]
+        if arg == '--ros-args':
+            ros = True
+        elif arg == '--':
+            ros = False
+        elif ros and arg in ('--params-file', '-p', '--param') and i + 1 < len(args):
+            pairs.append((arg, args[i + 1]))
+            i += 1
+        i += 1
+    return pairs
+
+
 def ros_sources(argv: Sequence[str]) -> list[RosSource]:
     """
     Return the parameter files' sections and the ``-p`` overrides of a ROS command line.
@@ -84,28 +108,14 @@ def ros_sources(argv: Sequence[str]) -> list[RosSource]:
     """
     files: list[RosSource] = []
     overrides: list[RosSource] = []
-    ros = False
-    args = list(argv)
-    i = 0
-    while i < len(args):
-        arg = args[i]
-        if arg == '--ros-args':
-            ros = True
-        elif arg == '--':
-            ros = False
-        elif ros and arg == '--params-file' and i + 1 < len(args):
-            path = args[i + 1]
-            for section, values in load_config([path]).sections.items():
-                files.append(RosSource(f'{path}, section {section!r}', section,
+    for flag, value in ros_options(argv):
+        if flag == '--params-file':
+            for section, values in load_config([value]).sections.items():
+                files.append(RosSource(f'{value}, section {section!r}', section,
                                        tuple(values)))
-            i += 1
-        elif ros and arg in ('-p', '--param') and i + 1 < len(args):
-            rule = args[i + 1]
-            left = rule.split(':=', 1)[0]
-            node, _, name = left.rpartition(':')
-            overrides.append(RosSource(f'{arg} {rule}', node or WILDCARD, (name,)))
-            i += 1
-        i += 1
+        elif flag in ('-p', '--param'):
+            node, _, name = value.split(':=', 1)[0].rpartition(':')
+            overrides.append(RosSource(f'{flag} {value}', node or WILDCARD, (name,)))
     return files + overrides
 
 
