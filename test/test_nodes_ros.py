@@ -472,3 +472,26 @@ def test_a_good_file_and_overrides_for_every_node_still_run(capfd):
                              '-p', 'seed:=4', '-p', 'use_sim_time:=false'])
     err = capfd.readouterr().err
     assert code == 0, err
+
+
+def test_the_launch_file_refuses_a_multi_axis_scenario_before_any_process_starts():
+    import importlib.util
+
+    from launch.actions import DeclareLaunchArgument
+
+    from launch import LaunchContext
+    path = CONFIG_DIR.parent / 'launch' / 'closed_loop.launch.py'
+    spec = importlib.util.spec_from_file_location('closed_loop_launch', path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    context = LaunchContext()
+    for action in module.generate_launch_description().entities:
+        if isinstance(action, DeclareLaunchArgument):
+            action.visit(context)
+    context.launch_configurations.update({'config': str(CONFIG_DIR / 'default.yaml'),
+                                          'scenario': str(CONFIG_DIR / 'xy_stage.yaml')})
+    with pytest.raises(ValueError, match='multi-axis.*simulate --config FILE'):
+        module._launch(context)
+    # the one-axis default still gives its processes
+    context.launch_configurations['scenario'] = ''
+    assert module._launch(context)

@@ -154,7 +154,9 @@ def unknown_given(node: str, given: Iterable[str], declared: Collection[str],
     for name in sorted(set(given)):
         if _accepted(name, declared):
             continue
-        from_ = [s for s in sources if name in s.names and s.node in (node, WILDCARD)]
+        # a node's own section wins over a wildcard one, and the last of each kind
+        from_ = ([s for s in sources if name in s.names and s.node == WILDCARD]
+                 + [s for s in sources if name in s.names and s.node == node])
         if others and name in others and all(s.node == WILDCARD for s in from_):
             continue
         where = f'from {from_[-1].where}' if from_ else 'from its parameter overrides'
