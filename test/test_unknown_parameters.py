@@ -85,3 +85,10 @@ def test_the_multi_axis_file_points_to_the_offline_runner():
 def test_a_name_from_no_known_source_still_is_refused():
     [msg] = unknown_given('trajectory_node', ['kindd'], {'kind'}, [])
     assert 'from its parameter overrides' in msg and "did you mean 'kind'?" in msg
+
+
+def test_a_misspelt_key_in_a_file_section_gets_the_closest_name_too():
+    from piezo_stage_ros.core.contracts.errors import ParameterError
+    with pytest.raises(ParameterError, match="'rac.gama' = 1.0 is not a parameter of this node.*"
+                                             "did you mean 'rac.gamma'"):
+        controller_table().build({'rac.gama': 1.0})

@@ -25,10 +25,10 @@ the command line (:func:`ros_sources`) and words the refusal, with the closest d
 from __future__ import annotations
 
 from dataclasses import dataclass
-import difflib
 from typing import Collection, Iterable, Sequence
 
 from piezo_stage_ros.core.config.loader import load_config, WILDCARD
+from piezo_stage_ros.core.config.nodes import closest_name
 from piezo_stage_ros.core.contracts.errors import ConfigError
 
 __all__ = ['check_given', 'MULTI_AXIS_PREFIXES', 'ros_options', 'ros_sources', 'RosSource',
@@ -163,8 +163,8 @@ def unknown_given(node: str, given: Iterable[str], declared: Collection[str],
         if name.startswith(MULTI_AXIS_PREFIXES):
             multi_axis.append(f'{name!r} ({where})')
             continue
-        close = difflib.get_close_matches(name, sorted(declared), n=1)
-        hint = f"; did you mean '{close[0]}'?" if close else ''
+        close = closest_name(name, declared)
+        hint = f"; did you mean '{close}'?" if close else ''
         messages.append(f'{node}: parameter {name!r} ({where}) is not a parameter of this '
                         f'node{hint} (its parameters: docs/reference/ros-interface.md)')
     if multi_axis:
