@@ -24,7 +24,9 @@ from piezo_stage_ros.core.config.unknown import (
     ros_sources,
     unknown_given,
 )
-from piezo_stage_ros.core.contracts.errors import ConfigError
+from piezo_stage_ros.core.contracts.errors import ConfigError, ParameterError
+from piezo_stage_ros.core.control.stability import StabilityParams
+from piezo_stage_ros.nodes.tables import design_model
 import pytest
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config'
@@ -88,7 +90,14 @@ def test_a_name_from_no_known_source_still_is_refused():
 
 
 def test_a_misspelt_key_in_a_file_section_gets_the_closest_name_too():
-    from piezo_stage_ros.core.contracts.errors import ParameterError
     with pytest.raises(ParameterError, match="'rac.gama' = 1.0 is not a parameter of this node.*"
                                              "did you mean 'rac.gamma'"):
         controller_table().build({'rac.gama': 1.0})
+
+
+def test_the_controller_nodes_reading_of_its_files_names_them(tmp_path):
+    path = tmp_path / 'typo.yaml'
+    path.write_text('plant_node:\n  ros__parameters:\n    plant:\n      modle: reduced\n')
+    with pytest.raises(ParameterError,
+                       match=f"'plant.modle' = 'reduced' .*did you mean 'plant.model'.*{path}"):
+        design_model(StabilityParams().replace(design_model='plant'), [str(path)])

@@ -31,6 +31,7 @@ from piezo_stage_ros.core.config.loader import (
     controller_table,
     design_plant,
     load_loop_config,
+    LoopConfig,
     plant_table,
     trajectory_table,
 )
@@ -47,6 +48,7 @@ from piezo_stage_ros.core.config.nodes import (
     TrajectoryNodeParams,
 )
 from piezo_stage_ros.core.config.unknown import ros_options
+from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.control.stability import StabilityParams
 from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryBase
 from piezo_stage_ros.core.model.hysteresis import HysteresisModel, make_hysteresis
@@ -74,6 +76,15 @@ def params_files(argv: Sequence[str]) -> list[str]:
 
     """
     return [value for flag, value in ros_options(argv) if flag == '--params-file']
+
+
+def _loop(files: Sequence[str]) -> LoopConfig:
+    """Return the files' loop configuration; a bad value's error names the files."""
+    try:
+        return load_loop_config(files)
+    except ParameterError as exc:
+        raise ParameterError(exc.name, exc.value, f'{exc.allowed}; read from '
+                             + ', '.join(files), exc.reason) from None
 
 
 def design_model(stability: StabilityParams, files: Sequence[str]
@@ -116,7 +127,7 @@ def design_model(stability: StabilityParams, files: Sequence[str]
         return plant, (f"the plant node's default {plant.model} model (no --params-file; set "
                        'the plant in a parameter file given to both nodes, or '
                        'stability.design_model: own)')
-    plant = design_plant(stability, load_loop_config(files).stage.plant)
+    plant = design_plant(stability, _loop(files).stage.plant)
     return plant, (f"the plant node's {plant.model} model (plant_node plant.* of "
                    + ', '.join(files) + ')')
 
@@ -140,7 +151,7 @@ def feedforward_context(files: Sequence[str]
         hysteresis slopes and the stage family.
 
     """
-    loop = load_loop_config(files)
+    loop = _loop(files)
     reference = make_trajectory(loop.trajectory)
     return ((make_hysteresis(loop.stage.hysteresis), reference),
             {'period_s': reference.period_s, 'stage': loop.stage})
