@@ -97,8 +97,8 @@ def ros_sources(argv: Sequence[str]) -> list[RosSource]:
     Returns
     -------
     list of RosSource
-        The files' sections in order, then the overrides in order (rcl applies them last), so
-        that the last source naming a parameter is the one whose value the node got.
+        The files' sections in order, then the overrides in order, as rcl reads them (a
+        node's own entries win over wildcard ones, and among those the last one).
 
     Raises
     ------
