@@ -66,6 +66,7 @@ from launch.events import Shutdown
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 from piezo_stage_ros.cli import choices
+from piezo_stage_ros.core.config.axes import has_axes
 from piezo_stage_ros.core.config.loader import Config, find_config, load_config, LoopConfig
 from piezo_stage_ros.core.config.nodes import MODES
 from piezo_stage_ros.core.control.controllers import ControllerParams
@@ -131,6 +132,10 @@ def _launch(context: LaunchContext) -> list[Any]:
                          + ', '.join(repr(m) for m in MODES))
     lockstep = mode == 'lockstep'
     config = load_config(files)
+    if has_axes(config):
+        raise ValueError(', '.join(files) + ': a multi-axis stage (plant_node axes.names), which '
+                         'runs offline (python -m piezo_stage_ros.simulate --config FILE), not '
+                         'yet on the nodes')
     sim_time = lockstep and arg['sim_time'].lower() == 'true'
     common = {'mode': mode, 'use_sim_time': sim_time}
     # the plant owns simulation time: its own clock need not follow /clock

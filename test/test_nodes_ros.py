@@ -435,3 +435,63 @@ def test_a_trajectory_the_learning_cannot_take_is_logged_and_the_loop_goes_on(co
     assert any(m.name == 'controller_node' and m.level == Log.ERROR
                and 'cannot be learned' in m.msg for m in probe.logs)
     assert np.all(np.isfinite(probe.commands))
+
+
+CONFIG_DIR = __import__('pathlib').Path(__file__).resolve().parents[1] / 'config'
+
+
+def test_a_misspelt_override_is_refused_before_the_loop_with_the_closest_name(capsys):
+    from piezo_stage_ros.nodes import controller_node
+    code = controller_node.main(['controller_node', '--ros-args', '-p', 'rac.gama:=100'])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert "'rac.gama'" in err[-1] and '-p rac.gama:=100' in err[-1]
+    assert "did you mean 'rac.gamma'?" in err[-1]
+
+
+def test_the_multi_axis_file_is_refused_by_the_nodes(capsys):
+    # rcl's own parser cannot read xy_stage.yaml (it reads the axis name y as a boolean, quoted
+    # or not, so the launch file's merged file too): the line says why it cannot run here
+    code = stage_servo.main(['stage_servo', '--ros-args', '--params-file',
+                             str(CONFIG_DIR / 'default.yaml'), '--params-file',
+                             str(CONFIG_DIR / 'xy_stage.yaml')])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and 'xy_stage.yaml' in err[-1] and "'axes.names'" in err[-1]
+    assert 'multi-axis' in err[-1] and 'simulate --config FILE' in err[-1]
+    # a multi-axis key rcl can read reaches the node, which refuses it before its loop
+    code = stage_servo.main(['stage_servo', '--ros-args', '-p',
+                             'controller_node:axes.coupling_compensation:=true'])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and "'axes.coupling_compensation'" in err[-1]
+    assert 'multi-axis' in err[-1] and 'did you mean' not in err[-1]
+
+
+def test_a_good_file_and_overrides_for_every_node_still_run(capfd):
+    code = stage_servo.main(['stage_servo', '--ros-args', '--params-file',
+                             str(CONFIG_DIR / 'default.yaml'), '-p', 'duration_s:=0.01',
+                             '-p', 'seed:=4', '-p', 'use_sim_time:=false'])
+    err = capfd.readouterr().err
+    assert code == 0, err
+
+
+def test_the_launch_file_refuses_a_multi_axis_scenario_before_any_process_starts():
+    import importlib.util
+
+    from launch.actions import DeclareLaunchArgument
+
+    from launch import LaunchContext
+    path = CONFIG_DIR.parent / 'launch' / 'closed_loop.launch.py'
+    spec = importlib.util.spec_from_file_location('closed_loop_launch', path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    context = LaunchContext()
+    for action in module.generate_launch_description().entities:
+        if isinstance(action, DeclareLaunchArgument):
+            action.visit(context)
+    context.launch_configurations.update({'config': str(CONFIG_DIR / 'default.yaml'),
+                                          'scenario': str(CONFIG_DIR / 'xy_stage.yaml')})
+    with pytest.raises(ValueError, match='multi-axis.*simulate --config FILE'):
+        module._launch(context)
+    # the one-axis default still gives its processes
+    context.launch_configurations['scenario'] = ''
+    assert module._launch(context)

@@ -25,6 +25,7 @@ from __future__ import annotations
 import array
 from typing import Any, Callable, Sequence
 
+from piezo_stage_ros.core.config.unknown import check_given, MULTI_AXIS_PREFIXES, ros_sources
 from piezo_stage_ros.core.contracts.errors import PiezoStageError
 from piezo_stage_ros.nodes.tables import Declaration, NodeTable
 from rcl_interfaces.msg import (
@@ -36,7 +37,7 @@ from rcl_interfaces.msg import (
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-__all__ = ['ParameterBinding', 'descriptor']
+__all__ = ['ParameterBinding', 'check_undeclared', 'descriptor', 'multi_axis_hint']
 
 
 def descriptor(decl: Declaration) -> ParameterDescriptor:
@@ -109,3 +110,63 @@ class ParameterBinding:
             return SetParametersResult(successful=False, reason=str(exc))
         self.objects = new
         return SetParametersResult(successful=True)
+
+
+def _declared(node: Node) -> set[str]:
+    return set(node.list_parameters([], 0).names)
+
+
+def check_undeclared(nodes: Sequence[Node], argv: Sequence[str]) -> None:
+    """
+    Refuse parameters given to the nodes of one process that they do not declare.
+
+    ROS keeps what the parameter files and ``-p`` overrides give a node as its overrides and
+    drops those it never declares; rclpy 7.1 has no public accessor for them, so they are read
+    from the node's ``_parameter_overrides`` (empty where an rclpy lacks it: nothing refused).
+
+    Parameters
+    ----------
+    nodes : sequence of Node
+        The nodes of the process, built (their parameters declared).
+    argv : sequence of str
+        The command line the process was started with, to say where a value came from.
+
+    Raises
+    ------
+    ConfigError
+        Naming each parameter, its node, its source and the closest declared name.
+
+    """
+    sources = ros_sources(argv)
+    declared = {node.get_name(): _declared(node) for node in nodes}
+    messages: list[str] = []
+    for node in nodes:
+        name = node.get_name()
+        others = set().union(*(d for n, d in declared.items() if n != name))
+        given = getattr(node, '_parameter_overrides', {})
+        try:
+            check_given(name, given, declared[name], sources, others)
+        except PiezoStageError as exc:
+            messages.append(str(exc))
+    if messages:
+        raise PiezoStageError('; '.join(messages))
+
+
+def multi_axis_hint(argv: Sequence[str]) -> str:
+    """
+    Return why a parameter file rcl could not read may be a multi-axis one, or ''.
+
+    rcl's parser refuses some multi-axis files itself (``names: [x, y]``: YAML reads ``y`` as a
+    boolean) before a node could say that they run offline.
+    """
+    try:
+        sources = ros_sources(argv)
+    except PiezoStageError:
+        return ''
+    for source in sources:
+        names = [n for n in source.names if n.startswith(MULTI_AXIS_PREFIXES)]
+        if names:
+            return (f' ({source.where} has {names[0]!r}: a multi-axis stage, which runs '
+                    'offline (python -m piezo_stage_ros.simulate --config FILE), not yet on '
+                    'the nodes)')
+    return ''

@@ -16,8 +16,9 @@
 Running one or several node classes in one process, on one executor (imports rclpy).
 
 Every executable of the package goes through :func:`run`: it initialises rclpy with the ROS
-arguments, builds the nodes (a bad parameter prints one line and exits 2), spins them on one
-``rclpy.experimental.EventsExecutor`` (or the single-threaded executor on request) until
+arguments, builds the nodes (a bad parameter, or one given that the node does not declare,
+prints one line and exits 2), spins them on one ``rclpy.experimental.EventsExecutor`` (or the
+single-threaded executor on request) until
 Ctrl-C, an external shutdown, or the plant's run is complete, and always destroys the nodes (the
 plant drives its safe voltage there) and shuts rclpy down.
 """
@@ -31,6 +32,7 @@ from typing import Any, Callable, Protocol, Sequence, TypeVar
 
 from piezo_stage_ros.core.contracts.cdr import CdrError
 from piezo_stage_ros.core.contracts.errors import PiezoStageError
+from piezo_stage_ros.nodes.parameters import check_undeclared, multi_axis_hint
 import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -175,7 +177,7 @@ def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
     try:
         own = remove_ros_args(args)
     except RuntimeError as exc:  # rclpy's UnknownROSArgsError is one
-        print(f'{prog}: ROS arguments refused: {exc}', file=sys.stderr)
+        print(f'{prog}: ROS arguments refused: {exc}{multi_axis_hint(args)}', file=sys.stderr)
         return 2
     opts = parser.parse_args(own[1:])
     chosen = [n.strip() for n in opts.nodes.split(',') if n.strip()]
@@ -192,13 +194,15 @@ def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
     try:
         rclpy.init(args=args)
     except RuntimeError as exc:
-        print(f'{prog}: ROS arguments refused: {exc}', file=sys.stderr)
+        print(f'{prog}: ROS arguments refused: {exc}{multi_axis_hint(args)}', file=sys.stderr)
         return 2
     nodes: list[Node] = []
     try:
         for name, factory in factories:
             if name in chosen:
                 nodes.append(factory())
+        # ROS drops a given parameter no node declares: refuse it before any loop starts
+        check_undeclared(nodes, args)
     except (PiezoStageError, ParameterException) as exc:
         print(f'{prog}: {exc}', file=sys.stderr)
         for node in nodes:

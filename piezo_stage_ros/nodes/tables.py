@@ -31,6 +31,7 @@ from piezo_stage_ros.core.config.loader import (
     controller_table,
     design_plant,
     load_loop_config,
+    LoopConfig,
     plant_table,
     trajectory_table,
 )
@@ -46,6 +47,8 @@ from piezo_stage_ros.core.config.nodes import (
     PlantNodeParams,
     TrajectoryNodeParams,
 )
+from piezo_stage_ros.core.config.unknown import ros_options
+from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.control.stability import StabilityParams
 from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryBase
 from piezo_stage_ros.core.model.hysteresis import HysteresisModel, make_hysteresis
@@ -72,21 +75,16 @@ def params_files(argv: Sequence[str]) -> list[str]:
         The files, in the order ROS applies them (later ones win).
 
     """
-    files: list[str] = []
-    ros = False
-    args = list(argv)
-    i = 0
-    while i < len(args):
-        arg = args[i]
-        if arg == '--ros-args':
-            ros = True
-        elif arg == '--':
-            ros = False
-        elif ros and arg == '--params-file' and i + 1 < len(args):
-            files.append(args[i + 1])
-            i += 1
-        i += 1
-    return files
+    return [value for flag, value in ros_options(argv) if flag == '--params-file']
+
+
+def _loop(files: Sequence[str]) -> LoopConfig:
+    """Return the files' loop configuration; a bad value's error names the files."""
+    try:
+        return load_loop_config(files)
+    except ParameterError as exc:
+        raise ParameterError(exc.name, exc.value, f'{exc.allowed}; read from '
+                             + ', '.join(files), exc.reason) from None
 
 
 def design_model(stability: StabilityParams, files: Sequence[str]
@@ -129,7 +127,7 @@ def design_model(stability: StabilityParams, files: Sequence[str]
         return plant, (f"the plant node's default {plant.model} model (no --params-file; set "
                        'the plant in a parameter file given to both nodes, or '
                        'stability.design_model: own)')
-    plant = design_plant(stability, load_loop_config(files).stage.plant)
+    plant = design_plant(stability, _loop(files).stage.plant)
     return plant, (f"the plant node's {plant.model} model (plant_node plant.* of "
                    + ', '.join(files) + ')')
 
@@ -153,7 +151,7 @@ def feedforward_context(files: Sequence[str]
         hysteresis slopes and the stage family.
 
     """
-    loop = load_loop_config(files)
+    loop = _loop(files)
     reference = make_trajectory(loop.trajectory)
     return ((make_hysteresis(loop.stage.hysteresis), reference),
             {'period_s': reference.period_s, 'stage': loop.stage})

@@ -29,15 +29,16 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+import difflib
 import math
-from typing import Any, Mapping, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.contracts.params import group, param, Params, ParamSpec
 
 __all__ = ['BridgeParams', 'ControllerNodeParams', 'Declaration', 'Group', 'LockstepParams',
            'MODES', 'NodeTable', 'PlantNodeParams', 'RecordingParams', 'ServoParams',
-           'TrajectoryNodeParams', 'WatchdogParams', 'declaration']
+           'TrajectoryNodeParams', 'WatchdogParams', 'closest_name', 'declaration']
 
 MODES = ('lockstep', 'realtime')
 _MODE_DOC = ('Time: lockstep (the plant owns simulation time and waits for each command) or '
@@ -263,6 +264,12 @@ class Declaration:
     additional_constraints: str
 
 
+def closest_name(name: str, names: Iterable[str]) -> str | None:
+    """Return the name of ``names`` closest to a misspelt ``name`` (difflib), or None."""
+    close = difflib.get_close_matches(name, sorted(names), n=1)
+    return close[0] if close else None
+
+
 def declaration(spec: ParamSpec) -> Declaration:
     """
     Return how a node declares the parameter ``spec`` describes.
@@ -380,8 +387,10 @@ class NodeTable:
         for name, value in values.items():
             owner = self._owner.get(name)
             if owner is None:
+                close = closest_name(name, self._specs)
+                hint = f"did you mean '{close}'?; " if close else ''
                 raise ParameterError(name, value, 'a parameter of ' + self.node_name +
-                                     ' (see docs/reference/ros-interface.md)',
+                                     f' ({hint}see docs/reference/ros-interface.md)',
                                      'is not a parameter of this node')
             parts[owner][name] = value
         return parts
