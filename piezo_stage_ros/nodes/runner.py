@@ -204,7 +204,8 @@ def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
         # ROS drops a given parameter no node declares: refuse it before any loop starts
         check_undeclared(nodes, args)
     except (PiezoStageError, ParameterException) as exc:
-        print(f'{prog}: {exc}', file=sys.stderr)
+        text = str(exc)  # a node's own message may start with its name, the program's
+        print(text if text.startswith(f'{prog}: ') else f'{prog}: {text}', file=sys.stderr)
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()
