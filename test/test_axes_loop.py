@@ -228,6 +228,23 @@ def test_two_way_coupling_gain_grows_with_the_coupling_and_is_refused_when_too_l
     assert not too_much.certified and 'not certified' in too_much.text()
 
 
+def test_the_coupled_learning_check_covers_the_harmonics_q_keeps_above_its_edge():
+    # Q keeps a fast line's first harmonics up to BANDWIDTH_STRETCH times its edge (a 300 Hz
+    # line's 5th at 1.5 kHz): the check covers every frequency a kept harmonic can lie at.
+    # With two-way coupling the ratio grows towards the top of what is learned, so its worst
+    # lies above the edge and within the stretch
+    from piezo_stage_ros.core.control.feedforward import BANDWIDTH_STRETCH, kept_harmonics
+    edge_hz = LOOP.controller.feedforward.learning_bandwidth_hz
+    t = LOOP.stage.sample_time_s
+    samples = 1.0 / (300.0 * t)
+    kept = kept_harmonics(np.ones(int(samples // 2) + 1, dtype=complex), samples, t, edge_hz)
+    assert np.flatnonzero(kept)[-1] / (samples * t) > edge_hz
+    r = check_for((0.0, 0.02, 0.01, 0.0))
+    assert r.learning_frequency_hz is not None
+    assert edge_hz < r.learning_frequency_hz <= BANDWIDTH_STRETCH * edge_hz
+    assert r.learning_ratio is not None and r.learning_ratio < 1.0
+
+
 def test_frame_images_put_each_line_in_a_row_low_end_first():
     from piezo_stage_ros.core.loop.axes import frame_images
     recs = raster_run(4, 0.1, LOOP.controller)   # two frames and a half

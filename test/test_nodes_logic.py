@@ -634,15 +634,27 @@ def test_a_trajectory_the_learning_cannot_take_leaves_the_loop_on_feedback():
     assert isinstance(ctrl, FeedForwardController)
     ctrl.bind(sine)
     reasons: list[str] = []
-    logic = ControllerLogic(ctrl, on_refused=reasons.append)
+    # what is bound, and at which sample: a rebuild binds it from then on (not the refused
+    # step, nor a line announced ahead before its stamp)
+    bound: list[tuple[int, object]] = []
+    logic = ControllerLogic(ctrl, on_refused=reasons.append,
+                            on_bound=lambda t: bound.append((k, t)))
     refs = TrajectoryLogic(sine, sample_rate_hz=1e4)
+    line = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine',
+                                                       'sine.frequency_hz': 137.0}))
     for k in range(300):
         if k == 100:
             refs.switch(step)
             logic.request_trajectory(step, 100 * 100_000)
+        if k == 200:
+            logic.request_trajectory(line, 250 * 100_000)  # announced ahead of its stamp
+        if k == 250:
+            refs.switch(line)
         x, v = refs.on_position(k * 100_000)
         logic.on_reference(k * 100_000, x, v)
         command = logic.on_position(k * 100_000, x, k * 1e-4)
         assert command is not None and np.isfinite(command.voltage_v)
     assert len(reasons) == 1 and 'learning needs a periodic reference' in reasons[0]
     assert ctrl.mismatches > 0
+    assert bound == [(250, line)]
+    assert ctrl.diagnostics()['ff_active'] == 1.0 and ctrl.period_s == 1 / 137.0

@@ -388,8 +388,12 @@ def test_the_controller_node_writes_its_learned_table_when_it_shuts_down(context
     assert table.samples == 100 and table.periods_learned == 0 and table.mode == 'learning'
 
 
-def switched_run(context, change: dict, ahead: int = 0):
-    """Run three nodes in lockstep for 0.3 s; ``change`` is set on the trajectory node at 0.1 s."""
+def switched_run(context, change: dict, ahead: int = 0, controller_change: dict | None = None):
+    """
+    Run three nodes in lockstep for 0.3 s; ``change`` is set on the trajectory node at 0.1 s.
+
+    ``controller_change``, if given, is set on the controller node at 0.2 s.
+    """
     controller = {**CONTROLLER, 'feedforward.mode': 'inverse_learning'}
     plant = PlantNode(context=context, parameter_overrides=overrides(
         {**STAGE, 'mode': 'lockstep', 'duration_s': 0.3, 'lockstep.subscribers': 3}))
@@ -405,12 +409,15 @@ def switched_run(context, change: dict, ahead: int = 0):
         stamp = msg.header.stamp.sec * 10 ** 9 + msg.header.stamp.nanosec
         if stamp == 100_000_000 and not switched:
             switched.append(traj.set_parameters(overrides(change))[0].successful)
+        if stamp == 200_000_000 and controller_change is not None:
+            switched.append(ctrl.set_parameters(overrides(controller_change))[0].successful)
 
     probe.create_subscription(JointState, wire.POSITION, switch_at_a_tenth_of_a_second, RECORD)
     spin(context, [plant, probe, traj, ctrl], plant.finished,
          until=lambda: len(probe.commands) >= 3000)
     stats = plant.finished.result()
-    assert switched == [True] and stats['resends'] == 0 and len(probe.commands) == 3000
+    assert switched == [True] * (1 + (controller_change is not None))
+    assert stats['resends'] == 0 and len(probe.commands) == 3000
     return ctrl, probe
 
 
@@ -435,6 +442,17 @@ def test_a_trajectory_the_learning_cannot_take_is_logged_and_the_loop_goes_on(co
     assert any(m.name == 'controller_node' and m.level == Log.ERROR
                and 'cannot be learned' in m.msg for m in probe.logs)
     assert np.all(np.isfinite(probe.commands))
+
+
+def test_a_rebuild_after_a_refused_trajectory_binds_the_one_the_loop_kept(context):
+    # the refused step is not the feed-forward's trajectory: a later structural change (new
+    # output limits: a new controller) binds the one kept, and the run completes (binding the
+    # step would refuse the rebuild inside the sample callback and end the controller node)
+    ctrl, probe = switched_run(context, {'kind': 'step'},
+                               controller_change={'output_max_v': 9.5})
+    assert np.all(np.isfinite(probe.commands)) and ctrl.logic.changes == 1
+    ff = ctrl.logic.controller
+    assert ff.output_limits_v[1] == 9.5 and ff.period_s == 1 / 100.0
 
 
 CONFIG_DIR = __import__('pathlib').Path(__file__).resolve().parents[1] / 'config'

@@ -124,7 +124,8 @@ class ControllerNode(Node):
                                      position_timeout_s=opts.position_timeout_s,
                                      diagnostics_every=opts.diagnostics_every,
                                      rebuild=self._rebuild,
-                                     on_refused=self._log_error)
+                                     on_refused=self._log_error,
+                                     on_bound=self._bound_trajectory)
         self._stability = stability
         #: Where changes go besides ``logic``: a servo process that runs its own copy of it
         #: (``ServoProcess.change``; stage_servo --direct in real time).
@@ -158,6 +159,14 @@ class ControllerNode(Node):
 
     def _log_error(self, text: str) -> None:
         self.get_logger().error(text)
+
+    def _bound_trajectory(self, trajectory: TrajectoryBase) -> None:
+        # from the sample it is bound at (not when announced, nor when refused): a rebuild (a
+        # structural gain change) binds the trajectory that plays, and the check judges the
+        # learning at its period
+        if self._ff_context is not None:
+            self._ff_context = (self._ff_context[0], trajectory)
+            self._check_context['period_s'] = trajectory.period_s
 
     def _design(self, stability: StabilityParams) -> tuple[PlantParams, str]:
         return design_model(stability, self._files)
@@ -283,10 +292,6 @@ class ControllerNode(Node):
             self.get_logger().error(f'{wire.TRAJECTORY}: {err}; the feed-forward keeps '
                                     'the trajectory it has')
             return
-        # a rebuild (a structural gain change) binds the trajectory that plays, and the check
-        # judges the learning at its period
-        self._ff_context = (self._ff_context[0], trajectory)
-        self._check_context['period_s'] = trajectory.period_s
         self.logic.request_trajectory(trajectory, stamp)
         self.get_logger().info(f'feed-forward: trajectory {params.kind} from stamp {stamp} ns')
 

@@ -710,6 +710,9 @@ class ControllerLogic:
         ``on_refused(reason)`` when a feed-forward cannot take a new trajectory (learning on
         an aperiodic one): it keeps the one it has, which no longer matches the reference,
         and the loop runs on feedback alone.
+    on_bound : callable, optional
+        ``on_bound(trajectory)`` when a new trajectory is bound (at the sample of its t = 0):
+        the one a rebuild must bind from then on (not a refused one, nor one still to come).
 
     """
 
@@ -717,9 +720,11 @@ class ControllerLogic:
                  safe_voltage_v: float = 0.0, position_timeout_s: float = 0.01,
                  diagnostics_every: int = 10,
                  rebuild: Callable[[Any], Controller] | None = None,
-                 on_refused: Callable[[str], None] | None = None) -> None:
+                 on_refused: Callable[[str], None] | None = None,
+                 on_bound: Callable[[Any], None] | None = None) -> None:
         self.controller = controller
         self._on_refused = on_refused
+        self._on_bound = on_bound
         self.lockstep = mode == 'lockstep'
         self.safe_voltage_v = safe_voltage_v
         self.watchdog = Watchdog(position_timeout_s)
@@ -879,6 +884,8 @@ class ControllerLogic:
             return
         if switch is not None:
             switch(trajectory)
+        if self._on_bound is not None:
+            self._on_bound(trajectory)
         # a restart goes on from the new trajectory's t = 0, or as far into it as the samples
         # already stepped with it (an announcement that came late)
         late = 0 if at is None else round((stamp - at) / self._period_ns)

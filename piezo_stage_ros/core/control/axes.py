@@ -368,7 +368,7 @@ def coupled_loop_check(ctrl: AxesController, points: int = 4000) -> CoupledLoopC
     CoupledLoopCheck
 
     """
-    from piezo_stage_ros.core.control.feedforward import process_sensitivity
+    from piezo_stage_ros.core.control.feedforward import BANDWIDTH_STRETCH, process_sensitivity
     from piezo_stage_ros.core.control.stability import stability_plant
     from piezo_stage_ros.core.model.hysteresis import NoHysteresis
 
@@ -423,7 +423,9 @@ def coupled_loop_check(ctrl: AxesController, points: int = 4000) -> CoupledLoopC
             # the diagonal is the axis' own c G (the paths fill the rest): the design P_s
             ps = process_sensitivity(plant[:, j, j], z, k_p, k_i,
                                      params[j].sensor_gain_v_per_m, t, notch_j)
-            kept = (freq <= ff.learning_bandwidth_hz) & (np.abs(ps) > 0.0)
+            # every frequency some line's kept harmonic can lie at: Q keeps a fast line's
+            # first harmonics up to BANDWIDTH_STRETCH times its edge (kept_harmonics)
+            kept = (freq <= BANDWIDTH_STRETCH * ff.learning_bandwidth_hz) & (np.abs(ps) > 0.0)
             d_gain[kept, j] = ff.learning_gain / ps[kept]
         best = 0.0
         for k in range(z.size):

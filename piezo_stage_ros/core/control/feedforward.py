@@ -46,7 +46,8 @@ A two-degree-of-freedom structure around any controller of
   period j the table is updated on the harmonics: L_{j+1} = Q (L_j - gamma E_j / P_s), with E_j
   the measured error of that period and P_s = c G / (1 + N C k c G) the closed-loop process
   sensitivity of the design model (the controller linearized as the stability check does).
-  Q keeps the harmonics below ``learning_bandwidth_hz``; on the design model each kept harmonic
+  Q keeps the harmonics below ``learning_bandwidth_hz`` (a fast line's first ones a little
+  above it, :func:`kept_harmonics`); on the design model each kept harmonic
   converges monotonically with ratio |1 - gamma|; on another stage the ratio is
   |1 - gamma P_true / P_s| (:func:`learning_convergence`). The update is summed in runs of 16
   (no FFT at the period's end), and the RAC's estimates are held while the table learns: both
@@ -818,8 +819,8 @@ class PhaseLearning:
 
     The table is a band-limited periodic function of the phase phi in [0, 1) of the period
     P, held as its harmonics: L(phi) = sum_h alpha_h cos(2 pi h phi) + beta_h sin(2 pi h phi)
-    over the harmonics h that Q keeps (no DC, at most ``learning_bandwidth_hz`` and below
-    the Nyquist frequency). Why harmonics and not a table of samples: when P/T is not a
+    over the harmonics h that Q keeps (no DC, :func:`kept_harmonics`, below the Nyquist
+    frequency). Why harmonics and not a table of samples: when P/T is not a
     whole number the samples fall at other phases every period, so a table of samples would
     need an interpolation in playback and its transpose in the update, which low-pass and
     alias what is learned; the learning filter gamma Q / P_s acts on harmonics of the period
