@@ -369,6 +369,53 @@ def test_a_new_line_rate_starts_from_the_model_inverse_and_learns_again() -> Non
     assert np.mean(learned[-5:]) < np.mean(inverse[-5:])
 
 
+class _Lines:
+    """Sine lines whose rate changes every ``every_s``: the segments a line-rate change gives."""
+
+    period_s = None
+
+    def __init__(self, rates_hz: tuple[float, ...], every_s: float) -> None:
+        tp = TrajectoryParams.from_flat({**LOOP.trajectory.to_flat(), 'kind': 'sine'})
+        self._parts = tuple((every_s * i, make_trajectory(tp.with_flat(
+            {'sine.frequency_hz': r}))) for i, r in enumerate(rates_hz))
+
+    @property
+    def segments(self) -> tuple[tuple[float, object], ...]:
+        return self._parts
+
+    def evaluate(self, time_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t = np.asarray(time_s, dtype=np.float64)
+        x, v = np.zeros_like(t), np.zeros_like(t)
+        for start, traj in self._parts:
+            on = t >= start - 1e-12
+            if np.any(on):
+                x[on], v[on] = traj.evaluate(t[on] - start)
+        return x, v
+
+
+def test_changes_of_line_rate_leave_the_held_estimates_where_they_were() -> None:
+    # inverse_learning holds the RAC's estimates and takes their term off the command. Released
+    # at each change of line rate under that term, they re-adapted and were held again with
+    # both offsets: on a stage with more gain than the model they walked to the box's bound in
+    # three changes. Held through a change, they stay, and every line rate is learned.
+    stage = member_params(LOOP.stage, {m.name: m for m in default_family()}['gain_hi'])
+    rates, every = (100.0, 137.0, 100.0, 137.0), 0.3
+    tp = TrajectoryParams.from_flat({**LOOP.trajectory.to_flat(), 'kind': 'sine'})
+    rec = experiments.run_one(stage, _controller('inverse_learning'), tp,
+                              duration_s=every * len(rates), design_plant=LOOP.design_plant,
+                              trajectory=_Lines(rates, every))
+    assert rec.true_position_m is not None
+    assert rec.diagnostics['ff_mismatches'][-1] == 0
+    t = rec.time_s - rec.time_s[0]
+    held = np.flatnonzero(t < every)[-1]
+    for name in ('theta_hat', 'phi_hat'):
+        values = rec.diagnostics[name]
+        assert np.all(values[t >= every] == values[held]), name
+    e = rec.true_position_m - rec.reference_m
+    last = t >= every * len(rates) - 0.05
+    assert float(np.sqrt(np.mean(e[last] ** 2))) <= 1e-9
+
+
 def test_a_line_rate_change_is_refused_by_the_batch_and_checked_at_its_time() -> None:
     from piezo_stage_ros.core.loop.switched import LineRateChange
     sine = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine'}))

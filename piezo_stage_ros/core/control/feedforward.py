@@ -1581,11 +1581,13 @@ class FeedForwardController:
         self._bind_one(trajectory, load_file=False)
         self._k = 0
         self._seen_k = -1
-        # the estimates adapt again from where they were held; with the model inverse the term
-        # they held stays taken off (the new line starts from the model inverse, as a run does)
-        drift = self._drift_gains
-        self._hold(False)
-        self._drift_gains = drift
+        # With the model inverse, held estimates stay held and their term stays taken off: the
+        # new line starts from the model inverse, and estimates released here would re-adapt
+        # under that term and be held again with the two offsets added, walking a little
+        # further towards the box's bounds at every change of line rate. Without it (learning
+        # alone, the seed above carries the RAC's present term) they adapt again from there.
+        if not (self._holding and self._inverse_on):
+            self._hold(False)
         if self._learning_on and not self._inverse_on:
             self._seed_from_model()
 
