@@ -187,9 +187,11 @@ class FeedForwardParams(Params):
                                  'model.', low=0.0, low_open=True, high=1.0)
     learning_bandwidth_hz: float = param(1200.0, unit='Hz', description='Robustness filter Q: '
                                          'harmonics of the period above this frequency are '
-                                         'not learned (1200: the learning contracts by 0.84 '
-                                         'or less a period on every member of the stage '
-                                         'family, docs/explanation/robustness.md).',
+                                         'not learned, except the first five harmonics of a fast '
+                                         'line, up to '
+                                         '1.25 times it (at 1200 the learning contracts every '
+                                         'period on every member of the stage family: '
+                                         'docs/explanation/robustness.md).',
                                          low=0.0, low_open=True)
     learning_start_periods: int = param(1, unit='periods', description='Whole periods run '
                                         'before the first update (the start transient is not '
