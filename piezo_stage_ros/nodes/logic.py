@@ -786,6 +786,10 @@ class ControllerLogic:
 
         """
         self._trajectories.append((stamp_ns, trajectory))
+        # bound in the order of their stamps, whatever the order they came in (a far-future
+        # stamp must not hold back a nearer one); None (the next sample) first; stable, so of
+        # two with one stamp the later request wins
+        self._trajectories.sort(key=lambda entry: (entry[0] is not None, entry[0] or 0))
 
     def _apply_pending(self, position_m: float, reference_m: float) -> None:
         params, self._pending = self._pending, None
