@@ -641,6 +641,40 @@ def test_announcements_are_bound_in_the_order_of_their_stamps():
     assert ctrl.mismatches == 0 and ctrl.period_s == 1 / 80.0
 
 
+def test_a_start_after_a_stop_is_announced_and_bound_at_its_stamp():
+    # a start begins the trajectory at its t = 0 again: the controller's copy must follow (it
+    # predicted a shifted reference and left every sample to the feedback)
+    from piezo_stage_ros.core.control.feedforward import FeedForwardController
+    from piezo_stage_ros.core.model.hysteresis import HysteresisParams, make_hysteresis
+    from piezo_stage_ros.core.model.stage import linear_plant
+    params = ControllerParams().with_flat({'feedforward.mode': 'inverse_learning'})
+    sine = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine'}))
+    ctrl = build_controller(params, 1e-4, linear_plant(StageParams().plant),
+                            make_hysteresis(HysteresisParams()))
+    assert isinstance(ctrl, FeedForwardController)
+    ctrl.bind(sine)
+    logic = ControllerLogic(ctrl)
+    refs = TrajectoryLogic(sine, sample_rate_hz=1e4)
+    starts = []
+    for k in range(900):
+        if k == 300:
+            refs.stop()
+        if k == 450:
+            refs.start()
+        x, v = refs.on_position(k * 100_000)
+        at = refs.take_switch()
+        if at is not None:  # what the trajectory node announces
+            starts.append(at)
+            logic.request_trajectory(sine, at)
+        logic.on_reference(k * 100_000, x, v)
+        assert logic.on_position(k * 100_000, x, k * 1e-4) is not None
+        if k == 451:
+            after_start = ctrl.mismatches
+    assert starts == [450 * 100_000]
+    assert ctrl.mismatches == after_start  # none once started again
+    assert ctrl.diagnostics()['ff_active'] == 1.0
+
+
 def test_a_bad_announcement_names_its_form():
     from piezo_stage_ros.nodes.logic import parse_trajectory
     with pytest.raises(ParameterError, match='trajectory announcement.*stamp_ns'):

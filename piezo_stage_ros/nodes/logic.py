@@ -485,9 +485,11 @@ class TrajectoryLogic:
         self._window: tuple[int, Any, Any, Any] = (0, None, np.zeros(0), np.zeros(0))
 
     def start(self) -> None:
-        """Stream from the next sample on, from t = 0."""
+        """Stream from the next sample on, from a new t = 0 (:meth:`take_switch` says where)."""
         self.active = True
         self._start_ns = None
+        # a controller predicting from its own copy must learn the new t = 0, as for a switch
+        self._switched = True
 
     def stop(self) -> None:
         """Hold the last reference with zero velocity from the next sample on."""
