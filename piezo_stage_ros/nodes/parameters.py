@@ -133,7 +133,7 @@ def check_undeclared(nodes: Sequence[Node], argv: Sequence[str]) -> None:
 
     Raises
     ------
-    ConfigError
+    PiezoStageError
         Naming each parameter, its node, its source and the closest declared name.
 
     """
