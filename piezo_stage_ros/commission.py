@@ -63,7 +63,6 @@ from piezo_stage_ros.core.identification.commission import (
     comparison,
     excitation_table,
     ros_overrides,
-    verification_failures,
 )
 from piezo_stage_ros.core.model.family import (
     default_family,
@@ -341,9 +340,8 @@ def _single(args: argparse.Namespace, loop: LoopConfig) -> int:
     if report:
         print(f'report: {files[-1]}')
     if not result.accepted:
-        failed = verification_failures(ver, _params(args),
-                                       result.identified.chain.sensor_noise_std_m)
-        cli.error(PROG, '; '.join(failed or ['not accepted']) + ': no parameter file written')
+        cli.error(PROG, '; '.join(result.refused or ['not accepted'])
+                  + ': no parameter file written')
         return 1
     header = ['Commissioned by: commission ' + ' '.join(sys.argv[1:] if args.argv is None
                                                         else args.argv),

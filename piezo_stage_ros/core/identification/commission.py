@@ -867,6 +867,9 @@ class CommissionResult:
         Certified, and the verification within ``verify_max_m`` and, on a stage, within
         ``verify_max_ratio`` of the identified model's prediction.
     notes : list of str
+    refused : list of str
+        Why the verification is not accepted (:func:`verification_failures`; also in
+        ``notes``); empty when it is.
 
     """
 
@@ -881,6 +884,7 @@ class CommissionResult:
     position_peak_m: float
     accepted: bool
     notes: list[str] = field(default_factory=list)
+    refused: list[str] = field(default_factory=list)
 
 
 def commission(true_stage: StageParams, configured: StageParams,
@@ -1043,7 +1047,8 @@ def _finish(whole: RunRecord, excited: RunRecord, hold_check: StabilityReport | 
     return CommissionResult(identified=identified, checked=checked, design=des,
                             verification=ver, whole=whole, excited=excited,
                             hold_check=hold_check, excitation_peak_m=exc_peak,
-                            position_peak_m=pos_peak, accepted=accepted, notes=notes)
+                            position_peak_m=pos_peak, accepted=accepted, notes=notes,
+                            refused=failed)
 
 
 def summary(result: CommissionResult, true_stage: StageParams | None = None) -> dict[str, Any]:
