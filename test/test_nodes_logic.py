@@ -612,69 +612,6 @@ def test_an_announced_trajectory_is_bound_at_the_stamp_of_its_t0(late):
     assert ctrl.periods_learned >= 3
 
 
-def test_announcements_are_bound_in_the_order_of_their_stamps():
-    # a trajectory announced for a later stamp first, one for an earlier stamp after it: each
-    # is bound at its own stamp (in the order they came, the later stamp held the earlier back)
-    from piezo_stage_ros.core.control.feedforward import FeedForwardController
-    from piezo_stage_ros.core.model.hysteresis import HysteresisParams, make_hysteresis
-    from piezo_stage_ros.core.model.stage import linear_plant
-    params = ControllerParams().with_flat({'feedforward.mode': 'inverse_learning'})
-    lines = {hz: make_trajectory(TrajectoryParams.from_flat(
-        {'kind': 'sine', 'sine.frequency_hz': hz})) for hz in (100.0, 137.0, 80.0)}
-    ctrl = build_controller(params, 1e-4, linear_plant(StageParams().plant),
-                            make_hysteresis(HysteresisParams()))
-    assert isinstance(ctrl, FeedForwardController)
-    ctrl.bind(lines[100.0])
-    bound: list[tuple[int, object]] = []
-    logic = ControllerLogic(ctrl, on_bound=lambda t: bound.append((k, t)))
-    refs = TrajectoryLogic(lines[100.0], sample_rate_hz=1e4)
-    for k in range(500):
-        if k == 10:
-            logic.request_trajectory(lines[80.0], 400 * 100_000)
-            logic.request_trajectory(lines[137.0], 250 * 100_000)
-        if k in (250, 400):
-            refs.switch(lines[137.0 if k == 250 else 80.0])
-        x, v = refs.on_position(k * 100_000)
-        logic.on_reference(k * 100_000, x, v)
-        assert logic.on_position(k * 100_000, x, k * 1e-4) is not None
-    assert bound == [(250, lines[137.0]), (400, lines[80.0])]
-    assert ctrl.mismatches == 0 and ctrl.period_s == 1 / 80.0
-
-
-def test_a_start_after_a_stop_is_announced_and_bound_at_its_stamp():
-    # a start begins the trajectory at its t = 0 again: the controller's copy must follow (it
-    # predicted a shifted reference and left every sample to the feedback)
-    from piezo_stage_ros.core.control.feedforward import FeedForwardController
-    from piezo_stage_ros.core.model.hysteresis import HysteresisParams, make_hysteresis
-    from piezo_stage_ros.core.model.stage import linear_plant
-    params = ControllerParams().with_flat({'feedforward.mode': 'inverse_learning'})
-    sine = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine'}))
-    ctrl = build_controller(params, 1e-4, linear_plant(StageParams().plant),
-                            make_hysteresis(HysteresisParams()))
-    assert isinstance(ctrl, FeedForwardController)
-    ctrl.bind(sine)
-    logic = ControllerLogic(ctrl)
-    refs = TrajectoryLogic(sine, sample_rate_hz=1e4)
-    starts = []
-    for k in range(900):
-        if k == 300:
-            refs.stop()
-        if k == 450:
-            refs.start()
-        x, v = refs.on_position(k * 100_000)
-        at = refs.take_switch()
-        if at is not None:  # what the trajectory node announces
-            starts.append(at)
-            logic.request_trajectory(sine, at)
-        logic.on_reference(k * 100_000, x, v)
-        assert logic.on_position(k * 100_000, x, k * 1e-4) is not None
-        if k == 451:
-            after_start = ctrl.mismatches
-    assert starts == [450 * 100_000]
-    assert ctrl.mismatches == after_start  # none once started again
-    assert ctrl.diagnostics()['ff_active'] == 1.0
-
-
 def test_a_bad_announcement_names_its_form():
     from piezo_stage_ros.nodes.logic import parse_trajectory
     with pytest.raises(ParameterError, match='trajectory announcement.*stamp_ns'):

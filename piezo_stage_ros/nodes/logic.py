@@ -485,11 +485,9 @@ class TrajectoryLogic:
         self._window: tuple[int, Any, Any, Any] = (0, None, np.zeros(0), np.zeros(0))
 
     def start(self) -> None:
-        """Stream from the next sample on, from a new t = 0 (:meth:`take_switch` says where)."""
+        """Stream from the next sample on, from t = 0."""
         self.active = True
         self._start_ns = None
-        # a controller predicting from its own copy must learn the new t = 0, as for a switch
-        self._switched = True
 
     def stop(self) -> None:
         """Hold the last reference with zero velocity from the next sample on."""
@@ -788,10 +786,6 @@ class ControllerLogic:
 
         """
         self._trajectories.append((stamp_ns, trajectory))
-        # bound in the order of their stamps, whatever the order they came in (a far-future
-        # stamp must not hold back a nearer one); None (the next sample) first; stable, so of
-        # two with one stamp the later request wins
-        self._trajectories.sort(key=lambda entry: (entry[0] is not None, entry[0] or 0))
 
     def _apply_pending(self, position_m: float, reference_m: float) -> None:
         params, self._pending = self._pending, None

@@ -778,10 +778,6 @@ def apply_change(servo: ServoLoop, kind: str, value: Any) -> None:
         assert servo.trajectory is not None
         if value:
             servo.trajectory.start()
-            if servo.controller is not None:
-                # the trajectory starts again at its t = 0 from the next sample: so does the
-                # controller's copy (a feed-forward binds it afresh)
-                servo.controller.request_trajectory(servo.trajectory.trajectory)
         else:
             servo.trajectory.stop()
     elif kind == 'set':
