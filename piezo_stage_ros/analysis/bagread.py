@@ -83,6 +83,7 @@ from piezo_stage_ros.core.contracts.wire import (
     AXES_COMMAND_TYPE,
     AXIS_DIAGNOSTIC_SEPARATOR,
     axis_joint_names,
+    AXIS_JOINT_PREFIX,
     axis_of_joint,
     BAG_TOPICS,
     BLOCK_COLUMNS,
@@ -1020,8 +1021,8 @@ def bag_axes(info: BagInfo, namespace: str | None = None) -> tuple[str, ...]:
     Return the axes of a multi-axis bag in the stage's order (the order of its command).
 
     The run description's ``axes`` when the bag has one (a bag of this package), else the joint
-    names of the first ``<ns>/position`` message (``stage_<axis>``), which the stage publishes
-    in its axis order.
+    names of the first ``<ns>/position`` message (``stage_<axis>``; other joints left out),
+    which the stage publishes in its axis order.
 
     Raises
     ------
@@ -1038,7 +1039,12 @@ def bag_axes(info: BagInfo, namespace: str | None = None) -> tuple[str, ...]:
             connections = [c for c in reader.connections if c.topic == topic]
             for _, _, data in reader.messages(connections=connections):
                 names = decode_joint_state_message(bytes(data)).names
-                return tuple(axis_of_joint(name) for name in names)
+                axes = tuple(axis_of_joint(name) for name in names
+                             if name.startswith(AXIS_JOINT_PREFIX))
+                if not axes:
+                    raise BagError(f'bag {info.path}: the joints {list(names)} on {topic} '
+                                   f"name no axis; allowed: '{AXIS_JOINT_PREFIX}<axis>'")
+                return axes
     except (BagError, CdrError):
         raise
     except Exception as err:  # noqa: BLE001 - storage plugins and decompressors vary
