@@ -150,10 +150,11 @@ def _analyze_axes(args: argparse.Namespace, bag: Path, outdir: Path | None) -> b
         format_axes_summary,
     )
     from piezo_stage_ros.core.contracts.errors import PiezoStageError
-    for option, value in (('--export-table', args.export_table), ('--report', args.report)):
+    for option, value in (('--export-table', args.export_table), ('--report', args.report),
+                          ('--steady-state-start', args.steady_state_start_s)):
         if value is not None:
             print(f'{PROG}: error: bag {bag}: {option} takes one-axis bags; this one holds '
-                  'several axes (use --plots)', file=sys.stderr)
+                  'several axes (use --plots, --window)', file=sys.stderr)
             return False
     try:
         analysis = analyze_axes_bag(bag, namespace=args.namespace, window_s=args.window_s,

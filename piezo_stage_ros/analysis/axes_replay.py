@@ -132,6 +132,9 @@ def analyze_axes_bag(path: str | Path, *, namespace: str | None = None,
     if not (0.0 < window_s and math.isfinite(window_s)):
         raise PiezoStageError(f'window {window_s!r} s is out of range; allowed: (0, '
                               f'{duration:g}] s (the run)')
+    if window_s > duration:
+        notes.append(f'window of {window_s:g} s longer than the run ({duration:g} s): the '
+                     'metrics are over the whole run')
     scan = meta.get('scan')
     raster = scan == 'raster'
     fast = str(meta['fast_axis']) if raster and meta.get('fast_axis') else None
