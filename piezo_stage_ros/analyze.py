@@ -162,6 +162,14 @@ def _analyze_axes(args: argparse.Namespace, bag: Path, outdir: Path | None) -> b
     except PiezoStageError as err:
         print(f'{PROG}: error: {err}', file=sys.stderr)
         return False
+    except MemoryError:
+        print(f'{PROG}: error: bag {bag}: not enough memory to hold its samples',
+              file=sys.stderr)
+        return False
+    except Exception as err:  # noqa: BLE001 - a bag must never end in a traceback
+        print(f'{PROG}: error: bag {bag}: cannot be analysed ({type(err).__name__}: {err}); '
+              'please report this with the bag', file=sys.stderr)
+        return False
     for text in analysis.records[0].meta.get('alignment', {}).get('warnings', ()):
         print(f'{PROG}: warning: bag {bag}: {text}', file=sys.stderr)
     if args.json:

@@ -186,6 +186,19 @@ def test_a_bag_without_an_axis_or_with_another_axis_count_is_refused(tmp_path):
         read_axes(tmp_path / 'three')            # no description: the joints name the axes
 
 
+def test_analyze_reports_a_bad_multi_axis_bag_in_one_line(tmp_path, capsys):
+    foreign_bag(tmp_path / 'missing', position_names=('stage_y', 'gripper'))
+    foreign_bag(tmp_path / 'good')
+    # the good bag is analysed all the same; the bad one fails with one line naming it
+    assert analyze.main([str(tmp_path / 'missing'), str(tmp_path / 'good')]) == 1
+    captured = capsys.readouterr()
+    # no description: the position's joints give the axes (y alone), the command has two
+    assert captured.err.count('\n') == 1 and '/missing:' in captured.err
+    assert '2 values; expected 1 values, one per axis' in captured.err
+    assert 'good: 20 samples, 2 axes (y, x)' in captured.out
+    assert 'no run description in the bag' in captured.out
+
+
 # The run, its bag and analyze.
 
 

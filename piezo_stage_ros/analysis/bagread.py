@@ -1045,8 +1045,11 @@ def bag_axes(info: BagInfo, namespace: str | None = None) -> tuple[str, ...]:
                     raise BagError(f'bag {info.path}: the joints {list(names)} on {topic} '
                                    f"name no axis; allowed: '{AXIS_JOINT_PREFIX}<axis>'")
                 return axes
-    except (BagError, CdrError):
+    except BagError:
         raise
+    except CdrError as err:
+        raise BagError(f'bag {info.path}: a message on {topic} cannot be decoded as '
+                       f'sensor_msgs/msg/JointState (corrupt data?): {_describe(err)}') from None
     except Exception as err:  # noqa: BLE001 - storage plugins and decompressors vary
         raise BagError(f'bag {info.path}: cannot read {topic}: {_describe(err)}') from None
     raise BagError(f'bag {info.path}: topic {topic} has no messages')
