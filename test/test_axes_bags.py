@@ -293,3 +293,19 @@ def test_an_offset_shifts_the_grating_lines_by_minus_the_offset():
         assert g.rms_x_m[k] == pytest.approx(3e-9, rel=1e-9)
         assert g.rms_y_m[k] == pytest.approx(2e-9, rel=1e-9)
     assert not np.array_equal(g.imaged[0], g.desired[0])
+
+
+def test_frame_rows_can_begin_at_the_low_turn_around():
+    from piezo_stage_ros.core.loop.axes import frame_images, line_start
+    fast, slow = raster_records(lines=4, frames=3)
+    # the same run seen from 30 samples later: its lines begin mid-trace
+    late = [RunRecord(r.time_s[30:] - r.time_s[30], r.position_m[30:] + 1e-9 * np.arange(
+        len(r) - 30), r.reference_m[30:], r.reference_velocity_mps[30:], r.command_v[30:], {},
+        r.meta) for r in (fast, slow)]
+    start = line_start(late[0])
+    assert start == 70                          # the next low end
+    x_img, _ = frame_images(late[0], late[1], lines=4, frame=0, start=start)
+    assert np.array_equal(x_img[0], late[0].error_m[70:170])
+    assert np.argmin(late[0].reference_m[70:170]) == 0
+    assert np.array_equal(frame_images(late[0], late[1], lines=4, frame=0)[0][0],
+                          late[0].error_m[:100])          # start 0: as before

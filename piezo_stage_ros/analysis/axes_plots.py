@@ -17,8 +17,8 @@ PNG figures of a multi-axis run (a bag of several axes).
 
 - ``error_<axis>.png``: each axis' tracking error versus time (the one-axis figure);
 - ``frame_error.png``: a raster frame's error as images, the fast and the slow axis, rows the
-  lines (slow axis up), columns the time along a line: trace, then retrace
-  (:func:`~piezo_stage_ros.core.loop.axes.frame_images`);
+  lines (slow axis up) from the fast axis' low turn-around, columns the time along a line:
+  trace, then retrace (:func:`~piezo_stage_ros.core.loop.axes.frame_images`);
 - ``grating.png``: a cross grating imaged over that frame at the positions reached, trace and
   retrace, and how far its lines are displaced in the image
   (:func:`~piezo_stage_ros.core.loop.axes.grating_image`).
@@ -32,7 +32,7 @@ from pathlib import Path
 from matplotlib.figure import Figure
 import numpy as np
 from piezo_stage_ros.analysis.plots import _DPI, _save, plot_error
-from piezo_stage_ros.core.loop.axes import frame_images, GratingImage
+from piezo_stage_ros.core.loop.axes import frame_images, GratingImage, line_start
 from piezo_stage_ros.core.loop.record import RunRecord
 
 __all__ = ['plot_axes_run', 'plot_frame_error', 'plot_grating']
@@ -42,6 +42,10 @@ def plot_frame_error(fast: RunRecord, slow: RunRecord, path: Path, *, lines: int
                      title: str = '') -> Path:
     """
     Draw the last whole raster frame's error of the fast and the slow axis as images.
+
+    A row is a line from the fast axis' low turn-around: trace, then (after the dashed line)
+    retrace. The measured position's error, and below it the true position's where the run
+    has one (a simulation).
 
     Parameters
     ----------
@@ -60,20 +64,28 @@ def plot_frame_error(fast: RunRecord, slow: RunRecord, path: Path, *, lines: int
         ``path``.
 
     """
-    images = frame_images(fast, slow, lines=lines)
+    start = line_start(fast)
+    kinds = [('measured', False)]
+    if fast.true_position_m is not None and slow.true_position_m is not None:
+        kinds.append(('true', True))
     dt = float(fast.meta['sample_time_s'])
-    fig = Figure(figsize=(10.0, 4.2), dpi=_DPI, layout='constrained')
-    for k, (rec, image) in enumerate(zip((fast, slow), images)):
-        ax = fig.add_subplot(1, 2, k + 1)
-        limit = float(np.nanmax(np.abs(image))) * 1e9 or 1.0
-        shown = ax.imshow(image * 1e9, origin='lower', aspect='auto', cmap='RdBu_r',
-                          vmin=-limit, vmax=limit,
-                          extent=(0.0, image.shape[1] * dt * 1e3, -0.5, lines - 0.5))
-        ax.axvline(0.5 * image.shape[1] * dt * 1e3, color='k', lw=0.6, ls='--')
-        ax.set_xlabel('time along the line [ms] (trace | retrace)')
-        ax.set_ylabel('line')
-        ax.set_title(f'axis {rec.meta["axis"]}: error [nm]')
-        fig.colorbar(shown, ax=ax)
+    fig = Figure(figsize=(10.0, 4.2 * len(kinds)), dpi=_DPI, layout='constrained')
+    for row, (kind, true) in enumerate(kinds):
+        images = frame_images(fast, slow, lines=lines, start=start, true=true)
+        # the fast axis' high turn-around: where the trace ends and the retrace begins
+        period = images[0].shape[1]
+        turn = int(np.argmax(fast.reference_m[start:start + period])) * dt * 1e3
+        for k, (rec, image) in enumerate(zip((fast, slow), images)):
+            ax = fig.add_subplot(len(kinds), 2, 2 * row + k + 1)
+            limit = float(np.nanmax(np.abs(image))) * 1e9 or 1.0
+            shown = ax.imshow(image * 1e9, origin='lower', aspect='auto', cmap='RdBu_r',
+                              vmin=-limit, vmax=limit,
+                              extent=(0.0, period * dt * 1e3, -0.5, lines - 0.5))
+            ax.axvline(turn, color='k', lw=0.6, ls='--')
+            ax.set_xlabel('time along the line [ms] (trace | retrace)')
+            ax.set_ylabel('line')
+            ax.set_title(f'axis {rec.meta["axis"]}: error of the {kind} position [nm]')
+            fig.colorbar(shown, ax=ax)
     fig.suptitle(f'{title}raster frame error (last whole frame)')
     return _save(fig, path)
 

@@ -46,7 +46,7 @@ from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.model.axes import AxesStage
 
 __all__ = ['LINE_FRACTION', 'AxisMetrics', 'GratingImage', 'axis_metrics', 'frame_images',
-           'grating_image', 'middle_of_lines', 'run_axes', 'run_metrics']
+           'grating_image', 'line_start', 'middle_of_lines', 'run_axes', 'run_metrics']
 
 #: Share of a raster line's range over which its fast axis is measured (the turn-arounds, where
 #: no image is taken, left out).
@@ -288,7 +288,7 @@ def middle_of_lines(reference_m: FloatArray, fraction: float = 0.8) -> FloatArra
 
 
 def frame_images(fast: RunRecord, slow: RunRecord, *, lines: int, frame: int = -1,
-                 true: bool = False) -> tuple[FloatArray, FloatArray]:
+                 true: bool = False, start: int = 0) -> tuple[FloatArray, FloatArray]:
     """
     Return one raster frame's errors as images: rows the lines, columns the samples of a line.
 
@@ -308,6 +308,9 @@ def frame_images(fast: RunRecord, slow: RunRecord, *, lines: int, frame: int = -
         Which complete frame of the run (negative: counted from the last).
     true : bool
         The true position's error instead of the measured one.
+    start : int
+        The lines begin at this sample (e.g. :func:`line_start`: a row from the fast axis'
+        low turn-around, trace then retrace); 0: at the run's start.
 
     Returns
     -------
@@ -326,8 +329,24 @@ def frame_images(fast: RunRecord, slow: RunRecord, *, lines: int, frame: int = -
         err = rec.true_error_m if true else rec.error_m
         if err is None:
             raise ParameterError('true', true, 'False for a record without true positions')
-        out.append(_frame_rows(fast, err, lines, frame))
+        out.append(_frame_rows(fast, err, lines, frame, start))
     return out[0], out[1]
+
+
+def line_start(fast: RunRecord) -> int:
+    """
+    Return the sample of the fast axis' low turn-around in its first line period.
+
+    Lines counted from there run trace (up), then retrace (down); a raster's slow axis steps
+    at that turn-around (its ``delay_s``), so each such line lies on one slow-axis level.
+
+    Raises
+    ------
+    ParameterError
+        Without a fast-axis period of a whole number of samples.
+
+    """
+    return int(np.argmin(fast.reference_m[:_line_samples(fast)]))
 
 
 def _line_samples(fast: RunRecord) -> int:
@@ -456,7 +475,7 @@ def grating_image(fast: RunRecord, slow: RunRecord, *, lines: int, pitch_m: floa
         true = r.true_position_m
         return true if use_true and true is not None else r.position_m
     # the rows begin at the fast axis' low turn-around
-    start = int(np.argmin(fast.reference_m[:_line_samples(fast)]))
+    start = line_start(fast)
     xd = _frame_rows(fast, fast.reference_m, lines, frame, start)
     vd = _frame_rows(fast, fast.reference_velocity_mps, lines, frame, start)
     x = _frame_rows(fast, reached(fast), lines, frame, start)
