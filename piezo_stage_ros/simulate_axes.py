@@ -27,6 +27,7 @@ same figures.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import math
@@ -145,31 +146,39 @@ def simulate_axes(loop: AxesLoopConfig, *, duration_s: float, window_s: float = 
     ctrl = AxesController.build(loop.controllers, loop.stage, compensate=loop.compensate)
     stable = _check_axes(loop, trajectories)
     check = coupled_loop_check(ctrl)
-    start = time.perf_counter()
-    records = run_axes(AxesStage(loop.stage if stage is None else stage), ctrl, trajectories,
-                       duration_s=duration_s)
-    wall = time.perf_counter() - start
-    fast = loop.scan.raster.fast_axis if loop.scan.kind == 'raster' else None
-    axes: dict[str, Any] = {}
-    for rec, (name, m) in zip(records, run_metrics(records, window_s=window_s,
-                                                   fast_axis=fast).items()):
-        axes[name] = {**metrics_fields(m, name == fast),
-                      'trajectory_period_s': rec.meta.get('trajectory_period_s'),
-                      'feedforward': loop.controllers[loop.stage.index(name)].feedforward.mode,
-                      'stable': stable[name]}
-    sim = float(records[0].meta['duration_s'])
-    out = {'axes': axes, 'scan': loop.scan.kind, 'compensation': loop.compensate,
-           'compensated': [loop.stage.names[j] for j in ctrl.compensated],
-           'coupling_check': check.text(), 'coupling_gain': check.coupling_gain,
-           'learning_ratio': check.learning_ratio,
-           'sim_seconds': sim, 'wall_seconds': wall, 'window_s': window_s,
-           'config_files': [str(p) for p in loop.base.sources], 'bag': bag}
-    if bag is not None:
-        from piezo_stage_ros.analysis.bagwrite import write_axes
+    with contextlib.ExitStack() as stack:
+        writer = None
+        if bag is not None:
+            from piezo_stage_ros.analysis.bagwrite import RunBagWriter
+            # opened before the run: an existing path is refused before the run's time is
+            # spent, and a run that fails leaves no bag
+            writer = stack.enter_context(RunBagWriter(bag, storage=storage, overwrite=overwrite,
+                                                      axes=loop.stage.names))
         start = time.perf_counter()
-        write_axes(records, bag, storage=storage, overwrite=overwrite,
-                   meta=bag_meta(loop, out, records))
-        out['bag_wall_seconds'] = time.perf_counter() - start
+        records = run_axes(AxesStage(loop.stage if stage is None else stage), ctrl, trajectories,
+                           duration_s=duration_s)
+        wall = time.perf_counter() - start
+        fast = loop.scan.raster.fast_axis if loop.scan.kind == 'raster' else None
+        axes: dict[str, Any] = {}
+        for rec, (name, m) in zip(records, run_metrics(records, window_s=window_s,
+                                                       fast_axis=fast).items()):
+            axes[name] = {**metrics_fields(m, name == fast),
+                          'trajectory_period_s': rec.meta.get('trajectory_period_s'),
+                          'feedforward': loop.controllers[loop.stage.index(name)].feedforward.mode,
+                          'stable': stable[name]}
+        sim = float(records[0].meta['duration_s'])
+        out = {'axes': axes, 'scan': loop.scan.kind, 'compensation': loop.compensate,
+               'compensated': [loop.stage.names[j] for j in ctrl.compensated],
+               'coupling_check': check.text(), 'coupling_gain': check.coupling_gain,
+               'learning_ratio': check.learning_ratio,
+               'sim_seconds': sim, 'wall_seconds': wall, 'window_s': window_s,
+               'config_files': [str(p) for p in loop.base.sources], 'bag': bag}
+        bag_start = time.perf_counter()
+        if writer is not None:
+            writer.set_meta(bag_meta(loop, out, records))
+            writer.write_axes_chunk(records)
+    if bag is not None:
+        out['bag_wall_seconds'] = time.perf_counter() - bag_start
     return out
 
 

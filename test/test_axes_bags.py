@@ -309,3 +309,12 @@ def test_frame_rows_can_begin_at_the_low_turn_around():
     assert np.argmin(late[0].reference_m[70:170]) == 0
     assert np.array_equal(frame_images(late[0], late[1], lines=4, frame=0)[0][0],
                           late[0].error_m[:100])          # start 0: as before
+
+
+def test_an_existing_bag_is_refused_before_the_run(tmp_path, capsys):
+    (tmp_path / 'b').mkdir()
+    (tmp_path / 'b' / 'keep.txt').write_text('mine')
+    assert simulate_axes.main(SHORT + ['--bag', str(tmp_path / 'b')]) == 1
+    captured = capsys.readouterr()
+    assert 'exists already' in captured.err and 'simulated' not in captured.out
+    assert (tmp_path / 'b' / 'keep.txt').read_text() == 'mine'
