@@ -200,9 +200,12 @@ def bag_meta(loop: AxesLoopConfig, out: dict[str, Any], records: Sequence[Any]
     """
     raster = loop.scan.raster if loop.scan.kind == 'raster' else None
     per_axis = {}
-    for rec, sp, cp in zip(records, loop.stage.axes, loop.controllers):
+    for rec, sp, cp, line in zip(records, loop.stage.axes, loop.controllers, loop.lines):
         name = str(rec.meta['axis'])
         per_axis[name] = {
+            # what the axis plays: its own trajectory, a raster's line, or its part of the scan
+            'trajectory': line.kind if loop.scan.kind == 'each' or (
+                raster is not None and name == raster.fast_axis) else loop.scan.kind,
             'trajectory_period_s': rec.meta.get('trajectory_period_s'),
             'plant': sp.plant.model, 'hysteresis': sp.hysteresis.model, 'seed': sp.seed,
             'controller': cp.type, 'feedforward': cp.feedforward.mode,
