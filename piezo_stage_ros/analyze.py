@@ -25,6 +25,9 @@ Examples
     ``report/report.md`` comparing the bags, with their figures.
 ``analyze --export-table table.npz learning.bag``
     The learned table of a learning run, as ``simulate --save-table`` writes it.
+``analyze --plots figs/ xy.bag``
+    A multi-axis bag: per-axis metrics as ``simulate_axes`` prints them, the raster frame's
+    error and a grating imaged over it.
 
 Exit status: 0 when every bag was analysed, 1 when any bag failed (one line on stderr per bad
 bag, naming it and the problem; the other bags are still analysed), 2 for bad options.
@@ -53,6 +56,13 @@ def _non_negative(text: str) -> float:
         raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
     if not math.isfinite(value) or value < 0.0:
         raise argparse.ArgumentTypeError(f'{text!r} is out of range; allowed: [0, inf) s')
+    return value
+
+
+def _positive(text: str) -> float:
+    value = _non_negative(text)
+    if value == 0.0:
+        raise argparse.ArgumentTypeError(f'{text!r} is out of range; allowed: (0, inf)')
     return value
 
 
@@ -98,6 +108,13 @@ def build_parser() -> argparse.ArgumentParser:
                         help='write the learned table the bag holds (a simulate --bag run with '
                              'a learning feed-forward) to FILE, the file controller_node '
                              'feedforward.table_file loads; one bag only')
+    parser.add_argument('--window', type=_positive, metavar='S', dest='window_s',
+                        help='multi-axis bags: metrics over the last S seconds (default: the '
+                             "run's own window, else the last second)")
+    parser.add_argument('--grating-pitch', type=_positive, metavar='M', dest='grating_pitch_m',
+                        default=1e-6,
+                        help='multi-axis raster bags: pitch of the grating imaged over the last '
+                             'frame [m] (default 1e-6)')
     parser.add_argument('-q', '--quiet', action='store_true',
                         help='no progress line and no notes on stderr')
     return parser
@@ -113,6 +130,63 @@ def _export(analysis: object, path: Path) -> None:
     write_learned_table(path, table)
     print(f'{PROG}: learned table written to {path} ({table.samples} samples, '
           f'{table.periods_learned} periods learned)', file=sys.stderr)
+
+
+def _is_axes(bag: Path, namespace: str | None) -> bool:
+    # a bag that cannot be opened is reported by the one-axis path, as ever
+    from piezo_stage_ros.analysis.bagread import bag_info, is_axes_bag
+    from piezo_stage_ros.core.contracts.errors import PiezoStageError
+    try:
+        return is_axes_bag(bag_info(bag), namespace)
+    except PiezoStageError:
+        return False
+
+
+def _analyze_axes(args: argparse.Namespace, bag: Path, outdir: Path | None) -> bool:
+    """Analyse a multi-axis bag: print its figures, draw them; False when it failed."""
+    from piezo_stage_ros.analysis.axes_replay import (
+        analyze_axes_bag,
+        axes_summary_json,
+        format_axes_summary,
+    )
+    from piezo_stage_ros.core.contracts.errors import PiezoStageError
+    for option, value in (('--export-table', args.export_table), ('--report', args.report),
+                          ('--steady-state-start', args.steady_state_start_s)):
+        if value is not None:
+            print(f'{PROG}: error: bag {bag}: {option} takes one-axis bags; this one holds '
+                  'several axes (use --plots, --window)', file=sys.stderr)
+            return False
+    try:
+        analysis = analyze_axes_bag(bag, namespace=args.namespace, window_s=args.window_s,
+                                    grating_pitch_m=args.grating_pitch_m)
+    except PiezoStageError as err:
+        print(f'{PROG}: error: {err}', file=sys.stderr)
+        return False
+    except MemoryError:
+        print(f'{PROG}: error: bag {bag}: not enough memory to hold its samples',
+              file=sys.stderr)
+        return False
+    except Exception as err:  # noqa: BLE001 - a bag must never end in a traceback
+        print(f'{PROG}: error: bag {bag}: cannot be analysed ({type(err).__name__}: {err}); '
+              'please report this with the bag', file=sys.stderr)
+        return False
+    for text in analysis.records[0].meta.get('alignment', {}).get('warnings', ()):
+        print(f'{PROG}: warning: bag {bag}: {text}', file=sys.stderr)
+    if args.json:
+        print(json.dumps(axes_summary_json(analysis), sort_keys=False), flush=True)
+    else:
+        print(format_axes_summary(analysis), flush=True)
+    if outdir is not None:
+        from piezo_stage_ros.analysis.axes_plots import plot_axes_run
+        try:
+            plot_axes_run(analysis.records, outdir, title=analysis.name,
+                          fast_axis=analysis.fast_axis, slow_axis=analysis.slow_axis,
+                          lines=analysis.lines, grating=analysis.grating)
+        except OSError as err:
+            print(f'{PROG}: error: cannot write figures into {outdir}: {err.strerror}',
+                  file=sys.stderr)
+            return False
+    return True
 
 
 def _analyze(args: argparse.Namespace) -> int:
@@ -145,6 +219,11 @@ def _analyze(args: argparse.Namespace) -> int:
 
         def progress(done: int, total: int, label: str = label) -> None:
             shown.fraction(label, done, total)
+        if _is_axes(bag, args.namespace):
+            outdir = None if args.plots is None else (
+                args.plots if len(args.bags) == 1 else args.plots / name)
+            failed += not _analyze_axes(args, bag, outdir)
+            continue
         try:
             analysis = analyze_bag(bag, namespace=args.namespace,
                                    steady_state_start_s=args.steady_state_start_s,

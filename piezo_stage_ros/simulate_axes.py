@@ -20,12 +20,15 @@ Reads the parameter files of a multi-axis stage (``plant_node axes.names``, see
 stage and prints, per axis, the tracking error over the last ``--window`` seconds: the measured
 position (sensor, noise, ADC) and the true one. A raster's fast axis is measured over the middle
 80 % of its lines (its turn-arounds left out). ``simulate --config FILE`` runs this for such a
-file.
+file. ``--bag DIR`` writes the run as a multi-axis bag, which ``analyze`` reads back into the
+same figures.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import dataclasses
 import json
 import math
 import sys
@@ -37,14 +40,13 @@ from piezo_stage_ros import cli
 from piezo_stage_ros.core.config.axes import axes_loop_config, AxesLoopConfig
 from piezo_stage_ros.core.config.loader import Config
 from piezo_stage_ros.core.contracts.errors import ConfigError, ParameterError
+from piezo_stage_ros.core.contracts.wire import STORAGE_IDS
+from piezo_stage_ros.core.loop.axes import LINE_FRACTION
 from piezo_stage_ros.core.model.axes import AxesStageParams
 
-__all__ = ['build_parser', 'main', 'run_config', 'simulate_axes']
+__all__ = ['LINE_FRACTION', 'build_parser', 'main', 'run_config', 'simulate_axes']
 
 PROG = 'simulate_axes'
-
-#: Share of a raster line's range over which the fast axis is measured.
-LINE_FRACTION = 0.8
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -70,6 +72,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--seed', type=int, default=0, metavar='S',
                    help='Seed of the --family draw (default 0).')
     p.add_argument('--json', action='store_true', help='Print one JSON object.')
+    p.add_argument('--bag', metavar='DIR', help='Write the run as a rosbag2 bag (every axis in '
+                   'one message a sample; analyze reads it).')
+    p.add_argument('--storage', choices=STORAGE_IDS, default=STORAGE_IDS[0],
+                   help='Bag storage plugin (default mcap).')
+    p.add_argument('--overwrite', action='store_true', help='Replace an existing bag.')
     return p
 
 
@@ -96,7 +103,8 @@ def default_duration_s(loop: AxesLoopConfig) -> float:
 
 
 def simulate_axes(loop: AxesLoopConfig, *, duration_s: float, window_s: float = 1.0,
-                  stage: AxesStageParams | None = None) -> dict[str, Any]:
+                  stage: AxesStageParams | None = None, bag: str | None = None,
+                  storage: str = STORAGE_IDS[0], overwrite: bool = False) -> dict[str, Any]:
     """
     Run the multi-axis loop and return its per-axis metrics.
 
@@ -110,6 +118,12 @@ def simulate_axes(loop: AxesLoopConfig, *, duration_s: float, window_s: float = 
         Simulated time [s].
     window_s : float
         Metrics over the last this many seconds, in (0, duration_s].
+    bag : str, optional
+        Write the run there as a multi-axis bag (its description: :func:`bag_meta`).
+    storage : str
+        The bag's storage plugin.
+    overwrite : bool
+        Replace an existing bag.
 
     Returns
     -------
@@ -121,7 +135,7 @@ def simulate_axes(loop: AxesLoopConfig, *, duration_s: float, window_s: float = 
 
     """
     from piezo_stage_ros.core.control.axes import AxesController, coupled_loop_check
-    from piezo_stage_ros.core.loop.axes import axis_metrics, middle_of_lines, run_axes
+    from piezo_stage_ros.core.loop.axes import run_axes, run_metrics
     from piezo_stage_ros.core.model.axes import AxesStage
 
     if not (duration_s > 0.0 and math.isfinite(duration_s)):
@@ -132,30 +146,80 @@ def simulate_axes(loop: AxesLoopConfig, *, duration_s: float, window_s: float = 
     ctrl = AxesController.build(loop.controllers, loop.stage, compensate=loop.compensate)
     stable = _check_axes(loop, trajectories)
     check = coupled_loop_check(ctrl)
-    start = time.perf_counter()
-    records = run_axes(AxesStage(loop.stage if stage is None else stage), ctrl, trajectories,
-                       duration_s=duration_s)
-    wall = time.perf_counter() - start
-    fast = loop.scan.raster.fast_axis if loop.scan.kind == 'raster' else None
-    axes: dict[str, Any] = {}
-    for rec in records:
+    with contextlib.ExitStack() as stack:
+        writer = None
+        if bag is not None:
+            from piezo_stage_ros.analysis.bagwrite import RunBagWriter
+            # opened before the run: an existing path is refused before the run's time is
+            # spent, and a run that fails leaves no bag
+            writer = stack.enter_context(RunBagWriter(bag, storage=storage, overwrite=overwrite,
+                                                      axes=loop.stage.names))
+        start = time.perf_counter()
+        records = run_axes(AxesStage(loop.stage if stage is None else stage), ctrl, trajectories,
+                           duration_s=duration_s)
+        wall = time.perf_counter() - start
+        fast = loop.scan.raster.fast_axis if loop.scan.kind == 'raster' else None
+        axes: dict[str, Any] = {}
+        for rec, (name, m) in zip(records, run_metrics(records, window_s=window_s,
+                                                       fast_axis=fast).items()):
+            axes[name] = {**metrics_fields(m, name == fast),
+                          'trajectory_period_s': rec.meta.get('trajectory_period_s'),
+                          'feedforward': loop.controllers[loop.stage.index(name)].feedforward.mode,
+                          'stable': stable[name]}
+        sim = float(records[0].meta['duration_s'])
+        out = {'axes': axes, 'scan': loop.scan.kind, 'compensation': loop.compensate,
+               'compensated': [loop.stage.names[j] for j in ctrl.compensated],
+               'coupling_check': check.text(), 'coupling_gain': check.coupling_gain,
+               'learning_ratio': check.learning_ratio,
+               'sim_seconds': sim, 'wall_seconds': wall, 'window_s': window_s,
+               'config_files': [str(p) for p in loop.base.sources], 'bag': bag}
+        bag_start = time.perf_counter()
+        if writer is not None:
+            writer.set_meta(bag_meta(loop, out, records))
+            writer.write_axes_chunk(records)
+    if bag is not None:
+        out['bag_wall_seconds'] = time.perf_counter() - bag_start
+    return out
+
+
+def metrics_fields(m: Any, fast: bool) -> dict[str, Any]:
+    """Return one axis' :class:`~piezo_stage_ros.core.loop.axes.AxisMetrics` as printed."""
+    return {'e_rms_m': m.e_rms_m, 'e_max_m': m.e_max_m, 'e_rms_true_m': m.e_rms_true_m,
+            'e_max_true_m': m.e_max_true_m, 'samples': m.samples,
+            'window': (f'middle {100.0 * LINE_FRACTION:g} % of the lines' if fast else 'all')}
+
+
+def bag_meta(loop: AxesLoopConfig, out: dict[str, Any], records: Sequence[Any]
+             ) -> dict[str, Any]:
+    """
+    Return the description of a multi-axis run stored with its bag.
+
+    What ``analyze`` needs to measure the bag as ``simulate_axes`` measured the run (the scan,
+    a raster's fast axis and lines, the window) and the run's parameters, per axis under
+    ``per_axis``.
+    """
+    raster = loop.scan.raster if loop.scan.kind == 'raster' else None
+    per_axis = {}
+    for rec, sp, cp, line in zip(records, loop.stage.axes, loop.controllers, loop.lines):
         name = str(rec.meta['axis'])
-        mask = middle_of_lines(rec.reference_m, LINE_FRACTION) if name == fast else None
-        m = axis_metrics(rec, last_s=window_s, mask=mask)
-        axes[name] = {'e_rms_m': m.e_rms_m, 'e_max_m': m.e_max_m,
-                      'e_rms_true_m': m.e_rms_true_m, 'e_max_true_m': m.e_max_true_m,
-                      'samples': m.samples, 'window': ('middle 80 % of the lines'
-                                                       if mask is not None else 'all'),
-                      'trajectory_period_s': rec.meta.get('trajectory_period_s'),
-                      'feedforward': loop.controllers[loop.stage.index(name)].feedforward.mode,
-                      'stable': stable[name]}
-    sim = float(records[0].meta['duration_s'])
-    return {'axes': axes, 'scan': loop.scan.kind, 'compensation': loop.compensate,
-            'compensated': [loop.stage.names[j] for j in ctrl.compensated],
-            'coupling_check': check.text(), 'coupling_gain': check.coupling_gain,
-            'learning_ratio': check.learning_ratio,
-            'sim_seconds': sim, 'wall_seconds': wall, 'window_s': window_s,
-            'config_files': [str(p) for p in loop.base.sources]}
+        per_axis[name] = {
+            # what the axis plays: its own trajectory, a raster's line, or its part of the scan
+            'trajectory': line.kind if loop.scan.kind == 'each' or (
+                raster is not None and name == raster.fast_axis) else loop.scan.kind,
+            'trajectory_period_s': rec.meta.get('trajectory_period_s'),
+            'plant': sp.plant.model, 'hysteresis': sp.hysteresis.model, 'seed': sp.seed,
+            'controller': cp.type, 'feedforward': cp.feedforward.mode,
+            'stable': out['axes'][name]['stable']}
+    return {'axes': list(loop.stage.names), 'scan': loop.scan.kind,
+            'fast_axis': raster.fast_axis if raster else None,
+            'slow_axis': raster.slow_axis if raster else None,
+            'lines': raster.lines if raster else None, 'line_fraction': LINE_FRACTION,
+            'window_s': out['window_s'], 'sample_time_s': loop.stage.sample_time_s,
+            'sample_rate_hz': 1.0 / loop.stage.sample_time_s,
+            'duration_s': out['sim_seconds'], 'compensation': loop.compensate,
+            'compensated': out['compensated'], 'coupling_check': out['coupling_check'],
+            'coupling': dataclasses.asdict(loop.stage.coupling),
+            'config_files': out['config_files'], 'per_axis': per_axis}
 
 
 def _check_axes(loop: AxesLoopConfig, trajectories: Sequence[Any]) -> dict[str, bool]:
@@ -177,7 +241,8 @@ def _check_axes(loop: AxesLoopConfig, trajectories: Sequence[Any]) -> dict[str, 
 
 
 def run_config(prog: str, config: Config, *, duration_s: float | None,
-               window_s: float | None, as_json: bool) -> int:
+               window_s: float | None, as_json: bool, bag: str | None = None,
+               storage: str = STORAGE_IDS[0], overwrite: bool = False) -> int:
     """Run the loop and print its metrics (window None: the last second, or the run)."""
     loop = axes_loop_config(config)
     for text in loop.base.offline_notes():
@@ -185,7 +250,8 @@ def run_config(prog: str, config: Config, *, duration_s: float | None,
     duration = default_duration_s(loop) if duration_s is None else duration_s
     if window_s is None:
         window_s = min(1.0, duration) if duration > 0.0 else 1.0
-    out = simulate_axes(loop, duration_s=duration, window_s=window_s)
+    out = simulate_axes(loop, duration_s=duration, window_s=window_s, bag=bag,
+                        storage=storage, overwrite=overwrite)
     if as_json:
         print(json.dumps(out, sort_keys=True))
         return 0
@@ -201,6 +267,8 @@ def run_config(prog: str, config: Config, *, duration_s: float | None,
               f'{"stable" if m["stable"] else "UNSTABLE"}): e_rms = {m["e_rms_m"] * 1e9:.2f} '
               f'nm, e_m = {m["e_max_m"] * 1e9:.2f} nm; true position: e_rms = '
               f'{m["e_rms_true_m"] * 1e9:.2f} nm, e_m = {m["e_max_true_m"] * 1e9:.2f} nm')
+    if bag is not None:
+        print(f'bag written: {bag} ({storage}, {out["bag_wall_seconds"]:.2f} s wall)')
     return 0
 
 
@@ -211,14 +279,18 @@ def from_simulate(args: argparse.Namespace, config: Config) -> int:
     The flags that set one-axis parameters set the base of every axis; the options of one run
     that have no multi-axis counterpart yet are refused.
     """
-    for flag, value in (('--bag', args.bag), ('--save-table', args.save_table),
+    if args.bag is not None and args.bag_topics != 'samples':
+        raise ConfigError(f'--bag-topics {args.bag_topics}: the block topic holds one axis; '
+                          'a multi-axis bag holds the per-sample topics (--bag-topics samples)')
+    for flag, value in (('--save-table', args.save_table),
                         ('--experiment', args.experiment),
                         ('--steady-state-start', args.steady_state_start_s)):
         if value is not None:
             raise ConfigError(f'{flag} is not available for a multi-axis stage yet '
                               '(plant_node axes.names); run without it')
     return run_config('simulate', config, duration_s=args.duration, window_s=None,
-                      as_json=args.json)
+                      as_json=args.json, bag=args.bag, storage=args.storage,
+                      overwrite=args.overwrite)
 
 
 def simulate_family(loop: AxesLoopConfig, n: int, *, seed: int, duration_s: float,
@@ -297,8 +369,11 @@ def _run_family(args: argparse.Namespace, config: Config) -> int:
 def _main(args: argparse.Namespace) -> int:
     if args.family is not None:
         return _run_family(args, _config(args))
+    if args.family is not None and args.bag is not None:
+        raise ConfigError('--bag records one run; it cannot be used with --family')
     return run_config(PROG, _config(args), duration_s=args.duration, window_s=args.window,
-                      as_json=args.json)
+                      as_json=args.json, bag=args.bag, storage=args.storage,
+                      overwrite=args.overwrite)
 
 
 main = cli.command_main(PROG, build_parser, _main,

@@ -97,9 +97,10 @@ def test_simulate_runs_a_multi_axis_file(capsys):
 
 
 def test_simulate_refuses_what_it_cannot_do_for_several_axes_yet(capsys, tmp_path):
-    status = simulate.main(['--config', 'config/xy_stage.yaml', '--bag', str(tmp_path / 'b')])
+    status = simulate.main(['--config', 'config/xy_stage.yaml', '--save-table',
+                            str(tmp_path / 't.npz')])
     assert status == 1
-    assert '--bag is not available for a multi-axis stage' in capsys.readouterr().err
+    assert '--save-table is not available for a multi-axis stage' in capsys.readouterr().err
 
 
 @pytest.mark.parametrize('name', ['xy_stage.yaml', 'xyz_stage.yaml'])

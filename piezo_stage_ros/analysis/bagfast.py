@@ -343,7 +343,11 @@ def _record_starts(data: bytes, buf: ByteMatrix, bag: Path) -> IntArray:
             sizes = np.diff(np.asarray(walked[-16:] + [pos], dtype=np.int64))
             pattern = None
             for period in range(1, 9):
-                if np.array_equal(sizes[-period:], sizes[-2 * period:-period]):
+                # the whole window must repeat it: two equal sizes in a row (a JointState of
+                # the same shape on two topics) are not a period of one
+                whole = 16 // period * period
+                if np.array_equal(sizes[-whole:],
+                                  np.tile(sizes[-period:], whole // period)):
                     pattern = sizes[-period:]
                     break
             if pattern is None:

@@ -41,6 +41,11 @@ sample with its stamp, values and number, so nothing needs pairing; a gap in the
 is a sample lost on the way to the bag, counted in ``meta['alignment']['missing_samples']``.
 The block messages are few (about 100 a second), so each is decoded on its own
 (:func:`~piezo_stage_ros.core.contracts.cdr.decode_block`, one copy of its data).
+
+A bag of a stage of several axes (its command a ``Float64MultiArray``, one entry per axis;
+format in :mod:`piezo_stage_ros.core.contracts.wire`) is read by :func:`read_axes` into one
+record per axis, aligned by the same rules: the joints are found by name (``stage_<axis>``) in
+every message, whatever their order, and the command's entries are in the stage's axis order.
 """
 
 from __future__ import annotations
@@ -63,14 +68,23 @@ from piezo_stage_ros.core.contracts.cdr import (
     decode_block,
     decode_float64,
     decode_joint_state_message,
+    decode_multi_array,
     float64_layout,
     joint_state_layout,
     JointStateMessage,
     Layout,
+    multi_array_layout,
 )
 from piezo_stage_ros.core.contracts.errors import BagError
 from piezo_stage_ros.core.contracts.types import ByteMatrix, FloatArray, IntArray
 from piezo_stage_ros.core.contracts.wire import (
+    AXES_BAG_TOPICS,
+    axes_command_dims,
+    AXES_COMMAND_TYPE,
+    AXIS_DIAGNOSTIC_SEPARATOR,
+    axis_joint_names,
+    AXIS_JOINT_PREFIX,
+    axis_of_joint,
     BAG_TOPICS,
     BLOCK_COLUMNS,
     BLOCK_DIAGNOSTIC_PREFIX,
@@ -89,7 +103,8 @@ from piezo_stage_ros.core.loop.record import RunRecord
 from rosbags.rosbag2 import Reader, ReaderError
 import yaml
 
-__all__ = ['BagInfo', 'ProgressCallback', 'bag_info', 'read_run', 'read_topics']
+__all__ = ['BagInfo', 'ProgressCallback', 'bag_axes', 'bag_info', 'is_axes_bag', 'read_axes',
+           'read_run', 'read_topics']
 
 
 #: Called as ``progress(messages_read, messages_total)`` while a bag is read.
@@ -228,10 +243,14 @@ def _find_namespace(info: BagInfo, namespace: str | None) -> str:
 class _TopicData:
     """Accumulates the decoded messages of one topic as numpy arrays."""
 
-    def __init__(self, bag: Path, topic: str, msgtype: str) -> None:
+    def __init__(self, bag: Path, topic: str, msgtype: str,
+                 joints: tuple[str, ...] | None = None) -> None:
         self.bag = bag
         self.topic = topic
         self.msgtype = msgtype
+        # a stage of several axes: the joints to take, by name, in this order
+        self.joints = joints
+        self._picks: dict[tuple[str, ...], list[int]] = {}
         self.layouts: dict[int, list[Layout]] = {}
         self.names: tuple[str, ...] | None = None
         self.log_ns: list[IntArray] = []
@@ -291,6 +310,9 @@ class _TopicData:
         if self.msgtype == COMMAND_TYPE:
             self._decode_command(data)
             layout = float64_layout()
+        elif self.msgtype == AXES_COMMAND_TYPE:
+            values = self._decode_axes_command(data)
+            layout = multi_array_layout(axes_command_dims(values.size), values.size)
         else:
             msg = self._decode_joint_state(data)
             layout = joint_state_layout(frame_id=msg.frame_id, names=msg.names,
@@ -313,6 +335,20 @@ class _TopicData:
         except CdrError as err:
             raise self._corrupt(err) from None
 
+    def _decode_axes_command(self, data: bytes) -> FloatArray:
+        # one value per axis, the layout saying so (wire.axes_command_dims)
+        try:
+            dims, data_offset, values = decode_multi_array(data)
+        except CdrError as err:
+            raise self._corrupt(err) from None
+        n = len(self.joints or ())
+        if dims != axes_command_dims(n) or data_offset != 0 or values.size != n:
+            raise BagError(f'bag {self.bag}: a message on {self.topic} has the layout {dims} '
+                           f'(data_offset {data_offset}) and {values.size} values; expected '
+                           f'{n} values, one per axis {list(self.joints or ())}, dim '
+                           f'{axes_command_dims(n)}')
+        return values
+
     def _decode_joint_state(self, data: bytes) -> JointStateMessage:
         try:
             return decode_joint_state_message(data)
@@ -324,6 +360,9 @@ class _TopicData:
         if self.msgtype == COMMAND_TYPE:
             arrays = {'data': np.array([[self._decode_command(data)]])}
             names: tuple[str, ...] = ()
+        elif self.msgtype == AXES_COMMAND_TYPE:
+            arrays = {'data': self._decode_axes_command(data).reshape(1, -1)}
+            names = ()
         else:
             msg = self._decode_joint_state(data)
             stamps = np.array([stamp_to_ns(msg.sec, msg.nanosec)], dtype=np.int64)
@@ -336,6 +375,10 @@ class _TopicData:
     def _columns(self, arrays: Mapping[str, FloatArray], names: tuple[str, ...]) -> FloatArray:
         if self.msgtype == COMMAND_TYPE:
             return arrays['data'][:, :1]
+        if self.msgtype == AXES_COMMAND_TYPE:
+            return arrays['data']
+        if self.joints is not None and not self.topic.endswith(('/diagnostics', '/applied')):
+            return self._axes_columns(arrays, names)
         position = arrays.get('position')
         n = 0 if position is None else position.shape[0]
         if self.names is None:
@@ -361,6 +404,36 @@ class _TopicData:
             out[:, 1] = velocity[:, 0]
         return out
 
+    def _axes_columns(self, arrays: Mapping[str, FloatArray], names: tuple[str, ...]
+                      ) -> FloatArray:
+        # the positions (and velocities) of the joints asked for, found by name
+        assert self.joints is not None
+        pick = self._picks.get(names)
+        if pick is None:
+            if len(set(names)) != len(names):
+                raise BagError(f'bag {self.bag}: a message on {self.topic} names a joint twice: '
+                               f'{list(names)}')
+            missing = [j for j in self.joints if j not in names]
+            if missing:
+                raise BagError(f'bag {self.bag}: a message on {self.topic} has the joints '
+                               f'{list(names)}; missing: {missing} (expected the axes '
+                               f'{list(self.joints)})')
+            pick = self._picks[names] = [names.index(j) for j in self.joints]
+        position = arrays.get('position')
+        n = len(names)
+        if position is None or position.shape[1] != n:
+            raise BagError(f'bag {self.bag}: a message on {self.topic} has '
+                           f'{0 if position is None else position.shape[1]} positions for the '
+                           f'{n} joints {list(names)}')
+        out = position[:, pick]
+        if self.topic.endswith('/reference'):
+            velocity = arrays.get('velocity')
+            vel = np.full_like(out, np.nan)
+            if velocity is not None and velocity.shape[1] == n:
+                vel = velocity[:, pick]
+            out = np.hstack((out, vel))
+        return out
+
     def _append(self, log_ns: IntArray, stamp_ns: IntArray | None, values: FloatArray) -> None:
         self.log_ns.append(log_ns)
         if stamp_ns is not None:
@@ -373,6 +446,8 @@ class _TopicData:
         log_ns = np.concatenate(self.log_ns) if self.log_ns else np.zeros(0, np.int64)
         width = len(self.names or ()) if self.topic.endswith('/diagnostics') else (
             1 if self.msgtype == COMMAND_TYPE or self.topic.endswith('/applied') else 2)
+        if self.joints is not None and not self.topic.endswith(('/diagnostics', '/applied')):
+            width = len(self.joints) * (2 if self.topic.endswith('/reference') else 1)
         values = np.concatenate(self.values) if self.values else np.zeros((0, width))
         stamps = None
         if self.msgtype != COMMAND_TYPE:
@@ -645,20 +720,30 @@ def _scan(info: BagInfo, wanted: Mapping[str, _TopicData | _BlockData],
                 _scan_sqlite(info.path, file, wanted, tick)
 
 
-def _read_topics(info: BagInfo, ns: str, progress: ProgressCallback | None
+def _read_topics(info: BagInfo, ns: str, progress: ProgressCallback | None,
+                 joints: tuple[str, ...] | None = None
                  ) -> tuple[dict[str, tuple[IntArray, IntArray | None, FloatArray]],
                             dict[str, tuple[str, ...]]]:
+    # joints: the joints of a stage of several axes, in its axis order (None: one axis)
     topics = topic_names(ns)
     if info.message_count == 0:
         raise BagError(f'bag {info.path}: bag is empty (no messages)')
     for key in REQUIRED_TOPICS:
         if topics[key] not in info.topics:
             raise BagError(f'bag {info.path}: topic {topics[key]} is missing')
+    types = BAG_TOPICS if joints is None else AXES_BAG_TOPICS
+    if joints is None and info.topics[topics['command']][0] == AXES_COMMAND_TYPE:
+        raise BagError(f'bag {info.path}: holds a run of several axes (topic '
+                       f'{topics["command"]} is {AXES_COMMAND_TYPE}); read it with read_axes '
+                       '(analyze does)')
+    if joints is not None and topics['applied'] in info.topics:
+        raise BagError(f'bag {info.path}: topic {topics["applied"]} holds one axis; a bag of '
+                       'several axes cannot have it')
     for key, topic in topics.items():
-        if topic in info.topics and info.topics[topic][0] != BAG_TOPICS[key]:
+        if topic in info.topics and info.topics[topic][0] != types[key]:
             raise BagError(f'bag {info.path}: topic {topic} has type {info.topics[topic][0]}, '
-                           f'expected {BAG_TOPICS[key]}')
-    wanted = {topic: _TopicData(info.path, topic, BAG_TOPICS[key])
+                           f'expected {types[key]}')
+    wanted = {topic: _TopicData(info.path, topic, types[key], joints)
               for key, topic in topics.items() if topic in info.topics}
     total = sum(info.topics[t][1] for t in wanted)
     _scan(info, wanted, _progress_ticker(progress, total))
@@ -807,8 +892,48 @@ def read_run(path: str | Path, *, namespace: str | None = None,
     if block_topic(ns) in info.topics:
         return _read_blocks(info, ns, progress, relative_time)
     topics, names = _read_topics(info, ns, progress)
-    pos_log, pos_stamp, pos_val = topics['position']
-    ref_log, ref_stamp, ref_val = topics['reference']
+    common, pi, ri, command, alignment = _align(info, ns, topics)
+    pos_val, ref_val = topics['position'][2], topics['reference'][2]
+    true_position: FloatArray | None = None
+    if 'true_position' in topics:
+        _, true_stamp, true_val = topics['true_position']
+        assert true_stamp is not None
+        true_position = _by_stamp(true_stamp, true_val[:, 0], common)
+    diagnostics: dict[str, FloatArray] = {}
+    if 'diagnostics' in topics:
+        _, diag_stamp, diag_val = topics['diagnostics']
+        assert diag_stamp is not None
+        for col, key in enumerate(names.get('diagnostics', ())):
+            diagnostics[key] = _by_stamp(diag_stamp, diag_val[:, col], common)
+    # How many messages the bulk decoder took (the rest went through rosbags one by one).
+    decoding = {topic: {'messages': count, 'bulk': fast}
+                for topic, (count, fast) in info.decoded.items()}
+    return _run_record(info, ns, common, relative_time, alignment, decoding,
+                       RunRecord(common / 1e9, pos_val[pi, 0], ref_val[ri, 0],
+                                 ref_val[ri, 1], command[:, 0], diagnostics,
+                                 true_position_m=true_position))
+
+
+def _align(info: BagInfo, ns: str,
+           topics: Mapping[str, tuple[IntArray, IntArray | None, FloatArray]]
+           ) -> tuple[IntArray, IntArray, IntArray, FloatArray, dict[str, Any]]:
+    """
+    Pair the samples of position, reference and command (the rules of :func:`read_run`).
+
+    Returns
+    -------
+    common : ndarray of int64
+        The stamps of the aligned samples [ns].
+    pi, ri : ndarray of int
+        Their rows in the position's and the reference's values.
+    command : ndarray, shape (samples, width)
+        Their commands (NaN where none is paired), as many columns as the command topic has.
+    alignment : dict
+        What was paired and dropped (``meta['alignment']``).
+
+    """
+    pos_log, pos_stamp, _ = topics['position']
+    _, ref_stamp, _ = topics['reference']
     cmd_log, _, cmd_val = topics['command']
     assert pos_stamp is not None and ref_stamp is not None
     pi = _unique_first(pos_stamp)
@@ -842,7 +967,7 @@ def read_run(path: str | Path, *, namespace: str | None = None,
         pi, ri = pi[ia], ri[ib]
         _, app_stamp, app_val = topics['applied']
         assert app_stamp is not None
-        command = _by_stamp(app_stamp, app_val[:, 0], common)
+        command = _by_stamp(app_stamp, app_val[:, 0], common)[:, None]
         missing = int(np.isnan(command).sum())
         if missing:
             warnings.append(f'{missing} of {common.size} samples have no applied input '
@@ -862,22 +987,11 @@ def read_run(path: str | Path, *, namespace: str | None = None,
                         'stamp) cannot be paired with their samples; the tracking error is over '
                         f'all {common.size} samples, the command is left out (NaN)')
         pi, ri = pi[ia], ri[ib]
-        command = np.full(common.size, np.nan)
+        command = np.full((common.size, cmd_val.shape[1]), np.nan)
         offset, residual_ns = 0, 0.0
     else:
         pi, ri, cmd_pick = pi_cmd[ia], ri[ib], cmd_pick[ia]
-        command = cmd_val[cmd_pick, 0]
-    true_position: FloatArray | None = None
-    if 'true_position' in topics:
-        _, true_stamp, true_val = topics['true_position']
-        assert true_stamp is not None
-        true_position = _by_stamp(true_stamp, true_val[:, 0], common)
-    diagnostics: dict[str, FloatArray] = {}
-    if 'diagnostics' in topics:
-        _, diag_stamp, diag_val = topics['diagnostics']
-        assert diag_stamp is not None
-        for col, key in enumerate(names.get('diagnostics', ())):
-            diagnostics[key] = _by_stamp(diag_stamp, diag_val[:, col], common)
+        command = cmd_val[cmd_pick]
     alignment = {
         'samples': int(common.size),
         'position_messages': int(pos_stamp.size),
@@ -892,11 +1006,140 @@ def read_run(path: str | Path, *, namespace: str | None = None,
         'command_source': 'applied' if 'applied' in topics else 'command',
         'warnings': warnings,
     }
-    # How many messages the bulk decoder took (the rest went through rosbags one by one).
+    return common, pi, ri, command, alignment
+
+
+def is_axes_bag(info: BagInfo, namespace: str | None = None) -> bool:
+    """Return whether a bag holds a run of several axes (its command a Float64MultiArray)."""
+    ns = _find_namespace(info, namespace)
+    command = topic_names(ns)['command']
+    return command in info.topics and info.topics[command][0] == AXES_COMMAND_TYPE
+
+
+def bag_axes(info: BagInfo, namespace: str | None = None) -> tuple[str, ...]:
+    """
+    Return the axes of a multi-axis bag in the stage's order (the order of its command).
+
+    The run description's ``axes`` when the bag has one (a bag of this package), else the joint
+    names of the first ``<ns>/position`` message (``stage_<axis>``; other joints left out),
+    which the stage publishes in its axis order.
+
+    Raises
+    ------
+    BagError
+        A bag with neither, or a joint name that is not ``stage_<axis>``.
+
+    """
+    axes = info.meta.get('axes')
+    if isinstance(axes, list) and axes and all(isinstance(a, str) for a in axes):
+        return tuple(axes)
+    topic = topic_names(_find_namespace(info, namespace))['position']
+    try:
+        with Reader(info.path) as reader:
+            connections = [c for c in reader.connections if c.topic == topic]
+            for _, _, data in reader.messages(connections=connections):
+                names = decode_joint_state_message(bytes(data)).names
+                axes = tuple(axis_of_joint(name) for name in names
+                             if name.startswith(AXIS_JOINT_PREFIX))
+                if not axes:
+                    raise BagError(f'bag {info.path}: the joints {list(names)} on {topic} '
+                                   f"name no axis; allowed: '{AXIS_JOINT_PREFIX}<axis>'")
+                return axes
+    except BagError:
+        raise
+    except CdrError as err:
+        raise BagError(f'bag {info.path}: a message on {topic} cannot be decoded as '
+                       f'sensor_msgs/msg/JointState (corrupt data?): {_describe(err)}') from None
+    except Exception as err:  # noqa: BLE001 - storage plugins and decompressors vary
+        raise BagError(f'bag {info.path}: cannot read {topic}: {_describe(err)}') from None
+    raise BagError(f'bag {info.path}: topic {topic} has no messages')
+
+
+def read_axes(path: str | Path, *, namespace: str | None = None,
+              axes: tuple[str, ...] | None = None, progress: ProgressCallback | None = None,
+              relative_time: bool = False) -> list[RunRecord]:
+    """
+    Read the bag of a stage of several axes into one run record per axis.
+
+    The samples are aligned as :func:`read_run` aligns them, once for all axes (one message a
+    sample holds every axis). Each axis' values are taken from its joint ``stage_<axis>`` by
+    name, in whatever order a message lists its joints (other joints are left alone); the
+    command's entries are in the stage's axis order (:func:`bag_axes`).
+
+    Parameters
+    ----------
+    path : path-like
+        The bag (written by :func:`~piezo_stage_ros.analysis.bagwrite.write_axes`, or
+        recorded from a stage of several axes).
+    namespace : str, optional
+        Topic namespace; found from the bag when it holds exactly one stage.
+    axes : tuple of str, optional
+        The axes in the stage's order (the order of the command's entries); default
+        :func:`bag_axes`.
+    progress : callable, optional
+        Called as ``progress(messages_read, messages_total)`` while reading.
+    relative_time : bool
+        ``time_s`` from the first aligned stamp (see :func:`read_run`).
+
+    Returns
+    -------
+    list of RunRecord
+        One per axis, in the axis order; ``meta`` is the run description of the bag, with
+        its ``per_axis`` entry of that axis merged in, plus ``axis`` and what
+        :func:`read_run` adds (``bag``, ``alignment`` ...). Diagnostics named ``<axis>.<key>``
+        go to their axis as ``key``.
+
+    Raises
+    ------
+    BagError
+        What :func:`read_run` refuses, and: a one-axis bag, a bag with only the block topic
+        (one axis), a message missing an axis' joint, a command of another number of axes.
+
+    """
+    info = bag_info(path)
+    ns = _find_namespace(info, namespace)
+    if not is_axes_bag(info, ns):
+        what = ('only the block topic, which holds one axis' if block_topic(ns) in info.topics
+                else f'a one-axis run ({topic_names(ns)["command"]} is not '
+                f'{AXES_COMMAND_TYPE})')
+        raise BagError(f'bag {info.path}: holds {what}; read it with read_run')
+    names = bag_axes(info, ns) if axes is None else tuple(axes)
+    joints = axis_joint_names(names)
+    topics, found = _read_topics(info, ns, progress, joints)
+    common, pi, ri, command, alignment = _align(info, ns, topics)
+    n = len(names)
+    if command.shape[1] != n:
+        raise BagError(f'bag {info.path}: the command has {command.shape[1]} values a sample '
+                       f'for the {n} axes {list(names)}')
+    pos_val, ref_val = topics['position'][2], topics['reference'][2]
+    true_val: FloatArray | None = None
+    true_stamp: IntArray | None = None
+    if 'true_position' in topics:
+        _, true_stamp, true_val = topics['true_position']
     decoding = {topic: {'messages': count, 'bulk': fast}
                 for topic, (count, fast) in info.decoded.items()}
-    return _run_record(info, ns, common, relative_time, alignment, decoding,
-                       RunRecord(common / 1e9, pos_val[pi, 0], ref_val[ri, 0], ref_val[ri, 1],
-                                 command, diagnostics, true_position_m=true_position))
-
-
+    per_axis = info.meta.get('per_axis')
+    records = []
+    for j, name in enumerate(names):
+        true_position = None
+        if true_val is not None:
+            assert true_stamp is not None
+            true_position = _by_stamp(true_stamp, true_val[:, j], common)
+        diagnostics: dict[str, FloatArray] = {}
+        if 'diagnostics' in topics:
+            _, diag_stamp, diag_val = topics['diagnostics']
+            assert diag_stamp is not None
+            prefix = name + AXIS_DIAGNOSTIC_SEPARATOR
+            for col, key in enumerate(found.get('diagnostics', ())):
+                if key.startswith(prefix):
+                    diagnostics[key[len(prefix):]] = _by_stamp(diag_stamp, diag_val[:, col],
+                                                               common)
+        record = _run_record(info, ns, common, relative_time, alignment, decoding,
+                             RunRecord(common / 1e9, pos_val[pi, j], ref_val[ri, j],
+                                       ref_val[ri, n + j], command[:, j], diagnostics,
+                                       true_position_m=true_position))
+        own = per_axis.get(name, {}) if isinstance(per_axis, dict) else {}
+        record.meta.pop('per_axis', None)
+        record.meta.update({**(own if isinstance(own, dict) else {}), 'axis': name})
+        records.append(record)
+    return records

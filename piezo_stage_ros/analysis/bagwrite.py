@@ -31,6 +31,12 @@ A run is stored on the topics of :mod:`piezo_stage_ros.core.contracts.wire` unde
   same samples :data:`~piezo_stage_ros.core.contracts.wire.BLOCK_SAMPLES` to a message (the
   block layout of :mod:`~piezo_stage_ros.core.contracts.wire`), log time = stamp of its last row.
 
+A run of a stage of several axes (``axes=``, :func:`write_axes`) has the same topics, one
+message per sample holding every axis: the JointStates name one joint per axis
+(``stage_x`` ...) in the stage's axis order, the command is a ``Float64MultiArray`` of one entry
+per axis (layout ``dim[0]`` = {``axes``, N, N}), the diagnostics are named ``<axis>.<key>``;
+no block topic (it holds one axis).
+
 Bags written here have message log time = header stamp = sample time. The run's ``meta`` dict is
 kept as JSON in the bag's ``custom_data`` under
 :data:`~piezo_stage_ros.core.contracts.wire.META_KEY`. Many messages go into the storage at once
@@ -56,10 +62,15 @@ from piezo_stage_ros.core.contracts.cdr import (
     float64_layout,
     joint_state_layout,
     Layout,
+    multi_array_layout,
 )
 from piezo_stage_ros.core.contracts.errors import BagError
 from piezo_stage_ros.core.contracts.types import ByteMatrix, FloatArray, IntArray
 from piezo_stage_ros.core.contracts.wire import (
+    AXES_BAG_TOPICS,
+    axes_command_dims,
+    AXIS_DIAGNOSTIC_SEPARATOR,
+    axis_joint_names,
     BAG_TOPICS,
     block_columns,
     BLOCK_SAMPLES,
@@ -88,7 +99,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
 from rosbags.typesys import get_typestore, Stores
 from rosbags.typesys.store import Typestore
 
-__all__ = ['OFFERED_QOS', 'STORAGES', 'TOPIC_SETS', 'RunBagWriter', 'write_run']
+__all__ = ['OFFERED_QOS', 'STORAGES', 'TOPIC_SETS', 'RunBagWriter', 'write_axes', 'write_run']
 
 #: What a bag of a run can hold: the per-sample topics (as ever), the block topic, or both.
 TOPIC_SETS: Final = ('samples', 'block', 'both')
@@ -164,20 +175,32 @@ class RunBagWriter:
         ``<ns>/block`` only (:data:`TOPIC_SETS`), or both.
     block_samples : int
         Rows of a block message (the last one of the run may have fewer), >= 1.
+    axes : sequence of str, optional
+        The axes of a stage of several axes, in its order (``['x', 'y']``): every sample's
+        values are then one per axis (:meth:`write_axes_chunk`), on the topics of a
+        multi-axis bag (module docstring); None (the default): one axis, the bag as ever.
 
     Raises
     ------
     BagError
-        Bad storage, namespace, topics or block size, an existing path without
-        ``overwrite``, a write failure.
+        Bad storage, namespace, topics, block size or axis names, the block topic asked for
+        several axes, an existing path without ``overwrite``, a write failure.
 
     """
 
     def __init__(self, path: str | Path, *, storage: str = 'mcap', overwrite: bool = False,
                  namespace: str = DEFAULT_NAMESPACE, meta: Mapping[str, Any] | None = None,
                  bulk: bool = True, topics: str = 'samples',
-                 block_samples: int = BLOCK_SAMPLES) -> None:
+                 block_samples: int = BLOCK_SAMPLES, axes: Sequence[str] | None = None) -> None:
         self.path = Path(path)
+        self.axes = None if axes is None else tuple(str(a) for a in axes)
+        self.joints = (JOINT_NAME,) if self.axes is None else axis_joint_names(self.axes)
+        if self.axes is not None and topics != 'samples':
+            # a block row is one axis' sample (wire.block_columns); several axes would need
+            # columns per axis, which no recorder writes yet
+            raise BagError(f'topics {topics!r}: the block topic holds one axis; a bag of the '
+                           f'{len(self.axes)} axes {list(self.axes)} is written with '
+                           "topics='samples' (--bag-topics samples)")
         if topics not in TOPIC_SETS:
             raise BagError(f'topics {topics!r} is not supported; allowed: '
                            + ', '.join(repr(t) for t in TOPIC_SETS))
@@ -236,14 +259,17 @@ class RunBagWriter:
             bulk = BulkWriter(writer)
             self._bulk = bulk if bulk.supported else None
         store = _typestore()
+        types = BAG_TOPICS if self.axes is None else AXES_BAG_TOPICS
         for key in REQUIRED_TOPICS if self.per_sample else ():
             self._connections[key] = writer.add_connection(
-                self.topics[key], BAG_TOPICS[key], typestore=store,
+                self.topics[key], types[key], typestore=store,
                 offered_qos_profiles=[OFFERED_QOS])
-        self._layouts['position'] = joint_state_layout(names=[JOINT_NAME], n_position=1)
-        self._layouts['reference'] = joint_state_layout(names=[JOINT_NAME], n_position=1,
-                                                        n_velocity=1)
-        self._layouts['command'] = float64_layout()
+        n = len(self.joints)
+        self._layouts['position'] = joint_state_layout(names=self.joints, n_position=n)
+        self._layouts['reference'] = joint_state_layout(names=self.joints, n_position=n,
+                                                        n_velocity=n)
+        self._layouts['command'] = float64_layout() if self.axes is None else \
+            multi_array_layout(axes_command_dims(n), n)
 
     def _add_joint_states(self, key: str, names: Sequence[str]) -> None:
         """Add an optional JointState topic whose messages carry one position per name."""
@@ -261,7 +287,7 @@ class RunBagWriter:
     def _add_true_position(self, present: bool) -> None:
         self._has_true = present
         if present and self.per_sample:
-            self._add_joint_states('true_position', [JOINT_NAME])
+            self._add_joint_states('true_position', self.joints)
 
     def _add_block(self) -> None:
         assert self._writer is not None and self._diagnostic_keys is not None
@@ -311,7 +337,8 @@ class RunBagWriter:
             Sample times t_k [s], >= 0 and strictly increasing (also across calls); they become
             the header stamps and the log times, rounded to whole nanoseconds.
         position_m : array_like
-            Measured position y_k [m].
+            Measured position y_k [m]; with ``axes``, this and the other per-sample values
+            (not the diagnostics) have shape (samples, axes), columns in the axis order.
         reference_m : array_like
             Desired position x_d(t_k) [m].
         reference_velocity_mps : array_like
@@ -341,12 +368,13 @@ class RunBagWriter:
         if n and (stamp_ns[0] <= self._last_ns or np.any(np.diff(stamp_ns) <= 0)):
             raise BagError(f'bag {self.path}: sample times must be strictly increasing '
                            '(at nanosecond resolution)')
+        take = self._values
         columns = {
-            'position': {'position': _as_float(position_m, n, 'position_m', self.path)},
-            'reference': {'position': _as_float(reference_m, n, 'reference_m', self.path),
-                          'velocity': _as_float(reference_velocity_mps, n,
-                                                'reference_velocity_mps', self.path)},
-            'command': {'data': _as_float(command_v, n, 'command_v', self.path)},
+            'position': {'position': take(position_m, n, 'position_m')},
+            'reference': {'position': take(reference_m, n, 'reference_m'),
+                          'velocity': take(reference_velocity_mps, n,
+                                             'reference_velocity_mps')},
+            'command': {'data': take(command_v, n, 'command_v')},
         }
         keys = tuple(sorted(diagnostics or {}))
         if self._diagnostic_keys is None:
@@ -366,7 +394,7 @@ class RunBagWriter:
             raise BagError(f'bag {self.path}: the true position is given in some chunks only')
         if true_position_m is not None:
             columns['true_position'] = {
-                'position': _as_float(true_position_m, n, 'true_position_m', self.path)}
+                'position': take(true_position_m, n, 'true_position_m')}
         if self.block and self._block_columns is None:
             self._add_block()
         if n == 0:
@@ -385,6 +413,59 @@ class RunBagWriter:
             self._add_rows(stamp_ns, columns)
         self._last_ns = int(stamp_ns[-1])
         self.samples_written += n
+
+    def _values(self, values: ArrayLike, n: int, what: str) -> FloatArray:
+        # one value a sample, or with axes a row of one value per axis
+        if self.axes is None:
+            return _as_float(values, n, what, self.path)
+        arr = np.asarray(values, dtype=np.float64)
+        width = len(self.axes)
+        if arr.shape != (n, width):
+            raise BagError(f'bag {self.path}: {what} has shape {arr.shape}, expected '
+                           f'({n}, {width}): {n} samples of the axes {list(self.axes)}')
+        return arr
+
+    def write_axes_chunk(self, records: Sequence[RunRecord]) -> None:
+        """
+        Append the samples of a multi-axis run: one record per axis, in the axis order.
+
+        Parameters
+        ----------
+        records : sequence of RunRecord
+            One per axis of ``axes`` (same sample times; ``meta['axis']``, where given, must
+            name the axis); their diagnostics go out as ``<axis>.<key>``.
+
+        Raises
+        ------
+        BagError
+            Not opened for axes, a record count or axis that does not match, times that
+            differ between the axes, or anything :meth:`write_samples` refuses.
+
+        """
+        if self.axes is None:
+            raise BagError(f'bag {self.path}: opened for one axis; pass axes= for a '
+                           'multi-axis run')
+        got = [str(r.meta.get('axis', a)) for r, a in zip(records, self.axes)]
+        if len(records) != len(self.axes) or got != list(self.axes):
+            raise BagError(f'bag {self.path}: records of the axes {got} for a bag of the axes '
+                           f'{list(self.axes)}; allowed: one record per axis, in that order')
+        time_s = records[0].time_s
+        if any(not np.array_equal(r.time_s, time_s) for r in records[1:]):
+            raise BagError(f"bag {self.path}: the axes' records have different sample times")
+        has_true = [r.true_position_m is not None for r in records]
+        if any(has_true) and not all(has_true):
+            raise BagError(f'bag {self.path}: the true position is given for some axes only')
+
+        def stack(field: str) -> FloatArray:
+            return np.column_stack([np.asarray(getattr(r, field), dtype=np.float64)
+                                    for r in records]) if records else np.zeros((0, 0))
+        diagnostics = {f'{a}{AXIS_DIAGNOSTIC_SEPARATOR}{key}': values
+                       for a, r in zip(self.axes, records) for key, values in
+                       r.diagnostics.items()}
+        self.write_samples(time_s, stack('position_m'), stack('reference_m'),
+                           stack('reference_velocity_mps'), stack('command_v'),
+                           diagnostics=diagnostics,
+                           true_position_m=stack('true_position_m') if all(has_true) else None)
 
     def _write(self, messages: Sequence[tuple[Connection, ByteMatrix]],
                stamp_ns: IntArray) -> None:
@@ -516,3 +597,40 @@ def write_run(record: RunRecord, path: str | Path, *, storage: str = 'mcap',
         writer.write_chunk(record)
 
 
+def write_axes(records: Sequence[RunRecord], path: str | Path, *, storage: str = 'mcap',
+               overwrite: bool = False, namespace: str = DEFAULT_NAMESPACE,
+               meta: Mapping[str, Any] | None = None) -> None:
+    """
+    Write a whole multi-axis run as a bag, one message per sample and topic for all axes.
+
+    Parameters
+    ----------
+    records : sequence of RunRecord
+        One per axis, in the stage's axis order, each with ``meta['axis']`` (as
+        :func:`~piezo_stage_ros.core.loop.axes.run_axes` returns them).
+    path : path-like
+        Bag directory to create.
+    storage : {'mcap', 'sqlite3'}
+        Storage plugin.
+    overwrite : bool
+        Replace an existing bag at ``path`` (see :class:`RunBagWriter`).
+    namespace : str
+        Topic namespace, default ``'/stage'``.
+    meta : Mapping, optional
+        The run's description, stored with ``axes`` (the axis order) added.
+
+    Raises
+    ------
+    BagError
+        A record without its axis name, the path exists (without ``overwrite``), bad
+        options, or a write failure.
+
+    """
+    axes = []
+    for j, rec in enumerate(records):
+        if 'axis' not in rec.meta:
+            raise BagError(f"bag {path}: record {j} has no meta['axis'] naming its axis")
+        axes.append(str(rec.meta['axis']))
+    with RunBagWriter(path, storage=storage, overwrite=overwrite, namespace=namespace,
+                      meta={**(meta or {}), 'axes': axes}, axes=axes) as writer:
+        writer.write_axes_chunk(records)

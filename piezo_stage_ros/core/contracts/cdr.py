@@ -76,7 +76,7 @@ __all__ = ['HEADER_LE', 'CdrError', 'JointStateDecoder', 'JointStateEncoder',
            'JointStateMessage', 'Layout', 'decode_block', 'decode_float64', 'decode_joint_state',
            'decode_joint_state_message', 'decode_multi_array', 'encode_block', 'encode_clock',
            'encode_float64', 'encode_joint_state', 'encode_multi_array', 'float64_layout',
-           'joint_state_layout']
+           'joint_state_layout', 'multi_array_layout']
 
 
 HEADER_LE: Final = b'\x00\x01\x00\x00'
@@ -683,3 +683,26 @@ def joint_state_layout(*, frame_id: str = '', names: Sequence[str] = (), n_posit
     offsets = {name: (_find_unique(raw, struct.pack(f'<{len(vals)}d', *vals), name), len(vals))
                for name, vals in values.items() if vals}
     return _layout(raw, stamp_offset, offsets, tuple(names))
+
+
+def multi_array_layout(dims: Sequence[tuple[str, int, int]], count: int) -> Layout:
+    """
+    Return the little-endian layout of a ``std_msgs/msg/Float64MultiArray`` of fixed shape.
+
+    Parameters
+    ----------
+    dims : sequence of (str, int, int)
+        ``layout.dim`` (label, size, stride), the same in every message; ``data_offset`` 0.
+    count : int
+        Length of ``data``, >= 1.
+
+    Returns
+    -------
+    Layout
+        No stamp; ``arrays`` has ``data`` (``count`` elements).
+
+    """
+    values = [_sentinel(0, j) for j in range(count)]
+    raw = encode_multi_array(dims, np.asarray(values, dtype=np.float64))
+    offset = _find_unique(raw, struct.pack(f'<{count}d', *values), 'data')
+    return _layout(raw, None, {'data': (offset, count)}, ())

@@ -65,6 +65,16 @@ by :data:`BLOCK_SEPARATOR`, size c, stride c}, ``data_offset`` 0. The columns, i
 
 A message carries one column set; when the diagnostic keys change (a controller rebuilt of
 another kind) the writer starts a new message. Rows are in sample order.
+
+A stage of several axes (:func:`axis_joint_names`) keeps one message per sample and topic, all
+axes in it, so that a sample stays atomic (one stamp, one message to wait for in lockstep, one
+row of a bag): ``stage/position``, ``stage/reference`` and ``stage/true_position`` carry one
+joint per axis, named ``stage_<axis>`` in the stage's axis order, each array one entry per
+joint; ``stage/command`` is a ``std_msgs/msg/Float64MultiArray`` (:data:`AXES_COMMAND_TYPE`)
+with ``data`` in the axis order and ``layout.dim`` = [{label :data:`AXES_LABEL`, size N,
+stride N}] (:func:`axes_command_dims`), the convention of ros2_control's joint-group
+controllers; its other type makes a one-axis subscriber refuse it instead of reading one axis.
+The diagnostics carry every axis' keys as ``<axis>.<key>``. The block topic holds one axis.
 """
 
 from __future__ import annotations
@@ -86,6 +96,8 @@ __all__ = [
     'POSITION', 'RECORDED_TOPICS', 'REFERENCE', 'REQUIRED_TOPICS', 'SIMULATION_TOPICS', 'STAGE',
     'STATUS', 'STATUS_TYPE', 'STORAGE_IDS', 'TOPIC_TYPES', 'TRAJECTORY', 'TRAJECTORY_TYPE',
     'TRUE_POSITION', 'BlockColumns',
+    'AXES_BAG_TOPICS', 'AXES_COMMAND_TYPE', 'AXES_LABEL', 'AXIS_DIAGNOSTIC_SEPARATOR',
+    'AXIS_JOINT_PREFIX', 'axes_command_dims', 'axis_joint_names', 'axis_of_joint',
     'block_columns', 'block_topic', 'diagnostic_reader', 'normalize_namespace', 'ns_to_stamp',
     'parse_block_columns', 'stamp_to_ns', 'topic_names',
 ]
@@ -113,6 +125,18 @@ BAG_TOPICS: Final[Mapping[str, str]] = {
     'true_position': JOINT_STATE_TYPE,
 }
 REQUIRED_TOPICS: Final = ('position', 'reference', 'command')
+#: The command of a stage of several axes: all axes' inputs of one sample in one message.
+AXES_COMMAND_TYPE: Final = 'std_msgs/msg/Float64MultiArray'
+#: ``layout.dim[0].label`` of a multi-axis command.
+AXES_LABEL: Final = 'axes'
+#: Joint name of axis ``a`` of a stage of several axes: ``stage_a``.
+AXIS_JOINT_PREFIX: Final = STAGE + '_'
+#: Joins an axis and a diagnostic key in the diagnostics of a stage of several axes.
+AXIS_DIAGNOSTIC_SEPARATOR: Final = '.'
+#: :data:`BAG_TOPICS` of a stage of several axes: the command is one array a sample.
+AXES_BAG_TOPICS: Final[Mapping[str, str]] = {
+    key: AXES_COMMAND_TYPE if key == 'command' else msgtype
+    for key, msgtype in BAG_TOPICS.items()}
 #: Bag topics only a simulation knows (the offline runner writes them; no node publishes them).
 SIMULATION_TOPICS: Final = ('true_position',)
 #: The rosbag2 storage plugins a run's bag can be written in (the first is the default).
@@ -231,6 +255,47 @@ def topic_names(namespace: str = DEFAULT_NAMESPACE) -> dict[str, str]:
 def block_topic(namespace: str = DEFAULT_NAMESPACE) -> str:
     """Return the absolute name of the block topic under a namespace (``'/stage/block'``)."""
     return f'{normalize_namespace(namespace)}/{BLOCK.rsplit("/", 1)[1]}'
+
+
+def axis_joint_names(axes: Sequence[str]) -> tuple[str, ...]:
+    """
+    Return the joint names of a stage of several axes, in its axis order (``stage_x`` ...).
+
+    Raises
+    ------
+    BagError
+        An axis name that is empty, holds white space or :data:`AXIS_DIAGNOSTIC_SEPARATOR`, or
+        appears twice.
+
+    """
+    names = tuple(str(a) for a in axes)
+    if not names or len(set(names)) != len(names) or any(
+            not a or AXIS_DIAGNOSTIC_SEPARATOR in a or any(c.isspace() for c in a)
+            for a in names):
+        raise BagError(f'axis names {list(names)}: allowed: one or more distinct names without '
+                       f'{AXIS_DIAGNOSTIC_SEPARATOR!r} or white space')
+    return tuple(AXIS_JOINT_PREFIX + a for a in names)
+
+
+def axis_of_joint(joint: str) -> str:
+    """
+    Return the axis a joint name of a stage of several axes stands for (``stage_x`` -> ``x``).
+
+    Raises
+    ------
+    BagError
+        A name that does not start with :data:`AXIS_JOINT_PREFIX` or has nothing after it.
+
+    """
+    if not joint.startswith(AXIS_JOINT_PREFIX) or len(joint) == len(AXIS_JOINT_PREFIX):
+        raise BagError(f'joint {joint!r} is not an axis of a stage; allowed: '
+                       f"'{AXIS_JOINT_PREFIX}<axis>'")
+    return joint[len(AXIS_JOINT_PREFIX):]
+
+
+def axes_command_dims(n: int) -> list[tuple[str, int, int]]:
+    """Return ``layout.dim`` of a multi-axis command of ``n`` axes: [(``'axes'``, n, n)]."""
+    return [(AXES_LABEL, int(n), int(n))]
 
 
 def block_columns(*, applied: bool = False, true_position: bool = False,

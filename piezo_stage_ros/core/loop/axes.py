@@ -45,7 +45,12 @@ from piezo_stage_ros.core.loop.metrics import error_metrics
 from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.model.axes import AxesStage
 
-__all__ = ['AxisMetrics', 'axis_metrics', 'frame_images', 'middle_of_lines', 'run_axes']
+__all__ = ['LINE_FRACTION', 'AxisMetrics', 'GratingImage', 'axis_metrics', 'frame_images',
+           'grating_image', 'line_start', 'middle_of_lines', 'run_axes', 'run_metrics']
+
+#: Share of a raster line's range over which its fast axis is measured (the turn-arounds, where
+#: no image is taken, left out).
+LINE_FRACTION = 0.8
 
 
 def run_axes(stage: AxesStage, controller: AxesController,
@@ -220,6 +225,41 @@ def axis_metrics(record: RunRecord, *, last_s: float | None = None,
                        e_rms, t_max, t_rms)
 
 
+def run_metrics(records: Sequence[RunRecord], *, window_s: float | None,
+                fast_axis: str | None = None,
+                fraction: float = LINE_FRACTION) -> dict[str, AxisMetrics]:
+    """
+    Return every axis' metrics over the last ``window_s``, a raster's fast axis over its lines.
+
+    The one place the figures of a multi-axis run are computed, so that ``simulate_axes`` of a
+    run and ``analyze`` of its bag give the same numbers.
+
+    Parameters
+    ----------
+    records : sequence of RunRecord
+        One per axis, ``meta['axis']`` naming it.
+    window_s : float or None
+        Window length at the end of the run [s]; None: the whole run.
+    fast_axis : str, optional
+        A raster's fast axis: measured where its reference lies in the middle ``fraction`` of
+        its range (:func:`middle_of_lines`).
+    fraction : float
+        That share, (0, 1].
+
+    Returns
+    -------
+    dict of str to AxisMetrics
+        Per axis name, in the records' order.
+
+    """
+    out = {}
+    for rec in records:
+        name = str(rec.meta.get('axis', ''))
+        mask = middle_of_lines(rec.reference_m, fraction) if name == fast_axis else None
+        out[name] = axis_metrics(rec, last_s=window_s, mask=mask)
+    return out
+
+
 def middle_of_lines(reference_m: FloatArray, fraction: float = 0.8) -> FloatArray:
     """
     Return the samples where a fast axis' reference is in the middle ``fraction`` of its range.
@@ -248,7 +288,7 @@ def middle_of_lines(reference_m: FloatArray, fraction: float = 0.8) -> FloatArra
 
 
 def frame_images(fast: RunRecord, slow: RunRecord, *, lines: int, frame: int = -1,
-                 true: bool = False) -> tuple[FloatArray, FloatArray]:
+                 true: bool = False, start: int = 0) -> tuple[FloatArray, FloatArray]:
     """
     Return one raster frame's errors as images: rows the lines, columns the samples of a line.
 
@@ -268,6 +308,9 @@ def frame_images(fast: RunRecord, slow: RunRecord, *, lines: int, frame: int = -
         Which complete frame of the run (negative: counted from the last).
     true : bool
         The true position's error instead of the measured one.
+    start : int
+        The lines begin at this sample (e.g. :func:`line_start`: a row from the fast axis'
+        low turn-around, trace then retrace); 0: at the run's start.
 
     Returns
     -------
@@ -281,6 +324,33 @@ def frame_images(fast: RunRecord, slow: RunRecord, *, lines: int, frame: int = -
         not hold whole.
 
     """
+    out = []
+    for rec in (fast, slow):
+        err = rec.true_error_m if true else rec.error_m
+        if err is None:
+            raise ParameterError('true', true, 'False for a record without true positions')
+        out.append(_frame_rows(fast, err, lines, frame, start))
+    return out[0], out[1]
+
+
+def line_start(fast: RunRecord) -> int:
+    """
+    Return the sample of the fast axis' low turn-around in its first line period.
+
+    Lines counted from there run trace (up), then retrace (down); a raster's slow axis steps
+    at that turn-around (its ``delay_s``), so each such line lies on one slow-axis level.
+
+    Raises
+    ------
+    ParameterError
+        Without a fast-axis period of a whole number of samples.
+
+    """
+    return int(np.argmin(fast.reference_m[:_line_samples(fast)]))
+
+
+def _line_samples(fast: RunRecord) -> int:
+    # samples of one line: the fast axis' period, a whole number of samples
     dt = float(fast.meta.get('sample_time_s', 0.0))
     period = fast.meta.get('trajectory_period_s')
     line_s = float(period) if isinstance(period, (int, float)) else 0.0
@@ -288,19 +358,170 @@ def frame_images(fast: RunRecord, slow: RunRecord, *, lines: int, frame: int = -
     if per_line < 2 or abs(per_line * dt - line_s) > 1e-9 * line_s:
         raise ParameterError('fast.meta.trajectory_period_s', period,
                              'a line period of a whole number (>= 2) of samples')
+    return per_line
+
+
+def _frame_rows(fast: RunRecord, values: FloatArray, lines: int, frame: int,
+                offset: int = 0) -> FloatArray:
+    # one frame of per-sample values as (lines, samples per line), the lines counted from
+    # sample ``offset``, row 0 at the slow axis' low end (odd frames run down the slow axis:
+    # their first line is the top one)
+    per_line = _line_samples(fast)
     size = lines * per_line
-    frames = len(fast) // size
+    frames = (len(fast) - offset) // size
     index = frame + frames if frame < 0 else frame
     if not 0 <= index < frames:
         raise ParameterError('frame', frame, f'[{-frames}, {frames}) (complete frames in the '
                              'run)')
-    out = []
-    for rec in (fast, slow):
-        err = rec.true_error_m if true else rec.error_m
-        if err is None:
-            raise ParameterError('true', true, 'False for a record without true positions')
-        image = np.asarray(err[index * size:(index + 1) * size], dtype=np.float64).reshape(
-            lines, per_line)
-        # odd frames run down the slow axis: their first line is the top one
-        out.append(image[::-1].copy() if index % 2 else image.copy())
-    return out[0], out[1]
+    first = offset + index * size
+    image = np.asarray(values[first:first + size], dtype=np.float64).reshape(lines, per_line)
+    return image[::-1].copy() if index % 2 else image.copy()
+
+
+@dataclass(frozen=True)
+class GratingImage:
+    """
+    A cross grating imaged over one raster frame: what a user's image of it shows.
+
+    The sample is h(x, y) = (cos(2 pi x / p) + cos(2 pi y / p)) / 2, lines of pitch p across
+    both axes. An image puts each sample where the stage was told to be (the desired
+    positions); the tip was where the stage went (the true position, else the measured one).
+    Index 0 of each pair is the trace (fast axis moving up), 1 the retrace.
+
+    Attributes
+    ----------
+    pitch_m : float
+        The grating's pitch p [m].
+    x_m : ndarray
+        Pixel centres along the fast axis [m]: the middle ``fraction`` of the line's range.
+    y_m : ndarray
+        Each row's desired slow-axis position (its mean over the imaged part) [m].
+    desired, imaged : tuple of ndarray
+        Trace and retrace images (lines x pixels): the grating at the desired positions (what
+        a perfect stage images) and at the positions reached.
+    shift_x_m : tuple of ndarray
+        Per row and grating line x = m p inside the imaged range: where the line shows in the
+        image minus where it is [m] (lines x grating lines; NaN where a row does not cross it).
+    shift_y_m : tuple of ndarray
+        Per row and pixel: the desired minus the reached slow-axis position, how far the row
+        (and every grating line across it) is displaced in the image [m].
+    rms_x_m, rms_y_m : tuple of float
+        Rms of those displacements, trace and retrace [m]: the distortion in numbers.
+    source : str
+        ``'true'`` or ``'measured'``: which position the tip was taken at.
+
+    """
+
+    pitch_m: float
+    x_m: FloatArray
+    y_m: FloatArray
+    desired: tuple[FloatArray, FloatArray]
+    imaged: tuple[FloatArray, FloatArray]
+    shift_x_m: tuple[FloatArray, FloatArray]
+    shift_y_m: tuple[FloatArray, FloatArray]
+    rms_x_m: tuple[float, float]
+    rms_y_m: tuple[float, float]
+    source: str
+
+
+def _rms(values: FloatArray) -> float:
+    finite = values[np.isfinite(values)]
+    return float(np.sqrt(np.mean(finite ** 2))) if finite.size else math.nan
+
+
+def grating_image(fast: RunRecord, slow: RunRecord, *, lines: int, pitch_m: float = 1e-6,
+                  frame: int = -1, fraction: float = LINE_FRACTION) -> GratingImage:
+    """
+    Image a cross grating over one raster frame at the reached against the desired positions.
+
+    A row of the image is a line from the fast axis' low turn-around to the next (trace, then
+    retrace), where a raster's slow axis steps. Each row's samples of one direction inside the
+    middle ``fraction`` of the fast axis' range are resampled onto a pixel grid of as many
+    pixels as a line has samples there, by linear interpolation along the desired fast
+    position. A grating line x = m p shows in a
+    row where the tip reached it: at the desired position the stage had when its true (else
+    measured) position crossed m p, interpolated between the samples around the crossing.
+
+    Parameters
+    ----------
+    fast, slow : RunRecord
+        The fast and the slow axis of one raster run (:func:`run_axes`, or read from its bag).
+    lines : int
+        Lines per frame.
+    pitch_m : float
+        The grating's pitch [m], > 0.
+    frame : int
+        Which complete frame (negative: counted from the last).
+    fraction : float
+        Share of the line's range imaged, (0, 1].
+
+    Returns
+    -------
+    GratingImage
+
+    Raises
+    ------
+    ParameterError
+        A bad pitch or fraction, or what :func:`frame_images` refuses.
+
+    """
+    if not (pitch_m > 0.0 and math.isfinite(pitch_m)):
+        raise ParameterError('pitch_m', pitch_m, '(0, inf) m')
+    if not 0.0 < fraction <= 1.0:
+        raise ParameterError('fraction', fraction, '(0, 1]')
+    use_true = fast.true_position_m is not None and slow.true_position_m is not None
+
+    def reached(r: RunRecord) -> FloatArray:
+        true = r.true_position_m
+        return true if use_true and true is not None else r.position_m
+    # the rows begin at the fast axis' low turn-around
+    start = line_start(fast)
+    xd = _frame_rows(fast, fast.reference_m, lines, frame, start)
+    vd = _frame_rows(fast, fast.reference_velocity_mps, lines, frame, start)
+    x = _frame_rows(fast, reached(fast), lines, frame, start)
+    yd = _frame_rows(fast, slow.reference_m, lines, frame, start)
+    y = _frame_rows(fast, reached(slow), lines, frame, start)
+    lo, hi = float(xd.min()), float(xd.max())
+    centre, half = 0.5 * (lo + hi), 0.5 * fraction * (hi - lo)
+    inside = np.abs(xd - centre) <= half
+    pixels = max(int(np.count_nonzero(inside & (vd > 0.0)) // lines), 2)
+    x_px = np.linspace(centre - half, centre + half, pixels)
+    marks = np.arange(math.ceil((centre - half) / pitch_m),
+                      math.floor((centre + half) / pitch_m) + 1) * pitch_m
+
+    def height(px: FloatArray, py: FloatArray) -> FloatArray:
+        return np.asarray(0.5 * (np.cos(2.0 * np.pi * px / pitch_m)
+                                 + np.cos(2.0 * np.pi * py / pitch_m)), dtype=np.float64)
+
+    y_rows = np.array([float(np.mean(yd[i][inside[i]])) if inside[i].any() else math.nan
+                       for i in range(lines)])
+    desired, imaged, shift_x, shift_y = [], [], [], []
+    for sign in (1.0, -1.0):
+        d_img = np.full((lines, pixels), np.nan)
+        i_img = np.full((lines, pixels), np.nan)
+        sx = np.full((lines, marks.size), np.nan)
+        sy = np.full((lines, pixels), np.nan)
+        for i in range(lines):
+            keep = sign * vd[i] > 0.0
+            if np.count_nonzero(keep) < 2:
+                continue
+            order = np.argsort(xd[i][keep], kind='stable')
+            xd_k, x_k = xd[i][keep][order], x[i][keep][order]
+            yd_k, y_k = yd[i][keep][order], y[i][keep][order]
+            d_img[i] = np.interp(x_px, xd_k, height(xd_k, yd_k), left=np.nan, right=np.nan)
+            i_img[i] = np.interp(x_px, xd_k, height(x_k, y_k), left=np.nan, right=np.nan)
+            sy[i] = np.interp(x_px, xd_k, yd_k - y_k, left=np.nan, right=np.nan)
+            # where the reached position crossed each mark, on the desired axis
+            by_reached = np.argsort(x_k, kind='stable')
+            seen = np.interp(marks, x_k[by_reached], xd_k[by_reached], left=np.nan,
+                             right=np.nan)
+            sx[i] = seen - marks
+        desired.append(d_img)
+        imaged.append(i_img)
+        shift_x.append(sx)
+        shift_y.append(sy)
+    return GratingImage(float(pitch_m), x_px, y_rows, (desired[0], desired[1]),
+                        (imaged[0], imaged[1]), (shift_x[0], shift_x[1]),
+                        (shift_y[0], shift_y[1]), (_rms(shift_x[0]), _rms(shift_x[1])),
+                        (_rms(shift_y[0]), _rms(shift_y[1])),
+                        'true' if use_true else 'measured')
