@@ -96,7 +96,7 @@ __all__ = ['FeedForwardController', 'FeedForwardParams', 'HysteresisInverse', 'L
            'MIN_PERIOD_SAMPLES', 'MODES', 'PhaseLearning', 'PreviewInverse', 'TABLE_FORMAT',
            'TABLE_META_KEY', 'TABLE_VERSION', 'boundary_weights', 'check_learning_period',
            'CLIP_SETTLE_SAMPLES', 'clipped_excess', 'LEARNING_SHAPE_CYCLES',
-           'BANDWIDTH_STRETCH', 'kept_harmonics', 'MIN_LEARNED_HARMONICS',
+           'BANDWIDTH_STRETCH', 'kept_harmonics', 'LEARN_SPREAD_SAMPLES', 'MIN_LEARNED_HARMONICS',
            'learning_columns', 'learning_convergence', 'make_hysteresis_inverse',
            'period_harmonics', 'phase_learning_convergence', 'phase_windows',
            'process_sensitivity', 'read_learned_table', 'shape_jumps', 'START_HOLD_DECAY',
@@ -107,6 +107,12 @@ MODES = ('none', 'inverse', 'learning', 'inverse_learning')
 
 #: Samples whose errors enter the learning update together (one correlation each run).
 LEARN_CHUNK = 16
+
+#: Periods of at least this many samples spread each run's correlation over the next samples,
+#: a slice of the period's columns a sample: the run's whole correlation costs LEARN_CHUNK
+#: times the period, too much for one sample of a long period (a raster's frame), and the
+#: slices add the same products in the same order to each column, so the update is the same.
+LEARN_SPREAD_SAMPLES = 1024
 
 #: ``learning`` without the model inverse shapes a jump over at least this many periods of
 #: ``learning_bandwidth_hz``: the quintic S-curve's content above Q is then below 5e-4 of the
@@ -1518,6 +1524,10 @@ class FeedForwardController:
         self._columns: FloatArray = np.zeros((0, 0))
         self._delta: FloatArray = np.zeros(0)
         self._errors: list[float] = []
+        # a long period (LEARN_SPREAD_SAMPLES): the runs whose correlation is still being
+        # added, a slice of columns a sample; each [errors, first row, last row + 1, next column]
+        self._backlog: list[list[Any]] = []
+        self._slice = 0
         self._pending = 0
         self._sq = 0.0
         self._holding = False
@@ -1695,6 +1705,9 @@ class FeedForwardController:
         self.limited_updates = 0
         self._delta = np.zeros(self._period_n)
         self._errors = [0.0] * self._period_n
+        self._backlog = []
+        self._slice = -(-self._period_n // LEARN_CHUNK) \
+            if self._period_n >= LEARN_SPREAD_SAMPLES else 0
         self._pending = 0
         self._sq = 0.0
         if self._learning_on:
@@ -1811,6 +1824,8 @@ class FeedForwardController:
                     else self._leak * table
                 if i % LEARN_CHUNK == LEARN_CHUNK - 1 or i == n - 1:
                     self._accumulate(i + 1)
+            if self._backlog:
+                self._work(self._backlog)
             if i == n - 1:
                 self._learn(k)
             v = self._output(u)
@@ -1934,10 +1949,7 @@ class FeedForwardController:
             xv = np.concatenate([xv, nv])
             wl = np.concatenate([wl, nw if self._inverse_on else np.zeros(len(nw))])
         stop = min(i + 1 + count, len(x))
-        a, b = getattr(self.inner, 'reference_gains', lambda: (0.0, 0.0))()
-        if self._inverse_on:
-            a -= self._theta0 * self._ksens
-            b -= self._phi0 * self._ksens
+        a, b = self._ahead_gains()
         ahead: FloatArray = x[i + 1:stop] - x[i]
         ahead *= a
         ahead += b * (xv[i + 1:stop] - xv[i])
@@ -1951,7 +1963,7 @@ class FeedForwardController:
             j = int(np.argmax(np.abs(ahead)))
             du = float(ahead[j])
             if du != 0.0:
-                ahead *= (hyst.invert(hyst.output_v + self.slope * du) - v) / du
+                ahead *= self.ahead_secant(du)
         ahead += v
         np.minimum(ahead, self._vmax, out=ahead)
         np.maximum(ahead, self._vmin, out=ahead)
@@ -1960,6 +1972,46 @@ class FeedForwardController:
             ahead = np.concatenate([ahead, np.full(count - len(ahead),
                                                    ahead[-1] if len(ahead) else v)])
         return ahead
+
+    def _ahead_gains(self) -> tuple[float, float]:
+        """Return (a [V/m], b [V s/m]): the inner controller's reference gains less the share."""
+        a, b = getattr(self.inner, 'reference_gains', lambda: (0.0, 0.0))()
+        if self._inverse_on:
+            a -= self._theta0 * self._ksens
+            b -= self._phi0 * self._ksens
+        return a, b
+
+    def ahead_secant(self, du: float) -> float:
+        """
+        Return the inverse hysteresis' secant from the last command to a change ``du`` ahead.
+
+        The factor :meth:`predict` scales its linear changes by (1 without a compensator or
+        for no change).
+        """
+        hyst = self.hysteresis_inverse
+        if hyst is None or du == 0.0:
+            return 1.0
+        return (hyst.invert(hyst.output_v + self.slope * du) - self._u) / du
+
+    def ahead_plan(self, count: int) -> tuple[tuple[FloatArray, FloatArray, FloatArray], int,
+                                              float, float, float] | None:
+        """
+        Return what :meth:`predict` reads from a whole period's tables, for a batch of axes.
+
+        ((x_d, x_d', model inverse + learned), each repeated so that ``count`` samples after
+        the index are one slice, the same tuple until a table is replaced; the index of the
+        last step; a; b; the last command [V]), or None
+        when :meth:`predict` goes another way (held, aperiodic, a period of any length).
+        :class:`~piezo_stage_ros.core.control.ahead.AxesAhead` does the rest of
+        :meth:`predict` on the axes together, the same operations on each value.
+        """
+        k = self._k - 1
+        n = self._period_n
+        if not n or self._phase is not None or self._trajectory is None or \
+                not self._matched or k < 0 or count <= 0:
+            return None
+        a, b = self._ahead_gains()
+        return self._ahead_tables(count), k % n, a, b, self._u
 
     def _ahead_tables(self, count: int) -> tuple[FloatArray, FloatArray, FloatArray]:
         """
@@ -1970,9 +2022,11 @@ class FeedForwardController:
         """
         sources = (self._lx, self._lv, self._lw, self._ll, count)
         cache = self._ahead_cache
-        if cache is not None and all(s is c for s, c in zip(sources[:4], cache[0][:4])) \
-                and cache[0][4] >= count:
-            return cache[1]
+        if cache is not None:
+            held = cache[0]
+            if held[0] is sources[0] and held[1] is sources[1] and held[2] is sources[2] and \
+                    held[3] is sources[3] and held[4] >= count:
+                return cache[1]
         x = np.array(self._lx)
         xv = np.array(self._lv)
         wl = np.array(self._lw) if self._inverse_on else np.zeros(len(x))
@@ -2141,9 +2195,38 @@ class FeedForwardController:
         errors = self._errors
         chunk = np.array(errors[start:end][::-1])
         errors[start:end] = [0.0] * (end - start)
+        if self._slice:
+            self._backlog.append([chunk[:, None], n - end + 1, n - start + 1, 0])
+            return
         # row n - i of the windows is column i; the sum over the rows runs in their order
         # (no BLAS: the same sums on every machine, and the batched loop repeats them)
         self._delta += (chunk[:, None] * self._columns[n - end + 1:n - start + 1]).sum(axis=0)
+
+    def _work(self, backlog: list[list[Any]]) -> None:
+        """
+        Add the next slice of columns of the oldest run's correlation to the update.
+
+        The same products summed over the same rows in the same order as :meth:`_accumulate`
+        sums them whole, column by column, and each column gets the runs in the order they
+        came: the update is the one the whole sums give. A slice keeps at least two columns
+        (a single column would be summed as a row, in another order).
+        """
+        run = backlog[0]
+        chunk, first, last, c0 = run
+        n = self._period_n
+        c1 = c0 + self._slice
+        if c1 > n - 2:
+            c1 = n
+            del backlog[0]
+        else:
+            run[3] = c1
+        self._delta[c0:c1] += (chunk * self._columns[first:last, c0:c1]).sum(axis=0)
+
+    def _drain(self) -> None:
+        """Add what the runs still owe to the update (before it is applied)."""
+        backlog = self._backlog
+        while backlog:
+            self._work(backlog)
 
     @property
     def _learn_from(self) -> int:
@@ -2195,6 +2278,7 @@ class FeedForwardController:
             return
         limit = self.params.learning_limit_v
         learned = self._learned
+        self._drain()
         learned -= self._delta
         if self._excess_any:
             # what the range clipped off the table: the table takes the input that was
