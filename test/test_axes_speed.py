@@ -33,6 +33,7 @@ from piezo_stage_ros.core.control.controllers import build_controller, Controlle
 from piezo_stage_ros.core.control.feedforward import (
     FeedForwardController,
     LEARN_CHUNK,
+    LEARN_SPECTRUM_SAMPLES,
     LEARN_SPREAD_SAMPLES,
 )
 from piezo_stage_ros.core.loop.axes import run_axes
@@ -135,7 +136,53 @@ def test_spread_learning_is_the_circular_convolution_of_the_errors() -> None:
 
 def test_short_periods_keep_the_runs_whole() -> None:
     ctrl, _ = _learning(100)
-    assert LEARN_SPREAD_SAMPLES > 100 and ctrl._slice == 0
+    assert LEARN_SPREAD_SAMPLES > 100 and ctrl._slice == 0 and not ctrl._spectral
+
+
+@pytest.mark.parametrize('n', [4096, 4106])
+def test_spectrum_learning_is_the_summed_learning_within_its_rounding(n: int,
+                                                                      monkeypatch: Any) -> None:
+    # The spectrum of the errors on the kept harmonics, E_h = sum_i e_i p_i, each phasor p_i
+    # turned on from an exact one (at most n turns: each a complex product, relative error
+    # <= sqrt(5) eps, by a turn rounded to 2 eps of exp(-2 pi j h / n), so |p_i - exact|
+    # <= 5 n eps), summed over m terms (<= m eps sum |e| a part, complex: x 2):
+    # |dE_h| <= (5 n + 2 m) eps |e|_1. The update (1/n) sum over +-h of F_h E_h is off by at
+    # most (2/n) |F|_1 (5 n + 2 m) eps |e|_1 from that, plus the inverse FFT's own rounding
+    # (a few log2(n) eps of (2/n) sum |F_h E_h|), against the summed columns' own
+    # 4 m eps max(|C| |e|) (the bound of the circulant test).
+    # A stall across the second period's end: that update is applied with the third's, and
+    # the phasor starts anew after the stall.
+    assert LEARN_SPECTRUM_SAMPLES is not None and n >= LEARN_SPECTRUM_SAMPLES
+    stall = (2 * n - 3, 5)
+    spectral, sine = _learning(n)
+    assert spectral._spectral and spectral._slice == 0
+    got = _stepped(spectral, sine, n, stall)
+    with monkeypatch.context() as m:
+        m.setattr(feedforward, 'LEARN_SPECTRUM_SAMPLES', None)
+        summed, sine = _learning(n)
+        assert not summed._spectral
+        want = _stepped(summed, sine, n, stall)
+    assert spectral.periods_learned == summed.periods_learned == 1
+    errors = 1e-8 * np.random.default_rng(5).standard_normal(3 * n)
+    xd = sine.evaluate(np.arange(3 * n) * T)[0]
+    e = xd + errors - np.tile(summed._lx_raw, 3)
+    e[stall[0]:stall[0] + stall[1]] = 0.0
+    m = 2 * n
+    norm1 = float(np.sum(np.abs(e[n:])))
+    folded = e[n:2 * n] + e[2 * n:]
+    h = summed._kernel2[:n]
+    circulant = h[(np.arange(n)[:, None] - np.arange(n)[None, :]) % n]
+    gains = np.abs(spectral._learning_gains)
+    spectrum = np.abs(np.fft.rfft(folded)[spectral._harmonics])
+    bound = (2.0 / n * float(np.sum(gains)) * (5 * n + 2 * m) * EPS * norm1
+             + 8 * np.log2(n) * EPS * 2.0 / n * float(np.sum(gains * spectrum))
+             + 4 * m * EPS * float(np.max(np.abs(circulant) @ np.abs(e[n:2 * n])
+                                          + np.abs(circulant) @ np.abs(e[2 * n:]))))
+    diff = np.max(np.abs(spectral.learned_table() - summed.learned_table()))
+    assert diff <= bound
+    assert np.max(np.abs(summed.learned_table())) > 1e3 * bound  # not a comparison of zeros
+    # the commands differ by the tables' difference at most (learning alone, no hysteresis)
+    assert np.max(np.abs(np.asarray(got) - np.asarray(want))) <= bound
 
 
 def _axes(flats: list[dict[str, object]], trajectories: list[Any], duration_s: float,

@@ -87,7 +87,7 @@ import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
 from piezo_stage_ros.core.contracts.interfaces import Trajectory
 from piezo_stage_ros.core.contracts.params import param, Params
-from piezo_stage_ros.core.contracts.types import ComplexArray, FloatArray
+from piezo_stage_ros.core.contracts.types import ComplexArray, FloatArray, IntArray
 from piezo_stage_ros.core.model.hysteresis import BacklashLike, HysteresisModel, NoHysteresis
 from piezo_stage_ros.core.model.linear import LinearPlant
 from piezo_stage_ros.core.signals.shapes import s_curve
@@ -96,7 +96,8 @@ __all__ = ['FeedForwardController', 'FeedForwardParams', 'HysteresisInverse', 'L
            'MIN_PERIOD_SAMPLES', 'MODES', 'PhaseLearning', 'PreviewInverse', 'TABLE_FORMAT',
            'TABLE_META_KEY', 'TABLE_VERSION', 'boundary_weights', 'check_learning_period',
            'CLIP_SETTLE_SAMPLES', 'clipped_excess', 'LEARNING_SHAPE_CYCLES',
-           'BANDWIDTH_STRETCH', 'kept_harmonics', 'LEARN_SPREAD_SAMPLES', 'MIN_LEARNED_HARMONICS',
+           'BANDWIDTH_STRETCH', 'kept_harmonics', 'LEARN_SPECTRUM_SAMPLES',
+           'LEARN_SPREAD_SAMPLES', 'MIN_LEARNED_HARMONICS',
            'learning_columns', 'learning_convergence', 'make_hysteresis_inverse',
            'period_harmonics', 'phase_learning_convergence', 'phase_windows',
            'process_sensitivity', 'read_learned_table', 'shape_jumps', 'START_HOLD_DECAY',
@@ -113,6 +114,14 @@ LEARN_CHUNK = 16
 #: times the period, too much for one sample of a long period (a raster's frame), and the
 #: slices add the same products in the same order to each column, so the update is the same.
 LEARN_SPREAD_SAMPLES = 1024
+
+#: Periods of at least this many samples learn on the kept harmonics instead: each error is
+#: added to the period's spectrum on them as it comes (a few operations on the harmonics a
+#: sample, not on the period's samples), and the period's end turns the filtered spectrum into
+#: the update with one inverse FFT. The update differs from the summed columns in the last
+#: bits only (other roundings); it makes a many-axis servo's sample cheap where the columns
+#: cost a period's length a sample and axis. None: never.
+LEARN_SPECTRUM_SAMPLES: int | None = 4096
 
 #: ``learning`` without the model inverse shapes a jump over at least this many periods of
 #: ``learning_bandwidth_hz``: the quintic S-curve's content above Q is then below 5e-4 of the
@@ -1528,6 +1537,15 @@ class FeedForwardController:
         # added, a slice of columns a sample; each [errors, first row, last row + 1, next column]
         self._backlog: list[list[Any]] = []
         self._slice = 0
+        # a longer period (LEARN_SPECTRUM_SAMPLES): the period's error spectrum on the kept
+        # harmonics, the phasor of the next sample and which sample it is for, the turn a sample
+        self._spectral = False
+        self._harmonics: IntArray = np.zeros(0, dtype=np.int64)
+        self._spectrum: ComplexArray = np.zeros(0, dtype=np.complex128)
+        self._phasor: ComplexArray = np.zeros(0, dtype=np.complex128)
+        self._phasor_i = -1
+        self._turn: ComplexArray = np.zeros(0, dtype=np.complex128)
+        self._learning_gains: ComplexArray = np.zeros(0, dtype=np.complex128)
         self._pending = 0
         self._sq = 0.0
         self._holding = False
@@ -1719,6 +1737,15 @@ class FeedForwardController:
             kernel = np.fft.irfft(filt, n)
             self._kernel2 = np.concatenate([kernel, kernel])
             self._columns = learning_columns(self._kernel2)
+            long = LEARN_SPECTRUM_SAMPLES
+            self._spectral = long is not None and n >= long
+            if self._spectral:
+                self._slice = 0
+                self._harmonics = np.flatnonzero(self._kept).astype(np.int64)
+                self._learning_gains = filt[self._harmonics]
+                self._spectrum = np.zeros(self._harmonics.size, dtype=np.complex128)
+                self._turn = np.exp(-2j * math.pi * self._harmonics / n)
+                self._phasor_i = -1
         elif self._learning_on:
             # a period of any length: the table on the period's harmonics (PhaseLearning)
             self._phase = self.phase_learning(samples, 1)
@@ -1822,7 +1849,9 @@ class FeedForwardController:
                 # no error learned from a clipped command's samples
                 self._errors[i] = e if k - self._clip_k > CLIP_SETTLE_SAMPLES \
                     else self._leak * table
-                if i % LEARN_CHUNK == LEARN_CHUNK - 1 or i == n - 1:
+                if self._spectral:
+                    self._add_spectrum(i)
+                elif i % LEARN_CHUNK == LEARN_CHUNK - 1 or i == n - 1:
                     self._accumulate(i + 1)
             if self._backlog:
                 self._work(self._backlog)
@@ -2190,7 +2219,7 @@ class FeedForwardController:
         n = self._period_n  # > 0: learning binds only a periodic reference
         start = self._pending
         self._pending = end % n
-        if end <= start:
+        if end <= start or self._spectral:  # the spectrum took each error as it came
             return
         errors = self._errors
         chunk = np.array(errors[start:end][::-1])
@@ -2221,6 +2250,23 @@ class FeedForwardController:
         else:
             run[3] = c1
         self._delta[c0:c1] += (chunk * self._columns[first:last, c0:c1]).sum(axis=0)
+
+    def _add_spectrum(self, i: int) -> None:
+        """
+        Add the error of sample ``i`` of the period to its spectrum on the kept harmonics.
+
+        E_h += e_i exp(-2 pi j h i / n), the phasor turned on a sample at a time from an exact
+        one taken at the first sample after a jump (a period's start, a stall, a reset), so
+        that its rounding grows over one period at most.
+        """
+        e = self._errors[i]
+        self._errors[i] = 0.0
+        if i != self._phasor_i:
+            n = self._period_n
+            self._phasor = np.exp(-2j * math.pi * ((self._harmonics * i) % n) / n)
+        self._spectrum += e * self._phasor
+        self._phasor *= self._turn
+        self._phasor_i = i + 1
 
     def _drain(self) -> None:
         """Add what the runs still owe to the update (before it is applied)."""
@@ -2279,6 +2325,13 @@ class FeedForwardController:
         limit = self.params.learning_limit_v
         learned = self._learned
         self._drain()
+        if self._spectral:
+            # the circular convolution with the filter's response: the filtered spectrum back
+            n = self._period_n
+            full = np.zeros(n // 2 + 1, dtype=np.complex128)
+            full[self._harmonics] = self._learning_gains * self._spectrum
+            self._spectrum.fill(0.0)
+            self._delta = np.fft.irfft(full, n)
         learned -= self._delta
         if self._excess_any:
             # what the range clipped off the table: the table takes the input that was
