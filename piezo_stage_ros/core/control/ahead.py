@@ -351,8 +351,8 @@ class AxesAhead:
         self._plans = [getattr(c, 'ahead_plan', None) for c in self._ctrls]
         self._own = [getattr(c, 'predict', None) for c in self._ctrls]
         limits = [getattr(c, 'output_limits_v', (-math.inf, math.inf)) for c in self._ctrls]
-        self._low = np.array([lo for lo, _ in limits], dtype=np.float64)
-        self._high = np.array([hi for _, hi in limits], dtype=np.float64)
+        self._low = np.array([[lo] for lo, _ in limits], dtype=np.float64)
+        self._high = np.array([[hi] for _, hi in limits], dtype=np.float64)
         # the stacked tables: (x_d, x_d', w) x axes x samples, and which tables each row holds
         self._stack = np.zeros((3, self.n, 0))
         self._held: list[tuple[Any, ...] | None] = [None] * self.n
@@ -436,12 +436,9 @@ class AxesAhead:
             self._row_index[m] = np.arange(m)
         peak = ahead[self._row_index[m], np.argmax(np.abs(ahead), axis=1)].tolist()
         ctrls = self._ctrls
-        ahead *= np.array([ctrls[r].ahead_secant(du) for r, du in zip(rows, peak)])[:, None]
+        ahead *= np.array([[ctrls[r].ahead_secant(du)] for r, du in zip(rows, peak)])
         ahead += coef[:, 2:3]
-        if len(rows) == self.n:
-            np.minimum(ahead, self._high[:, None], out=ahead)
-            np.maximum(ahead, self._low[:, None], out=ahead)
-        else:
-            np.minimum(ahead, self._high[rows, None], out=ahead)
-            np.maximum(ahead, self._low[rows, None], out=ahead)
+        every = m == self.n
+        np.minimum(ahead, self._high if every else self._high[rows], out=ahead)
+        np.maximum(ahead, self._low if every else self._low[rows], out=ahead)
         return ahead
