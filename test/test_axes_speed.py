@@ -59,12 +59,14 @@ def _sine(hz: float, offset: float = 6e-6, amplitude: float = 3e-6) -> Any:
         'sine.frequency_hz': hz}))
 
 
-def _learning(n: int) -> tuple[FeedForwardController, Any]:
+def _learning(n: int, spectrum: bool = False) -> tuple[FeedForwardController, Any]:
     params = _controller('learning', **{'notch.mode': 'off',
                                         'feedforward.learning_limit_v': 100.0})
     ctrl = build_controller(params, T, linear_plant(LOOP.design_plant),
                             make_hysteresis(HysteresisParams(model='none')))
     assert isinstance(ctrl, FeedForwardController)
+    if spectrum:
+        ctrl.spectrum_samples = LEARN_SPECTRUM_SAMPLES
     sine = _sine(1.0 / (n * T))
     ctrl.bind(sine)
     ctrl.reset(3.8e-6, 3.8e-6)
@@ -135,13 +137,22 @@ def test_spread_learning_is_the_circular_convolution_of_the_errors() -> None:
 
 
 def test_short_periods_keep_the_runs_whole() -> None:
-    ctrl, _ = _learning(100)
+    ctrl, _ = _learning(100, spectrum=True)
     assert LEARN_SPREAD_SAMPLES > 100 and ctrl._slice == 0 and not ctrl._spectral
 
 
+def test_only_several_axes_learn_on_the_harmonics() -> None:
+    sp = LOOP.stage
+    cp = _controller('inverse_learning')
+    one = AxesController.build([cp], AxesStageParams(names=('x',), axes=(sp,)))
+    two = AxesController.build([cp, cp], AxesStageParams(names=('x', 'y'), axes=(sp, sp)))
+    assert [c.spectrum_samples for c in one.controllers] == [None]
+    assert [c.spectrum_samples for c in two.controllers] == \
+        [LEARN_SPECTRUM_SAMPLES] * 2
+
+
 @pytest.mark.parametrize('n', [4096, 4106])
-def test_spectrum_learning_is_the_summed_learning_within_its_rounding(n: int,
-                                                                      monkeypatch: Any) -> None:
+def test_spectrum_learning_is_the_summed_learning_within_its_rounding(n: int) -> None:
     # The spectrum of the errors on the kept harmonics, E_h = sum_i e_i p_i, each phasor p_i
     # turned on from an exact one (at most n turns: each a complex product, relative error
     # <= sqrt(5) eps, by a turn rounded to 2 eps of exp(-2 pi j h / n), so |p_i - exact|
@@ -152,16 +163,14 @@ def test_spectrum_learning_is_the_summed_learning_within_its_rounding(n: int,
     # 4 m eps max(|C| |e|) (the bound of the circulant test).
     # A stall across the second period's end: that update is applied with the third's, and
     # the phasor starts anew after the stall.
-    assert LEARN_SPECTRUM_SAMPLES is not None and n >= LEARN_SPECTRUM_SAMPLES
+    assert n >= LEARN_SPECTRUM_SAMPLES
     stall = (2 * n - 3, 5)
-    spectral, sine = _learning(n)
+    spectral, sine = _learning(n, spectrum=True)
     assert spectral._spectral and spectral._slice == 0
     got = _stepped(spectral, sine, n, stall)
-    with monkeypatch.context() as m:
-        m.setattr(feedforward, 'LEARN_SPECTRUM_SAMPLES', None)
-        summed, sine = _learning(n)
-        assert not summed._spectral
-        want = _stepped(summed, sine, n, stall)
+    summed, sine = _learning(n)  # one axis' controller: the columns, as before
+    assert not summed._spectral
+    want = _stepped(summed, sine, n, stall)
     assert spectral.periods_learned == summed.periods_learned == 1
     errors = 1e-8 * np.random.default_rng(5).standard_normal(3 * n)
     xd = sine.evaluate(np.arange(3 * n) * T)[0]

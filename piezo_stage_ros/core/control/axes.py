@@ -45,7 +45,7 @@ from piezo_stage_ros.core.contracts.interfaces import Trajectory
 from piezo_stage_ros.core.contracts.types import ComplexArray, FloatArray
 from piezo_stage_ros.core.control.ahead import AxesAhead
 from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
-from piezo_stage_ros.core.control.feedforward import FeedForwardController
+from piezo_stage_ros.core.control.feedforward import FeedForwardController, LEARN_SPECTRUM_SAMPLES
 from piezo_stage_ros.core.model.axes import (
     AxesStageParams,
     coupling_paths,
@@ -197,6 +197,12 @@ class AxesController:
         ctrls = [build_controller(p, s.sample_time_s, linear_plant(s.plant),
                                   make_hysteresis(s.hysteresis))
                  for p, s in zip(params, design.axes)]
+        if design.n > 1:
+            # several axes: a long period learns on its harmonics, the sample's work even and
+            # small (one axis stays the one-axis controller, bit for bit)
+            for c in ctrls:
+                if isinstance(c, FeedForwardController):
+                    c.spectrum_samples = LEARN_SPECTRUM_SAMPLES
         return cls(ctrls, design, compensate=compensate, params=params)
 
     def bind(self, trajectories: Sequence[Trajectory]) -> None:

@@ -115,13 +115,14 @@ LEARN_CHUNK = 16
 #: slices add the same products in the same order to each column, so the update is the same.
 LEARN_SPREAD_SAMPLES = 1024
 
-#: Periods of at least this many samples learn on the kept harmonics instead: each error is
+#: Periods of at least this many samples learn on the kept harmonics instead, where the
+#: controller is told to (``spectrum_samples``; the multi-axis controller does): each error is
 #: added to the period's spectrum on them as it comes (a few operations on the harmonics a
 #: sample, not on the period's samples), and the period's end turns the filtered spectrum into
 #: the update with one inverse FFT. The update differs from the summed columns in the last
 #: bits only (other roundings); it makes a many-axis servo's sample cheap where the columns
-#: cost a period's length a sample and axis. None: never.
-LEARN_SPECTRUM_SAMPLES: int | None = 4096
+#: cost a period's length a sample and axis.
+LEARN_SPECTRUM_SAMPLES = 4096
 
 #: ``learning`` without the model inverse shapes a jump over at least this many periods of
 #: ``learning_bandwidth_hz``: the quintic S-curve's content above Q is then below 5e-4 of the
@@ -1540,6 +1541,9 @@ class FeedForwardController:
         # a longer period (LEARN_SPECTRUM_SAMPLES): the period's error spectrum on the kept
         # harmonics, the phasor of the next sample and which sample it is for, the turn a sample
         self._spectral = False
+        #: Periods of at least this many samples learn on the kept harmonics (None: never;
+        #: see ``LEARN_SPECTRUM_SAMPLES``). Taken at :meth:`bind`.
+        self.spectrum_samples: int | None = None
         self._harmonics: IntArray = np.zeros(0, dtype=np.int64)
         self._spectrum: ComplexArray = np.zeros(0, dtype=np.complex128)
         self._phasor: ComplexArray = np.zeros(0, dtype=np.complex128)
@@ -1737,7 +1741,7 @@ class FeedForwardController:
             kernel = np.fft.irfft(filt, n)
             self._kernel2 = np.concatenate([kernel, kernel])
             self._columns = learning_columns(self._kernel2)
-            long = LEARN_SPECTRUM_SAMPLES
+            long = self.spectrum_samples
             self._spectral = long is not None and n >= long
             if self._spectral:
                 self._slice = 0
