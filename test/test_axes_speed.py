@@ -222,7 +222,8 @@ def _axes(flats: list[dict[str, object]], trajectories: list[Any], duration_s: f
 
     wrapped = _Stepping(ctrl, step)
     run_axes(AxesStage(params), wrapped, trajectories, duration_s=duration_s)  # type: ignore
-    assert checked['batched'] > checked['samples'] // 2
+    if len(names) > 1:
+        assert checked['batched'] > checked['samples'] // 2
 
 
 class _Stepping:
@@ -259,3 +260,4 @@ def test_batched_commands_ahead_with_axes_predicted_alone() -> None:
           [_sine(100.0), _sine(1.0 / 0.01234), _sine(50.0)], 0.1)
     _axes([flats[0], flats[2], flats[0]], [_sine(100.0), _sine(20.0), _sine(100.0, 7e-6)],
           0.05)
+    _axes([flats[0]], [_sine(100.0)], 0.05)  # one axis: its own prediction as the row

@@ -376,10 +376,14 @@ class AxesAhead:
             (axes, count).
 
         """
+        own = self._own
+        if self.n == 1:  # one axis: its own prediction, as a row
+            pred = own[0]
+            return np.asarray(pred(count), dtype=np.float64)[None] if pred is not None \
+                else np.full((1, count), last_v[0])
         out = np.empty((self.n, count), dtype=np.float64)
         rows: list[int] = []
         plans: list[tuple[Any, ...]] = []
-        own = self._own
         if self.n > 1:
             for r, plan in enumerate(self._plans):
                 p = plan(count) if plan is not None else None
