@@ -2060,15 +2060,22 @@ class FeedForwardController:
             if held[0] is sources[0] and held[1] is sources[1] and held[2] is sources[2] and \
                     held[3] is sources[3] and held[4] >= count:
                 return cache[1]
-        x = np.array(self._lx)
-        xv = np.array(self._lv)
-        wl = np.array(self._lw) if self._inverse_on else np.zeros(len(x))
+        n = self._period_n
+        reps = 2 + count // n if n else 1
+        if cache is not None and cache[0][0] is sources[0] and cache[0][1] is sources[1] and \
+                len(cache[1][0]) == reps * len(self._lx):
+            # a period learned: only the learned table changed (the reference's are kept)
+            x, xv = cache[1][0], cache[1][1]
+        else:
+            x = np.array(self._lx)
+            xv = np.array(self._lv)
+            if n:
+                x, xv = np.tile(x, reps), np.tile(xv, reps)
+        wl = np.array(self._lw) if self._inverse_on else np.zeros(len(self._lx))
         if self._learning_on and len(self._ll) == len(wl):
             wl = wl + np.array(self._ll)
-        n = self._period_n
         if n:
-            reps = 2 + count // n
-            x, xv, wl = np.tile(x, reps), np.tile(xv, reps), np.tile(wl, reps)
+            wl = np.tile(wl, reps)
         tables = (x, xv, wl)
         self._ahead_cache = (sources, tables)
         return tables
