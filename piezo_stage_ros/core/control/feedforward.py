@@ -2326,8 +2326,9 @@ class FeedForwardController:
 
         The update is the period's error through the learning filter, a circular convolution
         with its impulse response, summed sample by sample as the errors came (no FFT at the
-        period's end: the real-time step stays even). The table stays inside Q's band (every
-        update is), so Q L = L.
+        period's end: the real-time step stays even); a long period learning on its harmonics
+        (``spectrum_samples``) filters the spectrum summed so and takes one inverse FFT here.
+        The table stays inside Q's band (every update is), so Q L = L.
         """
         self.last_period_rms_m = math.sqrt(self._sq / self._period_n)
         self._sq = 0.0
