@@ -17,8 +17,9 @@ The work of a sample kept even: a long period's learning spread, the axes' comma
 
 A long period's learning update is added a slice of columns a sample instead of a whole run
 of LEARN_CHUNK errors at once: the same products summed in the same order per column, so the
-table is the chunked one bit for bit. The axes' commands ahead computed together equal each
-axis' own prediction bit for bit.
+table is the chunked one bit for bit. Several axes learn a longer period on its harmonics:
+the same update within the rounding of its phasors, sums and inverse FFT. The axes' commands
+ahead computed together equal each axis' own prediction bit for bit.
 """
 
 from __future__ import annotations
