@@ -24,8 +24,12 @@ The stage is stepped between samples but not timed. Cases:
 
 - ``today``: the one-axis controller (:func:`build_controller`) stepped directly, as the servo
   steps it now;
-- ``axes-1``: the same through :class:`~piezo_stage_ros.core.control.axes.AxesController`;
-- ``axes-3``: three axes;
+- ``axes-1``: the same through :class:`~piezo_stage_ros.core.control.axes.AxesController`
+  (:meth:`~piezo_stage_ros.core.control.axes.AxesController.step_ahead`);
+- ``axes-3``: three axes, in the one call a servo makes per sample
+  (:meth:`~piezo_stage_ros.core.control.axes.AxesController.step_ahead`: the steps, then the
+  commands ahead of the axes together); ``axes-3 per-axis``: the same with each axis'
+  ``predict`` called on its own;
 - the same without learning (``inverse``);
 - ``batch-3`` against ``scalar-3``: the feedback alone (RAC and notch) of three axes, once
   with the numpy batch of :mod:`piezo_stage_ros.core.loop.batch` and once as three scalar
@@ -109,16 +113,28 @@ def _time_loop(loop: AxesLoopConfig, ctrl_step: Callable[[list[float], list[floa
     return out, out_cpu
 
 
-def _axes_case(loop: AxesLoopConfig, ahead: int, warm_s: float, samples: int
-               ) -> dict[str, float]:
+def _axes_case(loop: AxesLoopConfig, ahead: int, warm_s: float, samples: int, *,
+               batched: bool = True) -> dict[str, float]:
     ctrl = AxesController.build(loop.controllers, loop.stage, compensate=loop.compensate)
-    predicts = [c.predict for c in ctrl.controllers]
+    if not batched:
+        predicts = [c.predict for c in ctrl.controllers]
 
-    def predict() -> None:
-        for p in predicts:
-            np.asarray(p(ahead))
-    return _percentiles(*_time_loop(loop, ctrl.step, predict, ctrl.bind, ctrl.reset,
+        def predict() -> None:
+            for p in predicts:
+                np.asarray(p(ahead))
+        return _percentiles(*_time_loop(loop, ctrl.step, predict, ctrl.bind, ctrl.reset,
+                                        warm_s=warm_s, samples=samples))
+    step_ahead = ctrl.step_ahead
+
+    def step(y: list[float], r: list[float], v: list[float]) -> list[float]:
+        return step_ahead(y, r, v, ahead)[0]
+    return _percentiles(*_time_loop(loop, step, lambda: None, ctrl.bind, ctrl.reset,
                                     warm_s=warm_s, samples=samples))
+
+
+def _per_axis_case(loop: AxesLoopConfig, ahead: int, warm_s: float, samples: int
+                   ) -> dict[str, float]:
+    return _axes_case(loop, ahead, warm_s, samples, batched=False)
 
 
 def _today_case(loop: AxesLoopConfig, ahead: int, warm_s: float, samples: int
@@ -195,7 +211,7 @@ def run_axes_benchmark(*, samples: int = 20000, ahead: int = 128, repeats: int =
         warm = 1.3 if mode == 'inverse_learning' else 0.1
         cases: tuple[tuple[str, Callable[..., dict[str, float]], AxesLoopConfig], ...] = (
             ('today', _today_case, xy), ('axes-1', _axes_case, _one_axis(xy)),
-            ('axes-3', _axes_case, xyz))
+            ('axes-3', _axes_case, xyz), ('axes-3 per-axis', _per_axis_case, xyz))
         for name, case, loop in cases:
             runs = [case(loop, ahead, warm, samples) for _ in range(repeats)]
             best = dict(min(runs, key=lambda r: r['median_us']))
@@ -203,7 +219,7 @@ def run_axes_benchmark(*, samples: int = 20000, ahead: int = 128, repeats: int =
             best['p99_best_us'] = min(r['p99_us'] for r in runs)
             key = f'{name} {mode}'
             out[key] = best
-            print(f'{key:28s} median {best["median_us"]:7.2f} us  p99 {best["p99_us"]:7.2f} us'
+            print(f'{key:36s} median {best["median_us"]:7.2f} us  p99 {best["p99_us"]:7.2f} us'
                   f' (quietest run {best["p99_best_us"]:7.2f} us)  max {best["max_us"]:8.1f} us;'
                   f' CPU time median {best["cpu_median_us"]:7.2f} us  p99 '
                   f'{best["cpu_p99_us"]:7.2f} us')

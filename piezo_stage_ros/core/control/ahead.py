@@ -39,9 +39,9 @@ import math
 from typing import Any, Callable, Iterator, overload, Sequence
 
 import numpy as np
-from piezo_stage_ros.core.contracts.types import FloatArray
+from piezo_stage_ros.core.contracts.types import FloatArray, IntArray
 
-__all__ = ['Ahead', 'CommandPredictor']
+__all__ = ['Ahead', 'AxesAhead', 'CommandPredictor']
 
 #: Variance of a regressor [V^2, sensor volts] below which the reference counts as at rest: a
 #: microvolt rms, far below any motion and far above the rounding of the sums (1e-16 of ~1 V).
@@ -326,3 +326,123 @@ class CommandPredictor:
         low, high = self._limits
         return Ahead(ahead_m, ahead_mps, 0, len(ahead_m),
                      command_v - a * reference_m - b * velocity_mps, (a, b), low, high)
+
+
+class AxesAhead:
+    """
+    The commands ahead of the axes' controllers together, as one (axes, count) array [V].
+
+    A feed-forward with a whole period's tables (``ahead_plan``) is predicted with the other
+    such axes in one set of array operations over their tables stacked into rows (each axis'
+    own values, the same operations on each value as its own ``predict``: the rows equal it
+    bit for bit); any other axis through its own ``predict(count)``, and a controller without
+    one holds its last command.
+
+    Parameters
+    ----------
+    controllers : sequence of Controller
+        One per axis.
+
+    """
+
+    def __init__(self, controllers: Sequence[Any]) -> None:
+        self._ctrls = list(controllers)
+        self.n = len(self._ctrls)
+        self._plans = [getattr(c, 'ahead_plan', None) for c in self._ctrls]
+        self._own = [getattr(c, 'predict', None) for c in self._ctrls]
+        limits = [getattr(c, 'output_limits_v', (-math.inf, math.inf)) for c in self._ctrls]
+        self._low = np.array([[lo] for lo, _ in limits], dtype=np.float64)
+        self._high = np.array([[hi] for _, hi in limits], dtype=np.float64)
+        # the stacked tables: (x_d, x_d', w) x axes x samples, and which tables each row holds
+        self._stack = np.zeros((3, self.n, 0))
+        self._held: list[tuple[Any, ...] | None] = [None] * self.n
+        self._steps = np.arange(1)
+        self._row_index: dict[int, IntArray] = {}
+
+    def predict(self, count: int, last_v: Sequence[float]) -> FloatArray:
+        """
+        Return each axis' ``count`` commands after its last step [V], one row per axis.
+
+        Parameters
+        ----------
+        count : int
+            Commands ahead per axis.
+        last_v : sequence of float
+            Each axis' last command [V] (held by a controller without a prediction).
+
+        Returns
+        -------
+        ndarray
+            (axes, count).
+
+        """
+        own = self._own
+        if self.n == 1:  # one axis: its own prediction, as a row
+            pred = own[0]
+            return np.asarray(pred(count), dtype=np.float64)[None] if pred is not None \
+                else np.full((1, count), last_v[0])
+        out = np.empty((self.n, count), dtype=np.float64)
+        rows: list[int] = []
+        plans: list[tuple[Any, ...]] = []
+        if self.n > 1:
+            for r, plan in enumerate(self._plans):
+                p = plan(count) if plan is not None else None
+                if p is not None:
+                    rows.append(r)
+                    plans.append(p)
+        if len(rows) == self.n:
+            return self._batch(count, rows, plans)
+        if len(rows) < 2:  # one axis alone costs less through its own predict
+            rows = []
+        for r in range(self.n):
+            if r not in rows:
+                pred = own[r]
+                out[r] = pred(count) if pred is not None else last_v[r]
+        if rows:
+            out[rows] = self._batch(count, rows, plans)
+        return out
+
+    def _tables(self, rows: list[int], plans: list[tuple[Any, ...]]) -> FloatArray:
+        """Return the stacked tables, rows copied in where an axis' tables were replaced."""
+        stack = self._stack
+        width = max(len(p[0][0]) for p in plans)
+        if width > stack.shape[2]:
+            stack = self._stack = np.zeros((3, self.n, width))
+            self._held = [None] * self.n
+        held = self._held
+        for r, p in zip(rows, plans):
+            tables = p[0]
+            if held[r] is not tables:
+                size = len(tables[0])
+                for q in range(3):
+                    stack[q, r, :size] = tables[q]
+                held[r] = tables
+        return stack
+
+    def _batch(self, count: int, rows: list[int], plans: list[tuple[Any, ...]]) -> FloatArray:
+        """Return :meth:`FeedForwardController.predict` of the axes ``rows`` together."""
+        stack = self._tables(rows, plans)
+        width = stack.shape[2]
+        if self._steps.size != count + 1:
+            self._steps = np.arange(count + 1)
+        # each row's index and the count after it, in the rows' flat tables
+        at = np.take(stack.reshape(3, self.n * width),
+                     np.array([r * width + p[1] for r, p in zip(rows, plans)])[:, None]
+                     + self._steps, axis=1)
+        change = at[:, :, 1:] - at[:, :, :1]
+        coef = np.array([p[2:] for p in plans])
+        # (x - x_k) a + b (x' - x'_k) + (w - w_k), in the order predict sums them
+        ahead: FloatArray = change[0] * coef[:, 0:1]
+        ahead += coef[:, 1:2] * change[1]
+        ahead += change[2]
+        m = len(rows)
+        if m not in self._row_index:
+            self._row_index[m] = np.arange(m)
+        peak = ahead[self._row_index[m], np.argmax(np.abs(ahead), axis=1)].tolist()
+        ctrls = self._ctrls
+        ahead *= np.array([[ctrls[r].ahead_secant(du)] for r, du in zip(rows, peak)])
+        ahead += coef[:, 2:3]
+        every = m == self.n
+        np.minimum(ahead, self._high if every else self._high[rows], out=ahead)
+        np.maximum(ahead, self._low if every else self._low[rows], out=ahead)
+        return ahead

@@ -43,8 +43,9 @@ import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.contracts.interfaces import Trajectory
 from piezo_stage_ros.core.contracts.types import ComplexArray, FloatArray
+from piezo_stage_ros.core.control.ahead import AxesAhead
 from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
-from piezo_stage_ros.core.control.feedforward import FeedForwardController
+from piezo_stage_ros.core.control.feedforward import FeedForwardController, LEARN_SPECTRUM_SAMPLES
 from piezo_stage_ros.core.model.axes import (
     AxesStageParams,
     coupling_paths,
@@ -159,6 +160,7 @@ class AxesController:
         self._paths = coupling_paths(design) if design is not None else []
         self._steps = [c.step for c in self.controllers]
         self._last = [0.0] * self.n
+        self._ahead = AxesAhead(self.controllers)
         #: The axes whose feed-forward got a coupling compensation at the last bind.
         self.compensated: tuple[int, ...] = ()
         #: Per axis, the displacement the compensation was computed for over its period [m].
@@ -195,6 +197,12 @@ class AxesController:
         ctrls = [build_controller(p, s.sample_time_s, linear_plant(s.plant),
                                   make_hysteresis(s.hysteresis))
                  for p, s in zip(params, design.axes)]
+        if design.n > 1:
+            # several axes: a long period learns on its harmonics, the sample's work even and
+            # small (one axis stays the one-axis controller, bit for bit)
+            for c in ctrls:
+                if isinstance(c, FeedForwardController):
+                    c.spectrum_samples = LEARN_SPECTRUM_SAMPLES
         return cls(ctrls, design, compensate=compensate, params=params)
 
     def bind(self, trajectories: Sequence[Trajectory]) -> None:
@@ -289,6 +297,28 @@ class AxesController:
             pred = getattr(c, 'predict', None)
             out.append(pred(count) if callable(pred) else np.full(count, self._last[j]))
         return out
+
+    def predict_array(self, count: int) -> FloatArray:
+        """
+        Return every axis' ``count`` commands ahead as one (axes, count) array [V].
+
+        Row j equals ``predict(count)[j]``; the axes whose feed-forward has a whole period's
+        tables are predicted together (:class:`~piezo_stage_ros.core.control.ahead.AxesAhead`).
+        """
+        return self._ahead.predict(count, self._last)
+
+    def step_ahead(self, positions_m: Sequence[float], references_m: Sequence[float],
+                   velocities_mps: Sequence[float], count: int
+                   ) -> tuple[list[float], FloatArray]:
+        """
+        Return one sample's commands [V] and the (axes, ``count``) commands ahead [V].
+
+        :meth:`step`, then :meth:`predict_array`: the one call a servo makes per sample.
+        """
+        out = [s(y, r, v) for s, y, r, v in zip(self._steps, positions_m, references_m,
+                                                 velocities_mps)]
+        self._last = out
+        return out, self._ahead.predict(count, out)
 
     def diagnostic_names(self) -> list[tuple[str, ...]]:
         """Return each axis' controller's diagnostic names."""

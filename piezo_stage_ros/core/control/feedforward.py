@@ -87,7 +87,7 @@ import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
 from piezo_stage_ros.core.contracts.interfaces import Trajectory
 from piezo_stage_ros.core.contracts.params import param, Params
-from piezo_stage_ros.core.contracts.types import ComplexArray, FloatArray
+from piezo_stage_ros.core.contracts.types import ComplexArray, FloatArray, IntArray
 from piezo_stage_ros.core.model.hysteresis import BacklashLike, HysteresisModel, NoHysteresis
 from piezo_stage_ros.core.model.linear import LinearPlant
 from piezo_stage_ros.core.signals.shapes import s_curve
@@ -96,7 +96,8 @@ __all__ = ['FeedForwardController', 'FeedForwardParams', 'HysteresisInverse', 'L
            'MIN_PERIOD_SAMPLES', 'MODES', 'PhaseLearning', 'PreviewInverse', 'TABLE_FORMAT',
            'TABLE_META_KEY', 'TABLE_VERSION', 'boundary_weights', 'check_learning_period',
            'CLIP_SETTLE_SAMPLES', 'clipped_excess', 'LEARNING_SHAPE_CYCLES',
-           'BANDWIDTH_STRETCH', 'kept_harmonics', 'MIN_LEARNED_HARMONICS',
+           'BANDWIDTH_STRETCH', 'kept_harmonics', 'LEARN_SPECTRUM_SAMPLES',
+           'LEARN_SPREAD_SAMPLES', 'MIN_LEARNED_HARMONICS',
            'learning_columns', 'learning_convergence', 'make_hysteresis_inverse',
            'period_harmonics', 'phase_learning_convergence', 'phase_windows',
            'process_sensitivity', 'read_learned_table', 'shape_jumps', 'START_HOLD_DECAY',
@@ -107,6 +108,21 @@ MODES = ('none', 'inverse', 'learning', 'inverse_learning')
 
 #: Samples whose errors enter the learning update together (one correlation each run).
 LEARN_CHUNK = 16
+
+#: Periods of at least this many samples spread each run's correlation over the next samples,
+#: a slice of the period's columns a sample: the run's whole correlation costs LEARN_CHUNK
+#: times the period, too much for one sample of a long period (a raster's frame), and the
+#: slices add the same products in the same order to each column, so the update is the same.
+LEARN_SPREAD_SAMPLES = 1024
+
+#: Periods of at least this many samples learn on the kept harmonics instead, where the
+#: controller is told to (``spectrum_samples``; the multi-axis controller does): each error is
+#: added to the period's spectrum on them as it comes (a few operations on the harmonics a
+#: sample, not on the period's samples), and the period's end turns the filtered spectrum into
+#: the update with one inverse FFT. The update differs from the summed columns in the last
+#: bits only (other roundings); it makes a many-axis servo's sample cheap where the columns
+#: cost a period's length a sample and axis.
+LEARN_SPECTRUM_SAMPLES = 4096
 
 #: ``learning`` without the model inverse shapes a jump over at least this many periods of
 #: ``learning_bandwidth_hz``: the quintic S-curve's content above Q is then below 5e-4 of the
@@ -1518,6 +1534,22 @@ class FeedForwardController:
         self._columns: FloatArray = np.zeros((0, 0))
         self._delta: FloatArray = np.zeros(0)
         self._errors: list[float] = []
+        # a long period (LEARN_SPREAD_SAMPLES): the runs whose correlation is still being
+        # added, a slice of columns a sample; each [errors, first row, last row + 1, next column]
+        self._backlog: list[list[Any]] = []
+        self._slice = 0
+        # a longer period (LEARN_SPECTRUM_SAMPLES): the period's error spectrum on the kept
+        # harmonics, the phasor of the next sample and which sample it is for, the turn a sample
+        self._spectral = False
+        #: Periods of at least this many samples learn on the kept harmonics (None: never;
+        #: see ``LEARN_SPECTRUM_SAMPLES``). Taken at :meth:`bind`.
+        self.spectrum_samples: int | None = None
+        self._harmonics: IntArray = np.zeros(0, dtype=np.int64)
+        self._spectrum: ComplexArray = np.zeros(0, dtype=np.complex128)
+        self._phasor: ComplexArray = np.zeros(0, dtype=np.complex128)
+        self._phasor_i = -1
+        self._turn: ComplexArray = np.zeros(0, dtype=np.complex128)
+        self._learning_gains: ComplexArray = np.zeros(0, dtype=np.complex128)
         self._pending = 0
         self._sq = 0.0
         self._holding = False
@@ -1695,6 +1727,9 @@ class FeedForwardController:
         self.limited_updates = 0
         self._delta = np.zeros(self._period_n)
         self._errors = [0.0] * self._period_n
+        self._backlog = []
+        self._slice = -(-self._period_n // LEARN_CHUNK) \
+            if self._period_n >= LEARN_SPREAD_SAMPLES else 0
         self._pending = 0
         self._sq = 0.0
         if self._learning_on:
@@ -1706,6 +1741,15 @@ class FeedForwardController:
             kernel = np.fft.irfft(filt, n)
             self._kernel2 = np.concatenate([kernel, kernel])
             self._columns = learning_columns(self._kernel2)
+            long = self.spectrum_samples
+            self._spectral = long is not None and n >= long
+            if self._spectral:
+                self._slice = 0
+                self._harmonics = np.flatnonzero(self._kept).astype(np.int64)
+                self._learning_gains = filt[self._harmonics]
+                self._spectrum = np.zeros(self._harmonics.size, dtype=np.complex128)
+                self._turn = np.exp(-2j * math.pi * self._harmonics / n)
+                self._phasor_i = -1
         elif self._learning_on:
             # a period of any length: the table on the period's harmonics (PhaseLearning)
             self._phase = self.phase_learning(samples, 1)
@@ -1809,8 +1853,12 @@ class FeedForwardController:
                 # no error learned from a clipped command's samples
                 self._errors[i] = e if k - self._clip_k > CLIP_SETTLE_SAMPLES \
                     else self._leak * table
-                if i % LEARN_CHUNK == LEARN_CHUNK - 1 or i == n - 1:
+                if self._spectral:
+                    self._add_spectrum(i)
+                elif i % LEARN_CHUNK == LEARN_CHUNK - 1 or i == n - 1:
                     self._accumulate(i + 1)
+            if self._backlog:
+                self._work(self._backlog)
             if i == n - 1:
                 self._learn(k)
             v = self._output(u)
@@ -1934,10 +1982,7 @@ class FeedForwardController:
             xv = np.concatenate([xv, nv])
             wl = np.concatenate([wl, nw if self._inverse_on else np.zeros(len(nw))])
         stop = min(i + 1 + count, len(x))
-        a, b = getattr(self.inner, 'reference_gains', lambda: (0.0, 0.0))()
-        if self._inverse_on:
-            a -= self._theta0 * self._ksens
-            b -= self._phi0 * self._ksens
+        a, b = self._ahead_gains()
         ahead: FloatArray = x[i + 1:stop] - x[i]
         ahead *= a
         ahead += b * (xv[i + 1:stop] - xv[i])
@@ -1951,7 +1996,7 @@ class FeedForwardController:
             j = int(np.argmax(np.abs(ahead)))
             du = float(ahead[j])
             if du != 0.0:
-                ahead *= (hyst.invert(hyst.output_v + self.slope * du) - v) / du
+                ahead *= self.ahead_secant(du)
         ahead += v
         np.minimum(ahead, self._vmax, out=ahead)
         np.maximum(ahead, self._vmin, out=ahead)
@@ -1960,6 +2005,46 @@ class FeedForwardController:
             ahead = np.concatenate([ahead, np.full(count - len(ahead),
                                                    ahead[-1] if len(ahead) else v)])
         return ahead
+
+    def _ahead_gains(self) -> tuple[float, float]:
+        """Return (a [V/m], b [V s/m]): the inner controller's reference gains less the share."""
+        a, b = getattr(self.inner, 'reference_gains', lambda: (0.0, 0.0))()
+        if self._inverse_on:
+            a -= self._theta0 * self._ksens
+            b -= self._phi0 * self._ksens
+        return a, b
+
+    def ahead_secant(self, du: float) -> float:
+        """
+        Return the inverse hysteresis' secant from the last command to a change ``du`` ahead.
+
+        The factor :meth:`predict` scales its linear changes by (1 without a compensator or
+        for no change).
+        """
+        hyst = self.hysteresis_inverse
+        if hyst is None or du == 0.0:
+            return 1.0
+        return (hyst.invert(hyst.output_v + self.slope * du) - self._u) / du
+
+    def ahead_plan(self, count: int) -> tuple[tuple[FloatArray, FloatArray, FloatArray], int,
+                                              float, float, float] | None:
+        """
+        Return what :meth:`predict` reads from a whole period's tables, for a batch of axes.
+
+        ((x_d, x_d', model inverse + learned), each repeated so that ``count`` samples after
+        the index are one slice, the same tuple until a table is replaced; the index of the
+        last step; a; b; the last command [V]), or None
+        when :meth:`predict` goes another way (held, aperiodic, a period of any length).
+        :class:`~piezo_stage_ros.core.control.ahead.AxesAhead` does the rest of
+        :meth:`predict` on the axes together, the same operations on each value.
+        """
+        k = self._k - 1
+        n = self._period_n
+        if not n or self._phase is not None or self._trajectory is None or \
+                not self._matched or k < 0 or count <= 0:
+            return None
+        a, b = self._ahead_gains()
+        return self._ahead_tables(count), k % n, a, b, self._u
 
     def _ahead_tables(self, count: int) -> tuple[FloatArray, FloatArray, FloatArray]:
         """
@@ -1970,18 +2055,27 @@ class FeedForwardController:
         """
         sources = (self._lx, self._lv, self._lw, self._ll, count)
         cache = self._ahead_cache
-        if cache is not None and all(s is c for s, c in zip(sources[:4], cache[0][:4])) \
-                and cache[0][4] >= count:
-            return cache[1]
-        x = np.array(self._lx)
-        xv = np.array(self._lv)
-        wl = np.array(self._lw) if self._inverse_on else np.zeros(len(x))
+        if cache is not None:
+            held = cache[0]
+            if held[0] is sources[0] and held[1] is sources[1] and held[2] is sources[2] and \
+                    held[3] is sources[3] and held[4] >= count:
+                return cache[1]
+        n = self._period_n
+        reps = 2 + count // n if n else 1
+        if cache is not None and cache[0][0] is sources[0] and cache[0][1] is sources[1] and \
+                len(cache[1][0]) == reps * len(self._lx):
+            # a period learned: only the learned table changed (the reference's are kept)
+            x, xv = cache[1][0], cache[1][1]
+        else:
+            x = np.array(self._lx)
+            xv = np.array(self._lv)
+            if n:
+                x, xv = np.tile(x, reps), np.tile(xv, reps)
+        wl = np.array(self._lw) if self._inverse_on else np.zeros(len(self._lx))
         if self._learning_on and len(self._ll) == len(wl):
             wl = wl + np.array(self._ll)
-        n = self._period_n
         if n:
-            reps = 2 + count // n
-            x, xv, wl = np.tile(x, reps), np.tile(xv, reps), np.tile(wl, reps)
+            wl = np.tile(wl, reps)
         tables = (x, xv, wl)
         self._ahead_cache = (sources, tables)
         return tables
@@ -2136,14 +2230,60 @@ class FeedForwardController:
         n = self._period_n  # > 0: learning binds only a periodic reference
         start = self._pending
         self._pending = end % n
-        if end <= start:
+        if end <= start or self._spectral:  # the spectrum took each error as it came
             return
         errors = self._errors
         chunk = np.array(errors[start:end][::-1])
         errors[start:end] = [0.0] * (end - start)
+        if self._slice:
+            self._backlog.append([chunk[:, None], n - end + 1, n - start + 1, 0])
+            return
         # row n - i of the windows is column i; the sum over the rows runs in their order
         # (no BLAS: the same sums on every machine, and the batched loop repeats them)
         self._delta += (chunk[:, None] * self._columns[n - end + 1:n - start + 1]).sum(axis=0)
+
+    def _work(self, backlog: list[list[Any]]) -> None:
+        """
+        Add the next slice of columns of the oldest run's correlation to the update.
+
+        The same products summed over the same rows in the same order as :meth:`_accumulate`
+        sums them whole, column by column, and each column gets the runs in the order they
+        came: the update is the one the whole sums give. A slice keeps at least two columns
+        (a single column would be summed as a row, in another order).
+        """
+        run = backlog[0]
+        chunk, first, last, c0 = run
+        n = self._period_n
+        c1 = c0 + self._slice
+        if c1 > n - 2:
+            c1 = n
+            del backlog[0]
+        else:
+            run[3] = c1
+        self._delta[c0:c1] += (chunk * self._columns[first:last, c0:c1]).sum(axis=0)
+
+    def _add_spectrum(self, i: int) -> None:
+        """
+        Add the error of sample ``i`` of the period to its spectrum on the kept harmonics.
+
+        E_h += e_i exp(-2 pi j h i / n), the phasor turned on a sample at a time from an exact
+        one taken at the first sample after a jump (a period's start, a stall, a reset), so
+        that its rounding grows over one period at most.
+        """
+        e = self._errors[i]
+        self._errors[i] = 0.0
+        if i != self._phasor_i:
+            n = self._period_n
+            self._phasor = np.exp(-2j * math.pi * ((self._harmonics * i) % n) / n)
+        self._spectrum += e * self._phasor
+        self._phasor *= self._turn
+        self._phasor_i = i + 1
+
+    def _drain(self) -> None:
+        """Add what the runs still owe to the update (before it is applied)."""
+        backlog = self._backlog
+        while backlog:
+            self._work(backlog)
 
     @property
     def _learn_from(self) -> int:
@@ -2186,8 +2326,9 @@ class FeedForwardController:
 
         The update is the period's error through the learning filter, a circular convolution
         with its impulse response, summed sample by sample as the errors came (no FFT at the
-        period's end: the real-time step stays even). The table stays inside Q's band (every
-        update is), so Q L = L.
+        period's end: the real-time step stays even); a long period learning on its harmonics
+        (``spectrum_samples``) filters the spectrum summed so and takes one inverse FFT here.
+        The table stays inside Q's band (every update is), so Q L = L.
         """
         self.last_period_rms_m = math.sqrt(self._sq / self._period_n)
         self._sq = 0.0
@@ -2195,6 +2336,14 @@ class FeedForwardController:
             return
         limit = self.params.learning_limit_v
         learned = self._learned
+        self._drain()
+        if self._spectral:
+            # the circular convolution with the filter's response: the filtered spectrum back
+            n = self._period_n
+            full = np.zeros(n // 2 + 1, dtype=np.complex128)
+            full[self._harmonics] = self._learning_gains * self._spectrum
+            self._spectrum.fill(0.0)
+            self._delta = np.fft.irfft(full, n)
         learned -= self._delta
         if self._excess_any:
             # what the range clipped off the table: the table takes the input that was
