@@ -71,7 +71,7 @@ from scipy import stats
 from scipy.optimize import least_squares
 
 __all__ = ['AxesRun', 'CouplingPlan', 'PathFit', 'coupling_model', 'excitation_runs',
-           'fit_coupling', 'identified_coupling']
+           'fit_coupling', 'identified_coupling', 'rest_voltages']
 
 #: Significance of the F test that keeps a mode instead of a static gain.
 MODE_SIGNIFICANCE = 0.01
@@ -175,11 +175,14 @@ class PathFit:
         return lo > 0.0 or hi < 0.0
 
 
-def _rest_voltage(stage: AxesStageParams, k: int) -> float:
-    """Return the voltage that holds axis ``k`` at its initial position."""
-    one = Stage(stage.axes[k])
-    one.reset()
-    return one.applied_voltage_v
+def rest_voltages(stage: AxesStageParams) -> list[float]:
+    """Return the voltage that holds each axis at its initial position [V]."""
+    out = []
+    for p in stage.axes:
+        one = Stage(p)
+        one.reset()
+        out.append(one.applied_voltage_v)
+    return out
 
 
 def excitation_runs(stage: AxesStageParams, plan: CouplingPlan | None = None
@@ -214,7 +217,7 @@ def excitation_runs(stage: AxesStageParams, plan: CouplingPlan | None = None
                              f'< {rate / 2.0:g} Hz (the Nyquist frequency of the loop)')
     samples = int(round(plan.period_s * rate)) * plan.periods
     time_s = np.arange(samples, dtype=np.float64) * t
-    holds = [_rest_voltage(stage, k) for k in range(stage.n)]
+    holds = rest_voltages(stage)
     out = []
     for i in range(stage.n):
         chain = stage.axes[i].chain
