@@ -31,7 +31,8 @@ G the source's own plant, both from the model's exact ZOH discretisation
 ratio is averaged over whole periods (:func:`~piezo_stage_ros.core.identification.periodic.
 periodic_spectra`), and weighted by its variance from the scatter over the periods (with the
 ADC's quantisation as a floor: without sensor noise a periodic signal quantises the same way
-every period). kappa enters linearly: for a fixed mode (f, zeta) it is a weighted linear least
+every period, so that error does not average down). The residual's own variance per degree of
+freedom scales the bounds, so a floor that is off only moves the weights. kappa enters linearly: for a fixed mode (f, zeta) it is a weighted linear least
 squares; (f, zeta) come from a grid and a nonlinear least-squares refinement over the projected
 cost. A static path (no mode) is the model with one parameter; the mode is kept when an F test
 says its two extra parameters explain the data (at 1 %). Bounds: +-1.96 sigma from the
@@ -413,8 +414,10 @@ def fit_coupling(time_s: Any, commands_v: Any, positions_m: Any, design: AxesSta
                                bounds={'gain': (-half, half)}, static=True,
                                lines=int(used.sum()), periods=count, chi2_per_dof=0.0))
             continue
-        floor_y = p * _resolution(y[:, j]) ** 2 / 12.0 / count
-        floor_u = p * _resolution(y[:, src]) ** 2 / 12.0 / count
+        # the quantisation error of a periodic signal repeats every period unless noise dithers
+        # it: it does not average down, so its floor is one period's
+        floor_y = p * _resolution(y[:, j]) ** 2 / 12.0
+        floor_u = p * _resolution(y[:, src]) ** 2 / 12.0
         f = spectra.frequency_hz[used]
         xu, xy = spectra.u[used], spectra.y[used]
         g = xy / xu
