@@ -32,10 +32,11 @@ ratio is averaged over whole periods (:func:`~piezo_stage_ros.core.identificatio
 periodic_spectra`), and weighted by its variance from the scatter over the periods (with the
 ADC's quantisation as a floor: without sensor noise a periodic signal quantises the same way
 every period, so that error does not average down). The residual's own variance per degree of
-freedom scales the bounds, so a floor that is off only moves the weights. kappa enters linearly: for a fixed mode (f, zeta) it is a weighted linear least
-squares; (f, zeta) come from a grid and a nonlinear least-squares refinement over the projected
-cost. A static path (no mode) is the model with one parameter; the mode is kept when an F test
-says its two extra parameters explain the data (at 1 %). Bounds: +-1.96 sigma from the
+freedom scales the bounds, so a floor that is off only moves the weights. kappa enters
+linearly: for a fixed mode (f, zeta) it is a weighted linear least squares; (f, zeta) come from
+a grid and a nonlinear least-squares refinement over the projected cost. A static path (no
+mode) is the model with one parameter; the mode is kept when an F test says its two extra
+parameters explain the data (at 1 %). Bounds: +-1.96 sigma from the
 Jacobian of the weighted residual, as the one-axis fits.
 
 The functions take arrays (time, commands (samples, n), positions (samples, n)) so that recorded
