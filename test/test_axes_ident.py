@@ -139,3 +139,21 @@ def test_written_file_loads_on_top_and_reproduces_the_coupling(tmp_path, capsys)
     assert gain[0, 1] == pytest.approx(0.02, rel=0.05)
     from piezo_stage_ros import simulate
     assert simulate.main(['--config', XY, '--config', str(out), '--duration', '0.05']) == 0
+
+
+def test_an_axis_without_coupling_into_it_commissions_as_the_one_axis_stage():
+    from piezo_stage_ros.core.identification.commission import commission
+    from piezo_stage_ros.core.identification.per_axis import commission_axis
+    from piezo_stage_ros.identify import controller_values
+    loop = axes_loop_config(cli.read_config([XY]))
+    stage, ctrl = loop.stage, loop.controllers[0]
+    ctrl = ctrl.replace(feedforward=ctrl.feedforward.replace(mode='none'))
+
+    def derive(s):
+        return controller_values(s, ctrl.to_flat(), stage.axes[0])
+
+    alone = commission(stage.axes[0], stage.axes[0], ctrl, derive, stability=loop.base.stability)
+    axis = commission_axis(stage, 0, stage.axes[0], ctrl, derive, stability=loop.base.stability)
+    assert axis.accepted and alone.accepted
+    assert axis.identified == alone.identified
+    assert axis.verification.e_rms_m == alone.verification.e_rms_m

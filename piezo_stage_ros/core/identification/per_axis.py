@@ -29,6 +29,15 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+from piezo_stage_ros.core.control.controllers import ControllerParams
+from piezo_stage_ros.core.control.stability import StabilityParams
+from piezo_stage_ros.core.identification.commission import (
+    commission,
+    CommissionParams,
+    CommissionResult,
+    DeriveFn,
+    ProgressFn,
+)
 from piezo_stage_ros.core.identification.coupling import rest_voltages
 from piezo_stage_ros.core.identification.experiments import ExperimentPlan, run_experiments
 from piezo_stage_ros.core.identification.fit import IdentificationParams
@@ -36,7 +45,7 @@ from piezo_stage_ros.core.identification.support import CheckedIdentification, i
 from piezo_stage_ros.core.model.axes import AxesStage, AxesStageParams
 from piezo_stage_ros.core.model.stage import StageParams
 
-__all__ = ['AxisView', 'axis_overrides', 'identify_axis']
+__all__ = ['AxisView', 'axis_overrides', 'commission_axis', 'identify_axis']
 
 #: Stage parameters the identification does not estimate: never written as an override.
 NOT_IDENTIFIED = ('sample_rate_hz', 'seed', 'initial_position_m')
@@ -143,3 +152,36 @@ def axis_overrides(identified: StageParams, configured: StageParams) -> dict[str
     """
     new, old = identified.to_flat(), configured.to_flat()
     return {k: v for k, v in new.items() if k not in NOT_IDENTIFIED and old.get(k) != v}
+
+
+def commission_axis(stage: AxesStageParams, index: int, configured: StageParams,
+                    controller: ControllerParams, derive: DeriveFn,
+                    params: CommissionParams | None = None, *,
+                    stability: StabilityParams | None = None,
+                    progress: ProgressFn | None = None) -> CommissionResult:
+    """
+    Commission axis ``index`` of a (simulated) stage, the other axes holding.
+
+    The one-axis commissioning (:func:`~piezo_stage_ros.core.identification.commission.
+    commission`: hold and excite in closed loop, identify, design, certify, verify) with its
+    runs and its verification made on that axis of the multi-axis stage through
+    :class:`AxisView`.
+
+    Parameters
+    ----------
+    stage : AxesStageParams
+        The true stage.
+    index : int
+        The axis commissioned.
+    configured, controller, derive, params, stability, progress
+        As :func:`~piezo_stage_ros.core.identification.commission.commission`, for this axis.
+
+    Returns
+    -------
+    CommissionResult
+
+    """
+    stage.index(stage.names[index])
+    return commission(stage.axes[index], configured, controller, derive, params,
+                      stability=stability, progress=progress,
+                      plant=lambda p: AxisView(stage, index, p))
