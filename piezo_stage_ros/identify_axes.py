@@ -85,6 +85,9 @@ def build_parser() -> argparse.ArgumentParser:
     defaults = CouplingPlan()
     p.add_argument('--rms', type=float, default=defaults.rms_v, metavar='V',
                    help=f'Excitation of the coupling runs [V rms] (default {defaults.rms_v:g}).')
+    p.add_argument('--period', type=float, default=defaults.period_s, metavar='S',
+                   help='Period of the coupling excitation [s] (default '
+                   f'{defaults.period_s:g}): a longer one resolves smaller paths.')
     p.add_argument('--periods', type=int, default=defaults.periods, metavar='N',
                    help='Periods of the coupling runs, the first left out (default '
                    f'{defaults.periods}).')
@@ -180,7 +183,7 @@ def _run(args: argparse.Namespace) -> int:
             overrides[name] = axis_overrides(axes[k], configured.axes[k])
             report['axes'][name] = {key: [lo, hi] for key, (lo, hi) in result.bounds.items()}
         model = dataclasses.replace(configured, axes=tuple(axes))
-    plan = CouplingPlan(rms_v=args.rms, periods=args.periods)
+    plan = CouplingPlan(rms_v=args.rms, period_s=args.period, periods=args.periods)
     fits: list[PathFit] = []
     print('coupling (95 % bounds):')
     for run in excitation_runs(true, plan):
