@@ -27,17 +27,17 @@ position. Both the measured x_i and the displacement on j are linear, time-invar
 the same held hysteresis output w_i, so in periodic steady state the ratio of their DFT lines is
 exactly, at every excited line, kappa P(z) / G(z): P the path from w_i to d_j per unit gain and
 G the source's own plant, both from the model's exact ZOH discretisation
-(:func:`~piezo_stage_ros.core.model.axes.coupling_paths`), whatever the hysteresis does. The
-ratio is averaged over whole periods (:func:`~piezo_stage_ros.core.identification.periodic.
-periodic_spectra`), and weighted by its variance from the scatter over the periods (with the
-ADC's quantisation as a floor: without sensor noise a periodic signal quantises the same way
+(:func:`~piezo_stage_ros.core.model.axes.coupling_paths`), whatever the hysteresis does.
+The ratio is averaged over whole periods
+(:func:`~piezo_stage_ros.core.identification.periodic.periodic_spectra`), and weighted by its
+variance from the scatter over the periods (the sensors' white noise pooled over the lines, with
+the ADC's quantisation as a floor: without sensor noise a periodic signal quantises the same way
 every period, so that error does not average down). The residual's own variance per degree of
-freedom scales the bounds, so a floor that is off only moves the weights. kappa enters
-linearly: for a fixed mode (f, zeta) it is a weighted linear least squares; (f, zeta) come from
-a grid and a nonlinear least-squares refinement over the projected cost. A static path (no
-mode) is the model with one parameter; the mode is kept when an F test says its two extra
-parameters explain the data (at 1 %). Bounds: +-1.96 sigma from the
-Jacobian of the weighted residual, as the one-axis fits.
+freedom scales the bounds, so a floor that is off only moves the weights. kappa enters linearly:
+for a fixed mode (f, zeta) it is a weighted linear least squares; (f, zeta) come from a grid and a
+nonlinear least-squares refinement over the projected cost. A static path (no mode) is the model
+with one parameter; the mode is kept when an F test says its two extra parameters explain the data
+(at 1 %). Bounds: +-1.96 sigma from the Jacobian of the weighted residual, as the one-axis fits.
 
 The functions take arrays (time, commands (samples, n), positions (samples, n)) so that recorded
 runs can be fed as they are.
@@ -422,8 +422,11 @@ def fit_coupling(time_s: Any, commands_v: Any, positions_m: Any, design: AxesSta
         f = spectra.frequency_hz[used]
         xu, xy = spectra.u[used], spectra.y[used]
         g = xy / xu
-        var = (np.maximum(spectra.var_y[used], floor_y)
-               + np.abs(g) ** 2 * np.maximum(spectra.var_u[used], floor_u)) / np.abs(xu) ** 2
+        # the sensors' noise is white: its variance is pooled over the lines, so that a line
+        # whose few periods happen to scatter little does not get a weight it has not earned
+        var_y = max(float(np.mean(spectra.var_y[used])), floor_y)
+        var_u = max(float(np.mean(spectra.var_u[used])), floor_u)
+        var = (var_y + np.abs(g) ** 2 * var_u) / np.abs(xu) ** 2
         out.append(_fit_path(design, src, int(j), f, g, 1.0 / np.sqrt(var), top, count))
     return out
 
