@@ -427,7 +427,8 @@ def fit_coupling(time_s: Any, commands_v: Any, positions_m: Any, design: AxesSta
         var_y = max(float(np.mean(spectra.var_y[used])), floor_y)
         var_u = max(float(np.mean(spectra.var_u[used])), floor_u)
         var = (var_y + np.abs(g) ** 2 * var_u) / np.abs(xu) ** 2
-        out.append(_fit_path(design, src, int(j), f, g, 1.0 / np.sqrt(var), top, count))
+        # var is E|error|^2 of a complex line: its real and imaginary parts hold half each
+        out.append(_fit_path(design, src, int(j), f, g, np.sqrt(2.0 / var), top, count))
     return out
 
 
