@@ -185,8 +185,9 @@ def _run(args: argparse.Namespace) -> int:
         model = dataclasses.replace(configured, axes=tuple(axes))
     plan = CouplingPlan(rms_v=args.rms, period_s=args.period, periods=args.periods)
     fits: list[PathFit] = []
+    runs = excitation_runs(true, plan)
     print('coupling (95 % bounds):')
-    for run in excitation_runs(true, plan):
+    for run in runs:
         for fit in fit_coupling(run.time_s, run.commands_v, run.positions_m, model):
             fits.append(fit)
             print(f'  {_path_line(configured, fit, true)}')

@@ -229,9 +229,9 @@ def excitation_runs(stage: AxesStageParams, plan: CouplingPlan | None = None
             seed=plan.seed))
         low, high = noise.extent_m
         if low < chain.amplifier_min_v or high > chain.amplifier_max_v:
-            raise ParameterError('rms_v', plan.rms_v, f"an excitation within axis "
-                                 f"{stage.names[i]!r}'s amplifier range "
-                                 f'[{chain.amplifier_min_v:g}, {chain.amplifier_max_v:g}] V',
+            raise ParameterError('rms_v', plan.rms_v, 'an excitation within the amplifier '
+                                 f'range [{chain.amplifier_min_v:g}, '
+                                 f'{chain.amplifier_max_v:g}] V of axis {stage.names[i]!r}',
                                  f'reaches [{low:.3g}, {high:.3g}] V around the rest voltage '
                                  f'{holds[i]:.3g} V')
         cmds = np.tile(np.asarray(holds, dtype=np.float64), (samples, 1))
