@@ -81,7 +81,7 @@ from piezo_stage_ros.core.identification.support import (
     RefusedError,
     SupportParams,
 )
-from piezo_stage_ros.core.loop.closed_loop import run
+from piezo_stage_ros.core.loop.closed_loop import Plant, run
 from piezo_stage_ros.core.loop.metrics import summarize
 from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
@@ -101,6 +101,9 @@ __all__ = ['CommissionParams', 'CommissionRefusedError', 'CommissionResult', 'Ce
 ProgressFn = Callable[[str], None]
 #: Returns the controller_node values the identified stage determines (flat names).
 DeriveFn = Callable[[StageParams], Mapping[str, Any]]
+
+#: Builds the plant a run is made on from the stage parameters.
+PlantFn = Callable[[StageParams], Plant]
 
 
 class CommissionRefusedError(PiezoStageError):
@@ -276,8 +279,9 @@ def hold_controller(params: CommissionParams, configured: ControllerParams) -> C
 
 def excitation_run(true_stage: StageParams, configured: StageParams,
                    configured_controller: ControllerParams, params: CommissionParams,
-                   stability: StabilityParams | None = None) -> tuple[RunRecord, RunRecord,
-                                                                      StabilityReport]:
+                   stability: StabilityParams | None = None, *,
+                   plant: PlantFn | None = None) -> tuple[RunRecord, RunRecord,
+                                                          StabilityReport]:
     """
     Hold the stage under the hold controller and excite it; never open the loop.
 
@@ -293,6 +297,9 @@ def excitation_run(true_stage: StageParams, configured: StageParams,
         The run.
     stability : StabilityParams, optional
         Options of the check of the hold controller.
+    plant : callable, optional
+        Builds the plant that runs from ``true_stage`` (default
+        :class:`~piezo_stage_ros.core.model.stage.Stage`), e.g. one axis of a multi-axis stage.
 
     Returns
     -------
@@ -320,7 +327,8 @@ def excitation_run(true_stage: StageParams, configured: StageParams,
         raise CommissionRefusedError('the hold controller is not stable on the configured '
                                      'model: ' + check.binding())
     ctrl = build_controller(hold, t, None)
-    whole = run(Stage(true_stage), ctrl, exc, duration_s=params.settle_s + params.duration_s,
+    whole = run((plant or Stage)(true_stage), ctrl, exc,
+                duration_s=params.settle_s + params.duration_s,
                 initial_position_m=params.hold_m, record_diagnostics=False,
                 meta={'name': 'commission_excitation', 'experiment': 'commission'})
     i0 = int(round(params.settle_s / t))
@@ -762,16 +770,18 @@ class Verification:
 
 
 def _track(stage: StageParams, controller: ControllerParams, design_stage: StageParams,
-           frequency_hz: float, duration_s: float) -> RunRecord:
+           frequency_hz: float, duration_s: float, plant: PlantFn | None = None) -> RunRecord:
     ctrl = build_controller(controller, stage.sample_time_s, linear_plant(design_stage.plant))
     traj = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine',
                                                        'sine.frequency_hz': frequency_hz}))
-    return run(Stage(stage), ctrl, traj, duration_s=duration_s, record_diagnostics=False,
+    return run((plant or Stage)(stage), ctrl, traj, duration_s=duration_s,
+               record_diagnostics=False,
                meta={'name': f'verification_{frequency_hz:g}hz'})
 
 
 def verify(true_stage: StageParams | None, identified: StageParams,
-           controller: ControllerParams, params: CommissionParams) -> Verification:
+           controller: ControllerParams, params: CommissionParams,
+           plant: PlantFn | None = None) -> Verification:
     """
     Run the verification sine on the stage and on the identified model.
 
@@ -785,6 +795,8 @@ def verify(true_stage: StageParams | None, identified: StageParams,
         The designed controller.
     params : CommissionParams
         Frequency and length.
+    plant : callable, optional
+        Builds the plant of ``true_stage`` (as :func:`excitation_run`).
 
     Returns
     -------
@@ -792,7 +804,8 @@ def verify(true_stage: StageParams | None, identified: StageParams,
 
     """
     f, d = params.verify_frequency_hz, params.verify_duration_s
-    rec = _track(true_stage or identified, controller, identified, f, d)
+    rec = _track(true_stage or identified, controller, identified, f, d,
+                 plant if true_stage is not None else None)
     m = summarize(rec, period_s=1.0 / f)
     model = identified.replace(chain=identified.chain.replace(sensor_noise_std_m=0.0))
     pred = summarize(_track(model, controller, identified, f, d), period_s=1.0 / f)
@@ -891,7 +904,8 @@ def commission(true_stage: StageParams, configured: StageParams,
                configured_controller: ControllerParams, derive: DeriveFn,
                params: CommissionParams | None = None, *,
                stability: StabilityParams | None = None,
-               progress: ProgressFn | None = None) -> CommissionResult:
+               progress: ProgressFn | None = None,
+               plant: PlantFn | None = None) -> CommissionResult:
     """
     Commission a stage: hold and excite, identify, design, certify, verify.
 
@@ -913,6 +927,8 @@ def commission(true_stage: StageParams, configured: StageParams,
         The configured stability check (estimates, delay).
     progress : callable, optional
         Told each step.
+    plant : callable, optional
+        Builds the plant of ``true_stage`` for the runs (as :func:`excitation_run`).
 
     Returns
     -------
@@ -928,9 +944,9 @@ def commission(true_stage: StageParams, configured: StageParams,
     say(f'hold {params.hold_m * 1e6:g} um for {params.settle_s:g} s, then excite for '
         f'{params.duration_s:g} s (PI k_p {params.hold_k_p:g}, k_i {params.hold_k_i:g})')
     whole, excited, hold_check = excitation_run(true_stage, configured, configured_controller,
-                                                params, opts)
+                                                params, opts, plant=plant)
     return _finish(whole, excited, hold_check, true_stage, configured, configured_controller,
-                   derive, params, opts, say)
+                   derive, params, opts, say, plant)
 
 
 def excitation_part(record: RunRecord) -> RunRecord:
@@ -1011,7 +1027,7 @@ def _finish(whole: RunRecord, excited: RunRecord, hold_check: StabilityReport | 
             true_stage: StageParams | None, configured: StageParams,
             configured_controller: ControllerParams, derive: DeriveFn,
             params: CommissionParams, opts: StabilityParams,
-            say: ProgressFn) -> CommissionResult:
+            say: ProgressFn, plant: PlantFn | None = None) -> CommissionResult:
     """Identify, design, certify and verify from the excitation part of a run."""
     exc_peak = float(np.max(np.abs(excited.reference_m - params.hold_m)))
     pos_peak = float(np.max(np.abs(excited.position_m - params.hold_m)))
@@ -1033,7 +1049,7 @@ def _finish(whole: RunRecord, excited: RunRecord, hold_check: StabilityReport | 
     des = design(identified, result.bounds, configured_controller, derive(identified), opts,
                  say, ratio=loop_gain_ratio(identified, configured))
     say(f'verify: {params.verify_frequency_hz:g} Hz sine for {params.verify_duration_s:g} s')
-    ver = verify(true_stage, identified, des.controller, params)
+    ver = verify(true_stage, identified, des.controller, params, plant)
     notes = list(checked.warnings) + list(result.notes)
     if longer:
         notes.append(f'certified at the loop delay the run shows ({shown:.3g} samples), '

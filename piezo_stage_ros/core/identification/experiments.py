@@ -32,7 +32,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import math
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 from piezo_stage_ros.core.contracts.interfaces import Trajectory
@@ -45,7 +45,7 @@ from piezo_stage_ros.core.control.controllers import (
     OpenLoopParams,
 )
 from piezo_stage_ros.core.identification.foreign import SignalPath
-from piezo_stage_ros.core.loop.closed_loop import run
+from piezo_stage_ros.core.loop.closed_loop import Plant, run
 from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.loop.trajectories import (
     make_trajectory,
@@ -123,7 +123,9 @@ def _trajectories(plan: ExperimentPlan, gain_m_per_v: float) -> dict[str, Trajec
 
 def run_experiments(stage_params: StageParams, plan: ExperimentPlan | None = None, *,
                     open_loop_gain_m_per_v: float | None = None, sensor_offset_m: float = 0.0,
-                    delay_samples: int = 0) -> dict[str, RunRecord]:
+                    delay_samples: int = 0,
+                    plant: Callable[[StageParams], Plant] | None = None
+                    ) -> dict[str, RunRecord]:
     """
     Run the three identification experiments open loop on a simulated stage.
 
@@ -141,6 +143,9 @@ def run_experiments(stage_params: StageParams, plan: ExperimentPlan | None = Non
     delay_samples : int
         Extra whole samples between a command and the sample it is held over (a DAQ
         pipeline), see :class:`~piezo_stage_ros.core.identification.foreign.SignalPath`.
+    plant : callable, optional
+        Builds the plant a run is made on from the stage parameters of that run (default
+        :class:`~piezo_stage_ros.core.model.stage.Stage`): e.g. one axis of a multi-axis stage.
 
     Returns
     -------
@@ -158,8 +163,9 @@ def run_experiments(stage_params: StageParams, plan: ExperimentPlan | None = Non
     out: dict[str, RunRecord] = {}
     for i, (name, traj) in enumerate(_trajectories(plan, g).items()):
         # each run on a fresh stage at rest where the nominal model puts the first command
-        bare = Stage(params.replace(seed=params.seed + i))
-        stage: Stage | SignalPath = bare
+        # a plant of the factory has what SignalPath reads of a Stage (a multi-axis view too)
+        bare: Any = (plant or Stage)(params.replace(seed=params.seed + i))
+        stage: Plant = bare
         if sensor_offset_m != 0.0 or delay_samples != 0:
             stage = SignalPath(bare, sensor_offset_m, delay_samples)
         first = float(traj.evaluate(np.zeros(1))[0][0])

@@ -1,0 +1,218 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+
+"""
+``identify_axes``: identification of a multi-axis stage, per axis and of the coupling, offline.
+
+Runs the experiments on the configured stage (the true stage of the simulation; ``--member
+SEED`` draws one unlike it from the multi-axis stage family instead) and identifies:
+
+- each axis with the one-axis procedure of ``identify`` (its three open-loop runs on that axis
+  while the others hold their rest voltages), unless ``--coupling-only``;
+- every coupling path i -> j, one axis excited at a time by a periodic band-limited noise while
+  the others hold (:mod:`piezo_stage_ros.core.identification.coupling`).
+
+Prints per axis and per path the estimates with their 95 % bounds and the truth, and writes a
+parameter file (``--output``) holding ``plant_node axes.coupling.*`` and, per axis, the
+identified values that differ from the configuration as ``axes.<name>.*``. It is read on top of
+the configuration::
+
+    identify_axes --config config/xy_stage.yaml --output xy_identified.yaml
+    simulate --config config/xy_stage.yaml --config xy_identified.yaml
+
+A path whose gain the data does not show (95 % bounds around zero) is written as zero.
+
+Exit status: 0 on success, 1 on bad parameters or a failed identification, 2 on bad usage.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from pathlib import Path
+import sys
+from typing import Any, Sequence
+
+from piezo_stage_ros import cli
+from piezo_stage_ros.core.config.axes import axes_loop_config
+from piezo_stage_ros.core.config.loader import nest
+from piezo_stage_ros.core.identification.coupling import (
+    CouplingPlan,
+    excitation_runs,
+    fit_coupling,
+    identified_coupling,
+    PathFit,
+)
+from piezo_stage_ros.core.model.axes import AxesStageParams, CouplingParams
+import yaml
+
+__all__ = ['build_parser', 'coupling_file_text', 'main']
+
+PROG = 'identify_axes'
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Return the command-line parser of ``identify_axes``."""
+    p = cli.Parser(prog=PROG, description='Identify a multi-axis stage offline: each axis with '
+                   'the one-axis procedure while the others hold, and every coupling path with '
+                   'one axis excited at a time; write the parameter file.')
+    cli.add_config_options(p)
+    p.add_argument('--output', default='identified_axes.yaml', metavar='FILE',
+                   help='Parameter file to write (default: identified_axes.yaml), read on top '
+                   'of the configuration.')
+    p.add_argument('--coupling-only', action='store_true',
+                   help='Identify the coupling only (the configured axes as the model).')
+    p.add_argument('--member', type=int, metavar='SEED',
+                   help='The true stage is a member of the multi-axis stage family drawn from '
+                   'SEED (each axis unlike the configured one, every coupling path a gain of '
+                   '0.5-5 %%) instead of the configured stage.')
+    p.add_argument('--sensor-noise', type=float, metavar='M',
+                   help="Every axis' sensor noise [m rms] in the experiments (default: as "
+                   'configured).')
+    defaults = CouplingPlan()
+    p.add_argument('--rms', type=float, default=defaults.rms_v, metavar='V',
+                   help=f'Excitation of the coupling runs [V rms] (default {defaults.rms_v:g}).')
+    p.add_argument('--period', type=float, default=defaults.period_s, metavar='S',
+                   help='Period of the coupling excitation [s] (default '
+                   f'{defaults.period_s:g}): a longer one resolves smaller paths.')
+    p.add_argument('--periods', type=int, default=defaults.periods, metavar='N',
+                   help='Periods of the coupling runs, the first left out (default '
+                   f'{defaults.periods}).')
+    p.add_argument('--json', action='store_true', help='Print one JSON object last.')
+    return p
+
+
+def coupling_file_text(stage: AxesStageParams, coupling: CouplingParams,
+                       overrides: dict[str, dict[str, Any]], *, header: Sequence[str] = ()
+                       ) -> str:
+    """
+    Return the parameter file of an identification, read on top of the configuration.
+
+    Parameters
+    ----------
+    stage : AxesStageParams
+        The configured stage (its axis names).
+    coupling : CouplingParams
+        The identified coupling.
+    overrides : dict of str to dict
+        Per axis name, the identified values as flat names (without ``axes.<name>.``).
+    header : sequence of str
+        Comment lines put at the top.
+
+    Returns
+    -------
+    str
+        YAML text with a ``plant_node`` section.
+
+    """
+    flat: dict[str, Any] = {'axes.names': list(stage.names)}
+    for name in stage.names:
+        for key, value in overrides.get(name, {}).items():
+            flat[f'axes.{name}.{key}'] = value
+    for key in ('gain', 'resonance_hz', 'damping'):
+        flat[f'axes.coupling.{key}'] = [float(v) for v in getattr(coupling, key)]
+    doc = {'plant_node': {'ros__parameters': nest(flat)}}
+    lines = [f'# {line}' for line in header]
+    return '\n'.join(lines + [yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)])
+
+
+def _path_line(stage: AxesStageParams, fit: PathFit, true: AxesStageParams) -> str:
+    gain, res, damp, _ = true.matrices()
+    i, j = fit.source, fit.target
+    lo, hi = fit.bounds['gain']
+    text = (f'{stage.names[i]} -> {stage.names[j]}: gain {fit.gain:.6g} [{lo:.6g}, {hi:.6g}] '
+            f'(true {gain[i, j]:.6g}')
+    if gain[i, j] != 0.0:
+        text += f', error {(fit.gain / gain[i, j] - 1.0) * 100.0:+.3f} %'
+    text += ')'
+    if fit.static:
+        text += ', static' + ('' if fit.shown else ' (not shown: written as zero)')
+    else:
+        for key, label, truth in (('resonance_hz', 'resonance', res[i, j]),
+                                  ('damping', 'damping', damp[i, j])):
+            lo, hi = fit.bounds[key]
+            text += (f', {label} {getattr(fit, key):.6g} [{lo:.6g}, {hi:.6g}] '
+                     f'(true {truth:.6g})')
+    return text + f'; {fit.lines} lines, {fit.periods} periods, chi2/dof {fit.chi2_per_dof:.3g}'
+
+
+def _run(args: argparse.Namespace) -> int:
+    from piezo_stage_ros.analysis.identification_report import comparison_rows, format_table
+    from piezo_stage_ros.core.identification.per_axis import axis_overrides, identify_axis
+    from piezo_stage_ros.core.model.axes import sample_axes_family
+    from piezo_stage_ros.identify import _bound_lines, _summary_lines
+    config = cli.read_config(args.config, args.param)
+    loop = axes_loop_config(config)
+    configured = loop.stage
+    true = configured
+    if args.member is not None:
+        text, true = sample_axes_family(configured, 1, args.member)[0]
+        print(f'true stage: family member of seed {args.member}: {text}')
+    if args.sensor_noise is not None:
+        true = dataclasses.replace(true, axes=tuple(
+            p.replace(chain=p.chain.replace(sensor_noise_std_m=args.sensor_noise))
+            for p in true.axes))
+    model = configured
+    overrides: dict[str, dict[str, Any]] = {}
+    report: dict[str, Any] = {'axes': {}, 'coupling': []}
+    if not args.coupling_only:
+        axes = list(configured.axes)
+        for k, name in enumerate(configured.names):
+            checked = identify_axis(true, k, configured.axes[k])
+            result = checked.result
+            print(f'axis {name}:')
+            for line in _summary_lines(result) + _bound_lines(result):
+                print(f'  {line}')
+            print('  ' + format_table(comparison_rows(result, true.axes[k])).replace(
+                '\n', '\n  '))
+            axes[k] = result.stage.replace(sample_rate_hz=configured.axes[k].sample_rate_hz,
+                                           seed=configured.axes[k].seed)
+            overrides[name] = axis_overrides(axes[k], configured.axes[k])
+            report['axes'][name] = {key: [lo, hi] for key, (lo, hi) in result.bounds.items()}
+        model = dataclasses.replace(configured, axes=tuple(axes))
+    plan = CouplingPlan(rms_v=args.rms, period_s=args.period, periods=args.periods)
+    fits: list[PathFit] = []
+    runs = excitation_runs(true, plan)
+    print('coupling (95 % bounds):')
+    for run in runs:
+        for fit in fit_coupling(run.time_s, run.commands_v, run.positions_m, model):
+            fits.append(fit)
+            print(f'  {_path_line(configured, fit, true)}')
+            report['coupling'].append({
+                'source': configured.names[fit.source], 'target': configured.names[fit.target],
+                'gain': fit.gain, 'resonance_hz': fit.resonance_hz, 'damping': fit.damping,
+                'bounds': {k: list(v) for k, v in fit.bounds.items()}, 'static': fit.static,
+                'shown': fit.shown})
+    coupling = identified_coupling(configured, fits)
+    header = ['Identified by: identify_axes ' + ' '.join(
+        sys.argv[1:] if args.argv is None else args.argv),
+        'Read on top of the configuration: simulate --config <configuration> --config <this>.']
+    Path(args.output).write_text(coupling_file_text(configured, coupling, overrides,
+                                                    header=header), encoding='utf-8')
+    print(f'parameter file: {args.output}')
+    if args.json:
+        report['output'] = args.output
+        print(json.dumps(report, default=float))
+    return 0
+
+
+main = cli.command_main(PROG, build_parser, _run,
+                        '0 success, 1 bad parameters or failed identification, 2 bad usage',
+                        keep_argv=True)
+
+
+if __name__ == '__main__':
+    sys.exit(main())
