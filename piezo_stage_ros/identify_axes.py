@@ -34,6 +34,15 @@ the configuration::
 
 A path whose gain the data does not show (95 % bounds around zero) is written as zero.
 
+``--bags DIR`` records each coupling run as a bag ``DIR/coupling_<axis>`` (the excited axis;
+one message a sample for all axes, as a multi-axis run is recorded); ``--from-bags BAG ...``
+fits the coupling from such bags instead of running the experiments, e.g. bags recorded on a
+real stage with one axis driven by a periodic signal and the others held. The axes' own models
+are then the configured ones::
+
+    identify_axes --config config/xy_stage.yaml --coupling-only --bags runs/
+    identify_axes --config config/xy_stage.yaml --from-bags runs/coupling_x runs/coupling_y
+
 Exit status: 0 on success, 1 on bad parameters or a failed identification, 2 on bad usage.
 """
 
@@ -46,20 +55,25 @@ from pathlib import Path
 import sys
 from typing import Any, Sequence
 
+import numpy as np
 from piezo_stage_ros import cli
 from piezo_stage_ros.core.config.axes import axes_loop_config
 from piezo_stage_ros.core.config.loader import nest
+from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.identification.coupling import (
+    AxesRun,
     CouplingPlan,
     excitation_runs,
     fit_coupling,
     identified_coupling,
     PathFit,
+    rest_voltages,
 )
+from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.model.axes import AxesStageParams, CouplingParams
 import yaml
 
-__all__ = ['build_parser', 'coupling_file_text', 'main']
+__all__ = ['build_parser', 'coupling_file_text', 'main', 'records_run', 'run_records']
 
 PROG = 'identify_axes'
 
@@ -91,8 +105,79 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--periods', type=int, default=defaults.periods, metavar='N',
                    help='Periods of the coupling runs, the first left out (default '
                    f'{defaults.periods}).')
+    p.add_argument('--bags', metavar='DIR',
+                   help='Record each coupling run as a bag DIR/coupling_<excited axis>.')
+    p.add_argument('--from-bags', nargs='+', metavar='BAG',
+                   help='Fit the coupling from these bags (one axis excited by a periodic '
+                   'signal in each, the others held) instead of running the experiments; the '
+                   'configured axes are the model.')
     p.add_argument('--json', action='store_true', help='Print one JSON object last.')
     return p
+
+
+def run_records(run: AxesRun, stage: AxesStageParams) -> list[RunRecord]:
+    """
+    Return a coupling run as one run record per axis, the samples as a bag records them.
+
+    Row k holds y_k measured at t_k and u_k held over [t_k, t_k+1): y_0 is the rest before the
+    first command, and a last row holds y_N with the axes back at their rest voltages. An
+    open-loop run has no reference: it is recorded as not a number.
+
+    Parameters
+    ----------
+    run : AxesRun
+        A run of :func:`~piezo_stage_ros.core.identification.coupling.excitation_runs` (with
+        its ``initial_m``).
+    stage : AxesStageParams
+        The stage it ran on (axis names, rest voltages).
+
+    Returns
+    -------
+    list of RunRecord
+        One per axis, in axis order, each with ``meta['axis']``.
+
+    """
+    if run.initial_m is None:
+        raise ParameterError('initial_m', None, 'the measured rest positions y_0 of the run')
+    n = len(run.time_s)
+    time_s = np.arange(n + 1, dtype=np.float64) * stage.sample_time_s
+    positions = np.vstack([run.initial_m, run.positions_m])
+    commands = np.vstack([run.commands_v, rest_voltages(stage)])
+    none = np.full(n + 1, np.nan)
+    return [RunRecord(time_s=time_s, position_m=positions[:, k].copy(), reference_m=none,
+                      reference_velocity_mps=none, command_v=commands[:, k].copy(),
+                      meta={'axis': name, 'experiment': 'coupling, open loop',
+                            'excited_axis': stage.names[run.source]})
+            for k, name in enumerate(stage.names)]
+
+
+def records_run(records: Sequence[RunRecord], stage: AxesStageParams) -> AxesRun:
+    """
+    Return the arrays of a coupling run from its records (the inverse of :func:`run_records`).
+
+    Parameters
+    ----------
+    records : sequence of RunRecord
+        One per axis of ``stage``, in its axis order (as a bag is read back).
+    stage : AxesStageParams
+        The configured stage.
+
+    Returns
+    -------
+    AxesRun
+        Positions row k measured at the end of command row k's sample; the excited axis is
+        the one whose command varies (``source`` -1 until the fit finds it).
+
+    """
+    names = [str(rec.meta.get('axis', '')) for rec in records]
+    if names != list(stage.names):
+        raise ParameterError('axes', names, f'the configured axes {list(stage.names)} in '
+                             'that order')
+    time_s = np.asarray(records[0].time_s, dtype=np.float64)
+    positions = np.column_stack([rec.position_m for rec in records])
+    commands = np.column_stack([rec.command_v for rec in records])
+    return AxesRun(time_s=time_s[:-1] - time_s[0], commands_v=commands[:-1],
+                   positions_m=positions[1:], source=-1, initial_m=positions[0])
 
 
 def coupling_file_text(stage: AxesStageParams, coupling: CouplingParams,
@@ -168,7 +253,7 @@ def _run(args: argparse.Namespace) -> int:
     model = configured
     overrides: dict[str, dict[str, Any]] = {}
     report: dict[str, Any] = {'axes': {}, 'coupling': []}
-    if not args.coupling_only:
+    if not (args.coupling_only or args.from_bags):
         axes = list(configured.axes)
         for k, name in enumerate(configured.names):
             checked = identify_axis(true, k, configured.axes[k])
@@ -185,7 +270,18 @@ def _run(args: argparse.Namespace) -> int:
         model = dataclasses.replace(configured, axes=tuple(axes))
     plan = CouplingPlan(rms_v=args.rms, period_s=args.period, periods=args.periods)
     fits: list[PathFit] = []
-    runs = excitation_runs(true, plan)
+    if args.from_bags:
+        from piezo_stage_ros.analysis.bagread import read_axes
+        runs = [records_run(read_axes(bag), configured) for bag in args.from_bags]
+    else:
+        runs = excitation_runs(true, plan)
+    if args.bags:
+        from piezo_stage_ros.analysis.bagwrite import write_axes
+        for run in runs:
+            path = Path(args.bags) / f'coupling_{configured.names[run.source]}'
+            write_axes(run_records(run, true), path,
+                       meta={'command': 'identify_axes', 'experiment': 'coupling, open loop'})
+            print(f'bag: {path}')
     print('coupling (95 % bounds):')
     for run in runs:
         for fit in fit_coupling(run.time_s, run.commands_v, run.positions_m, model):

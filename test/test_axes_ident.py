@@ -157,3 +157,42 @@ def test_an_axis_without_coupling_into_it_commissions_as_the_one_axis_stage():
     assert axis.accepted and alone.accepted
     assert axis.identified == alone.identified
     assert axis.verification.e_rms_m == alone.verification.e_rms_m
+
+
+def test_the_coupling_fitted_from_its_bags_is_the_coupling_fitted_from_the_run(tmp_path):
+    # The bags hold every sample bit for bit (y_0 at rest, u_k held over [t_k, t_k+1)), so
+    # the arrays read back are the run's and the fit is the same to the last bit.
+    from piezo_stage_ros.analysis.bagread import read_axes
+    from piezo_stage_ros.analysis.bagwrite import write_axes
+    stage = xy_stage()
+    run = excitation_runs(stage, SHORT)[0]
+    write_axes(identify_axes.run_records(run, stage), tmp_path / 'coupling_x')
+    back = identify_axes.records_run(read_axes(tmp_path / 'coupling_x'), stage)
+    assert np.array_equal(back.commands_v, run.commands_v)
+    assert np.array_equal(back.positions_m, run.positions_m)
+    assert np.array_equal(back.initial_m, run.initial_m)
+    (direct,) = fit_coupling(run.time_s, run.commands_v, run.positions_m, stage)
+    (bagged,) = fit_coupling(back.time_s, back.commands_v, back.positions_m, stage)
+    assert bagged == direct
+    assert bagged.gain == pytest.approx(0.02, rel=0.05)
+
+
+def test_the_command_identifies_from_the_bags_it_recorded(tmp_path):
+    bags = tmp_path / 'runs'
+    first, second = tmp_path / 'a.yaml', tmp_path / 'b.yaml'
+    common = ['--config', XY, '--coupling-only', '--periods', '4']
+    assert identify_axes.main(common + ['--bags', str(bags), '--output', str(first)]) == 0
+    assert identify_axes.main(['--config', XY, '--from-bags', str(bags / 'coupling_x'),
+                               str(bags / 'coupling_y'), '--output', str(second)]) == 0
+    body = [[line for line in path.read_text().splitlines() if not line.startswith('#')]
+            for path in (first, second)]
+    assert body[0] == body[1]
+
+
+def test_bags_of_other_axes_are_refused_naming_them(tmp_path):
+    stage = xy_stage()
+    run = excitation_runs(stage, SHORT)[0]
+    records = identify_axes.run_records(run, stage)
+    records.reverse()
+    with pytest.raises(ParameterError, match=r"\['y', 'x'\]"):
+        identify_axes.records_run(records, stage)

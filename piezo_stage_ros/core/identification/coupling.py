@@ -117,6 +117,10 @@ class AxesRun:
         Measured position of each axis at the end of the sample [m].
     source : int
         The excited axis.
+    initial_m : ndarray, shape (n,), optional
+        Measured positions at rest before the first command [m] (y_0), when known: with it the
+        run is a sequence of samples as a bag records them (y_k measured at t_k, u_k held over
+        [t_k, t_k+1)).
 
     """
 
@@ -124,6 +128,7 @@ class AxesRun:
     commands_v: FloatArray
     positions_m: FloatArray
     source: int
+    initial_m: FloatArray | None = None
 
 
 @dataclass(frozen=True)
@@ -237,9 +242,9 @@ def excitation_runs(stage: AxesStageParams, plan: CouplingPlan | None = None
         cmds = np.tile(np.asarray(holds, dtype=np.float64), (samples, 1))
         cmds[:, i] = noise.evaluate(time_s)[0]
         sim = AxesStage(stage)
-        sim.reset()
+        initial = np.asarray(sim.reset(), dtype=np.float64)
         out.append(AxesRun(time_s=time_s, commands_v=cmds,
-                           positions_m=sim.run_open_loop(cmds), source=i))
+                           positions_m=sim.run_open_loop(cmds), source=i, initial_m=initial))
     return out
 
 
