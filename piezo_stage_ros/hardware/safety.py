@@ -335,6 +335,9 @@ class GuardedPlant:
         self.ended_trips: deque[Trip] = deque(maxlen=1000)
         #: Called with each trip as it ends (in the thread that samples; keep it short).
         self.on_trip: Callable[[Trip], None] | None = None
+        #: Set by :meth:`wind_down`: every sample from the next one on ramps to the safe
+        #: voltage as a trip does, whatever the commands.
+        self.winding = False
 
     def start(self, now_s: float) -> float:
         """
@@ -525,7 +528,7 @@ class GuardedPlant:
 
     def _write(self, now_s: float) -> None:
         """Decide the voltage of the coming sample (command, queue or watchdog) and write it."""
-        expired = self.watchdog.expired(now_s)
+        expired = self.winding or self.watchdog.expired(now_s)
         queue: Commands = ()
         if expired or self.trip is not None:
             voltage = self._watchdog_voltage(expired, now_s)
@@ -598,6 +601,42 @@ class GuardedPlant:
         self.held_v = self.applied_v = voltage
         self.bridge.write_voltage(voltage)
         return self.bridge.read_position()
+
+    def wind_down(self) -> None:
+        """
+        Ramp to the safe voltage from the next real-time sample on, ignoring commands.
+
+        The watchdog's ramp (at most ``slew_v_per_s * T`` a sample) without waiting for its
+        timeout: a stage taken out of service (a managed node deactivated) gets no step larger
+        than the slew. :attr:`phase` is ``'safe'`` once a sample applied the safe voltage.
+        """
+        self.winding = True
+
+    def ramp_to_safe(self) -> tuple[int, float]:
+        """
+        Step the safe voltage's ramp sample by sample now (lockstep) and return what it took.
+
+        Each sample applies the voltage applied last moved toward the safe voltage by at most
+        ``slew_v_per_s * T`` (as the watchdog's ramp), through :meth:`step`, until the safe
+        voltage is applied.
+
+        Returns
+        -------
+        tuple of (int, float)
+            The samples stepped and the largest change between two applied voltages [V].
+
+        """
+        step_v = self.slew_v_per_s * self.sample_period_s
+        was = self._in_range(self.applied_v)
+        samples, largest = 0, 0.0
+        while was != self.safe_v:
+            voltage = slew_toward(was, self.safe_v, step_v)
+            self.step(voltage)
+            largest = max(largest, abs(voltage - was))
+            was = voltage
+            samples += 1
+        self.phase = 'safe'
+        return samples, largest
 
     def stop(self) -> None:
         """Drive the safe voltage and release the backend (idempotent)."""
