@@ -147,6 +147,33 @@ def test_the_servo_winds_down_within_the_slew_and_ends_at_the_safe_voltage(kind)
     assert loop.stats()['watchdog_max_step_v'] <= STEP * (1 + 1e-9)
 
 
+def test_a_wind_down_during_a_watchdog_trip_is_a_ramp_of_its_own():
+    params = StageParams.from_flat(STAGE)
+    clock = FakeClock(per_read=300)
+    guard = GuardedPlant(ModelBridge(params), params.chain, 0.01, slew_v_per_s=SLEW,
+                         sample_period_s=1e-4)
+    loop = ServoLoop(guard, None, None, sample_rate_hz=1e4,
+                     pacer=Pacer(PERIOD, clock=clock, sleep=clock.sleep))
+    loop.start()
+    guard.command(9.0, clock.now / 1e9)  # then silence: the watchdog trips and ramps
+    while guard.phase != 'ramp':
+        loop.step()
+    for _ in range(20):
+        loop.step()
+    from_v = guard.applied_v
+    guard.wind_down()
+    steps = 0
+    while loop.step():
+        steps += 1
+        assert steps < 10_000, 'the wind-down never ended'
+    guard.stop()
+    silence, wound = loop.take_trips()
+    assert silence.ended == 'wind down' and not silence.wind_down
+    assert wound.wind_down and wound.from_v == pytest.approx(from_v)
+    assert wound.ramp_samples == math.ceil(abs(from_v - guard.safe_v) / STEP - 1e-9)
+    assert wound.max_step_v <= STEP * (1 + 1e-9) and guard.applied_v == guard.safe_v
+
+
 # --- the statuses -------------------------------------------------------------------------------
 
 def test_the_loop_warns_on_counters_that_grew_and_errs_after_a_fault():

@@ -168,12 +168,17 @@ class ControllerNode(Node):
         rac = self.binding.objects[0].rac
         bounds = {'theta_hat': (rac.theta_min, rac.theta_max),
                   'phi_hat': (rac.phi_min, rac.phi_max)}
+        latest = self._latest
+        if self.forward is None:
+            # the controller runs in this process (on this executor or the servo thread):
+            # read now, whatever the per-sample topics left out under load
+            names, read = wire.diagnostic_reader(self.logic.controller)
+            latest = (names, read()) if names else None
         out = controller_statuses(self.get_name(), hardware_id(self.get_namespace()),
-                                  self._latest, bounds, self.verdict, self._stable,
-                                  self._caution, self._rms_before)
-        if self._latest is not None and 'ff_period_rms_m' in self._latest[0]:
-            self._rms_before = float(
-                self._latest[1][list(self._latest[0]).index('ff_period_rms_m')])
+                                  latest, bounds, self.verdict, self._stable, self._caution,
+                                  self._rms_before)
+        if latest is not None and 'ff_period_rms_m' in latest[0]:
+            self._rms_before = float(latest[1][list(latest[0]).index('ff_period_rms_m')])
         return out
 
     def _log_error(self, text: str) -> None:
@@ -278,7 +283,8 @@ class ControllerNode(Node):
             if self.context.ok():
                 raise
             return  # Ctrl-C shut the context down while this callback ran: nothing to send
-        if out.diagnostics is not None:
+        if self.forward is not None and out.diagnostics is not None:
+            # a servo process runs the controller: its diagnostics come only this way
             self._latest = (out.diagnostic_names if out.diagnostic_names is not None
                             else self.logic.names, out.diagnostics)
         if out.diagnostics is not None and self._diag_gate():

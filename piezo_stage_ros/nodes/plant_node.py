@@ -228,7 +228,7 @@ class PlantNode(LifecycleNode):
         if refused:
             self.get_logger().error(f'{name} refused: {refused}')
             return TransitionCallbackReturn.FAILURE
-        self.get_logger().info(f'{name}d in {took_ms:.1f} ms')
+        self.get_logger().info(f'{name}: done in {took_ms:.1f} ms')
         return TransitionCallbackReturn.SUCCESS
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -270,12 +270,12 @@ class PlantNode(LifecycleNode):
         if self.finished.done() or self.logic.done and self.servo is None:
             return None  # the run is over: the stop drove the safe voltage already
         slew = self.opts.watchdog.slew_v_per_s
-        from_v = self.guard.applied_v
         servo = self.servo
         if servo is None or not self._t_start:
             # lockstep (or a servo never started): no more answers; the ramp's samples are
             # stepped here, through the guard, not published
-            self.logic.done = True
+            from_v = self.guard.applied_v
+            self.logic.done, self.logic.waiting = True, False
             samples, largest = self.guard.ramp_to_safe()
             self.ramp = {'from_v': from_v, 'samples': float(samples), 'max_step_v': largest,
                          'slew_step_v': slew * self.logic.period_s}
@@ -284,8 +284,10 @@ class PlantNode(LifecycleNode):
                 servo.change('wind_down', None)
             else:
                 self.guard.wind_down()
-            # the ramp's length at the slew, plus the time to notice the end
-            wait_s = abs(from_v - self.guard.safe_v) / slew + 2.0
+            # the ramp's length at the slew from the amplifier's farthest end, plus the time to
+            # notice the end
+            wait_s = max(abs(self.guard.high_v - self.guard.safe_v),
+                         abs(self.guard.low_v - self.guard.safe_v)) / slew + 2.0
             end = time.monotonic() + wait_s
             while not servo.finished and time.monotonic() < end:
                 self._hand_on(servo.take_batch())
@@ -294,13 +296,17 @@ class PlantNode(LifecycleNode):
                 servo.stop()
                 return f'the ramp did not end within {wait_s:.3f} s: stopped at once'
             self._hand_on(servo.take_batch())
-            self._log_trips(servo.take_trips(), final=True)
-            stats = servo.stats()
-            self.ramp = {'from_v': from_v, 'samples': float(stats.get('ramp_samples', 0)),
-                         'max_step_v': float(stats.get('watchdog_max_step_v', 0.0)),
+            trips = servo.take_trips()
+            self._log_trips([t for t in trips if not t.wind_down], final=True)
+            # the guard's record of the ramp, from the voltage where it began
+            wound = [t for t in trips if t.wind_down]
+            ramp = wound[-1] if wound else None
+            self.ramp = {'from_v': ramp.from_v if ramp else self.guard.safe_v,
+                         'samples': float(ramp.ramp_samples if ramp else 0),
+                         'max_step_v': ramp.max_step_v if ramp else 0.0,
                          'slew_step_v': slew * self.logic.period_s}
         self.get_logger().info(
-            f'deactivated: ramped from {from_v:.6g} V to the safe voltage '
+            f'deactivated: ramped from {self.ramp["from_v"]:.6g} V to the safe voltage '
             f'{self.guard.safe_v:g} V in {self.ramp["samples"]:.0f} samples, largest step '
             f'{self.ramp["max_step_v"]:.6g} V (slew step {self.ramp["slew_step_v"]:.6g} V)')
         return None
@@ -609,6 +615,9 @@ class PlantNode(LifecycleNode):
     def _on_command(self, data: bytes) -> None:
         command_v = decode_or_drop(self, wire.COMMAND, decode_float64, data)
         if command_v is None:
+            return
+        if not self.lifecycle.active:
+            self.logic.unexpected += 1  # deactivated: the guard's ramp holds the stage
             return
         try:
             if self.servo is not None:

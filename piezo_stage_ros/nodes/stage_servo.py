@@ -67,7 +67,7 @@ def connect_direct(plant: PlantNode, controller: ControllerNode,
         return None
 
     plant.check = check
-    if plant.servo is not None:
+    if plant.opts.mode != 'lockstep':
         # real time: the plant's servo thread runs trajectory and controller for each sample;
         # the executor publishes what they computed, in batches, for outside subscribers
         def publish(batch: list[ServoSample]) -> None:
