@@ -42,8 +42,8 @@ from piezo_stage_ros.nodes.plant_node import PlantNode  # noqa: E402
 from piezo_stage_ros.nodes.runner import make_executor  # noqa: E402
 from piezo_stage_ros.nodes.trajectory_node import TrajectoryNode  # noqa: E402
 from rcl_interfaces.msg import Log  # noqa: E402
-from rclpy.context import Context  # noqa: E402
 from rclpy.node import Node  # noqa: E402
+import test_nodes_ros  # noqa: E402
 from test_nodes_ros import (  # noqa: E402
     CONTROLLER,
     overrides,
@@ -58,12 +58,8 @@ STEP_V = SLEW_V_PER_S * 1e-4  # a sample at 10 kHz
 TOL = 1.0 + 1e-9
 
 
-@pytest.fixture
-def context():
-    ctx = Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
+# the nodes' context, as the node tests make it
+context = test_nodes_ros.context
 
 
 class Manager(Node):
