@@ -32,6 +32,11 @@ Arguments (``ros2 launch piezo_stage_ros closed_loop.launch.py --show-args``):
 - ``direct``: with ``composed:=true``, the three nodes hand each sample to each other by call
   (``stage_servo --direct``, as rclcpp's intra-process communication) and publish the topics
   for outside subscribers only;
+- ``autostart``: ``true`` configures and activates the plant node (a managed node) as soon as
+  its process is up, so that the loop runs at once; ``false`` leaves it unconfigured, for
+  ``ros2 lifecycle set /plant_node configure`` (then ``activate``). The executables make the
+  transitions themselves (``--autostart``): launch_ros's ``LifecycleNode`` action names its
+  node, which in the composed process would rename all three nodes;
 - ``sim_time``: in lockstep, ``use_sim_time`` on the controller and trajectory nodes (their logs
   and clocks follow ``/clock``); ``false`` saves delivering every ``/clock`` message to them. The
   plant owns simulation time and keeps its own clock either way.
@@ -88,6 +93,8 @@ ARGUMENTS = {
     'end_with_plant': ('true', 'end the whole launch when the plant process exits'),
     'sim_time': ('true', 'lockstep: use_sim_time on the controller and trajectory nodes'),
     'direct': ('false', 'composed only: hand samples from node to node by call (intra-process)'),
+    'autostart': ('true', 'configure and activate the plant (a managed node) at once; false: '
+                  'leave it unconfigured for ros2 lifecycle set'),
 }
 
 
@@ -156,16 +163,19 @@ def _launch(context: LaunchContext) -> list[Any]:
                                       'trajectory_node': trajectory})
     ns = arg['namespace']
     extra = ['--executor', arg['executor']]
+    # the plant's process (stage_servo or plant_node) makes the lifecycle transitions
+    autostart = ['--autostart', 'true' if arg['autostart'].lower() == 'true' else 'false']
     actions: list[Any] = []
     if arg['composed'].lower() == 'true':
         if arg['direct'].lower() == 'true':
             extra.append('--direct')
         main = Node(package='piezo_stage_ros', executable='stage_servo', namespace=ns,
-                    output='screen', arguments=extra, parameters=[params])
+                    output='screen', arguments=extra + autostart, parameters=[params])
         actions.append(main)
     else:
         main = Node(package='piezo_stage_ros', executable='plant_node', name='plant_node',
-                    namespace=ns, output='screen', arguments=extra, parameters=[params])
+                    namespace=ns, output='screen', arguments=extra + autostart,
+                    parameters=[params])
         actions += [
             main,
             Node(package='piezo_stage_ros', executable='controller_node',

@@ -140,8 +140,11 @@ class Trip:
         From the first sample to the one that ended the trip [s].
     ended : str
         ``'commands'`` (the applied voltage reached the commands again), ``'tripped again'``
-        (commands stopped again while it followed them: a new trip starts from there) or
-        ``'stop'`` (the run ended during the trip); ``''`` while it goes on.
+        (commands stopped again while it followed them: a new trip starts from there),
+        ``'wind down'`` (a wind-down began: its own trip starts from there) or ``'stop'`` (the
+        run ended during the trip); ``''`` while it goes on.
+    wind_down : bool
+        The ramp was asked for (:meth:`GuardedPlant.wind_down`), not caused by silence.
 
     """
 
@@ -157,6 +160,7 @@ class Trip:
     return_max_step_v: float = 0.0
     duration_s: float = 0.0
     ended: str = ''
+    wind_down: bool = False
 
 
 class Watchdog:
@@ -335,6 +339,9 @@ class GuardedPlant:
         self.ended_trips: deque[Trip] = deque(maxlen=1000)
         #: Called with each trip as it ends (in the thread that samples; keep it short).
         self.on_trip: Callable[[Trip], None] | None = None
+        #: Set by :meth:`wind_down`: every sample from the next one on ramps to the safe
+        #: voltage as a trip does, whatever the commands.
+        self.winding = False
 
     def start(self, now_s: float) -> float:
         """
@@ -418,16 +425,19 @@ class GuardedPlant:
 
     def _watchdog_voltage(self, expired: bool, now_s: float) -> float:
         trip = self.trip
-        if expired and (trip is None or self.watchdog.trips != self._trip_number):
-            # a new trip (commands stopped, or stopped again while they were being followed)
+        winding = self.winding and (trip is None or not trip.wind_down)
+        if expired and (trip is None or self.watchdog.trips != self._trip_number or winding):
+            # a new trip (commands stopped, or stopped again while they were being followed,
+            # or a wind-down asked for: its ramp is a trip of its own, from where it begins)
             if trip is not None:
-                self._end_trip(trip, 'tripped again', now_s)
+                self._end_trip(trip, 'wind down' if winding else 'tripped again', now_s)
             self._trip_number = self.watchdog.trips
             self._offset = None
             trip = self.trip = Trip(start_s=now_s,
                                     silence_s=now_s - (self.watchdog.last_s or now_s),
                                     start_sample=self.samples,
-                                    from_v=self._in_range(self.applied_v))
+                                    from_v=self._in_range(self.applied_v),
+                                    wind_down=self.winding)
         assert trip is not None
         step = self.slew_v_per_s * self.sample_period_s
         was = self._in_range(self.applied_v)
@@ -525,7 +535,7 @@ class GuardedPlant:
 
     def _write(self, now_s: float) -> None:
         """Decide the voltage of the coming sample (command, queue or watchdog) and write it."""
-        expired = self.watchdog.expired(now_s)
+        expired = self.winding or self.watchdog.expired(now_s)
         queue: Commands = ()
         if expired or self.trip is not None:
             voltage = self._watchdog_voltage(expired, now_s)
@@ -598,6 +608,43 @@ class GuardedPlant:
         self.held_v = self.applied_v = voltage
         self.bridge.write_voltage(voltage)
         return self.bridge.read_position()
+
+    def wind_down(self) -> None:
+        """
+        Ramp to the safe voltage from the next real-time sample on, ignoring commands.
+
+        The watchdog's ramp (at most ``slew_v_per_s * T`` a sample) without waiting for its
+        timeout: a stage taken out of service (a managed node deactivated) gets no step larger
+        than the slew. :attr:`phase` is ``'safe'`` once a sample applied the safe voltage. The
+        ramp is a :class:`Trip` of its own marked ``wind_down`` (a trip in progress ends there).
+        """
+        self.winding = True
+
+    def ramp_to_safe(self) -> tuple[int, float]:
+        """
+        Step the safe voltage's ramp sample by sample now (lockstep) and return what it took.
+
+        Each sample applies the voltage applied last moved toward the safe voltage by at most
+        ``slew_v_per_s * T`` (as the watchdog's ramp), through :meth:`step`, until the safe
+        voltage is applied.
+
+        Returns
+        -------
+        tuple of (int, float)
+            The samples stepped and the largest change between two applied voltages [V].
+
+        """
+        step_v = self.slew_v_per_s * self.sample_period_s
+        was = self._in_range(self.applied_v)
+        samples, largest = 0, 0.0
+        while was != self.safe_v:
+            voltage = slew_toward(was, self.safe_v, step_v)
+            self.step(voltage)
+            largest = max(largest, abs(voltage - was))
+            was = voltage
+            samples += 1
+        self.phase = 'safe'
+        return samples, largest
 
     def stop(self) -> None:
         """Drive the safe voltage and release the backend (idempotent)."""

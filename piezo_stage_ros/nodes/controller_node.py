@@ -57,6 +57,8 @@ from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryBa
 from piezo_stage_ros.core.model.hysteresis import HysteresisModel
 from piezo_stage_ros.core.model.stage import linear_plant, PlantParams
 from piezo_stage_ros.nodes import qos
+from piezo_stage_ros.nodes.diagnostics import DIAGNOSTICS_PERIOD_S, DiagnosticsPublisher
+from piezo_stage_ros.nodes.health import controller_statuses, hardware_id, Status
 from piezo_stage_ros.nodes.logic import (
     Command,
     ControllerLogic,
@@ -156,6 +158,28 @@ class ControllerNode(Node):
         if not self._lockstep:
             self._watch = self.create_timer(opts.position_timeout_s / 2.0, self._check_watchdog,
                                             clock=Clock(clock_type=ClockType.STEADY_TIME))
+        # /diagnostics: the verdict, the estimates and the learning from the last diagnostics
+        self._latest: tuple[Sequence[str], Sequence[float]] | None = None
+        self._rms_before: float | None = None
+        self.diagnostics = DiagnosticsPublisher(self, DIAGNOSTICS_PERIOD_S)
+        self.diagnostics.add(self._statuses)
+
+    def _statuses(self) -> list[Status]:
+        rac = self.binding.objects[0].rac
+        bounds = {'theta_hat': (rac.theta_min, rac.theta_max),
+                  'phi_hat': (rac.phi_min, rac.phi_max)}
+        latest = self._latest
+        if self.forward is None:
+            # the controller runs in this process (on this executor or the servo thread):
+            # read now, whatever the per-sample topics left out under load
+            names, read = wire.diagnostic_reader(self.logic.controller)
+            latest = (names, read()) if names else None
+        out = controller_statuses(self.get_name(), hardware_id(self.get_namespace()),
+                                  latest, bounds, self.verdict, self._stable, self._caution,
+                                  self._rms_before)
+        if latest is not None and 'ff_period_rms_m' in latest[0]:
+            self._rms_before = float(latest[1][list(latest[0]).index('ff_period_rms_m')])
+        return out
 
     def _log_error(self, text: str) -> None:
         self.get_logger().error(text)
@@ -176,6 +200,8 @@ class ControllerNode(Node):
                                  options=stability, **self._check_context)
         text = report.text()
         adaptation = report.adaptation
+        self._stable = bool(report.stable)
+        self._caution = adaptation is not None and not adaptation.ok
         if report.stable and adaptation is not None and not adaptation.ok:
             # stable loops, but adaptation rates that can limit-cycle between the bounds
             self.get_logger().warning('stability check: ' + text)
@@ -257,6 +283,10 @@ class ControllerNode(Node):
             if self.context.ok():
                 raise
             return  # Ctrl-C shut the context down while this callback ran: nothing to send
+        if self.forward is not None and out.diagnostics is not None:
+            # a servo process runs the controller: its diagnostics come only this way
+            self._latest = (out.diagnostic_names if out.diagnostic_names is not None
+                            else self.logic.names, out.diagnostics)
         if out.diagnostics is not None and self._diag_gate():
             # the names the command came with: those of the controller that computed it (a
             # servo process runs its own copy of the logic, whose names this node's copy

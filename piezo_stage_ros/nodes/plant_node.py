@@ -17,18 +17,22 @@ The plant node: the stage model or a hardware bridge, publishing the measured po
 
 Parameters: :func:`piezo_stage_ros.nodes.tables.plant_table` (the stage of the core, start-up
 only, and the node group: mode, backend, duration, timeouts, bridge). Topics: publishes
-``stage/position`` (and ``/clock`` in lockstep) and ``stage/status``, subscribes to
+``stage/position`` (and ``/clock`` in lockstep), ``stage/status`` and ``/diagnostics``
+(:mod:`piezo_stage_ros.nodes.diagnostics`), subscribes to
 ``stage/command``; in real time ``stage/applied``, and with the servo loop running trajectory
 and controller (``stage_servo --direct``) ``stage/block``, every sample in blocks
 (:mod:`piezo_stage_ros.nodes.recording`). The behaviour is
 :class:`piezo_stage_ros.nodes.logic.PlantLogic`; this class only moves messages and owns the
-timers.
+timers. It is a managed node (``rclpy.lifecycle``): :class:`PlantNode` says what each
+transition does.
 
-Run: ``ros2 run piezo_stage_ros plant_node --ros-args --params-file default.yaml``.
+Run: ``ros2 run piezo_stage_ros plant_node --ros-args --params-file default.yaml`` (configured
+and activated at once; ``--autostart false`` leaves it unconfigured).
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
 import time
 from typing import Any, Callable, Sequence
 
@@ -43,6 +47,15 @@ from piezo_stage_ros.core.contracts.errors import PiezoStageError
 from piezo_stage_ros.hardware.pacing import Pacer, servo_setup
 from piezo_stage_ros.hardware.safety import GuardedPlant, Trip
 from piezo_stage_ros.nodes import qos
+from piezo_stage_ros.nodes.diagnostics import DIAGNOSTICS_PERIOD_S, DiagnosticsPublisher
+from piezo_stage_ros.nodes.health import (
+    hardware_id,
+    loop_status,
+    OK,
+    StageLifecycle,
+    Status,
+    watchdog_status,
+)
 from piezo_stage_ros.nodes.logic import (
     ControllerLogic,
     Gate,
@@ -55,7 +68,7 @@ from piezo_stage_ros.nodes.logic import (
 )
 from piezo_stage_ros.nodes.parameters import ParameterBinding
 from piezo_stage_ros.nodes.recording import backlog_samples, Handover, SampleBatch
-from piezo_stage_ros.nodes.runner import decode_or_drop, run
+from piezo_stage_ros.nodes.runner import decode_or_drop, run, start_managed
 from piezo_stage_ros.nodes.servo import (
     make_bridge,
     samples_of,
@@ -65,7 +78,7 @@ from piezo_stage_ros.nodes.servo import (
 )
 from piezo_stage_ros.nodes.tables import plant_table, PlantNodeParams
 from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
@@ -74,12 +87,15 @@ from std_msgs.msg import Float64, Float64MultiArray
 __all__ = ['PlantNode', 'main']
 
 
-class PlantNode(Node):
+class PlantNode(LifecycleNode):
     """
-    The stage (model or bridge) as a ROS node.
+    The stage (model or bridge) as a ROS managed node.
 
     Parameters
     ----------
+    autostart : bool
+        Configure and activate at once (the node runs as soon as it is spun); False leaves
+        it unconfigured for a lifecycle manager (``ros2 lifecycle set``).
     **kwargs
         Passed to :class:`rclpy.node.Node` (``context``, ``namespace``,
         ``parameter_overrides`` ...).
@@ -87,27 +103,61 @@ class PlantNode(Node):
     Attributes
     ----------
     finished : rclpy.task.Future
-        Done when a run of ``duration_s`` is complete, or failed with the error of a fault.
+        Done when a run of ``duration_s`` is complete, or failed with the error of a fault, or
+        the node was shut down.
+    diagnostics : DiagnosticsPublisher
+        ``/diagnostics`` at about 1 Hz; :meth:`DiagnosticsPublisher.add` takes more sources.
+    check : callable or None
+        Called by configure: None when the controller this process runs passes its checks,
+        else why not (the configure fails with that reason).
+
+    Notes
+    -----
+    configure builds the backend behind the guard, the publishers and the loop from the
+    parameters as they are then (declared and validated when the node is made); activate
+    starts the loop (lockstep answering, or the real-time servo); deactivate ramps the
+    amplifier to the safe voltage at ``watchdog.slew_v_per_s`` through the guard and stops
+    the loop; cleanup releases the backend; shutdown does what is left of these. A run ended
+    by deactivate is not resumed (:class:`~piezo_stage_ros.nodes.health.StageLifecycle`).
 
     """
 
-    def __init__(self, **kwargs: Any) -> None:
+    def __init__(self, *, autostart: bool = True, **kwargs: Any) -> None:
         super().__init__('plant_node', **kwargs)
         self.binding = ParameterBinding(self, plant_table(), self._on_change)
+        self.opts: PlantNodeParams = self.binding.objects[1]
+        self.finished = Future()
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.lifecycle = StageLifecycle()
+        self.check: Callable[[], str | None] | None = None
+        # what connect_direct wired (applied by configure): ('direct', step) or ('servo', ...)
+        self._wiring: tuple[Any, ...] | None = None
+        self._timer: Any = None
+        self._status_timer: Any = None
+        self.servo: ServoLoop | ServoProcess | None = None
+        self.malformed = 0
+        self._before: dict[str, Any] | None = None
+        self.ramp: dict[str, float] = {}
+        self.diagnostics = DiagnosticsPublisher(self, DIAGNOSTICS_PERIOD_S)
+        self.diagnostics.add(self._statuses)
+        if autostart:
+            start_managed([self])
+
+    #: Why the last transition failed ('' after a success).
+    refused = ''
+
+    def _build(self) -> None:
         stage, opts = self.binding.objects
-        self.opts: PlantNodeParams = opts
+        self.opts = opts
         self.guard = GuardedPlant(make_bridge(stage, opts), stage.chain, opts.command_timeout_s,
                                   slew_v_per_s=opts.watchdog.slew_v_per_s,
                                   sample_period_s=1.0 / stage.sample_rate_hz)
         self._trip_log = TripLog(stage.chain.safe_voltage_v)
         self.logic = PlantLogic(self.guard, mode=opts.mode, sample_rate_hz=stage.sample_rate_hz,
                                 duration_s=opts.duration_s, resend_s=opts.lockstep.resend_s)
-        self.finished = Future()
-        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         # messages go out and come in as CDR bytes (core/contracts/cdr.py): rclpy message objects
         # cost more than the whole sample
         self._encoder = JointStateEncoder([wire.JOINT_NAME])
-        self.malformed = 0
         self._pub = self.create_publisher(JointState, wire.POSITION, qos.LOOP_OUT)
         self._clock_pub = self.create_publisher(ClockMsg, wire.CLOCK, qos.CLOCK) \
             if self.logic.lockstep else None
@@ -115,11 +165,11 @@ class PlantNode(Node):
         self._clock_gate: Callable[[], bool] = Gate(self._clock_pub.get_subscription_count) \
             if self._clock_pub is not None else (lambda: False)
         self._status_pub = self.create_publisher(DiagnosticStatus, wire.STATUS, qos.STATUS)
-        self._cmd_sub = self.create_subscription(Float64, wire.COMMAND, self._on_command,
-                                                 qos.LOOP, raw=True)
+        self._cmd_sub: Any = self.create_subscription(Float64, wire.COMMAND, self._on_command,
+                                                      qos.LOOP, raw=True)
         self._direct: Callable[[Sample], float] | None = None
         self._position_gate: Callable[[], bool] = lambda: True
-        self.servo: ServoLoop | ServoProcess | None = None
+        self.servo = None
         self._peers: Callable[[list[ServoSample]], None] | None = None
         self._servo_reported = False
         # real time: what the plant held over each sample, stamped with it, for the bag
@@ -135,16 +185,12 @@ class PlantNode(Node):
         # leave out what an overloaded executor cannot afford, counted
         self._block_pub: Any = None
         self._handover: Handover | None = None
-        if self.logic.lockstep:
-            # wall (steady) time: simulation time stands still while the plant waits
-            self._timer = self.create_timer(0.005, self._lockstep_tick, clock=self._steady)
-        else:
+        if not self.logic.lockstep:
             # real time: the servo loop's thread owns the sample clock (nodes/servo.py); the
             # executor only starts it and publishes what it measured, in batches
             # the plant alone: y_k goes out from the servo thread as soon as it is measured,
             # for a controller in another node to answer before the next sample
             self.servo = self._make_servo(None, None, self._publish_sample)
-            self._timer = self.create_timer(0.002, self._servo_tick, clock=self._steady)
         self._status_timer = self.create_timer(opts.status_period_s, self.publish_status,
                                                clock=self._steady)
         self._t_start = 0.0
@@ -155,8 +201,171 @@ class PlantNode(Node):
             f'{stage.plant.model} + {stage.hysteresis.model}'
             + (f', {self.logic.total} samples' if self.logic.total else ''))
 
+    def _start_timer(self) -> None:
+        # the loop's timer, as the wiring asks (wall (steady) time: simulation time stands
+        # still while the plant waits)
+        if self._timer is not None:
+            self._timer.cancel()
+        if self._direct is not None and self.logic.lockstep:
+            tick = self._direct_lockstep_tick
+            period = 0.001
+        elif self.logic.lockstep:
+            tick, period = self._lockstep_tick, 0.005
+        else:
+            tick, period = self._servo_tick, 0.002
+        self._timer = self.create_timer(period, tick, clock=self._steady)
+
+    def _transition(self, name: str, action: Callable[[], str | None]
+                    ) -> TransitionCallbackReturn:
+        # rclpy turns an exception in a transition into ERROR without a word: log it here
+        started = time.monotonic()
+        try:
+            refused = action()
+        except Exception as exc:  # noqa: BLE001 -- the transition fails with the reason
+            refused = f'{type(exc).__name__}: {exc}'
+        self.refused = refused or ''
+        took_ms = (time.monotonic() - started) * 1e3
+        if refused:
+            self.get_logger().error(f'{name} refused: {refused}')
+            return TransitionCallbackReturn.FAILURE
+        self.get_logger().info(f'{name}: done in {took_ms:.1f} ms')
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Build the backend, the publishers and the loop; check the controller."""
+        return self._transition('configure', self._configure)
+
+    def _configure(self) -> str | None:
+        refused = self.lifecycle.configure()
+        if refused is None and self.check is not None:
+            refused = self.check()
+        if refused is not None:
+            return refused
+        self._build()
+        if self._wiring is not None:
+            self._wire()
+        self.lifecycle.configured_ok()
+        return None
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Start the loop: lockstep answering, or the real-time servo."""
+        return self._transition('activate', self._activate)
+
+    def _activate(self) -> str | None:
+        refused = self.lifecycle.activate()
+        if refused is not None:
+            return refused
+        self._start_timer()
+        self.lifecycle.activated()
+        return None
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Ramp to the safe voltage at the slew through the guard, then stop the loop."""
+        return self._transition('deactivate', self._deactivate)
+
+    def _deactivate(self) -> str | None:
+        self.lifecycle.deactivated()
+        if self._timer is not None:
+            self._timer.cancel()
+        if self.finished.done() or self.logic.done and self.servo is None:
+            return None  # the run is over: the stop drove the safe voltage already
+        slew = self.opts.watchdog.slew_v_per_s
+        servo = self.servo
+        if servo is None or not self._t_start:
+            # lockstep (or a servo never started): no more answers; the ramp's samples are
+            # stepped here, through the guard, not published
+            from_v = self.guard.applied_v
+            self.logic.done, self.logic.waiting = True, False
+            samples, largest = self.guard.ramp_to_safe()
+            self.ramp = {'from_v': from_v, 'samples': float(samples), 'max_step_v': largest,
+                         'slew_step_v': slew * self.logic.period_s}
+        else:
+            if isinstance(servo, ServoProcess):
+                servo.change('wind_down', None)
+            else:
+                self.guard.wind_down()
+            # the ramp's length at the slew from the amplifier's farthest end, plus the time to
+            # notice the end
+            wait_s = max(abs(self.guard.high_v - self.guard.safe_v),
+                         abs(self.guard.low_v - self.guard.safe_v)) / slew + 2.0
+            end = time.monotonic() + wait_s
+            while not servo.finished and time.monotonic() < end:
+                self._hand_on(servo.take_batch())
+                time.sleep(0.002)
+            if not servo.finished:
+                servo.stop()
+                return f'the ramp did not end within {wait_s:.3f} s: stopped at once'
+            self._hand_on(servo.take_batch())
+            trips = servo.take_trips()
+            self._log_trips([t for t in trips if not t.wind_down], final=True)
+            # the guard's record of the ramp, from the voltage where it began
+            wound = [t for t in trips if t.wind_down]
+            ramp = wound[-1] if wound else None
+            self.ramp = {'from_v': ramp.from_v if ramp else self.guard.safe_v,
+                         'samples': float(ramp.ramp_samples if ramp else 0),
+                         'max_step_v': ramp.max_step_v if ramp else 0.0,
+                         'slew_step_v': slew * self.logic.period_s}
+        self.get_logger().info(
+            f'deactivated: ramped from {self.ramp["from_v"]:.6g} V to the safe voltage '
+            f'{self.guard.safe_v:g} V in {self.ramp["samples"]:.0f} samples, largest step '
+            f'{self.ramp["max_step_v"]:.6g} V (slew step {self.ramp["slew_step_v"]:.6g} V)')
+        return None
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Release the backend and destroy the publishers, subscriptions and timers."""
+        return self._transition('cleanup', self._cleanup)
+
+    def _cleanup(self) -> str | None:
+        self._release()
+        for timer in (self._timer, self._status_timer):
+            if timer is not None:
+                self.destroy_timer(timer)
+        self._timer = self._status_timer = None
+        for pub in (self._pub, self._clock_pub, self._status_pub, self._applied_pub,
+                    self._block_pub):
+            if pub is not None:
+                self.destroy_publisher(pub)
+        if self._cmd_sub is not None:
+            self.destroy_subscription(self._cmd_sub)
+        self.servo = None
+        self.lifecycle.cleaned_up()
+        return None
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Deactivate and clean up as needed, then end the node's run."""
+        def shutdown() -> str | None:
+            if self.lifecycle.active:
+                self._deactivate()
+            if self.lifecycle.configured:
+                self._cleanup()
+            if not self.finished.done():
+                self.finished.set_result({'shutdown': True})
+            return None
+        return self._transition('shutdown', shutdown)
+
+    def _statuses(self) -> list[Status]:
+        name, hw_id = self.get_name(), hardware_id(self.get_namespace())
+        state = 'active' if self.lifecycle.active else (
+            'inactive' if self.lifecycle.configured else 'unconfigured')
+        if not self.lifecycle.configured:
+            return [Status(OK, f'{name}: loop', f'{state}: no backend connected', hw_id,
+                           (('state', state), ('backend', self.opts.backend)))]
+        stats = self.stats()
+        before, self._before = self._before, stats
+        # a servo process runs its own guard: what it applied comes with its figures
+        servo = self.servo
+        local = not isinstance(servo, ServoProcess)
+        applied = servo.held_v if isinstance(servo, ServoProcess) else self.guard.applied_v
+        phase = self.guard.phase if local and self.lifecycle.active else 'track'
+        loop = loop_status(name, hw_id, stats, before, state)
+        return [replace(loop, values=loop.values + (('backend', self.opts.backend),)),
+                watchdog_status(name, hw_id, stats, before, applied, phase)]
+
     def _on_change(self, old: Sequence[Any], new: Sequence[Any]) -> None:
         opts: PlantNodeParams = new[1]
+        if not self.lifecycle.configured:
+            self.opts = opts  # taken by the next configure
+            return
         # applied between two samples: every callback of this node runs on one executor thread
         self.guard.watchdog.timeout_s = opts.command_timeout_s
         self.guard.slew_v_per_s = opts.watchdog.slew_v_per_s
@@ -184,14 +393,33 @@ class PlantNode(Node):
         For the nodes composed in one process (``stage_servo --direct``): the sample goes from
         node to node by call, as rclcpp's intra-process communication does, and the topics are
         published for outside subscribers (a recorder) only. ``step`` returns u_k for y_k.
+        Applied now when the node is configured, else by its configure.
         """
-        self._direct = step
+        self._wiring = ('direct', step)
+        if self.lifecycle.configured:
+            self._wire()
+
+    def _wire(self) -> None:
+        assert self._wiring is not None
+        kind, *args = self._wiring
         self.destroy_subscription(self._cmd_sub)
-        self._position_gate = Gate(self._pub.get_subscription_count)
-        if self.logic.lockstep:
-            self._timer.cancel()
-            self._timer = self.create_timer(0.001, self._direct_lockstep_tick,
-                                            clock=self._steady)
+        self._cmd_sub = None
+        if kind == 'direct':
+            self._direct = args[0]
+            self._position_gate = Gate(self._pub.get_subscription_count)
+            if self.lifecycle.active and self.logic.lockstep:
+                self._start_timer()
+            return
+        trajectory, controller, publish, process = args
+        self.servo = process if process is not None else \
+            self._make_servo(trajectory, controller)
+        self._peers = publish
+        recording = self.opts.recording
+        if recording.block:
+            self._block_pub = self.create_publisher(Float64MultiArray, wire.BLOCK, qos.BLOCK)
+            self._handover = Handover.from_params(recording, self.logic.rate_hz)
+        # looked at every 50 batches (0.1 s) as the per-sample gates look every 1000 samples
+        self._position_gate = Gate(self._pub.get_subscription_count, every=50)
 
     def _make_servo(self, trajectory: TrajectoryLogic | None,
                     controller: ControllerLogic | None,
@@ -219,18 +447,12 @@ class PlantNode(Node):
         for outside subscribers, from the executor. Parameter changes reach the logic objects
         as ever and apply at the next sample boundary. With ``process`` (``servo.process``),
         that process runs the loop on its own copies of the logic (built from the same
-        parameters) and the peers forward their changes to it.
+        parameters) and the peers forward their changes to it. Applied now when the node is
+        configured, else by its configure.
         """
-        self.destroy_subscription(self._cmd_sub)
-        self.servo = process if process is not None else \
-            self._make_servo(trajectory, controller)
-        self._peers = publish
-        recording = self.opts.recording
-        if recording.block:
-            self._block_pub = self.create_publisher(Float64MultiArray, wire.BLOCK, qos.BLOCK)
-            self._handover = Handover.from_params(recording, self.logic.rate_hz)
-        # looked at every 50 batches (0.1 s) as the per-sample gates look every 1000 samples
-        self._position_gate = Gate(self._pub.get_subscription_count, every=50)
+        self._wiring = ('servo', trajectory, controller, publish, process)
+        if self.lifecycle.configured:
+            self._wire()
 
     def _servo_tick(self) -> None:
         try:
@@ -394,6 +616,9 @@ class PlantNode(Node):
         command_v = decode_or_drop(self, wire.COMMAND, decode_float64, data)
         if command_v is None:
             return
+        if not self.lifecycle.active:
+            self.logic.unexpected += 1  # deactivated: the guard's ramp holds the stage
+            return
         try:
             if self.servo is not None:
                 # real time: held from the servo loop's next sample on
@@ -450,7 +675,8 @@ class PlantNode(Node):
     def _finish(self) -> None:
         if self.finished.done():
             return
-        self._timer.cancel()
+        if self._timer is not None:
+            self._timer.cancel()
         if self.servo is not None:
             self.servo.stop()
             self._hand_on(self.servo.take_batch())
@@ -494,26 +720,32 @@ class PlantNode(Node):
             if not self.finished.done():
                 self.finished.set_result(self.logic.stats())
             return
-        self._timer.cancel()
+        if self._timer is not None:
+            self._timer.cancel()
         self.get_logger().error(f'fault, safe voltage driven: {exc}')
         if not self.finished.done():
             err = exc if isinstance(exc, PiezoStageError) else PiezoStageError(repr(exc))
             self.finished.set_exception(err)
 
+    def _release(self) -> None:
+        # drive the safe voltage and release the backend (a servo process does both itself)
+        if isinstance(self.servo, ServoProcess):
+            stopped = self.servo.started and not self.finished.done()
+            self.servo.close()
+            if stopped:
+                # stopped before its end (Ctrl-C, shutdown): its counters still go out
+                self._log_trips(self.servo.take_trips(), final=True)
+                self._log_figures('servo process stopped', self.stats())
+                self._log_table()
+        elif self.servo is not None:
+            self.servo.stop()
+        self.logic.stop()
+
     def destroy_node(self) -> None:
         """Drive the safe voltage, release the backend, then destroy the node."""
         try:
-            if isinstance(self.servo, ServoProcess):
-                stopped = self.servo.started and not self.finished.done()
-                self.servo.close()  # the process drives the safe voltage of its backend
-                if stopped:
-                    # stopped before its end (Ctrl-C, shutdown): its counters still go out
-                    self._log_trips(self.servo.take_trips(), final=True)
-                    self._log_figures('servo process stopped', self.stats())
-                    self._log_table()
-            elif self.servo is not None:
-                self.servo.stop()
-            self.logic.stop()
+            if self.lifecycle.configured:
+                self._release()
         finally:
             super().destroy_node()
 

@@ -17,7 +17,9 @@ Running one or several node classes in one process, on one executor (imports rcl
 
 Every executable of the package goes through :func:`run`: it initialises rclpy with the ROS
 arguments, builds the nodes (a bad parameter, or one given that the node does not declare,
-prints one line and exits 2), spins them on one ``rclpy.experimental.EventsExecutor`` (or the
+prints one line and exits 2), configures and activates the managed ones (a refused transition
+prints its reason and exits 2; ``--autostart false`` leaves them unconfigured for a lifecycle
+manager), spins them on one ``rclpy.experimental.EventsExecutor`` (or the
 single-threaded executor on request) until
 Ctrl-C, an external shutdown, or the plant's run is complete, and always destroys the nodes (the
 plant drives its safe voltage there) and shuts rclpy down.
@@ -36,11 +38,12 @@ from piezo_stage_ros.nodes.parameters import check_undeclared, multi_axis_hint
 import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from rclpy.node import Node
 from rclpy.task import Future
 from rclpy.utilities import remove_ros_args
 
-__all__ = ['decode_or_drop', 'make_executor', 'run', 'stops_quietly']
+__all__ = ['decode_or_drop', 'make_executor', 'run', 'start_managed', 'stops_quietly']
 
 NodeFactory = Callable[[], Node]
 _Message = TypeVar('_Message')
@@ -137,6 +140,26 @@ def make_executor(kind: str = 'events', context: rclpy.context.Context | None = 
     return SingleThreadedExecutor(context=context)
 
 
+def start_managed(nodes: Sequence[Node]) -> None:
+    """
+    Configure and activate every managed node of ``nodes``, in order.
+
+    Raises
+    ------
+    PiezoStageError
+        With the node's reason when a transition fails (the node logged it too).
+
+    """
+    for node in nodes:
+        if not isinstance(node, LifecycleNode):
+            continue
+        for name, trigger in (('configure', node.trigger_configure),
+                              ('activate', node.trigger_activate)):
+            if trigger() != TransitionCallbackReturn.SUCCESS:
+                raise PiezoStageError(f'{node.get_name()}: {name} failed: '
+                                      f'{getattr(node, "refused", "")}')
+
+
 def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
         argv: Sequence[str] | None = None, description: str = '',
         connect: Callable[..., None] | None = None) -> int:
@@ -170,6 +193,9 @@ def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
                         help=f'comma-separated subset of {",".join(names)} to run here')
     parser.add_argument('--executor', choices=('events', 'single'), default='events',
                         help='EventsExecutor (default) or SingleThreadedExecutor')
+    parser.add_argument('--autostart', choices=('true', 'false'), default='true',
+                        help='configure and activate the managed nodes at once (default); '
+                             'false: leave them unconfigured (ros2 lifecycle set)')
     if connect is not None:
         parser.add_argument('--direct', action='store_true',
                             help='hand each sample from node to node by call (intra-process); '
@@ -200,9 +226,16 @@ def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
     try:
         for name, factory in factories:
             if name in chosen:
-                nodes.append(factory())
+                # a managed node is made unconfigured: its transitions come after the wiring
+                managed = isinstance(factory, type) and issubclass(factory, LifecycleNode)
+                made: Any = factory(autostart=False) if managed else factory()  # type: ignore
+                nodes.append(made)
         # ROS drops a given parameter no node declares: refuse it before any loop starts
         check_undeclared(nodes, args)
+        if direct and connect is not None:
+            connect(*nodes)
+        if opts.autostart == 'true':
+            start_managed(nodes)
     except (PiezoStageError, ParameterException) as exc:
         text = str(exc)  # a node's own message may start with its name, the program's
         print(text if text.startswith(f'{prog}: ') else f'{prog}: {text}', file=sys.stderr)
@@ -216,8 +249,6 @@ def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
             node.destroy_node()
         rclpy.try_shutdown()
         return 0
-    if direct and connect is not None:
-        connect(*nodes)
     executor = make_executor(opts.executor)
     for node in nodes:
         executor.add_node(node)

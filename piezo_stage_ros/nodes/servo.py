@@ -393,11 +393,14 @@ class ServoLoop:
         stamp = self.stamp_ns(index)
         plant = self.plant
         self.index = index
-        if self.controller is None or self.trajectory is None:
-            # the plant alone: the command comes from elsewhere (another node), held as is
+        if self.controller is None or self.trajectory is None or plant.winding:
+            # the plant alone: the command comes from elsewhere (another node), held as is;
+            # or the wind-down (GuardedPlant.wind_down) ramps, the controller no longer asked
             sample = ServoSample(index, stamp, position_m, math.nan, math.nan, math.nan,
                                  plant.applied_v, lateness_ns, None, None,
                                  self._true() if self._true is not None else math.nan)
+            if plant.winding and plant.phase == 'safe':
+                self.done = True
         else:
             now_s = now_ns / NS_PER_S
             ref, vel = self.trajectory.on_position(stamp)
@@ -761,8 +764,9 @@ def apply_change(servo: ServoLoop, kind: str, value: Any) -> None:
 
     ``kind``: ``'controller'`` (ControllerParams, applied by the controller at its next
     sample), ``'trajectory'`` (TrajectoryParams: the new trajectory starts at the next
-    sample), ``'active'`` (bool: start or stop the trajectory) or ``'set'`` (``(path, value)``,
-    an attribute under ``controller``, ``trajectory`` or ``plant``, e.g.
+    sample), ``'active'`` (bool: start or stop the trajectory), ``'wind_down'`` (ramp to the
+    safe voltage at the slew, then end the run: :meth:`GuardedPlant.wind_down`) or ``'set'``
+    (``(path, value)``, an attribute under ``controller``, ``trajectory`` or ``plant``, e.g.
     ``('controller.watchdog.timeout_s', 0.02)``).
     """
     if kind == 'controller':
@@ -780,6 +784,8 @@ def apply_change(servo: ServoLoop, kind: str, value: Any) -> None:
             servo.trajectory.start()
         else:
             servo.trajectory.stop()
+    elif kind == 'wind_down':
+        servo.plant.wind_down()
     elif kind == 'set':
         path, new = value
         names = str(path).split('.')
@@ -794,7 +800,7 @@ def apply_change(servo: ServoLoop, kind: str, value: Any) -> None:
         setattr(target, names[-1], new)
     else:
         raise ValueError(f'servo change: kind {kind!r}; allowed: controller, trajectory, '
-                         'active, set')
+                         'active, wind_down, set')
 
 
 def _servo_main(loop: LoopConfig, design_plant: PlantParams | None, duration_s: float,
@@ -1005,9 +1011,9 @@ class ServoProcess:
 
     def change(self, kind: str, value: Any) -> None:
         """Send a change (see :func:`apply_change`), applied at the servo's next sample."""
-        if kind not in ('controller', 'trajectory', 'active', 'set'):
+        if kind not in ('controller', 'trajectory', 'active', 'wind_down', 'set'):
             raise ValueError(f'servo change: kind {kind!r}; allowed: controller, trajectory, '
-                             'active, set')
+                             'active, wind_down, set')
         self._changes.put((kind, value))
         self.ring.set('posted', self.ring.get('posted') + 1)
 

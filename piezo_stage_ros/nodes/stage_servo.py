@@ -29,6 +29,7 @@ from __future__ import annotations
 from typing import Sequence
 
 from piezo_stage_ros.core.config.loader import LoopConfig
+from piezo_stage_ros.core.contracts.errors import PiezoStageError
 from piezo_stage_ros.nodes.controller_node import ControllerNode
 from piezo_stage_ros.nodes.controller_node import factory as controller_factory
 from piezo_stage_ros.nodes.logic import Command, Sample
@@ -55,7 +56,18 @@ def connect_direct(plant: PlantNode, controller: ControllerNode,
     """
     controller.attach_direct()
     trajectory.attach_direct()
-    if plant.servo is not None:
+
+    def check() -> str | None:
+        # the plant's configure checks the controller it will run, with the gains as they are
+        params, stability, _ = controller.binding.objects
+        try:
+            controller._check(params, stability)
+        except PiezoStageError as exc:
+            return str(exc)
+        return None
+
+    plant.check = check
+    if plant.opts.mode != 'lockstep':
         # real time: the plant's servo thread runs trajectory and controller for each sample;
         # the executor publishes what they computed, in batches, for outside subscribers
         def publish(batch: list[ServoSample]) -> None:
