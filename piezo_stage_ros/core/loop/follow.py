@@ -341,12 +341,15 @@ class GoalFollower:
             The goal ready to start at ``time_s``; None when refused.
 
         """
+        # the version before the reference is read: a change made meanwhile (by the loop's
+        # thread) makes start() refuse the goal instead of starting it from a stale state
+        version = self.version
         verdict = self.check(goal, time_s, origin_s)
         if not verdict.accepted:
             return verdict, None
         spline = build_spline(goal, self.joints, time_s, self._state(time_s),
                               self.params.sample_time_s, origin_s)
-        return verdict, PreparedGoal(goal, spline, time_s, self.version, tracked)
+        return verdict, PreparedGoal(goal, spline, time_s, version, tracked)
 
     def start(self, prepared: PreparedGoal, time_s: float) -> int:
         """
@@ -414,6 +417,24 @@ class GoalFollower:
         if prepared is None:
             return verdict, 0
         return verdict, self.start(prepared, time_s)
+
+    def seed(self, time_s: float, position_m: ArrayLike, velocity_mps: ArrayLike,
+             acceleration_mps2: ArrayLike) -> None:
+        """
+        Take the reference over from another trajectory whose state at ``time_s`` is given.
+
+        A goal prepared or accepted at ``time_s`` then starts from that state (position [m],
+        velocity [m/s], acceleration [m/s^2] of every axis): no jump where it takes over. Only
+        while no goal is followed; after ``time_s`` the reference comes to rest within a
+        sample (a goal is meant to take over there).
+        """
+        n = len(self.joints)
+        x, v, a = (np.asarray(s, dtype=np.float64).reshape(n)
+                   for s in (position_m, velocity_mps, acceleration_mps2))
+        zero = np.zeros((1, n))
+        self._replace(Spline(time_s, (x, v, a), [time_s + self.params.sample_time_s],
+                             x[None, :], zero, zero))
+        self._phase = _Phase.HOLD
 
     def cancel(self, time_s: float) -> None:
         """Bring the reference to rest from ``time_s``; the goal ends once it is at rest."""
