@@ -503,6 +503,7 @@ class TrajectoryLogic:
         self._epoch = 0
         self._version = -1
         self._requests: deque[tuple[Any, ...]] = deque()
+        self._starts: deque[tuple[Any, ...]] = deque()
         self._tokens: dict[int, int] = {}
         self._sent: dict[int, float] = {}
         #: What the goals did, oldest first, for the side that answers the client (taken
@@ -617,7 +618,7 @@ class TrajectoryLogic:
             return None
         item = ('start', token, prepared, seeded, epoch, verdict, goal, stamp_ns)
         if self._lead:
-            self._requests.append(item)
+            self._starts.append(item)
         return item
 
     def _start(self, item: tuple[Any, ...], index: int) -> None:
@@ -645,16 +646,8 @@ class TrajectoryLogic:
         assert follower is not None
         requests = self._requests
         while requests:
-            item = requests[0]
+            item = requests.popleft()
             kind = item[0]
-            if kind == 'start':
-                due = round(item[2].time_s / self.period_s)
-                if due > index:
-                    break  # checked for a later sample
-                requests.popleft()
-                self._start(item, index)
-                continue
-            requests.popleft()
             if kind == 'goal':
                 started = self._prepare(item[1], item[2], item[3], item[4], index)
                 if started is not None:
@@ -662,14 +655,17 @@ class TrajectoryLogic:
             elif kind == 'cancel':
                 goal_id = self._tokens.pop(item[1], None)
                 if goal_id is None:
-                    if any(r[0] == 'start' and r[1] == item[1] for r in requests):
-                        self._requests = requests = deque(
-                            r for r in requests if not (r[0] == 'start' and r[1] == item[1]))
+                    if any(r[1] == item[1] for r in self._starts):
+                        self._starts = deque(r for r in self._starts if r[1] != item[1])
                         self.events.append(('cancelled', item[1]))
                 elif self.goal_active and follower.active_goal == goal_id:
                     follower.cancel(index * self.period_s)
             elif self.goal_active:
                 follower.cancel(index * self.period_s)
+        starts = self._starts
+        # goals checked ahead, each for its own sample (in the order they were checked)
+        while starts and round(starts[0][2].time_s / self.period_s) <= index:
+            self._start(starts.popleft(), index)
 
     def _end_goal(self, index: int) -> None:
         """End the goal (CANCELED): a new trajectory or a stop takes the reference from it."""
@@ -830,7 +826,7 @@ class TrajectoryLogic:
                 if self.follower.active_goal is not None:
                     self._end_goal(index)
             else:
-                if self._requests:
+                if self._requests or self._starts:
                     self._serve_goals(index)
                 if self.goal_active:
                     return self._goal_reference(stamp_ns, index, position_m)
