@@ -506,6 +506,9 @@ class TrajectoryLogic:
         self._starts: deque[tuple[Any, ...]] = deque()
         self._tokens: dict[int, int] = {}
         self._sent: dict[int, float] = {}
+        #: (loop time [s], goal) of the goals started, the last thousand: a run to replay
+        #: offline (:func:`~piezo_stage_ros.core.loop.follow.run_goals`).
+        self.started: deque[tuple[float, JointTrajectoryGoal]] = deque(maxlen=1000)
         #: What the goals did, oldest first, for the side that answers the client (taken
         #: with ``popleft`` from another thread): ``('verdict', token, GoalVerdict, goal_id)``,
         #: ``('result', GoalResult)``, ``('feedback', Feedback)``, ``('retry', token, goal,
@@ -638,6 +641,7 @@ class TrajectoryLogic:
             self._start_ns = self._origin_ns
             self.active = True
         self._tokens[token] = goal_id
+        self.started.append((index * self.period_s, goal))
         self.events.append(('verdict', token, verdict, goal_id))
 
     def _serve_goals(self, index: int) -> None:
