@@ -16,7 +16,7 @@
 
 from __future__ import annotations
 
-from types import SimpleNamespace as NS
+from types import SimpleNamespace as NS  # noqa: N814
 from typing import Any, Sequence
 
 import numpy as np

@@ -520,6 +520,12 @@ class TrajectoryLogic:
         #: (:meth:`ControllerLogic.request_trajectory`).
         self.on_reference_change: Callable[[Trajectory, int], None] | None = None
 
+    def __getstate__(self) -> dict[str, Any]:
+        """Return the state to copy, without the hook to the controller (the servo's warm-up)."""
+        state = dict(self.__dict__)
+        state['on_reference_change'] = None
+        return state
+
     def start(self) -> None:
         """Stream from the next sample on, from t = 0."""
         self.active = True
