@@ -36,13 +36,13 @@ from builtin_interfaces.msg import Duration  # noqa: E402
 from control_msgs.action import FollowJointTrajectory  # noqa: E402
 from control_msgs.msg import JointTolerance  # noqa: E402
 from piezo_stage_ros.core.config.loader import load_config, LoopConfig  # noqa: E402
-from piezo_stage_ros.core.control.controllers import bound_controller  # noqa: E402
 from piezo_stage_ros.core.contracts.wire import JOINT_NAME  # noqa: E402
+from piezo_stage_ros.core.control.controllers import bound_controller  # noqa: E402
 from piezo_stage_ros.core.loop.follow import FollowParams, GoalFollower, run_goals  # noqa: E402
 from piezo_stage_ros.core.loop.goals import AxisLimits  # noqa: E402
 from piezo_stage_ros.core.model.hysteresis import make_hysteresis  # noqa: E402
 from piezo_stage_ros.core.model.stage import linear_plant, Stage, StageParams  # noqa: E402
-from piezo_stage_ros.nodes import goals_msgs, stage_servo  # noqa: E402
+from piezo_stage_ros.nodes import stage_servo  # noqa: E402
 from piezo_stage_ros.nodes.controller_node import ControllerNode  # noqa: E402
 from piezo_stage_ros.nodes.plant_node import PlantNode  # noqa: E402
 from piezo_stage_ros.nodes.runner import make_executor  # noqa: E402
