@@ -212,10 +212,13 @@ def test_lockstep_a_thousand_scan_points_with_the_inverse_feed_forward(context):
         node.destroy_node()
 
 
-@pytest.mark.xfail(reason='real time, stage_servo --direct: the goals start in the servo but '
-                   'their results did not reach the action client within 30 s; not resolved',
-                   strict=False)
-@pytest.mark.parametrize('process', [False, True], ids=['thread', 'process'])
+@pytest.mark.parametrize('process', [
+    True,
+    pytest.param(False, marks=pytest.mark.xfail(
+        reason='servo thread (servo.process false) on a loaded 2-core machine: the goals run '
+               'in the servo, but the executor, starved of the interpreter lock by the servo '
+               'thread, does not deliver their results to the client within 30 s',
+        strict=False))], ids=['process', 'thread'])
 def test_realtime_direct_five_moves(context, process):
     plant, nodes = composed(context, 'realtime', 0.0, process=process)
     results, client = run_client(context, nodes, plant, five_moves(), spacing_s=0.05)
