@@ -21,7 +21,13 @@ from typing import Any, Sequence
 
 import numpy as np
 from piezo_stage_ros.core.contracts.wire import JOINT_NAME, NS_PER_S
-from piezo_stage_ros.core.loop.follow import GoalStatus, run_goals
+from piezo_stage_ros.core.loop.follow import (
+    GoalLedger,
+    GoalResult,
+    goals_status,
+    GoalStatus,
+    run_goals,
+)
 from piezo_stage_ros.core.loop.goals import JointTolerance, JointTrajectoryGoal, ResultCode
 from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
 from piezo_stage_ros.nodes import goals_msgs
@@ -253,3 +259,26 @@ def test_unknown_joints_reach_the_follower_and_are_refused_there() -> None:
     logic.on_position(stamp(0), 3.8e-6)
     (_, _, verdict, _), = logic.events
     assert verdict.code == ResultCode.INVALID_JOINTS and "'x'" in verdict.reason
+
+
+def test_the_goals_status_warns_after_a_violated_tolerance_then_recovers() -> None:
+    logic = hold_logic()
+    ledger = GoalLedger()
+    got = drive(logic, [(0.0, move(39e-6, 0.02)),
+                        (0.001, move(10e-6, 0.02, goal_tolerance=TOL5,
+                                     goal_time_tolerance_s=0.005))], 0.002)
+    for event in got['events']:
+        ledger.take(event)
+    status = ledger.status(0.002)
+    assert status.level == 0 and dict(status.values)['refused_goals'] == '1'
+    assert dict(status.values)['active_goal'] == '1' and status.message == 'moving: goal 1'
+    # the goal ends GOAL_TOLERANCE_VIOLATED (a measurement 1 um off): WARN for 10 s
+    violated = GoalResult(1, GoalStatus.ABORTED, ResultCode.GOAL_TOLERANCE_VIOLATED,
+                          "joint 'stage': error 1e-06 m", 0.03)
+    ledger.take(('result', violated))
+    status = ledger.status(0.03 + 9.9)
+    assert status.level == 1 and 'GOAL_TOLERANCE_VIOLATED' in status.message
+    assert dict(status.values)['last_result_code'] == '-5 GOAL_TOLERANCE_VIOLATED'
+    assert dict(status.values)['active_goal'] == ''
+    assert ledger.status(0.03 + 10.1).level == 0
+    assert goals_status('hold', None, None, 0, 0.0).values[3] == ('last_result_text', '')

@@ -47,7 +47,9 @@ from piezo_stage_ros.core.contracts.errors import PiezoStageError
 from piezo_stage_ros.core.loop.follow import (
     FollowParams,
     GoalFollower,
+    GoalLedger,
     GoalResult,
+    GoalsStatus,
     GoalStatus,
 )
 from piezo_stage_ros.core.loop.goals import (
@@ -143,6 +145,8 @@ class TrajectoryNode(Node):
         self._waiting: dict[int, tuple[Any, Any, tuple[Any, ...]]] = {}
         self._by_goal: dict[int, int] = {}
         self._token_of: dict[bytes, int] = {}
+        #: The goals' bookkeeping for the stage's status (:meth:`goals_status`).
+        self.ledger = GoalLedger()
         #: Goal events from a servo that runs this logic elsewhere (``ServoProcess``).
         self.goal_events: Callable[[], list[tuple[Any, ...]]] | None = None
         stage = stage_of_args(sys.argv)
@@ -237,6 +241,13 @@ class TrajectoryNode(Node):
             handle.abort()
         return goals_msgs.result_of(end)
 
+    def goals_status(self) -> GoalsStatus:
+        """Return the goals' status (level, message, key-values) for ``/diagnostics``."""
+        now_s = max(self.logic._index, 0) * self.logic.period_s
+        phase = self.logic.follower.phase if self.forward is None and \
+            self.logic.follower is not None and self.logic.goal_active else None
+        return self.ledger.status(now_s, phase)
+
     def _cancel(self, handle: Any) -> Any:
         """Cancel a goal: the reference decelerates to a hold, then the goal ends CANCELED."""
         token = self._token_of.get(bytes(handle.goal_id.uuid))
@@ -254,6 +265,7 @@ class TrajectoryNode(Node):
         while events or more:
             event = events.popleft() if events else more.pop(0)
             kind = event[0]
+            self.ledger.take(event)
             if kind == 'feedback':
                 fb = event[1]
                 entry = self._waiting.get(self._by_goal.get(fb.goal_id, 0))
