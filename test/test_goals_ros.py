@@ -216,8 +216,9 @@ def test_lockstep_a_thousand_scan_points_with_the_inverse_feed_forward(context):
     True,
     pytest.param(False, marks=pytest.mark.xfail(
         reason='servo thread (servo.process false) on a loaded 2-core machine: the goals run '
-               'in the servo, but the executor, starved of the interpreter lock by the servo '
-               'thread, does not deliver their results to the client within 30 s',
+               'in the servo, but the executor shares the interpreter with the servo thread and '
+               'falls seconds behind: the results of the later goals do not reach the client '
+               'within 30 s (the first ones do)',
         strict=False))], ids=['process', 'thread'])
 def test_realtime_direct_five_moves(context, process):
     plant, nodes = composed(context, 'realtime', 0.0, process=process)
