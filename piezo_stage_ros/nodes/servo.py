@@ -402,7 +402,9 @@ class ServoLoop:
                                  self._true() if self._true is not None else math.nan)
         else:
             now_s = now_ns / NS_PER_S
-            ref, vel = self.trajectory.on_position(stamp, position_m)
+            ref, vel = self.trajectory.on_position(stamp)
+            # the goals' tolerances and feedback take y_k against that x_d
+            self.trajectory.observe(stamp, position_m)
             self.controller.on_position(stamp, position_m, now_s)
             out = self.controller.on_reference(stamp, ref, vel)
             u = out.voltage_v if out is not None else self.controller.safe_voltage_v
