@@ -81,7 +81,9 @@ class Client(Node):
         self.feedback: list = []
         self.positions: list[tuple[int, float]] = []
         if not positions:
-            return  # in real time 10 000 messages a second would keep the executor behind
+            # in real time 10 000 messages a second would keep the executor behind; in
+            # lockstep the plant waits for this subscriber (lockstep.subscribers)
+            return
         self.create_subscription(JointState, '/stage/position', lambda m: self.positions.append(
             (m.header.stamp.sec * 10 ** 9 + m.header.stamp.nanosec, m.position[0])), 10000)
 
@@ -207,7 +209,7 @@ def test_lockstep_a_thousand_scan_points_with_the_inverse_feed_forward(context):
     plant, nodes = composed(context, 'lockstep', 0.0, feedforward='inverse')
     # from the scan's first point (5 um), then the scan
     start = goal_msg([(0.02, 5e-6, 0.0)], goal_m=5e-9, goal_time_s=0.02)
-    results, _ = run_client(context, nodes, plant, [start, scan_goal()])
+    results, _ = run_client(context, nodes, plant, [start, scan_goal()], positions=True)
     assert [(r.status, r.result.error_code) for r in results] == [(4, 0), (4, 0)], \
         [r.result.error_string for r in results]
 
