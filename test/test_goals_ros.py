@@ -228,3 +228,41 @@ def test_realtime_direct_five_moves(context, process):
     codes = [(r.status, r.result.error_code, r.result.error_string) for r in results]
     assert [c[:2] for c in codes] == [(4, 0)] * 5, codes
     assert client.feedback
+
+
+def test_lockstep_joint_trajectory_topic_moves_and_an_empty_one_holds(context):
+    from trajectory_msgs.msg import JointTrajectory
+    plant, nodes = composed(context, 'lockstep', 0.0)
+    client = Client(context, True)
+    pub = client.create_publisher(JointTrajectory, '/stage/joint_trajectory', 10)
+    executor = make_executor('events', context)
+    for node in [*nodes, client]:
+        executor.add_node(node)
+    logic = nodes[2].logic
+    try:
+        msg = JointTrajectory(joint_names=[JOINT_NAME], points=[
+            JointTrajectoryPoint(positions=[12e-6], time_from_start=duration(0.02))])
+        deadline = time.monotonic() + 30.0
+        while not logic.started and time.monotonic() < deadline:
+            pub.publish(msg) if pub.get_subscription_count() and not logic.goal_active else None
+            executor.spin_once(timeout_sec=0.01)
+        t_start = logic.started[0][0]
+        while logic._index * T < t_start + 0.05 and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.01)
+        assert logic.hold_m == 12e-6 and logic.follower.active_goal is None
+        # a second move, stopped half way by an empty message: at rest short of 20 um
+        pub.publish(JointTrajectory(joint_names=[JOINT_NAME], points=[
+            JointTrajectoryPoint(positions=[20e-6], time_from_start=duration(0.05))]))
+        while len(logic.started) < 2 and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.01)
+        pub.publish(JointTrajectory())
+        t_hold = logic._index * T
+        while logic._index * T < t_hold + 0.1 and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.01)
+        x, v, _ = logic.follower.reference(np.array([logic._index * T]))
+        assert 12e-6 < x[0, 0] < 20e-6 and v[0, 0] == 0.0
+    finally:
+        for node in [*nodes, client]:
+            executor.remove_node(node)
+            node.destroy_node()
+        executor.shutdown()

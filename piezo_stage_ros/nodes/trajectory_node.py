@@ -182,8 +182,10 @@ class TrajectoryNode(Node):
             goal_callback=lambda _: GoalResponse.ACCEPT,
             cancel_callback=self._cancel, callback_group=group)
         self._accept_cancel = CancelResponse.ACCEPT
+        # reliable, volatile, depth 10: any publisher's QoS meets it (joint_trajectory_controller
+        # takes the system default)
         self._traj_sub = self.create_subscription(JointTrajectory, JOINT_TRAJECTORY,
-                                                  self._on_trajectory, qos.ANNOUNCE)
+                                                  self._on_trajectory, 10)
         # goals' events reach this side between samples: at 100 Hz (feedback comes at 50 Hz of
         # loop time); in lockstep after each sample as well
         self._drain_timer = self.create_timer(0.01, self._drain, callback_group=group)
