@@ -224,7 +224,9 @@ def test_lockstep_a_thousand_scan_points_with_the_inverse_feed_forward(context):
         strict=False))], ids=['process', 'thread'])
 def test_realtime_direct_five_moves(context, process):
     plant, nodes = composed(context, 'realtime', 0.0, process=process)
-    results, client = run_client(context, nodes, plant, five_moves(), spacing_s=0.05)
+    # a loaded machine keeps the executor seconds behind the servo: generous time per goal
+    results, client = run_client(context, nodes, plant, five_moves(), spacing_s=0.05,
+                                 timeout_s=120.0)
     codes = [(r.status, r.result.error_code, r.result.error_string) for r in results]
     assert [c[:2] for c in codes] == [(4, 0)] * 5, codes
     assert client.feedback
