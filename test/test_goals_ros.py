@@ -190,6 +190,10 @@ def test_lockstep_five_moves_a_refusal_and_the_same_samples_as_the_offline_runne
     assert '3.9e-05' in results[-1].result.error_string
     assert 'allowed' in results[-1].result.error_string
     assert client.feedback, 'no feedback'
+    # the goals' status for /diagnostics: OK, one refusal, the last goal succeeded
+    status = dict(nodes[2].goals_status().values)
+    assert nodes[2].goals_status().level == 0 and status['refused_goals'] == '1'
+    assert status['last_result_code'] == '0 SUCCESSFUL' and status['active_goal'] == ''
     # the same goals at the samples they started, offline: identical samples
     loop = LoopConfig.from_config(CONFIG)
     stage = loop.stage
@@ -230,6 +234,8 @@ def test_realtime_direct_five_moves(context, process):
     codes = [(r.status, r.result.error_code, r.result.error_string) for r in results]
     assert [c[:2] for c in codes] == [(4, 0)] * 5, codes
     assert client.feedback
+    status = nodes[2].goals_status()
+    assert status.level == 0 and dict(status.values)['last_result_code'] == '0 SUCCESSFUL'
 
 
 def test_lockstep_joint_trajectory_topic_moves_and_an_empty_one_holds(context):

@@ -84,6 +84,7 @@ def connect_direct(plant: PlantNode, controller: ControllerNode,
                                    design_plant=controller.design_plant)
             controller.forward = trajectory.forward = process.change
             trajectory.goal_events = process.take_goal_events
+            trajectory.loop_index = lambda: process.index
         plant.attach_servo(trajectory.logic, controller.logic, publish, process)
         return
 

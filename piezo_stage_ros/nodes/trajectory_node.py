@@ -149,6 +149,8 @@ class TrajectoryNode(Node):
         self.ledger = GoalLedger()
         #: Goal events from a servo that runs this logic elsewhere (``ServoProcess``).
         self.goal_events: Callable[[], list[tuple[Any, ...]]] | None = None
+        #: The last sample index of that servo (the goals' loop time there).
+        self.loop_index: Callable[[], int] | None = None
         stage = stage_of_args(sys.argv)
         if stage is None:
             self.get_logger().warning('goals: no stage in the parameter files given; checking '
@@ -245,7 +247,8 @@ class TrajectoryNode(Node):
 
     def goals_status(self) -> GoalsStatus:
         """Return the goals' status (level, message, key-values) for ``/diagnostics``."""
-        now_s = max(self.logic._index, 0) * self.logic.period_s
+        index = self.loop_index() if self.loop_index is not None else self.logic._index
+        now_s = max(index, 0) * self.logic.period_s
         phase = self.logic.follower.phase if self.forward is None and \
             self.logic.follower is not None and self.logic.goal_active else None
         return self.ledger.status(now_s, phase)
