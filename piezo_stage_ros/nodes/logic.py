@@ -36,8 +36,10 @@ twice for one stamp, so the plant receives exactly one command per sample.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 import json
+import math
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
@@ -45,6 +47,8 @@ from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageErro
 from piezo_stage_ros.core.contracts.interfaces import Controller, Trajectory
 from piezo_stage_ros.core.contracts.wire import diagnostic_reader, NS_PER_S
 from piezo_stage_ros.core.control.feedforward import check_learning_period, FeedForwardController
+from piezo_stage_ros.core.loop.follow import GoalFollower, GoalTrajectory, PreparedGoal
+from piezo_stage_ros.core.loop.goals import GoalVerdict, JointTrajectoryGoal, ResultCode
 from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
 from piezo_stage_ros.hardware.safety import GuardedPlant, Trip, Watchdog
 
@@ -460,6 +464,13 @@ class TrajectoryLogic:
     first start, the last reference after a stop. A start, or a new trajectory, takes effect at
     the next sample and begins at its t = 0 there.
 
+    Goals (:meth:`attach_goals`, :meth:`goal`, :meth:`cancel`): a goal that may run takes the
+    reference over from whatever plays, without a jump, at the next sample (``lead_s`` later
+    in real time, where it is checked outside the sample); the reference is then the
+    follower's (:class:`~piezo_stage_ros.core.loop.follow.GoalTrajectory`), on the loop's own
+    time: t = 0 at the first sample this logic answered. Verdicts, results and feedback go to
+    :attr:`events`. A new trajectory or a stop ends a goal (CANCELED).
+
     """
 
     def __init__(self, trajectory: Trajectory, *, sample_rate_hz: float, chunk_s: float = 1.0,
@@ -482,20 +493,225 @@ class TrajectoryLogic:
         self._grid_ns: int | None = None
         self._switched = False
         self._switch_ns: int | None = None
-        self._window: tuple[int, Any, Any, Any] = (0, None, np.zeros(0), np.zeros(0))
+        self._window: tuple[int, Any, int, Any, Any] = (0, None, -1, np.zeros(0),
+                                                         np.zeros(0))
+        self.follower: GoalFollower | None = None
+        self._view: GoalTrajectory | None = None
+        self._lead = 0
+        self._origin_ns: int | None = None
+        self._index = -1
+        self._epoch = 0
+        self._version = -1
+        self._requests: deque[tuple[Any, ...]] = deque()
+        self._starts: deque[tuple[Any, ...]] = deque()
+        self._tokens: dict[int, int] = {}
+        self._sent: dict[int, float] = {}
+        #: (loop time [s], goal) of the goals started, the last thousand: a run to replay
+        #: offline (:func:`~piezo_stage_ros.core.loop.follow.run_goals`).
+        self.started: deque[tuple[float, JointTrajectoryGoal]] = deque(maxlen=1000)
+        #: What the goals did, oldest first, for the side that answers the client (taken
+        #: with ``popleft`` from another thread): ``('verdict', token, GoalVerdict, goal_id)``,
+        #: ``('result', GoalResult)``, ``('feedback', Feedback)``, ``('retry', token, goal,
+        #: tracked, stamp_ns)`` (the reference changed while it was checked: check it again
+        #: with :meth:`goal`), ``('cancelled', token)`` (cancelled before it started).
+        self.events: deque[tuple[Any, ...]] = deque()
+        #: Called with (trajectory, stamp of its t = 0) when a goal changes the reference, at
+        #: the sample it does: a controller that reads the reference ahead binds it again
+        #: (:meth:`ControllerLogic.request_trajectory`).
+        self.on_reference_change: Callable[[Trajectory, int], None] | None = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Return the state to copy, without the hook to the controller (the servo's warm-up)."""
+        state = dict(self.__dict__)
+        state['on_reference_change'] = None
+        return state
 
     def start(self) -> None:
         """Stream from the next sample on, from t = 0."""
         self.active = True
         self._start_ns = None
+        self._epoch += 1
 
     def stop(self) -> None:
         """Hold the last reference with zero velocity from the next sample on."""
         self.active = False
+        self._epoch += 1
 
     def switch(self, trajectory: Trajectory) -> None:
         """Replace the trajectory at the next sample (it starts at its t = 0 there)."""
         self._pending = trajectory
+        self._epoch += 1
+
+    # -- goals ------------------------------------------------------------------------------
+
+    def attach_goals(self, follower: GoalFollower, lead_s: float = 0.0) -> None:
+        """
+        Take goals for ``follower`` (one axis); ``lead_s`` [s]: check them that far ahead.
+
+        0 (lockstep): a goal is checked and started at the next sample, in the sample's own
+        call. More (real time): :meth:`goal` checks it in the caller's thread for the sample
+        ``lead_s`` after the last one, and that sample only starts it.
+        """
+        self.follower = follower
+        self._view = GoalTrajectory(follower)
+        self._lead = max(0, int(round(lead_s * self.rate_hz)))
+
+    @property
+    def goal_active(self) -> bool:
+        """Return whether the reference is the follower's (a goal took it over)."""
+        return self.active and self._view is not None and self.trajectory is self._view
+
+    def goal(self, token: int, goal: JointTrajectoryGoal, *, tracked: bool = True,
+             stamp_ns: int | None = None) -> None:
+        """
+        Submit a goal (any thread); its verdict comes as ``('verdict', token, ...)``.
+
+        Parameters
+        ----------
+        token : int
+            The caller's number for it (> 0).
+        goal : JointTrajectoryGoal
+            The goal.
+        tracked : bool
+            An action goal (results, feedback) or a topic message.
+        stamp_ns : int, optional
+            Its header stamp [ns] on the samples' clock, when not zero (times count from it).
+
+        """
+        if self.follower is None:
+            self.events.append(('verdict', token, GoalVerdict(
+                ResultCode.INVALID_GOAL, 'this trajectory node takes no goals'), 0))
+        elif self._lead == 0:
+            self._requests.append(('goal', token, goal, tracked, stamp_ns))
+        else:
+            self._prepare(token, goal, tracked, stamp_ns, self._index + 1 + self._lead)
+
+    def cancel(self, token: int) -> None:
+        """Cancel the goal submitted as ``token`` (any thread): the reference decelerates."""
+        self._requests.append(('cancel', token))
+
+    def hold(self) -> None:
+        """Bring whatever goal moves the reference to rest (an empty JointTrajectory)."""
+        self._requests.append(('hold',))
+
+    def stamp_of(self, time_s: float) -> int:
+        """Return the stamp [ns] of the sample at loop time ``time_s`` (the goals' time)."""
+        k = round(time_s * self.rate_hz)
+        return (self._origin_ns or 0) + round(k * NS_PER_S / self.rate_hz)
+
+    def _state_at(self, index: int) -> tuple[float, float, float]:
+        """Return x_d, x_d', x_d'' of what plays now, at grid sample ``index``."""
+        if not self.active:
+            return self.hold_m, 0.0, 0.0
+        start = index - self._index - 1 if self._start_ns is None or self._origin_ns is None \
+            else index - round((self._start_ns - self._origin_ns) * self.rate_hz / NS_PER_S)
+        t = np.array([start - 1, start, start + 1], dtype=np.float64) * self.period_s
+        x, v = self.trajectory.evaluate(np.maximum(t, 0.0))
+        acc = (float(v[2]) - float(v[0])) / (2.0 * self.period_s) if start > 0 else 0.0
+        return float(x[1]), float(v[1]), acc
+
+    def _prepare(self, token: int, goal: JointTrajectoryGoal, tracked: bool,
+                 stamp_ns: int | None, index: int) -> tuple[Any, ...] | None:
+        follower = self.follower
+        assert follower is not None
+        epoch = self._epoch
+        t = index * self.period_s
+        seeded = not self.goal_active
+        if seeded:
+            follower.seed(t, *self._state_at(index))
+        origin = None if stamp_ns is None or self._origin_ns is None else \
+            (stamp_ns - self._origin_ns) / NS_PER_S
+        verdict, prepared = follower.prepare(goal, t, tracked=tracked, origin_s=origin)
+        if prepared is None:
+            self.events.append(('verdict', token, verdict, 0))
+            return None
+        item = ('start', token, prepared, seeded, epoch, verdict, goal, stamp_ns)
+        if self._lead:
+            self._starts.append(item)
+        return item
+
+    def _start(self, item: tuple[Any, ...], index: int) -> None:
+        _, token, prepared, seeded, epoch, verdict, goal, stamp_ns = item
+        follower = self.follower
+        assert follower is not None and isinstance(prepared, PreparedGoal)
+        goal_id = 0
+        if epoch == self._epoch and seeded != self.goal_active:
+            goal_id = follower.start(prepared, index * self.period_s)
+        if goal_id == 0:
+            # the reference changed since the check (or the sample passed): check it again
+            self.events.append(('retry', token, goal, prepared.tracked, stamp_ns))
+            return
+        if seeded:
+            assert self._view is not None
+            self.trajectory = self._view
+            self._start_ns = self._origin_ns
+            self.active = True
+        self._tokens[token] = goal_id
+        self.started.append((index * self.period_s, goal))
+        self.events.append(('verdict', token, verdict, goal_id))
+
+    def _serve_goals(self, index: int) -> None:
+        """Apply the goal requests due at grid sample ``index``."""
+        follower = self.follower
+        assert follower is not None
+        requests = self._requests
+        while requests:
+            item = requests.popleft()
+            kind = item[0]
+            if kind == 'goal':
+                started = self._prepare(item[1], item[2], item[3], item[4], index)
+                if started is not None:
+                    self._start(started, index)
+            elif kind == 'cancel':
+                goal_id = self._tokens.pop(item[1], None)
+                if goal_id is None:
+                    if any(r[1] == item[1] for r in self._starts):
+                        self._starts = deque(r for r in self._starts if r[1] != item[1])
+                        self.events.append(('cancelled', item[1]))
+                elif self.goal_active and follower.active_goal == goal_id:
+                    follower.cancel(index * self.period_s)
+            elif self.goal_active:
+                follower.cancel(index * self.period_s)
+        starts = self._starts
+        # goals checked ahead, each for its own sample (in the order they were checked)
+        while starts and round(starts[0][2].time_s / self.period_s) <= index:
+            self._start(starts.popleft(), index)
+
+    def _end_goal(self, index: int) -> None:
+        """End the goal (CANCELED): a new trajectory or a stop takes the reference from it."""
+        assert self.follower is not None
+        if self.follower.active_goal is not None:
+            self.follower.hold(index * self.period_s)
+        self._take_results()
+
+    def _take_results(self) -> None:
+        assert self.follower is not None
+        results = self.follower.results
+        while results:
+            self.events.append(('result', results.pop(0)))
+
+    def observe(self, stamp_ns: int, position_m: float) -> None:
+        """
+        Account the measured position of a sample whose reference went out ahead.
+
+        Lockstep with references ahead (:meth:`ahead`): the goals' tolerances and feedback
+        take y_k when it comes, against the x_d that went out for it.
+        """
+        if self._origin_ns is None or not self.goal_active:
+            return
+        index = round((stamp_ns - self._origin_ns) * self.rate_hz / NS_PER_S)
+        desired = self._sent.pop(index, None)
+        if desired is not None:
+            self._step_goal(index, position_m, desired)
+
+    def _step_goal(self, index: int, position_m: float, desired_m: float) -> None:
+        follower = self.follower
+        assert follower is not None
+        _, feedback = follower.step(index * self.period_s, (position_m,), (desired_m,))
+        if follower.results:
+            self._take_results()
+        if feedback is not None:
+            self.events.append(('feedback', feedback))
 
     def take_switch(self) -> int | None:
         """
@@ -510,6 +726,11 @@ class TrajectoryLogic:
 
     def _evaluate(self, index: int) -> tuple[float, float]:
         chunk = index // self.chunk
+        if self._view is not None and self.follower is not None and \
+                self.follower.version != self._version:
+            # a goal changed the reference: what was evaluated ahead is stale
+            self._version = self.follower.version
+            self._chunk_index = -1
         if chunk != self._chunk_index:
             k0 = chunk * self.chunk
             time_s = np.arange(k0, k0 + self.chunk, dtype=np.float64) * self.period_s
@@ -570,8 +791,9 @@ class TrajectoryLogic:
         if not self.active or self._start_ns is None:
             return np.full(count, self.hold_m), np.zeros(count)
         index = round((stamp_ns - self._start_ns) * self.rate_hz / NS_PER_S) + 1
-        first, trajectory, ref, vel = self._window
-        if trajectory is not self.trajectory or index < first or \
+        first, trajectory, version, ref, vel = self._window
+        now = self.follower.version if self.follower is not None else -1
+        if trajectory is not self.trajectory or version != now or index < first or \
                 index + count > first + len(ref):
             first = max(index, 0)
             size = count + max(self.chunk, 256)
@@ -579,13 +801,22 @@ class TrajectoryLogic:
             x, v = self.trajectory.evaluate(time_s)
             ref = np.asarray(x, dtype=np.float64)
             vel = np.asarray(v, dtype=np.float64)
-            self._window = (first, self.trajectory, ref, vel)
+            self._window = (first, self.trajectory, now, ref, vel)
         i = index - first
         return ref[i:i + count], vel[i:i + count]
 
-    def on_position(self, stamp_ns: int) -> tuple[float, float]:
+    def on_position(self, stamp_ns: int, position_m: float | None = None
+                    ) -> tuple[float, float]:
         """
         Return the reference for the sample stamped ``stamp_ns`` [ns].
+
+        Parameters
+        ----------
+        stamp_ns : int
+            The sample's stamp [ns].
+        position_m : float, optional
+            y_k [m], for the goals' tolerances and feedback; None: a reference that goes out
+            ahead of its position (:meth:`observe` takes the position later).
 
         Returns
         -------
@@ -593,6 +824,22 @@ class TrajectoryLogic:
             x_d [m] and x_d' [m/s].
 
         """
+        if self._origin_ns is None:
+            self._origin_ns = stamp_ns
+        if self.follower is not None:
+            index = round((stamp_ns - self._origin_ns) * self.rate_hz / NS_PER_S)
+            if index > self._index:
+                self._index = index
+            if self._pending is not None or (self.trajectory is self._view
+                                             and not self.active):
+                # a new trajectory or a stop takes the reference from the goal
+                if self.follower.active_goal is not None:
+                    self._end_goal(index)
+            else:
+                if self._requests or self._starts:
+                    self._serve_goals(index)
+                if self.goal_active:
+                    return self._goal_reference(stamp_ns, index, position_m)
         if self._pending is not None:
             self.trajectory = self._pending
             self._pending = None
@@ -614,6 +861,25 @@ class TrajectoryLogic:
             index = 0
         ref, vel = self._evaluate(index)
         self.hold_m = ref
+        return ref, vel
+
+    def _goal_reference(self, stamp_ns: int, index: int, position_m: float | None
+                        ) -> tuple[float, float]:
+        """Return the follower's reference at grid sample ``index`` and account y_k."""
+        assert self.follower is not None and self._view is not None
+        self.answered += 1
+        self._switched = False
+        if self.follower.version != self._version and self.on_reference_change is not None:
+            assert self._origin_ns is not None
+            self.on_reference_change(self._view, self._origin_ns)
+        ref, vel = self._evaluate(max(index, 0))
+        self.hold_m = ref
+        if position_m is None:
+            self._sent[index] = ref
+            while len(self._sent) > 4096:
+                self._sent.pop(next(iter(self._sent)))
+        elif math.isfinite(position_m):
+            self._step_goal(index, position_m, ref)
         return ref, vel
 
 

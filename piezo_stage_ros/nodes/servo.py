@@ -55,7 +55,7 @@ from piezo_stage_ros.core.config.loader import LoopConfig
 from piezo_stage_ros.core.config.nodes import PlantNodeParams
 from piezo_stage_ros.core.contracts.errors import PiezoStageError
 from piezo_stage_ros.core.contracts.interfaces import Controller
-from piezo_stage_ros.core.contracts.wire import NS_PER_S
+from piezo_stage_ros.core.contracts.wire import JOINT_NAME, NS_PER_S
 from piezo_stage_ros.core.control.ahead import CommandPredictor
 from piezo_stage_ros.core.control.controllers import (
     bound_controller,
@@ -63,6 +63,8 @@ from piezo_stage_ros.core.control.controllers import (
     SENSOR_GAIN_V_PER_M,
 )
 from piezo_stage_ros.core.loop.closed_loop import true_position_reader
+from piezo_stage_ros.core.loop.follow import FollowParams, GoalFollower
+from piezo_stage_ros.core.loop.goals import AxisLimits
 from piezo_stage_ros.core.loop.trajectories import make_trajectory
 from piezo_stage_ros.core.model.hysteresis import make_hysteresis
 from piezo_stage_ros.core.model.stage import linear_plant, PlantParams, StageParams
@@ -404,6 +406,8 @@ class ServoLoop:
         else:
             now_s = now_ns / NS_PER_S
             ref, vel = self.trajectory.on_position(stamp)
+            # the goals' tolerances and feedback take y_k against that x_d
+            self.trajectory.observe(stamp, position_m)
             self.controller.on_position(stamp, position_m, now_s)
             out = self.controller.on_reference(stamp, ref, vel)
             u = out.voltage_v if out is not None else self.controller.safe_voltage_v
@@ -746,6 +750,11 @@ def servo_from_config(loop: LoopConfig, duration_s: float, bridge: Bridge | None
         rebuild=lambda params: rebuild_or_learn_afresh(build, params))
     trajectory = TrajectoryLogic(reference, sample_rate_hz=stage.sample_rate_hz,
                                  chunk_s=min(tn.chunk_s, 0.005), active=tn.active)
+    # goals are checked outside the sample, for one a little ahead (ServoProcess.change)
+    trajectory.attach_goals(GoalFollower((JOINT_NAME,), [AxisLimits.from_stage(stage)],
+                                         [trajectory.hold_m], FollowParams(sample_time_s=period)),
+                            lead_s=0.02)
+    trajectory.on_reference_change = controller.request_trajectory
     opts = loop.plant_node
     plant = GuardedPlant(bridge if bridge is not None else make_bridge(stage, opts),
                          stage.chain, opts.command_timeout_s,
@@ -786,6 +795,8 @@ def apply_change(servo: ServoLoop, kind: str, value: Any) -> None:
             servo.trajectory.stop()
     elif kind == 'wind_down':
         servo.plant.wind_down()
+    elif kind in ('goal', 'cancel', 'hold'):
+        _apply_goal(servo, kind, value)
     elif kind == 'set':
         path, new = value
         names = str(path).split('.')
@@ -800,7 +811,27 @@ def apply_change(servo: ServoLoop, kind: str, value: Any) -> None:
         setattr(target, names[-1], new)
     else:
         raise ValueError(f'servo change: kind {kind!r}; allowed: controller, trajectory, '
-                         'active, wind_down, set')
+                         'active, wind_down, set, goal, cancel, hold')
+
+
+def _apply_goal(servo: ServoLoop, kind: str, value: Any) -> None:
+    """
+    Apply a goal (``(token, goal, tracked, stamp_ns)``), a cancel (token) or a hold.
+
+    A goal is checked in a thread of its own (the check runs over every sample of the
+    trajectory), for the sample ``TrajectoryLogic`` starts it at; a cancel or a hold is taken
+    at the next sample.
+    """
+    logic = servo.trajectory
+    assert logic is not None
+    if kind == 'goal':
+        token, goal, tracked, stamp = value
+        threading.Thread(target=logic.goal, args=(token, goal),
+                         kwargs={'tracked': tracked, 'stamp_ns': stamp}, daemon=True).start()
+    elif kind == 'cancel':
+        logic.cancel(int(value))
+    else:
+        logic.hold()
 
 
 def _servo_main(loop: LoopConfig, design_plant: PlantParams | None, duration_s: float,
@@ -836,6 +867,8 @@ def _servo_main(loop: LoopConfig, design_plant: PlantParams | None, duration_s: 
         halt, posted = SampleRing.HEADER.index('halt'), SampleRing.HEADER.index('posted')
         # the controller's parameters as changed at run time (where its table is to be saved)
         params = [loop.controller]
+        assert servo.trajectory is not None
+        goal_events = servo.trajectory.events
         applied = 0
         served = 0
         stats = servo.pacer.stats
@@ -856,6 +889,15 @@ def _servo_main(loop: LoopConfig, design_plant: PlantParams | None, duration_s: 
                         ring.set('applied', applied)
                 except queue.Empty:
                     pass  # the rest is still in the queue's pipe: taken at a later sample
+            if goal_events:
+                # verdicts, results, feedback to the parent; a goal the reference changed under
+                # is checked again here
+                while goal_events:
+                    event = goal_events.popleft()
+                    if event[0] == 'retry':
+                        _apply_goal(servo, 'goal', event[1:])
+                    else:
+                        send(('goal', event))
             if served % every == 0:
                 ring.set('index', servo.index)
                 ring.set('paced_samples', stats.samples)
@@ -953,6 +995,7 @@ class ServoProcess:
         self._setup: dict[str, str] = {}
         self._layouts: dict[int, tuple[str, ...]] = {}
         self._trips: list[Trip] = []
+        self._goal_events: list[tuple[Any, ...]] = []
         self._ended = False  # the process closed its end of the pipe
         self._joined = False
 
@@ -987,6 +1030,8 @@ class ServoProcess:
                     self._layouts[int(number)] = tuple(names)
                 elif kind == 'trip':
                     self._trips.append(payload)
+                elif kind == 'goal':
+                    self._goal_events.append(payload)
                 else:
                     self.result = dict(payload)
                     self._setup = self._setup or dict(self.result.get('setup', {}))
@@ -1011,11 +1056,18 @@ class ServoProcess:
 
     def change(self, kind: str, value: Any) -> None:
         """Send a change (see :func:`apply_change`), applied at the servo's next sample."""
-        if kind not in ('controller', 'trajectory', 'active', 'wind_down', 'set'):
+        if kind not in ('controller', 'trajectory', 'active', 'wind_down', 'set', 'goal',
+                        'cancel', 'hold'):
             raise ValueError(f'servo change: kind {kind!r}; allowed: controller, trajectory, '
-                             'active, wind_down, set')
+                             'active, wind_down, set, goal, cancel, hold')
         self._changes.put((kind, value))
         self.ring.set('posted', self.ring.get('posted') + 1)
+
+    def take_goal_events(self) -> list[tuple[Any, ...]]:
+        """Return the goals' events the servo sent since the last call (``TrajectoryLogic``)."""
+        self._receive()
+        events, self._goal_events = self._goal_events, []
+        return events
 
     def take(self) -> tuple[Any, Any, int]:
         """Return the samples handed over since the last call (:meth:`SampleRing.take`)."""

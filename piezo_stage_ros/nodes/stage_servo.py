@@ -67,6 +67,9 @@ def connect_direct(plant: PlantNode, controller: ControllerNode,
         return None
 
     plant.check = check
+    # the goals: checked against the plant's own stage; a feed-forward binds their reference
+    trajectory.set_stage(plant.binding.objects[0])
+    trajectory.logic.on_reference_change = controller.logic.request_trajectory
     if plant.opts.mode != 'lockstep':
         # real time: the plant's servo thread runs trajectory and controller for each sample;
         # the executor publishes what they computed, in batches, for outside subscribers
@@ -92,11 +95,13 @@ def connect_direct(plant: PlantNode, controller: ControllerNode,
                                                             stage.sample_rate_hz),
                                    design_plant=controller.design_plant)
             controller.forward = trajectory.forward = process.change
+            trajectory.goal_events = process.take_goal_events
+            trajectory.loop_index = lambda: process.index
         plant.attach_servo(trajectory.logic, controller.logic, publish, process)
         return
 
     def step(sample: Sample) -> float:
-        ref, vel = trajectory.answer(sample.stamp_ns)
+        ref, vel = trajectory.answer(sample.stamp_ns, sample.position_m)
         return controller.answer(sample.stamp_ns, sample.position_m, ref, vel)
 
     plant.attach_direct(step)

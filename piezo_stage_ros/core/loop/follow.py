@@ -68,8 +68,8 @@ from piezo_stage_ros.core.loop.goals import (
 from piezo_stage_ros.core.loop.splines import Spline
 from piezo_stage_ros.core.loop.trajectories import TrajectoryBase
 
-__all__ = ['Feedback', 'FollowParams', 'GoalFollower', 'GoalResult', 'GoalStatus',
-           'GoalTrajectory', 'PreparedGoal', 'run_goals']
+__all__ = ['Feedback', 'FollowParams', 'GoalFollower', 'GoalLedger', 'GoalResult', 'GoalStatus',
+           'GoalsStatus', 'GoalTrajectory', 'goals_status', 'PreparedGoal', 'run_goals']
 
 #: How many times a stop's duration grows by 1.25 to keep to the acceleration (1.25^40: 7500x).
 _STOP_TRIES = 40
@@ -341,12 +341,15 @@ class GoalFollower:
             The goal ready to start at ``time_s``; None when refused.
 
         """
+        # the version before the reference is read: a change made meanwhile (by the loop's
+        # thread) makes start() refuse the goal instead of starting it from a stale state
+        version = self.version
         verdict = self.check(goal, time_s, origin_s)
         if not verdict.accepted:
             return verdict, None
         spline = build_spline(goal, self.joints, time_s, self._state(time_s),
                               self.params.sample_time_s, origin_s)
-        return verdict, PreparedGoal(goal, spline, time_s, self.version, tracked)
+        return verdict, PreparedGoal(goal, spline, time_s, version, tracked)
 
     def start(self, prepared: PreparedGoal, time_s: float) -> int:
         """
@@ -414,6 +417,24 @@ class GoalFollower:
         if prepared is None:
             return verdict, 0
         return verdict, self.start(prepared, time_s)
+
+    def seed(self, time_s: float, position_m: ArrayLike, velocity_mps: ArrayLike,
+             acceleration_mps2: ArrayLike) -> None:
+        """
+        Take the reference over from another trajectory whose state at ``time_s`` is given.
+
+        A goal prepared or accepted at ``time_s`` then starts from that state (position [m],
+        velocity [m/s], acceleration [m/s^2] of every axis): no jump where it takes over. Only
+        while no goal is followed; after ``time_s`` the reference comes to rest within a
+        sample (a goal is meant to take over there).
+        """
+        n = len(self.joints)
+        x, v, a = (np.asarray(s, dtype=np.float64).reshape(n)
+                   for s in (position_m, velocity_mps, acceleration_mps2))
+        zero = np.zeros((1, n))
+        self._replace(Spline(time_s, (x, v, a), [time_s + self.params.sample_time_s],
+                             x[None, :], zero, zero))
+        self._phase = _Phase.HOLD
 
     def cancel(self, time_s: float) -> None:
         """Bring the reference to rest from ``time_s``; the goal ends once it is at rest."""
@@ -508,6 +529,103 @@ class GoalFollower:
                                 np.asarray(measured_m, dtype=np.float64), np.asarray(error))
             self._next_feedback_s += self.params.feedback_period_s
         return result, feedback
+
+
+#: ``diagnostic_msgs/DiagnosticStatus`` levels.
+OK, WARN = 0, 1
+
+#: Results after which the goals' status warns for a while: the stage did not follow.
+_WARNING_CODES = (ResultCode.PATH_TOLERANCE_VIOLATED, ResultCode.GOAL_TOLERANCE_VIOLATED)
+
+
+@dataclass(frozen=True)
+class GoalsStatus:
+    """
+    The goals' part of the stage's status, as data (a DiagnosticStatus is built from it).
+
+    Attributes
+    ----------
+    level : int
+        0 OK, 1 WARN (``diagnostic_msgs/DiagnosticStatus`` levels).
+    message : str
+        One line for the status.
+    values : tuple of (str, str)
+        Key-value pairs: phase, active goal, last result code and text, refused count.
+
+    """
+
+    level: int
+    message: str
+    values: tuple[tuple[str, str], ...]
+
+
+def goals_status(phase: str, active_goal: int | None, last: GoalResult | None, refused: int,
+                 now_s: float, warn_for_s: float = 10.0) -> GoalsStatus:
+    """
+    Return the goals' status: WARN for ``warn_for_s`` [s] after a tolerance was violated.
+
+    Parameters
+    ----------
+    phase : str
+        The follower's phase ('hold', 'moving', 'settling', 'stopping').
+    active_goal : int or None
+        The goal being followed.
+    last : GoalResult or None
+        How the last goal ended.
+    refused : int
+        Goals refused so far.
+    now_s : float
+        Loop time now [s] (the results' time base).
+    warn_for_s : float
+        How long a violated tolerance keeps the level at WARN [s].
+
+    """
+    level, message = OK, f'{phase}'
+    if active_goal is not None:
+        message = f'{phase}: goal {active_goal}'
+    if last is not None and last.code in _WARNING_CODES and now_s - last.time_s <= warn_for_s:
+        level = WARN
+        message = f'goal {last.goal_id} {last.code.name} {now_s - last.time_s:.3g} s ago'
+    values = (('phase', phase),
+              ('active_goal', '' if active_goal is None else str(active_goal)),
+              ('last_result_code', '' if last is None else f'{int(last.code)} {last.code.name}'),
+              ('last_result_text', '' if last is None else last.reason),
+              ('refused_goals', str(int(refused))))
+    return GoalsStatus(level, message, values)
+
+
+class GoalLedger:
+    """
+    The goals' bookkeeping seen from their events, wherever the follower runs.
+
+    Takes the events of :class:`~piezo_stage_ros.nodes.logic.TrajectoryLogic` (verdicts,
+    results) in order: the active goal, the last result, the refusals; :meth:`status` gives
+    :func:`goals_status`.
+    """
+
+    def __init__(self) -> None:
+        self.active_goal: int | None = None
+        self.last: GoalResult | None = None
+        self.refused = 0
+
+    def take(self, event: tuple[Any, ...]) -> None:
+        """Account one event: ``('verdict', token, verdict, goal_id)`` or ``('result', r)``."""
+        if event[0] == 'verdict':
+            if event[3]:
+                self.active_goal = int(event[3])
+            else:
+                self.refused += 1
+        elif event[0] == 'result':
+            result: GoalResult = event[1]
+            self.last = result
+            if self.active_goal == result.goal_id:
+                self.active_goal = None
+
+    def status(self, now_s: float, phase: str | None = None) -> GoalsStatus:
+        """Return the goals' status at loop time ``now_s`` [s]; ``phase`` when known."""
+        if phase is None:
+            phase = 'hold' if self.active_goal is None else 'moving'
+        return goals_status(phase, self.active_goal, self.last, self.refused, now_s)
 
 
 class GoalTrajectory(TrajectoryBase):
