@@ -36,6 +36,7 @@ from piezo_stage_ros.nodes.health import (
     controller_statuses,
     ERROR,
     estimates_status,
+    goals_of,
     hardware_id,
     learning_status,
     loop_status,
@@ -249,3 +250,18 @@ def test_the_stability_verdict_and_the_controller_statuses():
 def test_one_hardware_id_per_stage_namespace():
     assert hardware_id('/') == hardware_id('') == 'piezo_stage'
     assert hardware_id('/left') == 'piezo_stage/left' != hardware_id('/right')
+
+
+def test_the_goals_warn_after_a_violated_tolerance_under_the_trajectory_node_name():
+    from piezo_stage_ros.core.loop.follow import GoalResult, goals_status, GoalStatus
+    from piezo_stage_ros.core.loop.goals import ResultCode
+    hw = hardware_id('/stage')
+    calm = goals_of('trajectory_node', hw, goals_status('hold', None, None, 0, now_s=1.0))
+    assert (calm.level, calm.name, calm.hardware_id) == (OK, 'trajectory_node: goals', hw)
+    violated = GoalResult(3, GoalStatus.ABORTED, ResultCode.PATH_TOLERANCE_VIOLATED,
+                          "path tolerance of 'stage' violated", 2.0)
+    warn = goals_of('trajectory_node', hw, goals_status('hold', None, violated, 1, now_s=3.0))
+    assert warn.level == WARN and 'PATH_TOLERANCE_VIOLATED' in warn.message
+    assert dict(warn.values)['refused_goals'] == '1'
+    later = goals_of('trajectory_node', hw, goals_status('hold', None, violated, 1, now_s=20.0))
+    assert later.level == OK

@@ -222,7 +222,7 @@ def test_diagnostics_report_the_loop_watchdog_and_controller_about_once_a_second
     probe.destroy_node()
     run = Run(context, [plant, trajectory, controller])
     names = {'plant_node: loop', 'plant_node: watchdog', 'controller_node: stability',
-             'controller_node: estimates'}
+             'controller_node: estimates', 'trajectory_node: goals'}
     try:
         # unconfigured: the plant reports that, OK
         run.spin_for(30.0, until=lambda: any(

@@ -28,8 +28,10 @@ from dataclasses import dataclass
 import math
 from typing import Any, Callable, Mapping, Sequence
 
+from piezo_stage_ros.core.loop.follow import GoalsStatus
+
 __all__ = ['ERROR', 'OK', 'STALE', 'StageLifecycle', 'Status', 'WARN', 'controller_statuses',
-           'estimates_status', 'hardware_id', 'learning_status', 'loop_status',
+           'estimates_status', 'goals_of', 'hardware_id', 'learning_status', 'loop_status',
            'stability_status', 'watchdog_status']
 
 #: Levels of ``diagnostic_msgs/DiagnosticStatus``.
@@ -253,6 +255,16 @@ def controller_statuses(node: str, hw_id: str, diagnostics: tuple[Sequence[str],
             if status is not None:
                 out.append(status)
     return out
+
+
+def goals_of(node: str, hardware_id: str, goals: GoalsStatus) -> Status:
+    """
+    Return the goals' status as ``'<node>: goals'``.
+
+    OK, or WARN for a while after a goal violated a tolerance
+    (:func:`~piezo_stage_ros.core.loop.follow.goals_status`).
+    """
+    return Status(goals.level, f'{node}: goals', goals.message, hardware_id, goals.values)
 
 
 class StageLifecycle:

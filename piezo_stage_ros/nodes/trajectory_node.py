@@ -61,6 +61,8 @@ from piezo_stage_ros.core.loop.goals import (
 from piezo_stage_ros.core.loop.trajectories import make_trajectory
 from piezo_stage_ros.core.model.stage import StageParams
 from piezo_stage_ros.nodes import goals_msgs, qos
+from piezo_stage_ros.nodes.diagnostics import DIAGNOSTICS_PERIOD_S, DiagnosticsPublisher
+from piezo_stage_ros.nodes.health import goals_of, hardware_id
 from piezo_stage_ros.nodes.logic import announce_trajectory, Gate, TrajectoryLogic
 from piezo_stage_ros.nodes.parameters import ParameterBinding
 from piezo_stage_ros.nodes.runner import decode_or_drop, run, stops_quietly
@@ -157,6 +159,11 @@ class TrajectoryNode(Node):
                                       'them against the default stage')
         self.set_stage(stage if stage is not None else StageParams())
         self._make_goal_interfaces()
+        # /diagnostics: the goals (phase, active goal, last result, refusals)
+        self.diagnostics = DiagnosticsPublisher(self, DIAGNOSTICS_PERIOD_S)
+        self.diagnostics.add(lambda: [goals_of(self.get_name(),
+                                               hardware_id(self.get_namespace()),
+                                               self.goals_status())])
         self.get_logger().info(f'trajectory {params.kind}, '
                                f'{"active" if opts.active else "inactive"}')
 
