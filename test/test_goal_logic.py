@@ -282,3 +282,37 @@ def test_the_goals_status_warns_after_a_violated_tolerance_then_recovers() -> No
     assert dict(status.values)['active_goal'] == ''
     assert ledger.status(0.03 + 10.1).level == 0
     assert goals_status('hold', None, None, 0, 0.0).values[3] == ('last_result_text', '')
+
+
+def test_a_goal_whose_checks_keep_missing_their_sample_is_refused_not_retried_forever():
+    # every check finds its sample passed (a check slower than the lead): the goal is checked
+    # again further ahead a bounded number of times, then refused with the reason
+    from piezo_stage_ros.nodes.logic import GOAL_RETRIES
+    logic = hold_logic(lead_s=0.02)
+    logic.on_position(stamp(0), 3.8e-6)
+    k, retries = 0, 0
+    logic.goal(1, move(10e-6, 0.05))
+    for _ in range(GOAL_RETRIES + 1):
+        k += 100000                        # far past the sample it was checked for
+        logic.on_position(stamp(k), 3.8e-6)
+        events = list(logic.events)
+        logic.events.clear()
+        kinds = [e[0] for e in events]
+        if 'retry' in kinds:
+            retries += 1
+            _, token, goal, tracked, stamp_ns = events[kinds.index('retry')]
+            logic.goal(token, goal, tracked=tracked, stamp_ns=stamp_ns)
+    assert retries == GOAL_RETRIES
+    (verdict,) = [e for e in events if e[0] == 'verdict']
+    assert verdict[3] == 0 and verdict[2].code == ResultCode.INVALID_GOAL
+    assert 'could not be started' in verdict[2].reason and not logic.goal_active
+
+
+def test_a_topic_goal_keeps_no_token_once_started():
+    logic = hold_logic(lead_s=0.0)
+    logic.on_position(stamp(0), 3.8e-6)
+    for token in (1, 2, 3):
+        logic.goal(token, move(5e-6 + token * 1e-6, 0.01), tracked=False)
+        logic.on_position(stamp(token), 3.8e-6)
+    assert [e[3] for e in logic.events if e[0] == 'verdict'] == [1, 2, 3]
+    assert logic._tokens == {}

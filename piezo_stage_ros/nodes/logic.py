@@ -37,6 +37,7 @@ twice for one stamp, so the plant receives exactly one command per sample.
 from __future__ import annotations
 
 from collections import deque
+import dataclasses
 from dataclasses import dataclass
 import json
 import math
@@ -47,7 +48,7 @@ from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageErro
 from piezo_stage_ros.core.contracts.interfaces import Controller, Trajectory
 from piezo_stage_ros.core.contracts.wire import diagnostic_reader, NS_PER_S
 from piezo_stage_ros.core.control.feedforward import check_learning_period, FeedForwardController
-from piezo_stage_ros.core.loop.follow import GoalFollower, GoalTrajectory, PreparedGoal
+from piezo_stage_ros.core.loop.follow import GoalFollower, GoalTrajectory, PreparedGoal, State
 from piezo_stage_ros.core.loop.goals import GoalVerdict, JointTrajectoryGoal, ResultCode
 from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
 from piezo_stage_ros.hardware.safety import GuardedPlant, Trip, Watchdog
@@ -56,6 +57,10 @@ __all__ = ['ControllerLogic', 'Gate', 'LATE_COMMAND_LIMIT', 'LATE_HALF_LIMIT', '
            'Sample', 'TrajectoryLogic', 'TripLog', 'realtime_warning', 'run_verdict',
            'announce_trajectory', 'parse_trajectory', 'rebuild_or_learn_afresh',
            'sample_count', 'save_learned_table']
+
+#: Checks of a goal in a row that may find the reference changed before it is refused (each
+#: retry checks twice as far ahead as the last).
+GOAL_RETRIES = 6
 
 #: End of a run: more than this fraction of the samples taken late by more than T/2 makes the
 #: end-of-run line a warning (docs/reference/ros-interface.md, "Status counters").
@@ -505,6 +510,7 @@ class TrajectoryLogic:
         self._requests: deque[tuple[Any, ...]] = deque()
         self._starts: deque[tuple[Any, ...]] = deque()
         self._tokens: dict[int, int] = {}
+        self._retries: dict[int, int] = {}
         self._sent: dict[int, float] = {}
         #: (loop time [s], goal) of the goals started, the last thousand: a run to replay
         #: offline (:func:`~piezo_stage_ros.core.loop.follow.run_goals`).
@@ -584,7 +590,10 @@ class TrajectoryLogic:
         elif self._lead == 0:
             self._requests.append(('goal', token, goal, tracked, stamp_ns))
         else:
-            self._prepare(token, goal, tracked, stamp_ns, self._index + 1 + self._lead)
+            # each retry checks twice as far ahead: a check slower than the lead (a long
+            # trajectory) gets a sample it can reach
+            lead = self._lead << self._retries.get(token, 0)
+            self._prepare(token, goal, tracked, stamp_ns, self._index + 1 + lead)
 
     def cancel(self, token: int) -> None:
         """Cancel the goal submitted as ``token`` (any thread): the reference decelerates."""
@@ -616,37 +625,63 @@ class TrajectoryLogic:
         assert follower is not None
         epoch = self._epoch
         t = index * self.period_s
-        seeded = not self.goal_active
-        if seeded:
-            follower.seed(t, *self._state_at(index))
+        # taking over from another trajectory: the goal starts from its state there; the
+        # follower is seeded with it only at the start, in the loop's thread (this may run in
+        # another, beside a goal the loop starts meanwhile)
+        state: State | None = None
+        if not self.goal_active:
+            x, v, a = self._state_at(index)
+            state = (np.array([x]), np.array([v]), np.array([a]))
         origin = None if stamp_ns is None or self._origin_ns is None else \
             (stamp_ns - self._origin_ns) / NS_PER_S
-        verdict, prepared = follower.prepare(goal, t, tracked=tracked, origin_s=origin)
+        verdict, prepared = follower.prepare(goal, t, tracked=tracked, origin_s=origin,
+                                             start_state=state)
         if prepared is None:
+            self._retries.pop(token, None)
             self.events.append(('verdict', token, verdict, 0))
             return None
-        item = ('start', token, prepared, seeded, epoch, verdict, goal, stamp_ns)
+        item = ('start', token, prepared, state, epoch, verdict, goal, stamp_ns)
         if self._lead:
             self._starts.append(item)
         return item
 
     def _start(self, item: tuple[Any, ...], index: int) -> None:
-        _, token, prepared, seeded, epoch, verdict, goal, stamp_ns = item
+        _, token, prepared, state, epoch, verdict, goal, stamp_ns = item
         follower = self.follower
         assert follower is not None and isinstance(prepared, PreparedGoal)
+        seeded = state is not None
         goal_id = 0
-        if epoch == self._epoch and seeded != self.goal_active:
-            goal_id = follower.start(prepared, index * self.period_s)
+        t = index * self.period_s
+        if epoch == self._epoch and seeded != self.goal_active and \
+                abs(t - prepared.time_s) <= 0.5 * self.period_s:
+            if seeded:
+                follower.seed(t, *state)
+                prepared = dataclasses.replace(prepared, version=follower.version)
+            goal_id = follower.start(prepared, t)
         if goal_id == 0:
-            # the reference changed since the check (or the sample passed): check it again
+            # the reference changed since the check (or the sample passed): check it again,
+            # a bounded number of times
+            retries = self._retries.get(token, 0) + 1
+            if retries > GOAL_RETRIES:
+                self._retries.pop(token, None)
+                self.events.append(('verdict', token, GoalVerdict(
+                    ResultCode.INVALID_GOAL, f'the goal could not be started: {retries} checks '
+                    'in a row found the reference changed or their sample passed before they '
+                    'ended (goals or trajectory changes arriving faster than a goal is '
+                    'checked)'), 0))
+                return
+            self._retries[token] = retries
             self.events.append(('retry', token, goal, prepared.tracked, stamp_ns))
             return
+        self._retries.pop(token, None)
         if seeded:
             assert self._view is not None
             self.trajectory = self._view
             self._start_ns = self._origin_ns
             self.active = True
-        self._tokens[token] = goal_id
+        if prepared.tracked:
+            # a topic message has no result and cannot be cancelled by its token
+            self._tokens[token] = goal_id
         self.started.append((index * self.period_s, goal))
         self.events.append(('verdict', token, verdict, goal_id))
 
@@ -688,7 +723,10 @@ class TrajectoryLogic:
         assert self.follower is not None
         results = self.follower.results
         while results:
-            self.events.append(('result', results.pop(0)))
+            result = results.pop(0)
+            for token in [k for k, v in self._tokens.items() if v == result.goal_id]:
+                del self._tokens[token]
+            self.events.append(('result', result))
 
     def observe(self, stamp_ns: int, position_m: float) -> None:
         """

@@ -286,7 +286,11 @@ class TrajectoryNode(Node):
                         fb, (wire.JOINT_NAME,), self.logic.stamp_of(fb.time_s)))
             elif kind == 'verdict':
                 _, token, verdict, goal_id = event
-                if goal_id:
+                entry = self._waiting.get(token)
+                if goal_id and entry is not None and entry[1] is None:
+                    # a topic message runs with no result to wait for: nothing more to keep
+                    self._waiting.pop(token, None)
+                elif goal_id:
                     self._by_goal[goal_id] = token
                 else:
                     self._end(token, verdict)

@@ -154,6 +154,10 @@ class FollowParams:
                 raise ParameterError(name, value, '[0, inf)')
 
 
+#: Position [m], velocity [m/s] and acceleration [m/s^2] of every axis at one time.
+State = tuple[FloatArray, FloatArray, FloatArray]
+
+
 @dataclass(frozen=True)
 class PreparedGoal:
     """A checked goal with its spline, for :meth:`GoalFollower.start` at ``time_s``."""
@@ -311,15 +315,22 @@ class GoalFollower:
 
     # -- commands ------------------------------------------------------------------------
 
-    def check(self, goal: JointTrajectoryGoal, time_s: float, origin_s: float | None = None
-              ) -> GoalVerdict:
-        """Return whether ``goal`` may start at ``time_s`` from the present reference."""
+    def check(self, goal: JointTrajectoryGoal, time_s: float, origin_s: float | None = None,
+              start_state: State | None = None) -> GoalVerdict:
+        """
+        Return whether ``goal`` may start at ``time_s`` from the present reference.
+
+        ``start_state``: the reference's position, velocity and acceleration of every axis at
+        ``time_s`` when another trajectory plays it (default: the follower's own).
+        """
         return validate_goal(goal, self.joints, self.limits, start_s=time_s,
-                             start_state=self._state(time_s),
+                             start_state=self._state(time_s) if start_state is None
+                             else start_state,
                              sample_time_s=self.params.sample_time_s, origin_s=origin_s)
 
     def prepare(self, goal: JointTrajectoryGoal, time_s: float, *, tracked: bool = True,
-                origin_s: float | None = None) -> tuple[GoalVerdict, PreparedGoal | None]:
+                origin_s: float | None = None, start_state: State | None = None
+                ) -> tuple[GoalVerdict, PreparedGoal | None]:
         """
         Check a goal and build its spline for a start at ``time_s``, changing nothing.
 
@@ -332,6 +343,10 @@ class GoalFollower:
         ----------
         goal, time_s, tracked, origin_s
             As :meth:`accept`.
+        start_state : tuple of ndarray, optional
+            Position, velocity and acceleration of every axis at ``time_s`` of another
+            trajectory the goal takes the reference over from (nothing here is changed: the
+            loop's thread seeds the follower with it when it starts the goal, :meth:`seed`).
 
         Returns
         -------
@@ -344,11 +359,12 @@ class GoalFollower:
         # the version before the reference is read: a change made meanwhile (by the loop's
         # thread) makes start() refuse the goal instead of starting it from a stale state
         version = self.version
-        verdict = self.check(goal, time_s, origin_s)
+        state = self._state(time_s) if start_state is None else start_state
+        verdict = self.check(goal, time_s, origin_s, state)
         if not verdict.accepted:
             return verdict, None
-        spline = build_spline(goal, self.joints, time_s, self._state(time_s),
-                              self.params.sample_time_s, origin_s)
+        spline = build_spline(goal, self.joints, time_s, state, self.params.sample_time_s,
+                              origin_s)
         return verdict, PreparedGoal(goal, spline, time_s, version, tracked)
 
     def start(self, prepared: PreparedGoal, time_s: float) -> int:
