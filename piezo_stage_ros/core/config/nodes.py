@@ -147,8 +147,10 @@ class WatchdogParams(Params):
                                 'without a command, ramp the amplifier input to the safe '
                                 'voltage at this rate, and follow the commands that come back '
                                 'at this rate until they are reached (100: the whole -2..10 V '
-                                'input in 0.12 s, 10 mV a sample at 10 kHz).', low=0.0,
-                                low_open=True, high=1e6)
+                                'input in 0.12 s, 10 mV a sample at 10 kHz). At least 1 V/s: '
+                                "a ramp or a deactivate's wind-down ends within seconds.",
+                                low=1.0,
+                                high=1e6)
 
 
 @dataclass(frozen=True)
