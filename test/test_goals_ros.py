@@ -52,6 +52,7 @@ from rclpy.context import Context  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
+import test_nodes_ros  # noqa: E402
 from trajectory_msgs.msg import JointTrajectoryPoint  # noqa: E402
 
 CONFIG = load_config([Path(__file__).resolve().parents[1] / 'config' / 'default.yaml',
@@ -59,12 +60,8 @@ CONFIG = load_config([Path(__file__).resolve().parents[1] / 'config' / 'default.
 T = 1e-4
 
 
-@pytest.fixture
-def context():
-    ctx = Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
+# the nodes' context, as the node tests make it
+context = test_nodes_ros.context
 
 
 def params(node: str, **extra) -> list[Parameter]:
