@@ -214,23 +214,26 @@ def coupling_file_text(stage: AxesStageParams, coupling: CouplingParams,
     return '\n'.join(lines + [yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)])
 
 
-def _path_line(stage: AxesStageParams, fit: PathFit, true: AxesStageParams) -> str:
+def _path_line(stage: AxesStageParams, fit: PathFit, true: AxesStageParams,
+               label: str = 'true') -> str:
+    # label: 'true' for a simulated stage, 'configured' where the truth is not known (bags)
     gain, res, damp, _ = true.matrices()
     i, j = fit.source, fit.target
     lo, hi = fit.bounds['gain']
     text = (f'{stage.names[i]} -> {stage.names[j]}: gain {fit.gain:.6g} [{lo:.6g}, {hi:.6g}] '
-            f'(true {gain[i, j]:.6g}')
+            f'({label} {gain[i, j]:.6g}')
     if gain[i, j] != 0.0:
-        text += f', error {(fit.gain / gain[i, j] - 1.0) * 100.0:+.3f} %'
+        word = 'error' if label == 'true' else 'differs by'
+        text += f', {word} {(fit.gain / gain[i, j] - 1.0) * 100.0:+.3f} %'
     text += ')'
     if fit.static:
         text += ', static' + ('' if fit.shown else ' (not shown: written as zero)')
     else:
-        for key, label, truth in (('resonance_hz', 'resonance', res[i, j]),
-                                  ('damping', 'damping', damp[i, j])):
+        for key, name, value in (('resonance_hz', 'resonance', res[i, j]),
+                                 ('damping', 'damping', damp[i, j])):
             lo, hi = fit.bounds[key]
-            text += (f', {label} {getattr(fit, key):.6g} [{lo:.6g}, {hi:.6g}] '
-                     f'(true {truth:.6g})')
+            text += (f', {name} {getattr(fit, key):.6g} [{lo:.6g}, {hi:.6g}] '
+                     f'({label} {value:.6g})')
     return text + f'; {fit.lines} lines, {fit.periods} periods, chi2/dof {fit.chi2_per_dof:.3g}'
 
 
@@ -270,8 +273,11 @@ def _run(args: argparse.Namespace) -> int:
         model = dataclasses.replace(configured, axes=tuple(axes))
     plan = CouplingPlan(rms_v=args.rms, period_s=args.period, periods=args.periods)
     fits: list[PathFit] = []
+    label, shown = 'true', true
     if args.from_bags:
         from piezo_stage_ros.analysis.bagread import read_axes
+        # recorded elsewhere (a real stage): the truth is not known, the configuration is shown
+        label, shown = 'configured', configured
         runs = [records_run(read_axes(bag), configured) for bag in args.from_bags]
     else:
         runs = excitation_runs(true, plan)
@@ -286,7 +292,7 @@ def _run(args: argparse.Namespace) -> int:
     for run in runs:
         for fit in fit_coupling(run.time_s, run.commands_v, run.positions_m, model):
             fits.append(fit)
-            print(f'  {_path_line(configured, fit, true)}')
+            print(f'  {_path_line(configured, fit, shown, label)}')
             report['coupling'].append({
                 'source': configured.names[fit.source], 'target': configured.names[fit.target],
                 'gain': fit.gain, 'resonance_hz': fit.resonance_hz, 'damping': fit.damping,
