@@ -27,6 +27,14 @@ Examples::
     robustness --cases sine_100,square --stages nominal,gain_lo,gain_hi --out runs/rob
     robustness --param controller_node:rac.gamma=300 --json
     robustness --samples 1000 --cases sine_100   # and 1000 members drawn inside the ranges
+    robustness --commission --cases scan_line_137 --feedforward inverse_learning
+                                                 # each member commissioned first
+
+With ``--commission`` each member is first commissioned as ``commission --stage`` does (hold,
+closed-loop excitation with the member's sensor noise, or 2 nm when it has none; identify;
+design; certify; verify) and runs every case with its own identified model and designed
+controller, the feed-forward mode being the configured one. A member whose commissioning is
+refused or not accepted runs the configured design, and the table says so beside it.
 
 Exit status: 0 on success, 1 on a bad parameter or configuration, 2 on bad command-line usage.
 """
@@ -34,14 +42,19 @@ Exit status: 0 on success, 1 on a bad parameter or configuration, 2 on bad comma
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 import json
 from pathlib import Path
 import sys
-from typing import Sequence
+from typing import Any, Sequence
 
 from piezo_stage_ros import cli
+from piezo_stage_ros.core.config.loader import LoopConfig
 from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.control.controllers import ControllerParams
+from piezo_stage_ros.core.loop.robustness import DesignFn, MemberDesign
+from piezo_stage_ros.core.model.family import StageVariation
+from piezo_stage_ros.core.model.stage import StageParams
 
 __all__ = ['main']
 
@@ -71,6 +84,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument('--single', action='store_true',
                    help='One closed-loop run per stage and case instead of the batch (the '
                    'reference path; same numbers, slower for many stages).')
+    p.add_argument('--commission', action='store_true',
+                   help='Commission each member first (as commission --stage) and run it with '
+                   'its identified model and designed controller (single runs).')
     p.add_argument('--duration', type=float, default=2.0, metavar='S',
                    help='Simulated time per run [s] (default 2).')
     p.add_argument('--settle', type=float, default=1.0, metavar='S',
@@ -117,9 +133,10 @@ def _run(args: argparse.Namespace) -> int:
     progress = cli.Progress(PROG, enabled=not args.quiet)
     result = run_study(loop.stage, loop.controller, loop.trajectory,
                        family=stages, cases=cases, duration_s=args.duration,
-                       settle_s=args.settle, traced=named, batch=not args.single,
-                       window_only=args.window_only,
-                       progress=progress.line)
+                       settle_s=args.settle, traced=named,
+                       batch=not (args.single or args.commission),
+                       window_only=args.window_only, progress=progress.line,
+                       designs=_commissioned(loop) if args.commission else None)
     result.meta['wall_seconds'] = progress.elapsed()
     result.meta['config_files'] = [str(p) for p in loop.sources]
     result.meta['params'] = list(args.param)
@@ -137,6 +154,37 @@ def _run(args: argparse.Namespace) -> int:
                       f'{len(written)} plots')
     print(json.dumps(payload, sort_keys=True) if args.json else text)
     return 0
+
+
+def _commissioned(loop: LoopConfig) -> DesignFn:
+    """Return the design of a member: its commissioning, or the configured one if refused."""
+    from piezo_stage_ros.commission import DEFAULT_NOISE_M
+    from piezo_stage_ros.core.identification.commission import (
+        commission,
+        CommissionRefusedError,
+    )
+    from piezo_stage_ros.core.model.family import member_params
+    from piezo_stage_ros.identify import controller_values
+
+    def derive(identified: StageParams) -> dict[str, Any]:
+        return controller_values(identified, loop.controller.to_flat(), loop.stage)
+
+    def design(member: StageVariation, _stage: StageParams) -> MemberDesign:
+        noisy = member if member.noise_m > 0.0 else replace(member, noise_m=DEFAULT_NOISE_M)
+        try:
+            result = commission(member_params(loop.stage, noisy), loop.stage, loop.controller,
+                                derive, stability=loop.stability)
+        except CommissionRefusedError as exc:
+            return MemberDesign(loop.controller, loop.stage,
+                                f'commissioning refused ({exc}); configured design')
+        if not result.accepted:
+            return MemberDesign(loop.controller, loop.stage,
+                                f'commissioning not accepted ({"; ".join(result.refused)}); '
+                                'configured design')
+        ver = result.verification
+        return MemberDesign(result.design.controller, result.identified,
+                            f'commissioned, verification e_rms {ver.e_rms_m * 1e9:.2f} nm')
+    return design
 
 
 main = cli.command_main(PROG, _parser, _run,

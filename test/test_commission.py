@@ -319,3 +319,27 @@ def test_the_verification_limits(e_rms_nm: float, on_stage: bool, limits: list[s
     assert [name for name in ('verify_max_m', 'verify_max_ratio')
             if any(name in line for line in failed)] == limits
     assert len(failed) == len(limits)
+
+
+def test_a_configured_feed_forward_is_kept_for_the_scan_not_for_the_hold() -> None:
+    # the hold and the verification run feedback alone (the excitation must reach the command
+    # unshaped; the acceptance limits are a feedback design's); the designed controller keeps
+    # the configured feed-forward mode for the scans that follow
+    from piezo_stage_ros.core.control.controllers import ControllerParams
+    from piezo_stage_ros.core.identification.commission import (
+        commission,
+        feedback_only,
+        hold_controller,
+    )
+    for mode in ('inverse', 'learning', 'inverse_learning'):
+        configured = ControllerParams.from_flat({'feedforward.mode': mode})
+        assert hold_controller(CommissionParams(), configured).feedforward.mode == 'none'
+        assert feedback_only(configured).replace(
+            feedforward=configured.feedforward) == configured
+    mode = 'inverse_learning'
+    loop = load_loop_config([find_config()], {'controller_node': {'feedforward.mode': mode}})
+    true = member_params(loop.stage, member('gain_hi_tau_lo'))
+    result = commission(true, loop.stage, loop.controller,
+                        lambda s: controller_values(s, loop.controller.to_flat(), loop.stage),
+                        CommissionParams(duration_s=1.0), stability=loop.stability)
+    assert result.design.controller.feedforward.mode == mode

@@ -39,7 +39,9 @@ sensor noise and ADC), which shows tracking below the sensor noise.
 
 The controller is built from the configuration once per run, with a notch in ``model`` mode and
 a feed-forward (``feedforward.mode``) designed on the *configured* plant and hysteresis, never
-on the member's: nothing is retuned per stage.
+on the member's: nothing is retuned per stage. Given a design per member (``designs``, e.g. each
+member commissioned first, as a lab commissions a new stage), each member instead runs the
+controller, notch model and feed-forward model of its own design.
 """
 
 from __future__ import annotations
@@ -50,6 +52,7 @@ from typing import Any, Callable, Collection, Sequence
 
 import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
+from piezo_stage_ros.core.contracts.interfaces import Controller
 from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
 from piezo_stage_ros.core.loop import closed_loop, metrics
 from piezo_stage_ros.core.loop.batch import run_batch
@@ -60,9 +63,10 @@ from piezo_stage_ros.core.model.family import member_params, StageVariation, tru
 from piezo_stage_ros.core.model.hysteresis import make_hysteresis
 from piezo_stage_ros.core.model.stage import linear_plant, Stage, StageParams
 
-__all__ = ['BATCH_MEMBERS', 'BATCH_RECORD_BYTES', 'CASES', 'COLUMNS', 'RobustnessResult',
-           'batch_members', 'case_metrics', 'case_trajectory', 'format_result', 'run_study',
-           'stage_table', 'summary_table', 'worst']
+__all__ = ['BATCH_MEMBERS', 'BATCH_RECORD_BYTES', 'CASES', 'COLUMNS', 'DesignFn',
+           'MemberDesign', 'RobustnessResult', 'batch_members', 'case_metrics',
+           'case_trajectory', 'format_result', 'run_study', 'stage_table', 'summary_table',
+           'worst']
 
 #: The cases of the study: name -> (trajectory_node values, what is measured).
 CASES: dict[str, tuple[dict[str, Any], str]] = {
@@ -100,6 +104,33 @@ COLUMNS: tuple[tuple[str, str, float, str, str], ...] = (
 
 #: Receives one line of progress.
 ProgressFn = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class MemberDesign:
+    """
+    The controller one member runs with when each member gets a design of its own.
+
+    Attributes
+    ----------
+    controller : ControllerParams
+        The member's controller (gains, notch, feed-forward mode).
+    stage : StageParams
+        The model it was designed on: its plant is the notch's and the feed-forward's model,
+        its hysteresis the one the feed-forward inverts.
+    note : str
+        One line on how the design came about (shown beside the member); say here when the
+        design fell back to the configured one and why.
+
+    """
+
+    controller: ControllerParams
+    stage: StageParams
+    note: str = ''
+
+
+#: Returns the design of one member from its variation and its (true) stage parameters.
+DesignFn = Callable[[StageVariation, StageParams], MemberDesign]
 
 
 def case_trajectory(case: str, base: TrajectoryParams, duration_s: float) -> TrajectoryParams:
@@ -302,8 +333,8 @@ def run_study(stage: StageParams, controller: ControllerParams, trajectory: Traj
               family: Sequence[StageVariation], cases: Sequence[str], duration_s: float = 2.0,
               settle_s: float = 1.0, trace_every: int = 10,
               traced: Collection[str] | None = None, batch: bool = True,
-              window_only: bool = False, progress: ProgressFn | None = None
-              ) -> RobustnessResult:
+              window_only: bool = False, progress: ProgressFn | None = None,
+              designs: DesignFn | None = None) -> RobustnessResult:
     """
     Run one controller configuration on every member of a family, for every case.
 
@@ -339,10 +370,20 @@ def run_study(stage: StageParams, controller: ControllerParams, trajectory: Traj
         multi-sine only.
     progress : callable, optional
         Receives a line per run (single) or per simulated second of a batch.
+    designs : callable, optional
+        A design per member, made once before its runs (:data:`DesignFn`); default none:
+        every member runs ``controller`` designed on ``stage``. Needs ``batch=False`` (a batch
+        runs one controller configuration).
 
     Returns
     -------
     RobustnessResult
+
+    Raises
+    ------
+    ParameterError
+        On a bad duration, no stages or names repeated, an unknown case, a case that cannot be
+        measured on a window, or ``designs`` with ``batch``.
 
     """
     if not (duration_s > settle_s >= 0.0 and math.isfinite(duration_s)):
@@ -355,18 +396,29 @@ def run_study(stage: StageParams, controller: ControllerParams, trajectory: Traj
         case_trajectory(case, trajectory, duration_s)  # refuse an unknown case up front
         if window_only and CASES[case][1] not in ('periodic', 'lines'):
             raise ParameterError('--cases', case, 'sines and multisine with a window only')
+    if designs is not None and batch:
+        raise ParameterError('batch', batch, 'False with a design per member',
+                             'runs one controller configuration for every member')
     result = RobustnessResult(cases=list(cases), meta={
         'controller': controller.type, 'feedforward': controller.feedforward.mode,
         'duration_s': duration_s, 'settle_s': settle_s, 'window_only': window_only,
-        'path': 'batch' if batch else 'single', 'sample_rate_hz': stage.sample_rate_hz})
+        'path': 'batch' if batch else 'single', 'sample_rate_hz': stage.sample_rate_hz,
+        'design': 'configured' if designs is None else 'per member'})
     members = [(m, member_params(stage, m)) for m in family]
+    # the notch's and feed-forward's model: the configured stage's (or each member's design)
+    own = {m.name: MemberDesign(controller, stage) for m, _ in members}
     for m, sp in members:
         theta, phi = true_estimates(sp)
-        result.stages.append({'name': m.name, 'description': m.describe(),
-                              'changes': m.changes(), 'theta_true': theta, 'phi_true': phi,
-                              'listed': traced is None or m.name in traced})
+        info: dict[str, Any] = {'name': m.name, 'description': m.describe(),
+                                'changes': m.changes(), 'theta_true': theta, 'phi_true': phi,
+                                'listed': traced is None or m.name in traced}
+        if designs is not None:
+            own[m.name] = designs(m, sp)
+            info['design'] = own[m.name].note
+            if progress is not None:
+                progress(f'design {m.name}: {own[m.name].note}')
+        result.stages.append(info)
     nominal_plant = linear_plant(stage.plant)
-    # the feed-forward's design hysteresis: the configured stage's, as the plant
     nominal_hysteresis = make_hysteresis(stage.hysteresis)
     dt = stage.sample_time_s
     start_s = settle_s if window_only else 0.0
@@ -385,10 +437,9 @@ def run_study(stage: StageParams, controller: ControllerParams, trajectory: Traj
                                     hysteresis=nominal_hysteresis, record_from_s=start_s,
                                     progress=say)
             else:
-                records = [_window(closed_loop.run(Stage(sp), build_controller(
-                    controller, dt, nominal_plant, nominal_hysteresis), make_trajectory(tp),
-                    duration_s=duration_s, diagnostics_every=1), start_s)
-                    for _, sp in group]
+                records = [_window(closed_loop.run(Stage(sp), _member_controller(
+                    own[m.name], dt), make_trajectory(tp), duration_s=duration_s,
+                    diagnostics_every=1), start_s) for m, sp in group]
             for (m, _), info, rec in zip(group, result.stages[g0:], records):
                 mets = case_metrics(case, rec, tp, settle_s=settle_s)
                 row = _stage_rows(m.name, case, mets, (info['theta_true'], info['phi_true']))
@@ -403,6 +454,12 @@ def run_study(stage: StageParams, controller: ControllerParams, trajectory: Traj
                     progress(f'{case:10s} {m.name:22s} e_rms {row["e_rms_m"] * 1e9:8.2f} nm, '
                              f'e_m {row["e_max_m"] * 1e9:8.1f} nm')
     return result
+
+
+def _member_controller(design: MemberDesign, dt: float) -> Controller:
+    """Build a member's controller on its design model (the configured one by default)."""
+    return build_controller(design.controller, dt, linear_plant(design.stage.plant),
+                            make_hysteresis(design.stage.hysteresis))
 
 
 def _window(record: RunRecord, start_s: float) -> RunRecord:
@@ -543,6 +600,14 @@ def format_result(result: RobustnessResult) -> str:
                  f'{len(result.stages)} stages, '
                  f'{meta.get("duration_s"):g} s per run, steady state after '
                  f'{meta.get("settle_s"):g} s ({meta.get("path")} runs)')
+    if meta.get('design') == 'per member':
+        own = [s for s in result.stages if 'design' in s]
+        kept = [s for s in own if s['design'].startswith('configured')
+                or 'configured design' in s['design']]
+        lines.append(f'each member runs its own design: {len(own) - len(kept)} of {len(own)} '
+                     'from their own commissioning')
+        lines += [f'  {s["name"]}: {s["design"]}' for s in own
+                  if s.get('listed', True) or s in kept]
     head = (f'{"stage":{width}s} {"e_rms[nm]":>9s} {"e_m[nm]":>8s} {"u min":>6s} {"u max":>6s}'
             f' {"theta end":>9s} {"true":>6s} {"range":>13s} {"phi end":>8s} {"true":>8s} '
             f'{"range":>17s}')
