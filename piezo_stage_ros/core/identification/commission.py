@@ -268,13 +268,15 @@ def hold_controller(params: CommissionParams, configured: ControllerParams) -> C
     Returns
     -------
     ControllerParams
-        A PI (``hold_k_p``, ``hold_k_i``) without notch: its low gain keeps the resonance far
-        below 0 dB on any plausible stage, and its proportional path puts the excitation on
-        the command up to the resonance.
+        A PI (``hold_k_p``, ``hold_k_i``) without notch and without feed-forward: its low
+        gain keeps the resonance far below 0 dB on any plausible stage, and its proportional
+        path puts the excitation on the command up to the resonance; a feed-forward would
+        need the model the run is there to identify.
 
     """
     return configured.replace(type='pi', pi=PIParams(k_p=params.hold_k_p, k_i=params.hold_k_i),
-                              notch=NotchParams(mode='off'))
+                              notch=NotchParams(mode='off'),
+                              feedforward=configured.feedforward.replace(mode='none'))
 
 
 def excitation_run(true_stage: StageParams, configured: StageParams,
