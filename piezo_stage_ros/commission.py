@@ -37,9 +37,25 @@ configured model. The steps are in
                                           # their parameters); record it, then
     commission --bag BAG                  # commission from the recorded run
 
-Exit status: 0 when the controller is certified and the verification is within its limit; 1
-when the excitation cannot support the model, no tuning is certified, or the verification
-fails (one line on stderr, no parameter file); 2 on bad usage.
+A multi-axis parameter file (``plant_node axes.names``, e.g. ``config/xy_stage.yaml``) is
+commissioned axis by axis on its configured stage, each axis in closed loop while the others
+hold their rest voltages
+(:func:`~piezo_stage_ros.core.identification.per_axis.commission_axis`); each axis is printed as
+a one-axis run is, and the parameter file holds, per axis, the identified values and the
+commissioned controller values that differ from the configuration (``axes.<name>.*`` in
+``plant_node`` and ``controller_node``, the layout ``identify_axes`` writes), read on top of
+it. The coupling comes from ``identify_axes``: commission into the file it wrote, whose
+coupling and other axes are kept::
+
+    identify_axes --config config/xy_stage.yaml --coupling-only --output xy.yaml
+    commission --config config/xy_stage.yaml --output xy.yaml          # every axis
+    commission --config config/xy_stage.yaml --axis y --output xy.yaml  # y again
+    simulate --config config/xy_stage.yaml --config xy.yaml
+
+Exit status: 0 when the controller is certified and the verification is within its limit
+(every axis of a multi-axis file); 1 when the excitation cannot support the model, no tuning
+is certified, or the verification fails (one line on stderr, no parameter file); 2 on bad
+usage.
 """
 
 from __future__ import annotations
@@ -140,12 +156,14 @@ def build_parser() -> argparse.ArgumentParser:
                    'robustness --list-family or random_N; repeatable with --survey.')
     p.add_argument('--seed', type=int, default=0, help='Seed of the random_N members.')
     p.add_argument('--noise', type=float, metavar='M', help='Sensor noise of the stage [m rms] '
-                   f"(default: the member's own, {DEFAULT_NOISE_M:g} when it has none).")
+                   f"(default: the member's own, {DEFAULT_NOISE_M:g} when it has none; a "
+                   'multi-axis file: every axis, default as configured).')
     cli.add_config_options(p)
     p.add_argument('--output', default='commissioned.yaml', metavar='FILE',
                    help='Parameter file to write (default: commissioned.yaml).')
     p.add_argument('--report', default='commission_report', metavar='DIR',
-                   help="Directory for report.json and the figures; 'none' to skip.")
+                   help='Directory for report.json and the figures (DIR/<axis>/ for each '
+                   "axis of a multi-axis file); 'none' to skip.")
     d = CommissionParams()
     p.add_argument('--hold', type=float, default=d.hold_m, metavar='M',
                    help=f'Hold position [m] (default {d.hold_m:g}).')
@@ -179,17 +197,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--jobs', type=int, default=1, metavar='J',
                    help='Processes for --coverage (default 1).')
     p.add_argument('--axis', metavar='NAME',
-                   help='A multi-axis parameter file (plant_node axes.names, e.g. '
-                   'config/xy_stage.yaml) commissions its configured axes one at a time, each '
-                   'in closed loop while the others hold their rest voltages (progress on '
-                   'stderr); --axis NAME commissions that axis only. The output then holds, per '
-                   'axis, the identified values and the commissioned controller that differ '
-                   'from the configuration (plant_node and controller_node axes.<name>.*), '
-                   'read on top of it: simulate --config <configuration> --config FILE. An '
-                   'existing --output FILE of the same axes is updated: its other axes and the '
-                   'coupling identify_axes wrote there (axes.coupling.*) are kept, so '
-                   'identify_axes --output FILE, then commission --output FILE, give one file; '
-                   'the commissioned axes replace what identify_axes identified for them.')
+                   help='A multi-axis file (plant_node axes.names, e.g. config/xy_stage.yaml) '
+                   'commissions every axis in turn, each in closed loop while the others hold; '
+                   '--axis NAME that axis only. The output then holds axes.<name>.* values, '
+                   'read on top of the configuration; an existing --output of the same axes '
+                   'is updated, keeping its other axes and the coupling identify_axes wrote '
+                   'there.')
     p.add_argument('--survey', action='store_true',
                    help='Commission every --stage (default: a list of members) and print a '
                    'Markdown table of recovered vs true, certification and verification; '
