@@ -94,6 +94,7 @@ __all__ = ['CommissionParams', 'CommissionRefusedError', 'CommissionResult', 'Ce
            'Design', 'Excitation', 'KAPPA_MARGIN', 'LADDER', 'Verification', 'certify',
            'checked_excitation', 'commission', 'commission_record', 'comparison',
            'corner_plants', 'design', 'excitation_part', 'excitation_run', 'excitation_table',
+           'feedback_only',
            'hold_controller', 'identify_excitation', 'loop_gain_ratio', 'ros_overrides',
            'slope_range', 'summary', 'true_values', 'verification_failures', 'verify']
 
@@ -268,15 +269,26 @@ def hold_controller(params: CommissionParams, configured: ControllerParams) -> C
     Returns
     -------
     ControllerParams
-        A PI (``hold_k_p``, ``hold_k_i``) without notch and without feed-forward: its low
-        gain keeps the resonance far below 0 dB on any plausible stage, and its proportional
-        path puts the excitation on the command up to the resonance; a feed-forward would
-        need the model the run is there to identify.
+        A PI (``hold_k_p``, ``hold_k_i``) without notch: its low gain keeps the resonance far
+        below 0 dB on any plausible stage, and its proportional path puts the excitation on
+        the command up to the resonance; no feed-forward (the configured one is designed on
+        the model being identified).
 
     """
-    return configured.replace(type='pi', pi=PIParams(k_p=params.hold_k_p, k_i=params.hold_k_i),
-                              notch=NotchParams(mode='off'),
-                              feedforward=configured.feedforward.replace(mode='none'))
+    return feedback_only(configured).replace(
+        type='pi', pi=PIParams(k_p=params.hold_k_p, k_i=params.hold_k_i),
+        notch=NotchParams(mode='off'))
+
+
+def feedback_only(controller: ControllerParams) -> ControllerParams:
+    """
+    Return ``controller`` without its feed-forward.
+
+    The hold and the verification run the feedback alone: the excitation must reach the
+    command unshaped, and the acceptance limits of the verification are those of a feedback
+    design on a sine, whatever feed-forward the stage will later scan with.
+    """
+    return controller.replace(feedforward=controller.feedforward.replace(mode='none'))
 
 
 def excitation_run(true_stage: StageParams, configured: StageParams,
@@ -773,7 +785,8 @@ class Verification:
 
 def _track(stage: StageParams, controller: ControllerParams, design_stage: StageParams,
            frequency_hz: float, duration_s: float, plant: PlantFn | None = None) -> RunRecord:
-    ctrl = build_controller(controller, stage.sample_time_s, linear_plant(design_stage.plant))
+    ctrl = build_controller(feedback_only(controller), stage.sample_time_s,
+                            linear_plant(design_stage.plant))
     traj = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine',
                                                        'sine.frequency_hz': frequency_hz}))
     return run((plant or Stage)(stage), ctrl, traj, duration_s=duration_s,
