@@ -653,15 +653,16 @@ def _axes(args: argparse.Namespace, config: Config) -> int:
         print(f'axis {name}:')
         for line in result_lines(result, true.axes[k], params):
             print(f'  {line}')
-        if report:
-            from piezo_stage_ros.analysis.commission_report import write_commission_report
-            say('write the report')
-            files = write_commission_report(result, Path(args.report) / name,
-                                            true_stage=true.axes[k],
-                                            extra={'axis': name, 'parameter file': None})
-            print(f'  report: {files[-1]}')
         if not result.accepted:
             refused.append(f'axis {name}: ' + '; '.join(result.refused or ['not accepted']))
+    if report:
+        from piezo_stage_ros.analysis.commission_report import write_commission_report
+        for name, result in results.items():
+            progress.line(f'axis {name}: write the report')
+            files = write_commission_report(
+                result, Path(args.report) / name, true_stage=true.axes[names.index(name)],
+                extra={'axis': name, 'parameter file': None if refused else args.output})
+            print(f'report of axis {name}: {files[-1]}')
     if refused:
         cli.error(PROG, '; '.join(refused) + ': no parameter file written')
         return 1

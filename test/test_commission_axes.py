@@ -86,6 +86,7 @@ def test_each_axis_recovers_the_configured_truth_inside_its_bounds(run: dict[str
     for k, name in enumerate(truth.names):
         doc = json.loads((run['report'] / name / 'report.json').read_text(encoding='utf-8'))
         assert doc['accepted'] and doc['certification']['certified']
+        assert doc['axis'] == name and doc['parameter file'] == str(run['path'])
         f = factors_of(truth.axes[k].plant.third_order)
         assert doc['true']['omega_n_rad_s'] == pytest.approx(f.omega_n_rad_s, rel=1e-12)
         for key in COMPARED:
