@@ -216,6 +216,11 @@ def test_analyze_tells_what_an_open_loop_coupling_bag_holds(tmp_path, capsys):
     assert 'no reference: open-loop run (coupling, open loop), no tracking error; x excited' \
         in out
     assert '  x (excited): command ' in out and '  y (held): command ' in out
+    # its figures: each axis' command and position, no empty error plot
+    assert analyze.main(['-q', '--plots', str(tmp_path / 'figs'), str(bag)]) == 0
+    capsys.readouterr()
+    assert sorted(p.name for p in (tmp_path / 'figs').iterdir()) == ['response_x.png',
+                                                                      'response_y.png']
     assert analyze.main(['-q', '--json', '--window', '0.2', str(bag)]) == 0
     doc = json.loads(capsys.readouterr().out)
     ol = doc['open_loop']
