@@ -181,7 +181,8 @@ def _analyze_axes(args: argparse.Namespace, bag: Path, outdir: Path | None) -> b
         try:
             plot_axes_run(analysis.records, outdir, title=analysis.name,
                           fast_axis=analysis.fast_axis, slow_axis=analysis.slow_axis,
-                          lines=analysis.lines, grating=analysis.grating)
+                          lines=analysis.lines, grating=analysis.grating,
+                          open_loop=analysis.open_loop is not None)
         except OSError as err:
             print(f'{PROG}: error: cannot write figures into {outdir}: {err.strerror}',
                   file=sys.stderr)

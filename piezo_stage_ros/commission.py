@@ -37,23 +37,42 @@ configured model. The steps are in
                                           # their parameters); record it, then
     commission --bag BAG                  # commission from the recorded run
 
-Exit status: 0 when the controller is certified and the verification is within its limit; 1
-when the excitation cannot support the model, no tuning is certified, or the verification
-fails (one line on stderr, no parameter file); 2 on bad usage.
+A multi-axis parameter file (``plant_node axes.names``, e.g. ``config/xy_stage.yaml``) is
+commissioned axis by axis on its configured stage, each axis in closed loop while the others
+hold their rest voltages
+(:func:`~piezo_stage_ros.core.identification.per_axis.commission_axis`); each axis is printed as
+a one-axis run is, and the parameter file holds, per axis, the identified values and the
+commissioned controller values that differ from the configuration (``axes.<name>.*`` in
+``plant_node`` and ``controller_node``, the layout ``identify_axes`` writes), read on top of
+it. The coupling comes from ``identify_axes``: commission into the file it wrote, whose
+coupling and other axes are kept::
+
+    identify_axes --config config/xy_stage.yaml --coupling-only --output xy.yaml
+    commission --config config/xy_stage.yaml --output xy.yaml          # every axis
+    commission --config config/xy_stage.yaml --axis y --output xy.yaml  # y again
+    simulate --config config/xy_stage.yaml --config xy.yaml
+
+Exit status: 0 when the controller is certified and the verification is within its limit
+(every axis of a multi-axis file); 1 when the excitation cannot support the model, no tuning
+is certified, or the verification fails (one line on stderr, no parameter file); 2 on bad
+usage.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from dataclasses import replace
 import math
 from pathlib import Path
 import sys
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 from piezo_stage_ros import cli
-from piezo_stage_ros.core.config.loader import LoopConfig, nest
+from piezo_stage_ros.core.config.axes import axes_loop_config, AxesLoopConfig, has_axes
+from piezo_stage_ros.core.config.loader import Config, load_config, LoopConfig, nest
 from piezo_stage_ros.core.contracts.errors import ConfigError
+from piezo_stage_ros.core.control.controllers import ControllerParams
 from piezo_stage_ros.core.identification.commission import (
     commission,
     commission_record,
@@ -64,6 +83,7 @@ from piezo_stage_ros.core.identification.commission import (
     excitation_table,
     ros_overrides,
 )
+from piezo_stage_ros.core.identification.per_axis import axis_overrides, commission_axis
 from piezo_stage_ros.core.model.family import (
     default_family,
     member_params,
@@ -74,7 +94,8 @@ from piezo_stage_ros.core.model.stage import StageParams
 from piezo_stage_ros.identify import controller_values, parameter_file_text
 import yaml
 
-__all__ = ['build_parser', 'main', 'member', 'parameter_text', 'write_excitation']
+__all__ = ['axes_parameter_text', 'build_parser', 'main', 'member', 'parameter_text',
+           'result_lines', 'write_excitation']
 
 PROG = 'commission'
 DEFAULT_STAGE = 'gain_hi_zeta_lo_noise'
@@ -135,12 +156,14 @@ def build_parser() -> argparse.ArgumentParser:
                    'robustness --list-family or random_N; repeatable with --survey.')
     p.add_argument('--seed', type=int, default=0, help='Seed of the random_N members.')
     p.add_argument('--noise', type=float, metavar='M', help='Sensor noise of the stage [m rms] '
-                   f"(default: the member's own, {DEFAULT_NOISE_M:g} when it has none).")
+                   f"(default: the member's own, {DEFAULT_NOISE_M:g} when it has none; a "
+                   'multi-axis file: every axis, default as configured).')
     cli.add_config_options(p)
     p.add_argument('--output', default='commissioned.yaml', metavar='FILE',
                    help='Parameter file to write (default: commissioned.yaml).')
     p.add_argument('--report', default='commission_report', metavar='DIR',
-                   help="Directory for report.json and the figures; 'none' to skip.")
+                   help='Directory for report.json and the figures (DIR/<axis>/ for each '
+                   "axis of a multi-axis file); 'none' to skip.")
     d = CommissionParams()
     p.add_argument('--hold', type=float, default=d.hold_m, metavar='M',
                    help=f'Hold position [m] (default {d.hold_m:g}).')
@@ -173,6 +196,13 @@ def build_parser() -> argparse.ArgumentParser:
                    'instead of the foreign loops.')
     p.add_argument('--jobs', type=int, default=1, metavar='J',
                    help='Processes for --coverage (default 1).')
+    p.add_argument('--axis', metavar='NAME',
+                   help='A multi-axis file (plant_node axes.names, e.g. config/xy_stage.yaml) '
+                   'commissions every axis in turn, each in closed loop while the others hold; '
+                   '--axis NAME that axis only. The output then holds axes.<name>.* values, '
+                   'read on top of the configuration; an existing --output of the same axes '
+                   'is updated, keeping its other axes and the coupling identify_axes wrote '
+                   'there.')
     p.add_argument('--survey', action='store_true',
                    help='Commission every --stage (default: a list of members) and print a '
                    'Markdown table of recovered vs true, certification and verification; '
@@ -218,6 +248,58 @@ def parameter_text(result: CommissionResult, loop: LoopConfig, header: Sequence[
     doc['controller_node'] = {'ros__parameters': nest(flat)}
     lines = [f'# {line}' for line in header]
     return '\n'.join(lines + [yaml.safe_dump(doc, sort_keys=False, default_flow_style=False)])
+
+
+def result_lines(result: CommissionResult, true: StageParams | None,
+                 params: CommissionParams) -> list[str]:
+    """
+    Return the lines the command prints about a run, from the excitation to the notes.
+
+    Parameters
+    ----------
+    result : CommissionResult
+        The run.
+    true : StageParams or None
+        The simulated stage (its values are compared with the identified ones); None for a
+        recorded run.
+    params : CommissionParams
+        The settings of the run (the verification's limit).
+
+    Returns
+    -------
+    list of str
+
+    """
+    s = result.checked.result.summary()
+    cert = result.design.certification
+    ver = result.verification
+    length = result.excited.time_s.size * result.identified.sample_time_s
+    out = [f'excitation: {length:g} s, reference within '
+           f'{result.excitation_peak_m * 1e6:.3f} um of the hold, position within '
+           f'{result.position_peak_m * 1e6:.3f} um; loop closed throughout',
+           f'identified: static gain {s["static_gain_m_per_v"]:.6g} m/V, w_n '
+           f'{s["omega_n_rad_s"]:.6g} rad/s, zeta {s["zeta"]:.5g}, tau {s["tau_s"]:.6g} s, '
+           f'alpha {s["alpha"]:.5g}, B1 {s["b1"]:.5g}']
+    for key, (value, inside) in (comparison(result, true).items() if true else ()):
+        out.append(f'  {key}: {100 * value:+.2f} % from the truth, '
+                   f'{"inside" if inside else "OUTSIDE"} its 95 % bounds')
+    out.append(f'design: {result.design.label}, notch '
+               f'{result.design.controller.notch.frequency_hz:.1f} Hz (zero damping '
+               f'{result.design.controller.notch.zero_damping:.4g})')
+    out.append(f'stability check (parameters frozen, {cert.nominal.delay_samples:g} samples of '
+               'computational delay): '
+               f'{"stable over the box" if cert.certified else "NOT stable over the box"} on '
+               f'{cert.corners} plants (identified model and the corners of its 95 % bounds), '
+               f'slopes {cert.slope_range[0]:.4g} ... {cert.slope_range[1]:.4g}; smallest gain '
+               f'margin {cert.gain_margin_db:.1f} dB, phase margin '
+               f'{cert.phase_margin_deg:.0f} deg')
+    where = 'on the stage' if ver.on_stage else 'on the identified model'
+    out.append(f'verification {where}: {ver.frequency_hz:g} Hz sine, e_rms '
+               f'{ver.e_rms_m * 1e9:.2f} nm (limit {params.verify_max_m * 1e9:g} nm; the '
+               f'identified model predicted {ver.predicted_e_rms_m * 1e9:.2f} nm), e_max '
+               f'{ver.e_max_m * 1e9:.1f} nm')
+    out += [f'note: {note}' for note in result.notes]
+    return out
 
 
 def _run_one(args: argparse.Namespace, loop: LoopConfig, name: str,
@@ -307,36 +389,12 @@ def _single(args: argparse.Namespace, loop: LoopConfig) -> int:
         files = write_commission_report(result, args.report, true_stage=true,
                                         extra={'stage': name, 'parameter file': args.output
                                                if result.accepted else None})
-    s = result.checked.result.summary()
     if true is None:
         print(f'recorded run: {args.bag}')
     else:
         print(f'stage: {name} ({member(name, seed=args.seed, noise_m=args.noise).describe()})')
-    length = result.excited.time_s.size * result.identified.sample_time_s
-    print(f'excitation: {length:g} s, reference within '
-          f'{result.excitation_peak_m * 1e6:.3f} um of the hold, position within '
-          f'{result.position_peak_m * 1e6:.3f} um; loop closed throughout')
-    print(f'identified: static gain {s["static_gain_m_per_v"]:.6g} m/V, w_n '
-          f'{s["omega_n_rad_s"]:.6g} rad/s, zeta {s["zeta"]:.5g}, tau {s["tau_s"]:.6g} s, '
-          f'alpha {s["alpha"]:.5g}, B1 {s["b1"]:.5g}')
-    for key, (value, inside) in (comparison(result, true).items() if true else ()):
-        print(f'  {key}: {100 * value:+.2f} % from the truth, '
-              f'{"inside" if inside else "OUTSIDE"} its 95 % bounds')
-    print(f'design: {result.design.label}, notch '
-          f'{result.design.controller.notch.frequency_hz:.1f} Hz (zero damping '
-          f'{result.design.controller.notch.zero_damping:.4g})')
-    print(f'stability check (parameters frozen, {cert.nominal.delay_samples:g} samples of '
-          'computational delay): '
-          f'{"stable over the box" if cert.certified else "NOT stable over the box"} on '
-          f'{cert.corners} plants (identified model and the corners of its 95 % bounds), '
-          f'slopes {cert.slope_range[0]:.4g} ... {cert.slope_range[1]:.4g}; smallest gain '
-          f'margin {cert.gain_margin_db:.1f} dB, phase margin {cert.phase_margin_deg:.0f} deg')
-    where = 'on the stage' if ver.on_stage else 'on the identified model'
-    print(f'verification {where}: {ver.frequency_hz:g} Hz sine, e_rms {ver.e_rms_m * 1e9:.2f} nm '
-          f'(limit {_params(args).verify_max_m * 1e9:g} nm; the identified model predicted '
-          f'{ver.predicted_e_rms_m * 1e9:.2f} nm), e_max {ver.e_max_m * 1e9:.1f} nm')
-    for note in result.notes:
-        print(f'note: {note}')
+    for line in result_lines(result, true, _params(args)):
+        print(line)
     if report:
         print(f'report: {files[-1]}')
     if not result.accepted:
@@ -447,7 +505,14 @@ def _coverage(args: argparse.Namespace, loop: LoopConfig) -> int:
 
 
 def _commission(args: argparse.Namespace) -> int:
-    loop = cli.offline_loop(PROG, cli.read_config(args.config, args.param))
+    config = cli.read_config(args.config, args.param)
+    if has_axes(config):
+        return _axes(args, config)
+    if args.axis is not None:
+        raise cli.UsageError(f'--axis {args.axis!r}: the configuration is a one-axis stage (no '
+                             'plant_node axes.names); --axis needs a multi-axis file such as '
+                             'config/xy_stage.yaml')
+    loop = cli.offline_loop(PROG, config)
     if args.write_excitation is not None:
         return _write_excitation(args, loop)
     if args.coverage is not None:
@@ -459,6 +524,166 @@ def _commission(args: argparse.Namespace) -> int:
             raise cli.UsageError('--survey simulates the family: no --bag')
         return _survey(args, loop)
     return _single(args, loop)
+
+
+def _kept(path: Path, names: Sequence[str]) -> dict[str, dict[str, Any]]:
+    """Return the flat sections of an existing multi-axis output file of the same axes."""
+    if not path.exists():
+        return {}
+    why = (f'--output {str(path)!r} exists and is not a parameter file of the axes '
+           f'{list(names)} (as identify_axes and commission write them): give another file or '
+           'remove it')
+    try:
+        old = load_config([path])
+    except ConfigError as exc:
+        raise ConfigError(f'{why} ({exc})') from exc
+    nodes = ('plant_node', 'controller_node')
+    if old.sections.get('plant_node', {}).get('axes.names') != list(names) or \
+            set(old.sections) - set(nodes):
+        raise ConfigError(why)
+    return {node: dict(old.sections.get(node, {})) for node in nodes}
+
+
+def axes_parameter_text(results: Mapping[str, CommissionResult], loop: AxesLoopConfig,
+                        header: Sequence[str],
+                        kept: Mapping[str, Mapping[str, Any]] | None = None) -> str:
+    """
+    Return the parameter file of a multi-axis commissioning, read on top of the configuration.
+
+    Parameters
+    ----------
+    results : Mapping of str to CommissionResult
+        The commissioned axes by name.
+    loop : AxesLoopConfig
+        The configuration they started from.
+    header : sequence of str
+        Comment lines.
+    kept : Mapping, optional
+        Flat ``plant_node`` and ``controller_node`` sections of an earlier file of the same
+        axes (``identify_axes`` or ``commission``): kept, but for the commissioned axes' own
+        ``axes.<name>.*`` entries, which this run replaces.
+
+    Returns
+    -------
+    str
+        YAML in the layout ``identify_axes`` writes: ``plant_node axes.names``, per commissioned
+        axis the identified values that differ from the configured axis as
+        ``axes.<name>.*`` in ``plant_node`` and the commissioned controller's values that differ
+        from the configured axis controller as ``axes.<name>.*`` in ``controller_node``.
+
+    """
+    names = loop.stage.names
+    flat = {node: {k: v for k, v in (kept or {}).get(node, {}).items()
+                   if not any(k.startswith(f'axes.{n}.') for n in results)}
+            for node in ('plant_node', 'controller_node')}
+    flat['plant_node']['axes.names'] = list(names)
+    for name, result in results.items():
+        k = names.index(name)
+        configured = loop.stage.axes[k]
+        identified = result.identified.replace(sample_rate_hz=configured.sample_rate_hz,
+                                               seed=configured.seed)
+        for key, value in axis_overrides(identified, configured).items():
+            flat['plant_node'][f'axes.{name}.{key}'] = value
+        before = loop.controllers[k].to_flat()
+        for key, value in result.design.controller.to_flat().items():
+            if before.get(key) != value:
+                flat['controller_node'][f'axes.{name}.{key}'] = value
+    doc = {}
+    for node, values in flat.items():
+        # axes.names first, then the axes in the stage's order, then the rest (the coupling)
+        order = ['axes.names'] + [f'axes.{n}.' for n in names]
+        ranked = sorted(values, key=lambda key: next(
+            (i for i, head in enumerate(order) if key == head or key.startswith(head)),
+            len(order)))
+        if ranked:
+            doc[node] = {'ros__parameters': nest({key: values[key] for key in ranked})}
+    lines = [f'# {line}' for line in header]
+    return '\n'.join(lines + [yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)])
+
+
+def _axes(args: argparse.Namespace, config: Config) -> int:
+    one_axis = {'--bag': args.bag is not None, '--survey': args.survey,
+                '--coverage': args.coverage is not None,
+                '--write-excitation': args.write_excitation is not None,
+                '--stage': bool(args.stage)}
+    for option, given in one_axis.items():
+        if given:
+            raise cli.UsageError(f'{option} is for a one-axis stage: a multi-axis file '
+                                 'commissions its configured axes (--axis NAME for one)')
+    loop = axes_loop_config(config)
+    for text in loop.base.offline_notes():
+        cli.note(PROG, text)
+    names = loop.stage.names
+    if args.axis is not None and args.axis not in names:
+        raise cli.UsageError(f'--axis {args.axis!r} is not an axis of this stage; allowed: '
+                             f'{", ".join(names)}')
+    chosen = [args.axis] if args.axis is not None else list(names)
+    output = Path(args.output)
+    kept = _kept(output, names)
+    true = loop.stage
+    if args.noise is not None:
+        true = dataclasses.replace(true, axes=tuple(
+            p.replace(chain=p.chain.replace(sensor_noise_std_m=args.noise)) for p in true.axes))
+    params = _params(args)
+    progress = cli.Progress(PROG)
+    report = args.report.lower() != 'none'
+    print(f'stage: the configured axes {", ".join(names)} and their coupling'
+          + ('' if args.noise is None else f', sensor noise {args.noise:g} m rms')
+          + f'; commissioning {", ".join(chosen)}, the other axes holding')
+    results: dict[str, CommissionResult] = {}
+    refused: list[str] = []
+    for count, name in enumerate(chosen, 1):
+        k = names.index(name)
+        progress.line(f'axis {name} ({count}/{len(chosen)}): start')
+        configured, controller = loop.stage.axes[k], loop.controllers[k]
+
+        def derive(stage: StageParams, controller: ControllerParams = controller,
+                   configured: StageParams = configured) -> dict[str, Any]:
+            return controller_values(stage, controller.to_flat(), configured)
+
+        def say(text: str, name: str = name) -> None:
+            progress.line(f'axis {name}: {text}')
+
+        try:
+            result = commission_axis(true, k, configured, controller, derive, params,
+                                     stability=loop.base.stability, progress=say)
+        except CommissionRefusedError as exc:
+            raise CommissionRefusedError(f'axis {name}: {exc}') from exc
+        results[name] = result
+        print(f'axis {name}:')
+        for line in result_lines(result, true.axes[k], params):
+            print(f'  {line}')
+        if not result.accepted:
+            refused.append(f'axis {name}: ' + '; '.join(result.refused or ['not accepted']))
+    if report:
+        from piezo_stage_ros.analysis.commission_report import write_commission_report
+        for name, result in results.items():
+            progress.line(f'axis {name}: write the report')
+            files = write_commission_report(
+                result, Path(args.report) / name, true_stage=true.axes[names.index(name)],
+                extra={'axis': name, 'parameter file': None if refused else args.output})
+            print(f'report of axis {name}: {files[-1]}')
+    if refused:
+        cli.error(PROG, '; '.join(refused) + ': no parameter file written')
+        return 1
+    header = ['Commissioned by: commission ' + ' '.join(sys.argv[1:] if args.argv is None
+                                                        else args.argv),
+              'Read on top of the configuration: simulate --config <configuration> '
+              '--config <this>.']
+    for name, result in results.items():
+        cert, ver = result.design.certification, result.verification
+        header.append(f'axis {name}: certified on {cert.corners} plants (the identified model '
+                      'and the corners of its 95 % bounds), slopes '
+                      f'{cert.slope_range[0]:.6g} ... {cert.slope_range[1]:.6g}, '
+                      f'{cert.nominal.delay_samples:g} samples of delay; verification '
+                      f'{ver.frequency_hz:g} Hz e_rms {ver.e_rms_m * 1e9:.2f} nm.')
+    if kept:
+        header.append(f'Kept from the earlier {output.name}: its other entries (the coupling, '
+                      'other axes).')
+    header.append('Review the report before using these values on a stage.')
+    output.write_text(axes_parameter_text(results, loop, header, kept), encoding='utf-8')
+    print(f'parameter file: {args.output}')
+    return 0
 
 
 main = cli.command_main(PROG, build_parser, _commission,

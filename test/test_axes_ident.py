@@ -196,3 +196,41 @@ def test_bags_of_other_axes_are_refused_naming_them(tmp_path):
     records.reverse()
     with pytest.raises(ParameterError, match=r"\['y', 'x'\]"):
         identify_axes.records_run(records, stage)
+
+
+def test_analyze_tells_what_an_open_loop_coupling_bag_holds(tmp_path, capsys):
+    # No reference, so no error to measure: analyze prints the excitation and each axis'
+    # response instead of NaN errors, from the same samples the fit reads.
+    import json
+
+    from piezo_stage_ros import analyze
+    from piezo_stage_ros.analysis.bagwrite import write_axes
+    stage = xy_stage()
+    run = excitation_runs(stage, SHORT)[0]
+    bag = tmp_path / 'coupling_x'
+    write_axes(identify_axes.run_records(run, stage), bag,
+               meta={'command': 'identify_axes', 'experiment': 'coupling, open loop'})
+    assert analyze.main(['-q', str(bag)]) == 0
+    out = capsys.readouterr().out
+    assert 'nan' not in out.lower()
+    assert 'no reference: open-loop run (coupling, open loop), no tracking error; x excited' \
+        in out
+    assert '  x (excited): command ' in out and '  y (held): command ' in out
+    # its figures: each axis' command and position, no empty error plot
+    assert analyze.main(['-q', '--plots', str(tmp_path / 'figs'), str(bag)]) == 0
+    capsys.readouterr()
+    assert sorted(p.name for p in (tmp_path / 'figs').iterdir()) == ['response_x.png',
+                                                                      'response_y.png']
+    assert analyze.main(['-q', '--json', '--window', '0.2', str(bag)]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    ol = doc['open_loop']
+    assert ol['excited'] == ['x'] and ol['experiment'] == 'coupling, open loop'
+    # over the last 0.2 s of the records the bag holds
+    records = identify_axes.run_records(run, stage)
+    last = int(round(0.2 / stage.sample_time_s))
+    u, moved = records[0].command_v[-last:], records[1].position_m[-last:]
+    x, y = ol['axes']['x'], ol['axes']['y']
+    assert x['command_rms_v'] == pytest.approx(np.std(u), rel=1e-9)
+    assert y['command_rms_v'] == 0.0 and not y['excited']
+    assert y['position_rms_m'] == pytest.approx(np.std(moved), rel=1e-9)
+    assert y['position_peak_to_peak_m'] == pytest.approx(np.ptp(moved), rel=1e-9)

@@ -101,3 +101,35 @@ def test_the_controller_nodes_reading_of_its_files_names_them(tmp_path):
     with pytest.raises(ParameterError,
                        match=f"'plant.modle' = 'reduced' .*did you mean 'plant.model'.*{path}"):
         design_model(StabilityParams().replace(design_model='plant'), [str(path)])
+
+
+def test_an_unknown_top_level_name_is_refused_offline_as_the_node_refuses_it(tmp_path):
+    # 'sed' is under no group of the table: the offline loader refuses it as the node does,
+    # naming it, the closest name and the top-level names the node knows.
+    from piezo_stage_ros.core.config.loader import load_loop_config, OTHER_HEADS
+    path = tmp_path / 'sed.yaml'
+    path.write_text('plant_node:\n  ros__parameters:\n    sed: 3\n')
+    with pytest.raises(ParameterError) as info:
+        load_loop_config([CONFIG / 'default.yaml', path])
+    msg = str(info.value)
+    assert "'plant_node sed' = 3 is not a parameter of this node" in msg
+    assert "did you mean 'seed'?" in msg
+    heads = dict.fromkeys(spec.name.split('.', 1)[0] for spec in plant_table().specs())
+    assert 'top-level keys of plant_node: ' + ', '.join(list(heads) + list(OTHER_HEADS)) in msg
+    # the node's own refusal of the same name, for comparison
+    [node] = unknown_given('plant_node', ['sed'], PLANT, ros_sources(
+        ['plant_node', '--ros-args', '--params-file', str(path)]))
+    assert "'sed'" in node and "did you mean 'seed'?" in node
+
+
+@pytest.mark.parametrize('text', [
+    'controller_node:\n  ros__parameters:\n    use_sim_time: true\n',
+    'trajectory_node:\n  ros__parameters:\n    qos_overrides:\n      /x:\n        depth: 5\n',
+    '/**:\n  ros__parameters:\n    other_nodes_name: 1\n',
+    'stage_servo:\n  ros__parameters:\n    anything: 1\n',
+])
+def test_what_rclpy_or_other_nodes_read_is_still_accepted_offline(tmp_path, text):
+    from piezo_stage_ros.core.config.loader import load_loop_config
+    path = tmp_path / 'ok.yaml'
+    path.write_text(text)
+    load_loop_config([CONFIG / 'default.yaml', path])

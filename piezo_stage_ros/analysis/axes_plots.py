@@ -15,7 +15,9 @@
 """
 PNG figures of a multi-axis run (a bag of several axes).
 
-- ``error_<axis>.png``: each axis' tracking error versus time (the one-axis figure);
+- ``error_<axis>.png``: each axis' tracking error versus time (the one-axis figure); for an
+  open-loop run, which has no reference, ``response_<axis>.png`` instead: the axis' command and
+  its position versus time;
 - ``frame_error.png``: a raster frame's error as images, the fast and the slow axis, rows the
   lines (slow axis up) from the fast axis' low turn-around, columns the time along a line:
   trace, then retrace (:func:`~piezo_stage_ros.core.loop.axes.frame_images`);
@@ -31,11 +33,19 @@ from pathlib import Path
 
 from matplotlib.figure import Figure
 import numpy as np
-from piezo_stage_ros.analysis.plots import _DPI, _save, plot_error
+from piezo_stage_ros.analysis.plots import (
+    _DPI,
+    _envelope,
+    _new,
+    _relative_time,
+    _save,
+    dress,
+    plot_error,
+)
 from piezo_stage_ros.core.loop.axes import frame_images, GratingImage, line_start
 from piezo_stage_ros.core.loop.record import RunRecord
 
-__all__ = ['plot_axes_run', 'plot_frame_error', 'plot_grating']
+__all__ = ['plot_axes_run', 'plot_frame_error', 'plot_grating', 'plot_response']
 
 
 def plot_frame_error(fast: RunRecord, slow: RunRecord, path: Path, *, lines: int,
@@ -138,10 +148,39 @@ def plot_grating(grating: GratingImage, path: Path, *, title: str = '') -> Path:
     return _save(fig, path)
 
 
+def plot_response(record: RunRecord, path: Path, title: str = '') -> Path:
+    """
+    Draw an axis' command [V] and position [um] versus time, one above the other.
+
+    Parameters
+    ----------
+    record : RunRecord
+        One axis of an open-loop run.
+    path : Path
+        PNG file to write.
+    title : str
+        Figure title.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    """
+    fig, (top, bottom) = _new(2, height=6.0)
+    t = _relative_time(record)
+    top.plot(*_envelope(t, record.command_v), color='tab:green', lw=0.8)
+    top.set_title(title)
+    dress(top, None, 'command [V]')
+    bottom.plot(*_envelope(t, record.position_m * 1e6), color='tab:red', lw=0.8)
+    dress(bottom, 'time [s]', 'position [µm]')
+    return _save(fig, path)
+
+
 def plot_axes_run(records: Sequence[RunRecord], outdir: Path, *, title: str = '',
                   fast_axis: str | None = None, slow_axis: str | None = None,
-                  lines: int | None = None, grating: GratingImage | None = None
-                  ) -> dict[str, Path]:
+                  lines: int | None = None, grating: GratingImage | None = None,
+                  open_loop: bool = False) -> dict[str, Path]:
     """
     Draw the figures of a multi-axis run into a directory.
 
@@ -160,11 +199,14 @@ def plot_axes_run(records: Sequence[RunRecord], outdir: Path, *, title: str = ''
         A raster's lines per frame.
     grating : GratingImage, optional
         The grating imaged over the frame.
+    open_loop : bool
+        An open-loop run (no reference): each axis' command and position instead of its error.
 
     Returns
     -------
     dict of str to Path
-        ``error_<axis>`` per axis, ``frame_error`` and ``grating`` where drawn.
+        ``error_<axis>`` (``response_<axis>`` for an open-loop run) per axis, ``frame_error``
+        and ``grating`` where drawn.
 
     """
     outdir.mkdir(parents=True, exist_ok=True)
@@ -172,6 +214,10 @@ def plot_axes_run(records: Sequence[RunRecord], outdir: Path, *, title: str = ''
     files = {}
     by_name = {str(r.meta['axis']): r for r in records}
     for name, rec in by_name.items():
+        if open_loop:
+            files[f'response_{name}'] = plot_response(
+                rec, outdir / f'response_{name}.png', f'{prefix}axis {name}: open loop')
+            continue
         files[f'error_{name}'] = plot_error(rec, outdir / f'error_{name}.png',
                                             f'{prefix}axis {name}: tracking error')
     if grating is not None and fast_axis in by_name and slow_axis in by_name and lines:

@@ -24,11 +24,12 @@ its last second, every axis over all samples, with a note.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 import math
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from piezo_stage_ros.analysis.bagread import ProgressCallback, read_axes
 from piezo_stage_ros.core.contracts.errors import PiezoStageError
 from piezo_stage_ros.core.loop.axes import (
@@ -39,10 +40,77 @@ from piezo_stage_ros.core.loop.axes import (
 )
 from piezo_stage_ros.core.loop.record import RunRecord
 
-__all__ = ['AxesAnalysis', 'analyze_axes_bag', 'axes_summary_json', 'format_axes_summary']
+__all__ = ['AxesAnalysis', 'analyze_axes_bag', 'axes_summary_json', 'format_axes_summary',
+           'open_loop_summary', 'OpenLoopAxis']
 
 #: Pitch of the synthetic grating imaged over a raster frame [m].
 GRATING_PITCH_M = 1e-6
+
+
+@dataclass(frozen=True)
+class OpenLoopAxis:
+    """
+    What one axis of an open-loop run did over the window: no reference, so no error.
+
+    Attributes
+    ----------
+    command_mean_v, command_rms_v : float
+        The command's mean and its rms about the mean [V].
+    position_mean_m, position_rms_m, position_peak_to_peak_m : float
+        The measured position's mean, rms about the mean and peak to peak [m].
+    excited : bool
+        Whether the command varies (the axis driven; the others hold a constant command).
+
+    """
+
+    command_mean_v: float
+    command_rms_v: float
+    position_mean_m: float
+    position_rms_m: float
+    position_peak_to_peak_m: float
+    excited: bool
+
+
+def open_loop_summary(records: list[RunRecord], window_s: float
+                      ) -> dict[str, OpenLoopAxis] | None:
+    """
+    Return each axis' excitation and response over the last ``window_s`` of an open-loop run.
+
+    Parameters
+    ----------
+    records : list of RunRecord
+        One per axis (``meta['axis']``).
+    window_s : float
+        Window length at the end of the run [s].
+
+    Returns
+    -------
+    dict of str to OpenLoopAxis, or None
+        Per axis name; None when any axis has a reference (a closed-loop run, measured by its
+        error instead).
+
+    """
+    if not records or not all(np.all(np.isnan(r.reference_m)) for r in records):
+        return None
+    out = {}
+    for rec in records:
+        n = len(rec)
+        dt = float(rec.meta.get('sample_time_s', 0.0)) or (
+            float(rec.time_s[1] - rec.time_s[0]) if n > 1 else 1.0)
+        first = max(n - int(round(window_s / dt)), 0)
+        u = np.asarray(rec.command_v[first:], dtype=np.float64)
+        y = np.asarray(rec.position_m[first:], dtype=np.float64)
+        y = y[np.isfinite(y)]
+        # about the first sample, so that a constant signal has exactly zero spread
+        u, u0 = (u - u[0], float(u[0])) if u.size else (u, 0.0)
+        y, y0 = (y - y[0], float(y[0])) if y.size else (y, 0.0)
+        out[str(rec.meta.get('axis', ''))] = OpenLoopAxis(
+            command_mean_v=u0 + float(np.mean(u)), command_rms_v=float(np.std(u)),
+            position_mean_m=y0 + float(np.mean(y)) if y.size else math.nan,
+            position_rms_m=float(np.std(y)) if y.size else math.nan,
+            position_peak_to_peak_m=float(np.ptp(y)) if y.size else math.nan,
+            excited=bool(np.ptp(u) > 0.0) if u.size else False)
+    return out
 
 
 @dataclass
@@ -69,6 +137,9 @@ class AxesAnalysis:
         The grating imaged over the last whole frame of a raster.
     notes : list of str
         What a reader should know (no description, no whole frame ...).
+    open_loop : dict of str to OpenLoopAxis, or None
+        An open-loop run (no reference on any axis, e.g. a coupling run of ``identify_axes``):
+        what each axis was driven with and how it moved, in place of the error.
 
     """
 
@@ -81,6 +152,7 @@ class AxesAnalysis:
     lines: int | None = None
     grating: GratingImage | None = None
     notes: list[str] = field(default_factory=list)
+    open_loop: dict[str, OpenLoopAxis] | None = None
 
     @property
     def name(self) -> str:
@@ -140,7 +212,8 @@ def analyze_axes_bag(path: str | Path, *, namespace: str | None = None,
     fast = str(meta['fast_axis']) if raster and meta.get('fast_axis') else None
     slow = str(meta['slow_axis']) if raster and meta.get('slow_axis') else None
     lines = int(meta['lines']) if raster and isinstance(meta.get('lines'), int) else None
-    if scan is None:
+    open_loop = open_loop_summary(records, float(window_s))
+    if scan is None and open_loop is None:
         notes.append('no run description in the bag: every axis measured over all samples of '
                      'the window (no raster fast axis known)')
     fraction = meta.get('line_fraction', LINE_FRACTION)
@@ -161,7 +234,7 @@ def analyze_axes_bag(path: str | Path, *, namespace: str | None = None,
         except PiezoStageError as err:
             notes.append(f'no grating image: {err}')
     return AxesAnalysis(Path(path), records, metrics, float(window_s), fast, slow, lines,
-                        grating, notes)
+                        grating, notes, open_loop)
 
 
 def axes_summary_json(analysis: AxesAnalysis) -> dict[str, Any]:
@@ -172,6 +245,13 @@ def axes_summary_json(analysis: AxesAnalysis) -> dict[str, Any]:
         'scan': meta.get('scan'), 'window_s': analysis.window_s,
         'samples': len(analysis.records[0]), 'fast_axis': analysis.fast_axis,
         'slow_axis': analysis.slow_axis, 'lines': analysis.lines, 'notes': analysis.notes}
+    if analysis.open_loop is not None:
+        out['open_loop'] = {
+            'experiment': meta.get('experiment'),
+            'excited': [k for k, v in analysis.open_loop.items() if v.excited],
+            'axes': {k: {f.name: _finite(getattr(v, f.name)) if f.type == 'float'
+                         else getattr(v, f.name) for f in fields(v)}
+                     for k, v in analysis.open_loop.items()}}
     g = analysis.grating
     if g is not None:
         out['grating'] = {'pitch_m': g.pitch_m, 'source': g.source,
@@ -198,6 +278,9 @@ def format_axes_summary(analysis: AxesAnalysis) -> str:
            f'({", ".join(str(r.meta["axis"]) for r in analysis.records)}), scan '
            f'{meta.get("scan", "unknown")}, storage {meta.get("storage")}',
            f'last {analysis.window_s:g} s:']
+    if analysis.open_loop is not None:
+        return '\n'.join(out[:1] + _open_loop_lines(analysis, str(meta.get('experiment', '')))
+                         + [f'note: {n}' for n in analysis.notes])
     for name, m in analysis.metrics.items():
         out.append(f'  {name} ({m["window"]}): e_rms = {m["e_rms_m"] * 1e9:.2f} nm, e_m = '
                    f'{m["e_max_m"] * 1e9:.2f} nm; true position: e_rms = '
@@ -211,3 +294,24 @@ def format_axes_summary(analysis: AxesAnalysis) -> str:
                    f'{g.rms_y_m[1] * 1e9:.2f} nm rms along {analysis.slow_axis}')
     out += [f'note: {n}' for n in analysis.notes]
     return '\n'.join(out)
+
+
+def _open_loop_lines(analysis: AxesAnalysis, experiment: str) -> list[str]:
+    runs = analysis.open_loop or {}
+    excited = [k for k, v in runs.items() if v.excited]
+    source = runs[excited[0]] if len(excited) == 1 else None
+    out = [f'no reference: open-loop run{f" ({experiment})" if experiment else ""}, no '
+           'tracking error; ' + (f'{", ".join(excited)} excited' if excited else
+                                 'no axis excited (every command constant)'),
+           f'last {analysis.window_s:g} s:']
+    for name, a in runs.items():
+        drive = (f'command {a.command_mean_v:.4g} V mean, {a.command_rms_v:.4g} V rms about it'
+                 if a.excited else f'command {a.command_mean_v:.4g} V, constant')
+        line = (f'  {name} ({"excited" if a.excited else "held"}): {drive}; position '
+                f'{a.position_mean_m * 1e6:.4g} um mean, {a.position_rms_m * 1e9:.4g} nm rms '
+                f'about it, {a.position_peak_to_peak_m * 1e9:.4g} nm peak to peak')
+        if source is not None and not a.excited and source.position_rms_m > 0.0:
+            line += (f' ({100.0 * a.position_rms_m / source.position_rms_m:.3g} % of '
+                     f"{excited[0]}'s rms; the coupling per path: identify_axes --from-bags)")
+        out.append(line)
+    return out

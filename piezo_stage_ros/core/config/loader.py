@@ -85,22 +85,23 @@ import sys
 from typing import Any, Iterable, Mapping
 
 from piezo_stage_ros.core.config.nodes import (
+    closest_name,
     ControllerNodeParams,
     Group,
     NodeTable,
     PlantNodeParams,
     TrajectoryNodeParams,
 )
-from piezo_stage_ros.core.contracts.errors import ConfigError
+from piezo_stage_ros.core.contracts.errors import ConfigError, ParameterError
 from piezo_stage_ros.core.control.controllers import ControllerParams
 from piezo_stage_ros.core.control.stability import StabilityParams
 from piezo_stage_ros.core.loop.trajectories import check_sampling, TrajectoryParams
 from piezo_stage_ros.core.model.stage import PlantParams, StageParams
 import yaml
 
-__all__ = ['Config', 'LoopConfig', 'TABLES', 'controller_table', 'design_plant', 'find_config',
-           'flatten', 'load_config', 'load_loop_config', 'merge_overrides', 'nest', 'plant_table',
-           'trajectory_table', 'validate']
+__all__ = ['check_heads', 'Config', 'LoopConfig', 'OTHER_HEADS', 'TABLES', 'controller_table',
+           'design_plant', 'find_config', 'flatten', 'load_config', 'load_loop_config',
+           'merge_overrides', 'nest', 'plant_table', 'trajectory_table', 'validate']
 
 
 # --------------------------------------------------------------------------------------------
@@ -338,6 +339,45 @@ def trajectory_table() -> NodeTable:
 TABLES = {'plant_node': plant_table, 'controller_node': controller_table,
           'trajectory_node': trajectory_table}
 
+#: Top-level names a node section may hold besides its table's: what rclpy declares itself or
+#: reads on request, and the multi-axis names the offline runner reads.
+OTHER_HEADS = ('use_sim_time', 'qos_overrides', 'axes', 'scan')
+
+
+def check_heads(config: Config) -> None:
+    """
+    Refuse a name in a node's own section whose first dotted part the node does not know.
+
+    The tables refuse an unknown name under one of their groups; a name outside every group
+    (``sed: 3`` for ``seed: 3``) would otherwise be left out unread, where the node refuses it.
+    Wildcard (``/**``) values are not checked: they may be meant for another node.
+
+    Parameters
+    ----------
+    config : Config
+        The files' sections.
+
+    Raises
+    ------
+    ParameterError
+        Naming the node, the name and the allowed top-level names.
+
+    """
+    for node, make in TABLES.items():
+        table = make()
+        heads = list(dict.fromkeys(spec.name.split('.', 1)[0] for spec in table.specs()))
+        for name, value in config.sections.get(node, {}).items():
+            head = name.split('.', 1)[0]
+            if head in heads or head in OTHER_HEADS:
+                continue
+            close = closest_name(name, [spec.name for spec in table.specs()])
+            hint = f"did you mean '{close}'? " if close else ''
+            allowed = ', '.join(heads + list(OTHER_HEADS))
+            raise ParameterError(f'{node} {name}', value, f'{hint}a name under one of the '
+                                 f'top-level keys of {node}: {allowed} '
+                                 '(docs/reference/ros-interface.md)',
+                                 'is not a parameter of this node')
+
 
 def validate(config: Config) -> dict[str, Any]:
     """
@@ -357,10 +397,11 @@ def validate(config: Config) -> dict[str, Any]:
     Raises
     ------
     ParameterError
-        On the first bad value, or an unknown name under a known group, of any node, or a
-        trajectory the sample rate cannot draw.
+        On the first bad value, or an unknown name (:func:`check_heads`, or under a known
+        group) of any node, or a trajectory the sample rate cannot draw.
 
     """
+    check_heads(config)
     stage, plant_node = plant_table().build(plant_table().select(config.node('plant_node')))
     table = controller_table()
     controller, stability, controller_node = table.build(
