@@ -36,7 +36,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Sequence
 
-import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.contracts.interfaces import Trajectory
 from piezo_stage_ros.core.contracts.wire import NS_PER_S
@@ -332,7 +331,3 @@ class AxesControllerLogic:
         """Return the counters."""
         return {'steps': self.steps, 'duplicates': self.duplicates}
 
-
-def as_floats(values: Any) -> list[float]:
-    """Return a message's array field (array.array, list, ndarray) as a list of floats."""
-    return np.asarray(values, dtype=np.float64).tolist()  # type: ignore[no-any-return]
