@@ -66,6 +66,7 @@ from piezo_stage_ros.nodes.tables import (
     controller_table,
     NodeTable,
     plant_table,
+    scan_table,
     trajectory_table,
 )
 from piezo_stage_ros.nodes.tables import (
@@ -148,11 +149,13 @@ class _AxesNode(Node):
         # the multi-axis names given to this node, each described as the table's parameter it
         # overrides for one axis (axes.<axis>.<name>); refused at run time like the rest
         base = {d.name: d for d in table.declarations()}
+        scan = {d.name: d for d in scan_table().declarations()}
         out = {}
         for name, given in sorted(getattr(self, '_parameter_overrides', {}).items()):
             if not name.startswith(MULTI_AXIS_PREFIXES):
                 continue
-            decl = base.get(name.split('.', 2)[-1]) if name.startswith('axes.') else None
+            decl = base.get(name.split('.', 2)[-1]) if name.startswith('axes.') else \
+                scan.get(name)
             desc = descriptor(dataclasses.replace(decl, name=name, read_only=True)) \
                 if decl is not None else ParameterDescriptor(
                     name=name, read_only=True, dynamic_typing=True,
