@@ -35,8 +35,8 @@ from piezo_stage_ros.nodes.axes_logic import (
 import pytest
 
 
-def loop_of(name, mode=None):
-    loop = axes_loop_config(read_config([name]))
+def loop_of(name, mode=None, params=()):
+    loop = axes_loop_config(read_config([name], params))
     if mode is not None:
         loop = loop.replace(controllers=tuple(c.replace(feedforward=c.feedforward.replace(
             mode=mode)) for c in loop.controllers))
@@ -101,6 +101,17 @@ def test_the_node_logic_in_lockstep_is_the_offline_runner_bit_for_bit(name, mode
         assert np.array_equal(got['command'][:, j], rec.command_v)
     # the run is not trivial: every axis moves and is driven
     assert np.all(np.ptp(got['command'], axis=0) > 0.0)
+
+
+@pytest.mark.parametrize('kind', ['lissajous', 'spiral', 'moves', 'each'])
+def test_every_scan_kind_runs_on_the_node_logic_as_offline(kind):
+    loop = loop_of('xy_stage.yaml', 'none', [f'trajectory_node:scan.kind={kind}'])
+    records = offline(loop, 0.02)
+    got = nodes_in_lockstep(loop, 0.02)
+    for j, rec in enumerate(records):
+        assert np.array_equal(got['reference'][:, j], rec.reference_m)
+        assert np.array_equal(got['command'][:, j], rec.command_v)
+        assert np.array_equal(got['position'][:, j], rec.position_m)
 
 
 def test_a_sample_of_another_number_of_axes_is_refused_with_the_count():
