@@ -44,16 +44,27 @@ import time
 from typing import Any, Callable, Sequence
 import warnings
 
+import numpy as np
 from piezo_stage_ros.core.config.axes import axes_loop_config, AxesLoopConfig, has_axes
 from piezo_stage_ros.core.config.loader import load_config
 from piezo_stage_ros.core.config.unknown import MULTI_AXIS_PREFIXES
 from piezo_stage_ros.core.contracts import wire
+from piezo_stage_ros.core.contracts.cdr import (
+    CdrError,
+    decode_joint_state_message,
+    decode_multi_array,
+    encode_clock,
+    encode_multi_array,
+    JointStateEncoder,
+    JointStateMessage,
+)
 from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
 from piezo_stage_ros.core.control.axes import AxesController, coupled_loop_check
 from piezo_stage_ros.core.control.stability import enforce
 from piezo_stage_ros.core.model.axes import AxesStage
 from piezo_stage_ros.nodes import qos
 from piezo_stage_ros.nodes.axes_logic import (
+    AxesCommand,
     AxesControllerLogic,
     AxesPlantLogic,
     AxesSample,
@@ -78,7 +89,7 @@ from rclpy.node import Node
 from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+from std_msgs.msg import Float64MultiArray
 
 __all__ = ['AxesControllerNode', 'AxesPlantNode', 'AxesTrajectoryNode', 'axes_factories',
            'refuse_direct']
@@ -88,18 +99,8 @@ def _refuse_change(old: Sequence[Any], new: Sequence[Any]) -> None:
     raise PiezoStageError('a stage of several axes takes no parameter change at run time')
 
 
-def _stamp_ns(msg: Any) -> int:
-    return int(msg.header.stamp.sec) * wire.NS_PER_S + int(msg.header.stamp.nanosec)
-
-
-def _joint_state(stamp_ns: int, names: list[str], position: Sequence[float],
-                 velocity: Sequence[float] = ()) -> JointState:
-    msg = JointState()
-    msg.header.stamp.sec, msg.header.stamp.nanosec = wire.ns_to_stamp(stamp_ns)
-    msg.name = names
-    msg.position = list(position)
-    msg.velocity = list(velocity)
-    return msg
+def _stamp_ns(msg: JointStateMessage) -> int:
+    return msg.sec * wire.NS_PER_S + msg.nanosec
 
 
 class _AxesNode(Node):
@@ -172,16 +173,25 @@ class _AxesNode(Node):
                                  + (', '.join(self.files) or 'no parameter file'),
                                  exc.reason) from None
 
-    def _values(self, msg: JointState, field: str) -> list[float] | None:
+    def _dropped(self, text: str) -> None:
+        self.malformed += 1
+        self.get_logger().warning(f'{text}: dropped', throttle_duration_sec=1.0)
+
+    def _decode(self, data: bytes, topic: str) -> JointStateMessage | None:
+        """Return a JointState's bytes decoded, or None (counted) if malformed."""
+        try:
+            return decode_joint_state_message(data)
+        except CdrError as exc:
+            self._dropped(f'{topic}: {exc}')
+            return None
+
+    def _values(self, msg: JointStateMessage, field: str) -> list[float] | None:
         """Return a JointState's ``field`` in the axis order, or None (counted) if malformed."""
         try:
-            values = getattr(msg, field)
-            index = [list(msg.name).index(j) for j in self.joints]
-            return [float(values[i]) for i in index]
+            values = getattr(msg, field).tolist()
+            return [values[msg.names.index(j)] for j in self.joints]
         except (ValueError, IndexError):
-            self.malformed += 1
-            self.get_logger().warning(f'a JointState without the joints {self.joints} in its '
-                                      f'{field}: dropped', throttle_duration_sec=1.0)
+            self._dropped(f'a JointState without the joints {self.joints} in its {field}')
             return None
 
 
@@ -203,11 +213,14 @@ class AxesPlantNode(_AxesNode):
         self.logic = AxesPlantLogic(AxesStage(self.loop.stage), sample_rate_hz=self.rate_hz,
                                     duration_s=opts.duration_s, resend_s=opts.lockstep.resend_s)
         self.finished = Future()
+        # CDR bytes out and in (core/contracts/cdr.py), as the one-axis nodes
+        self._encoder = JointStateEncoder(self.joints)
         self._pub = self.create_publisher(JointState, wire.POSITION, qos.LOOP_OUT)
         self._true_pub = self.create_publisher(JointState, wire.TRUE_POSITION, qos.LOOP_OUT)
         self._clock_pub = self.create_publisher(ClockMsg, wire.CLOCK, qos.CLOCK)
         self._clock_gate: Callable[[], bool] = Gate(self._clock_pub.get_subscription_count)
-        self.create_subscription(Float64MultiArray, wire.COMMAND, self._on_command, qos.LOOP)
+        self.create_subscription(Float64MultiArray, wire.COMMAND, self._on_command, qos.LOOP,
+                                 raw=True)
         self._matched_at: float | None = None
         self._t_start = 0.0
         self._timer = self.create_timer(0.005, self._tick,
@@ -218,13 +231,11 @@ class AxesPlantNode(_AxesNode):
             + (f', {self.logic.total} samples' if self.logic.total else ''))
 
     def _publish(self, sample: AxesSample) -> None:
+        sec, nanosec = wire.ns_to_stamp(sample.stamp_ns)
         if self._clock_gate():
-            clock = ClockMsg()
-            clock.clock.sec, clock.clock.nanosec = wire.ns_to_stamp(sample.stamp_ns)
-            self._clock_pub.publish(clock)
-        self._pub.publish(_joint_state(sample.stamp_ns, self.joints, sample.positions_m))
-        self._true_pub.publish(_joint_state(sample.stamp_ns, self.joints,
-                                            sample.true_positions_m))
+            self._clock_pub.publish(encode_clock(sec, nanosec))
+        self._pub.publish(self._encoder.encode(sec, nanosec, sample.positions_m))
+        self._true_pub.publish(self._encoder.encode(sec, nanosec, sample.true_positions_m))
 
     def _tick(self) -> None:
         try:
@@ -246,15 +257,17 @@ class AxesPlantNode(_AxesNode):
         except Exception as exc:  # noqa: BLE001 -- any fault ends the run with it
             self._fault(exc)
 
-    def _on_command(self, msg: Float64MultiArray) -> None:
-        if len(msg.data) != self.logic.n:
-            self.malformed += 1
-            self.get_logger().warning(f'{wire.COMMAND}: {len(msg.data)} entries for '
-                                      f'{self.logic.n} axes: dropped',
-                                      throttle_duration_sec=1.0)
+    def _on_command(self, data: bytes) -> None:
+        try:
+            commands = decode_multi_array(data)[2].tolist()
+        except CdrError as exc:
+            self._dropped(f'{wire.COMMAND}: {exc}')
+            return
+        if len(commands) != self.logic.n:
+            self._dropped(f'{wire.COMMAND}: {len(commands)} entries for {self.logic.n} axes')
             return
         try:
-            sample = self.logic.on_command(list(msg.data), time.monotonic())
+            sample = self.logic.on_command(commands, time.monotonic())
             if sample is not None:
                 self._publish(sample)
             elif self.logic.done:
@@ -299,14 +312,17 @@ class AxesTrajectoryNode(_AxesNode):
         opts = self.binding.objects[1]
         self.logic = AxesTrajectoryLogic(self.loop.trajectories(), sample_rate_hz=self.rate_hz,
                                          chunk_s=opts.chunk_s, names=self.names)
+        self._encoder = JointStateEncoder(self.joints, with_velocity=True)
         self._pub = self.create_publisher(JointState, wire.REFERENCE, qos.LOOP_OUT)
-        self.create_subscription(JointState, wire.POSITION, self._on_position, qos.LOOP)
+        self.create_subscription(JointState, wire.POSITION, self._on_position, qos.LOOP,
+                                 raw=True)
         self.get_logger().info(f'scan {self.loop.scan.kind} over the axes {list(self.names)}')
 
-    def _on_position(self, msg: JointState) -> None:
-        stamp = _stamp_ns(msg)
-        ref, vel = self.logic.on_position(stamp)
-        self._pub.publish(_joint_state(stamp, self.joints, ref, vel))
+    def _on_position(self, data: bytes) -> None:
+        msg = self._decode(data, wire.POSITION)
+        if msg is not None:
+            ref, vel = self.logic.on_position(_stamp_ns(msg))
+            self._pub.publish(self._encoder.encode(msg.sec, msg.nanosec, ref, vel))
 
 
 class AxesControllerNode(_AxesNode):
@@ -337,26 +353,27 @@ class AxesControllerNode(_AxesNode):
         (log.info if ok else log.warning)(
             check.text() + '; coupling compensation on '
             + (', '.join(self.names[j] for j in ctrl.compensated) or 'no axis'))
-        self._dims = [MultiArrayDimension(label=label, size=size, stride=stride)
-                      for label, size, stride in wire.axes_command_dims(len(self.names))]
+        self._dims = wire.axes_command_dims(len(self.names))
         self._pub = self.create_publisher(Float64MultiArray, wire.COMMAND, qos.LOOP_OUT)
-        self.create_subscription(JointState, wire.POSITION, self._on_position, qos.LOOP)
-        self.create_subscription(JointState, wire.REFERENCE, self._on_reference, qos.LOOP)
+        self.create_subscription(JointState, wire.POSITION, self._on_position, qos.LOOP,
+                                 raw=True)
+        self.create_subscription(JointState, wire.REFERENCE, self._on_reference, qos.LOOP,
+                                 raw=True)
 
-    def _publish(self, out: Any) -> None:
-        if out is None:
-            return
-        msg = Float64MultiArray()
-        msg.layout.dim = self._dims
-        msg.data = list(out.commands_v)
-        self._pub.publish(msg)
+    def _publish(self, out: AxesCommand | None) -> None:
+        if out is not None:
+            self._pub.publish(encode_multi_array(self._dims, np.array(out.commands_v)))
 
-    def _on_position(self, msg: JointState) -> None:
-        values = self._values(msg, 'position')
-        if values is not None:
+    def _on_position(self, data: bytes) -> None:
+        msg = self._decode(data, wire.POSITION)
+        values = self._values(msg, 'position') if msg is not None else None
+        if msg is not None and values is not None:
             self._publish(self.logic.on_position(_stamp_ns(msg), values))
 
-    def _on_reference(self, msg: JointState) -> None:
+    def _on_reference(self, data: bytes) -> None:
+        msg = self._decode(data, wire.REFERENCE)
+        if msg is None:
+            return
         ref, vel = self._values(msg, 'position'), self._values(msg, 'velocity')
         if ref is not None and vel is not None:
             self._publish(self.logic.on_reference(_stamp_ns(msg), ref, vel))
