@@ -22,62 +22,33 @@ environment where this package is installed; skipped with the reason otherwise.
 
 from __future__ import annotations
 
-from pathlib import Path
-import tempfile
 import threading
 import time
 import unittest
 
+from launch_support import closed_loop
+import launch_testing.asserts
 import numpy as np
+from piezo_stage_ros.cli import read_config
+from piezo_stage_ros.core.config.axes import axes_loop_config
+from piezo_stage_ros.core.control.axes import AxesController
+from piezo_stage_ros.core.loop.axes import run_axes
+from piezo_stage_ros.core.model.axes import AxesStage
 import pytest
-
-pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not importable here')
-pytest.importorskip('launch_testing', reason='launch_testing is not installed')
-ament_index = pytest.importorskip('ament_index_python.packages',
-                                  reason='ament_index_python is not installed')
-try:
-    SHARE = Path(ament_index.get_package_share_directory('piezo_stage_ros'))
-except ament_index.PackageNotFoundError:
-    pytest.skip('piezo_stage_ros is not installed in the ament index (colcon build it first)',
-                allow_module_level=True)
-
-from launch.launch_description_sources import PythonLaunchDescriptionSource  # noqa: E402
-import launch_testing.actions  # noqa: E402
-import launch_testing.asserts  # noqa: E402
-from piezo_stage_ros.cli import read_config  # noqa: E402
-from piezo_stage_ros.core.config.axes import axes_loop_config  # noqa: E402
-from piezo_stage_ros.core.control.axes import AxesController  # noqa: E402
-from piezo_stage_ros.core.loop.axes import run_axes  # noqa: E402
-from piezo_stage_ros.core.model.axes import AxesStage  # noqa: E402
-import rclpy  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
-from std_msgs.msg import Float64MultiArray  # noqa: E402
-
-import launch  # noqa: E402
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
 
 SAMPLES = 500
 PROBE_QOS = QoSProfile(depth=5 * SAMPLES, reliability=ReliabilityPolicy.RELIABLE)
-# the probe is a third subscriber to the positions: the plant waits for it before sample 0
-OVERRIDES = """
-plant_node:
-  ros__parameters:
-    lockstep:
-      subscribers: 3
-"""
 
 
 @pytest.mark.launch_test
 def generate_test_description():
-    overrides = Path(tempfile.mkdtemp(prefix='pz_launch_')) / 'overrides.yaml'
-    overrides.write_text(OVERRIDES)
-    included = launch.actions.IncludeLaunchDescription(
-        PythonLaunchDescriptionSource(str(SHARE / 'launch' / 'closed_loop.launch.py')),
-        launch_arguments={'config': 'xy_stage.yaml', 'mode': 'lockstep',
-                          'duration_s': str(SAMPLES / 10_000), 'composed': 'false',
-                          'overrides': str(overrides), 'end_with_plant': 'false'}.items())
-    return launch.LaunchDescription([included, launch_testing.actions.ReadyToTest()])
+    return closed_loop({'config': 'xy_stage.yaml', 'mode': 'lockstep',
+                        'duration_s': str(SAMPLES / 10_000), 'composed': 'false'})
 
 
 class TestAxesLoop(unittest.TestCase):
