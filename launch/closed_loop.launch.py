@@ -46,7 +46,9 @@ The files are read and validated once here by the loader every command uses
 before any process starts. The controller's stability check runs against the plant model the plant
 node runs, as ``simulate`` does: all three nodes get one merged parameter file, and the controller
 takes the design model from its plant_node section (``stability.design_model: plant``, the
-default; docs/reference/ros-interface.md). When the plant ends its run the launch ends.
+default; docs/reference/ros-interface.md). When the plant ends its run the launch ends. A file
+with plant_node ``axes.names`` (``config:=xy_stage.yaml``) runs the nodes of several axes, in
+lockstep only (``mode:=realtime`` and ``direct:=true`` are refused here).
 """
 
 # ruff takes `launch` for this repository's launch/ folder; for ament (flake8) it is the
@@ -223,9 +225,10 @@ def _launch(context: LaunchContext) -> list[Any]:
         blocks = (not lockstep and arg['composed'].lower() == 'true'
                   and arg['direct'].lower() == 'true' and checked.plant_node.recording.block)
         topics = BLOCK_RECORDED_TOPICS if blocks else RECORDED_TOPICS
-        # several axes: the model's true positions too, as the offline runner's bag has them
-        cmd += ['--topics'] + [prefix + t for t in (*topics, TRUE_POSITION) if axes or
-                               t != TRUE_POSITION]
+        if axes:
+            # the model's true positions too, as the offline runner's multi-axis bag has them
+            topics = (*topics, TRUE_POSITION)
+        cmd += ['--topics'] + [prefix + t for t in topics]
         actions.append(ExecuteProcess(cmd=cmd, output='screen'))
     if arg['end_with_plant'].lower() == 'true':
         # the plant's run is complete (or failed): end the whole launch, the recorder included
