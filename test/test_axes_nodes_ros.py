@@ -179,3 +179,25 @@ def test_a_bad_per_axis_value_is_refused_naming_it(capsys):
         '--params-file', f)], '-p', 'plant_node:axes.y.seed:=-3'])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and 'seed' in err[-1] and '-3' in err[-1]
+
+
+def test_the_multi_axis_parameters_are_declared_and_take_no_change(context):
+    plant, nodes = nodes_of(context, 0.01)
+    trajectory = nodes[2]
+    try:
+        assert list(plant.get_parameter('axes.names').value) == ['x', 'y']
+        assert plant.get_parameter('axes.y.seed').value == 1
+        assert list(plant.get_parameter('axes.coupling.gain').value) == [0.0, 0.02, 0.0, 0.0]
+        assert trajectory.get_parameter('scan.raster.lines').value == 64
+        assert trajectory.get_parameter('scan.raster.slow_axis').value == 'y'
+        # described as the one-axis parameter they override, read-only
+        desc = plant.describe_parameter('axes.y.seed')
+        assert desc.read_only and 'seed' in desc.description.lower()
+        for node, name, value in ((plant, 'axes.y.seed', 2), (plant, 'seed', 2),
+                                  (trajectory, 'scan.raster.lines', 32)):
+            [result] = node.set_parameters([Parameter(name, value=value)])
+            assert not result.successful, name
+        assert plant.get_parameter('seed').value == 0
+    finally:
+        for node in nodes:
+            node.destroy_node()

@@ -155,8 +155,13 @@ class _AxesNode(Node):
         for name, given in sorted(getattr(self, '_parameter_overrides', {}).items()):
             if not name.startswith(MULTI_AXIS_PREFIXES):
                 continue
-            decl = base.get(name.split('.', 2)[-1]) if name.startswith('axes.') else \
-                scan.get(name)
+            parts = name.split('.', 2)
+            if parts[0] == 'scan':
+                decl = scan.get(name)
+            elif len(parts) == 3 and parts[1] not in ('coupling', 'names'):
+                decl = base.get(parts[2])  # axes.<axis>.<name>
+            else:
+                decl = None
             desc = descriptor(dataclasses.replace(decl, name=name, read_only=True)) \
                 if decl is not None else ParameterDescriptor(
                     name=name, read_only=True, dynamic_typing=True,
