@@ -46,7 +46,9 @@ The files are read and validated once here by the loader every command uses
 before any process starts. The controller's stability check runs against the plant model the plant
 node runs, as ``simulate`` does: all three nodes get one merged parameter file, and the controller
 takes the design model from its plant_node section (``stability.design_model: plant``, the
-default; docs/reference/ros-interface.md). When the plant ends its run the launch ends.
+default; docs/reference/ros-interface.md). When the plant ends its run the launch ends. A file
+with plant_node ``axes.names`` (``config:=xy_stage.yaml``) runs the nodes of several axes, in
+lockstep only (``mode:=realtime`` and ``direct:=true`` are refused here).
 """
 
 # ruff takes `launch` for this repository's launch/ folder; for ament (flake8) it is the
@@ -71,11 +73,16 @@ from launch.events import Shutdown
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 from piezo_stage_ros.cli import choices
-from piezo_stage_ros.core.config.axes import has_axes
+from piezo_stage_ros.core.config.axes import axes_loop_config, has_axes
 from piezo_stage_ros.core.config.loader import Config, find_config, load_config, LoopConfig
 from piezo_stage_ros.core.config.nodes import MODES
 from piezo_stage_ros.core.control.controllers import ControllerParams
-from piezo_stage_ros.core.contracts.wire import BLOCK_RECORDED_TOPICS, RECORDED_TOPICS
+from piezo_stage_ros.core.contracts.wire import (
+    BLOCK_RECORDED_TOPICS,
+    RECORDED_TOPICS,
+    TRUE_POSITION,
+)
+from piezo_stage_ros.nodes.axes_logic import refuse_axes_mode
 import yaml
 
 ARGUMENTS = {
@@ -110,6 +117,18 @@ def _unflatten(values: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
+class _Dumper(yaml.SafeDumper):
+    """YAML that ROS reads back as written: rcl takes a bare y or n for a boolean."""
+
+
+def _string(dumper: yaml.SafeDumper, text: str) -> yaml.ScalarNode:
+    style = "'" if text in ('y', 'Y', 'n', 'N') else None
+    return dumper.represent_scalar('tag:yaml.org,2002:str', text, style=style)
+
+
+_Dumper.add_representer(str, _string)
+
+
 def _parameter_file(config: Config, per_node: Mapping[str, Mapping[str, Any]]) -> str:
     """
     Write one parameter file with a section per node and return its path.
@@ -125,7 +144,7 @@ def _parameter_file(config: Config, per_node: Mapping[str, Mapping[str, Any]]) -
         doc[f'/**/{node}'] = {'ros__parameters': _unflatten(values)}
     handle, path = tempfile.mkstemp(prefix='piezo_stage_', suffix='.yaml')
     with os.fdopen(handle, 'w', encoding='utf-8') as stream:
-        yaml.safe_dump(doc, stream, default_flow_style=False, sort_keys=False)
+        yaml.dump(doc, stream, Dumper=_Dumper, default_flow_style=False, sort_keys=False)
     return path
 
 
@@ -139,10 +158,11 @@ def _launch(context: LaunchContext) -> list[Any]:
                          + ', '.join(repr(m) for m in MODES))
     lockstep = mode == 'lockstep'
     config = load_config(files)
-    if has_axes(config):
-        raise ValueError(', '.join(files) + ': a multi-axis stage (plant_node axes.names), which '
-                         'runs offline (python -m piezo_stage_ros.simulate --config FILE), not '
-                         'yet on the nodes')
+    axes = has_axes(config)
+    if axes:
+        refused = refuse_axes_mode('launch', mode, direct=arg['direct'].lower() == 'true')
+        if refused is not None:
+            raise ValueError(', '.join(files) + f': {refused}')
     sim_time = lockstep and arg['sim_time'].lower() == 'true'
     common = {'mode': mode, 'use_sim_time': sim_time}
     # the plant owns simulation time: its own clock need not follow /clock
@@ -159,6 +179,10 @@ def _launch(context: LaunchContext) -> list[Any]:
     checked = LoopConfig.from_config(config.with_overrides('plant_node', plant)
                                      .with_overrides('controller_node', controller)
                                      .with_overrides('trajectory_node', trajectory))
+    if axes:
+        axes_loop_config(config.with_overrides('plant_node', plant)
+                         .with_overrides('controller_node', controller)
+                         .with_overrides('trajectory_node', trajectory))
     params = _parameter_file(config, {'plant_node': plant, 'controller_node': controller,
                                       'trajectory_node': trajectory})
     ns = arg['namespace']
@@ -200,8 +224,11 @@ def _launch(context: LaunchContext) -> list[Any]:
         # messages a second) and leaves the per-sample topics to live subscribers
         blocks = (not lockstep and arg['composed'].lower() == 'true'
                   and arg['direct'].lower() == 'true' and checked.plant_node.recording.block)
-        cmd += ['--topics'] + [prefix + t for t in (BLOCK_RECORDED_TOPICS if blocks
-                                                     else RECORDED_TOPICS)]
+        topics = BLOCK_RECORDED_TOPICS if blocks else RECORDED_TOPICS
+        if axes:
+            # the model's true positions too, as the offline runner's multi-axis bag has them
+            topics = (*topics, TRUE_POSITION)
+        cmd += ['--topics'] + [prefix + t for t in topics]
         actions.append(ExecuteProcess(cmd=cmd, output='screen'))
     if arg['end_with_plant'].lower() == 'true':
         # the plant's run is complete (or failed): end the whole launch, the recorder included

@@ -224,12 +224,9 @@ def bag_meta(loop: AxesLoopConfig, out: dict[str, Any], records: Sequence[Any]
 
 def _check_axes(loop: AxesLoopConfig, trajectories: Sequence[Any]) -> dict[str, bool]:
     """Check each axis' own loop as simulate does (warn on stderr, or refuse on request)."""
-    from piezo_stage_ros.core.control.stability import check_stability, enforce
+    from piezo_stage_ros.core.control.stability import enforce
     out = {}
-    for name, sp, cp, tr in zip(loop.stage.names, loop.stage.axes, loop.controllers,
-                                trajectories):
-        report = check_stability(cp, sp.plant, sp.sample_time_s, options=loop.base.stability,
-                                 period_s=getattr(tr, 'period_s', None), stage=sp)
+    for name, report in loop.stability(trajectories).items():
         with warnings.catch_warnings():
             warnings.simplefilter('ignore')  # printed below as one line
             enforce(report, loop.base.stability.action)

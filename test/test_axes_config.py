@@ -105,10 +105,9 @@ def test_simulate_refuses_what_it_cannot_do_for_several_axes_yet(capsys, tmp_pat
 
 @pytest.mark.parametrize('name', ['xy_stage.yaml', 'xyz_stage.yaml'])
 def test_a_multi_axis_file_is_not_a_one_axis_node_file(name):
-    # the nodes do not run several axes yet: validated strictly as a node file (as
-    # test_nodes_logic validates the others), the axes are refused by name. ROS itself ignores
-    # a parameter no node declares, so a node started with such a file would still run axis x
-    # on the base parameters: the nodes of several axes are to declare axes.names
+    # validated strictly as a one-axis node file (as test_nodes_logic validates the others),
+    # the axes are refused by name: the one-axis tables do not hold them, the nodes of several
+    # axes (nodes/axes_nodes.py, made for a file with plant_node axes.names) declare them
     from piezo_stage_ros.core.config.loader import load_config, plant_table
     config = load_config(['config/default.yaml', f'config/{name}'])
     values = {k: v for k, v in config.node('plant_node').items() if k != 'use_sim_time'}

@@ -24,7 +24,12 @@ numbers and dates belong to the results pages (docs/results*.md) and CHANGELOG.r
 from pathlib import Path
 import re
 
-from piezo_stage_ros.nodes.tables import controller_table, plant_table, trajectory_table
+from piezo_stage_ros.nodes.tables import (
+    axes_markdown,
+    controller_table,
+    plant_table,
+    trajectory_table,
+)
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -46,7 +51,8 @@ HEADING = re.compile(r'^#{1,6}\s+(.*?)\s*#*\s*$', re.MULTILINE)
 
 
 def generated() -> str:
-    return '\n'.join(t.markdown() for t in (plant_table(), controller_table(), trajectory_table()))
+    return '\n'.join([*(t.markdown() for t in (plant_table(), controller_table(),
+                                                 trajectory_table())), axes_markdown()])
 
 
 def test_parameter_tables_are_current():

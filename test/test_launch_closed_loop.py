@@ -23,58 +23,28 @@ installed executables); skipped with the reason otherwise.
 
 from __future__ import annotations
 
-from pathlib import Path
-import tempfile
 import threading
 import time
 import unittest
 
+from launch_support import closed_loop
+import launch_testing.asserts
 import pytest
-
-pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not importable here')
-pytest.importorskip('launch_testing', reason='launch_testing is not installed')
-ament_index = pytest.importorskip('ament_index_python.packages',
-                                  reason='ament_index_python is not installed')
-try:
-    SHARE = Path(ament_index.get_package_share_directory('piezo_stage_ros'))
-except ament_index.PackageNotFoundError:
-    pytest.skip('piezo_stage_ros is not installed in the ament index (colcon build it first)',
-                allow_module_level=True)
-
-from launch.launch_description_sources import PythonLaunchDescriptionSource  # noqa: E402
-import launch_testing.actions  # noqa: E402
-import launch_testing.asserts  # noqa: E402
-import rclpy  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
-from std_msgs.msg import Float64  # noqa: E402
-
-import launch  # noqa: E402
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64
 
 SAMPLES = 1000
 # the probe reads slower than the loop runs: a queue that holds the whole run loses nothing
 PROBE_QOS = QoSProfile(depth=5 * SAMPLES, reliability=ReliabilityPolicy.RELIABLE)
-# the probe is a third subscriber to the positions: the plant waits for it before sample 0
-OVERRIDES = """
-plant_node:
-  ros__parameters:
-    lockstep:
-      subscribers: 3
-"""
 
 
 @pytest.mark.launch_test
 def generate_test_description():
-    overrides = Path(tempfile.mkdtemp(prefix='pz_launch_')) / 'overrides.yaml'
-    overrides.write_text(OVERRIDES)
-    included = launch.actions.IncludeLaunchDescription(
-        PythonLaunchDescriptionSource(str(SHARE / 'launch' / 'closed_loop.launch.py')),
-        launch_arguments={'mode': 'lockstep', 'duration_s': '0.1', 'composed': 'false',
-                          'scenario': 'table3_pi.yaml', 'overrides': str(overrides),
-                          # the test, not the plant's end, ends this launch
-                          'end_with_plant': 'false'}.items())
-    return launch.LaunchDescription([included, launch_testing.actions.ReadyToTest()])
+    return closed_loop({'mode': 'lockstep', 'duration_s': '0.1', 'composed': 'false',
+                        'scenario': 'table3_pi.yaml'})
 
 
 class TestClosedLoop(unittest.TestCase):

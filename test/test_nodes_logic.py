@@ -73,7 +73,7 @@ def test_every_row_has_unit_description_and_a_valid_default(node):
         assert (decl.int_range is not None) == (both and spec.type_name == 'integer')
 
 
-# a multi-axis file (plant_node axes.names) is not a node file yet: test_axes_config.py
+# a multi-axis file (plant_node axes.names) is not a one-axis node file: test_axes_config.py
 SCENARIOS = sorted(p.name for p in CONFIG.glob('*.yaml') if p.name not in ('default.yaml',
                                                                            'record_qos.yaml')
                    and not has_axes(load_config([p])))

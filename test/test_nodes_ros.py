@@ -455,7 +455,8 @@ def test_a_rebuild_after_a_refused_trajectory_binds_the_one_the_loop_kept(contex
     assert ff.output_limits_v[1] == 9.5 and ff.period_s == 1 / 100.0
 
 
-CONFIG_DIR = __import__('pathlib').Path(__file__).resolve().parents[1] / 'config'
+Path = __import__('pathlib').Path
+CONFIG_DIR = Path(__file__).resolve().parents[1] / 'config'
 
 
 def test_a_misspelt_override_is_refused_before_the_loop_with_the_closest_name(capsys):
@@ -467,16 +468,17 @@ def test_a_misspelt_override_is_refused_before_the_loop_with_the_closest_name(ca
     assert "did you mean 'rac.gamma'?" in err[-1]
 
 
-def test_the_multi_axis_file_is_refused_by_the_nodes(capsys):
-    # rcl's own parser cannot read xy_stage.yaml (it reads the axis name y as a boolean, quoted
-    # or not, so the launch file's merged file too): the line says why it cannot run here
+def test_a_multi_axis_file_rcl_cannot_read_is_refused_saying_why(capsys, tmp_path):
+    # rcl's own parser cannot read bare axis names (it reads y as a boolean): the line says
+    # what to quote (the package's files quote them; the nodes run those: test_axes_nodes_ros)
+    bare = tmp_path / 'bare.yaml'
+    bare.write_text((CONFIG_DIR / 'xy_stage.yaml').read_text().replace("['x', 'y']", '[x, y]'))
     code = stage_servo.main(['stage_servo', '--ros-args', '--params-file',
-                             str(CONFIG_DIR / 'default.yaml'), '--params-file',
-                             str(CONFIG_DIR / 'xy_stage.yaml')])
+                             str(CONFIG_DIR / 'default.yaml'), '--params-file', str(bare)])
     err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and 'xy_stage.yaml' in err[-1] and "'axes.names'" in err[-1]
-    assert 'multi-axis' in err[-1] and 'simulate --config FILE' in err[-1]
-    # a multi-axis key rcl can read reaches the node, which refuses it before its loop
+    assert code == 2 and 'bare.yaml' in err[-1] and "'axes.names'" in err[-1]
+    assert 'multi-axis' in err[-1] and "names: ['x', 'y']" in err[-1]
+    # a multi-axis key rcl can read given to the one-axis nodes is refused before their loop
     code = stage_servo.main(['stage_servo', '--ros-args', '-p',
                              'controller_node:axes.coupling_compensation:=true'])
     err = capsys.readouterr().err.strip().splitlines()
@@ -492,7 +494,7 @@ def test_a_good_file_and_overrides_for_every_node_still_run(capfd):
     assert code == 0, err
 
 
-def test_the_launch_file_refuses_a_multi_axis_scenario_before_any_process_starts():
+def test_the_launch_file_runs_a_multi_axis_scenario_in_lockstep_only():
     import importlib.util
 
     from launch.actions import DeclareLaunchArgument
@@ -508,8 +510,21 @@ def test_the_launch_file_refuses_a_multi_axis_scenario_before_any_process_starts
             action.visit(context)
     context.launch_configurations.update({'config': str(CONFIG_DIR / 'default.yaml'),
                                           'scenario': str(CONFIG_DIR / 'xy_stage.yaml')})
-    with pytest.raises(ValueError, match='multi-axis.*simulate --config FILE'):
+    assert module._launch(context)
+    # the merged parameter file ROS reads holds the axis names as strings (rcl reads a bare y
+    # as true)
+    from piezo_stage_ros.core.config.loader import load_config
+    path = module._parameter_file(load_config([CONFIG_DIR / 'default.yaml',
+                                               CONFIG_DIR / 'xy_stage.yaml']),
+                                  {'plant_node': {}, 'trajectory_node': {}})
+    text = Path(path).read_text()
+    Path(path).unlink()
+    assert "- 'y'" in text and "slow_axis: 'y'" in text
+    # real time with several axes is the servo's: refused before any process starts
+    context.launch_configurations['mode'] = 'realtime'
+    with pytest.raises(ValueError, match="xy_stage.yaml: .*lockstep only.*mode 'realtime'"):
         module._launch(context)
+    context.launch_configurations['mode'] = 'lockstep'
     # the one-axis default still gives its processes
     context.launch_configurations['scenario'] = ''
     assert module._launch(context)

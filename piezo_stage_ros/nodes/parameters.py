@@ -156,8 +156,9 @@ def multi_axis_hint(argv: Sequence[str]) -> str:
     """
     Return why a parameter file rcl could not read may be a multi-axis one, or ''.
 
-    rcl's parser refuses some multi-axis files itself (``names: [x, y]``: YAML reads ``y`` as a
-    boolean) before a node could say that they run offline.
+    rcl's parser refuses a multi-axis file with bare axis names itself (``names: [x, y]``: it
+    reads ``y`` as a boolean, and an array of mixed types is an error) before a node could
+    read it; quoted names are strings.
     """
     try:
         sources = ros_sources(argv)
@@ -166,7 +167,7 @@ def multi_axis_hint(argv: Sequence[str]) -> str:
     for source in sources:
         names = [n for n in source.names if n.startswith(MULTI_AXIS_PREFIXES)]
         if names:
-            return (f' ({source.where} has {names[0]!r}: a multi-axis stage, which runs '
-                    'offline (python -m piezo_stage_ros.simulate --config FILE), not yet on '
-                    'the nodes)')
+            return (f' ({source.where} has {names[0]!r}: a multi-axis stage; ROS reads a '
+                    "bare axis name y or n as a boolean: quote the names, names: ['x', 'y'], "
+                    "and a slow_axis: 'y')")
     return ''

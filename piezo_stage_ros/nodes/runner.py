@@ -34,6 +34,7 @@ from typing import Any, Callable, Protocol, Sequence, TypeVar
 
 from piezo_stage_ros.core.contracts.cdr import CdrError
 from piezo_stage_ros.core.contracts.errors import PiezoStageError
+from piezo_stage_ros.nodes.axes_nodes import axes_factories, refuse_direct
 from piezo_stage_ros.nodes.parameters import check_undeclared, multi_axis_hint
 import rclpy
 from rclpy.exceptions import ParameterException
@@ -187,6 +188,10 @@ def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
 
     """
     args = list(sys.argv if argv is None else argv)
+    axes = axes_factories(args, [name for name, _ in factories])
+    if axes is not None:
+        # files that describe a stage of several axes: its nodes, in lockstep
+        factories, connect = axes, (refuse_direct if connect is not None else None)
     parser = argparse.ArgumentParser(prog=prog, description=description)
     names = [name for name, _ in factories]
     parser.add_argument('--nodes', default=','.join(names),

@@ -50,13 +50,15 @@ from piezo_stage_ros.core.config.nodes import (
 from piezo_stage_ros.core.config.unknown import ros_options
 from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.control.stability import StabilityParams
+from piezo_stage_ros.core.loop.scan2d import ScanParams
 from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryBase
 from piezo_stage_ros.core.model.hysteresis import HysteresisModel, make_hysteresis
 from piezo_stage_ros.core.model.stage import PlantParams
 
 __all__ = ['BridgeParams', 'ControllerNodeParams', 'Declaration', 'Group', 'LockstepParams',
            'MODES', 'NodeTable', 'PlantNodeParams', 'TrajectoryNodeParams', 'controller_table',
-           'declaration', 'design_model', 'params_files', 'plant_table', 'trajectory_table']
+           'axes_markdown', 'declaration', 'design_model', 'params_files', 'plant_table',
+           'scan_table', 'trajectory_table']
 
 
 def params_files(argv: Sequence[str]) -> list[str]:
@@ -157,10 +159,44 @@ def feedforward_context(files: Sequence[str]
             {'period_s': reference.period_s, 'stage': loop.stage})
 
 
+def scan_table() -> NodeTable:
+    """Return the trajectory node's scan over several axes (``scan.*``, read at start-up)."""
+    return NodeTable('trajectory_node, several axes', [Group(ScanParams, 'scan.', frozen=True)])
+
+
+_AXES_ROWS = (
+    ('plant_node', 'axes.names', 'string array', 'one, two or three of x, y, z (quoted: ROS '
+     'reads a bare y as true), each once', 'The axes; given, the nodes run several axes.'),
+    ('plant_node', 'axes.coupling.gain', 'double array', 'n x n, row-major, row i driving '
+     'column j', 'DC coupling from the driving axis to the moved one [m/m].'),
+    ('plant_node', 'axes.coupling.resonance_hz', 'double array', 'n x n, 0: none',
+     'Coupled resonance of each path [Hz].'),
+    ('plant_node', 'axes.coupling.damping', 'double array', 'n x n', 'Its damping [-].'),
+    ('plant_node', 'axes.coupling.sensor_crosstalk', 'double array', 'n x n',
+     'Sensor cross-talk [m/m].'),
+    ('controller_node', 'axes.coupling_compensation', 'bool', 'true, false',
+     'The model inverse of the coupling in the feed-forward.'),
+    ('every node', 'axes.<axis>.<name>', 'as `<name>`', 'as `<name>`',
+     "Overrides the node's parameter `<name>` for one axis."),
+)
+
+
+def axes_markdown() -> str:
+    """Return the multi-axis parameters as Markdown: the names above every node's tables."""
+    lines = ['#### Several axes', '',
+             'Read at start-up only (read-only), from the files with plant_node `axes.names`; '
+             "every node's own parameters are the base of each axis.", '',
+             '| node | name | type | allowed | description |', '| --- | --- | --- | --- | --- |']
+    lines += [f'| {node} | `{name}` | {kind} | {allowed} | {text} |'
+              for node, name, kind, allowed, text in _AXES_ROWS]
+    return '\n'.join(lines) + '\n\n' + scan_table().markdown()
+
+
 def main() -> int:
-    """Print the three tables as Markdown (``python3 -m piezo_stage_ros.nodes.tables``)."""
+    """Print the node tables as Markdown (``python3 -m piezo_stage_ros.nodes.tables``)."""
     for table in (plant_table(), controller_table(), trajectory_table()):
         print(table.markdown())
+    print(axes_markdown())
     return 0
 
 

@@ -49,13 +49,14 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any, Mapping, TypeVar
+from typing import Any, Mapping, Sequence, TypeVar
 
 from piezo_stage_ros.core.config.loader import Config, LoopConfig
 from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.contracts.interfaces import Trajectory
 from piezo_stage_ros.core.contracts.params import Params
 from piezo_stage_ros.core.control.controllers import ControllerParams
+from piezo_stage_ros.core.control.stability import check_stability, StabilityReport
 from piezo_stage_ros.core.loop.scan2d import make_scan, ScanParams
 from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
 from piezo_stage_ros.core.model.axes import AxesStageParams, check_axis_names, CouplingParams
@@ -109,6 +110,28 @@ class AxesLoopConfig:
     def replace(self, **changes: Any) -> AxesLoopConfig:
         """Return a copy with some fields changed."""
         return dataclasses.replace(self, **changes)
+
+    def stability(self, trajectories: Sequence[Trajectory]) -> dict[str, StabilityReport]:
+        """
+        Return each axis' own loop checked as the one-axis loop is, by axis name.
+
+        Parameters
+        ----------
+        trajectories : sequence of Trajectory
+            One per axis (:meth:`trajectories`): a learning axis is checked over its period.
+
+        Returns
+        -------
+        dict of str to StabilityReport
+            In the axis order (:func:`~piezo_stage_ros.core.control.stability.enforce` acts on
+            each as ``base.stability.action`` says).
+
+        """
+        return {name: check_stability(cp, sp.plant, sp.sample_time_s,
+                                      options=self.base.stability,
+                                      period_s=getattr(tr, 'period_s', None), stage=sp)
+                for name, sp, cp, tr in zip(self.stage.names, self.stage.axes,
+                                            self.controllers, trajectories)}
 
 
 def _per_axis(base: _P, section: Mapping[str, Any], names: tuple[str, ...], node: str,

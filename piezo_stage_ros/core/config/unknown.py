@@ -169,8 +169,10 @@ def unknown_given(node: str, given: Iterable[str], declared: Collection[str],
                         f'node{hint} (its parameters: docs/reference/ros-interface.md)')
     if multi_axis:
         messages.insert(0, f'{node}: ' + ', '.join(multi_axis) + ' describe a multi-axis '
-                        'stage, which runs offline (python -m piezo_stage_ros.simulate '
-                        '--config FILE), not yet on the nodes: give the nodes a one-axis file')
+                        'stage, which the nodes run (in lockstep) when their parameter files '
+                        'give plant_node axes.names, and offline (python -m '
+                        'piezo_stage_ros.simulate --config FILE); these reached a one-axis '
+                        'node: give the nodes the whole multi-axis file')
     return messages
 
 

@@ -45,8 +45,9 @@ from piezo_stage_ros.core.loop.metrics import error_metrics
 from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.model.axes import AxesStage
 
-__all__ = ['LINE_FRACTION', 'AxisMetrics', 'GratingImage', 'axis_metrics', 'frame_images',
-           'grating_image', 'line_start', 'middle_of_lines', 'run_axes', 'run_metrics']
+__all__ = ['LINE_FRACTION', 'AxisMetrics', 'GratingImage', 'axes_references', 'axis_metrics',
+           'frame_images', 'grating_image', 'line_start', 'middle_of_lines', 'run_axes',
+           'run_metrics']
 
 #: Share of a raster line's range over which its fast axis is measured (the turn-arounds, where
 #: no image is taken, left out).
@@ -120,16 +121,8 @@ def run_axes(stage: AxesStage, controller: AxesController,
     k0 = 0
     while k0 < total:
         m = min(per_chunk, total - k0)
-        time_s = np.arange(k0, k0 + m, dtype=np.float64) * dt
-        for j, tr in enumerate(trajectories):
-            r, v = tr.evaluate(time_s)
-            r, v = np.asarray(r, dtype=np.float64), np.asarray(v, dtype=np.float64)
-            if r.shape != time_s.shape or v.shape != time_s.shape:
-                raise PiezoStageError(f'trajectory of axis {stage.names[j]!r} returned '
-                                      f'arrays of shape {r.shape} and {v.shape}, expected '
-                                      f'{time_s.shape}')
-            ref[k0:k0 + m, j] = r
-            vel[k0:k0 + m, j] = v
+        ref[k0:k0 + m], vel[k0:k0 + m] = axes_references(trajectories, k0, m, dt,
+                                                         stage.names)
         refs = ref[k0:k0 + m].tolist()
         vels = vel[k0:k0 + m].tolist()
         ys: list[list[float]] = []
@@ -159,6 +152,53 @@ def run_axes(stage: AxesStage, controller: AxesController,
                                  np.ascontiguousarray(cmd[:, j]), {}, m_j,
                                  np.ascontiguousarray(true[:, j])))
     return records
+
+
+def axes_references(trajectories: Sequence[Trajectory], first: int, count: int,
+                    sample_time_s: float, names: Sequence[str] = ()
+                    ) -> tuple[FloatArray, FloatArray]:
+    """
+    Return every axis' reference and its velocity over ``count`` samples from ``first``.
+
+    The samples' times are k T for k = first ... first + count - 1, computed as the loop
+    computes them, so that a caller that evaluates the same chunks (the trajectory node in
+    lockstep) gets the loop's floats.
+
+    Parameters
+    ----------
+    trajectories : sequence of Trajectory
+        One per axis.
+    first, count : int
+        The chunk's first sample and its length.
+    sample_time_s : float
+        T [s].
+    names : sequence of str
+        The axes' names, for messages.
+
+    Returns
+    -------
+    (ndarray, ndarray)
+        x_d [m] and x_d' [m/s], each of shape (count, axes).
+
+    Raises
+    ------
+    PiezoStageError
+        A trajectory that returns arrays of the wrong shape.
+
+    """
+    time_s = np.arange(first, first + count, dtype=np.float64) * sample_time_s
+    ref = np.empty((count, len(trajectories)))
+    vel = np.empty((count, len(trajectories)))
+    for j, tr in enumerate(trajectories):
+        r, v = tr.evaluate(time_s)
+        r, v = np.asarray(r, dtype=np.float64), np.asarray(v, dtype=np.float64)
+        if r.shape != time_s.shape or v.shape != time_s.shape:
+            name = names[j] if j < len(names) else str(j)
+            raise PiezoStageError(f'trajectory of axis {name!r} returned arrays of shape '
+                                  f'{r.shape} and {v.shape}, expected {time_s.shape}')
+        ref[:, j] = r
+        vel[:, j] = v
+    return ref, vel
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,333 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+What the nodes do with a stage of several axes, without rclpy: the lockstep loop over N axes.
+
+The one-axis sequence of :mod:`piezo_stage_ros.nodes.logic`, with every value of a sample one
+tuple over the axes (one message a sample and topic: a sample stays atomic):
+
+1. :class:`AxesPlantLogic` publishes y_k (every axis) stamped t_k, and the true positions;
+2. :class:`AxesTrajectoryLogic` answers x_d(t_k), x_d'(t_k) of every axis with the same stamp,
+   evaluated in the chunks of the offline runner
+   (:func:`~piezo_stage_ros.core.loop.axes.axes_references`);
+3. :class:`AxesControllerLogic`, holding y_k and x_d for the same stamp, steps every axis'
+   controller in one call and publishes u_k (every axis);
+4. the plant steps every axis on receiving u_k.
+
+The samples are those of :func:`~piezo_stage_ros.core.loop.axes.run_axes` bit for bit: the
+same stage, the same controllers bound and reset the same way, the same floats in. Only
+lockstep: real time with several axes is the servo's (not these nodes').
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.contracts.interfaces import Trajectory
+from piezo_stage_ros.core.contracts.wire import NS_PER_S
+from piezo_stage_ros.core.control.axes import AxesController
+from piezo_stage_ros.core.loop.axes import axes_references
+from piezo_stage_ros.core.model.axes import AxesStage
+from piezo_stage_ros.nodes.logic import sample_count
+
+__all__ = ['AxesCommand', 'AxesControllerLogic', 'AxesPlantLogic', 'AxesSample',
+           'AxesTrajectoryLogic', 'refuse_axes_mode']
+
+
+def refuse_axes_mode(node: str, mode: str, backend: str = 'model', direct: bool = False
+                     ) -> str | None:
+    """
+    Return why the nodes cannot run a stage of several axes so configured, else None.
+
+    Parameters
+    ----------
+    node : str
+        The node (for the message).
+    mode : str
+        Its ``mode``.
+    backend : str
+        The plant's ``backend``.
+    direct : bool
+        Whether the composition hands samples on by call (``--direct``, the servo's).
+
+    """
+    where = (f'{node}: a stage of several axes (plant_node axes.names) runs on the nodes in '
+             'lockstep only, by topics (mode: lockstep, the stage model)')
+    if mode != 'lockstep':
+        return f"{where}; mode {mode!r} is not (real time with several axes is the servo's)"
+    if backend != 'model':
+        return f'{where}; backend {backend!r} is not'
+    if direct:
+        return f"{where}; --direct (the servo's composition) is not"
+    return None
+
+
+@dataclass(frozen=True)
+class AxesSample:
+    """
+    One sample of every axis, ready to publish.
+
+    Attributes
+    ----------
+    index : int
+        k, from 0.
+    stamp_ns : int
+        t_k [ns], simulation time from 0.
+    positions_m : tuple of float
+        y_k of each axis [m], in the stage's axis order.
+    true_positions_m : tuple of float
+        x(t_k) of each axis [m] (the model's, behind the sensor).
+
+    """
+
+    index: int
+    stamp_ns: int
+    positions_m: tuple[float, ...]
+    true_positions_m: tuple[float, ...]
+
+
+class AxesPlantLogic:
+    """
+    The plant node's behaviour with several axes: owns simulation time, one sample per command.
+
+    Parameters
+    ----------
+    stage : AxesStage
+        The stage model (reset by :meth:`start`).
+    sample_rate_hz : float
+        Sample rate [Hz].
+    duration_s : float
+        Stop after ``round(duration_s * rate)`` samples (the offline runner's count); 0 runs on.
+    resend_s : float
+        Publish the waiting sample again after this long without its command [s].
+
+    """
+
+    def __init__(self, stage: AxesStage, *, sample_rate_hz: float, duration_s: float = 0.0,
+                 resend_s: float = 0.5) -> None:
+        self.stage = stage
+        self.n = stage.n
+        self.rate_hz = float(sample_rate_hz)
+        self.total = sample_count(duration_s, self.rate_hz)
+        self.resend_s = resend_s
+        self.index = -1
+        self.done = False
+        self.waiting = False
+        self.last_sample: AxesSample | None = None
+        self._last_publish_s = 0.0
+        self.resends = 0
+        self.unexpected = 0
+
+    def _sample(self, positions_m: Sequence[float]) -> AxesSample:
+        self.index += 1
+        sample = AxesSample(self.index, round(self.index * NS_PER_S / self.rate_hz),
+                            tuple(positions_m), tuple(self.stage.read_positions_m()))
+        self.last_sample = sample
+        return sample
+
+    def start(self, now_s: float) -> AxesSample:
+        """Reset the stage to its rest positions and return sample 0 (``now_s``: wall [s])."""
+        y0 = self.stage.reset(None)
+        self._last_publish_s = now_s
+        self.waiting = True
+        sample = self._sample(y0)
+        if self.total == 1:
+            self.done = True
+            self.waiting = False
+        return sample
+
+    def on_command(self, commands_v: Sequence[float], now_s: float) -> AxesSample | None:
+        """
+        Take u_k of every axis [V]; return the next sample, or None.
+
+        None once the run is complete (the last command is applied, as offline, but y_N is
+        not a sample) and for a command nobody waits for (counted in ``unexpected``).
+
+        Raises
+        ------
+        ParameterError
+            For a command of another number of axes.
+
+        """
+        if len(commands_v) != self.n:
+            raise ParameterError('stage/command', len(commands_v),
+                                 f'{self.n} entries, one per axis')
+        if not self.waiting:
+            self.unexpected += 1
+            return None
+        positions = self.stage.step([float(u) for u in commands_v])
+        self._last_publish_s = now_s
+        if self.total and self.index + 1 >= self.total:
+            self.waiting = False
+            self.done = True
+            return None
+        return self._sample(positions)
+
+    def resend_due(self, now_s: float) -> AxesSample | None:
+        """Return the waiting sample again if its command is overdue, else None."""
+        if not (self.waiting and self.last_sample is not None) or \
+                now_s - self._last_publish_s < self.resend_s:
+            return None
+        self._last_publish_s = now_s
+        self.resends += 1
+        return self.last_sample
+
+    def stop(self) -> None:
+        """End the run: later commands are counted as unexpected."""
+        self.done = True
+        self.waiting = False
+
+    def stats(self) -> dict[str, Any]:
+        """Return the counters."""
+        return {'index': self.index, 'axes': self.n, 'resends': self.resends,
+                'unexpected_commands': self.unexpected}
+
+
+class AxesTrajectoryLogic:
+    """
+    The trajectory node's behaviour with several axes: every axis' x_d and x_d' per stamp.
+
+    Parameters
+    ----------
+    trajectories : sequence of Trajectory
+        One per axis (the scan's); t = 0 at the first stamp answered.
+    sample_rate_hz : float
+        Sample rate [Hz].
+    chunk_s : float
+        Evaluate this much at a time [s], chunks aligned at the start as the offline runner's.
+    names : sequence of str
+        The axes, for messages.
+
+    """
+
+    def __init__(self, trajectories: Sequence[Trajectory], *, sample_rate_hz: float,
+                 chunk_s: float = 1.0, names: Sequence[str] = ()) -> None:
+        self.trajectories = tuple(trajectories)
+        self.names = tuple(names)
+        self.rate_hz = float(sample_rate_hz)
+        self.period_s = 1.0 / self.rate_hz
+        self.chunk = max(int(round(chunk_s / self.period_s)), 1)
+        self._start_ns: int | None = None
+        self._chunk_index = -1
+        self._ref: list[list[float]] = []
+        self._vel: list[list[float]] = []
+        self.answered = 0
+
+    def on_position(self, stamp_ns: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """Return every axis' x_d [m] and x_d' [m/s] for the sample stamped ``stamp_ns``."""
+        if self._start_ns is None:
+            self._start_ns = stamp_ns
+        index = max(round((stamp_ns - self._start_ns) * self.rate_hz / NS_PER_S), 0)
+        chunk = index // self.chunk
+        if chunk != self._chunk_index:
+            ref, vel = axes_references(self.trajectories, chunk * self.chunk, self.chunk,
+                                       self.period_s, self.names)
+            self._ref, self._vel = ref.tolist(), vel.tolist()
+            self._chunk_index = chunk
+        i = index - chunk * self.chunk
+        self.answered += 1
+        return tuple(self._ref[i]), tuple(self._vel[i])
+
+
+@dataclass(frozen=True)
+class AxesCommand:
+    """
+    Every axis' command for one sample.
+
+    Attributes
+    ----------
+    stamp_ns : int
+        Stamp of the sample it answers [ns].
+    commands_v : tuple of float
+        u_k of each axis [V], in the stage's axis order.
+
+    """
+
+    stamp_ns: int
+    commands_v: tuple[float, ...]
+
+
+class AxesControllerLogic:
+    """
+    The controller node's behaviour with several axes: pair by stamp, step every axis once.
+
+    Parameters
+    ----------
+    controller : AxesController
+        The axes' controllers, bound here to ``trajectories`` (their feed-forwards and the
+        coupling compensation read the references ahead).
+    trajectories : sequence of Trajectory
+        The references the trajectory node plays, one per axis.
+
+    Notes
+    -----
+    The first sample resets the controllers from y_0 and x_d(0), as the offline runner does.
+    A sample is stepped once: a stamp seen again (a resend) or older is counted and dropped.
+
+    """
+
+    def __init__(self, controller: AxesController, trajectories: Sequence[Trajectory]) -> None:
+        self.controller = controller
+        self.n = controller.n
+        controller.bind(trajectories)
+        self._positions: dict[int, tuple[float, ...]] = {}
+        self._refs: dict[int, tuple[tuple[float, ...], tuple[float, ...]]] = {}
+        self._last_stamp: int | None = None
+        self.steps = 0
+        self.duplicates = 0
+
+    def on_position(self, stamp_ns: int, positions_m: Sequence[float]) -> AxesCommand | None:
+        """Take y_k of every axis [m] stamped ``stamp_ns`` [ns]."""
+        self._positions[stamp_ns] = self._check('stage/position', positions_m)
+        return self._try(stamp_ns)
+
+    def on_reference(self, stamp_ns: int, references_m: Sequence[float],
+                     velocities_mps: Sequence[float]) -> AxesCommand | None:
+        """Take x_d and x_d' of every axis [m, m/s] for the sample stamped ``stamp_ns``."""
+        self._refs[stamp_ns] = (self._check('stage/reference', references_m),
+                                self._check('stage/reference velocity', velocities_mps))
+        return self._try(stamp_ns)
+
+    def _check(self, what: str, values: Sequence[float]) -> tuple[float, ...]:
+        if len(values) != self.n:
+            raise ParameterError(what, len(values), f'{self.n} entries, one per axis')
+        return tuple(float(v) for v in values)
+
+    def _try(self, stamp: int) -> AxesCommand | None:
+        y = self._positions.get(stamp)
+        ref = self._refs.get(stamp)
+        if y is None or ref is None:
+            return None
+        for pending in (self._positions, self._refs):
+            # halves older than this sample are of no use any more
+            for old in [s for s in pending if s < stamp]:
+                del pending[old]
+        if self._last_stamp is not None and stamp <= self._last_stamp:
+            self.duplicates += 1
+            return None
+        xd, vd = ref
+        if self._last_stamp is None:
+            self.controller.reset(list(y), list(xd))
+        u = self.controller.step(list(y), list(xd), list(vd))
+        self._last_stamp = stamp
+        self.steps += 1
+        return AxesCommand(stamp, tuple(u))
+
+    def stats(self) -> dict[str, int]:
+        """Return the counters."""
+        return {'steps': self.steps, 'duplicates': self.duplicates}
+

@@ -1,0 +1,423 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The three nodes for a stage of several axes, in lockstep (rclpy).
+
+A parameter file whose plant_node section has ``axes.names`` describes a stage of several axes
+(:mod:`piezo_stage_ros.core.config.axes`); the executables then make these node classes, under
+the same names, topics and parameter tables, instead of the one-axis ones (:func:`axes_factories`).
+Each node declares its one-axis table (the base of every axis) and the multi-axis names the
+files give it (``axes.*``, ``scan.*``: each described as the table's parameter it overrides),
+and builds the loop as the offline runner does from the same files
+(:func:`~piezo_stage_ros.core.config.axes.axes_loop_config`), its own section as declared.
+
+Messages: one per sample and topic, every axis in it (a sample stays atomic: one stamp, one
+message to wait for): ``stage/position``, ``stage/true_position`` and ``stage/reference`` are
+JointStates naming one joint per axis (``stage_x`` ...), ``stage/command`` a Float64MultiArray
+in the axis order with ``layout.dim`` = [{``axes``, N, N}], ros2_control's joint-group
+convention (:mod:`piezo_stage_ros.core.contracts.wire`). These are the topics of the offline
+runner's bag (:func:`~piezo_stage_ros.analysis.bagwrite.write_axes`), so that a recorder
+records the run as that bag. The behaviour is :mod:`piezo_stage_ros.nodes.axes_logic`.
+
+Lockstep only: real time, another backend than the model, or the direct composition are
+refused at start-up with the reason; the trajectory node offers no goal action and no
+start/stop services with several axes; parameters cannot change at run time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+from typing import Any, Callable, Sequence
+import warnings
+
+import numpy as np
+from piezo_stage_ros.core.config.axes import axes_loop_config, AxesLoopConfig, has_axes
+from piezo_stage_ros.core.config.loader import load_config
+from piezo_stage_ros.core.config.unknown import MULTI_AXIS_PREFIXES
+from piezo_stage_ros.core.contracts import wire
+from piezo_stage_ros.core.contracts.cdr import (
+    CdrError,
+    decode_joint_state_message,
+    decode_multi_array,
+    encode_clock,
+    encode_multi_array,
+    JointStateEncoder,
+    JointStateMessage,
+)
+from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
+from piezo_stage_ros.core.control.axes import AxesController, coupled_loop_check
+from piezo_stage_ros.core.control.stability import enforce
+from piezo_stage_ros.core.model.axes import AxesStage
+from piezo_stage_ros.nodes import qos
+from piezo_stage_ros.nodes.axes_logic import (
+    AxesCommand,
+    AxesControllerLogic,
+    AxesPlantLogic,
+    AxesSample,
+    AxesTrajectoryLogic,
+    refuse_axes_mode,
+)
+from piezo_stage_ros.nodes.logic import Gate
+from piezo_stage_ros.nodes.parameters import _plain, descriptor, ParameterBinding
+from piezo_stage_ros.nodes.tables import (
+    controller_table,
+    NodeTable,
+    plant_table,
+    scan_table,
+    trajectory_table,
+)
+from piezo_stage_ros.nodes.tables import (
+    params_files as files_of,
+)
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rclpy.task import Future
+from rosgraph_msgs.msg import Clock as ClockMsg
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+
+__all__ = ['AxesControllerNode', 'AxesPlantNode', 'AxesTrajectoryNode', 'axes_factories',
+           'refuse_direct']
+
+
+def _refuse_change(old: Sequence[Any], new: Sequence[Any]) -> None:
+    raise PiezoStageError('a stage of several axes takes no parameter change at run time')
+
+
+def _stamp_ns(msg: JointStateMessage) -> int:
+    return msg.sec * wire.NS_PER_S + msg.nanosec
+
+
+class _AxesNode(Node):
+    """
+    What the three nodes share: the tables declared, the loop built, malformed messages counted.
+
+    Parameters
+    ----------
+    name : str
+        The node's name (that of its one-axis counterpart).
+    table : NodeTable
+        Its one-axis parameter table: the base of every axis.
+    params_files : sequence of str
+        The process's parameter files; the node's own ``cli_args`` files are added.
+    **kwargs
+        Passed to :class:`rclpy.node.Node`.
+
+    Raises
+    ------
+    PiezoStageError
+        A mode the nodes cannot run with several axes, a bad value (naming it), or files that
+        describe no stage of several axes.
+
+    """
+
+    def __init__(self, name: str, table: NodeTable, params_files: Sequence[str] = (),
+                 **kwargs: Any) -> None:
+        super().__init__(name, **kwargs)
+        cli = kwargs.get('cli_args')
+        self.files = [*params_files, *(files_of(cli) if cli else [])]
+        # before the table's binding, whose check of a change knows the table's names only
+        axes = self._declare_axes(table)
+        self.binding = ParameterBinding(self, table, _refuse_change)
+        opts = self.binding.objects[-1]
+        refused = refuse_axes_mode(name, opts.mode, getattr(opts, 'backend', 'model'))
+        if refused is not None:
+            raise PiezoStageError(refused)
+        own = {d.name: _plain(self.get_parameter(d.name).value) for d in table.declarations()}
+        own.update(axes)
+        self.loop: AxesLoopConfig = self._loop(own)
+        self.names = self.loop.stage.names
+        self.joints = list(wire.axis_joint_names(self.names))
+        self.rate_hz = float(self.loop.stage.axes[0].sample_rate_hz)
+        self.malformed = 0
+
+    def _declare_axes(self, table: NodeTable) -> dict[str, Any]:
+        # the multi-axis names given to this node, each described as the table's parameter it
+        # overrides for one axis (axes.<axis>.<name>); refused at run time like the rest
+        base = {d.name: d for d in table.declarations()}
+        scan = {d.name: d for d in scan_table().declarations()}
+        out = {}
+        for name, given in sorted(getattr(self, '_parameter_overrides', {}).items()):
+            if not name.startswith(MULTI_AXIS_PREFIXES):
+                continue
+            parts = name.split('.', 2)
+            if parts[0] == 'scan':
+                decl = scan.get(name)
+            elif len(parts) == 3 and parts[1] not in ('coupling', 'names'):
+                decl = base.get(parts[2])  # axes.<axis>.<name>
+            else:
+                decl = None
+            desc = descriptor(dataclasses.replace(decl, name=name, read_only=True)) \
+                if decl is not None else ParameterDescriptor(
+                    name=name, read_only=True, dynamic_typing=True,
+                    description='multi-axis stage (docs/reference/ros-interface.md)')
+            out[name] = _plain(self.declare_parameter(name, given.value, desc).value)
+        return out
+
+    def _loop(self, own: dict[str, Any]) -> AxesLoopConfig:
+        name = self.get_name()
+        try:
+            return axes_loop_config(load_config(self.files).with_overrides(name, own))
+        except ParameterError as exc:
+            raise ParameterError(exc.name, exc.value, f'{exc.allowed}; read from '
+                                 + (', '.join(self.files) or 'no parameter file'),
+                                 exc.reason) from None
+
+    def _dropped(self, text: str) -> None:
+        self.malformed += 1
+        self.get_logger().warning(f'{text}: dropped', throttle_duration_sec=1.0)
+
+    def _decode(self, data: bytes, topic: str) -> JointStateMessage | None:
+        """Return a JointState's bytes decoded, or None (counted) if malformed."""
+        try:
+            return decode_joint_state_message(data)
+        except CdrError as exc:
+            self._dropped(f'{topic}: {exc}')
+            return None
+
+    def _values(self, msg: JointStateMessage, field: str) -> list[float] | None:
+        """Return a JointState's ``field`` in the axis order, or None (counted) if malformed."""
+        try:
+            values = getattr(msg, field).tolist()
+            return [values[msg.names.index(j)] for j in self.joints]
+        except (ValueError, IndexError):
+            self._dropped(f'a JointState without the joints {self.joints} in its {field}')
+            return None
+
+
+class AxesPlantNode(_AxesNode):
+    """
+    The stage model of several axes in lockstep: one sample of every axis per command.
+
+    Attributes
+    ----------
+    finished : rclpy.task.Future
+        Done (with the counters) when the run of ``duration_s`` is complete, or failed.
+
+    """
+
+    def __init__(self, *, params_files: Sequence[str] = (), **kwargs: Any) -> None:
+        super().__init__('plant_node', plant_table(), params_files, **kwargs)
+        opts = self.binding.objects[1]
+        self.opts = opts
+        self.logic = AxesPlantLogic(AxesStage(self.loop.stage), sample_rate_hz=self.rate_hz,
+                                    duration_s=opts.duration_s, resend_s=opts.lockstep.resend_s)
+        self.finished = Future()
+        # CDR bytes out and in (core/contracts/cdr.py), as the one-axis nodes
+        self._encoder = JointStateEncoder(self.joints)
+        self._pub = self.create_publisher(JointState, wire.POSITION, qos.LOOP_OUT)
+        self._true_pub = self.create_publisher(JointState, wire.TRUE_POSITION, qos.LOOP_OUT)
+        self._clock_pub = self.create_publisher(ClockMsg, wire.CLOCK, qos.CLOCK)
+        self._clock_gate: Callable[[], bool] = Gate(self._clock_pub.get_subscription_count)
+        self.create_subscription(Float64MultiArray, wire.COMMAND, self._on_command, qos.LOOP,
+                                 raw=True)
+        self._matched_at: float | None = None
+        self._t_start = 0.0
+        self._timer = self.create_timer(0.005, self._tick,
+                                        clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.get_logger().info(
+            f'lockstep at {self.rate_hz:g} Hz, {self.logic.n} axes {list(self.names)}, plant '
+            f'{self.loop.stage.axes[0].plant.model}'
+            + (f', {self.logic.total} samples' if self.logic.total else ''))
+
+    def _publish(self, sample: AxesSample) -> None:
+        sec, nanosec = wire.ns_to_stamp(sample.stamp_ns)
+        if self._clock_gate():
+            self._clock_pub.publish(encode_clock(sec, nanosec))
+        self._pub.publish(self._encoder.encode(sec, nanosec, sample.positions_m))
+        self._true_pub.publish(self._encoder.encode(sec, nanosec, sample.true_positions_m))
+
+    def _tick(self) -> None:
+        try:
+            now = time.monotonic()
+            if self.logic.index < 0:
+                lockstep = self.opts.lockstep
+                if self._matched_at is None and \
+                        self._pub.get_subscription_count() >= lockstep.subscribers:
+                    self._matched_at = now
+                if self._matched_at is not None and now - self._matched_at >= lockstep.settle_s:
+                    self._t_start = now
+                    self._publish(self.logic.start(now))
+                    if self.logic.done:
+                        self._finish()
+                return
+            again = self.logic.resend_due(now)
+            if again is not None:
+                self._publish(again)
+        except Exception as exc:  # noqa: BLE001 -- any fault ends the run with it
+            self._fault(exc)
+
+    def _on_command(self, data: bytes) -> None:
+        try:
+            commands = decode_multi_array(data)[2].tolist()
+        except CdrError as exc:
+            self._dropped(f'{wire.COMMAND}: {exc}')
+            return
+        if len(commands) != self.logic.n:
+            self._dropped(f'{wire.COMMAND}: {len(commands)} entries for {self.logic.n} axes')
+            return
+        try:
+            sample = self.logic.on_command(commands, time.monotonic())
+            if sample is not None:
+                self._publish(sample)
+            elif self.logic.done:
+                self._finish()
+        except Exception as exc:  # noqa: BLE001
+            self._fault(exc)
+
+    def stats(self) -> dict[str, Any]:
+        """Return the counters and the loop rate reached."""
+        out = self.logic.stats()
+        elapsed = time.monotonic() - self._t_start if self._t_start else 0.0
+        out.update({'malformed': self.malformed, 'wall_s': round(elapsed, 6),
+                    'samples_per_s': round((self.logic.index + 1) / elapsed, 1)
+                    if elapsed > 0 else 0.0})
+        return out
+
+    def _finish(self) -> None:
+        if self.finished.done():
+            return
+        self._timer.cancel()
+        self.logic.stop()
+        stats = self.stats()
+        self.get_logger().info('run complete: ' + ', '.join(f'{k} {v}'
+                                                            for k, v in stats.items()))
+        self.finished.set_result(stats)
+
+    def _fault(self, exc: BaseException) -> None:
+        self._timer.cancel()
+        self.logic.stop()
+        if not self.context.ok() or self.finished.done():
+            return
+        self.get_logger().error(f'fault: {exc}')
+        self.finished.set_exception(exc if isinstance(exc, PiezoStageError)
+                                    else PiezoStageError(repr(exc)))
+
+
+class AxesTrajectoryNode(_AxesNode):
+    """Every axis' reference (the scan of the files) for each position's stamp."""
+
+    def __init__(self, *, params_files: Sequence[str] = (), **kwargs: Any) -> None:
+        super().__init__('trajectory_node', trajectory_table(), params_files, **kwargs)
+        opts = self.binding.objects[1]
+        self.logic = AxesTrajectoryLogic(self.loop.trajectories(), sample_rate_hz=self.rate_hz,
+                                         chunk_s=opts.chunk_s, names=self.names)
+        self._encoder = JointStateEncoder(self.joints, with_velocity=True)
+        self._pub = self.create_publisher(JointState, wire.REFERENCE, qos.LOOP_OUT)
+        self.create_subscription(JointState, wire.POSITION, self._on_position, qos.LOOP,
+                                 raw=True)
+        self.get_logger().info(f'scan {self.loop.scan.kind} over the axes {list(self.names)}')
+
+    def _on_position(self, data: bytes) -> None:
+        msg = self._decode(data, wire.POSITION)
+        if msg is not None:
+            ref, vel = self.logic.on_position(_stamp_ns(msg))
+            self._pub.publish(self._encoder.encode(msg.sec, msg.nanosec, ref, vel))
+
+
+class AxesControllerNode(_AxesNode):
+    """
+    Every axis' controller, stepped together; checked at start as the offline runner checks.
+
+    Raises
+    ------
+    StabilityError
+        An axis' own loop unstable on its design model with ``stability.action: refuse``.
+
+    """
+
+    def __init__(self, *, params_files: Sequence[str] = (), **kwargs: Any) -> None:
+        super().__init__('controller_node', controller_table(), params_files, **kwargs)
+        loop = self.loop
+        trajectories = loop.trajectories()
+        ctrl = AxesController.build(loop.controllers, loop.stage, compensate=loop.compensate)
+        log = self.get_logger()
+        for name, report in loop.stability(trajectories).items():
+            with warnings.catch_warnings():
+                warnings.simplefilter('ignore')  # logged below
+                text = enforce(report, loop.base.stability.action)
+            (log.info if report.stable else log.warning)(f'axis {name}: {text}')
+        self.logic = AxesControllerLogic(ctrl, trajectories)
+        check = coupled_loop_check(ctrl)
+        ok = check.certified and (check.learning_ratio is None or check.learning_ratio < 1.0)
+        (log.info if ok else log.warning)(
+            check.text() + '; coupling compensation on '
+            + (', '.join(self.names[j] for j in ctrl.compensated) or 'no axis'))
+        self._dims = wire.axes_command_dims(len(self.names))
+        self._pub = self.create_publisher(Float64MultiArray, wire.COMMAND, qos.LOOP_OUT)
+        self.create_subscription(JointState, wire.POSITION, self._on_position, qos.LOOP,
+                                 raw=True)
+        self.create_subscription(JointState, wire.REFERENCE, self._on_reference, qos.LOOP,
+                                 raw=True)
+
+    def _publish(self, out: AxesCommand | None) -> None:
+        if out is not None:
+            self._pub.publish(encode_multi_array(self._dims, np.array(out.commands_v)))
+
+    def _on_position(self, data: bytes) -> None:
+        msg = self._decode(data, wire.POSITION)
+        values = self._values(msg, 'position') if msg is not None else None
+        if msg is not None and values is not None:
+            self._publish(self.logic.on_position(_stamp_ns(msg), values))
+
+    def _on_reference(self, data: bytes) -> None:
+        msg = self._decode(data, wire.REFERENCE)
+        if msg is None:
+            return
+        ref, vel = self._values(msg, 'position'), self._values(msg, 'velocity')
+        if ref is not None and vel is not None:
+            self._publish(self.logic.on_reference(_stamp_ns(msg), ref, vel))
+
+
+_CLASSES: dict[str, type[_AxesNode]] = {'plant': AxesPlantNode, 'controller': AxesControllerNode,
+                                        'trajectory': AxesTrajectoryNode}
+
+
+def axes_factories(argv: Sequence[str], names: Sequence[str]
+                   ) -> list[tuple[str, Callable[[], Node]]] | None:
+    """
+    Return the multi-axis node factories for a command line whose files describe several axes.
+
+    Parameters
+    ----------
+    argv : sequence of str
+        The process's command line (its ``--params-file`` files are read).
+    names : sequence of str
+        The short names wanted (``plant``, ``controller``, ``trajectory``), in order.
+
+    Returns
+    -------
+    list of (str, callable) or None
+        For :func:`~piezo_stage_ros.nodes.runner.run`; None when the files describe one axis
+        (or cannot be read: the one-axis nodes then say why).
+
+    """
+    files = files_of(argv)
+    if any(name not in _CLASSES for name in names):
+        return None
+    try:
+        if not files or not has_axes(load_config(files)):
+            return None
+    except (PiezoStageError, OSError):
+        return None
+    return [(name, functools.partial(_CLASSES[name], params_files=files)) for name in names]
+
+
+def refuse_direct(*nodes: Node) -> None:
+    """Refuse ``--direct`` with several axes (the direct composition is the servo's)."""
+    raise PiezoStageError(str(refuse_axes_mode('stage_servo', 'lockstep', direct=True)))

@@ -1,0 +1,203 @@
+# Copyright 2026 piezo_stage_ros maintainers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The nodes of a stage of several axes under rclpy, in lockstep, against the offline runner.
+
+Skipped where rclpy (ROS 2 Jazzy) cannot be imported; CI has no rclpy, the logic these nodes
+wrap is tested without it in test_axes_nodes_logic.py.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+import time
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not importable here; '
+                                            'the multi-axis node logic is tested without it in '
+                                            'test_axes_nodes_logic.py')
+
+from piezo_stage_ros.cli import read_config  # noqa: E402
+from piezo_stage_ros.core.config.axes import axes_loop_config  # noqa: E402
+from piezo_stage_ros.core.contracts import wire  # noqa: E402
+from piezo_stage_ros.core.control.axes import AxesController  # noqa: E402
+from piezo_stage_ros.core.loop.axes import run_axes, run_metrics  # noqa: E402
+from piezo_stage_ros.core.model.axes import AxesStage  # noqa: E402
+from piezo_stage_ros.nodes import stage_servo  # noqa: E402
+from piezo_stage_ros.nodes.axes_nodes import (  # noqa: E402
+    AxesControllerNode,
+    AxesPlantNode,
+    AxesTrajectoryNode,
+)
+from piezo_stage_ros.nodes.runner import make_executor  # noqa: E402
+from rclpy.context import Context  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import (  # noqa: E402
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+)
+from sensor_msgs.msg import JointState  # noqa: E402
+from std_msgs.msg import Float64MultiArray  # noqa: E402
+
+CONFIG_DIR = Path(__file__).resolve().parents[1] / 'config'
+FILES = [str(CONFIG_DIR / 'default.yaml'), str(CONFIG_DIR / 'xy_stage.yaml')]
+# a recorder's subscription (config/record_qos.yaml): every message of the run kept
+RECORD = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10000,
+                    reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+TOPICS = {wire.POSITION: JointState, wire.REFERENCE: JointState, wire.COMMAND: Float64MultiArray,
+          wire.TRUE_POSITION: JointState}
+
+
+@pytest.fixture
+def context():
+    ctx = Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+class Recorder(Node):
+    """Takes the stage topics as serialized messages with their arrival time, as a recorder."""
+
+    def __init__(self, context: Context) -> None:
+        super().__init__('recorder', context=context)
+        self.raw: dict[str, list[tuple[int, bytes]]] = {t: [] for t in TOPICS}
+        for topic, kind in TOPICS.items():
+            self.create_subscription(kind, topic, lambda data, t=topic: self.raw[t].append(
+                (time.time_ns(), data)), RECORD, raw=True)
+
+    def write_bag(self, path: Path) -> None:
+        from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.typesys import get_typestore, Stores
+        store = get_typestore(Stores.ROS2_JAZZY)
+        with Writer(path, version=Writer.VERSION_LATEST,
+                    storage_plugin=StoragePlugin.MCAP) as writer:
+            for topic, kind in TOPICS.items():
+                msgtype = f'{kind.__module__.split(".")[0]}/msg/{kind.__name__}'
+                conn = writer.add_connection('/' + topic, msgtype, typestore=store)
+                for stamp, data in self.raw[topic]:
+                    writer.write(conn, stamp, data)
+
+
+def nodes_of(context, duration_s, extra=None):
+    common = {'duration_s': duration_s, 'lockstep.subscribers': 3, **(extra or {})}
+    args = ['--ros-args'] + [a for f in FILES for a in ('--params-file', f)]
+
+    def make(cls, values):
+        return cls(context=context, cli_args=args,
+                   parameter_overrides=[Parameter(k, value=v) for k, v in values.items()])
+    plant = make(AxesPlantNode, common)
+    return plant, [plant, make(AxesControllerNode, {}), make(AxesTrajectoryNode, {})]
+
+
+def spin(context, nodes, future, until, timeout_s=300.0):
+    executor = make_executor('events', context)
+    for node in nodes:
+        executor.add_node(node)
+    try:
+        executor.spin_until_future_complete(future, timeout_sec=timeout_s)
+        deadline = time.monotonic() + 10.0
+        while not until() and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+    finally:
+        for node in nodes:
+            executor.remove_node(node)
+            node.destroy_node()
+        executor.shutdown()
+
+
+def offline(duration_s):
+    loop = axes_loop_config(read_config(['xy_stage.yaml']))
+    ctrl = AxesController.build(loop.controllers, loop.stage, compensate=loop.compensate)
+    return loop, run_axes(AxesStage(loop.stage), ctrl, loop.trajectories(),
+                          duration_s=duration_s)
+
+
+def test_a_lockstep_run_of_the_xy_stage_is_the_offline_runner_bit_for_bit(context, tmp_path):
+    from piezo_stage_ros.analysis.bagread import read_axes
+    duration_s = 0.3
+    n = 3000
+    plant, nodes = nodes_of(context, duration_s)
+    recorder = Recorder(context)
+    spin(context, nodes + [recorder], plant.finished,
+         until=lambda: len(recorder.raw[wire.COMMAND]) >= n)
+    assert plant.finished.done() and plant.finished.exception() is None
+    stats = plant.finished.result()
+    assert stats['index'] == n - 1 and stats['resends'] == 0 and stats['malformed'] == 0
+    loop, records = offline(duration_s)
+    assert loop.controllers[0].feedforward.mode == 'inverse_learning' and loop.compensate
+    assert {k: len(v) for k, v in recorder.raw.items()} == dict.fromkeys(TOPICS, n)
+    # the recorded run, read as analyze reads a bag: the offline runner's samples, bit for bit
+    recorder.write_bag(tmp_path / 'run')
+    got = read_axes(tmp_path / 'run')
+    assert [r.meta['axis'] for r in got] == ['x', 'y']
+    for rec, off in zip(got, records):
+        # stamped t_k = k T in whole nanoseconds (the runner's times are k T in floats)
+        np.testing.assert_array_equal(np.round(rec.time_s * 1e9), np.arange(n) * 100_000)
+        for field in ('position_m', 'reference_m', 'reference_velocity_mps', 'command_v',
+                      'true_position_m'):
+            assert np.array_equal(getattr(rec, field), getattr(off, field)), field
+    # so are the figures analyze prints of it (the raster's fast axis over its lines)
+    window = 0.1
+    assert run_metrics(got, window_s=window, fast_axis='x') == \
+        run_metrics(records, window_s=window, fast_axis='x')
+
+
+def test_real_time_with_several_axes_is_refused_naming_the_mode(capsys):
+    code = stage_servo.main(['stage_servo', '--ros-args', *[a for f in FILES for a in (
+        '--params-file', f)], '-p', 'mode:=realtime'])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and "mode 'realtime'" in err[-1] and 'lockstep only' in err[-1]
+
+
+def test_the_direct_composition_with_several_axes_is_refused(capsys):
+    code = stage_servo.main(['stage_servo', '--direct', '--ros-args',
+                             *[a for f in FILES for a in ('--params-file', f)]])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and '--direct' in err[-1] and 'lockstep only' in err[-1]
+
+
+def test_a_bad_per_axis_value_is_refused_naming_it(capsys):
+    code = stage_servo.main(['stage_servo', '--ros-args', *[a for f in FILES for a in (
+        '--params-file', f)], '-p', 'plant_node:axes.y.seed:=-3'])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and 'seed' in err[-1] and '-3' in err[-1]
+
+
+def test_the_multi_axis_parameters_are_declared_and_take_no_change(context):
+    plant, nodes = nodes_of(context, 0.01)
+    trajectory = nodes[2]
+    try:
+        assert list(plant.get_parameter('axes.names').value) == ['x', 'y']
+        assert plant.get_parameter('axes.y.seed').value == 1
+        assert list(plant.get_parameter('axes.coupling.gain').value) == [0.0, 0.02, 0.0, 0.0]
+        assert trajectory.get_parameter('scan.raster.lines').value == 64
+        assert trajectory.get_parameter('scan.raster.slow_axis').value == 'y'
+        # described as the one-axis parameter they override, read-only
+        desc = plant.describe_parameter('axes.y.seed')
+        assert desc.read_only and 'seed' in desc.description.lower()
+        for node, name, value in ((plant, 'axes.y.seed', 2), (plant, 'seed', 2),
+                                  (trajectory, 'scan.raster.lines', 32)):
+            [result] = node.set_parameters([Parameter(name, value=value)])
+            assert not result.successful, name
+        assert plant.get_parameter('seed').value == 0
+    finally:
+        for node in nodes:
+            node.destroy_node()
