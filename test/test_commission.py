@@ -322,9 +322,9 @@ def test_the_verification_limits(e_rms_nm: float, on_stage: bool, limits: list[s
 
 
 def test_a_configured_feed_forward_is_kept_for_the_scan_not_for_the_hold() -> None:
-    # the hold runs feedback alone (the excitation must reach the command unshaped, and a
-    # feed-forward would need the model being identified); the designed controller keeps the
-    # configured feed-forward mode, and the verification runs it
+    # the hold and the verification run feedback alone (the excitation must reach the command
+    # unshaped; the acceptance limits are a feedback design's); the designed controller keeps
+    # the configured feed-forward mode for the scans that follow
     from piezo_stage_ros.core.control.controllers import ControllerParams
     from piezo_stage_ros.core.identification.commission import (
         commission,

@@ -86,7 +86,6 @@ from piezo_stage_ros.core.loop.metrics import summarize
 from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryParams
 from piezo_stage_ros.core.model.family import true_estimates
-from piezo_stage_ros.core.model.hysteresis import make_hysteresis
 from piezo_stage_ros.core.model.linear import factors_of, LinearFactors, third_order_of
 from piezo_stage_ros.core.model.stage import linear_plant, Stage, StageParams
 from piezo_stage_ros.core.signals.excitation import NoiseExcitation, NoiseParams
@@ -285,9 +284,9 @@ def feedback_only(controller: ControllerParams) -> ControllerParams:
     """
     Return ``controller`` without its feed-forward.
 
-    The hold runs the feedback alone: the excitation must reach the command unshaped, and a
-    feed-forward needs the model that is still to be identified. (The verification runs the
-    designed controller as it will run, feed-forward included, on the identified model.)
+    The hold and the verification run the feedback alone: the excitation must reach the
+    command unshaped, and the acceptance limits of the verification are those of a feedback
+    design on a sine, whatever feed-forward the stage will later scan with.
     """
     return controller.replace(feedforward=controller.feedforward.replace(mode='none'))
 
@@ -786,8 +785,8 @@ class Verification:
 
 def _track(stage: StageParams, controller: ControllerParams, design_stage: StageParams,
            frequency_hz: float, duration_s: float, plant: PlantFn | None = None) -> RunRecord:
-    ctrl = build_controller(controller, stage.sample_time_s, linear_plant(design_stage.plant),
-                            make_hysteresis(design_stage.hysteresis))
+    ctrl = build_controller(feedback_only(controller), stage.sample_time_s,
+                            linear_plant(design_stage.plant))
     traj = make_trajectory(TrajectoryParams.from_flat({'kind': 'sine',
                                                        'sine.frequency_hz': frequency_hz}))
     return run((plant or Stage)(stage), ctrl, traj, duration_s=duration_s,
