@@ -184,7 +184,7 @@ def test_a_silent_axis_ramps_every_axis_and_is_named():
         guard.sample(t)
         guard.command(volts, t)
     guard.sample(1400 * 1e-4)
-    assert guard.applied_v == volts
+    assert list(guard.applied_v) == volts
     ended = list(guard.ended_trips)
     assert sorted(name for name, _ in ended) == ['x', 'y', 'z']
     assert all(trip.ended == 'commands' for _, trip in ended)

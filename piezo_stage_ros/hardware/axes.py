@@ -169,6 +169,34 @@ class AxisPort:
         return {}
 
 
+class _CheckedRow:
+    """
+    One axis' commands ahead, checked for finite values with the others' (a row of them).
+
+    What the guard of an axis reads of commands ahead computed when read
+    (:class:`~piezo_stage_ros.core.control.ahead.Ahead`): ``finite()``, ``clamped()``, length
+    and items (slices are the row's own array slices).
+    """
+
+    __slots__ = ('_row', '_finite')
+
+    def __init__(self, row: Any, finite: bool) -> None:
+        self._row = row
+        self._finite = finite
+
+    def finite(self) -> bool:
+        return self._finite
+
+    def clamped(self, low_v: float, high_v: float) -> Any:
+        return np.minimum(np.maximum(self._row, low_v), high_v)
+
+    def __len__(self) -> int:
+        return len(self._row)
+
+    def __getitem__(self, index: Any) -> Any:
+        return self._row[index]
+
+
 @dataclass(frozen=True)
 class AxesTripCause:
     """
@@ -331,9 +359,9 @@ class AxesGuard:
         return 'safe' if all(p == 'safe' for p in phases) else phases[0]
 
     @property
-    def applied_v(self) -> list[float]:
+    def applied_v(self) -> tuple[float, ...]:
         """Return each axis' voltage held over the sample just measured [V]."""
-        return [g.applied_v for g in self.axes]
+        return tuple([g.applied_v for g in self.axes])
 
     @property
     def held_v(self) -> list[float]:
@@ -358,11 +386,18 @@ class AxesGuard:
 
         A non-finite command is refused for its axis (counted in :attr:`refused`).
         """
+        rows: Any = None
+        if isinstance(ahead_v, np.ndarray):
+            # every axis' row checked at once (each axis' guard would sum its own)
+            finite: Any = np.isfinite(ahead_v).all(axis=1).tolist()
+            rows = [_CheckedRow(row, ok) for row, ok in zip(ahead_v, finite)]
+        elif ahead_v is not None:
+            rows = ahead_v
         for j, (take, u) in enumerate(zip(self._commands, commands_v)):
             if u - u != 0.0:  # NaN or infinite
                 self.refused[j] += 1
                 continue
-            take(u, now_s, ahead_v[j] if ahead_v is not None else None)
+            take(u, now_s, rows[j] if rows is not None else None)
 
     def sample(self, now_s: float) -> list[float]:
         """Take one real-time sample of every axis; return the positions at its end [m]."""

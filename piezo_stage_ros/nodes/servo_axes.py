@@ -35,6 +35,7 @@ The one-axis servo is untouched: a one-axis stage keeps :class:`ServoLoop`.
 from __future__ import annotations
 
 import copy
+import gc
 import math
 from typing import Any, Callable, NamedTuple, Sequence
 
@@ -168,7 +169,7 @@ class AxesServoLoop(ServoLoop):
                  duration_s: float = 0.0, pacer: Pacer | None = None,
                  capacity: int = 65536,
                  on_sample: Callable[[AxesServoSample], None] | None = None,
-                 commands_ahead: int = 0, chunk: int = 500) -> None:
+                 commands_ahead: int = 0, chunk: int = 1000) -> None:
         super().__init__(plant, None, None, sample_rate_hz=sample_rate_hz,  # type: ignore
                          duration_s=duration_s, pacer=pacer, capacity=capacity,
                          on_sample=on_sample, commands_ahead=commands_ahead)  # type: ignore
@@ -183,17 +184,20 @@ class AxesServoLoop(ServoLoop):
         self._true_axes: Callable[[], list[float]] | None = \
             plant.bridge.stage.read_positions_m if isinstance(plant.bridge, AxesModelBridge) \
             else None
-        self._nans = [math.nan] * plant.n
+        self._nans = (math.nan,) * plant.n
+        #: Freeze the garbage collector's view of the objects built before the start.
+        self.freeze_gc = True
 
     def _serve(self, index: int, position_m: Any, now_ns: int, lateness_ns: int) -> None:
         positions: list[float] = position_m
         stamp = self.stamp_ns(index)
         plant = self.guard
         self.index = index
-        true = self._true_axes() if self._true_axes is not None else self._nans
+        # the sample keeps tuples of floats: the garbage collector stops tracking them
+        true = tuple(self._true_axes()) if self._true_axes is not None else self._nans
         if plant.winding:
             nans = self._nans
-            sample = AxesServoSample(index, stamp, positions, nans, nans, nans,
+            sample = AxesServoSample(index, stamp, tuple(positions), nans, nans, nans,
                                      plant.applied_v, lateness_ns, true)
             if plant.phase == 'safe':
                 self.done = True
@@ -206,8 +210,8 @@ class AxesServoLoop(ServoLoop):
                                                  self.commands_ahead)
             applied = plant.applied_v
             plant.command(commands, now_ns / NS_PER_S, ahead)
-            sample = AxesServoSample(index, stamp, positions, refs, vels, commands, applied,
-                                     lateness_ns, true)
+            sample = AxesServoSample(index, stamp, tuple(positions), refs, vels,
+                                     tuple(commands), applied, lateness_ns, true)
         if self.samples.maxlen:
             self.samples.append((self.pushed, sample))  # type: ignore[arg-type]
             self.pushed += 1
@@ -215,6 +219,20 @@ class AxesServoLoop(ServoLoop):
             self.on_sample(sample)  # type: ignore[arg-type]
         if self.total and index + 1 >= self.total:
             self.done = True
+
+    def start(self, start_ns: int = 0, since_ns: int | None = None) -> None:
+        """
+        Start the backend and serve sample 0 now (as :meth:`ServoLoop.start`).
+
+        With :attr:`freeze_gc`, everything built until now (the controllers' tables, the
+        configuration, the modules) is moved out of the garbage collector's reach first
+        (:func:`gc.freeze`): its collections then scan only what the run makes, instead of
+        stopping a sample now and then for milliseconds to scan the tables again.
+        """
+        if self.freeze_gc:
+            gc.collect()
+            gc.freeze()
+        super().start(start_ns, since_ns)
 
     def warm_up(self, samples: int = ServoLoop.WARM_UP_SAMPLES) -> str:
         """

@@ -58,7 +58,7 @@ class AxesReference:
     """
 
     def __init__(self, trajectories: Sequence[Trajectory], sample_time_s: float, *,
-                 chunk: int = 500) -> None:
+                 chunk: int = 1000) -> None:
         if chunk < 1:
             raise ParameterError('chunk', chunk, '[1, inf) samples')
         if not trajectories:
@@ -68,7 +68,10 @@ class AxesReference:
         self.sample_time_s = float(sample_time_s)
         self.chunk = int(chunk)
         self._first = -1
-        self._rows: list[tuple[list[float], list[float]]] = []
+        # the chunk as (axes, chunk) arrays: a sample reads its column (no object per sample
+        # is kept, so the garbage collector has nothing of it to scan)
+        self._x = np.zeros((self.n, 0))
+        self._v = np.zeros((self.n, 0))
         # per axis: (first sample, x_d, x_d') of the window read ahead last
         self._windows: list[tuple[int, FloatArray, FloatArray]] = [
             (-1, np.zeros(0), np.zeros(0)) for _ in range(self.n)]
@@ -84,20 +87,21 @@ class AxesReference:
                                   f'{v.shape}, expected {time_s.shape}')
         return x, v
 
-    def at(self, index: int) -> tuple[list[float], list[float]]:
-        """Return x_d and x_d' of every axis at sample ``index`` [m, m/s] (lists, axis order)."""
+    def at(self, index: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """Return x_d and x_d' of every axis at sample ``index`` [m, m/s] (axis order)."""
         i = index - self._first
-        if not 0 <= i < len(self._rows):
+        if not 0 <= i < self._x.shape[1]:
             first = index - index % self.chunk
-            xs, vs = [], []
-            for tr in self.trajectories:
+            for j, tr in enumerate(self.trajectories):
                 x, v = self._evaluate(tr, first, self.chunk)
-                xs.append(x)
-                vs.append(v)
-            self._rows = list(zip(np.column_stack(xs).tolist(), np.column_stack(vs).tolist()))
+                if j == 0:
+                    self._x = np.empty((self.n, self.chunk))
+                    self._v = np.empty((self.n, self.chunk))
+                self._x[j] = x
+                self._v[j] = v
             self._first = first
             i = index - first
-        return self._rows[i]
+        return tuple(self._x[:, i].tolist()), tuple(self._v[:, i].tolist())
 
     def window(self, axis: int, index: int, count: int) -> tuple[Any, Any]:
         """
