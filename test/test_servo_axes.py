@@ -17,6 +17,8 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 
 from fake_clock import FakeClock
 import numpy as np
@@ -28,6 +30,7 @@ from piezo_stage_ros.core.model.axes import AxesStage
 from piezo_stage_ros.hardware import udp
 from piezo_stage_ros.hardware.axes import AxesGuard, AxesModelBridge
 from piezo_stage_ros.hardware.bridge import BridgeError
+from piezo_stage_ros.hardware.emulator import main as emulator_main
 from piezo_stage_ros.hardware.emulator import TargetEmulator
 from piezo_stage_ros.hardware.emulator_axes import AxesTargetEmulator
 from piezo_stage_ros.hardware.pacing import Pacer
@@ -50,7 +53,9 @@ EACH = ['trajectory_node:scan.kind=each', 'trajectory_node:kind=sine',
 
 
 def loop_of(config: str, params: list[str]):
-    return axes_loop_config(cli.read_config([config], EACH + params))
+    each = [] if 'raster' in params else EACH
+    return axes_loop_config(cli.read_config([config], each + [p for p in params
+                                                              if p != 'raster']))
 
 
 def offline(loop, duration_s):
@@ -75,6 +80,7 @@ def assert_equal_to_offline(batch, records, samples):
 
 @pytest.mark.parametrize('config, params', [
     ('xyz_stage.yaml', []),                                   # 3 axes, learning, coupled
+    ('xyz_stage.yaml', ['raster']),                           # the file's raster frame
     ('xy_stage.yaml', ['controller_node:axes.y.feedforward.mode=none']),  # y predicted
     ('default.yaml', ['plant_node:axes.names=[x]']),          # one axis
 ])
@@ -248,3 +254,26 @@ def test_version_and_axis_count_mismatches_are_refused_naming_both():
             UdpAxesBridge('127.0.0.1', one.port, 1, timeout_s=1.0,
                           hello_attempts=1).safe_start([0.0])
     assert STATUS_AXES == 32
+
+
+def test_emulator_command_line_serves_the_axes_of_its_files(capsys):
+    assert emulator_main(['--config', 'xy_stage.yaml', '--port', '0', '--paced']) == 2
+    assert 'request-reply' in capsys.readouterr().err
+    proc = subprocess.Popen([sys.executable, '-m', 'piezo_stage_ros.hardware.emulator',
+                             '--config', 'xy_stage.yaml', '--port', '0',
+                             '--idle-timeout-s', '20'], stdout=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+        assert line.startswith('stage_emulator: listening on 127.0.0.1:')
+        port = int(line.rsplit(':', 1)[1])
+        assert proc.stdout.readline().strip() == \
+            "stage_emulator: axes ['x', 'y'], protocol version 4"
+        bridge = UdpAxesBridge('127.0.0.1', port, 2, timeout_s=2.0)
+        stage = loop_of('xy_stage.yaml', []).stage
+        assert bridge.safe_start([0.0, 0.0]) == AxesStage(stage).reset()
+        bridge.safe_stop([0.0, 0.0])
+        assert proc.wait(timeout=20) == 0
+        assert 'stopped (stop)' in proc.stdout.read()
+    finally:
+        proc.kill()
+        proc.stdout.close()

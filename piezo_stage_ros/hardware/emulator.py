@@ -513,8 +513,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f'stage_emulator: {exc}', file=sys.stderr)
         return 2
     print(f'stage_emulator: listening on {LOOPBACK}:{emulator.port}', flush=True)
+    names = getattr(getattr(emulator, 'axes_stage', None), 'names', None)
+    if names is not None:
+        print(f'stage_emulator: axes {list(names)}, protocol version 4', flush=True)
     try:
-        if args.paced and hasattr(emulator, 'axes_stage'):
+        if args.paced and names is not None:
+            emulator.close()
             print('stage_emulator: --paced serves one axis; a stage of several axes is served '
                   'request-reply', file=sys.stderr)
             return 2
