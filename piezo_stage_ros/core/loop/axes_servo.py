@@ -72,6 +72,8 @@ class AxesReference:
         # is kept, so the garbage collector has nothing of it to scan)
         self._x = np.zeros((self.n, 0))
         self._v = np.zeros((self.n, 0))
+        # the next chunk as it is evaluated: x_d, x_d', its first sample, axes done
+        self._next: tuple[FloatArray, FloatArray, int, int] = (self._x, self._v, -1, 0)
         # per axis: (first sample, x_d, x_d') of the window read ahead last
         self._windows: list[tuple[int, FloatArray, FloatArray]] = [
             (-1, np.zeros(0), np.zeros(0)) for _ in range(self.n)]
@@ -88,19 +90,31 @@ class AxesReference:
         return x, v
 
     def at(self, index: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
-        """Return x_d and x_d' of every axis at sample ``index`` [m, m/s] (axis order)."""
+        """
+        Return x_d and x_d' of every axis at sample ``index`` [m, m/s] (axis order).
+
+        The next chunk is evaluated one axis a sample over the last samples of the current
+        one (the samples go on in order), so that no sample evaluates every axis' chunk.
+        """
         i = index - self._first
-        if not 0 <= i < self._x.shape[1]:
+        size = self._x.shape[1]
+        if not 0 <= i < size:
             first = index - index % self.chunk
-            for j, tr in enumerate(self.trajectories):
-                x, v = self._evaluate(tr, first, self.chunk)
-                if j == 0:
-                    self._x = np.empty((self.n, self.chunk))
-                    self._v = np.empty((self.n, self.chunk))
-                self._x[j] = x
-                self._v[j] = v
-            self._first = first
+            nx, nv, nfirst, done = self._next
+            if nfirst != first or done < self.n:
+                nx, nv = np.empty((self.n, self.chunk)), np.empty((self.n, self.chunk))
+                for j in range(self.n):
+                    nx[j], nv[j] = self._evaluate(self.trajectories[j], first, self.chunk)
+            self._x, self._v, self._first = nx, nv, first
+            self._next = (np.empty((self.n, self.chunk)), np.empty((self.n, self.chunk)),
+                          first + self.chunk, 0)
             i = index - first
+        elif i >= size - self.n:
+            nx, nv, nfirst, done = self._next
+            if done < self.n:
+                nx[done], nv[done] = self._evaluate(self.trajectories[done], nfirst,
+                                                    self.chunk)
+                self._next = (nx, nv, nfirst, done + 1)
         return tuple(self._x[:, i].tolist()), tuple(self._v[:, i].tolist())
 
     def window(self, axis: int, index: int, count: int) -> tuple[Any, Any]:
