@@ -297,3 +297,26 @@ def test_references_read_ahead_in_chunks_are_the_trajectories_values(chunk):
         x, v = ref.window(axis, 40, 128)
         np.testing.assert_array_equal(x, want[axis][0][41:169])
         np.testing.assert_array_equal(v, want[axis][1][41:169])
+
+
+def test_samples_drained_one_by_one_are_the_batch_rows():
+    loop = loop_of('xy_stage.yaml', [])
+    got = []
+    servo = axes_servo_from_config(loop, 0.005, on_sample=got.append)
+    paced(servo)
+    servo.run(start_ns=10**18 + 7)
+    samples = servo.drain(20)
+    batch = servo.take_batch()
+    assert len(samples) == 20 and batch.number.tolist() == list(range(20, 50))
+    assert got[:20] == samples and servo.stats()['queue_overruns'] == 0
+    # stamps stay integers [ns] beyond float64's 2**53
+    assert batch.stamp_ns[0] == 10**18 + 7 + 20 * PERIOD and batch.stamp_ns.dtype == np.int64
+    for s, i in zip(got[20:], range(30)):
+        assert (s.k, s.stamp_ns, s.lateness_ns) == (batch.k[i], batch.stamp_ns[i],
+                                                    batch.lateness_ns[i])
+        for field, column in (('positions_m', batch.position_m), ('commands_v', batch.command_v),
+                              ('references_m', batch.reference_m),
+                              ('velocities_mps', batch.velocity_mps),
+                              ('applied_v', batch.applied_v),
+                              ('true_positions_m', batch.true_position_m)):
+            assert getattr(s, field) == tuple(column[i].tolist())

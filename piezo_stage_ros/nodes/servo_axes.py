@@ -53,12 +53,12 @@ from piezo_stage_ros.hardware.safety import Trip
 from piezo_stage_ros.nodes.servo import ServoLoop
 
 __all__ = ['AxesSampleBatch', 'AxesServoLoop', 'AxesServoSample', 'axes_batch_of',
-           'axes_servo_from_config', 'make_axes_bridge']
+           'axes_servo_from_config', 'make_axes_bridge', 'sample_of_row']
 
 
 class AxesServoSample(NamedTuple):
     """
-    One sample of every axis, as handed to the ROS side (lists in the axis order).
+    One sample of every axis, as handed to the ROS side (tuples in the axis order).
 
     Attributes
     ----------
@@ -66,17 +66,17 @@ class AxesServoSample(NamedTuple):
         The sample's number on the grid.
     stamp_ns : int
         t_k [ns].
-    positions_m : list of float
+    positions_m : tuple of float
         y_k [m].
-    references_m, velocities_mps : list of float
+    references_m, velocities_mps : tuple of float
         x_d(t_k) [m], x_d'(t_k) [m/s] (NaN during a wind-down).
-    commands_v : list of float
+    commands_v : tuple of float
         u_k [V] as the controllers computed them (NaN during a wind-down).
-    applied_v : list of float
+    applied_v : tuple of float
         The amplifier inputs held over the sample that y_k ends [V] (after the guard).
     lateness_ns : int
         Time the sample was taken minus its due time [ns].
-    true_positions_m : list of float
+    true_positions_m : tuple of float
         x(t_k) [m] where the backend knows it (the model), else NaN.
 
     """
@@ -128,19 +128,28 @@ class AxesSampleBatch(NamedTuple):
         return int(self.number.size)
 
 
-def axes_batch_of(items: Sequence[tuple[int, AxesServoSample]],
-                  axes: Sequence[str]) -> AxesSampleBatch:
-    """Return numbered samples (``(number, sample)``) as an :class:`AxesSampleBatch`."""
-    n, width = len(items), len(axes)
+def axes_batch_of(rows: Sequence[tuple[Any, ...]], axes: Sequence[str]) -> AxesSampleBatch:
+    """
+    Return queued rows as an :class:`AxesSampleBatch`.
 
-    def column(field: int) -> FloatArray:
-        out = np.array([s[field] for _, s in items], dtype=np.float64)
-        return out.reshape(n, width)
-    ints = np.array([(number, s.k, s.stamp_ns, s.lateness_ns) for number, s in items],
-                    dtype=np.int64).reshape(n, 4)
+    A row is flat: number, k, stamp [ns], lateness [ns], then the N values of each of y_k, x_d,
+    x_d', u_k, the applied inputs and the true positions (what :class:`AxesServoLoop` queues:
+    one object a sample, which the garbage collector stops tracking).
+    """
+    n, width = len(rows), len(axes)
+    ints = np.array([r[:4] for r in rows], dtype=np.int64).reshape(n, 4)
+    floats = np.array([r[4:] for r in rows], dtype=np.float64).reshape(n, 6, width)
+    columns = [floats[:, q].copy() for q in range(6)]
     return AxesSampleBatch(ints[:, 0].copy(), ints[:, 1].copy(), ints[:, 2].copy(),
-                           ints[:, 3].copy(), column(2), column(3), column(4), column(5),
-                           column(6), column(8), tuple(axes))
+                           ints[:, 3].copy(), columns[0], columns[1], columns[2], columns[3],
+                           columns[4], columns[5], tuple(axes))
+
+
+def sample_of_row(row: Sequence[Any], axes: int) -> AxesServoSample:
+    """Return one queued row (see :func:`axes_batch_of`) as an :class:`AxesServoSample`."""
+    values = [tuple(row[4 + q * axes:4 + (q + 1) * axes]) for q in range(6)]
+    return AxesServoSample(row[1], row[2], values[0], values[1], values[2], values[3],
+                           values[4], row[3], values[5])
 
 
 class AxesServoLoop(ServoLoop):
@@ -193,12 +202,12 @@ class AxesServoLoop(ServoLoop):
         stamp = self.stamp_ns(index)
         plant = self.guard
         self.index = index
-        # the sample keeps tuples of floats: the garbage collector stops tracking them
-        true = tuple(self._true_axes()) if self._true_axes is not None else self._nans
+        true = self._true_axes() if self._true_axes is not None else self._nans
         if plant.winding:
             nans = self._nans
-            sample = AxesServoSample(index, stamp, tuple(positions), nans, nans, nans,
-                                     plant.applied_v, lateness_ns, true)
+            # one flat tuple a sample (numbers only: the garbage collector stops tracking it)
+            row = (self.pushed, index, stamp, lateness_ns, *positions, *nans, *nans, *nans,
+                   *plant.applied_v, *true)
             if plant.phase == 'safe':
                 self.done = True
         else:
@@ -210,13 +219,13 @@ class AxesServoLoop(ServoLoop):
                                                  self.commands_ahead)
             applied = plant.applied_v
             plant.command(commands, now_ns / NS_PER_S, ahead)
-            sample = AxesServoSample(index, stamp, tuple(positions), refs, vels,
-                                     tuple(commands), applied, lateness_ns, true)
+            row = (self.pushed, index, stamp, lateness_ns, *positions, *refs, *vels, *commands,
+                   *applied, *true)
         if self.samples.maxlen:
-            self.samples.append((self.pushed, sample))  # type: ignore[arg-type]
+            self.samples.append(row)  # type: ignore[arg-type]
             self.pushed += 1
         if self.on_sample is not None:
-            self.on_sample(sample)  # type: ignore[arg-type]
+            self.on_sample(sample_of_row(row, self.guard.n))  # type: ignore[arg-type]
         if self.total and index + 1 >= self.total:
             self.done = True
 
@@ -258,20 +267,20 @@ class AxesServoLoop(ServoLoop):
     def drain(self, limit: int = 0) -> list[AxesServoSample]:  # type: ignore[override]
         """Return the samples queued since the last call, oldest first (at most ``limit``)."""
         out: list[AxesServoSample] = []
-        queue = self.samples
+        queue, n = self.samples, self.guard.n
         while queue and (not limit or len(out) < limit):
-            out.append(queue.popleft()[1])  # type: ignore[arg-type]
+            out.append(sample_of_row(queue.popleft(), n))
         self.drained += len(out)
         return out
 
     def take_batch(self) -> AxesSampleBatch:  # type: ignore[override]
         """Return the samples queued since the last call as an :class:`AxesSampleBatch`."""
-        items = []
+        rows = []
         queue = self.samples
         while queue:
-            items.append(queue.popleft())
-        self.drained += len(items)
-        return axes_batch_of(items, self.axes)  # type: ignore[arg-type]
+            rows.append(queue.popleft())
+        self.drained += len(rows)
+        return axes_batch_of(rows, self.axes)  # type: ignore[arg-type]
 
     def take_trips(self) -> list[Trip]:
         """Return each axis' trips that ended since the last call (the axis in ``causes``)."""
