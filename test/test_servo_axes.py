@@ -320,3 +320,26 @@ def test_samples_drained_one_by_one_are_the_batch_rows():
                               ('applied_v', batch.applied_v),
                               ('true_positions_m', batch.true_position_m)):
             assert getattr(s, field) == tuple(column[i].tolist())
+
+
+def test_a_wind_down_ramps_every_axis_to_its_safe_voltage_and_ends_the_run():
+    loop = loop_of('xyz_stage.yaml', [])
+    servo = axes_servo_from_config(loop, 0.0)  # until stopped
+    paced(servo)
+    slew = loop.base.plant_node.watchdog.slew_v_per_s * 1e-4  # V a sample
+    servo.boundary = lambda: (servo.index != 100 or servo.guard.wind_down()) or True
+    servo.run()
+    assert servo.error is None and servo.done
+    batch = servo.take_batch()
+    applied = batch.applied_v
+    # from the wind-down on: no command asked for, every axis moves by at most the slew a
+    # sample, and the run ends once every axis applies its safe voltage
+    down = batch.k > 101
+    assert np.all(np.isnan(batch.command_v[down]))
+    assert np.all(np.abs(np.diff(applied[100:], axis=0)) <= slew * (1 + 1e-9))
+    assert applied[-1].tolist() == servo.guard.safe_v
+    assert all(g.phase == 'safe' for g in servo.guard.axes)
+    # one trip per axis, the wind-down's, ended by the stop (the watchdog is not looked at)
+    assert [(a, t.wind_down, t.ended) for a, t in servo.guard.ended_trips] == [
+        (a, True, 'stop') for a in ('x', 'y', 'z')]
+    assert servo.guard.trips == 0
