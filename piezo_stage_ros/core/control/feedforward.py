@@ -1769,6 +1769,36 @@ class FeedForwardController:
         """Reset the inner controller and restart the feed-forward at sample 0."""
         self.inner.reset(position_m, reference_m, output_v)
         self._u = self.inner.output_v
+        self._rewind()
+        # a table from a file was saved relative to the initial estimates (:meth:`learned`):
+        # they are held from the first sample
+        self._hold(bool(self.table_source))
+        self._arm_start_hold()
+        if self.hysteresis_inverse is not None:
+            # the stage rests with w = c v: the compensator starts where the stage does
+            hyst = self.hysteresis_inverse
+            hyst.reset(position_m / (self.plant_inverse.dc_gain * hyst.slope)
+                       if hyst.slope > 0 else 0.0)
+        if self._trajectory is not None and self._period_n == 0:
+            self._prepare_tables()
+
+    def restart(self) -> None:
+        """
+        Play the bound trajectory again from its t = 0 at the next step, without a reset.
+
+        A start after a stop of the same line: the feedback, the inverse hysteresis, the
+        estimates (held or not) and the learned table go on; the table's phase is taken from
+        the new t = 0, the errors of the unfinished period are kept as :meth:`reset` keeps
+        them, and ``inverse`` alone holds its estimates over the start again.
+        """
+        self._segments = []
+        self._rewind()
+        self._arm_start_hold()
+        if self._trajectory is not None and self._period_n == 0:
+            self._prepare_tables()
+
+    def _rewind(self) -> None:
+        """Set the reference index back to sample 0; the table stays."""
         if self._learning_on and self._period_n:
             self._accumulate(self._k % self._period_n)  # the errors so far stay in the update
             self._pending = 0
@@ -1780,19 +1810,12 @@ class FeedForwardController:
         self._k = 0
         self._seen_k = -1
         self._share_fresh = True
-        # a table from a file was saved relative to the initial estimates (:meth:`learned`):
-        # they are held from the first sample
-        self._hold(bool(self.table_source))
+
+    def _arm_start_hold(self) -> None:
+        """Hold the estimates of ``inverse`` alone over the next ``start_hold`` samples."""
         self._start_holding = self.start_hold > 0
         if self._start_holding:
             self._hold_inner(True)
-        if self.hysteresis_inverse is not None:
-            # the stage rests with w = c v: the compensator starts where the stage does
-            hyst = self.hysteresis_inverse
-            hyst.reset(position_m / (self.plant_inverse.dc_gain * hyst.slope)
-                       if hyst.slope > 0 else 0.0)
-        if self._trajectory is not None and self._period_n == 0:
-            self._prepare_tables()
 
     def step(self, position_m: float, reference_m: float, reference_velocity_mps: float,
              dt_s: float | None = None) -> float:
