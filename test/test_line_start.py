@@ -278,3 +278,25 @@ def test_the_servo_refuses_a_line_its_sample_rate_cannot_draw_before_the_servo_s
             process.change('trajectory', fast)
     finally:
         process.close()
+
+
+# --- a new line rate, offline -----------------------------------------------------------------
+
+def test_a_new_line_rate_holds_the_estimates_of_the_inverse_alone_over_its_start():
+    # the new line's start moves the stage as a run's start does: adapting through it, the
+    # estimates of `inverse` alone were left where that transient put them, and every line
+    # after it paid for that (at the converter floor's scale: several times a run's own lines)
+    from piezo_stage_ros.core.loop import experiments
+    from test_feedforward import _controller, LOOP
+    from test_feedforward_anyperiod import _rate_change
+    changed = _rate_change('inverse', 100.0, 137.0, 0.5, 50)
+    tp = TrajectoryParams.from_flat({**LOOP.trajectory.to_flat(), 'kind': 'sine',
+                                     'sine.frequency_hz': 137.0})
+    rec = experiments.run_one(LOOP.stage, _controller('inverse'), tp,
+                              duration_s=0.5 + 50 / 137.0, design_plant=LOOP.design_plant)
+    assert rec.true_position_m is not None
+    t = rec.time_s - rec.time_s[0]
+    e = rec.true_position_m - rec.reference_m
+    line = np.floor((t - 0.5) * 137.0 + 1e-9).astype(int)
+    fresh = [float(np.sqrt(np.mean(e[line == j] ** 2))) for j in range(10, 50)]
+    assert np.mean(changed[10:]) <= 1.5 * np.mean(fresh)

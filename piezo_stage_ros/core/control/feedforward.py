@@ -1605,11 +1605,12 @@ class FeedForwardController:
         """
         Bind a new trajectory from the next step on, at its t = 0, without a reset.
 
-        A new line rate: the feedback, the inverse hysteresis and the estimates go on; the
-        model inverse of the new reference acts from its first sample and the learned table
-        starts afresh for the new period (a table file is not loaded again: it belongs to the
-        first trajectory). Nothing is refused that :meth:`bind` of the first one accepted,
-        except a period the learning cannot use (its error names the range).
+        A new line rate: the feedback, the inverse hysteresis and the estimates go on (those of
+        ``inverse`` alone held over the new start, as over a run's); the model inverse of the
+        new reference acts from its first sample and the learned table starts afresh for the
+        new period (a table file is not loaded again: it belongs to the first trajectory).
+        Nothing is refused that :meth:`bind` of the first one accepted, except a period the
+        learning cannot use (its error names the range).
         """
         self._segments = []
         self._bind_one(trajectory, load_file=False)
@@ -1622,6 +1623,9 @@ class FeedForwardController:
         # alone, the seed above carries the RAC's present term) they adapt again from there.
         if not (self._holding and self._inverse_on):
             self._hold(False)
+        # the new line's start moves the stage as a run's start does: ``inverse`` alone holds
+        # its estimates over it again, or its transient leaves them off for every line after
+        self._arm_start_hold()
         if self._learning_on and not self._inverse_on:
             self._seed_from_model()
 
