@@ -300,3 +300,46 @@ def test_a_new_line_rate_holds_the_estimates_of_the_inverse_alone_over_its_start
     line = np.floor((t - 0.5) * 137.0 + 1e-9).astype(int)
     fresh = [float(np.sqrt(np.mean(e[line == j] ** 2))) for j in range(10, 50)]
     assert np.mean(changed[10:]) <= 1.5 * np.mean(fresh)
+
+
+def test_the_seed_of_learning_alone_is_computed_at_the_request_not_in_the_sample():
+    # learning alone seeds a new line's table from the model inverse's command; its inverse
+    # hysteresis runs over periods of the line: in the sample's step it stalls the loop. Asked
+    # for at the request, the step only adds the loop's own terms, to the same table
+    def run(prepare: bool) -> tuple[Any, int]:
+        first, new = make_trajectory(LINE_100), make_trajectory(LINE_137)
+        ctrl = _feedforward('learning', first)
+        if not prepare:
+            ctrl.prepare = lambda trajectory: None  # type: ignore[method-assign]
+        logic = ControllerLogic(ctrl, trajectory=first)
+        refs = TrajectoryLogic(first, sample_rate_hz=1.0 / T_S)
+        stage = Stage(StageParams())
+        y = stage.reset()
+        inverses = [0]
+        inverse = ctrl._periodic_hysteresis_inverse
+
+        def counted(w: Any) -> Any:
+            inverses[0] += 1
+            return inverse(w)
+        ctrl._periodic_hysteresis_inverse = counted  # type: ignore[method-assign]
+        for k in range(300):
+            stamp = k * PERIOD_NS
+            if k == 150:
+                refs.switch(new)
+            x, v = refs.on_position(stamp)
+            at = refs.take_switch()
+            if at is not None:
+                logic.request_trajectory(new, at)
+                in_request = inverses[0]
+            logic.on_reference(stamp, x, v)
+            command = logic.on_position(stamp, y, k * T_S)
+            assert command is not None
+            y = stage.step(command.voltage_v)
+        assert ctrl.period_s == pytest.approx(1 / 137.0) and ctrl.mismatches == 0
+        return ctrl.learned_table(), inverses[0] - in_request
+
+    prepared, in_sample = run(True)
+    inline, in_sample_inline = run(False)
+    assert in_sample == 0 and in_sample_inline == 1
+    np.testing.assert_array_equal(prepared, inline)
+    assert np.max(np.abs(prepared)) > 0.0

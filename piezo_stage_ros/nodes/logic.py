@@ -1076,6 +1076,7 @@ class ControllerLogic:
         # sample; the trajectory; its line_print); the stamps increase (request_trajectory)
         self._trajectories: list[tuple[int | None, Any, Any]] = []
         self._bound: tuple[Any, Any] = (trajectory, self._print(trajectory))
+        self._prepared: tuple[Any, Any] | None = None
         self._needs_reset = True
         self._safe = False
         self.steps = 0
@@ -1132,11 +1133,32 @@ class ControllerLogic:
         while queue and (stamp_ns is None
                          or (queue[-1][0] is not None and queue[-1][0] >= stamp_ns)):
             queue.pop()
-        line = self._bound[1] if self._bound[0] is trajectory else self._print(trajectory)
+        prepared, self._prepared = self._prepared, None
+        if prepared is not None and prepared[0] is trajectory:
+            line = prepared[1]
+        elif self._bound[0] is trajectory:
+            line = self._bound[1]
+        else:
+            line = self._print(trajectory)
+            if line is None or line != (queue[-1][2] if queue else self._bound[1]):
+                self._prepare(trajectory)
+        queue.append((stamp_ns, trajectory, line))
+
+    def prepare_trajectory(self, trajectory: Any) -> None:
+        """
+        Compute now what a later :meth:`request_trajectory` of ``trajectory`` would compute.
+
+        For a caller that knows the trajectory before its t = 0 has a stamp (the servo, between
+        samples): the request, in the sample, then finds it done.
+        """
+        line = self._print(trajectory)
+        self._prepare(trajectory)
+        self._prepared = (trajectory, line)
+
+    def _prepare(self, trajectory: Any) -> None:
         prepare = getattr(self.controller, 'prepare', None)
         if prepare is not None:
             prepare(trajectory)
-        queue.append((stamp_ns, trajectory, line))
 
     def _print(self, trajectory: Any) -> Any:
         """Return :func:`line_print` of ``trajectory`` at this controller's sample time."""

@@ -792,7 +792,12 @@ def apply_change(servo: ServoLoop, kind: str, value: Any) -> None:
         assert servo.trajectory is not None
         # checked against the sample rate as the trajectory node checks it (a change from
         # elsewhere than that node is refused here, between samples, with the reason)
-        servo.trajectory.switch(make_trajectory(value, sample_rate_hz=servo.rate_hz))
+        trajectory = make_trajectory(value, sample_rate_hz=servo.rate_hz)
+        if servo.controller is not None:
+            # what the feed-forward can compute of the new line goes here, between samples,
+            # not into the step of the sample where the line starts
+            servo.controller.prepare_trajectory(trajectory)
+        servo.trajectory.switch(trajectory)
     elif kind == 'active':
         assert servo.trajectory is not None
         if value:

@@ -75,6 +75,7 @@ elsewhere, turns the feed-forward off until the next bind, counted in ``ff_misma
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 import hashlib
 import math
@@ -1565,6 +1566,9 @@ class FeedForwardController:
         self._k = 0
         self._matched = False
         self._u = 0.0
+        # what prepare computed of a trajectory ahead: (trajectory, table points, samples a
+        # period, the model command of the seed)
+        self._prepared: tuple[Trajectory, int, float, FloatArray] | None = None
 
     # -- the Controller interface --------------------------------------------------------
 
@@ -1629,6 +1633,45 @@ class FeedForwardController:
         if self._learning_on and not self._inverse_on:
             self._seed_from_model()
 
+    def prepare(self, trajectory: Trajectory) -> None:
+        """
+        Compute ahead what :meth:`switch` to ``trajectory`` needs of it alone (thread-safe).
+
+        ``learning`` alone seeds its table at a switch from the model inverse's command for the
+        new line (:meth:`_seed_from_model`), whose inverse hysteresis runs over up to 20 periods:
+        too long for a sample's step on a slow line. Called when the change is requested (in
+        the requesting thread), that command is ready at the switch, which then only adds the
+        terms of the loop's state at that sample: the table is the one the switch alone would
+        compute. Nothing for the other modes; a trajectory the switch would refuse is left to
+        the switch.
+        """
+        if not self._learning_on or self._inverse_on:
+            return
+        dry = copy.copy(self)  # binding assigns what it sets: self is left as it is
+        try:
+            dry._bind_one(trajectory, load_file=False)
+        except ParameterError:
+            return
+        points, samples, x, _, z = dry._seed_grid()
+        self._prepared = (trajectory, points, samples, dry._model_command(x, z, points))
+
+    def _seed_grid(self) -> tuple[int, float, FloatArray, FloatArray, ComplexArray]:
+        """Return the table's points, samples a period, x_d, x_d' and z of its harmonics."""
+        points = self.table_points()
+        samples = self._phase.samples if self._phase is not None else float(points)
+        x, v = self._grid_reference() if self._phase is not None else \
+            (np.asarray(self._lx, dtype=np.float64), np.asarray(self._lv, dtype=np.float64))
+        if self._phase is not None:
+            x, v = self._shape_periodic(x, v)
+        z = np.exp(2j * math.pi * np.arange(points // 2 + 1) / samples)
+        return points, samples, x, v, z
+
+    def _model_command(self, x: FloatArray, z: ComplexArray, points: int) -> FloatArray:
+        """Return H^-1(G^-1 x_d) over the period: the model inverse's command for ``x``."""
+        g = self.plant_inverse.frequency_response(z)
+        w = np.fft.irfft(np.fft.rfft(x) / g, points)
+        return self._periodic_hysteresis_inverse(w)
+
     def _seed_from_model(self) -> None:
         """
         Start ``learning`` (no model inverse) from the model inverse's command for the reference.
@@ -1641,21 +1684,18 @@ class FeedForwardController:
         are the table a new line rate starts from, so that its first line has the model
         inverse's hysteresis compensation in the band the table can hold.
         """
-        points = self.table_points()
-        samples = self._phase.samples if self._phase is not None else float(points)
-        x, v = self._grid_reference() if self._phase is not None else \
-            (np.asarray(self._lx, dtype=np.float64), np.asarray(self._lv, dtype=np.float64))
-        if self._phase is not None:
-            x, v = self._shape_periodic(x, v)
-        z = np.exp(2j * math.pi * np.arange(points // 2 + 1) / samples)
+        points, samples, x, v, z = self._seed_grid()
         kept = np.zeros(z.size, dtype=bool)
         if self._phase is not None:
             kept[self._phase.harmonics.astype(int)] = True
         else:
             kept[:len(self._kept)] = self._kept
-        g = self.plant_inverse.frequency_response(z)
-        w = np.fft.irfft(np.fft.rfft(x) / g, points)
-        command = self._periodic_hysteresis_inverse(w)
+        prepared, self._prepared = self._prepared, None
+        if prepared is not None and prepared[0] is self._trajectory \
+                and prepared[1:3] == (points, samples):
+            command = prepared[3]
+        else:
+            command = self._model_command(x, z, points)
         share = self._ksens * (self._theta0 * np.fft.rfft(x) + self._phi0 * np.fft.rfft(v))
         if self._notch_coeffs is not None:
             num, den = self._notch_coeffs
