@@ -1133,8 +1133,9 @@ class ControllerLogic:
         while queue and (stamp_ns is None
                          or (queue[-1][0] is not None and queue[-1][0] >= stamp_ns)):
             queue.pop()
-        prepared, self._prepared = self._prepared, None
+        prepared = self._prepared
         if prepared is not None and prepared[0] is trajectory:
+            self._prepared = None
             line = prepared[1]
         elif self._bound[0] is trajectory:
             line = self._bound[1]
