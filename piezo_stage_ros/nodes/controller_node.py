@@ -26,7 +26,8 @@ everything as it was. Topics: subscribes to ``stage/position`` and ``stage/refer
 publishes ``stage/command`` and ``stage/diagnostics`` (controller internals: theta_hat,
 phi_hat, s, saturation ...). A feed-forward predicts from its own copy of the trajectory: a new
 one announced on ``stage/trajectory`` is bound at the sample of its t = 0 (model inverse at
-once, learning afresh).
+once, learning afresh); a start after a stop is announced too, and the same line goes on from
+its new t = 0 with the table it learned.
 """
 
 from __future__ import annotations
@@ -127,7 +128,9 @@ class ControllerNode(Node):
                                      diagnostics_every=opts.diagnostics_every,
                                      rebuild=self._rebuild,
                                      on_refused=self._log_error,
-                                     on_bound=self._bound_trajectory)
+                                     on_bound=self._bound_trajectory,
+                                     trajectory=self._ff_context[1] if self._ff_context
+                                     else None)
         self._stability = stability
         #: Where changes go besides ``logic``: a servo process that runs its own copy of it
         #: (``ServoProcess.change``; stage_servo --direct in real time).

@@ -533,9 +533,10 @@ class TrajectoryLogic:
         return state
 
     def start(self) -> None:
-        """Stream from the next sample on, from t = 0."""
+        """Stream from the next sample on, from t = 0 (:meth:`take_switch` tells its stamp)."""
         self.active = True
         self._start_ns = None
+        self._switched = True
         self._epoch += 1
 
     def stop(self) -> None:
@@ -753,11 +754,13 @@ class TrajectoryLogic:
 
     def take_switch(self) -> int | None:
         """
-        Return the stamp [ns] where the last new trajectory's t = 0 fell, once; else None.
+        Return the stamp [ns] where the last t = 0 fell, once; else None.
 
-        For a controller that predicts from its own copy of the trajectory: it binds the new
-        one at that sample (:meth:`ControllerLogic.request_trajectory`). Inactive, the t = 0
-        of a new trajectory falls at the start.
+        A t = 0 after a start, or of a new trajectory (inactive, that of a new trajectory falls
+        at the start); not the first sample's of a trajectory streamed from it. For a
+        controller that predicts from its own copy of the trajectory: it binds
+        :attr:`trajectory` at that sample (:meth:`ControllerLogic.request_trajectory`), the
+        line it has again after a start of the same one.
         """
         stamp, self._switch_ns = self._switch_ns, None
         return stamp
@@ -933,6 +936,27 @@ def _learning_refuses(controller: Controller, trajectory: Trajectory) -> str | N
     return None
 
 
+#: Samples of a period :func:`line_print` compares at most.
+LINE_PRINT_SAMPLES = 100_000
+
+
+def line_print(trajectory: Trajectory, sample_time_s: float) -> tuple[Any, ...] | None:
+    """
+    Return what tells a periodic line from another at the loop's samples (None: aperiodic).
+
+    Its kind, its period and x_d, x_d' at every sample of one period from t = 0 (at most
+    ``LINE_PRINT_SAMPLES``): lines with equal prints play the same reference at every
+    sample, so a feed-forward bound to one plays the other as it is, its table included.
+    """
+    period = getattr(trajectory, 'period_s', None)
+    if not period:
+        return None
+    count = min(int(math.ceil(period / sample_time_s)) + 1, LINE_PRINT_SAMPLES)
+    x, v = trajectory.evaluate(np.arange(count, dtype=np.float64) * sample_time_s)
+    return (getattr(trajectory, 'kind', ''), float(period),
+            np.asarray(x, dtype=np.float64).tobytes(), np.asarray(v, dtype=np.float64).tobytes())
+
+
 def announce_trajectory(stamp_ns: int, params: TrajectoryParams) -> str:
     """
     Return the announcement of a new trajectory whose t = 0 is the sample ``stamp_ns``.
@@ -1017,6 +1041,9 @@ class ControllerLogic:
     on_bound : callable, optional
         ``on_bound(trajectory)`` when a new trajectory is bound (at the sample of its t = 0):
         the one a rebuild must bind from then on (not a refused one, nor one still to come).
+    trajectory : Trajectory, optional
+        The trajectory ``controller`` is bound to: a request of the same line (a start after
+        a stop) restarts it instead of binding it afresh.
 
     """
 
@@ -1025,7 +1052,8 @@ class ControllerLogic:
                  diagnostics_every: int = 10,
                  rebuild: Callable[[Any], Controller] | None = None,
                  on_refused: Callable[[str], None] | None = None,
-                 on_bound: Callable[[Any], None] | None = None) -> None:
+                 on_bound: Callable[[Any], None] | None = None,
+                 trajectory: Any = None) -> None:
         self.controller = controller
         self._on_refused = on_refused
         self._on_bound = on_bound
@@ -1045,8 +1073,10 @@ class ControllerLogic:
         self._index = 0  # samples since the first, skipped ones included
         self._pending: Any = None
         # new trajectories to bind, oldest first: (stamp of their t = 0, or None for the next
-        # sample; the trajectory)
-        self._trajectories: list[tuple[int | None, Any]] = []
+        # sample; the trajectory; its line_print); the stamps increase (request_trajectory)
+        self._trajectories: list[tuple[int | None, Any, Any]] = []
+        self._bound: tuple[Any, Any] = (trajectory, self._print(trajectory))
+        self._prepared: tuple[Any, Any] | None = None
         self._needs_reset = True
         self._safe = False
         self.steps = 0
@@ -1088,8 +1118,53 @@ class ControllerLogic:
             stepped (an announcement that came late) binds it at the next sample, that many
             samples into it.
 
+        Notes
+        -----
+        The latest request says what plays from its stamp on: requests still queued for that
+        stamp or later are dropped (with references ahead, a stop and a start announce a t = 0
+        before one announced earlier). The same line as the one bound before that stamp (a
+        start after a stop: equal references at every sample of a period) restarts the
+        feed-forward (its ``restart``: the learned table kept) instead of binding it afresh.
+        That comparison, and whatever the feed-forward can compute of the new line ahead (its
+        ``prepare``), run here, in the caller's thread, not in the sample's step.
+
         """
-        self._trajectories.append((stamp_ns, trajectory))
+        queue = self._trajectories
+        while queue and (stamp_ns is None
+                         or (queue[-1][0] is not None and queue[-1][0] >= stamp_ns)):
+            queue.pop()
+        prepared = self._prepared
+        if prepared is not None and prepared[0] is trajectory:
+            self._prepared = None
+            line = prepared[1]
+        elif self._bound[0] is trajectory:
+            line = self._bound[1]
+        else:
+            line = self._print(trajectory)
+            if line is None or line != (queue[-1][2] if queue else self._bound[1]):
+                self._prepare(trajectory)
+        queue.append((stamp_ns, trajectory, line))
+
+    def prepare_trajectory(self, trajectory: Any) -> None:
+        """
+        Compute now what a later :meth:`request_trajectory` of ``trajectory`` would compute.
+
+        For a caller that knows the trajectory before its t = 0 has a stamp (the servo, between
+        samples): the request, in the sample, then finds it done.
+        """
+        line = self._print(trajectory)
+        self._prepare(trajectory)
+        self._prepared = (trajectory, line)
+
+    def _prepare(self, trajectory: Any) -> None:
+        prepare = getattr(self.controller, 'prepare', None)
+        if prepare is not None:
+            prepare(trajectory)
+
+    def _print(self, trajectory: Any) -> Any:
+        """Return :func:`line_print` of ``trajectory`` at this controller's sample time."""
+        return None if trajectory is None else \
+            line_print(trajectory, self.controller.sample_time_s)
 
     def _apply_pending(self, position_m: float, reference_m: float) -> None:
         params, self._pending = self._pending, None
@@ -1173,11 +1248,14 @@ class ControllerLogic:
 
     def _bind_trajectory(self, stamp: int) -> None:
         """Bind the oldest requested trajectory before stepping the sample ``stamp``."""
-        at, trajectory = self._trajectories.pop(0)
+        at, trajectory, line = self._trajectories.pop(0)
         if self._trajectories and self._trajectories[0][0] is not None \
                 and self._trajectories[0][0] <= stamp:
             return  # a newer one has started by this sample already
         switch = getattr(self.controller, 'switch', None)
+        # the line it has, from a new t = 0 (a start after a stop): the table stays
+        restart = getattr(self.controller, 'restart', None) \
+            if line is not None and line == self._bound[1] else None
         refused = _learning_refuses(self.controller, trajectory)
         if refused is not None:
             # the trajectory node plays it already: the feed-forward, on the one it has, finds
@@ -1186,8 +1264,11 @@ class ControllerLogic:
                 self._on_refused(f'feed-forward: the new trajectory cannot be learned '
                                  f'({refused}); feedback alone until one it can take')
             return
-        if switch is not None:
+        if restart is not None:
+            restart()
+        elif switch is not None:
             switch(trajectory)
+        self._bound = (trajectory, line)
         if self._on_bound is not None:
             self._on_bound(trajectory)
         # a restart goes on from the new trajectory's t = 0, or as far into it as the samples

@@ -406,6 +406,10 @@ class ServoLoop:
         else:
             now_s = now_ns / NS_PER_S
             ref, vel = self.trajectory.on_position(stamp)
+            at = self.trajectory.take_switch()
+            if at is not None:
+                # a start or a new trajectory: its t = 0 is this sample, bound at this step
+                self.controller.request_trajectory(self.trajectory.trajectory, at)
             # the goals' tolerances and feedback take y_k against that x_d
             self.trajectory.observe(stamp, position_m)
             self.controller.on_position(stamp, position_m, now_s)
@@ -738,16 +742,19 @@ def servo_from_config(loop: LoopConfig, duration_s: float, bridge: Bridge | None
     # one trajectory object (its evaluation is pure): played by the trajectory logic, read
     # ahead by a feed-forward
     reference = make_trajectory(loop.trajectory)
+    # the trajectory bound last (at the sample of its t = 0): a rebuild binds that one
+    bound = [reference]
 
     def build(params: ControllerParams) -> Controller:
-        return bound_controller(params, period, design, hysteresis, reference)
+        return bound_controller(params, period, design, hysteresis, bound[0])
     controller = ControllerLogic(
         build(loop.controller), mode='realtime',
         safe_voltage_v=cn.safe_voltage_v, position_timeout_s=cn.position_timeout_s,
         diagnostics_every=cn.diagnostics_every,
         # the controller node warns about a table it cannot load after a change; here too the
         # new controller learns afresh instead of faulting at a sample
-        rebuild=lambda params: rebuild_or_learn_afresh(build, params))
+        rebuild=lambda params: rebuild_or_learn_afresh(build, params),
+        on_bound=lambda trajectory: bound.__setitem__(0, trajectory), trajectory=reference)
     trajectory = TrajectoryLogic(reference, sample_rate_hz=stage.sample_rate_hz,
                                  chunk_s=min(tn.chunk_s, 0.005), active=tn.active)
     # goals are checked outside the sample, for one a little ahead (ServoProcess.change)
@@ -783,10 +790,14 @@ def apply_change(servo: ServoLoop, kind: str, value: Any) -> None:
         servo.controller.request_change(value)
     elif kind == 'trajectory':
         assert servo.trajectory is not None
-        trajectory = make_trajectory(value)
-        servo.trajectory.switch(trajectory)
+        # checked against the sample rate as the trajectory node checks it (a change from
+        # elsewhere than that node is refused here, between samples, with the reason)
+        trajectory = make_trajectory(value, sample_rate_hz=servo.rate_hz)
         if servo.controller is not None:
-            servo.controller.request_trajectory(trajectory)
+            # what the feed-forward can compute of the new line goes here, between samples,
+            # not into the step of the sample where the line starts
+            servo.controller.prepare_trajectory(trajectory)
+        servo.trajectory.switch(trajectory)
     elif kind == 'active':
         assert servo.trajectory is not None
         if value:
@@ -1060,6 +1071,9 @@ class ServoProcess:
                         'cancel', 'hold'):
             raise ValueError(f'servo change: kind {kind!r}; allowed: controller, trajectory, '
                              'active, wind_down, set, goal, cancel, hold')
+        if kind == 'trajectory':
+            # refused here, with the reason, rather than in the servo's sample
+            make_trajectory(value, sample_rate_hz=self.loop.stage.sample_rate_hz)
         self._changes.put((kind, value))
         self.ring.set('posted', self.ring.get('posted') + 1)
 

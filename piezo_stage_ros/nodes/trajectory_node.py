@@ -21,8 +21,9 @@ same stamp: x_d(t) and x_d'(t) at the trajectory's own time t (0 at the sample w
 Start and stop: the ``active`` parameter, or the services ``~/start`` and ``~/stop``
 (``std_srvs/srv/Trigger``). Switch: set any trajectory parameter (``kind``, ``sine.frequency_hz``
 ...); the new trajectory is validated, refused with the reason if bad, and starts at its t = 0
-at the next sample; ``stage/trajectory`` announces it with the stamp of that sample, for the
-controller's feed-forward, which predicts from its own copy of the trajectory.
+at the next sample; ``stage/trajectory`` announces it (and the t = 0 of each start) with the
+stamp of that sample, for the controller's feed-forward, which predicts from its own copy of
+the trajectory.
 
 Goals: the action ``stage/follow_joint_trajectory`` (``control_msgs/action/FollowJointTrajectory``)
 and the topic ``stage/joint_trajectory`` (``trajectory_msgs/msg/JointTrajectory``; an empty one

@@ -75,6 +75,7 @@ elsewhere, turns the feed-forward off until the next bind, counted in ``ff_misma
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 import hashlib
 import math
@@ -1565,6 +1566,9 @@ class FeedForwardController:
         self._k = 0
         self._matched = False
         self._u = 0.0
+        # what prepare computed of a trajectory ahead: (trajectory, table points, samples a
+        # period, the model command of the seed)
+        self._prepared: tuple[Trajectory, int, float, FloatArray] | None = None
 
     # -- the Controller interface --------------------------------------------------------
 
@@ -1605,11 +1609,12 @@ class FeedForwardController:
         """
         Bind a new trajectory from the next step on, at its t = 0, without a reset.
 
-        A new line rate: the feedback, the inverse hysteresis and the estimates go on; the
-        model inverse of the new reference acts from its first sample and the learned table
-        starts afresh for the new period (a table file is not loaded again: it belongs to the
-        first trajectory). Nothing is refused that :meth:`bind` of the first one accepted,
-        except a period the learning cannot use (its error names the range).
+        A new line rate: the feedback, the inverse hysteresis and the estimates go on (those of
+        ``inverse`` alone held over the new start, as over a run's); the model inverse of the
+        new reference acts from its first sample and the learned table starts afresh for the
+        new period (a table file is not loaded again: it belongs to the first trajectory).
+        Nothing is refused that :meth:`bind` of the first one accepted, except a period the
+        learning cannot use (its error names the range).
         """
         self._segments = []
         self._bind_one(trajectory, load_file=False)
@@ -1622,8 +1627,50 @@ class FeedForwardController:
         # alone, the seed above carries the RAC's present term) they adapt again from there.
         if not (self._holding and self._inverse_on):
             self._hold(False)
+        # the new line's start moves the stage as a run's start does: ``inverse`` alone holds
+        # its estimates over it again, or its transient leaves them off for every line after
+        self._arm_start_hold()
         if self._learning_on and not self._inverse_on:
             self._seed_from_model()
+
+    def prepare(self, trajectory: Trajectory) -> None:
+        """
+        Compute ahead what :meth:`switch` to ``trajectory`` needs of it alone (thread-safe).
+
+        ``learning`` alone seeds its table at a switch from the model inverse's command for the
+        new line (:meth:`_seed_from_model`), whose inverse hysteresis runs over up to 20 periods:
+        too long for a sample's step on a slow line. Called when the change is requested (in
+        the requesting thread), that command is ready at the switch, which then only adds the
+        terms of the loop's state at that sample: the table is the one the switch alone would
+        compute. Nothing for the other modes; a trajectory the switch would refuse is left to
+        the switch.
+        """
+        if not self._learning_on or self._inverse_on:
+            return
+        dry = copy.copy(self)  # binding assigns what it sets: self is left as it is
+        try:
+            dry._bind_one(trajectory, load_file=False)
+        except ParameterError:
+            return
+        points, samples, x, _, z = dry._seed_grid()
+        self._prepared = (trajectory, points, samples, dry._model_command(x, z, points))
+
+    def _seed_grid(self) -> tuple[int, float, FloatArray, FloatArray, ComplexArray]:
+        """Return the table's points, samples a period, x_d, x_d' and z of its harmonics."""
+        points = self.table_points()
+        samples = self._phase.samples if self._phase is not None else float(points)
+        x, v = self._grid_reference() if self._phase is not None else \
+            (np.asarray(self._lx, dtype=np.float64), np.asarray(self._lv, dtype=np.float64))
+        if self._phase is not None:
+            x, v = self._shape_periodic(x, v)
+        z = np.exp(2j * math.pi * np.arange(points // 2 + 1) / samples)
+        return points, samples, x, v, z
+
+    def _model_command(self, x: FloatArray, z: ComplexArray, points: int) -> FloatArray:
+        """Return H^-1(G^-1 x_d) over the period: the model inverse's command for ``x``."""
+        g = self.plant_inverse.frequency_response(z)
+        w = np.fft.irfft(np.fft.rfft(x) / g, points)
+        return self._periodic_hysteresis_inverse(w)
 
     def _seed_from_model(self) -> None:
         """
@@ -1637,21 +1684,18 @@ class FeedForwardController:
         are the table a new line rate starts from, so that its first line has the model
         inverse's hysteresis compensation in the band the table can hold.
         """
-        points = self.table_points()
-        samples = self._phase.samples if self._phase is not None else float(points)
-        x, v = self._grid_reference() if self._phase is not None else \
-            (np.asarray(self._lx, dtype=np.float64), np.asarray(self._lv, dtype=np.float64))
-        if self._phase is not None:
-            x, v = self._shape_periodic(x, v)
-        z = np.exp(2j * math.pi * np.arange(points // 2 + 1) / samples)
+        points, samples, x, v, z = self._seed_grid()
         kept = np.zeros(z.size, dtype=bool)
         if self._phase is not None:
             kept[self._phase.harmonics.astype(int)] = True
         else:
             kept[:len(self._kept)] = self._kept
-        g = self.plant_inverse.frequency_response(z)
-        w = np.fft.irfft(np.fft.rfft(x) / g, points)
-        command = self._periodic_hysteresis_inverse(w)
+        prepared, self._prepared = self._prepared, None
+        if prepared is not None and prepared[0] is self._trajectory \
+                and prepared[1:3] == (points, samples):
+            command = prepared[3]
+        else:
+            command = self._model_command(x, z, points)
         share = self._ksens * (self._theta0 * np.fft.rfft(x) + self._phi0 * np.fft.rfft(v))
         if self._notch_coeffs is not None:
             num, den = self._notch_coeffs
@@ -1769,6 +1813,36 @@ class FeedForwardController:
         """Reset the inner controller and restart the feed-forward at sample 0."""
         self.inner.reset(position_m, reference_m, output_v)
         self._u = self.inner.output_v
+        self._rewind()
+        # a table from a file was saved relative to the initial estimates (:meth:`learned`):
+        # they are held from the first sample
+        self._hold(bool(self.table_source))
+        self._arm_start_hold()
+        if self.hysteresis_inverse is not None:
+            # the stage rests with w = c v: the compensator starts where the stage does
+            hyst = self.hysteresis_inverse
+            hyst.reset(position_m / (self.plant_inverse.dc_gain * hyst.slope)
+                       if hyst.slope > 0 else 0.0)
+        if self._trajectory is not None and self._period_n == 0:
+            self._prepare_tables()
+
+    def restart(self) -> None:
+        """
+        Play the bound trajectory again from its t = 0 at the next step, without a reset.
+
+        A start after a stop of the same line: the feedback, the inverse hysteresis, the
+        estimates (held or not) and the learned table go on; the table's phase is taken from
+        the new t = 0, the errors of the unfinished period are kept as :meth:`reset` keeps
+        them, and ``inverse`` alone holds its estimates over the start again.
+        """
+        self._segments = []
+        self._rewind()
+        self._arm_start_hold()
+        if self._trajectory is not None and self._period_n == 0:
+            self._prepare_tables()
+
+    def _rewind(self) -> None:
+        """Set the reference index back to sample 0; the table stays."""
         if self._learning_on and self._period_n:
             self._accumulate(self._k % self._period_n)  # the errors so far stay in the update
             self._pending = 0
@@ -1780,19 +1854,12 @@ class FeedForwardController:
         self._k = 0
         self._seen_k = -1
         self._share_fresh = True
-        # a table from a file was saved relative to the initial estimates (:meth:`learned`):
-        # they are held from the first sample
-        self._hold(bool(self.table_source))
+
+    def _arm_start_hold(self) -> None:
+        """Hold the estimates of ``inverse`` alone over the next ``start_hold`` samples."""
         self._start_holding = self.start_hold > 0
         if self._start_holding:
             self._hold_inner(True)
-        if self.hysteresis_inverse is not None:
-            # the stage rests with w = c v: the compensator starts where the stage does
-            hyst = self.hysteresis_inverse
-            hyst.reset(position_m / (self.plant_inverse.dc_gain * hyst.slope)
-                       if hyst.slope > 0 else 0.0)
-        if self._trajectory is not None and self._period_n == 0:
-            self._prepare_tables()
 
     def step(self, position_m: float, reference_m: float, reference_velocity_mps: float,
              dt_s: float | None = None) -> float:
