@@ -83,6 +83,9 @@ def _parser() -> argparse.ArgumentParser:
                    help='Controller steps timed one by one (default 200000).')
     p.add_argument('--bag-duration', type=_positive(float), default=60.0, metavar='S',
                    help='Length of the run of the bag benchmark (default 60 s).')
+    p.add_argument('--case', action='append', default=[], metavar='NAME',
+                   help='Axes suite: only this case, as printed without its mode, e.g. '
+                   "'servo-axes-3' (repeatable; default: all).")
     p.add_argument('--json', action='store_true', help='Print one JSON object on stdout.')
     return p
 
@@ -119,7 +122,7 @@ def _bench(args: argparse.Namespace) -> int:
                 result['recording'] = run_recording_benchmark(args.bag_duration)
             if args.suite in ('axes', 'all'):
                 from piezo_stage_ros.bench.axes import run_axes_benchmark
-                result['axes'] = run_axes_benchmark(repeats=args.repeats)
+                result['axes'] = run_axes_benchmark(repeats=args.repeats, cases=args.case)
             if args.suite == 'ros' or (args.suite == 'all' and _rclpy_available()):
                 if not _rclpy_available():
                     print(f'{PROG}: error: the ROS benchmark needs rclpy (a sourced ROS 2 Jazzy '

@@ -31,6 +31,14 @@ The stage is stepped between samples but not timed. Cases:
   commands ahead of the axes together); ``axes-3 per-axis``: the same with each axis'
   ``predict`` called on its own;
 - the same without learning (``inverse``);
+- ``servo-1``: the whole sample of the one-axis servo as deployed
+  (:class:`~piezo_stage_ros.nodes.servo.ServoLoop` of the fast axis' one-axis configuration on
+  the core model, ``servo.commands_ahead`` ahead): the guard's write and the model's step,
+  the reference, the controller, the commands ahead, the queue to the ROS side;
+  ``servo-axes-1`` / ``servo-axes-3``: the same for :class:`~piezo_stage_ros.nodes.servo_axes.
+  AxesServoLoop` with one axis / the three axes (the model of three coupled axes stepped in the
+  sample, as a real-time target's I/O would be); each sample is one ``step()`` of the loop on
+  a clock that is always on time;
 - ``batch-3`` against ``scalar-3``: the feedback alone (RAC and notch) of three axes, once
   with the numpy batch of :mod:`piezo_stage_ros.core.loop.batch` and once as three scalar
   controllers: why the axes are stepped as scalars.
@@ -43,8 +51,9 @@ a shared machine: compare them with each other.
 
 from __future__ import annotations
 
+import dataclasses
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from piezo_stage_ros import cli
@@ -157,6 +166,88 @@ def _today_case(loop: AxesLoopConfig, ahead: int, warm_s: float, samples: int
                                     reset, warm_s=warm_s, samples=samples, axes=1))
 
 
+class _OnTime:
+    """A clock at each sample's due time when read: the loop never waits, never skips."""
+
+    def __init__(self, period_ns: int) -> None:
+        self.period_ns = period_ns
+        self.pacer: Any = None
+
+    def __call__(self) -> int:
+        pacer = self.pacer
+        return int(pacer.t0_ns + (pacer.index + 1) * self.period_ns) if pacer.index >= 0 \
+            else 0
+
+
+def _servo_case(loop: AxesLoopConfig, ahead: int, warm_s: float, samples: int, *,
+                axes: bool = True) -> dict[str, float]:
+    """Time each whole sample (``step()``) of the servo loop after ``warm_s``."""
+    from piezo_stage_ros.hardware.pacing import Pacer
+    from piezo_stage_ros.nodes.servo import servo_from_config
+    from piezo_stage_ros.nodes.servo_axes import axes_servo_from_config
+
+    dt = loop.stage.sample_time_s
+    warm = int(round(warm_s / dt))
+    servo: Any
+    if axes:
+        servo = axes_servo_from_config(loop, 0.0, capacity=4096)
+    else:
+        # the one-axis configuration of the (first) axis, as a one-axis stage runs today
+        one = dataclasses.replace(loop.base, stage=loop.stage.axes[0],
+                                  controller=loop.controllers[0], trajectory=loop.lines[0])
+        servo = servo_from_config(one, 0.0, capacity=4096)
+    servo.commands_ahead = ahead
+    clock = _OnTime(servo.pacer.period_ns)
+    servo.pacer = clock.pacer = Pacer(clock.period_ns, clock=clock, sleep=lambda s: None)
+    servo.warm_up()
+    servo.start()
+    wall, cpu = time.perf_counter_ns, time.thread_time_ns
+    # the backend's step (the model's) timed inside the sample, to take it out as well: what
+    # the sample costs with a backend whose I/O costs nothing
+    bridge = servo.plant.bridge
+    name = 'read_positions' if axes else 'read_position'
+    read = getattr(bridge, name)
+    spent = [0]
+
+    def timed_read() -> Any:
+        b0 = cpu()
+        out = read()
+        spent[0] += cpu() - b0
+        return out
+    setattr(bridge, name, timed_read)
+    out: list[int] = []
+    out_cpu: list[int] = []
+    own_cpu: list[int] = []
+    step, queue = servo.step, servo.samples
+    for k in range(warm + samples):
+        spent[0] = 0
+        c0 = cpu()
+        t0 = wall()
+        step()
+        t1 = wall()
+        c1 = cpu()
+        if k >= warm:
+            out.append(t1 - t0)
+            out_cpu.append(c1 - c0)
+            own_cpu.append(c1 - c0 - spent[0])
+        if len(queue) > 2048:
+            queue.clear()  # the ROS side's drain, outside the timed sample
+    servo.plant.stop()
+    result = _percentiles(out, out_cpu)
+    own = _percentiles(own_cpu)
+    result['cpu_no_backend_median_us'] = own['median_us']
+    result['cpu_no_backend_p99_us'] = own['p99_us']
+    # the rare long samples (a period's end, a full collection) the p99 does not show
+    result['cpu_p999_us'] = round(float(np.percentile(out_cpu, 99.9)) / 1e3, 1)
+    result['cpu_max_us'] = round(max(out_cpu) / 1e3, 1)
+    return result
+
+
+def _servo_today_case(loop: AxesLoopConfig, ahead: int, warm_s: float, samples: int
+                      ) -> dict[str, float]:
+    return _servo_case(loop, ahead, warm_s, samples, axes=False)
+
+
 def _feedback_cases(loop: AxesLoopConfig, samples: int) -> dict[str, dict[str, float]]:
     from piezo_stage_ros.core.loop.batch import ControllerBatch
     params = loop.controllers[0].with_flat({'feedforward.mode': 'none'})
@@ -184,8 +275,8 @@ def _feedback_cases(loop: AxesLoopConfig, samples: int) -> dict[str, dict[str, f
     return {'batch-3': _percentiles(times_b), 'scalar-3': _percentiles(times_s)}
 
 
-def run_axes_benchmark(*, samples: int = 20000, ahead: int = 128, repeats: int = 3
-                       ) -> dict[str, Any]:
+def run_axes_benchmark(*, samples: int = 20000, ahead: int = 128, repeats: int = 3,
+                       cases: Sequence[str] = ()) -> dict[str, Any]:
     """
     Run the cases of the module docstring and print one line each.
 
@@ -197,6 +288,8 @@ def run_axes_benchmark(*, samples: int = 20000, ahead: int = 128, repeats: int =
         Commands ahead per axis and sample.
     repeats : int
         Runs per case; the one with the lowest median counts.
+    cases : sequence of str
+        Only these cases (names as printed, without the mode); empty: all.
 
     Returns
     -------
@@ -205,14 +298,19 @@ def run_axes_benchmark(*, samples: int = 20000, ahead: int = 128, repeats: int =
 
     """
     out: dict[str, Any] = {'ahead': ahead, 'samples': samples}
+    only = set(cases)
     for mode in ('inverse_learning', 'inverse'):
         xy, xyz = _loop('xy_stage.yaml', mode), _loop('xyz_stage.yaml', mode)
         # the learning starts after each axis' first period (1.28 s for the slow ones)
         warm = 1.3 if mode == 'inverse_learning' else 0.1
-        cases: tuple[tuple[str, Callable[..., dict[str, float]], AxesLoopConfig], ...] = (
+        all_cases: tuple[tuple[str, Callable[..., dict[str, float]], AxesLoopConfig], ...] = (
             ('today', _today_case, xy), ('axes-1', _axes_case, _one_axis(xy)),
-            ('axes-3', _axes_case, xyz), ('axes-3 per-axis', _per_axis_case, xyz))
-        for name, case, loop in cases:
+            ('axes-3', _axes_case, xyz), ('axes-3 per-axis', _per_axis_case, xyz),
+            ('servo-1', _servo_today_case, _one_axis(xy)),
+            ('servo-axes-1', _servo_case, _one_axis(xy)), ('servo-axes-3', _servo_case, xyz))
+        for name, case, loop in all_cases:
+            if only and name not in only:
+                continue
             runs = [case(loop, ahead, warm, samples) for _ in range(repeats)]
             best = dict(min(runs, key=lambda r: r['median_us']))
             # a shared machine preempts the loop now and then: the quietest run's p99 too
@@ -222,7 +320,14 @@ def run_axes_benchmark(*, samples: int = 20000, ahead: int = 128, repeats: int =
             print(f'{key:36s} median {best["median_us"]:7.2f} us  p99 {best["p99_us"]:7.2f} us'
                   f' (quietest run {best["p99_best_us"]:7.2f} us)  max {best["max_us"]:8.1f} us;'
                   f' CPU time median {best["cpu_median_us"]:7.2f} us  p99 '
-                  f'{best["cpu_p99_us"]:7.2f} us')
+                  f'{best["cpu_p99_us"]:7.2f} us'
+                  + ('; without the backend step: CPU median '
+                     f'{best["cpu_no_backend_median_us"]:7.2f} us  p99 '
+                     f'{best["cpu_no_backend_p99_us"]:7.2f} us; CPU p99.9 '
+                     f'{best["cpu_p999_us"]:8.1f} us  max {best["cpu_max_us"]:8.1f} us'
+                     if 'cpu_no_backend_median_us' in best else ''))
+    if only and not only & {'batch-3', 'scalar-3'}:
+        return out
     fb = _feedback_cases(_loop('xyz_stage.yaml', 'none'), samples)
     for key, best in fb.items():
         out[f'{key} feedback'] = best

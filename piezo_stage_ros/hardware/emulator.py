@@ -503,17 +503,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         # the same loader as every command: the plant node's own settings (mode, backend ...)
         # are validated beside the stage, and noted when the emulator cannot honour them
-        params = cli.offline_loop('stage_emulator', cli.read_config(args.config)).stage
+        config = cli.read_config(args.config)
+        params = cli.offline_loop('stage_emulator', config).stage
         # the clock's options are those of the host's servo loop (servo.*), validated alike
         clock = ServoParams(spin_us=args.spin_us, fifo_priority=args.fifo_priority,
                             cpu=args.cpu, nice=args.nice)
-        emulator = TargetEmulator(params, port=args.port, idle_timeout_s=args.idle_timeout_s,
-                                  max_requests=args.max_requests)
+        emulator = _emulator_of(config, params, args)
     except PiezoStageError as exc:
         print(f'stage_emulator: {exc}', file=sys.stderr)
         return 2
     print(f'stage_emulator: listening on {LOOPBACK}:{emulator.port}', flush=True)
+    names = getattr(getattr(emulator, 'axes_stage', None), 'names', None)
+    if names is not None:
+        print(f'stage_emulator: axes {list(names)}, protocol version 4', flush=True)
     try:
+        if args.paced and names is not None:
+            emulator.close()
+            print('stage_emulator: --paced serves one axis; a stage of several axes is served '
+                  'request-reply', file=sys.stderr)
+            return 2
         if args.paced:
             period_ns = round(1e9 / params.sample_rate_hz)
             for key, text in servo_setup(clock, period_ns).items():
@@ -529,6 +537,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         print('stage_emulator: clock ' + ', '.join(
             f'{k} {v}' for k, v in emulator.pacer.stats.summary().items()), flush=True)
     return 0
+
+
+def _emulator_of(config: Any, params: StageParams, args: argparse.Namespace) -> TargetEmulator:
+    """Return the emulator of the files: of several axes (version 4) when they name axes."""
+    from piezo_stage_ros.core.config.axes import axes_loop_config, has_axes
+    if has_axes(config):
+        from piezo_stage_ros.hardware.emulator_axes import AxesTargetEmulator
+        return AxesTargetEmulator(axes_loop_config(config).stage, port=args.port,
+                                  idle_timeout_s=args.idle_timeout_s,
+                                  max_requests=args.max_requests)
+    return TargetEmulator(params, port=args.port, idle_timeout_s=args.idle_timeout_s,
+                          max_requests=args.max_requests)
 
 
 if __name__ == '__main__':

@@ -359,9 +359,20 @@ class UdpBridge:
             self.malformed += 1
             return None
         _, rseq, position, status, missing = reply
-        if not accept(rseq):
-            self.stale += 1
+        if not self._count_reply(kind, rseq, status, missing, accept, VERSION):
             return None
+        return rseq, position
+
+    def _count_reply(self, kind: int, seq: int, status: int, missing: int,
+                  accept: Callable[[int], bool], version: int) -> bool:
+        """
+        Count a reply's number and status bits; return whether ``accept`` takes its number.
+
+        A reply that refuses the request (of protocol ``version``) raises :class:`BridgeError`.
+        """
+        if not accept(seq):
+            self.stale += 1
+            return False
         self.exchanges += 1
         self.target_missing = missing
         if status & (STATUS_CLAMPED | STATUS_NOT_FINITE):
@@ -370,11 +381,11 @@ class UdpBridge:
             self.target_predicted += 1
         if status & STATUS_VERSION:
             raise BridgeError(f'UDP bridge: the target at {self.address[0]}:'
-                              f'{self.address[1]} refused protocol version {VERSION}; '
+                              f'{self.address[1]} refused protocol version {version}; '
                               'update one of them (docs/reference/udp-protocol.md)')
         if status & STATUS_REFUSED:
             raise BridgeError(f'UDP bridge: target refused request kind {kind}')
-        return rseq, position
+        return True
 
     def _exchange(self, kind: int, value_v: float) -> float | None:
         """Send one request and return the position of its reply, or None on timeout."""
