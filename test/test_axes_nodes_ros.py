@@ -13,7 +13,8 @@
 # limitations under the License.
 
 """
-The nodes of a stage of several axes under rclpy, in lockstep, against the offline runner.
+The nodes of a stage of several axes under rclpy, lockstep and real time, against the offline
+runner.
 
 Skipped where rclpy (ROS 2 Jazzy) cannot be imported; CI has no rclpy, the logic these nodes
 wrap is tested without it in test_axes_nodes_logic.py.
@@ -42,6 +43,7 @@ from piezo_stage_ros.nodes.axes_nodes import (  # noqa: E402
     AxesControllerNode,
     AxesPlantNode,
     AxesTrajectoryNode,
+    connect_axes,
 )
 from piezo_stage_ros.nodes.runner import make_executor  # noqa: E402
 from rclpy.context import Context  # noqa: E402
@@ -160,18 +162,71 @@ def test_a_lockstep_run_of_the_xy_stage_is_the_offline_runner_bit_for_bit(contex
         run_metrics(records, window_s=window, fast_axis='x')
 
 
-def test_real_time_with_several_axes_is_refused_naming_the_mode(capsys):
+def direct_nodes_of(context, duration_s):
+    """The three nodes in real time, composed as ``stage_servo --direct`` composes them."""
+    args = ['--ros-args'] + [a for f in FILES for a in ('--params-file', f)]
+
+    def make(cls, values):
+        values = {'mode': 'realtime', **values}
+        return cls(context=context, cli_args=args, direct=True,
+                   parameter_overrides=[Parameter(k, value=v) for k, v in values.items()])
+    # two subscribers are the peers the servo calls; the third the recorder, given time to
+    # match the other topics
+    plant = make(AxesPlantNode, {'duration_s': duration_s, 'lockstep.subscribers': 3,
+                                 'lockstep.settle_s': 0.5})
+    nodes = [plant, make(AxesControllerNode, {}), make(AxesTrajectoryNode, {})]
+    connect_axes(*nodes)
+    return plant, nodes
+
+
+def test_a_real_time_run_of_the_xy_stage_is_the_offline_runner_until_a_skipped_sample(
+        context, tmp_path):
+    from piezo_stage_ros.analysis.bagread import read_axes
+    duration_s = 0.5
+    n = 5000
+    plant, nodes = direct_nodes_of(context, duration_s)
+    recorder = Recorder(context)
+    spin(context, nodes + [recorder], plant.finished,
+         until=lambda: len(recorder.raw[wire.COMMAND]) >= plant.servo.pushed)
+    assert plant.finished.done() and plant.finished.exception() is None
+    stats = plant.finished.result()
+    served, skipped = plant.servo.pushed, stats['skipped']
+    assert stats['queue_overruns'] == 0 and stats['malformed'] == 0
+    # every sample of the grid is served or skipped (counted), and every served one recorded
+    assert served + skipped == n and served > 0
+    assert {k: len(v) for k, v in recorder.raw.items()} == dict.fromkeys(TOPICS, served)
+    recorder.write_bag(tmp_path / 'run')
+    got = read_axes(tmp_path / 'run', relative_time=True)
+    assert [r.meta['axis'] for r in got] == ['x', 'y']
+    k = np.round(got[0].time_s * 1e4).astype(int)  # on the 10 kHz grid from sample 0
+    assert k[0] == 0 and np.all(np.diff(k) >= 1) and k[-1] < n
+    assert int(np.sum(np.diff(k) - 1)) + (n - 1 - k[-1]) == skipped
+    # until the first skipped sample, the servo's samples are the offline runner's bit for bit
+    # (after it, the stage held commands planned ahead where the runner had fresh ones)
+    on_time = int(np.argmax(np.diff(k) > 1)) + 1 if np.any(np.diff(k) > 1) else k.size
+    _, records = offline(duration_s)
+    print(f'real time: {served} samples served, {skipped} skipped, the first '
+          f'{on_time} on the grid; lateness p99 {stats["lateness_p99_us"]} us')
+    for rec, off in zip(got, records):
+        for field in ('position_m', 'reference_m', 'reference_velocity_mps', 'command_v',
+                      'true_position_m'):
+            np.testing.assert_array_equal(getattr(rec, field)[:on_time],
+                                          getattr(off, field)[:on_time], err_msg=field)
+
+
+def test_real_time_with_several_axes_without_the_direct_composition_is_refused(capsys):
     code = stage_servo.main(['stage_servo', '--ros-args', *[a for f in FILES for a in (
         '--params-file', f)], '-p', 'mode:=realtime'])
     err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and "mode 'realtime'" in err[-1] and 'lockstep only' in err[-1]
+    assert code == 2 and "mode 'realtime' without --direct" in err[-1]
+    assert 'stage_servo --direct' in err[-1]
 
 
-def test_the_direct_composition_with_several_axes_is_refused(capsys):
+def test_the_direct_composition_in_lockstep_with_several_axes_is_refused(capsys):
     code = stage_servo.main(['stage_servo', '--direct', '--ros-args',
                              *[a for f in FILES for a in ('--params-file', f)]])
     err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and '--direct' in err[-1] and 'lockstep only' in err[-1]
+    assert code == 2 and '--direct in lockstep' in err[-1]
 
 
 def test_a_bad_per_axis_value_is_refused_naming_it(capsys):

@@ -520,9 +520,10 @@ def test_the_launch_file_runs_a_multi_axis_scenario_in_lockstep_only():
     text = Path(path).read_text()
     Path(path).unlink()
     assert "- 'y'" in text and "slow_axis: 'y'" in text
-    # real time with several axes is the servo's: refused before any process starts
+    # real time with several axes runs in the servo's composition only: refused without it
+    # before any process starts
     context.launch_configurations['mode'] = 'realtime'
-    with pytest.raises(ValueError, match="xy_stage.yaml: .*lockstep only.*mode 'realtime'"):
+    with pytest.raises(ValueError, match="xy_stage.yaml: .*mode 'realtime' without --direct"):
         module._launch(context)
     context.launch_configurations['mode'] = 'lockstep'
     # the one-axis default still gives its processes
