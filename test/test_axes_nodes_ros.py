@@ -38,6 +38,7 @@ from piezo_stage_ros.core.contracts import wire  # noqa: E402
 from piezo_stage_ros.core.control.axes import AxesController  # noqa: E402
 from piezo_stage_ros.core.loop.axes import run_axes, run_metrics  # noqa: E402
 from piezo_stage_ros.core.model.axes import AxesStage  # noqa: E402
+from piezo_stage_ros.hardware.pacing import Pacer  # noqa: E402
 from piezo_stage_ros.nodes import stage_servo  # noqa: E402
 from piezo_stage_ros.nodes.axes_nodes import (  # noqa: E402
     AxesControllerNode,
@@ -179,12 +180,13 @@ def direct_nodes_of(context, duration_s):
     return plant, nodes
 
 
-def test_a_real_time_run_of_the_xy_stage_is_the_offline_runner_until_a_skipped_sample(
-        context, tmp_path):
+def real_time_run(context, tmp_path, duration_s, clock=None):
+    """Run the composed nodes in real time with a recorder; return its bag read, as analyze."""
     from piezo_stage_ros.analysis.bagread import read_axes
-    duration_s = 0.5
-    n = 5000
+    n = round(duration_s * 10_000)
     plant, nodes = direct_nodes_of(context, duration_s)
+    if clock is not None:
+        plant.servo.pacer = Pacer(plant.servo.pacer.period_ns, clock=clock, sleep=clock.sleep)
     recorder = Recorder(context)
     spin(context, nodes + [recorder], plant.finished,
          until=lambda: len(recorder.raw[wire.COMMAND]) >= plant.servo.pushed)
@@ -197,21 +199,51 @@ def test_a_real_time_run_of_the_xy_stage_is_the_offline_runner_until_a_skipped_s
     assert {k: len(v) for k, v in recorder.raw.items()} == dict.fromkeys(TOPICS, served)
     recorder.write_bag(tmp_path / 'run')
     got = read_axes(tmp_path / 'run', relative_time=True)
-    assert [r.meta['axis'] for r in got] == ['x', 'y']
+    assert [r.meta['axis'] for r in got] == ['x', 'y'] and got[0].time_s.size == served
     k = np.round(got[0].time_s * 1e4).astype(int)  # on the 10 kHz grid from sample 0
     assert k[0] == 0 and np.all(np.diff(k) >= 1) and k[-1] < n
     assert int(np.sum(np.diff(k) - 1)) + (n - 1 - k[-1]) == skipped
-    # until the first skipped sample, the servo's samples are the offline runner's bit for bit
-    # (after it, the stage held commands planned ahead where the runner had fresh ones)
-    on_time = int(np.argmax(np.diff(k) > 1)) + 1 if np.any(np.diff(k) > 1) else k.size
+    return stats, got, k
+
+
+FIELDS = ('position_m', 'reference_m', 'reference_velocity_mps', 'command_v', 'true_position_m')
+
+
+def test_a_real_time_run_of_the_xy_stage_on_an_on_time_clock_is_the_offline_runner(
+        context, tmp_path):
+    from fake_clock import FakeClock
+    duration_s = 0.3
+    stats, got, k = real_time_run(context, tmp_path, duration_s,
+                                  FakeClock(start=time.monotonic_ns(), per_read=300))
+    assert stats['skipped'] == 0 and k.tolist() == list(range(3000))
     _, records = offline(duration_s)
-    print(f'real time: {served} samples served, {skipped} skipped, the first '
+    for rec, off in zip(got, records):
+        for field in FIELDS:
+            assert np.array_equal(getattr(rec, field), getattr(off, field)), field
+    window = 0.1
+    assert run_metrics(got, window_s=window, fast_axis='x') == \
+        run_metrics(records, window_s=window, fast_axis='x')
+
+
+def test_a_real_time_run_of_the_xy_stage_is_the_offline_runner_until_a_skipped_sample(
+        context, tmp_path):
+    duration_s = 0.5
+    stats, got, k = real_time_run(context, tmp_path, duration_s)
+    # until the first skipped sample, the servo's samples are the offline runner's bit for bit
+    # (after it, the stage played commands planned ahead where the runner had fresh ones)
+    gaps = np.flatnonzero(np.diff(k) > 1)
+    on_time = int(gaps[0]) + 1 if gaps.size else k.size
+    loop, records = offline(duration_s)
+    print(f'real time: {k.size} samples served, {stats["skipped"]} skipped, the first '
           f'{on_time} on the grid; lateness p99 {stats["lateness_p99_us"]} us')
     for rec, off in zip(got, records):
-        for field in ('position_m', 'reference_m', 'reference_velocity_mps', 'command_v',
-                      'true_position_m'):
+        for field in FIELDS:
             np.testing.assert_array_equal(getattr(rec, field)[:on_time],
                                           getattr(off, field)[:on_time], err_msg=field)
+    # the commands stay in the amplifier's range however many samples were skipped
+    for rec, chain in zip(got, (a.chain for a in loop.stage.axes)):
+        assert np.all((rec.command_v >= chain.amplifier_min_v)
+                      & (rec.command_v <= chain.amplifier_max_v))
 
 
 def test_real_time_with_several_axes_without_the_direct_composition_is_refused(capsys):
