@@ -289,6 +289,11 @@ class AxesPlantNode(_AxesNode):
             loop, self.opts.duration_s,
             capacity=backlog_samples(self.opts.recording, self.rate_hz))
         self._peers = tuple(peers)
+        # the servo process (servo.process) runs the one-axis loop; several axes share this
+        # process's interpreter with the executor, in a thread
+        self.get_logger().info(f'servo of {len(self.names)} axes in a thread of this process'
+                               + (' (servo.process serves one axis)'
+                                  if self.opts.servo.process else ''))
 
     def _ready(self, now: float, peers: int) -> bool:
         # the start waits for lockstep.subscribers on stage/position (``peers`` of them are
