@@ -223,8 +223,9 @@ def _launch(context: LaunchContext) -> list[Any]:
         if os.path.isfile(qos_file):
             cmd += ['--qos-profile-overrides-path', qos_file]
         # direct real time puts every sample on stage/block: the recorder takes that (about 100
-        # messages a second) and leaves the per-sample topics to live subscribers
-        blocks = (not lockstep and arg['composed'].lower() == 'true'
+        # messages a second) and leaves the per-sample topics to live subscribers (several
+        # axes publish no blocks: their per-sample topics are recorded)
+        blocks = (not axes and not lockstep and arg['composed'].lower() == 'true'
                   and arg['direct'].lower() == 'true' and checked.plant_node.recording.block)
         topics = BLOCK_RECORDED_TOPICS if blocks else RECORDED_TOPICS
         if axes:

@@ -494,7 +494,7 @@ def test_a_good_file_and_overrides_for_every_node_still_run(capfd):
     assert code == 0, err
 
 
-def test_the_launch_file_runs_a_multi_axis_scenario_in_lockstep_only():
+def test_the_launch_file_runs_a_multi_axis_scenario_in_lockstep_or_composed_real_time():
     import importlib.util
 
     from launch.actions import DeclareLaunchArgument
@@ -525,7 +525,12 @@ def test_the_launch_file_runs_a_multi_axis_scenario_in_lockstep_only():
     context.launch_configurations['mode'] = 'realtime'
     with pytest.raises(ValueError, match="xy_stage.yaml: .*mode 'realtime' without --direct"):
         module._launch(context)
+    context.launch_configurations.update({'direct': 'true', 'record': 'true'})
+    assert module._launch(context)
     context.launch_configurations['mode'] = 'lockstep'
+    with pytest.raises(ValueError, match='--direct in lockstep'):
+        module._launch(context)
+    context.launch_configurations.update({'direct': 'false', 'record': 'false'})
     # the one-axis default still gives its processes
     context.launch_configurations['scenario'] = ''
     assert module._launch(context)
