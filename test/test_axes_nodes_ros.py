@@ -246,6 +246,14 @@ def test_a_real_time_run_of_the_xy_stage_is_the_offline_runner_until_a_skipped_s
                       & (rec.command_v <= chain.amplifier_max_v))
 
 
+def test_stage_servo_runs_several_axes_in_real_time_composed(capfd):
+    code = stage_servo.main(['stage_servo', '--direct', '--ros-args', *[a for f in FILES for a in (
+        '--params-file', f)], '-p', 'mode:=realtime', '-p', 'plant_node:duration_s:=0.05'])
+    err = capfd.readouterr().err
+    assert code == 0, err
+    assert 'servo of 2 axes in a thread' in err and 'run complete' in err
+
+
 def test_real_time_with_several_axes_without_the_direct_composition_is_refused(capsys):
     code = stage_servo.main(['stage_servo', '--ros-args', *[a for f in FILES for a in (
         '--params-file', f)], '-p', 'mode:=realtime'])
