@@ -194,6 +194,12 @@ class _AxesNode(Node):
                                  + (', '.join(self.files) or 'no parameter file'),
                                  exc.reason) from None
 
+    def detach(self) -> None:
+        """Stop taking the loop's messages: the servo calls this node's part (real time)."""
+        for sub in getattr(self, '_subs', ()):
+            self.destroy_subscription(sub)
+        self._subs: list[Any] = []
+
     def _dropped(self, text: str) -> None:
         self.malformed += 1
         self.get_logger().warning(f'{text}: dropped', throttle_duration_sec=1.0)
@@ -545,9 +551,7 @@ def connect_axes(plant: AxesPlantNode, controller: AxesControllerNode,
     as declared (the loop the offline runner builds from the same files and values); the
     trajectory and controller nodes stop subscribing and publish what the servo computed.
     """
-    for node in (controller, trajectory):
-        for sub in node._subs:
-            node.destroy_subscription(sub)
-        node._subs = []
+    controller.detach()
+    trajectory.detach()
     loop = plant._loop({n.get_name(): n.own for n in (plant, controller, trajectory)})
     plant.attach_servo(loop, (trajectory.publish_sample, controller.publish_sample))
