@@ -47,8 +47,9 @@ before any process starts. The controller's stability check runs against the pla
 node runs, as ``simulate`` does: all three nodes get one merged parameter file, and the controller
 takes the design model from its plant_node section (``stability.design_model: plant``, the
 default; docs/reference/ros-interface.md). When the plant ends its run the launch ends. A file
-with plant_node ``axes.names`` (``config:=xy_stage.yaml``) runs the nodes of several axes, in
-lockstep only (``mode:=realtime`` and ``direct:=true`` are refused here).
+with plant_node ``axes.names`` (``config:=xy_stage.yaml``) runs the nodes of several axes: in
+lockstep, or in real time composed with ``direct:=true`` (the servo's composition; real time
+without it, and ``direct:=true`` in lockstep, are refused here).
 """
 
 # ruff takes `launch` for this repository's launch/ folder; for ament (flake8) it is the
@@ -160,7 +161,8 @@ def _launch(context: LaunchContext) -> list[Any]:
     config = load_config(files)
     axes = has_axes(config)
     if axes:
-        refused = refuse_axes_mode('launch', mode, direct=arg['direct'].lower() == 'true')
+        direct = arg['composed'].lower() == 'true' and arg['direct'].lower() == 'true'
+        refused = refuse_axes_mode('launch', mode, direct=direct)
         if refused is not None:
             raise ValueError(', '.join(files) + f': {refused}')
     sim_time = lockstep and arg['sim_time'].lower() == 'true'
@@ -221,8 +223,9 @@ def _launch(context: LaunchContext) -> list[Any]:
         if os.path.isfile(qos_file):
             cmd += ['--qos-profile-overrides-path', qos_file]
         # direct real time puts every sample on stage/block: the recorder takes that (about 100
-        # messages a second) and leaves the per-sample topics to live subscribers
-        blocks = (not lockstep and arg['composed'].lower() == 'true'
+        # messages a second) and leaves the per-sample topics to live subscribers (several
+        # axes publish no blocks: their per-sample topics are recorded)
+        blocks = (not axes and not lockstep and arg['composed'].lower() == 'true'
                   and arg['direct'].lower() == 'true' and checked.plant_node.recording.block)
         topics = BLOCK_RECORDED_TOPICS if blocks else RECORDED_TOPICS
         if axes:

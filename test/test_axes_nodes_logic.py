@@ -137,11 +137,15 @@ def test_the_waiting_sample_is_sent_again_after_resend_s_only():
 
 
 @pytest.mark.parametrize('mode, backend, direct, words', [
-    ('realtime', 'model', False, "mode 'realtime'"),
+    ('realtime', 'model', False, "mode 'realtime' without --direct"),
+    ('realtime', 'udp', True, "backend 'udp'"),
     ('lockstep', 'udp', False, "backend 'udp'"),
-    ('lockstep', 'model', True, '--direct'),
+    ('lockstep', 'model', True, '--direct in lockstep'),
 ])
 def test_what_the_nodes_cannot_run_with_several_axes_is_named(mode, backend, direct, words):
     text = refuse_axes_mode('plant_node', mode, backend, direct)
-    assert text is not None and words in text and 'lockstep only' in text
+    # the refusal names the value and what is allowed
+    assert text is not None and words in text
+    assert 'in lockstep by topics or in real time' in text and 'stage_servo --direct' in text
     assert refuse_axes_mode('plant_node', 'lockstep') is None
+    assert refuse_axes_mode('plant_node', 'realtime', direct=True) is None

@@ -13,7 +13,8 @@
 # limitations under the License.
 
 """
-The nodes of a stage of several axes under rclpy, in lockstep, against the offline runner.
+The nodes of a stage of several axes under rclpy, lockstep and real time, against the offline
+runner.
 
 Skipped where rclpy (ROS 2 Jazzy) cannot be imported; CI has no rclpy, the logic these nodes
 wrap is tested without it in test_axes_nodes_logic.py.
@@ -37,11 +38,13 @@ from piezo_stage_ros.core.contracts import wire  # noqa: E402
 from piezo_stage_ros.core.control.axes import AxesController  # noqa: E402
 from piezo_stage_ros.core.loop.axes import run_axes, run_metrics  # noqa: E402
 from piezo_stage_ros.core.model.axes import AxesStage  # noqa: E402
+from piezo_stage_ros.hardware.pacing import Pacer  # noqa: E402
 from piezo_stage_ros.nodes import stage_servo  # noqa: E402
 from piezo_stage_ros.nodes.axes_nodes import (  # noqa: E402
     AxesControllerNode,
     AxesPlantNode,
     AxesTrajectoryNode,
+    connect_axes,
 )
 from piezo_stage_ros.nodes.runner import make_executor  # noqa: E402
 from rclpy.context import Context  # noqa: E402
@@ -160,18 +163,110 @@ def test_a_lockstep_run_of_the_xy_stage_is_the_offline_runner_bit_for_bit(contex
         run_metrics(records, window_s=window, fast_axis='x')
 
 
-def test_real_time_with_several_axes_is_refused_naming_the_mode(capsys):
+def direct_nodes_of(context, duration_s):
+    """The three nodes in real time, composed as ``stage_servo --direct`` composes them."""
+    args = ['--ros-args'] + [a for f in FILES for a in ('--params-file', f)]
+
+    def make(cls, values):
+        values = {'mode': 'realtime', **values}
+        return cls(context=context, cli_args=args, direct=True,
+                   parameter_overrides=[Parameter(k, value=v) for k, v in values.items()])
+    # two subscribers are the peers the servo calls; the third the recorder, given time to
+    # match the other topics
+    plant = make(AxesPlantNode, {'duration_s': duration_s, 'lockstep.subscribers': 3,
+                                 'lockstep.settle_s': 0.5})
+    nodes = [plant, make(AxesControllerNode, {}), make(AxesTrajectoryNode, {})]
+    connect_axes(*nodes)
+    return plant, nodes
+
+
+def real_time_run(context, tmp_path, duration_s, clock=None):
+    """Run the composed nodes in real time with a recorder; return its bag read, as analyze."""
+    from piezo_stage_ros.analysis.bagread import read_axes
+    n = round(duration_s * 10_000)
+    plant, nodes = direct_nodes_of(context, duration_s)
+    if clock is not None:
+        plant.servo.pacer = Pacer(plant.servo.pacer.period_ns, clock=clock, sleep=clock.sleep)
+    recorder = Recorder(context)
+    spin(context, nodes + [recorder], plant.finished,
+         until=lambda: len(recorder.raw[wire.COMMAND]) >= plant.servo.pushed)
+    assert plant.finished.done() and plant.finished.exception() is None
+    stats = plant.finished.result()
+    served, skipped = plant.servo.pushed, stats['skipped']
+    assert stats['queue_overruns'] == 0 and stats['malformed'] == 0
+    # every sample of the grid is served or skipped (counted), and every served one recorded
+    assert served + skipped == n and served > 0
+    assert {k: len(v) for k, v in recorder.raw.items()} == dict.fromkeys(TOPICS, served)
+    recorder.write_bag(tmp_path / 'run')
+    got = read_axes(tmp_path / 'run', relative_time=True)
+    assert [r.meta['axis'] for r in got] == ['x', 'y'] and got[0].time_s.size == served
+    k = np.round(got[0].time_s * 1e4).astype(int)  # on the 10 kHz grid from sample 0
+    assert k[0] == 0 and np.all(np.diff(k) >= 1) and k[-1] < n
+    assert int(np.sum(np.diff(k) - 1)) + (n - 1 - k[-1]) == skipped
+    return stats, got, k
+
+
+FIELDS = ('position_m', 'reference_m', 'reference_velocity_mps', 'command_v', 'true_position_m')
+
+
+def test_a_real_time_run_of_the_xy_stage_on_an_on_time_clock_is_the_offline_runner(
+        context, tmp_path):
+    from fake_clock import FakeClock
+    duration_s = 0.3
+    stats, got, k = real_time_run(context, tmp_path, duration_s,
+                                  FakeClock(start=time.monotonic_ns(), per_read=300))
+    assert stats['skipped'] == 0 and k.tolist() == list(range(3000))
+    _, records = offline(duration_s)
+    for rec, off in zip(got, records):
+        for field in FIELDS:
+            assert np.array_equal(getattr(rec, field), getattr(off, field)), field
+    window = 0.1
+    assert run_metrics(got, window_s=window, fast_axis='x') == \
+        run_metrics(records, window_s=window, fast_axis='x')
+
+
+def test_a_real_time_run_of_the_xy_stage_is_the_offline_runner_until_a_skipped_sample(
+        context, tmp_path):
+    duration_s = 0.5
+    stats, got, k = real_time_run(context, tmp_path, duration_s)
+    # until the first skipped sample, the servo's samples are the offline runner's bit for bit
+    # (after it, the stage played commands planned ahead where the runner had fresh ones)
+    gaps = np.flatnonzero(np.diff(k) > 1)
+    on_time = int(gaps[0]) + 1 if gaps.size else k.size
+    loop, records = offline(duration_s)
+    print(f'real time: {k.size} samples served, {stats["skipped"]} skipped, the first '
+          f'{on_time} on the grid; lateness p99 {stats["lateness_p99_us"]} us')
+    for rec, off in zip(got, records):
+        for field in FIELDS:
+            np.testing.assert_array_equal(getattr(rec, field)[:on_time],
+                                          getattr(off, field)[:on_time], err_msg=field)
+    # the commands stay in the amplifier's range however many samples were skipped
+    for rec, chain in zip(got, (a.chain for a in loop.stage.axes)):
+        assert np.all((rec.command_v >= chain.amplifier_min_v)
+                      & (rec.command_v <= chain.amplifier_max_v))
+
+
+def test_stage_servo_runs_several_axes_in_real_time_composed(capfd):
+    code = stage_servo.main(['stage_servo', '--direct', '--ros-args', *[a for f in FILES for a in (
+        '--params-file', f)], '-p', 'mode:=realtime', '-p', 'plant_node:duration_s:=0.05'])
+    err = capfd.readouterr().err
+    assert code == 0, err
+    assert 'servo of 2 axes in a thread' in err and 'run complete' in err
+
+
+def test_real_time_with_several_axes_without_the_direct_composition_is_refused(capsys):
     code = stage_servo.main(['stage_servo', '--ros-args', *[a for f in FILES for a in (
         '--params-file', f)], '-p', 'mode:=realtime'])
     err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and "mode 'realtime'" in err[-1] and 'lockstep only' in err[-1]
+    assert code == 2 and "mode 'realtime' without --direct" in err[-1]
+    assert 'stage_servo --direct' in err[-1]
 
 
-def test_the_direct_composition_with_several_axes_is_refused(capsys):
+def test_the_direct_composition_in_lockstep_with_several_axes_is_refused(capsys):
     code = stage_servo.main(['stage_servo', '--direct', '--ros-args',
                              *[a for f in FILES for a in ('--params-file', f)]])
     err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and '--direct' in err[-1] and 'lockstep only' in err[-1]
+    assert code == 2 and '--direct in lockstep' in err[-1]
 
 
 def test_a_bad_per_axis_value_is_refused_naming_it(capsys):

@@ -494,7 +494,7 @@ def test_a_good_file_and_overrides_for_every_node_still_run(capfd):
     assert code == 0, err
 
 
-def test_the_launch_file_runs_a_multi_axis_scenario_in_lockstep_only():
+def test_the_launch_file_runs_a_multi_axis_scenario_in_lockstep_or_composed_real_time():
     import importlib.util
 
     from launch.actions import DeclareLaunchArgument
@@ -520,11 +520,17 @@ def test_the_launch_file_runs_a_multi_axis_scenario_in_lockstep_only():
     text = Path(path).read_text()
     Path(path).unlink()
     assert "- 'y'" in text and "slow_axis: 'y'" in text
-    # real time with several axes is the servo's: refused before any process starts
+    # real time with several axes runs in the servo's composition only: refused without it
+    # before any process starts
     context.launch_configurations['mode'] = 'realtime'
-    with pytest.raises(ValueError, match="xy_stage.yaml: .*lockstep only.*mode 'realtime'"):
+    with pytest.raises(ValueError, match="xy_stage.yaml: .*mode 'realtime' without --direct"):
         module._launch(context)
+    context.launch_configurations.update({'direct': 'true', 'record': 'true'})
+    assert module._launch(context)
     context.launch_configurations['mode'] = 'lockstep'
+    with pytest.raises(ValueError, match='--direct in lockstep'):
+        module._launch(context)
+    context.launch_configurations.update({'direct': 'false', 'record': 'false'})
     # the one-axis default still gives its processes
     context.launch_configurations['scenario'] = ''
     assert module._launch(context)

@@ -27,8 +27,9 @@ tuple over the axes (one message a sample and topic: a sample stays atomic):
 4. the plant steps every axis on receiving u_k.
 
 The samples are those of :func:`~piezo_stage_ros.core.loop.axes.run_axes` bit for bit: the
-same stage, the same controllers bound and reset the same way, the same floats in. Only
-lockstep: real time with several axes is the servo's (not these nodes').
+same stage, the same controllers bound and reset the same way, the same floats in. In real
+time the servo of several axes (:mod:`piezo_stage_ros.nodes.servo_axes`) runs the loop instead,
+in the plant node's process; :func:`refuse_axes_mode` names what neither runs.
 """
 
 from __future__ import annotations
@@ -65,14 +66,16 @@ def refuse_axes_mode(node: str, mode: str, backend: str = 'model', direct: bool 
         Whether the composition hands samples on by call (``--direct``, the servo's).
 
     """
-    where = (f'{node}: a stage of several axes (plant_node axes.names) runs on the nodes in '
-             'lockstep only, by topics (mode: lockstep, the stage model)')
-    if mode != 'lockstep':
-        return f"{where}; mode {mode!r} is not (real time with several axes is the servo's)"
+    where = (f'{node}: a stage of several axes (plant_node axes.names) runs on the nodes on the '
+             'stage model, in lockstep by topics or in real time with the servo in one process '
+             '(mode: realtime, stage_servo --direct)')
     if backend != 'model':
         return f'{where}; backend {backend!r} is not'
-    if direct:
-        return f"{where}; --direct (the servo's composition) is not"
+    if mode == 'lockstep' and direct:
+        return f'{where}; --direct in lockstep is not'
+    if mode != 'lockstep' and not direct:
+        return (f'{where}; mode {mode!r} without --direct is not (the servo runs every '
+                "node's logic in the plant's thread)")
     return None
 
 

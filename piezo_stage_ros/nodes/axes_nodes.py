@@ -31,8 +31,14 @@ convention (:mod:`piezo_stage_ros.core.contracts.wire`). These are the topics of
 runner's bag (:func:`~piezo_stage_ros.analysis.bagwrite.write_axes`), so that a recorder
 records the run as that bag. The behaviour is :mod:`piezo_stage_ros.nodes.axes_logic`.
 
-Lockstep only: real time, another backend than the model, or the direct composition are
-refused at start-up with the reason; the trajectory node offers no goal action and no
+Real time (``mode: realtime``) runs in one process, ``stage_servo --direct``
+(:func:`connect_axes`): the plant node drives the servo of several axes
+(:class:`~piezo_stage_ros.nodes.servo_axes.AxesServoLoop`, in a thread of the process) which
+computes every node's part of each sample on its own clock; the executor drains its samples in
+batches and publishes them on the same topics, the reference and command from the trajectory
+and controller nodes' publishers, so that a recorder records a real-time run as a lockstep one.
+Refused at start-up with the reason: another backend than the model, real time without
+``--direct``, ``--direct`` in lockstep; the trajectory node offers no goal action and no
 start/stop services with several axes; parameters cannot change at run time.
 """
 
@@ -62,6 +68,7 @@ from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageErro
 from piezo_stage_ros.core.control.axes import AxesController, coupled_loop_check
 from piezo_stage_ros.core.control.stability import enforce
 from piezo_stage_ros.core.model.axes import AxesStage
+from piezo_stage_ros.hardware.pacing import servo_setup
 from piezo_stage_ros.nodes import qos
 from piezo_stage_ros.nodes.axes_logic import (
     AxesCommand,
@@ -73,6 +80,8 @@ from piezo_stage_ros.nodes.axes_logic import (
 )
 from piezo_stage_ros.nodes.logic import Gate
 from piezo_stage_ros.nodes.parameters import _plain, descriptor, ParameterBinding
+from piezo_stage_ros.nodes.recording import backlog_samples
+from piezo_stage_ros.nodes.servo_axes import axes_servo_from_config, AxesSampleBatch, AxesServoLoop
 from piezo_stage_ros.nodes.tables import (
     controller_table,
     NodeTable,
@@ -92,7 +101,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 __all__ = ['AxesControllerNode', 'AxesPlantNode', 'AxesTrajectoryNode', 'axes_factories',
-           'refuse_direct']
+           'connect_axes']
 
 
 def _refuse_change(old: Sequence[Any], new: Sequence[Any]) -> None:
@@ -115,6 +124,8 @@ class _AxesNode(Node):
         Its one-axis parameter table: the base of every axis.
     params_files : sequence of str
         The process's parameter files; the node's own ``cli_args`` files are added.
+    direct : bool
+        Whether the three nodes run composed with ``--direct`` (:func:`connect_axes`).
     **kwargs
         Passed to :class:`rclpy.node.Node`.
 
@@ -127,7 +138,7 @@ class _AxesNode(Node):
     """
 
     def __init__(self, name: str, table: NodeTable, params_files: Sequence[str] = (),
-                 **kwargs: Any) -> None:
+                 direct: bool = False, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
         cli = kwargs.get('cli_args')
         self.files = [*params_files, *(files_of(cli) if cli else [])]
@@ -135,12 +146,14 @@ class _AxesNode(Node):
         axes = self._declare_axes(table)
         self.binding = ParameterBinding(self, table, _refuse_change)
         opts = self.binding.objects[-1]
-        refused = refuse_axes_mode(name, opts.mode, getattr(opts, 'backend', 'model'))
+        refused = refuse_axes_mode(name, opts.mode, getattr(opts, 'backend', 'model'), direct)
         if refused is not None:
             raise PiezoStageError(refused)
         own = {d.name: _plain(self.get_parameter(d.name).value) for d in table.declarations()}
         own.update(axes)
-        self.loop: AxesLoopConfig = self._loop(own)
+        #: This node's section as declared (the files' values, its overrides, its axes.*).
+        self.own = own
+        self.loop: AxesLoopConfig = self._loop({name: own})
         self.names = self.loop.stage.names
         self.joints = list(wire.axis_joint_names(self.names))
         self.rate_hz = float(self.loop.stage.axes[0].sample_rate_hz)
@@ -169,14 +182,23 @@ class _AxesNode(Node):
             out[name] = _plain(self.declare_parameter(name, given.value, desc).value)
         return out
 
-    def _loop(self, own: dict[str, Any]) -> AxesLoopConfig:
-        name = self.get_name()
+    def _loop(self, sections: dict[str, dict[str, Any]]) -> AxesLoopConfig:
+        # the files' loop with the nodes' sections as declared
         try:
-            return axes_loop_config(load_config(self.files).with_overrides(name, own))
+            config = load_config(self.files)
+            for name, own in sections.items():
+                config = config.with_overrides(name, own)
+            return axes_loop_config(config)
         except ParameterError as exc:
             raise ParameterError(exc.name, exc.value, f'{exc.allowed}; read from '
                                  + (', '.join(self.files) or 'no parameter file'),
                                  exc.reason) from None
+
+    def detach(self) -> None:
+        """Stop taking the loop's messages: the servo calls this node's part (real time)."""
+        for sub in getattr(self, '_subs', ()):
+            self.destroy_subscription(sub)
+        self._subs: list[Any] = []
 
     def _dropped(self, text: str) -> None:
         self.malformed += 1
@@ -202,19 +224,28 @@ class _AxesNode(Node):
 
 class AxesPlantNode(_AxesNode):
     """
-    The stage model of several axes in lockstep: one sample of every axis per command.
+    The stage model of several axes: in lockstep one sample of every axis per command.
+
+    In real time the servo of :meth:`attach_servo` samples every axis on its own clock (see
+    the module's docstring); the node starts it and publishes what it served.
 
     Attributes
     ----------
     finished : rclpy.task.Future
         Done (with the counters) when the run of ``duration_s`` is complete, or failed.
+    servo : AxesServoLoop or None
+        The real-time loop (:meth:`attach_servo`), None in lockstep.
 
     """
 
-    def __init__(self, *, params_files: Sequence[str] = (), **kwargs: Any) -> None:
-        super().__init__('plant_node', plant_table(), params_files, **kwargs)
+    def __init__(self, *, params_files: Sequence[str] = (), direct: bool = False,
+                 **kwargs: Any) -> None:
+        super().__init__('plant_node', plant_table(), params_files, direct, **kwargs)
         opts = self.binding.objects[1]
         self.opts = opts
+        self.realtime = opts.mode != 'lockstep'
+        self.servo: AxesServoLoop | None = None
+        self._peers: Sequence[Callable[[int, int, AxesSampleBatch, int], None]] = ()
         self.logic = AxesPlantLogic(AxesStage(self.loop.stage), sample_rate_hz=self.rate_hz,
                                     duration_s=opts.duration_s, resend_s=opts.lockstep.resend_s)
         self.finished = Future()
@@ -224,14 +255,15 @@ class AxesPlantNode(_AxesNode):
         self._true_pub = self.create_publisher(JointState, wire.TRUE_POSITION, qos.LOOP_OUT)
         self._clock_pub = self.create_publisher(ClockMsg, wire.CLOCK, qos.CLOCK)
         self._clock_gate: Callable[[], bool] = Gate(self._clock_pub.get_subscription_count)
-        self.create_subscription(Float64MultiArray, wire.COMMAND, self._on_command, qos.LOOP,
-                                 raw=True)
+        if not self.realtime:
+            self.create_subscription(Float64MultiArray, wire.COMMAND, self._on_command,
+                                     qos.LOOP, raw=True)
         self._matched_at: float | None = None
         self._t_start = 0.0
         self._timer = self.create_timer(0.005, self._tick,
                                         clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(
-            f'lockstep at {self.rate_hz:g} Hz, {self.logic.n} axes {list(self.names)}, plant '
+            f'{opts.mode} at {self.rate_hz:g} Hz, {self.logic.n} axes {list(self.names)}, plant '
             f'{self.loop.stage.axes[0].plant.model}'
             + (f', {self.logic.total} samples' if self.logic.total else ''))
 
@@ -242,15 +274,51 @@ class AxesPlantNode(_AxesNode):
         self._pub.publish(self._encoder.encode(sec, nanosec, sample.positions_m))
         self._true_pub.publish(self._encoder.encode(sec, nanosec, sample.true_positions_m))
 
+    def attach_servo(self, loop: AxesLoopConfig,
+                     peers: Sequence[Callable[[int, int, AxesSampleBatch, int], None]]
+                     ) -> None:
+        """
+        Real time in one process: build the servo of ``loop``; ``peers`` publish its batches.
+
+        Parameters
+        ----------
+        loop : AxesLoopConfig
+            The loop of the three nodes' sections (:func:`connect_axes`).
+        peers : sequence of callable
+            ``peer(sec, nanosec, batch, i)`` publishes row ``i`` of a batch drained, from the
+            executor, after the plant's messages of that sample (the trajectory's reference,
+            then the controller's command: a lockstep sample's order, which a bag's reader
+            pairs the unstamped command by).
+
+        """
+        self.servo = axes_servo_from_config(
+            loop, self.opts.duration_s,
+            capacity=backlog_samples(self.opts.recording, self.rate_hz))
+        self._peers = tuple(peers)
+        # the servo process (servo.process) runs the one-axis loop; several axes share this
+        # process's interpreter with the executor, in a thread
+        self.get_logger().info(f'servo of {len(self.names)} axes in a thread of this process'
+                               + (' (servo.process serves one axis)'
+                                  if self.opts.servo.process else ''))
+
+    def _ready(self, now: float, peers: int) -> bool:
+        # the start waits for lockstep.subscribers on stage/position (``peers`` of them are
+        # called instead of subscribed), then lockstep.settle_s, so that a recorder misses
+        # no sample
+        lockstep = self.opts.lockstep
+        if self._matched_at is None and \
+                self._pub.get_subscription_count() + peers >= lockstep.subscribers:
+            self._matched_at = now
+        return self._matched_at is not None and now - self._matched_at >= lockstep.settle_s
+
     def _tick(self) -> None:
         try:
             now = time.monotonic()
+            if self.realtime:
+                self._servo_tick(now)
+                return
             if self.logic.index < 0:
-                lockstep = self.opts.lockstep
-                if self._matched_at is None and \
-                        self._pub.get_subscription_count() >= lockstep.subscribers:
-                    self._matched_at = now
-                if self._matched_at is not None and now - self._matched_at >= lockstep.settle_s:
+                if self._ready(now, 0):
                     self._t_start = now
                     self._publish(self.logic.start(now))
                     if self.logic.done:
@@ -261,6 +329,39 @@ class AxesPlantNode(_AxesNode):
                 self._publish(again)
         except Exception as exc:  # noqa: BLE001 -- any fault ends the run with it
             self._fault(exc)
+
+    def _servo_tick(self, now: float) -> None:
+        servo = self.servo
+        if servo is None:
+            raise PiezoStageError(str(refuse_axes_mode('plant_node', self.opts.mode)))
+        if not self._t_start:
+            if self._ready(now, len(self._peers)):
+                self._t_start = now
+                opts, period_ns = self.opts.servo, servo.pacer.period_ns
+                servo.start_thread(self.get_clock().now().nanoseconds,
+                                   lambda: servo_setup(opts, period_ns),
+                                   since_ns=time.monotonic_ns())
+            return
+        finished = servo.finished
+        self._hand_on(servo.take_batch())
+        if finished:
+            for key, text in servo.setup_report.items():
+                self.get_logger().info(f'servo {key}: {text}')
+            if servo.error is not None:
+                self._fault(servo.error)
+            else:
+                self._finish()
+
+    def _hand_on(self, batch: AxesSampleBatch) -> None:
+        # every sample served, on the lockstep's topics in a lockstep sample's order: y_k and
+        # x(t_k) here, x_d and u_k from the peers' publishers
+        encode, peers = self._encoder.encode, self._peers
+        for i, stamp in enumerate(batch.stamp_ns.tolist()):
+            sec, nanosec = wire.ns_to_stamp(stamp)
+            self._pub.publish(encode(sec, nanosec, batch.position_m[i]))
+            self._true_pub.publish(encode(sec, nanosec, batch.true_position_m[i]))
+            for peer in peers:
+                peer(sec, nanosec, batch, i)
 
     def _on_command(self, data: bytes) -> None:
         try:
@@ -281,27 +382,37 @@ class AxesPlantNode(_AxesNode):
             self._fault(exc)
 
     def stats(self) -> dict[str, Any]:
-        """Return the counters and the loop rate reached."""
-        out = self.logic.stats()
+        """Return the counters and the loop rate reached (the servo's in real time)."""
+        out = self.logic.stats() if self.servo is None else self.servo.stats()
+        served = self.logic.index + 1 if self.servo is None else self.servo.pushed
         elapsed = time.monotonic() - self._t_start if self._t_start else 0.0
         out.update({'malformed': self.malformed, 'wall_s': round(elapsed, 6),
-                    'samples_per_s': round((self.logic.index + 1) / elapsed, 1)
-                    if elapsed > 0 else 0.0})
+                    'samples_per_s': round(served / elapsed, 1) if elapsed > 0 else 0.0})
         return out
+
+    def _stop(self) -> None:
+        self._timer.cancel()
+        self.logic.stop()
+        if self.servo is not None:
+            self.servo.stop()
+
+    def destroy_node(self) -> None:
+        """Stop the servo's thread (if any), then destroy the node."""
+        if self.servo is not None:
+            self.servo.stop()
+        super().destroy_node()
 
     def _finish(self) -> None:
         if self.finished.done():
             return
-        self._timer.cancel()
-        self.logic.stop()
+        self._stop()
         stats = self.stats()
         self.get_logger().info('run complete: ' + ', '.join(f'{k} {v}'
                                                             for k, v in stats.items()))
         self.finished.set_result(stats)
 
     def _fault(self, exc: BaseException) -> None:
-        self._timer.cancel()
-        self.logic.stop()
+        self._stop()
         if not self.context.ok() or self.finished.done():
             return
         self.get_logger().error(f'fault: {exc}')
@@ -312,16 +423,22 @@ class AxesPlantNode(_AxesNode):
 class AxesTrajectoryNode(_AxesNode):
     """Every axis' reference (the scan of the files) for each position's stamp."""
 
-    def __init__(self, *, params_files: Sequence[str] = (), **kwargs: Any) -> None:
-        super().__init__('trajectory_node', trajectory_table(), params_files, **kwargs)
+    def __init__(self, *, params_files: Sequence[str] = (), direct: bool = False,
+                 **kwargs: Any) -> None:
+        super().__init__('trajectory_node', trajectory_table(), params_files, direct, **kwargs)
         opts = self.binding.objects[1]
         self.logic = AxesTrajectoryLogic(self.loop.trajectories(), sample_rate_hz=self.rate_hz,
                                          chunk_s=opts.chunk_s, names=self.names)
         self._encoder = JointStateEncoder(self.joints, with_velocity=True)
         self._pub = self.create_publisher(JointState, wire.REFERENCE, qos.LOOP_OUT)
-        self.create_subscription(JointState, wire.POSITION, self._on_position, qos.LOOP,
-                                 raw=True)
+        self._subs = [self.create_subscription(JointState, wire.POSITION, self._on_position,
+                                               qos.LOOP, raw=True)]
         self.get_logger().info(f'scan {self.loop.scan.kind} over the axes {list(self.names)}')
+
+    def publish_sample(self, sec: int, nanosec: int, batch: AxesSampleBatch, i: int) -> None:
+        """Publish the references the servo computed for row ``i`` (:func:`connect_axes`)."""
+        self._pub.publish(self._encoder.encode(sec, nanosec, batch.reference_m[i],
+                                               batch.velocity_mps[i]))
 
     def _on_position(self, data: bytes) -> None:
         msg = self._decode(data, wire.POSITION)
@@ -341,8 +458,9 @@ class AxesControllerNode(_AxesNode):
 
     """
 
-    def __init__(self, *, params_files: Sequence[str] = (), **kwargs: Any) -> None:
-        super().__init__('controller_node', controller_table(), params_files, **kwargs)
+    def __init__(self, *, params_files: Sequence[str] = (), direct: bool = False,
+                 **kwargs: Any) -> None:
+        super().__init__('controller_node', controller_table(), params_files, direct, **kwargs)
         loop = self.loop
         trajectories = loop.trajectories()
         ctrl = AxesController.build(loop.controllers, loop.stage, compensate=loop.compensate)
@@ -360,10 +478,15 @@ class AxesControllerNode(_AxesNode):
             + (', '.join(self.names[j] for j in ctrl.compensated) or 'no axis'))
         self._dims = wire.axes_command_dims(len(self.names))
         self._pub = self.create_publisher(Float64MultiArray, wire.COMMAND, qos.LOOP_OUT)
-        self.create_subscription(JointState, wire.POSITION, self._on_position, qos.LOOP,
-                                 raw=True)
-        self.create_subscription(JointState, wire.REFERENCE, self._on_reference, qos.LOOP,
-                                 raw=True)
+        self._subs = [
+            self.create_subscription(JointState, wire.POSITION, self._on_position, qos.LOOP,
+                                     raw=True),
+            self.create_subscription(JointState, wire.REFERENCE, self._on_reference, qos.LOOP,
+                                     raw=True)]
+
+    def publish_sample(self, sec: int, nanosec: int, batch: AxesSampleBatch, i: int) -> None:
+        """Publish the commands the servo computed for row ``i`` (:func:`connect_axes`)."""
+        self._pub.publish(encode_multi_array(self._dims, batch.command_v[i]))
 
     def _publish(self, out: AxesCommand | None) -> None:
         if out is not None:
@@ -389,7 +512,7 @@ _CLASSES: dict[str, type[_AxesNode]] = {'plant': AxesPlantNode, 'controller': Ax
 
 
 def axes_factories(argv: Sequence[str], names: Sequence[str]
-                   ) -> list[tuple[str, Callable[[], Node]]] | None:
+                   ) -> list[tuple[str, Callable[..., Node]]] | None:
     """
     Return the multi-axis node factories for a command line whose files describe several axes.
 
@@ -403,7 +526,8 @@ def axes_factories(argv: Sequence[str], names: Sequence[str]
     Returns
     -------
     list of (str, callable) or None
-        For :func:`~piezo_stage_ros.nodes.runner.run`; None when the files describe one axis
+        For :func:`~piezo_stage_ros.nodes.runner.run` (which adds ``direct``, the
+        composition's); None when the files describe one axis
         (or cannot be read: the one-axis nodes then say why).
 
     """
@@ -418,6 +542,16 @@ def axes_factories(argv: Sequence[str], names: Sequence[str]
     return [(name, functools.partial(_CLASSES[name], params_files=files)) for name in names]
 
 
-def refuse_direct(*nodes: Node) -> None:
-    """Refuse ``--direct`` with several axes (the direct composition is the servo's)."""
-    raise PiezoStageError(str(refuse_axes_mode('stage_servo', 'lockstep', direct=True)))
+def connect_axes(plant: AxesPlantNode, controller: AxesControllerNode,
+                 trajectory: AxesTrajectoryNode) -> None:
+    """
+    Compose the three nodes for real time (``stage_servo --direct`` with several axes).
+
+    The plant's servo runs every axis' reference and controller of the three nodes' sections
+    as declared (the loop the offline runner builds from the same files and values); the
+    trajectory and controller nodes stop subscribing and publish what the servo computed.
+    """
+    controller.detach()
+    trajectory.detach()
+    loop = plant._loop({n.get_name(): n.own for n in (plant, controller, trajectory)})
+    plant.attach_servo(loop, (trajectory.publish_sample, controller.publish_sample))

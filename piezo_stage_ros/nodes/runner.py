@@ -34,7 +34,7 @@ from typing import Any, Callable, Protocol, Sequence, TypeVar
 
 from piezo_stage_ros.core.contracts.cdr import CdrError
 from piezo_stage_ros.core.contracts.errors import PiezoStageError
-from piezo_stage_ros.nodes.axes_nodes import axes_factories, refuse_direct
+from piezo_stage_ros.nodes.axes_nodes import axes_factories, connect_axes
 from piezo_stage_ros.nodes.parameters import check_undeclared, multi_axis_hint
 import rclpy
 from rclpy.exceptions import ParameterException
@@ -190,8 +190,8 @@ def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
     args = list(sys.argv if argv is None else argv)
     axes = axes_factories(args, [name for name, _ in factories])
     if axes is not None:
-        # files that describe a stage of several axes: its nodes, in lockstep
-        factories, connect = axes, (refuse_direct if connect is not None else None)
+        # files that describe a stage of several axes: its nodes (real time with --direct)
+        connect = connect_axes if connect is not None else None
     parser = argparse.ArgumentParser(prog=prog, description=description)
     names = [name for name, _ in factories]
     parser.add_argument('--nodes', default=','.join(names),
@@ -222,6 +222,8 @@ def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
         print(f'{prog}: --nodes {opts.nodes!r}: choose among {", ".join(names)}',
               file=sys.stderr)
         return 2
+    if axes is not None:
+        factories = [(name, functools.partial(made, direct=direct)) for name, made in axes]
     try:
         rclpy.init(args=args)
     except RuntimeError as exc:
