@@ -45,7 +45,7 @@ from piezo_stage_ros.core.model.stage import linear_plant, Stage, StageParams  #
 from piezo_stage_ros.nodes import stage_servo  # noqa: E402
 from piezo_stage_ros.nodes.controller_node import ControllerNode  # noqa: E402
 from piezo_stage_ros.nodes.plant_node import PlantNode  # noqa: E402
-from piezo_stage_ros.nodes.runner import make_executor  # noqa: E402
+from piezo_stage_ros.nodes.runner import make_executor, spin_aside  # noqa: E402
 from piezo_stage_ros.nodes.trajectory_node import TrajectoryNode  # noqa: E402
 from rclpy.action import ActionClient  # noqa: E402
 from rclpy.context import Context  # noqa: E402
@@ -138,43 +138,64 @@ def composed(context: Context, mode: str, duration_s: float, process: bool = Fal
     return plant, [plant, controller, trajectory]
 
 
-def spin_until(executor, future, timeout_s: float) -> None:
-    # spin_once in a loop: a real-time plant keeps the executor busy with its batches
-    deadline = time.monotonic() + timeout_s
-    while not future.done() and time.monotonic() < deadline:
-        executor.spin_once(timeout_sec=0.01)
+class Session:
+    """The nodes and a client on one executor, goal by goal, for the tests below."""
+
+    def __init__(self, context, nodes, positions: bool) -> None:
+        self.client = Client(context, positions)
+        self.executor = make_executor('events', context)
+        self.nodes = [*nodes, self.client]
+        # as the executable runs them: a node that asks for it spins on its own thread
+        self.aside = [n for n in nodes if getattr(n, 'spins_aside', False)]
+        for node in self.nodes:
+            if node not in self.aside:
+                self.executor.add_node(node)
+        self.side = spin_aside(self.aside, 'events', context) if self.aside else None
+        assert self.client.action.wait_for_server(timeout_sec=10.0)
+
+    def spin(self, until, timeout_s: float = 120.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not until() and time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=0.01)
+
+    def send(self, goal, timeout_s: float = 120.0):
+        """Return the goal's handle once accepted, with its result's future."""
+        sent = self.client.action.send_goal_async(
+            goal, feedback_callback=lambda fb: self.client.feedback.append(fb.feedback))
+        self.spin(sent.done, timeout_s)
+        handle = sent.result()
+        assert handle is not None and handle.accepted
+        return handle, handle.get_result_async()
+
+    def result(self, done, timeout_s: float = 120.0):
+        self.spin(done.done, timeout_s)
+        assert done.done(), f'no result within {timeout_s} s'
+        return done.result()
+
+    def close(self) -> None:
+        for node in self.nodes:
+            (self.side[0] if node in self.aside else self.executor).remove_node(node)
+            node.destroy_node()
+        if self.side is not None:
+            self.side[0].shutdown()
+            self.side[1].join(timeout=5.0)
+        self.executor.shutdown()
 
 
 def run_client(context, nodes, plant, goals, *, spacing_s: float = 0.0, timeout_s: float = 30.0,
                positions: bool = False):
     """Send the goals one after the other (each after the last ended); return the results."""
-    client = Client(context, positions)
-    executor = make_executor('events', context)
-    for node in [*nodes, client]:
-        executor.add_node(node)
+    run = Session(context, nodes, positions)
     out = []
     try:
-        assert client.action.wait_for_server(timeout_sec=10.0)
         for goal in goals:
-            sent = client.action.send_goal_async(
-                goal, feedback_callback=lambda fb: client.feedback.append(fb.feedback))
-            spin_until(executor, sent, timeout_s)
-            handle = sent.result()
-            assert handle is not None and handle.accepted
-            done = handle.get_result_async()
-            spin_until(executor, done, timeout_s)
-            assert done.done(), f'no result for goal {len(out)} within {timeout_s} s'
-            out.append(done.result())
-            deadline = time.monotonic() + spacing_s
-            while time.monotonic() < deadline:
-                executor.spin_once(timeout_sec=0.01)
-        return out, client
+            _, done = run.send(goal, timeout_s)
+            out.append(run.result(done, timeout_s))
+            run.spin(lambda: False, spacing_s)
+        return out, run.client
     finally:
         # destroying the plant stops its servo (a real-time run goes on until then)
-        for node in [*nodes, client]:
-            executor.remove_node(node)
-            node.destroy_node()
-        executor.shutdown()
+        run.close()
 
 
 def test_lockstep_five_moves_a_refusal_and_the_same_samples_as_the_offline_runner(context):
@@ -274,44 +295,6 @@ def test_lockstep_joint_trajectory_topic_moves_and_an_empty_one_holds(context):
         executor.shutdown()
 
 
-class Session:
-    """The nodes and a client on one executor, goal by goal, for the tests below."""
-
-    def __init__(self, context, nodes, positions: bool) -> None:
-        self.client = Client(context, positions)
-        self.executor = make_executor('events', context)
-        self.nodes = [*nodes, self.client]
-        for node in self.nodes:
-            self.executor.add_node(node)
-        assert self.client.action.wait_for_server(timeout_sec=10.0)
-
-    def spin(self, until, timeout_s: float = 120.0) -> None:
-        deadline = time.monotonic() + timeout_s
-        while not until() and time.monotonic() < deadline:
-            self.executor.spin_once(timeout_sec=0.01)
-
-    def send(self, goal):
-        """Return the goal's handle once accepted, with its result's future."""
-        self.client.feedback.clear()
-        sent = self.client.action.send_goal_async(
-            goal, feedback_callback=lambda fb: self.client.feedback.append(fb.feedback))
-        self.spin(sent.done)
-        handle = sent.result()
-        assert handle is not None and handle.accepted
-        return handle, handle.get_result_async()
-
-    def result(self, done):
-        self.spin(done.done)
-        assert done.done(), 'no result within 120 s'
-        return done.result()
-
-    def close(self) -> None:
-        for node in self.nodes:
-            self.executor.remove_node(node)
-            node.destroy_node()
-        self.executor.shutdown()
-
-
 # a long move from the hold (3.8 um): still under way when the client has seen it start (a
 # longer one takes the real-time servo longer to check, beside its samples)
 LONG_MOVE_S = 2.0
@@ -353,6 +336,7 @@ def test_goals_follow_the_plant_lifecycle(context, mode, direct, process):
         run.spin(lambda: trajectory.gate.state == 'active', 30.0)
         assert trajectory.gate.state == 'active'
         # under way (feedback comes from the loop), then the deactivate
+        run.client.feedback.clear()
         handle, done = run.send(long_move())
         run.spin(lambda: len(run.client.feedback) >= 3 or done.done())
         assert not done.done() and run.client.feedback, 'the move did not get under way'

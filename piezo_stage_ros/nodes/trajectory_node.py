@@ -37,6 +37,7 @@ refusal ends it at once ABORTED with its ``error_code`` (``INVALID_GOAL``, ``INV
 
 from __future__ import annotations
 
+from collections import deque
 import sys
 from typing import Any, Callable, Sequence
 
@@ -156,10 +157,15 @@ class TrajectoryNode(Node):
         self._state_sub: Any = None
         self._state_client: Any = None
         self._state_timer: Any = None
+        self._leaving: deque[str] = deque()
         #: Goal events from a servo that runs this logic elsewhere (``ServoProcess``).
         self.goal_events: Callable[[], list[tuple[Any, ...]]] | None = None
         #: The last sample index of that servo (the goals' loop time there).
         self.loop_index: Callable[[], int] | None = None
+        #: Spin on an executor of its own, in a thread (:func:`~piezo_stage_ros.nodes.runner.run`
+        #: does): goals, their results and this node's services then do not wait behind the
+        #: plant's batches of samples on the process's executor.
+        self.spins_aside = False
         stage = stage_of_args(sys.argv)
         if stage is None:
             self.get_logger().warning('goals: no stage in the parameter files given; checking '
@@ -269,11 +275,16 @@ class TrajectoryNode(Node):
 
         Leaving it ends every goal not yet ended, ABORTED (``INVALID_GOAL``, as
         joint_trajectory_controller's deactivate) with the reason; the stage is then the
-        plant's: it ramps to the safe voltage at the watchdog's slew.
+        plant's: it ramps to the safe voltage at the watchdog's slew. Any thread may call: new
+        goals are refused at once, the running ones end at this node's next drain of its
+        goals' events.
         """
         reason = self.gate.update(state)
-        if reason is None:
-            return
+        if reason is not None:
+            # the goals end on this node's executor (_drain), which may not be the caller's
+            self._leaving.append(reason)
+
+    def _abort_goals(self, reason: str) -> None:
         tokens = [token for token, entry in self._waiting.items() if entry[1] is not None]
         if self.forward is None:
             # the loop that follows them may still run (a servo thread's ramp): to rest
@@ -373,6 +384,8 @@ class TrajectoryNode(Node):
 
     def _drain(self) -> None:
         """Hand the goals' verdicts, results and feedback to their clients."""
+        while self._leaving:
+            self._abort_goals(self._leaving.popleft())
         events = self.logic.events
         more = self.goal_events() if self.goal_events is not None else []
         while events or more:
