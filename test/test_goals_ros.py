@@ -45,7 +45,7 @@ from piezo_stage_ros.core.model.stage import linear_plant, Stage, StageParams  #
 from piezo_stage_ros.nodes import stage_servo  # noqa: E402
 from piezo_stage_ros.nodes.controller_node import ControllerNode  # noqa: E402
 from piezo_stage_ros.nodes.plant_node import PlantNode  # noqa: E402
-from piezo_stage_ros.nodes.runner import make_executor, spin_aside  # noqa: E402
+from piezo_stage_ros.nodes.runner import make_executor  # noqa: E402
 from piezo_stage_ros.nodes.trajectory_node import TrajectoryNode  # noqa: E402
 from rclpy.action import ActionClient  # noqa: E402
 from rclpy.context import Context  # noqa: E402
@@ -145,12 +145,8 @@ class Session:
         self.client = Client(context, positions)
         self.executor = make_executor('events', context)
         self.nodes = [*nodes, self.client]
-        # as the executable runs them: a node that asks for it spins on its own thread
-        self.aside = [n for n in nodes if getattr(n, 'spins_aside', False)]
         for node in self.nodes:
-            if node not in self.aside:
-                self.executor.add_node(node)
-        self.side = spin_aside(self.aside, 'events', context) if self.aside else None
+            self.executor.add_node(node)
         assert self.client.action.wait_for_server(timeout_sec=10.0)
 
     def spin(self, until, timeout_s: float = 120.0) -> None:
@@ -174,11 +170,8 @@ class Session:
 
     def close(self) -> None:
         for node in self.nodes:
-            (self.side[0] if node in self.aside else self.executor).remove_node(node)
+            self.executor.remove_node(node)
             node.destroy_node()
-        if self.side is not None:
-            self.side[0].shutdown()
-            self.side[1].join(timeout=5.0)
         self.executor.shutdown()
 
 
@@ -295,9 +288,9 @@ def test_lockstep_joint_trajectory_topic_moves_and_an_empty_one_holds(context):
         executor.shutdown()
 
 
-# a long move from the hold (3.8 um): still under way when the client has seen it start (a
-# longer one takes the real-time servo longer to check, beside its samples)
-LONG_MOVE_S = 2.0
+# a long move from the hold (3.8 um): still under way when the client has seen it start and
+# reacted, however far behind a loaded machine keeps the executor (seconds in real time)
+LONG_MOVE_S = 10.0
 
 # the servo thread shares the interpreter with the executor (see test_realtime_direct_five_moves)
 THREAD = pytest.mark.xfail(
@@ -374,7 +367,8 @@ def test_a_cancel_through_the_action_client_decelerates_to_a_hold(context, mode,
         assert run.client.feedback[-1].desired.positions[0] > 3.8e-6
         cancel = handle.cancel_goal_async()
         run.spin(cancel.done)
-        assert cancel.result() is not None and len(cancel.result().goals_canceling) == 1
+        assert cancel.result() is not None and len(cancel.result().goals_canceling) == 1, \
+            run.result(done).result
         result = run.result(done)
         # as joint_trajectory_controller: CANCELED, error code SUCCESSFUL
         assert (result.status, result.result.error_code) == (5, 0), result.result

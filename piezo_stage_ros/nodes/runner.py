@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import functools
 import sys
-import threading
 from typing import Any, Callable, Protocol, Sequence, TypeVar
 
 from piezo_stage_ros.core.contracts.cdr import CdrError
@@ -44,8 +43,7 @@ from rclpy.node import Node
 from rclpy.task import Future
 from rclpy.utilities import remove_ros_args
 
-__all__ = ['decode_or_drop', 'make_executor', 'run', 'spin_aside', 'start_managed',
-           'stops_quietly']
+__all__ = ['decode_or_drop', 'make_executor', 'run', 'start_managed', 'stops_quietly']
 
 NodeFactory = Callable[[], Node]
 _Message = TypeVar('_Message')
@@ -140,38 +138,6 @@ def make_executor(kind: str = 'events', context: rclpy.context.Context | None = 
         else:
             return EventsExecutor(context=context)
     return SingleThreadedExecutor(context=context)
-
-
-def spin_aside(nodes: Sequence[Node], kind: str = 'events',
-               context: rclpy.context.Context | None = None
-               ) -> tuple[rclpy.executors.Executor, threading.Thread]:
-    """
-    Spin ``nodes`` on an executor of their own, in a thread of this process.
-
-    For nodes whose callbacks must not queue behind another node's long ones (a real-time
-    plant hands its samples on in batches): the interpreter is shared, but the thread gets it
-    between the other's bytecodes, instead of waiting for the whole callback.
-
-    Returns
-    -------
-    executor : rclpy.executors.Executor
-        Shut it down (then remove and destroy the nodes) to end the thread.
-    thread : threading.Thread
-        The spinning thread (a daemon).
-
-    """
-    executor = make_executor(kind, context)
-    for node in nodes:
-        executor.add_node(node)
-
-    def spin() -> None:
-        try:
-            executor.spin()
-        except (KeyboardInterrupt, ExternalShutdownException):
-            pass
-    thread = threading.Thread(target=spin, name='executor-aside', daemon=True)
-    thread.start()
-    return executor, thread
 
 
 def start_managed(nodes: Sequence[Node]) -> None:
@@ -284,11 +250,8 @@ def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
         rclpy.try_shutdown()
         return 0
     executor = make_executor(opts.executor)
-    aside = [n for n in nodes if getattr(n, 'spins_aside', False)]
     for node in nodes:
-        if node not in aside:
-            executor.add_node(node)
-    side = spin_aside(aside, opts.executor) if aside else None
+        executor.add_node(node)
     finished: Future | None = next((getattr(n, 'finished', None) for n in nodes
                                     if getattr(n, 'finished', None) is not None), None)
     code = 0
@@ -310,12 +273,9 @@ def run(prog: str, factories: Sequence[tuple[str, NodeFactory]],
         for node in nodes:
             # destroy_node drives the plant's safe voltage: it must run for every node
             try:
-                (side[0] if side is not None and node in aside else executor).remove_node(node)
+                executor.remove_node(node)
             finally:
                 node.destroy_node()
-        if side is not None:
-            side[0].shutdown(timeout_sec=1.0)
-            side[1].join(timeout=1.0)
         executor.shutdown(timeout_sec=1.0)
         rclpy.try_shutdown()
     return code

@@ -998,9 +998,6 @@ class ServoProcess:
         self._goal_events: list[tuple[Any, ...]] = []
         self._ended = False  # the process closed its end of the pipe
         self._joined = False
-        # the pipe, the goal events and the change count are reached from more than one
-        # thread when the goals' node spins on an executor of its own
-        self._lock = threading.RLock()
 
     def start(self, start_ns: int = 0) -> None:
         """
@@ -1019,10 +1016,6 @@ class ServoProcess:
         self._sender.close()
 
     def _receive(self, timeout_s: float = 0.0) -> None:
-        with self._lock:
-            self._receive_now(timeout_s)
-
-    def _receive_now(self, timeout_s: float) -> None:
         # take the messages sent so far (waiting up to timeout_s for the first one)
         reader = self._results
         wait = timeout_s
@@ -1067,15 +1060,13 @@ class ServoProcess:
                         'cancel', 'hold'):
             raise ValueError(f'servo change: kind {kind!r}; allowed: controller, trajectory, '
                              'active, wind_down, set, goal, cancel, hold')
-        with self._lock:
-            self._changes.put((kind, value))
-            self.ring.set('posted', self.ring.get('posted') + 1)
+        self._changes.put((kind, value))
+        self.ring.set('posted', self.ring.get('posted') + 1)
 
     def take_goal_events(self) -> list[tuple[Any, ...]]:
         """Return the goals' events the servo sent since the last call (``TrajectoryLogic``)."""
-        with self._lock:
-            self._receive()
-            events, self._goal_events = self._goal_events, []
+        self._receive()
+        events, self._goal_events = self._goal_events, []
         return events
 
     def take(self) -> tuple[Any, Any, int]:

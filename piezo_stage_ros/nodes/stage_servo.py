@@ -98,10 +98,6 @@ def connect_direct(plant: PlantNode, controller: ControllerNode,
             controller.forward = trajectory.forward = process.change
             trajectory.goal_events = process.take_goal_events
             trajectory.loop_index = lambda: process.index
-            # its goals reach the servo process by queue: the node may spin apart from the
-            # plant's batches (with the servo in a thread, a third thread would take the
-            # interpreter from it)
-            trajectory.spins_aside = True
         plant.attach_servo(trajectory.logic, controller.logic, publish, process)
         return
 

@@ -162,10 +162,6 @@ class TrajectoryNode(Node):
         self.goal_events: Callable[[], list[tuple[Any, ...]]] | None = None
         #: The last sample index of that servo (the goals' loop time there).
         self.loop_index: Callable[[], int] | None = None
-        #: Spin on an executor of its own, in a thread (:func:`~piezo_stage_ros.nodes.runner.run`
-        #: does): goals, their results and this node's services then do not wait behind the
-        #: plant's batches of samples on the process's executor.
-        self.spins_aside = False
         stage = stage_of_args(sys.argv)
         if stage is None:
             self.get_logger().warning('goals: no stage in the parameter files given; checking '
@@ -281,7 +277,7 @@ class TrajectoryNode(Node):
         """
         reason = self.gate.update(state)
         if reason is not None:
-            # the goals end on this node's executor (_drain), which may not be the caller's
+            # the goals end at the next drain, outside the plant's transition
             self._leaving.append(reason)
 
     def _abort_goals(self, reason: str) -> None:
