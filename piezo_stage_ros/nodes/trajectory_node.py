@@ -32,12 +32,13 @@ parameter files); :class:`~piezo_stage_ros.core.loop.follow.GoalFollower` checks
 it, in this node's logic or, in real time with ``stage_servo --direct``, in the servo.
 Every goal is accepted by the action server and checked at the sample it would start from: a
 refusal ends it at once ABORTED with its ``error_code`` (``INVALID_GOAL``, ``INVALID_JOINTS``
-...) and the reason in ``error_string`` (a rejected goal carries neither).
+...) and the reason in ``error_string`` (a rejected goal carries neither). Goals run only
+while the plant node is active (:meth:`TrajectoryNode.plant_state`): refused at once otherwise,
+ended when it leaves active.
 """
 
 from __future__ import annotations
 
-from collections import deque
 import sys
 from typing import Any, Callable, Sequence
 
@@ -157,7 +158,6 @@ class TrajectoryNode(Node):
         self._state_sub: Any = None
         self._state_client: Any = None
         self._state_timer: Any = None
-        self._leaving: deque[str] = deque()
         #: Goal events from a servo that runs this logic elsewhere (``ServoProcess``).
         self.goal_events: Callable[[], list[tuple[Any, ...]]] | None = None
         #: The last sample index of that servo (the goals' loop time there).
@@ -231,7 +231,7 @@ class TrajectoryNode(Node):
         # until a state is known: ask the plant once its service is there
         client = self._state_client
         if self.gate.state is not None or client is None:
-            self._stop_asking()
+            self._state_timer.cancel()
             return
         if client.service_is_ready():
             self._state_timer.cancel()
@@ -271,22 +271,20 @@ class TrajectoryNode(Node):
 
         Leaving it ends every goal not yet ended, ABORTED (``INVALID_GOAL``, as
         joint_trajectory_controller's deactivate) with the reason; the stage is then the
-        plant's: it ramps to the safe voltage at the watchdog's slew. Any thread may call: new
-        goals are refused at once, the running ones end at this node's next drain of its
-        goals' events.
+        plant's: it ramps to the safe voltage at the watchdog's slew. Called on this node's
+        executor (the plant's transition in this process, or its event).
         """
         reason = self.gate.update(state)
-        if reason is not None:
-            # the goals end at the next drain, outside the plant's transition
-            self._leaving.append(reason)
-
-    def _abort_goals(self, reason: str) -> None:
+        if reason is None:
+            return
+        # the action goals not yet ended (a topic's goal has no result to end)
         tokens = [token for token, entry in self._waiting.items() if entry[1] is not None]
         if self.forward is None:
             # the loop that follows them may still run (a servo thread's ramp): to rest
             for token in tokens:
                 self.logic.cancel(token)
-            self.logic.hold()
+            if self.logic.goal_active:
+                self.logic.hold()
         if tokens:
             self.get_logger().warning(f'{len(tokens)} goal(s) aborted: {reason}')
         goal_ids = {token: goal_id for goal_id, token in self._by_goal.items()}
@@ -380,8 +378,6 @@ class TrajectoryNode(Node):
 
     def _drain(self) -> None:
         """Hand the goals' verdicts, results and feedback to their clients."""
-        while self._leaving:
-            self._abort_goals(self._leaving.popleft())
         events = self.logic.events
         more = self.goal_events() if self.goal_events is not None else []
         while events or more:
