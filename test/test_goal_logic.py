@@ -173,6 +173,42 @@ def test_a_goal_checked_ahead_is_checked_again_when_the_reference_changed() -> N
     assert logic.events[0][1:3] == (1, move(10e-6, 0.02))
 
 
+@pytest.mark.parametrize('skipped', [1, 5, 20])
+def test_a_goal_whose_start_sample_the_servo_skipped_starts_on_its_own_sample(skipped: int
+                                                                              ) -> None:
+    # real time: the servo skipped the sample the goal was checked for (a loaded machine);
+    # the next sample served, at most GOAL_LATE_START_S later, starts it on the grid where it
+    # was checked: the reference there is the goal's, as if the samples between were
+    # skipped within it, and the same as a goal started on time
+    from piezo_stage_ros.nodes.logic import GOAL_LATE_START_S
+    on_time, late = hold_logic(lead_s=0.02), hold_logic(lead_s=0.02)
+    for logic in (on_time, late):
+        logic.on_position(stamp(0), 3.8e-6)
+        logic.goal(1, move(10e-6, 0.02))        # checked for sample 201
+    for k in range(1, 260):
+        on_time.on_position(stamp(k), 3.8e-6)
+    ref_late = {}
+    for k in [*range(1, 201), *range(201 + skipped, 260)]:
+        ref_late[k] = late.on_position(stamp(k), 3.8e-6)
+    assert skipped * T <= GOAL_LATE_START_S + 1e-12
+    assert late.events[0][0] == 'verdict' and late.events[0][3] > 0
+    assert 'retry' not in [e[0] for e in late.events]
+    assert [t for t, _ in late.started] == [t for t, _ in on_time.started] == [201 * T]
+    x, v, _ = on_time.follower.reference(np.arange(201 + skipped, 260) * T)
+    np.testing.assert_array_equal([ref_late[k][0] for k in range(201 + skipped, 260)], x[:, 0])
+
+
+def test_a_goal_whose_start_sample_passed_long_ago_is_checked_again() -> None:
+    from piezo_stage_ros.nodes.logic import GOAL_LATE_START_S
+    logic = hold_logic(lead_s=0.02)
+    logic.on_position(stamp(0), 3.8e-6)
+    logic.goal(1, move(10e-6, 0.02))            # checked for sample 201
+    passed = 201 + round(GOAL_LATE_START_S / T) + 2
+    for k in [*range(1, 201), *range(passed, passed + 10)]:
+        logic.on_position(stamp(k), 3.8e-6)
+    assert [e[0] for e in logic.events] == ['retry'] and not logic.goal_active
+
+
 def test_a_goal_takes_a_sine_over_in_motion_without_a_jump() -> None:
     logic = hold_logic(kind='sine', **{'sine.frequency_hz': 10.0})
     # near the crest (25 ms): a goal from the sine's state moves on from there

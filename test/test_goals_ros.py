@@ -125,55 +125,70 @@ def scan_goal() -> FollowJointTrajectory.Goal:
 
 
 def composed(context: Context, mode: str, duration_s: float, process: bool = False,
-             feedforward: str = 'none'):
-    plant = PlantNode(context=context, parameter_overrides=params(
+             feedforward: str = 'none', autostart: bool = True, direct: bool = True):
+    plant = PlantNode(autostart=autostart, context=context, parameter_overrides=params(
         'plant_node', mode=mode, duration_s=duration_s, **{'lockstep.subscribers': 3,
                                                            'servo.process': process}))
     controller = ControllerNode(context=context, parameter_overrides=params(
         'controller_node', mode=mode, **{'feedforward.mode': feedforward}))
     trajectory = TrajectoryNode(context=context, parameter_overrides=params(
         'trajectory_node', mode=mode))
-    stage_servo.connect_direct(plant, controller, trajectory)
+    if direct:
+        stage_servo.connect_direct(plant, controller, trajectory)
     return plant, [plant, controller, trajectory]
 
 
-def spin_until(executor, future, timeout_s: float) -> None:
-    # spin_once in a loop: a real-time plant keeps the executor busy with its batches
-    deadline = time.monotonic() + timeout_s
-    while not future.done() and time.monotonic() < deadline:
-        executor.spin_once(timeout_sec=0.01)
+class Session:
+    """The nodes and a client on one executor, goal by goal, for the tests below."""
+
+    def __init__(self, context, nodes, positions: bool) -> None:
+        self.client = Client(context, positions)
+        self.executor = make_executor('events', context)
+        self.nodes = [*nodes, self.client]
+        for node in self.nodes:
+            self.executor.add_node(node)
+        assert self.client.action.wait_for_server(timeout_sec=10.0)
+
+    def spin(self, until, timeout_s: float = 120.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not until() and time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=0.01)
+
+    def send(self, goal, timeout_s: float = 120.0):
+        """Return the goal's handle once accepted, with its result's future."""
+        sent = self.client.action.send_goal_async(
+            goal, feedback_callback=lambda fb: self.client.feedback.append(fb.feedback))
+        self.spin(sent.done, timeout_s)
+        handle = sent.result()
+        assert handle is not None and handle.accepted
+        return handle, handle.get_result_async()
+
+    def result(self, done, timeout_s: float = 120.0):
+        self.spin(done.done, timeout_s)
+        assert done.done(), f'no result within {timeout_s} s'
+        return done.result()
+
+    def close(self) -> None:
+        for node in self.nodes:
+            self.executor.remove_node(node)
+            node.destroy_node()
+        self.executor.shutdown()
 
 
 def run_client(context, nodes, plant, goals, *, spacing_s: float = 0.0, timeout_s: float = 30.0,
                positions: bool = False):
     """Send the goals one after the other (each after the last ended); return the results."""
-    client = Client(context, positions)
-    executor = make_executor('events', context)
-    for node in [*nodes, client]:
-        executor.add_node(node)
+    run = Session(context, nodes, positions)
     out = []
     try:
-        assert client.action.wait_for_server(timeout_sec=10.0)
         for goal in goals:
-            sent = client.action.send_goal_async(
-                goal, feedback_callback=lambda fb: client.feedback.append(fb.feedback))
-            spin_until(executor, sent, timeout_s)
-            handle = sent.result()
-            assert handle is not None and handle.accepted
-            done = handle.get_result_async()
-            spin_until(executor, done, timeout_s)
-            assert done.done(), f'no result for goal {len(out)} within {timeout_s} s'
-            out.append(done.result())
-            deadline = time.monotonic() + spacing_s
-            while time.monotonic() < deadline:
-                executor.spin_once(timeout_sec=0.01)
-        return out, client
+            _, done = run.send(goal, timeout_s)
+            out.append(run.result(done, timeout_s))
+            run.spin(lambda: False, spacing_s)
+        return out, run.client
     finally:
         # destroying the plant stops its servo (a real-time run goes on until then)
-        for node in [*nodes, client]:
-            executor.remove_node(node)
-            node.destroy_node()
-        executor.shutdown()
+        run.close()
 
 
 def test_lockstep_five_moves_a_refusal_and_the_same_samples_as_the_offline_runner(context):
@@ -271,3 +286,102 @@ def test_lockstep_joint_trajectory_topic_moves_and_an_empty_one_holds(context):
             executor.remove_node(node)
             node.destroy_node()
         executor.shutdown()
+
+
+# a long move from the hold (3.8 um): still under way when the client has seen it start and
+# reacted, however far behind a loaded machine keeps the executor (seconds in real time)
+LONG_MOVE_S = 10.0
+
+# the servo thread shares the interpreter with the executor (see test_realtime_direct_five_moves)
+THREAD = pytest.mark.xfail(
+    reason='servo thread (servo.process false) on a loaded 2-core machine: the executor falls '
+           'seconds behind the servo thread; the client sees the move start only when it is '
+           'over, or a check of the goal misses its sample',
+    strict=False)
+
+
+def long_move():
+    return goal_msg([(LONG_MOVE_S, 25e-6, 0.0)], goal_m=5e-9)
+
+
+@pytest.mark.parametrize('mode, direct, process', [
+    ('lockstep', True, False), ('lockstep', False, False), ('realtime', True, True),
+    pytest.param('realtime', True, False, marks=THREAD)],
+    ids=['lockstep-direct', 'lockstep-topics', 'realtime-process', 'realtime-thread'])
+def test_goals_follow_the_plant_lifecycle(context, mode, direct, process):
+    """Refused while the plant is not active; a deactivate ends the running goal, ABORTED."""
+    from rclpy.lifecycle import TransitionCallbackReturn
+    plant, nodes = composed(context, mode, 0.0, process=process, autostart=False,
+                            direct=direct)
+    trajectory = nodes[2]
+    run = Session(context, nodes, positions=mode == 'lockstep')
+    try:
+        # the trajectory node learns the plant's state: by call in one process, else from
+        # its get_state service (the transition events before it are not heard)
+        run.spin(lambda: trajectory.gate.state is not None, 30.0)
+        assert trajectory.gate.state == 'unconfigured'
+        _, done = run.send(five_moves()[0])
+        result = run.result(done)
+        assert (result.status, result.result.error_code) == (6, -1)
+        assert 'plant node is unconfigured' in result.result.error_string
+        assert plant.trigger_configure() == TransitionCallbackReturn.SUCCESS
+        assert plant.trigger_activate() == TransitionCallbackReturn.SUCCESS
+        run.spin(lambda: trajectory.gate.state == 'active', 30.0)
+        assert trajectory.gate.state == 'active'
+        # under way (feedback comes from the loop), then the deactivate
+        run.client.feedback.clear()
+        handle, done = run.send(long_move())
+        run.spin(lambda: len(run.client.feedback) >= 3 or done.done())
+        assert not done.done() and run.client.feedback, 'the move did not get under way'
+        assert plant.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
+        result = run.result(done)
+        assert (result.status, result.result.error_code) == (6, -1), result.result
+        assert 'left the active state (deactivating)' in result.result.error_string
+        # the stage is the plant's: the ramp, within the slew, to the safe voltage
+        assert plant.ramp['max_step_v'] <= plant.ramp['slew_step_v'] * (1.0 + 1e-9)
+        # and the goals' status says so
+        status = dict(trajectory.goals_status().values)
+        assert status['active_goal'] == '' and 'INVALID_GOAL' in status['last_result_code']
+        # inactive now: a new goal is refused at once, with the state
+        run.spin(lambda: trajectory.gate.state == 'inactive', 30.0)
+        _, done = run.send(five_moves()[1])
+        result = run.result(done)
+        assert (result.status, result.result.error_code) == (6, -1)
+        assert 'plant node is inactive' in result.result.error_string
+    finally:
+        run.close()
+
+
+@pytest.mark.parametrize('mode, process', [
+    ('lockstep', False), ('realtime', True), pytest.param('realtime', False, marks=THREAD)],
+    ids=['lockstep', 'realtime-process', 'realtime-thread'])
+def test_a_cancel_through_the_action_client_decelerates_to_a_hold(context, mode, process):
+    """A cancel mid-move: CANCELED, SUCCESSFUL, at rest short of the target."""
+    plant, nodes = composed(context, mode, 0.0, process=process)
+    run = Session(context, nodes, positions=mode == 'lockstep')
+    try:
+        handle, done = run.send(long_move())
+        run.spin(lambda: len(run.client.feedback) >= 5 or done.done())
+        assert not done.done() and run.client.feedback, 'the move did not get under way'
+        # under way from the hold (3.8 um) toward 25 um
+        assert run.client.feedback[-1].desired.positions[0] > 3.8e-6
+        cancel = handle.cancel_goal_async()
+        run.spin(cancel.done)
+        assert cancel.result() is not None and len(cancel.result().goals_canceling) == 1, \
+            run.result(done).result
+        result = run.result(done)
+        # as joint_trajectory_controller: CANCELED, error code SUCCESSFUL
+        assert (result.status, result.result.error_code) == (5, 0), result.result
+        text = result.result.error_string
+        assert text.startswith('cancelled: the stage decelerated to a hold at [')
+        held = float(text.split('[')[1].split(']')[0])
+        # at rest between where it was when cancelled and the target it no longer goes to
+        assert run.client.feedback[-1].desired.positions[0] <= held + 1e-12
+        assert 3.8e-6 < held < 25e-6
+        if not process:
+            # the reference (this process's logic) is at rest there
+            logic = nodes[2].logic
+            x, v, _ = logic.follower.reference(np.array([logic._index * T]))
+            assert x[0, 0] == pytest.approx(held, abs=1e-12) and v[0, 0] == 0.0
+    finally:
+        run.close()

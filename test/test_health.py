@@ -36,6 +36,7 @@ from piezo_stage_ros.nodes.health import (
     controller_statuses,
     ERROR,
     estimates_status,
+    GoalGate,
     goals_of,
     hardware_id,
     learning_status,
@@ -75,6 +76,28 @@ def test_a_run_is_activated_once_and_a_cleanup_allows_a_new_one():
     assert not life.configured and life.configure() is None
     life.configured_ok()
     assert life.activate() is None
+
+
+def test_goals_run_only_while_the_plant_is_active_and_end_when_it_leaves():
+    gate = GoalGate()
+    # no plant heard of (none managed, or not found yet): goals are taken
+    assert gate.refusal() is None
+    # heard inactive first: goals taken meanwhile end, new ones are refused with the state
+    ended = gate.update('inactive')
+    assert ended is not None and '(inactive)' in ended
+    assert 'plant node is inactive' in gate.refusal()
+    assert gate.update('activating') is None and 'is activating' in gate.refusal()
+    assert gate.update('active') is None and gate.refusal() is None
+    assert gate.update('active') is None
+    for state in ('deactivating', 'shuttingdown', 'errorprocessing', 'faulted'):
+        gate.update('active')
+        ended = gate.update(state)
+        assert ended is not None and f'left the active state ({state})' in ended
+        assert 'slew' in ended and f'plant node is {state}' in gate.refusal()
+    # the rest of a transition out of active ends nothing more
+    gate.update('deactivating')
+    for state in ('inactive', 'cleaningup', 'unconfigured', 'finalized'):
+        assert gate.update(state) is None and f'is {state}' in gate.refusal()
 
 
 # --- the deactivate ramp -----------------------------------------------------------------------

@@ -37,7 +37,8 @@ from piezo_stage_ros.core.loop.goals import (
 )
 
 __all__ = ['feedback_msg', 'follow_joint_trajectory', 'goal_from_msg', 'joint_trajectory',
-           'result_msg', 'result_of', 'seconds', 'stamp_ns', 'trajectory_from_msg']
+           'plant_state_types', 'result_msg', 'result_of', 'seconds', 'stamp_ns',
+           'trajectory_from_msg']
 
 
 def follow_joint_trajectory() -> Any:
@@ -48,6 +49,12 @@ def follow_joint_trajectory() -> Any:
 def joint_trajectory() -> Any:
     """Return ``trajectory_msgs.msg.JointTrajectory`` (ImportError without it)."""
     return importlib.import_module('trajectory_msgs.msg').JointTrajectory
+
+
+def plant_state_types() -> tuple[Any, Any]:
+    """Return ``lifecycle_msgs``' TransitionEvent and GetState (ImportError without them)."""
+    return (importlib.import_module('lifecycle_msgs.msg').TransitionEvent,
+            importlib.import_module('lifecycle_msgs.srv').GetState)
 
 
 def seconds(duration: Any) -> float:

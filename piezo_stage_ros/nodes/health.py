@@ -19,7 +19,8 @@ Each function turns a node's counters into one :class:`Status`: its level (OK, W
 ``diagnostic_msgs/DiagnosticStatus`` numbers them), its name ``'<node>: <part>'`` (the prefix
 diagnostic_aggregator's analyzers group by), a message and the values as strings with their
 units in the keys. :mod:`piezo_stage_ros.nodes.diagnostics` only publishes them.
-:class:`StageLifecycle` is what the managed plant node's transitions decide.
+:class:`StageLifecycle` is what the managed plant node's transitions decide; :class:`GoalGate`
+what they mean for goals.
 """
 
 from __future__ import annotations
@@ -30,9 +31,9 @@ from typing import Any, Callable, Mapping, Sequence
 
 from piezo_stage_ros.core.loop.follow import GoalsStatus
 
-__all__ = ['ERROR', 'OK', 'STALE', 'StageLifecycle', 'Status', 'WARN', 'controller_statuses',
-           'estimates_status', 'goals_of', 'hardware_id', 'learning_status', 'loop_status',
-           'stability_status', 'watchdog_status']
+__all__ = ['ERROR', 'GoalGate', 'OK', 'STALE', 'StageLifecycle', 'Status', 'WARN',
+           'controller_statuses', 'estimates_status', 'goals_of', 'hardware_id',
+           'learning_status', 'loop_status', 'stability_status', 'watchdog_status']
 
 #: Levels of ``diagnostic_msgs/DiagnosticStatus``.
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
@@ -322,3 +323,45 @@ class StageLifecycle:
     def cleaned_up(self) -> None:
         """Record a cleanup (the backend released)."""
         self.configured = self.ran = self.active = False
+
+
+class GoalGate:
+    """
+    Whether goals may run, from the plant node's lifecycle state as last heard.
+
+    A goal moves the stage only while the plant node is active (its loop runs); as
+    joint_trajectory_controller takes goals only while it is active and ends its goal when
+    deactivated. Until a state is heard (no managed plant node, or none found yet) goals are
+    taken, as a node without a lifecycle would take them.
+
+    Attributes
+    ----------
+    state : str or None
+        The plant's state label (``'active'``, ``'deactivating'``, ``'inactive'`` ...; a
+        label of rclpy's lifecycle or ``'faulted'``), None before any was heard.
+
+    """
+
+    def __init__(self) -> None:
+        self.state: str | None = None
+
+    def refusal(self) -> str | None:
+        """Return why a goal arriving now is refused, or None when it may run."""
+        if self.state is None or self.state == 'active':
+            return None
+        return (f'the plant node is {self.state}: goals are taken only while it is active '
+                '(ros2 lifecycle set <namespace>/plant_node activate)')
+
+    def update(self, state: str) -> str | None:
+        """
+        Take the plant's new state; return why the running goals end now, or None.
+
+        They end when the plant leaves the active state (a deactivate, a cleanup or a
+        shutdown from active, an error, a fault): its loop no longer follows them and the
+        stage ramps to the safe voltage at the watchdog's slew.
+        """
+        was, self.state = self.state, state
+        if state == 'active' or was not in (None, 'active'):
+            return None
+        return (f'the plant node left the active state ({state}): the goal ended; the stage '
+                'ramps to the safe voltage at watchdog.slew_v_per_s and holds there')

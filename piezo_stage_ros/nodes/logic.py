@@ -62,6 +62,12 @@ __all__ = ['ControllerLogic', 'Gate', 'LATE_COMMAND_LIMIT', 'LATE_HALF_LIMIT', '
 #: retry checks twice as far ahead as the last).
 GOAL_RETRIES = 6
 
+#: A goal checked ahead whose start sample the real-time servo skipped starts at the next
+#: sample served, when that is at most this much later [s]: on its own sample of the grid, as
+#: if the ones between were skipped within it (a new check would find the same state again
+#: when the stage holds, and on a loaded machine keeps missing its sample too).
+GOAL_LATE_START_S = 0.002
+
 #: End of a run: more than this fraction of the samples taken late by more than T/2 makes the
 #: end-of-run line a warning (docs/reference/ros-interface.md, "Status counters").
 LATE_HALF_LIMIT = 0.001
@@ -503,6 +509,7 @@ class TrajectoryLogic:
         self.follower: GoalFollower | None = None
         self._view: GoalTrajectory | None = None
         self._lead = 0
+        self._late_s = 0.0
         self._origin_ns: int | None = None
         self._index = -1
         self._epoch = 0
@@ -562,6 +569,7 @@ class TrajectoryLogic:
         self.follower = follower
         self._view = GoalTrajectory(follower)
         self._lead = max(0, int(round(lead_s * self.rate_hz)))
+        self._late_s = GOAL_LATE_START_S if self._lead else 0.0
 
     @property
     def goal_active(self) -> bool:
@@ -652,9 +660,11 @@ class TrajectoryLogic:
         assert follower is not None and isinstance(prepared, PreparedGoal)
         seeded = state is not None
         goal_id = 0
-        t = index * self.period_s
+        # the goal's own sample: this one, or in real time one the servo skipped shortly before
+        late = index * self.period_s - prepared.time_s
+        t = prepared.time_s
         if epoch == self._epoch and seeded != self.goal_active and \
-                abs(t - prepared.time_s) <= 0.5 * self.period_s:
+                -0.5 * self.period_s <= late <= self._late_s + 0.5 * self.period_s:
             if seeded:
                 follower.seed(t, *state)
                 prepared = dataclasses.replace(prepared, version=follower.version)
@@ -683,7 +693,7 @@ class TrajectoryLogic:
         if prepared.tracked:
             # a topic message has no result and cannot be cancelled by its token
             self._tokens[token] = goal_id
-        self.started.append((index * self.period_s, goal))
+        self.started.append((t, goal))
         self.events.append(('verdict', token, verdict, goal_id))
 
     def _serve_goals(self, index: int) -> None:

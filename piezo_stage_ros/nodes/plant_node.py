@@ -86,6 +86,10 @@ from std_msgs.msg import Float64, Float64MultiArray
 
 __all__ = ['PlantNode', 'main']
 
+#: The state each transition of :class:`PlantNode` ends in when it succeeds.
+_AFTER = {'configure': 'inactive', 'activate': 'active', 'deactivate': 'inactive',
+          'cleanup': 'unconfigured', 'shutdown': 'finalized'}
+
 
 class PlantNode(LifecycleNode):
     """
@@ -140,6 +144,10 @@ class PlantNode(LifecycleNode):
         self.ramp: dict[str, float] = {}
         self.diagnostics = DiagnosticsPublisher(self, DIAGNOSTICS_PERIOD_S)
         self.diagnostics.add(self._statuses)
+        #: Called with the state's label as each transition begins and ends, and with
+        #: ``'faulted'`` on a fault: peers in this process (the trajectory node's goals) learn
+        #: it at once, in the transition's own call (across processes: ``~/transition_event``).
+        self.on_state: list[Callable[[str], None]] = []
         if autostart:
             start_managed([self])
 
@@ -215,10 +223,11 @@ class PlantNode(LifecycleNode):
             tick, period = self._servo_tick, 0.002
         self._timer = self.create_timer(period, tick, clock=self._steady)
 
-    def _transition(self, name: str, action: Callable[[], str | None]
-                    ) -> TransitionCallbackReturn:
+    def _transition(self, name: str, action: Callable[[], str | None],
+                    previous: LifecycleState) -> TransitionCallbackReturn:
         # rclpy turns an exception in a transition into ERROR without a word: log it here
         started = time.monotonic()
+        self._tell(self.state)
         try:
             refused = action()
         except Exception as exc:  # noqa: BLE001 -- the transition fails with the reason
@@ -227,13 +236,24 @@ class PlantNode(LifecycleNode):
         took_ms = (time.monotonic() - started) * 1e3
         if refused:
             self.get_logger().error(f'{name} refused: {refused}')
+            self._tell(previous.label)  # rclpy goes back to it
             return TransitionCallbackReturn.FAILURE
         self.get_logger().info(f'{name}: done in {took_ms:.1f} ms')
+        self._tell(_AFTER[name])
         return TransitionCallbackReturn.SUCCESS
+
+    @property
+    def state(self) -> str:
+        """Return the lifecycle state's label (``'unconfigured'``, ``'active'`` ...)."""
+        return str(self._state_machine.current_state[1])
+
+    def _tell(self, state: str) -> None:
+        for listener in self.on_state:
+            listener(state)
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Build the backend, the publishers and the loop; check the controller."""
-        return self._transition('configure', self._configure)
+        return self._transition('configure', self._configure, state)
 
     def _configure(self) -> str | None:
         refused = self.lifecycle.configure()
@@ -249,7 +269,7 @@ class PlantNode(LifecycleNode):
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Start the loop: lockstep answering, or the real-time servo."""
-        return self._transition('activate', self._activate)
+        return self._transition('activate', self._activate, state)
 
     def _activate(self) -> str | None:
         refused = self.lifecycle.activate()
@@ -261,7 +281,7 @@ class PlantNode(LifecycleNode):
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Ramp to the safe voltage at the slew through the guard, then stop the loop."""
-        return self._transition('deactivate', self._deactivate)
+        return self._transition('deactivate', self._deactivate, state)
 
     def _deactivate(self) -> str | None:
         self.lifecycle.deactivated()
@@ -313,7 +333,7 @@ class PlantNode(LifecycleNode):
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Release the backend and destroy the publishers, subscriptions and timers."""
-        return self._transition('cleanup', self._cleanup)
+        return self._transition('cleanup', self._cleanup, state)
 
     def _cleanup(self) -> str | None:
         self._release()
@@ -341,7 +361,7 @@ class PlantNode(LifecycleNode):
             if not self.finished.done():
                 self.finished.set_result({'shutdown': True})
             return None
-        return self._transition('shutdown', shutdown)
+        return self._transition('shutdown', shutdown, state)
 
     def _statuses(self) -> list[Status]:
         name, hw_id = self.get_name(), hardware_id(self.get_namespace())
@@ -723,6 +743,7 @@ class PlantNode(LifecycleNode):
         if self._timer is not None:
             self._timer.cancel()
         self.get_logger().error(f'fault, safe voltage driven: {exc}')
+        self._tell('faulted')
         if not self.finished.done():
             err = exc if isinstance(exc, PiezoStageError) else PiezoStageError(repr(exc))
             self.finished.set_exception(err)

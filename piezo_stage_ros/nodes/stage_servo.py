@@ -69,6 +69,7 @@ def connect_direct(plant: PlantNode, controller: ControllerNode,
     plant.check = check
     # the goals: checked against the plant's own stage; a feed-forward binds their reference
     trajectory.set_stage(plant.binding.objects[0])
+    trajectory.follow_plant(plant.state, plant.on_state)
     trajectory.logic.on_reference_change = controller.logic.request_trajectory
     if plant.opts.mode != 'lockstep':
         # real time: the plant's servo thread runs trajectory and controller for each sample;

@@ -33,7 +33,9 @@ parameter files); :class:`~piezo_stage_ros.core.loop.follow.GoalFollower` checks
 it, in this node's logic or, in real time with ``stage_servo --direct``, in the servo.
 Every goal is accepted by the action server and checked at the sample it would start from: a
 refusal ends it at once ABORTED with its ``error_code`` (``INVALID_GOAL``, ``INVALID_JOINTS``
-...) and the reason in ``error_string`` (a rejected goal carries neither).
+...) and the reason in ``error_string`` (a rejected goal carries neither). Goals run only
+while the plant node is active (:meth:`TrajectoryNode.plant_state`): refused at once otherwise,
+ended when it leaves active.
 """
 
 from __future__ import annotations
@@ -63,7 +65,7 @@ from piezo_stage_ros.core.loop.trajectories import make_trajectory
 from piezo_stage_ros.core.model.stage import StageParams
 from piezo_stage_ros.nodes import goals_msgs, qos
 from piezo_stage_ros.nodes.diagnostics import DIAGNOSTICS_PERIOD_S, DiagnosticsPublisher
-from piezo_stage_ros.nodes.health import goals_of, hardware_id
+from piezo_stage_ros.nodes.health import GoalGate, goals_of, hardware_id
 from piezo_stage_ros.nodes.logic import announce_trajectory, Gate, TrajectoryLogic
 from piezo_stage_ros.nodes.parameters import ParameterBinding
 from piezo_stage_ros.nodes.runner import decode_or_drop, run, stops_quietly
@@ -81,6 +83,8 @@ __all__ = ['TrajectoryNode', 'goal_lead_s', 'main', 'stage_of_args']
 #: Action and topic names, relative to the namespace.
 FOLLOW_ACTION = f'{wire.STAGE}/follow_joint_trajectory'
 JOINT_TRAJECTORY = f'{wire.STAGE}/joint_trajectory'
+#: The managed plant node whose state the goals follow (in this node's namespace).
+PLANT_NODE = 'plant_node'
 
 
 def goal_lead_s(mode: str) -> float:
@@ -150,6 +154,11 @@ class TrajectoryNode(Node):
         self._token_of: dict[bytes, int] = {}
         #: The goals' bookkeeping for the stage's status (:meth:`goals_status`).
         self.ledger = GoalLedger()
+        #: Whether goals may run: the plant node's lifecycle state (:meth:`plant_state`).
+        self.gate = GoalGate()
+        self._state_sub: Any = None
+        self._state_client: Any = None
+        self._state_timer: Any = None
         #: Goal events from a servo that runs this logic elsewhere (``ServoProcess``).
         self.goal_events: Callable[[], list[tuple[Any, ...]]] | None = None
         #: The last sample index of that servo (the goals' loop time there).
@@ -199,6 +208,93 @@ class TrajectoryNode(Node):
         # goals' events reach this side between samples: at 100 Hz (feedback comes at 50 Hz of
         # loop time); in lockstep after each sample as well
         self._drain_timer = self.create_timer(0.01, self._drain, callback_group=group)
+        self._follow_plant_topics(group)
+
+    def _follow_plant_topics(self, group: Any) -> None:
+        # the plant node in another process: its transition events, and its state once at the
+        # start (the events are volatile: a transition before this node was found is not
+        # heard); a plant in this process tells its state by call instead (follow_plant)
+        try:
+            TransitionEvent, GetState = goals_msgs.plant_state_types()
+        except ImportError as exc:
+            self.get_logger().warning(f'goals: no {exc.name}: goals do not follow the plant '
+                                      "node's lifecycle")
+            return
+        self._state_sub = self.create_subscription(
+            TransitionEvent, f'{PLANT_NODE}/transition_event',
+            lambda msg: self.plant_state(str(msg.goal_state.label)), 10,
+            callback_group=group)
+        self._state_client = self.create_client(GetState, f'{PLANT_NODE}/get_state',
+                                                callback_group=group)
+        self._state_timer = self.create_timer(0.5, self._ask_plant_state, callback_group=group)
+
+    def _ask_plant_state(self) -> None:
+        # until a state is known: ask the plant once its service is there
+        client = self._state_client
+        if self.gate.state is not None or client is None:
+            self._state_timer.cancel()
+            return
+        if client.service_is_ready():
+            self._state_timer.cancel()
+            future = client.call_async(client.srv_type.Request())
+
+            def answered(done: Any) -> None:
+                response = done.result()
+                if response is not None and self.gate.state is None:
+                    self.plant_state(str(response.current_state.label))
+            future.add_done_callback(answered)
+
+    def _stop_asking(self) -> None:
+        if self._state_timer is not None:
+            self.destroy_timer(self._state_timer)
+            self._state_timer = None
+
+    def follow_plant(self, state: str, listeners: list[Callable[[str], None]]) -> None:
+        """
+        Follow a plant node in this process: its ``state`` now, then each one by call.
+
+        ``listeners``: the plant's :attr:`PlantNode.on_state`. Its transition events are not
+        listened to then: one source, in the order of the transitions.
+        """
+        if self._state_sub is not None:
+            self.destroy_subscription(self._state_sub)
+            self._state_sub = None
+        self._stop_asking()
+        if self._state_client is not None:
+            self.destroy_client(self._state_client)
+            self._state_client = None
+        listeners.append(self.plant_state)
+        self.plant_state(state)
+
+    def plant_state(self, state: str) -> None:
+        """
+        Take the plant node's lifecycle state: goals run only while it is active.
+
+        Leaving it ends every goal not yet ended, ABORTED (``INVALID_GOAL``, as
+        joint_trajectory_controller's deactivate) with the reason; the stage is then the
+        plant's: it ramps to the safe voltage at the watchdog's slew. Called on this node's
+        executor (the plant's transition in this process, or its event).
+        """
+        reason = self.gate.update(state)
+        if reason is None:
+            return
+        # the action goals not yet ended (a topic's goal has no result to end)
+        tokens = [token for token, entry in self._waiting.items() if entry[1] is not None]
+        if self.forward is None:
+            # the loop that follows them may still run (a servo thread's ramp): to rest
+            for token in tokens:
+                self.logic.cancel(token)
+            if self.logic.goal_active:
+                self.logic.hold()
+        if tokens:
+            self.get_logger().warning(f'{len(tokens)} goal(s) aborted: {reason}')
+        goal_ids = {token: goal_id for goal_id, token in self._by_goal.items()}
+        for token in tokens:
+            self._by_goal.pop(goal_ids.get(token, 0), None)
+            result = GoalResult(goal_ids.get(token, 0), GoalStatus.ABORTED,
+                                ResultCode.INVALID_GOAL, reason, 0.0)
+            self.ledger.take(('result', result))
+            self._end(token, result)
 
     def _submit(self, token: int, goal: JointTrajectoryGoal, tracked: bool,
                 stamp: int | None) -> None:
@@ -208,6 +304,10 @@ class TrajectoryNode(Node):
             self.logic.goal(token, goal, tracked=tracked, stamp_ns=stamp)
 
     def _on_trajectory(self, msg: Any) -> None:
+        refusal = self.gate.refusal()
+        if refusal is not None:
+            self.get_logger().warning(f'joint_trajectory ignored: {refusal}')
+            return
         if not msg.points:
             # an empty trajectory holds (joint_trajectory_controller)
             if self.forward is not None:
@@ -227,6 +327,12 @@ class TrajectoryNode(Node):
             self.get_logger().warning(f'goal refused: {verdict.reason}')
             handle.abort()
             return goals_msgs.result_msg(verdict.code, verdict.reason)
+        refusal = self.gate.refusal()
+        if refusal is not None:
+            self.get_logger().warning(f'goal refused: {refusal}')
+            self.ledger.take(('verdict', 0, None, 0))
+            handle.abort()
+            return goals_msgs.result_msg(ResultCode.INVALID_GOAL, refusal)
         self._tokens += 1
         token = self._tokens
         future = rclpy.task.Future()
