@@ -343,3 +343,26 @@ def test_a_wind_down_ramps_every_axis_to_its_safe_voltage_and_ends_the_run():
     assert [(a, t.wind_down, t.ended) for a, t in servo.guard.ended_trips] == [
         (a, True, 'stop') for a in ('x', 'y', 'z')]
     assert servo.guard.trips == 0
+
+
+def test_what_the_run_froze_is_collectable_again_after_it():
+    # the run moves what exists at its start out of the garbage collector's reach: after the
+    # run, a cycle of that time that is dropped must be collected again, or every run leaves
+    # its process all that it froze (a servo started again, a test session)
+    import gc
+    import weakref
+
+    class Cycle:
+        pass
+
+    loop = loop_of('xy_stage.yaml', [])
+    servo = axes_servo_from_config(loop, 0.002)
+    paced(servo)
+    cycle = Cycle()
+    cycle.self = cycle  # type: ignore[attr-defined]
+    alive = weakref.ref(cycle)
+    servo.run(start_ns=3 * PERIOD)
+    assert servo.error is None and servo.done
+    del cycle
+    gc.collect()
+    assert alive() is None
