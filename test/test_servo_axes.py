@@ -299,6 +299,24 @@ def test_references_read_ahead_in_chunks_are_the_trajectories_values(chunk):
         np.testing.assert_array_equal(v, want[axis][1][41:169])
 
 
+def test_a_reference_of_the_wrong_shape_is_refused_naming_its_axis():
+    # the servo's references are checked as the offline runner checks them, axis named
+    from piezo_stage_ros.core.contracts.errors import PiezoStageError
+
+    class Scalar:
+        def evaluate(self, t):
+            return 0.0, 0.0
+
+    loop = loop_of('xy_stage.yaml', [])
+    trs = loop.trajectories()
+    ref = AxesReference([trs[0], Scalar()], loop.stage.sample_time_s, chunk=10,
+                        names=loop.stage.names)
+    with pytest.raises(PiezoStageError, match="axis 'y' returned arrays of shape"):
+        ref.at(0)
+    with pytest.raises(PiezoStageError, match="axis 'y' returned arrays of shape"):
+        ref.window(1, 0, 5)
+
+
 def test_samples_drained_one_by_one_are_the_batch_rows():
     loop = loop_of('xy_stage.yaml', [])
     got = []

@@ -187,7 +187,8 @@ class AxesServoLoop(ServoLoop):
         self.axes = plant.names
         self.axes_controller = controller
         controller.bind(list(trajectories))
-        self.reference = AxesReference(trajectories, 1.0 / self.rate_hz, chunk=chunk)
+        self.reference = AxesReference(trajectories, 1.0 / self.rate_hz, chunk=chunk,
+                                       names=plant.names)
         self.commands = AxesCommands(controller, self.reference)
         self._fresh = True  # the controllers are reset from the first sample served
         self._true_axes: Callable[[], list[float]] | None = \
