@@ -384,3 +384,13 @@ def test_what_the_run_froze_is_collectable_again_after_it():
     del cycle
     gc.collect()
     assert alive() is None
+
+
+@pytest.mark.parametrize('chains, names, wrong', [(1, 2, "'chains' = 1"),
+                                                  (2, 1, "'names' = 1")])
+def test_a_guard_of_another_axis_count_names_what_is_wrong(chains, names, wrong):
+    from piezo_stage_ros.core.contracts.errors import ParameterError
+    loop = loop_of('xy_stage.yaml', [])
+    bridge = AxesModelBridge(loop.stage)
+    with pytest.raises(ParameterError, match=f'{wrong} .*2, one per axis'):
+        AxesGuard(bridge, [a.chain for a in loop.stage.axes][:chains], loop.stage.names[:names])
