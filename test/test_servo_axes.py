@@ -299,6 +299,24 @@ def test_references_read_ahead_in_chunks_are_the_trajectories_values(chunk):
         np.testing.assert_array_equal(v, want[axis][1][41:169])
 
 
+def test_a_reference_of_the_wrong_shape_is_refused_naming_its_axis():
+    # the servo's references are checked as the offline runner checks them, axis named
+    from piezo_stage_ros.core.contracts.errors import PiezoStageError
+
+    class Scalar:
+        def evaluate(self, t):
+            return 0.0, 0.0
+
+    loop = loop_of('xy_stage.yaml', [])
+    trs = loop.trajectories()
+    ref = AxesReference([trs[0], Scalar()], loop.stage.sample_time_s, chunk=10,
+                        names=loop.stage.names)
+    with pytest.raises(PiezoStageError, match="axis 'y' returned arrays of shape"):
+        ref.at(0)
+    with pytest.raises(PiezoStageError, match="axis 'y' returned arrays of shape"):
+        ref.window(1, 0, 5)
+
+
 def test_samples_drained_one_by_one_are_the_batch_rows():
     loop = loop_of('xy_stage.yaml', [])
     got = []
@@ -343,3 +361,36 @@ def test_a_wind_down_ramps_every_axis_to_its_safe_voltage_and_ends_the_run():
     assert [(a, t.wind_down, t.ended) for a, t in servo.guard.ended_trips] == [
         (a, True, 'stop') for a in ('x', 'y', 'z')]
     assert servo.guard.trips == 0
+
+
+def test_what_the_run_froze_is_collectable_again_after_it():
+    # the run moves what exists at its start out of the garbage collector's reach: after the
+    # run, a cycle of that time that is dropped must be collected again, or every run leaves
+    # its process all that it froze (a servo started again, a test session)
+    import gc
+    import weakref
+
+    class Cycle:
+        pass
+
+    loop = loop_of('xy_stage.yaml', [])
+    servo = axes_servo_from_config(loop, 0.002)
+    paced(servo)
+    cycle = Cycle()
+    cycle.self = cycle  # type: ignore[attr-defined]
+    alive = weakref.ref(cycle)
+    servo.run(start_ns=3 * PERIOD)
+    assert servo.error is None and servo.done
+    del cycle
+    gc.collect()
+    assert alive() is None
+
+
+@pytest.mark.parametrize('chains, names, wrong', [(1, 2, "'chains' = 1"),
+                                                  (2, 1, "'names' = 1")])
+def test_a_guard_of_another_axis_count_names_what_is_wrong(chains, names, wrong):
+    from piezo_stage_ros.core.contracts.errors import ParameterError
+    loop = loop_of('xy_stage.yaml', [])
+    bridge = AxesModelBridge(loop.stage)
+    with pytest.raises(ParameterError, match=f'{wrong} .*2, one per axis'):
+        AxesGuard(bridge, [a.chain for a in loop.stage.axes][:chains], loop.stage.names[:names])

@@ -133,3 +133,28 @@ def test_what_rclpy_or_other_nodes_read_is_still_accepted_offline(tmp_path, text
     path = tmp_path / 'ok.yaml'
     path.write_text(text)
     load_loop_config([CONFIG / 'default.yaml', path])
+
+
+@pytest.mark.parametrize('node, name', [
+    ('controller_node', 'axes.x.pi.k_p'),  # a per-axis value in a file of one axis
+    ('plant_node', 'scan.kind'),  # the scan is the trajectory node's, and of several axes
+    ('trajectory_node', 'scan.kind'),  # one axis: no scan over axes to read it
+])
+def test_names_of_several_axes_are_refused_where_no_node_reads_them(tmp_path, node, name):
+    # the one-axis nodes declare no axes.* or scan.*, and refuse them; offline they were
+    # accepted and left unread
+    from piezo_stage_ros.core.config.loader import load_loop_config
+    path = tmp_path / 'one_axis.yaml'
+    path.write_text(f'{node}:\n  ros__parameters:\n    {name}: 5\n')
+    with pytest.raises(ParameterError, match=f"'{node} {name}' = 5 is not a parameter"):
+        load_loop_config([CONFIG / 'default.yaml', path])
+
+
+def test_names_of_several_axes_are_read_in_a_file_of_several_axes(tmp_path):
+    from piezo_stage_ros.core.config.loader import load_loop_config
+    path = tmp_path / 'scan.yaml'
+    path.write_text('controller_node:\n  ros__parameters:\n    axes.x.pi.k_p: 5.0\n')
+    load_loop_config([CONFIG / 'xy_stage.yaml', path])
+    path.write_text('plant_node:\n  ros__parameters:\n    scan.kind: raster\n')
+    with pytest.raises(ParameterError, match="'plant_node scan.kind' = 'raster' is not a"):
+        load_loop_config([CONFIG / 'xy_stage.yaml', path])

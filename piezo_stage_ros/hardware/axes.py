@@ -288,9 +288,10 @@ class AxesGuard:
                  names: Sequence[str], command_timeout_s: float = 0.01, *,
                  slew_v_per_s: float = DEFAULT_SLEW_V_PER_S,
                  sample_period_s: float = 1e-4) -> None:
-        if len(chains) != len(names) or len(names) != int(bridge.n):
-            raise ParameterError('chains', len(chains), f'{bridge.n}, one per axis of the '
-                                 f'backend (axes {list(names)})')
+        for what, count in (('chains', len(chains)), ('names', len(names))):
+            if count != int(bridge.n):
+                raise ParameterError(what, count, f'{bridge.n}, one per axis of the backend '
+                                     f'(axes {list(names)})')
         self.bridge = bridge
         self.names = tuple(str(a) for a in names)
         self.n = len(self.names)

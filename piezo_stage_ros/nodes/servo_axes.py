@@ -187,7 +187,8 @@ class AxesServoLoop(ServoLoop):
         self.axes = plant.names
         self.axes_controller = controller
         controller.bind(list(trajectories))
-        self.reference = AxesReference(trajectories, 1.0 / self.rate_hz, chunk=chunk)
+        self.reference = AxesReference(trajectories, 1.0 / self.rate_hz, chunk=chunk,
+                                       names=plant.names)
         self.commands = AxesCommands(controller, self.reference)
         self._fresh = True  # the controllers are reset from the first sample served
         self._true_axes: Callable[[], list[float]] | None = \
@@ -196,6 +197,7 @@ class AxesServoLoop(ServoLoop):
         self._nans = (math.nan,) * plant.n
         #: Freeze the garbage collector's view of the objects built before the start.
         self.freeze_gc = True
+        self._frozen = False
 
     def _serve(self, index: int, position_m: Any, now_ns: int, lateness_ns: int) -> None:
         positions: list[float] = position_m
@@ -237,11 +239,28 @@ class AxesServoLoop(ServoLoop):
         configuration, the modules) is moved out of the garbage collector's reach first
         (:func:`gc.freeze`): its collections then scan only what the run makes, instead of
         stopping a sample now and then for milliseconds to scan the tables again.
+        :meth:`run` gives them back at its end.
         """
         if self.freeze_gc:
             gc.collect()
             gc.freeze()
+            self._frozen = True
         super().start(start_ns, since_ns)
+
+    def run(self, start_ns: int = 0, setup: Callable[[], Any] | None = None,
+            since_ns: int | None = None) -> None:
+        """
+        Serve the run as :meth:`ServoLoop.run`, then unfreeze what :meth:`start` froze.
+
+        Frozen objects are never collected: a cycle of them dropped after the run (the run's
+        own objects, a servo started again in the process) would stay for the process' life.
+        """
+        try:
+            super().run(start_ns, setup, since_ns)
+        finally:
+            if self._frozen:
+                self._frozen = False
+                gc.unfreeze()
 
     def warm_up(self, samples: int = ServoLoop.WARM_UP_SAMPLES) -> str:
         """

@@ -99,9 +99,10 @@ from piezo_stage_ros.core.loop.trajectories import check_sampling, TrajectoryPar
 from piezo_stage_ros.core.model.stage import PlantParams, StageParams
 import yaml
 
-__all__ = ['check_heads', 'Config', 'LoopConfig', 'OTHER_HEADS', 'TABLES', 'controller_table',
-           'design_plant', 'find_config', 'flatten', 'load_config', 'load_loop_config',
-           'merge_overrides', 'nest', 'plant_table', 'trajectory_table', 'validate']
+__all__ = ['AXES_HEADS', 'check_heads', 'Config', 'LoopConfig', 'OTHER_HEADS', 'TABLES',
+           'controller_table', 'design_plant', 'find_config', 'flatten', 'load_config',
+           'load_loop_config', 'merge_overrides', 'nest', 'plant_table', 'trajectory_table',
+           'validate']
 
 
 # --------------------------------------------------------------------------------------------
@@ -340,8 +341,13 @@ TABLES = {'plant_node': plant_table, 'controller_node': controller_table,
           'trajectory_node': trajectory_table}
 
 #: Top-level names a node section may hold besides its table's: what rclpy declares itself or
-#: reads on request, and the multi-axis names the offline runner reads.
-OTHER_HEADS = ('use_sim_time', 'qos_overrides', 'axes', 'scan')
+#: reads on request.
+OTHER_HEADS = ('use_sim_time', 'qos_overrides')
+
+#: Top-level names the nodes of several axes (files with ``plant_node axes.names``) declare
+#: besides the one-axis tables'; the nodes of one axis declare none of them.
+AXES_HEADS = {'plant_node': ('axes',), 'controller_node': ('axes',),
+              'trajectory_node': ('axes', 'scan')}
 
 
 def check_heads(config: Config) -> None:
@@ -350,6 +356,7 @@ def check_heads(config: Config) -> None:
 
     The tables refuse an unknown name under one of their groups; a name outside every group
     (``sed: 3`` for ``seed: 3``) would otherwise be left out unread, where the node refuses it.
+    ``axes.*`` and ``scan.*`` (:data:`AXES_HEADS`) are names only in files of several axes.
     Wildcard (``/**``) values are not checked: they may be meant for another node.
 
     Parameters
@@ -363,16 +370,21 @@ def check_heads(config: Config) -> None:
         Naming the node, the name and the allowed top-level names.
 
     """
+    several = 'axes.names' in config.node('plant_node')
     for node, make in TABLES.items():
         table = make()
         heads = list(dict.fromkeys(spec.name.split('.', 1)[0] for spec in table.specs()))
+        others = list(OTHER_HEADS) + list(AXES_HEADS[node] if several else ())
         for name, value in config.sections.get(node, {}).items():
             head = name.split('.', 1)[0]
-            if head in heads or head in OTHER_HEADS:
+            if head in heads or head in others:
                 continue
             close = closest_name(name, [spec.name for spec in table.specs()])
             hint = f"did you mean '{close}'? " if close else ''
-            allowed = ', '.join(heads + list(OTHER_HEADS))
+            if not several and head in AXES_HEADS[node]:
+                hint += (f'{head}.* only in a file of several axes (with plant_node '
+                         'axes.names); otherwise ')
+            allowed = ', '.join(heads + others)
             raise ParameterError(f'{node} {name}', value, f'{hint}a name under one of the '
                                  f'top-level keys of {node}: {allowed} '
                                  '(docs/reference/ros-interface.md)',

@@ -46,8 +46,8 @@ from piezo_stage_ros.core.loop.record import RunRecord
 from piezo_stage_ros.core.model.axes import AxesStage
 
 __all__ = ['LINE_FRACTION', 'AxisMetrics', 'GratingImage', 'axes_references', 'axis_metrics',
-           'frame_images', 'grating_image', 'line_start', 'middle_of_lines', 'run_axes',
-           'run_metrics']
+           'axis_references', 'frame_images', 'grating_image', 'line_start', 'middle_of_lines',
+           'run_axes', 'run_metrics']
 
 #: Share of a raster line's range over which its fast axis is measured (the turn-arounds, where
 #: no image is taken, left out).
@@ -186,19 +186,29 @@ def axes_references(trajectories: Sequence[Trajectory], first: int, count: int,
         A trajectory that returns arrays of the wrong shape.
 
     """
-    time_s = np.arange(first, first + count, dtype=np.float64) * sample_time_s
     ref = np.empty((count, len(trajectories)))
     vel = np.empty((count, len(trajectories)))
     for j, tr in enumerate(trajectories):
-        r, v = tr.evaluate(time_s)
-        r, v = np.asarray(r, dtype=np.float64), np.asarray(v, dtype=np.float64)
-        if r.shape != time_s.shape or v.shape != time_s.shape:
-            name = names[j] if j < len(names) else str(j)
-            raise PiezoStageError(f'trajectory of axis {name!r} returned arrays of shape '
-                                  f'{r.shape} and {v.shape}, expected {time_s.shape}')
-        ref[:, j] = r
-        vel[:, j] = v
+        ref[:, j], vel[:, j] = axis_references(tr, first, count, sample_time_s,
+                                               names[j] if j < len(names) else str(j))
     return ref, vel
+
+
+def axis_references(trajectory: Trajectory, first: int, count: int, sample_time_s: float,
+                    name: str) -> tuple[FloatArray, FloatArray]:
+    """
+    Return one axis' x_d [m] and x_d' [m/s] over ``count`` samples from ``first``.
+
+    As :func:`axes_references` for the axis ``name`` (named in the error), each of shape
+    (count,).
+    """
+    time_s = np.arange(first, first + count, dtype=np.float64) * sample_time_s
+    r, v = trajectory.evaluate(time_s)
+    r, v = np.asarray(r, dtype=np.float64), np.asarray(v, dtype=np.float64)
+    if r.shape != time_s.shape or v.shape != time_s.shape:
+        raise PiezoStageError(f'trajectory of axis {name!r} returned arrays of shape '
+                              f'{r.shape} and {v.shape}, expected {time_s.shape}')
+    return r, v
 
 
 @dataclass(frozen=True)

@@ -32,12 +32,13 @@ import functools
 from typing import Any, Sequence
 
 import numpy as np
-from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
+from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.contracts.interfaces import Trajectory
 from piezo_stage_ros.core.contracts.types import FloatArray
 from piezo_stage_ros.core.control.ahead import CommandPredictor
 from piezo_stage_ros.core.control.axes import AxesController
 from piezo_stage_ros.core.control.controllers import SENSOR_GAIN_V_PER_M
+from piezo_stage_ros.core.loop.axes import axis_references
 
 __all__ = ['AxesCommands', 'AxesReference']
 
@@ -54,17 +55,20 @@ class AxesReference:
         T [s].
     chunk : int
         Samples evaluated at once (per axis), >= 1.
+    names : sequence of str
+        The axes, for messages (default: their indices).
 
     """
 
     def __init__(self, trajectories: Sequence[Trajectory], sample_time_s: float, *,
-                 chunk: int = 1000) -> None:
+                 chunk: int = 1000, names: Sequence[str] = ()) -> None:
         if chunk < 1:
             raise ParameterError('chunk', chunk, '[1, inf) samples')
         if not trajectories:
             raise ParameterError('trajectories', 0, 'one per axis, at least one')
         self.trajectories = list(trajectories)
         self.n = len(self.trajectories)
+        self.names = tuple(names[j] if j < len(names) else str(j) for j in range(self.n))
         self.sample_time_s = float(sample_time_s)
         self.chunk = int(chunk)
         self._first = -1
@@ -78,16 +82,10 @@ class AxesReference:
         self._windows: list[tuple[int, FloatArray, FloatArray]] = [
             (-1, np.zeros(0), np.zeros(0)) for _ in range(self.n)]
 
-    def _evaluate(self, trajectory: Trajectory, first: int, size: int
-                  ) -> tuple[FloatArray, FloatArray]:
+    def _evaluate(self, axis: int, first: int, size: int) -> tuple[FloatArray, FloatArray]:
         # t_k = k T as run_axes computes it (the float of arange(k0, k0 + m) * T)
-        time_s = np.arange(first, first + size, dtype=np.float64) * self.sample_time_s
-        x, v = trajectory.evaluate(time_s)
-        x, v = np.asarray(x, dtype=np.float64), np.asarray(v, dtype=np.float64)
-        if x.shape != time_s.shape or v.shape != time_s.shape:
-            raise PiezoStageError(f'trajectory returned arrays of shape {x.shape} and '
-                                  f'{v.shape}, expected {time_s.shape}')
-        return x, v
+        return axis_references(self.trajectories[axis], first, size, self.sample_time_s,
+                               self.names[axis])
 
     def at(self, index: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
         """
@@ -104,7 +102,7 @@ class AxesReference:
             if nfirst != first or done < self.n:
                 nx, nv = np.empty((self.n, self.chunk)), np.empty((self.n, self.chunk))
                 for j in range(self.n):
-                    nx[j], nv[j] = self._evaluate(self.trajectories[j], first, self.chunk)
+                    nx[j], nv[j] = self._evaluate(j, first, self.chunk)
             self._x, self._v, self._first = nx, nv, first
             self._next = (np.empty((self.n, self.chunk)), np.empty((self.n, self.chunk)),
                           first + self.chunk, 0)
@@ -112,8 +110,7 @@ class AxesReference:
         elif i >= size - self.n:
             nx, nv, nfirst, done = self._next
             if done < self.n:
-                nx[done], nv[done] = self._evaluate(self.trajectories[done], nfirst,
-                                                    self.chunk)
+                nx[done], nv[done] = self._evaluate(done, nfirst, self.chunk)
                 self._next = (nx, nv, nfirst, done + 1)
         return tuple(self._x[:, i].tolist()), tuple(self._v[:, i].tolist())
 
@@ -127,7 +124,7 @@ class AxesReference:
         first, x, v = self._windows[axis]
         start = index + 1
         if first < 0 or start < first or start + count > first + x.size:
-            x, v = self._evaluate(self.trajectories[axis], start, count + self.chunk)
+            x, v = self._evaluate(axis, start, count + self.chunk)
             first = start
             self._windows[axis] = (first, x, v)
         i = start - first
