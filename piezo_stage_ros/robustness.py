@@ -176,11 +176,11 @@ def _commissioned(loop: LoopConfig) -> DesignFn:
                                 derive, stability=loop.stability)
         except CommissionRefusedError as exc:
             return MemberDesign(loop.controller, loop.stage,
-                                f'commissioning refused ({exc}); configured design')
+                                f'commissioning refused ({exc}); configured design', False)
         if not result.accepted:
             return MemberDesign(loop.controller, loop.stage,
                                 f'commissioning not accepted ({"; ".join(result.refused)}); '
-                                'configured design')
+                                'configured design', False)
         ver = result.verification
         return MemberDesign(result.design.controller, result.identified,
                             f'commissioned, verification e_rms {ver.e_rms_m * 1e9:.2f} nm')

@@ -330,10 +330,12 @@ def test_a_design_per_member_equal_to_the_configured_one_changes_nothing():
                                          cases=['sine_100'], duration_s=0.3, settle_s=0.1,
                                          batch=False, designs=designs)
     plain = study(None)
-    hooked = study(lambda m, sp: robustness_core.MemberDesign(cp, BASE, 'configured'))
+    hooked = study(lambda m, sp: robustness_core.MemberDesign(cp, BASE, 'configured', False))
     assert hooked.rows == plain.rows
     assert hooked.meta['design'] == 'per member' and plain.meta['design'] == 'configured'
     assert [s['design'] for s in hooked.stages] == ['configured', 'configured']
+    assert [s['own_design'] for s in hooked.stages] == [False, False]
+    assert 'each member runs its own design: 0 of 2' in robustness_core.format_result(hooked)
 
 
 def test_a_design_per_member_needs_single_runs():
@@ -360,6 +362,7 @@ def test_a_commissioned_member_scans_with_its_own_model(capsys):
     assert commissioned['meta']['design'] == 'per member'
     assert commissioned['meta']['path'] == 'single'
     assert commissioned['stages'][0]['design'].startswith('commissioned')
+    assert commissioned['stages'][0]['own_design'] is True
     own = commissioned['rows'][0]['e_rms_true_m']
     plain = configured['rows'][0]['e_rms_true_m']
     # the family target: <= 2 nm true on the linear part; the configured design misses it

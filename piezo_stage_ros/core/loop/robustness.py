@@ -119,14 +119,17 @@ class MemberDesign:
         The model it was designed on: its plant is the notch's and the feed-forward's model,
         its hysteresis the one the feed-forward inverts.
     note : str
-        One line on how the design came about (shown beside the member); say here when the
-        design fell back to the configured one and why.
+        One line on how the design came about (shown beside the member); say here why, when
+        the design fell back to the configured one.
+    own : bool
+        The member's own design; False when it fell back to the configured one.
 
     """
 
     controller: ControllerParams
     stage: StageParams
     note: str = ''
+    own: bool = True
 
 
 #: Returns the design of one member from its variation and its (true) stage parameters.
@@ -415,6 +418,7 @@ def run_study(stage: StageParams, controller: ControllerParams, trajectory: Traj
         if designs is not None:
             own[m.name] = designs(m, sp)
             info['design'] = own[m.name].note
+            info['own_design'] = own[m.name].own
             if progress is not None:
                 progress(f'design {m.name}: {own[m.name].note}')
         result.stages.append(info)
@@ -602,8 +606,7 @@ def format_result(result: RobustnessResult) -> str:
                  f'{meta.get("settle_s"):g} s ({meta.get("path")} runs)')
     if meta.get('design') == 'per member':
         own = [s for s in result.stages if 'design' in s]
-        kept = [s for s in own if s['design'].startswith('configured')
-                or 'configured design' in s['design']]
+        kept = [s for s in own if not s['own_design']]
         lines.append(f'each member runs its own design: {len(own) - len(kept)} of {len(own)} '
                      'from their own commissioning')
         lines += [f'  {s["name"]}: {s["design"]}' for s in own
