@@ -276,6 +276,15 @@ def test_a_bad_per_axis_value_is_refused_naming_it(capsys):
     assert code == 2 and 'seed' in err[-1] and '-3' in err[-1]
 
 
+def test_a_scan_given_to_a_node_other_than_the_trajectory_node_is_refused(capsys):
+    # the scan is the trajectory node's: given to the plant node it would be read by nothing,
+    # and is refused as every name a node does not declare (as the offline loader refuses it)
+    code = stage_servo.main(['stage_servo', '--ros-args', *[a for f in FILES for a in (
+        '--params-file', f)], '-p', 'plant_node:scan.raster.lines:=32'])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and 'scan.raster.lines' in err[-1] and 'not a parameter' in err[-1]
+
+
 def test_the_multi_axis_parameters_are_declared_and_take_no_change(context):
     plant, nodes = nodes_of(context, 0.01)
     trajectory = nodes[2]

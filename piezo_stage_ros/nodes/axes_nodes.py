@@ -143,7 +143,7 @@ class _AxesNode(Node):
         cli = kwargs.get('cli_args')
         self.files = [*params_files, *(files_of(cli) if cli else [])]
         # before the table's binding, whose check of a change knows the table's names only
-        axes = self._declare_axes(table)
+        axes = self._declare_axes(table, scan=name == 'trajectory_node')
         self.binding = ParameterBinding(self, table, _refuse_change)
         opts = self.binding.objects[-1]
         refused = refuse_axes_mode(name, opts.mode, getattr(opts, 'backend', 'model'), direct)
@@ -159,18 +159,22 @@ class _AxesNode(Node):
         self.rate_hz = float(self.loop.stage.axes[0].sample_rate_hz)
         self.malformed = 0
 
-    def _declare_axes(self, table: NodeTable) -> dict[str, Any]:
+    def _declare_axes(self, table: NodeTable, scan: bool) -> dict[str, Any]:
         # the multi-axis names given to this node, each described as the table's parameter it
-        # overrides for one axis (axes.<axis>.<name>); refused at run time like the rest
+        # overrides for one axis (axes.<axis>.<name>); refused at run time like the rest. The
+        # scan (scan.*) is the trajectory node's only: elsewhere it stays undeclared, and the
+        # runner refuses it as any name the node does not declare (as the offline loader does)
         base = {d.name: d for d in table.declarations()}
-        scan = {d.name: d for d in scan_table().declarations()}
+        scans = {d.name: d for d in scan_table().declarations()} if scan else {}
         out = {}
         for name, given in sorted(getattr(self, '_parameter_overrides', {}).items()):
             if not name.startswith(MULTI_AXIS_PREFIXES):
                 continue
             parts = name.split('.', 2)
+            if parts[0] == 'scan' and not scan:
+                continue
             if parts[0] == 'scan':
-                decl = scan.get(name)
+                decl = scans.get(name)
             elif len(parts) == 3 and parts[1] not in ('coupling', 'names'):
                 decl = base.get(parts[2])  # axes.<axis>.<name>
             else:

@@ -160,6 +160,10 @@ def unknown_given(node: str, given: Iterable[str], declared: Collection[str],
         if others and name in others and all(s.node == WILDCARD for s in from_):
             continue
         where = f'from {from_[-1].where}' if from_ else 'from its parameter overrides'
+        if name.startswith('scan.') and node != 'trajectory_node':
+            messages.append(f"{node}: parameter {name!r} ({where}) is the trajectory node's "
+                            '(trajectory_node scan.*), not a parameter of this node')
+            continue
         if name.startswith(MULTI_AXIS_PREFIXES):
             multi_axis.append(f'{name!r} ({where})')
             continue
@@ -169,7 +173,7 @@ def unknown_given(node: str, given: Iterable[str], declared: Collection[str],
                         f'node{hint} (its parameters: docs/reference/ros-interface.md)')
     if multi_axis:
         messages.insert(0, f'{node}: ' + ', '.join(multi_axis) + ' describe a multi-axis '
-                        'stage, which the nodes run (in lockstep) when their parameter files '
+                        'stage, which the nodes run when their parameter files '
                         'give plant_node axes.names, and offline (python -m '
                         'piezo_stage_ros.simulate --config FILE); these reached a one-axis '
                         'node: give the nodes the whole multi-axis file')
