@@ -352,3 +352,33 @@ def test_a_topic_goal_keeps_no_token_once_started():
         logic.on_position(stamp(token), 3.8e-6)
     assert [e[3] for e in logic.events if e[0] == 'verdict'] == [1, 2, 3]
     assert logic._tokens == {}
+
+
+def test_a_goal_announcement_builds_the_reference_again_bit_for_bit():
+    # what a controller in another process binds: the follower's spline as it stood, sent as
+    # JSON and built again, evaluates to the same floats as the trajectory node's own view
+    from piezo_stage_ros.core.contracts.errors import ParameterError
+    from piezo_stage_ros.core.loop.follow import GoalTrajectory
+    from piezo_stage_ros.core.loop.splines import Spline
+    from piezo_stage_ros.nodes.logic import announce_goal, parse_announcement
+    f = follower()
+    goal = JointTrajectoryGoal(J, (P(0.004, (6e-6,), (1e-3,)), P(0.01, (4e-6,), (0.0,))))
+    verdict, prepared = f.prepare(goal, 0.0)
+    assert prepared is not None, verdict
+    f.start(prepared, 0.0)
+    view = GoalTrajectory(f)
+    text = announce_goal(123_000, view.snapshot())
+    stamp, again = parse_announcement(text)
+    assert stamp == 123_000 and again.kind == 'goal'
+    t = np.arange(0, 200) * T
+    for mine, theirs in zip(view.evaluate(t), again.evaluate(t)):
+        np.testing.assert_array_equal(mine, theirs)
+    assert again.spline.record() == f.spline.record()
+    # a trajectory's announcement still reads as its parameters
+    stamp, params = parse_announcement('{"stamp_ns": 5, "trajectory": {"kind": "sine"}}')
+    assert stamp == 5 and params.kind == 'sine'
+    with pytest.raises(ParameterError, match='goal announcement'):
+        parse_announcement('{"stamp_ns": 5, "goal": {"start_s": 0.0}, "axis": 0}')
+    from piezo_stage_ros.core.contracts.errors import PiezoStageError
+    with pytest.raises(PiezoStageError, match='spline record'):
+        Spline.from_record({})

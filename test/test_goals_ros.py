@@ -385,3 +385,15 @@ def test_a_cancel_through_the_action_client_decelerates_to_a_hold(context, mode,
             assert x[0, 0] == pytest.approx(held, abs=1e-12) and v[0, 0] == 0.0
     finally:
         run.close()
+
+
+def test_lockstep_goals_by_topics_keep_the_feed_forward_on(context):
+    # the nodes talking by topics: the trajectory node announces each goal's reference (the
+    # follower's spline) before the reference of the sample it changes at, and the controller
+    # binds the spline built again from it; a reference the controller did not bind would
+    # count as a mismatch and turn its feed-forward off
+    plant, nodes = composed(context, 'lockstep', 0.0, feedforward='inverse', direct=False)
+    results, _ = run_client(context, nodes, plant, five_moves()[:3], positions=True)
+    assert [(r.status, r.result.error_code) for r in results] == [(4, 0)] * 3
+    ff = nodes[1].logic.controller
+    assert ff.mismatches == 0

@@ -54,6 +54,7 @@ from piezo_stage_ros.core.control.controllers import (
     ControllerParams,
 )
 from piezo_stage_ros.core.control.stability import check_stability, StabilityParams
+from piezo_stage_ros.core.loop.follow import SplineTrajectory
 from piezo_stage_ros.core.loop.trajectories import make_trajectory, TrajectoryBase
 from piezo_stage_ros.core.model.hysteresis import HysteresisModel
 from piezo_stage_ros.core.model.stage import linear_plant, PlantParams
@@ -64,7 +65,7 @@ from piezo_stage_ros.nodes.logic import (
     Command,
     ControllerLogic,
     Gate,
-    parse_trajectory,
+    parse_announcement,
     rebuild_or_learn_afresh,
     save_learned_table,
 )
@@ -319,14 +320,17 @@ class ControllerNode(Node):
         if self.forward is not None or self._ff_context is None:
             return  # a servo process runs the controller: the trajectory node forwards to it
         try:
-            stamp, params = parse_trajectory(msg.data)
-            trajectory = make_trajectory(params, sample_rate_hz=self.opts.sample_rate_hz)
+            stamp, given = parse_announcement(msg.data)
+            trajectory = given if isinstance(given, SplineTrajectory) else make_trajectory(
+                given, sample_rate_hz=self.opts.sample_rate_hz)
         except PiezoStageError as err:
             self.get_logger().error(f'{wire.TRAJECTORY}: {err}; the feed-forward keeps '
                                     'the trajectory it has')
             return
         self.logic.request_trajectory(trajectory, stamp)
-        self.get_logger().info(f'feed-forward: trajectory {params.kind} from stamp {stamp} ns')
+        if not isinstance(given, SplineTrajectory):  # a goal's reference changes often
+            self.get_logger().info(f'feed-forward: trajectory {given.kind} from stamp {stamp} '
+                                   'ns')
 
     @stops_quietly
     def _on_position(self, data: bytes) -> None:

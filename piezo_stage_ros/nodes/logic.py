@@ -48,14 +48,22 @@ from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageErro
 from piezo_stage_ros.core.contracts.interfaces import Controller, Trajectory
 from piezo_stage_ros.core.contracts.wire import diagnostic_reader, NS_PER_S
 from piezo_stage_ros.core.control.feedforward import check_learning_period, FeedForwardController
-from piezo_stage_ros.core.loop.follow import GoalFollower, GoalTrajectory, PreparedGoal, State
+from piezo_stage_ros.core.loop.follow import (
+    GoalFollower,
+    GoalTrajectory,
+    PreparedGoal,
+    SplineTrajectory,
+    State,
+)
 from piezo_stage_ros.core.loop.goals import GoalVerdict, JointTrajectoryGoal, ResultCode
+from piezo_stage_ros.core.loop.splines import Spline
 from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
 from piezo_stage_ros.hardware.safety import GuardedPlant, Trip, Watchdog
 
 __all__ = ['ControllerLogic', 'Gate', 'LATE_COMMAND_LIMIT', 'LATE_HALF_LIMIT', 'PlantLogic',
            'Sample', 'TrajectoryLogic', 'TripLog', 'realtime_warning', 'run_verdict',
-           'announce_trajectory', 'parse_trajectory', 'rebuild_or_learn_afresh',
+           'announce_goal', 'announce_trajectory', 'parse_announcement', 'parse_trajectory',
+           'rebuild_or_learn_afresh',
            'sample_count', 'save_learned_table']
 
 #: Checks of a goal in a row that may find the reference changed before it is refused (each
@@ -975,6 +983,43 @@ def announce_trajectory(stamp_ns: int, params: TrajectoryParams) -> str:
     the trajectory's parameters by their dotted names, as the trajectory node declares them.
     """
     return json.dumps({'stamp_ns': int(stamp_ns), 'trajectory': params.to_flat()})
+
+
+def announce_goal(stamp_ns: int, view: SplineTrajectory) -> str:
+    """
+    Return the announcement of a goal's reference whose t = 0 is the sample ``stamp_ns``.
+
+    JSON text as :func:`announce_trajectory`'s, with ``goal``: the follower's spline as it stood
+    (:meth:`~piezo_stage_ros.core.loop.splines.Spline.record`) and ``axis``, so that a controller
+    in another process binds the reference the trajectory node plays, bit for bit.
+    """
+    return json.dumps({'stamp_ns': int(stamp_ns), 'goal': view.spline.record(),
+                       'axis': view.axis})
+
+
+def parse_announcement(text: str) -> tuple[int, TrajectoryParams | SplineTrajectory]:
+    """
+    Return the stamp [ns] and what an announcement binds.
+
+    A trajectory's parameters (:func:`announce_trajectory`) or a goal's reference
+    (:func:`announce_goal`).
+
+    Raises
+    ------
+    ParameterError
+        If the text is neither, or a trajectory parameter is bad.
+
+    """
+    try:
+        data = json.loads(text)
+        if isinstance(data, dict) and 'goal' in data:
+            return int(data['stamp_ns']), SplineTrajectory(Spline.from_record(data['goal']),
+                                                           int(data['axis']))
+    except (ValueError, TypeError, KeyError, PiezoStageError) as exc:
+        raise ParameterError('goal announcement', text[:80],
+                             'JSON {"stamp_ns": int, "goal": spline record, "axis": int}',
+                             f'is not one ({exc})') from None
+    return parse_trajectory(text)
 
 
 def parse_trajectory(text: str) -> tuple[int, TrajectoryParams]:

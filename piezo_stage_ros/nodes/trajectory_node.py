@@ -47,6 +47,7 @@ from piezo_stage_ros.core.config.loader import load_loop_config
 from piezo_stage_ros.core.contracts import wire
 from piezo_stage_ros.core.contracts.cdr import JointStateDecoder, JointStateEncoder
 from piezo_stage_ros.core.contracts.errors import PiezoStageError
+from piezo_stage_ros.core.contracts.interfaces import Trajectory
 from piezo_stage_ros.core.loop.follow import (
     FollowParams,
     GoalFollower,
@@ -54,6 +55,7 @@ from piezo_stage_ros.core.loop.follow import (
     GoalResult,
     GoalsStatus,
     GoalStatus,
+    GoalTrajectory,
 )
 from piezo_stage_ros.core.loop.goals import (
     AxisLimits,
@@ -66,7 +68,12 @@ from piezo_stage_ros.core.model.stage import StageParams
 from piezo_stage_ros.nodes import goals_msgs, qos
 from piezo_stage_ros.nodes.diagnostics import DIAGNOSTICS_PERIOD_S, DiagnosticsPublisher
 from piezo_stage_ros.nodes.health import GoalGate, goals_of, hardware_id
-from piezo_stage_ros.nodes.logic import announce_trajectory, Gate, TrajectoryLogic
+from piezo_stage_ros.nodes.logic import (
+    announce_goal,
+    announce_trajectory,
+    Gate,
+    TrajectoryLogic,
+)
 from piezo_stage_ros.nodes.parameters import ParameterBinding
 from piezo_stage_ros.nodes.runner import decode_or_drop, run, stops_quietly
 from piezo_stage_ros.nodes.tables import trajectory_table, TrajectoryNodeParams
@@ -137,6 +144,9 @@ class TrajectoryNode(Node):
         self.malformed = 0
         self._pub = self.create_publisher(JointState, wire.REFERENCE, qos.LOOP_OUT)
         self._announce_pub = self.create_publisher(String, wire.TRAJECTORY, qos.ANNOUNCE)
+        # a goal's reference, as it changes, to a controller in another process (the direct
+        # composition binds it by call instead)
+        self.logic.on_reference_change = self._announce_goal
         self._params = params
         self._sub = self.create_subscription(JointState, wire.POSITION, self._on_position,
                                              qos.LOOP, raw=True)
@@ -471,6 +481,11 @@ class TrajectoryNode(Node):
         if self.logic.events:
             self._drain()
         return ref, vel
+
+    def _announce_goal(self, view: Trajectory, origin_ns: int) -> None:
+        """Announce a goal's reference before the reference of the sample it changes at."""
+        if isinstance(view, GoalTrajectory):  # the spline as it stands now
+            self._announce_pub.publish(String(data=announce_goal(origin_ns, view.snapshot())))
 
     def _announce(self) -> None:
         """Announce a new trajectory once its t = 0 has a stamp (before its references)."""

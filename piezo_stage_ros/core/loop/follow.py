@@ -69,7 +69,8 @@ from piezo_stage_ros.core.loop.splines import Spline
 from piezo_stage_ros.core.loop.trajectories import TrajectoryBase
 
 __all__ = ['Feedback', 'FollowParams', 'GoalFollower', 'GoalLedger', 'GoalResult', 'GoalStatus',
-           'GoalsStatus', 'GoalTrajectory', 'goals_status', 'PreparedGoal', 'run_goals']
+           'GoalsStatus', 'GoalTrajectory', 'goals_status', 'PreparedGoal', 'run_goals',
+           'SplineTrajectory']
 
 #: How many times a stop's duration grows by 1.25 to keep to the acceleration (1.25^40: 7500x).
 _STOP_TRIES = 40
@@ -663,10 +664,49 @@ class GoalTrajectory(TrajectoryBase):
         self._follower = follower
         self._axis = axis
 
+    @property
+    def axis(self) -> int:
+        """Return which axis of the follower this is."""
+        return self._axis
+
+    def snapshot(self) -> SplineTrajectory:
+        """Return the reference as it stands now, as a trajectory of its own."""
+        return SplineTrajectory(self._follower.spline, self._axis)
+
     def evaluate(self, time_s: ArrayLike) -> tuple[FloatArray, FloatArray]:
-        x, v, _ = self._follower.reference(time_s)
-        return (np.ascontiguousarray(x[..., self._axis]),
-                np.ascontiguousarray(v[..., self._axis]))
+        return _axis_of(self._follower.reference(time_s), self._axis)
+
+
+class SplineTrajectory(TrajectoryBase):
+    """
+    One axis of a goal's spline as a trajectory: a follower's reference as it stood once.
+
+    What a process that does not follow the goals binds (the controller node told of a goal
+    by announcement): evaluated as :class:`GoalTrajectory` evaluates the same spline.
+
+    Parameters
+    ----------
+    spline : Spline
+        The reference.
+    axis : int
+        Which axis.
+
+    """
+
+    kind = 'goal'
+
+    def __init__(self, spline: Spline, axis: int = 0) -> None:
+        self.spline = spline
+        self.axis = axis
+
+    def evaluate(self, time_s: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        return _axis_of(self.spline.sample(time_s), self.axis)
+
+
+def _axis_of(sampled: tuple[FloatArray, FloatArray, FloatArray], axis: int
+             ) -> tuple[FloatArray, FloatArray]:
+    x, v, _ = sampled
+    return np.ascontiguousarray(x[..., axis]), np.ascontiguousarray(v[..., axis])
 
 
 @dataclass

@@ -33,7 +33,7 @@ returns arrays of shape ``time_s.shape + (axes,)``.
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -146,6 +146,9 @@ class Spline:
                 order = 2
                 columns.append(np.asarray(accelerations_mps2,
                                           dtype=np.float64).reshape(x.shape))
+        # what it was built from, for a copy in another process (record / from_record)
+        self._given = (float(start_s), [s.tolist() for s in s0], times.tolist(),
+                       [c.tolist() for c in columns])
         self.order = order
         self.kind = KIND_NAMES[order]
         self.axes = x.shape[1]
@@ -156,6 +159,35 @@ class Spline:
         coeffs = segment_coefficients(np.diff(knots)[:, None], starts, columns)
         self._c = np.ascontiguousarray(np.moveaxis(coeffs, 0, 1))
         self.end_position_m = x[-1].copy()
+
+    def record(self) -> dict[str, Any]:
+        """
+        Return what the spline was built from, as JSON-ready lists of floats.
+
+        :meth:`from_record` builds it again from them, the same spline bit for bit (a float's
+        JSON text reads back as the same float).
+        """
+        start, state, times, columns = self._given
+        return {'start_s': start, 'start_state': state, 'times_s': times, 'columns': columns}
+
+    @classmethod
+    def from_record(cls, record: Mapping[str, Any]) -> Spline:
+        """
+        Return the spline of a :meth:`record`.
+
+        Raises
+        ------
+        PiezoStageError
+            If the record is not one (a key missing, shapes that disagree).
+
+        """
+        try:
+            columns = list(record['columns'])
+            state = record['start_state']
+            return cls(float(record['start_s']), (state[0], state[1], state[2]),
+                       record['times_s'], *columns[:3])
+        except (KeyError, IndexError, TypeError, ValueError) as exc:
+            raise PiezoStageError(f'spline record: {exc!r}') from None
 
     @property
     def start_s(self) -> float:
