@@ -58,6 +58,7 @@ from rclpy.qos import (  # noqa: E402
 )
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
+import test_nodes_ros  # noqa: E402
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / 'config'
 FILES = [str(CONFIG_DIR / 'default.yaml'), str(CONFIG_DIR / 'xy_stage.yaml')]
@@ -68,12 +69,8 @@ TOPICS = {wire.POSITION: JointState, wire.REFERENCE: JointState, wire.COMMAND: F
           wire.TRUE_POSITION: JointState}
 
 
-@pytest.fixture
-def context():
-    ctx = Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
+# the nodes' context, as the node tests make it
+context = test_nodes_ros.context
 
 
 class Recorder(Node):
