@@ -54,6 +54,8 @@ setup(
             'commission = piezo_stage_ros.commission:main',
             'robustness = piezo_stage_ros.robustness:main',
             'check = piezo_stage_ros.check:main',
+            'simulate_axes = piezo_stage_ros.simulate_axes:main',
+            'identify_axes = piezo_stage_ros.identify_axes:main',
             'plant_node = piezo_stage_ros.nodes.plant_node:main',
             'controller_node = piezo_stage_ros.nodes.controller_node:main',
             'trajectory_node = piezo_stage_ros.nodes.trajectory_node:main',
