@@ -160,11 +160,6 @@ def _launch(context: LaunchContext) -> list[Any]:
     lockstep = mode == 'lockstep'
     config = load_config(files)
     axes = has_axes(config)
-    if axes:
-        direct = arg['composed'].lower() == 'true' and arg['direct'].lower() == 'true'
-        refused = refuse_axes_mode('launch', mode, direct=direct)
-        if refused is not None:
-            raise ValueError(', '.join(files) + f': {refused}')
     sim_time = lockstep and arg['sim_time'].lower() == 'true'
     common = {'mode': mode, 'use_sim_time': sim_time}
     # the plant owns simulation time: its own clock need not follow /clock
@@ -182,6 +177,10 @@ def _launch(context: LaunchContext) -> list[Any]:
                                      .with_overrides('controller_node', controller)
                                      .with_overrides('trajectory_node', trajectory))
     if axes:
+        direct = arg['composed'].lower() == 'true' and arg['direct'].lower() == 'true'
+        refused = refuse_axes_mode('launch', mode, checked.plant_node.backend, direct=direct)
+        if refused is not None:
+            raise ValueError(', '.join(files) + f': {refused}')
         axes_loop_config(config.with_overrides('plant_node', plant)
                          .with_overrides('controller_node', controller)
                          .with_overrides('trajectory_node', trajectory))
