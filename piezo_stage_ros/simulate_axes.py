@@ -77,6 +77,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--storage', choices=STORAGE_IDS, default=STORAGE_IDS[0],
                    help='Bag storage plugin (default mcap).')
     p.add_argument('--overwrite', action='store_true', help='Replace an existing bag.')
+    p.add_argument('--bag-topics', choices=('samples', 'block', 'both'), default='samples',
+                   help='What the bag holds: the per-sample topics (default), the block topic '
+                   'stage/block (every axis in a row, many samples per message, as a real-time '
+                   'loop records them; docs/reference/bags.md), or both.')
     return p
 
 
@@ -104,7 +108,8 @@ def default_duration_s(loop: AxesLoopConfig) -> float:
 
 def simulate_axes(loop: AxesLoopConfig, *, duration_s: float, window_s: float = 1.0,
                   stage: AxesStageParams | None = None, bag: str | None = None,
-                  storage: str = STORAGE_IDS[0], overwrite: bool = False) -> dict[str, Any]:
+                  storage: str = STORAGE_IDS[0], overwrite: bool = False,
+                  topics: str = 'samples') -> dict[str, Any]:
     """
     Run the multi-axis loop and return its per-axis metrics.
 
@@ -124,6 +129,8 @@ def simulate_axes(loop: AxesLoopConfig, *, duration_s: float, window_s: float = 
         The bag's storage plugin.
     overwrite : bool
         Replace an existing bag.
+    topics : {'samples', 'block', 'both'}
+        What the bag holds (:class:`~piezo_stage_ros.analysis.bagwrite.RunBagWriter`).
 
     Returns
     -------
@@ -153,7 +160,7 @@ def simulate_axes(loop: AxesLoopConfig, *, duration_s: float, window_s: float = 
             # opened before the run: an existing path is refused before the run's time is
             # spent, and a run that fails leaves no bag
             writer = stack.enter_context(RunBagWriter(bag, storage=storage, overwrite=overwrite,
-                                                      axes=loop.stage.names))
+                                                      axes=loop.stage.names, topics=topics))
         start = time.perf_counter()
         records = run_axes(AxesStage(loop.stage if stage is None else stage), ctrl, trajectories,
                            duration_s=duration_s)
@@ -239,7 +246,8 @@ def _check_axes(loop: AxesLoopConfig, trajectories: Sequence[Any]) -> dict[str, 
 
 def run_config(prog: str, config: Config, *, duration_s: float | None,
                window_s: float | None, as_json: bool, bag: str | None = None,
-               storage: str = STORAGE_IDS[0], overwrite: bool = False) -> int:
+               storage: str = STORAGE_IDS[0], overwrite: bool = False,
+               topics: str = 'samples') -> int:
     """Run the loop and print its metrics (window None: the last second, or the run)."""
     loop = axes_loop_config(config)
     for text in loop.base.offline_notes():
@@ -248,7 +256,7 @@ def run_config(prog: str, config: Config, *, duration_s: float | None,
     if window_s is None:
         window_s = min(1.0, duration) if duration > 0.0 else 1.0
     out = simulate_axes(loop, duration_s=duration, window_s=window_s, bag=bag,
-                        storage=storage, overwrite=overwrite)
+                        storage=storage, overwrite=overwrite, topics=topics)
     if as_json:
         print(json.dumps(out, sort_keys=True))
         return 0
@@ -276,9 +284,6 @@ def from_simulate(args: argparse.Namespace, config: Config) -> int:
     The flags that set one-axis parameters set the base of every axis; the options of one run
     that have no multi-axis counterpart yet are refused.
     """
-    if args.bag is not None and args.bag_topics != 'samples':
-        raise ConfigError(f'--bag-topics {args.bag_topics}: the block topic holds one axis; '
-                          'a multi-axis bag holds the per-sample topics (--bag-topics samples)')
     for flag, value in (('--save-table', args.save_table),
                         ('--experiment', args.experiment),
                         ('--steady-state-start', args.steady_state_start_s)):
@@ -287,7 +292,7 @@ def from_simulate(args: argparse.Namespace, config: Config) -> int:
                               '(plant_node axes.names); run without it')
     return run_config('simulate', config, duration_s=args.duration, window_s=None,
                       as_json=args.json, bag=args.bag, storage=args.storage,
-                      overwrite=args.overwrite)
+                      overwrite=args.overwrite, topics=args.bag_topics)
 
 
 def simulate_family(loop: AxesLoopConfig, n: int, *, seed: int, duration_s: float,
@@ -364,13 +369,13 @@ def _run_family(args: argparse.Namespace, config: Config) -> int:
 
 
 def _main(args: argparse.Namespace) -> int:
-    if args.family is not None:
-        return _run_family(args, _config(args))
     if args.family is not None and args.bag is not None:
         raise ConfigError('--bag records one run; it cannot be used with --family')
+    if args.family is not None:
+        return _run_family(args, _config(args))
     return run_config(PROG, _config(args), duration_s=args.duration, window_s=args.window,
                       as_json=args.json, bag=args.bag, storage=args.storage,
-                      overwrite=args.overwrite)
+                      overwrite=args.overwrite, topics=args.bag_topics)
 
 
 main = cli.command_main(PROG, build_parser, _main,

@@ -26,7 +26,7 @@ from piezo_stage_ros.core.contracts.errors import BagError
 from piezo_stage_ros.core.loop.axes import grating_image
 from piezo_stage_ros.core.loop.record import RunRecord
 import pytest
-from rosbags.rosbag2 import Writer
+from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import get_typestore, Stores
 
 FIELDS = ('position_m', 'reference_m', 'reference_velocity_mps', 'command_v', 'true_position_m')
@@ -101,8 +101,8 @@ def test_bags_of_the_two_kinds_refuse_each_others_reader(tmp_path):
 
 
 def test_the_writer_refuses_what_a_multi_axis_bag_cannot_hold(tmp_path):
-    with pytest.raises(BagError, match='block topic holds one axis'):
-        RunBagWriter(tmp_path / 'b', axes=('x', 'y'), topics='both')
+    with pytest.raises(BagError, match="axis names .*'x,y'.*without ','"):
+        write_axes(records(('x,y', 'z')), tmp_path / 'b', topics='block')
     with pytest.raises(BagError, match=r"records of the axes \['y', 'x'\]"):
         _write_in_order(tmp_path / 'c', records(('y', 'x')), ('x', 'y'))
     with pytest.raises(BagError, match='shape'):
@@ -207,11 +207,13 @@ def run_json(main, argv, capsys):
     return json.loads(capsys.readouterr().out.strip().splitlines()[-1])
 
 
-@pytest.mark.parametrize('command', ['simulate', 'simulate_axes'])
-def test_analyze_of_the_bag_gives_the_figures_of_the_run(tmp_path, capsys, command):
+@pytest.mark.parametrize('command, topics', [('simulate', 'samples'),
+                                             ('simulate_axes', 'samples'),
+                                             ('simulate', 'block'), ('simulate_axes', 'both')])
+def test_analyze_of_the_bag_gives_the_figures_of_the_run(tmp_path, capsys, command, topics):
     main = simulate.main if command == 'simulate' else simulate_axes.main
     bag = tmp_path / 'run'
-    run = run_json(main, SHORT + ['--json', '--bag', str(bag)], capsys)
+    run = run_json(main, SHORT + ['--json', '--bag', str(bag), '--bag-topics', topics], capsys)
     got = run_json(analyze.main, ['--json', str(bag)], capsys)
     assert got['window_s'] == run['window_s'] and set(got['axes']) == set(run['axes'])
     for name, m in run['axes'].items():
@@ -244,10 +246,112 @@ def test_analyze_refuses_a_one_axis_option_for_a_multi_axis_bag(tmp_path, capsys
     assert 'takes one-axis bags' in capsys.readouterr().err
 
 
-def test_simulate_refuses_the_block_topic_for_several_axes(tmp_path, capsys):
-    status = simulate.main(SHORT + ['--bag', str(tmp_path / 'b'), '--bag-topics', 'block'])
-    assert status == 1
-    assert 'the block topic holds one axis' in capsys.readouterr().err
+# The block topic of several axes: every axis in a row, as a real-time loop records them.
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+@pytest.mark.parametrize('axes', [('x', 'y'), ('x', 'y', 'z'), ('y',)])
+def test_a_multi_axis_block_bag_reads_back_as_the_per_sample_bag(tmp_path, storage, axes):
+    written = records(axes)
+    write_axes(written, tmp_path / 's', storage=storage)
+    write_axes(written, tmp_path / 'b', storage=storage, topics='block')
+    write_axes(written, tmp_path / 'both', storage=storage, topics='both')
+    assert set(bag_info(tmp_path / 'b').topics) == {'/stage/block'}
+    per_sample = read_axes(tmp_path / 's')
+    for path in ('b', 'both'):
+        read = read_axes(tmp_path / path)
+        assert read[0].meta['alignment']['source'] == 'block'
+        assert read[0].meta['alignment']['missing_samples'] == 0
+        for w, r, s in zip(written, read, per_sample):
+            assert r.meta['axis'] == w.meta['axis']
+            for name in FIELDS:
+                assert np.array_equal(getattr(w, name), getattr(r, name)), name
+            assert np.array_equal(r.time_s, s.time_s)
+            assert list(r.diagnostics) == list(s.diagnostics) == sorted(w.diagnostics)
+            for key, values in w.diagnostics.items():
+                assert np.array_equal(values, r.diagnostics[key])
+
+
+def test_a_multi_axis_block_is_one_row_a_sample_named_by_axis(tmp_path):
+    from rosbags.rosbag2 import Reader
+    written = records(('x', 'y'), n=3)
+    write_axes(written, tmp_path / 'b', topics='block', meta={})
+    store = get_typestore(Stores.ROS2_JAZZY)
+    with Reader(tmp_path / 'b') as reader:
+        (conn, _, raw), = list(reader.messages())
+    msg = store.deserialize_cdr(raw, conn.msgtype)
+    rows, cols = msg.layout.dim
+    names = cols.label.split(',')
+    assert (rows.label, rows.size, cols.size) == ('samples', 3, len(names))
+    assert names[:3] == ['sample', 'stamp_sec', 'stamp_nanosec']
+    assert names[3:13] == [f'{a}.{c}' for a in 'xy' for c in
+                           ('position_m', 'reference_m', 'velocity_mps', 'command_v',
+                            'true_position_m')]
+    assert names[13:] == [f'diagnostics.{a}.{k}' for a in 'xy' for k in ('ff_u_v', 'theta_hat')]
+    data = np.asarray(msg.data).reshape(3, len(names))
+    assert data[1, names.index('y.command_v')] == written[1].command_v[1]
+    assert data[2, names.index('diagnostics.x.theta_hat')] == \
+        written[0].diagnostics['theta_hat'][2]
+
+
+def test_the_readers_of_one_axis_and_of_several_refuse_each_others_blocks(tmp_path):
+    write_axes(records(('x', 'y')), tmp_path / 'axes', topics='block')
+    with pytest.raises(BagError, match='not of one axis.*read_axes'):
+        read_run(tmp_path / 'axes')
+    one = records(('x',))[0]
+    with RunBagWriter(tmp_path / 'one', topics='block') as writer:
+        writer.write_chunk(one)
+    with pytest.raises(BagError, match='blocks of one axis.*read_run'):
+        read_axes(tmp_path / 'one')
+
+
+def foreign_block_bag(path, rows, label):
+    """Blocks as another recorder writes them: no run description, rosbags' own CDR."""
+    store = get_typestore(Stores.ROS2_JAZZY)
+    Array = store.types['std_msgs/msg/Float64MultiArray']
+    Layout = store.types['std_msgs/msg/MultiArrayLayout']
+    Dim = store.types['std_msgs/msg/MultiArrayDimension']
+    with Writer(path, version=Writer.VERSION_LATEST, storage_plugin=StoragePlugin.MCAP) as writer:
+        conn = writer.add_connection('/stage/block', 'std_msgs/msg/Float64MultiArray',
+                                     typestore=store)
+        n, c = rows.shape
+        for lo in range(0, n, 10):
+            part = rows[lo:lo + 10]
+            msg = Array(layout=Layout(dim=[Dim(label='samples', size=len(part),
+                                               stride=len(part) * c),
+                                           Dim(label=label, size=c, stride=c)],
+                                      data_offset=0),
+                        data=np.ascontiguousarray(part).reshape(-1))
+            stamp = int(part[-1, 1]) * 1_000_000_000 + int(part[-1, 2])
+            writer.write(conn, stamp, store.serialize_cdr(msg, conn.msgtype))
+
+
+def test_a_recorded_block_bag_of_several_axes_is_read_by_its_columns(tmp_path):
+    # a real-time recording: applied_v (what the plant held) is the command; a block lost on
+    # the way shows as missing samples
+    n, axes = 40, ('x', 'y')
+    k = np.arange(n, dtype=float)
+    stamp_ns = 1_700_000_000_000_000_000 + np.arange(n) * 100_000
+    cols = ['sample', 'stamp_sec', 'stamp_nanosec']
+    sec, nanosec = np.divmod(stamp_ns, 1_000_000_000)
+    values = [k, sec.astype(float), nanosec.astype(float)]
+    for j, a in enumerate(axes):
+        for c, scale in (('position_m', 1e-6), ('reference_m', 1e-6), ('velocity_mps', 1e-3),
+                         ('command_v', 1.0), ('applied_v', 1.0)):
+            cols.append(f'{a}.{c}')
+            values.append(scale * (j + 1) + k * 1e-9 + (0.5 if c == 'applied_v' else 0.0))
+    rows = np.column_stack(values)
+    keep = np.r_[0:10, 20:40]                 # the second block lost
+    foreign_block_bag(tmp_path / 'rt', rows[keep], ','.join(cols))
+    read = read_axes(tmp_path / 'rt')
+    assert [r.meta['axis'] for r in read] == list(axes)
+    alignment = read[0].meta['alignment']
+    assert alignment['missing_samples'] == 10 and alignment['command_source'] == 'applied'
+    assert any('10 samples missing' in w for w in alignment['warnings'])
+    for j, r in enumerate(read):
+        assert np.array_equal(r.command_v, rows[keep, cols.index(f'{axes[j]}.applied_v')])
+        assert np.array_equal(r.position_m, rows[keep, cols.index(f'{axes[j]}.position_m')])
+        assert r.true_position_m is None
 
 
 # The grating: where its lines show against where they are.

@@ -118,6 +118,44 @@ def test_bad_column_labels_are_refused(label):
         wire.parse_block_columns(label)
 
 
+@pytest.mark.parametrize('axes, applied, true_position, keys', [
+    (('x', 'y'), False, True, ('x.theta_hat', 'y.theta_hat')), (('x', 'y', 'z'), True, False, ()),
+    (('y',), True, True, ('y.s',))])
+def test_a_block_of_several_axes_round_trips_and_names_each_axis(axes, applied, true_position,
+                                                                  keys):
+    columns = wire.axes_block_columns(axes, applied=applied, true_position=true_position,
+                                      diagnostics=keys)
+    own = wire.AXES_BLOCK_OWN + tuple(name for name, on in zip(wire.BLOCK_OPTIONAL,
+                                                               (applied, true_position)) if on)
+    assert columns == (wire.AXES_BLOCK_SHARED + tuple(f'{a}.{c}' for a in axes for c in own)
+                       + tuple(f'diagnostics.{k}' for k in keys))
+    rows = np.random.default_rng(4).normal(size=(11, len(columns)))
+    names, back = cdr.decode_block(cdr.encode_block(columns, rows))
+    assert names == columns
+    np.testing.assert_array_equal(back, rows)
+    label = ','.join(columns)
+    assert wire.is_axes_block(label) and not wire.is_axes_block(','.join(wire.block_columns()))
+    parsed = wire.parse_axes_block_columns(label)
+    assert (parsed.axes, parsed.applied, parsed.true_position, parsed.diagnostics) == \
+        (axes, applied, true_position, keys)
+    assert columns[parsed.column(axes[-1], 'command_v')] == f'{axes[-1]}.command_v'
+    # a reader of one axis refuses it by name rather than read one axis of it
+    with pytest.raises(BagError, match='a block of several axes.*read_axes'):
+        wire.parse_block_columns(label)
+
+
+@pytest.mark.parametrize('label', [
+    'sample,stamp_sec,stamp_nanosec,x.position_m',                    # an axis' columns cut
+    'sample,stamp_sec,stamp_nanosec,x.position_m,x.reference_m,x.velocity_mps,x.command_v,'
+    'y.position_m,y.reference_m,y.velocity_mps,y.command_v,y.applied_v',  # applied on y only
+    'sample,stamp_sec,stamp_nanosec,x.position_m,x.reference_m,x.velocity_mps,x.command_v,'
+    'x.position_m,x.reference_m,x.velocity_mps,x.command_v',           # an axis twice
+    'sample,stamp_nanosec,stamp_sec,x.position_m,x.reference_m,x.velocity_mps,x.command_v'])
+def test_bad_columns_of_several_axes_are_refused(label):
+    with pytest.raises(BagError, match='block columns'):
+        wire.parse_axes_block_columns(label)
+
+
 @pytest.mark.parametrize('key', ['a,b', 'a b', ''])
 def test_diagnostic_keys_that_cannot_name_a_column_are_refused(key):
     with pytest.raises(BagError, match='cannot name a block column'):

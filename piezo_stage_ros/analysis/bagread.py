@@ -57,7 +57,7 @@ import json
 from pathlib import Path, PurePath
 import sqlite3
 import struct
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -79,6 +79,7 @@ from piezo_stage_ros.core.contracts.errors import BagError
 from piezo_stage_ros.core.contracts.types import ByteMatrix, FloatArray, IntArray
 from piezo_stage_ros.core.contracts.wire import (
     AXES_BAG_TOPICS,
+    AXES_BLOCK_SHARED,
     axes_command_dims,
     AXES_COMMAND_TYPE,
     AXIS_DIAGNOSTIC_SEPARATOR,
@@ -86,14 +87,16 @@ from piezo_stage_ros.core.contracts.wire import (
     AXIS_JOINT_PREFIX,
     axis_of_joint,
     BAG_TOPICS,
-    BLOCK_COLUMNS,
     BLOCK_DIAGNOSTIC_PREFIX,
+    BLOCK_SEPARATOR,
     block_topic,
     BLOCK_TYPE,
     COMMAND_TYPE,
+    is_axes_block,
     META_KEY,
     normalize_namespace,
     NS_PER_S,
+    parse_axes_block_columns,
     REQUIRED_TOPICS,
     stamp_to_ns,
     STATUS_TYPE,
@@ -484,9 +487,18 @@ class _BlockData:
         """Nothing to do: every message is decoded as it comes."""
 
 
-def _read_blocks(info: BagInfo, ns: str, progress: ProgressCallback | None,
-                 relative_time: bool) -> RunRecord:
-    """Return the run of a bag's block topic (see :func:`read_run`)."""
+class _BlockTable(NamedTuple):
+    """The rows of a bag's block topic, in stamp order, a republished sample once."""
+
+    stamps: IntArray
+    columns: dict[str, FloatArray]
+    alignment: dict[str, Any]
+    decoding: dict[str, Any]
+
+
+def _block_table(info: BagInfo, ns: str, progress: ProgressCallback | None,
+                 axes: bool) -> _BlockTable:
+    """Return the rows of a bag's block topic by column name (blocks of one axis, or of axes)."""
     topic = block_topic(ns)
     if info.topics[topic][0] != BLOCK_TYPE:
         raise BagError(f'bag {info.path}: topic {topic} has type {info.topics[topic][0]}, '
@@ -496,31 +508,35 @@ def _read_blocks(info: BagInfo, ns: str, progress: ProgressCallback | None,
     blocks = [(names, rows) for _, names, rows in sink.blocks if rows.shape[0]]
     if not blocks:
         raise BagError(f'bag {info.path}: topic {topic} has no samples')
-    fixed = len(BLOCK_COLUMNS)
-    # the columns beyond the fixed ones, of every block (an optional column a block does not
-    # have, or another controller's diagnostics, is NaN in its rows)
-    extra_names = sorted({name for names, _ in blocks for name in names[fixed:]})
-    where = {name: j for j, name in enumerate(extra_names)}
+    shared = len(AXES_BLOCK_SHARED)
+    several = [is_axes_block(BLOCK_SEPARATOR.join(names)) for names, _ in blocks]
+    if any(s != axes for s in several):
+        what = 'several axes' if axes else 'one axis'
+        raise BagError(f'bag {info.path}: topic {topic} has blocks that are not of {what}; '
+                       + ('read it with read_run' if axes else 'read it with read_axes'))
+    # every column of every block (an optional column a block does not have, or another
+    # controller's diagnostics, is NaN in its rows)
+    where: dict[str, int] = {}
+    for names, _ in blocks:
+        for name in names:
+            where.setdefault(name, len(where))
     total = sum(rows.shape[0] for _, rows in blocks)
-    base = np.empty((total, fixed))
-    extra = np.full((total, len(extra_names)), np.nan)
+    table = np.full((total, len(where)), np.nan)
     at = 0
     for names, rows in blocks:
         n = rows.shape[0]
-        base[at:at + n] = rows[:, :fixed]
-        for j, name in enumerate(names[fixed:], start=fixed):
-            extra[at:at + n, where[name]] = rows[:, j]
+        table[at:at + n, [where[name] for name in names]] = rows
         at += n
-    sample, sec, nanosec = base[:, 0], base[:, 1], base[:, 2]
-    exact = (np.isfinite(base[:, :3]).all(axis=1) & (np.floor(base[:, :3]) == base[:, :3]).all(
-        axis=1) & (sample >= 0) & (sec >= 0) & (nanosec >= 0) & (nanosec < NS_PER_S))
+    head = table[:, :shared]
+    sample, sec, nanosec = head[:, 0], head[:, 1], head[:, 2]
+    exact = (np.isfinite(head).all(axis=1) & (np.floor(head) == head).all(axis=1)
+             & (sample >= 0) & (sec >= 0) & (nanosec >= 0) & (nanosec < NS_PER_S))
     if not exact.all():
         raise BagError(f'bag {info.path}: topic {topic} has {int((~exact).sum())} rows whose '
                        'sample number or stamp is not a whole number in range (corrupt data?)')
     stamps = sec.astype(np.int64) * NS_PER_S + nanosec.astype(np.int64)
     order = np.argsort(stamps, kind='stable')
     keep = order[_unique_first(stamps[order])]  # a republished sample counts once
-    stamps = stamps[keep]
     numbers = np.unique(sample[keep].astype(np.int64))
     missing = int(numbers[-1] - numbers[0] + 1 - numbers.size)
     warnings = []
@@ -528,19 +544,7 @@ def _read_blocks(info: BagInfo, ns: str, progress: ProgressCallback | None,
         warnings.append(f'{missing} samples missing from the blocks (gaps in the sample '
                         f'numbers {int(numbers[0])}..{int(numbers[-1])}): lost on the way to '
                         'the bag')
-    if 'applied_v' in where:
-        # real time: what the plant held over each sample, as stage/applied carries it
-        command = extra[keep, where['applied_v']]
-        unknown = int(np.isnan(command).sum())
-        if unknown:
-            warnings.append(f'{unknown} of {keep.size} samples have no applied input '
-                            'recorded (applied_v); their command is NaN')
-    else:
-        command = base[keep, 6]
-    true_position = extra[keep, where['true_position_m']] if 'true_position_m' in where \
-        else None
-    diagnostics = {name[len(BLOCK_DIAGNOSTIC_PREFIX):]: extra[keep, j]
-                   for name, j in where.items() if name.startswith(BLOCK_DIAGNOSTIC_PREFIX)}
+    columns = {name: table[keep, j] for name, j in where.items()}
     alignment = {
         'source': 'block',
         'samples': int(keep.size),
@@ -549,14 +553,50 @@ def _read_blocks(info: BagInfo, ns: str, progress: ProgressCallback | None,
         'dropped_duplicate': total - int(keep.size),
         'first_sample': int(numbers[0]),
         'missing_samples': missing,
-        'commands_paired': bool(np.isfinite(command).any()),
-        'command_source': 'applied' if 'applied_v' in where else 'command',
+        'commands_paired': False,
+        'command_source': 'command',
         'warnings': warnings,
     }
-    return _run_record(info, ns, stamps, relative_time, alignment,
-                       {topic: {'messages': len(sink.blocks), 'rows': total}},
-                       RunRecord(stamps / 1e9, base[keep, 3], base[keep, 4], base[keep, 5],
-                                 command, diagnostics, true_position_m=true_position))
+    return _BlockTable(stamps[keep], columns, alignment,
+                       {topic: {'messages': len(sink.blocks), 'rows': total}})
+
+
+def _block_command(table: _BlockTable, prefix: str = '') -> FloatArray:
+    """
+    Return the commands of a block's rows (of the axis whose columns start with ``prefix``).
+
+    What the plant held (``applied_v``, real time) where the blocks have it, else what the
+    controller computed (``command_v``); the alignment notes which, and unknown inputs.
+    """
+    columns, alignment = table.columns, table.alignment
+    applied = prefix + 'applied_v'
+    if applied in columns:
+        command = columns[applied]
+        unknown = int(np.isnan(command).sum())
+        if unknown:
+            alignment['warnings'].append(
+                f'{unknown} of {command.size} samples have no applied input recorded '
+                f'({applied}); their command is NaN')
+    else:
+        command = columns[prefix + 'command_v']
+    alignment['commands_paired'] = alignment['commands_paired'] \
+        or bool(np.isfinite(command).any())
+    alignment['command_source'] = 'applied' if applied in columns else 'command'
+    return command
+
+
+def _read_blocks(info: BagInfo, ns: str, progress: ProgressCallback | None,
+                 relative_time: bool) -> RunRecord:
+    """Return the run of a bag's block topic (see :func:`read_run`)."""
+    table = _block_table(info, ns, progress, axes=False)
+    columns = table.columns
+    command = _block_command(table)
+    diagnostics = {name[len(BLOCK_DIAGNOSTIC_PREFIX):]: columns[name]
+                   for name in sorted(columns) if name.startswith(BLOCK_DIAGNOSTIC_PREFIX)}
+    return _run_record(info, ns, table.stamps, relative_time, table.alignment, table.decoding,
+                       RunRecord(table.stamps / 1e9, columns['position_m'],
+                                 columns['reference_m'], columns['velocity_mps'], command,
+                                 diagnostics, true_position_m=columns.get('true_position_m')))
 
 
 def _run_record(info: BagInfo, ns: str, stamps: IntArray, relative_time: bool,
@@ -1010,10 +1050,37 @@ def _align(info: BagInfo, ns: str,
 
 
 def is_axes_bag(info: BagInfo, namespace: str | None = None) -> bool:
-    """Return whether a bag holds a run of several axes (its command a Float64MultiArray)."""
+    """
+    Return whether a bag holds a run of several axes.
+
+    Its command is a ``Float64MultiArray`` of one entry per axis, or, in a bag of the block
+    topic alone, its blocks carry the columns of several axes.
+    """
     ns = _find_namespace(info, namespace)
     command = topic_names(ns)['command']
-    return command in info.topics and info.topics[command][0] == AXES_COMMAND_TYPE
+    if command in info.topics:
+        return info.topics[command][0] == AXES_COMMAND_TYPE
+    label = _first_block_label(info, ns)
+    return label is not None and is_axes_block(label)
+
+
+def _first_block_label(info: BagInfo, ns: str) -> str | None:
+    """Return the column names (``dim[1].label``) of the first block of a bag, if it has one."""
+    topic = block_topic(ns)
+    if topic not in info.topics or info.topics[topic][0] != BLOCK_TYPE:
+        return None
+    try:
+        with Reader(info.path) as reader:
+            connections = [c for c in reader.connections if c.topic == topic]
+            for _, _, data in reader.messages(connections=connections):
+                dims = decode_multi_array(bytes(data))[0]
+                return str(dims[1][0]) if len(dims) == 2 else None
+    except CdrError as err:
+        raise BagError(f'bag {info.path}: a message on {topic} cannot be decoded as a block '
+                       f'({BLOCK_TYPE}; corrupt data?): {_describe(err)}') from None
+    except Exception as err:  # noqa: BLE001 - storage plugins and decompressors vary
+        raise BagError(f'bag {info.path}: cannot read {topic}: {_describe(err)}') from None
+    return None
 
 
 def bag_axes(info: BagInfo, namespace: str | None = None) -> tuple[str, ...]:
@@ -1022,18 +1089,27 @@ def bag_axes(info: BagInfo, namespace: str | None = None) -> tuple[str, ...]:
 
     The run description's ``axes`` when the bag has one (a bag of this package), else the joint
     names of the first ``<ns>/position`` message (``stage_<axis>``; other joints left out),
-    which the stage publishes in its axis order.
+    which the stage publishes in its axis order; in a bag of the block topic alone, the axes of
+    its first block's columns.
 
     Raises
     ------
     BagError
-        A bag with neither, or a joint name that is not ``stage_<axis>``.
+        A bag with none of them, or a joint name that is not ``stage_<axis>``.
 
     """
     axes = info.meta.get('axes')
     if isinstance(axes, list) and axes and all(isinstance(a, str) for a in axes):
         return tuple(axes)
-    topic = topic_names(_find_namespace(info, namespace))['position']
+    ns = _find_namespace(info, namespace)
+    topic = topic_names(ns)['position']
+    if topic not in info.topics:
+        label = _first_block_label(info, ns)
+        if label is not None and is_axes_block(label):
+            try:
+                return parse_axes_block_columns(label).axes
+            except BagError as err:
+                raise BagError(f'bag {info.path}: {err}') from None
     try:
         with Reader(info.path) as reader:
             connections = [c for c in reader.connections if c.topic == topic]
@@ -1099,11 +1175,13 @@ def read_axes(path: str | Path, *, namespace: str | None = None,
     info = bag_info(path)
     ns = _find_namespace(info, namespace)
     if not is_axes_bag(info, ns):
-        what = ('only the block topic, which holds one axis' if block_topic(ns) in info.topics
+        what = ('the blocks of one axis' if topic_names(ns)['command'] not in info.topics
                 else f'a one-axis run ({topic_names(ns)["command"]} is not '
                 f'{AXES_COMMAND_TYPE})')
         raise BagError(f'bag {info.path}: holds {what}; read it with read_run')
     names = bag_axes(info, ns) if axes is None else tuple(axes)
+    if block_topic(ns) in info.topics:
+        return _read_axes_blocks(info, ns, names, progress, relative_time)
     joints = axis_joint_names(names)
     topics, found = _read_topics(info, ns, progress, joints)
     common, pi, ri, command, alignment = _align(info, ns, topics)
@@ -1138,8 +1216,45 @@ def read_axes(path: str | Path, *, namespace: str | None = None,
                              RunRecord(common / 1e9, pos_val[pi, j], ref_val[ri, j],
                                        ref_val[ri, n + j], command[:, j], diagnostics,
                                        true_position_m=true_position))
-        own = per_axis.get(name, {}) if isinstance(per_axis, dict) else {}
-        record.meta.pop('per_axis', None)
-        record.meta.update({**(own if isinstance(own, dict) else {}), 'axis': name})
-        records.append(record)
+        records.append(_axis_meta(record, name, per_axis))
+    return records
+
+
+def _axis_meta(record: RunRecord, axis: str, per_axis: Any) -> RunRecord:
+    """Return an axis' record with its ``per_axis`` description merged into ``meta``."""
+    own = per_axis.get(axis, {}) if isinstance(per_axis, dict) else {}
+    record.meta.pop('per_axis', None)
+    record.meta.update({**(own if isinstance(own, dict) else {}), 'axis': axis})
+    return record
+
+
+def _read_axes_blocks(info: BagInfo, ns: str, axes: tuple[str, ...],
+                      progress: ProgressCallback | None,
+                      relative_time: bool) -> list[RunRecord]:
+    """Return the runs of each axis from a bag's block topic (see :func:`read_axes`)."""
+    table = _block_table(info, ns, progress, axes=True)
+    columns = table.columns
+    got = tuple(dict.fromkeys(name.split(AXIS_DIAGNOSTIC_SEPARATOR, 1)[0]
+                              for name in columns if AXIS_DIAGNOSTIC_SEPARATOR in name
+                              and not name.startswith(BLOCK_DIAGNOSTIC_PREFIX)))
+    if set(got) != set(axes):
+        raise BagError(f'bag {info.path}: the blocks hold the axes {list(got)}; expected '
+                       f'{list(axes)}')
+    # the commands first: the alignment (one for all axes, as the per-sample topics have it)
+    # notes each axis' source and unknown applied inputs
+    commands = {name: _block_command(table, name + AXIS_DIAGNOSTIC_SEPARATOR) for name in axes}
+    records = []
+    for name in axes:
+        prefix = name + AXIS_DIAGNOSTIC_SEPARATOR
+        command = commands[name]
+        own = BLOCK_DIAGNOSTIC_PREFIX + prefix
+        diagnostics = {key[len(own):]: columns[key] for key in sorted(columns)
+                       if key.startswith(own)}
+        record = _run_record(info, ns, table.stamps, relative_time, table.alignment,
+                             table.decoding,
+                             RunRecord(table.stamps / 1e9, columns[prefix + 'position_m'],
+                                       columns[prefix + 'reference_m'],
+                                       columns[prefix + 'velocity_mps'], command, diagnostics,
+                                       true_position_m=columns.get(prefix + 'true_position_m')))
+        records.append(_axis_meta(record, name, info.meta.get('per_axis')))
     return records

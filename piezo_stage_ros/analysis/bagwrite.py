@@ -35,7 +35,8 @@ A run of a stage of several axes (``axes=``, :func:`write_axes`) has the same to
 message per sample holding every axis: the JointStates name one joint per axis
 (``stage_x`` ...) in the stage's axis order, the command is a ``Float64MultiArray`` of one entry
 per axis (layout ``dim[0]`` = {``axes``, N, N}), the diagnostics are named ``<axis>.<key>``;
-no block topic (it holds one axis).
+its block holds every axis in a row (the columns of
+:func:`~piezo_stage_ros.core.contracts.wire.axes_block_columns`).
 
 Bags written here have message log time = header stamp = sample time. The run's ``meta`` dict is
 kept as JSON in the bag's ``custom_data`` under
@@ -68,6 +69,7 @@ from piezo_stage_ros.core.contracts.errors import BagError
 from piezo_stage_ros.core.contracts.types import ByteMatrix, FloatArray, IntArray
 from piezo_stage_ros.core.contracts.wire import (
     AXES_BAG_TOPICS,
+    axes_block_columns,
     axes_command_dims,
     AXIS_DIAGNOSTIC_SEPARATOR,
     axis_joint_names,
@@ -183,8 +185,8 @@ class RunBagWriter:
     Raises
     ------
     BagError
-        Bad storage, namespace, topics, block size or axis names, the block topic asked for
-        several axes, an existing path without ``overwrite``, a write failure.
+        Bad storage, namespace, topics, block size or axis names, an existing path without
+        ``overwrite``, a write failure.
 
     """
 
@@ -195,12 +197,6 @@ class RunBagWriter:
         self.path = Path(path)
         self.axes = None if axes is None else tuple(str(a) for a in axes)
         self.joints = (JOINT_NAME,) if self.axes is None else axis_joint_names(self.axes)
-        if self.axes is not None and topics != 'samples':
-            # a block row is one axis' sample (wire.block_columns); several axes would need
-            # columns per axis, which no recorder writes yet
-            raise BagError(f'topics {topics!r}: the block topic holds one axis; a bag of the '
-                           f'{len(self.axes)} axes {list(self.axes)} is written with '
-                           "topics='samples' (--bag-topics samples)")
         if topics not in TOPIC_SETS:
             raise BagError(f'topics {topics!r} is not supported; allowed: '
                            + ', '.join(repr(t) for t in TOPIC_SETS))
@@ -291,8 +287,13 @@ class RunBagWriter:
 
     def _add_block(self) -> None:
         assert self._writer is not None and self._diagnostic_keys is not None
-        self._block_columns = block_columns(true_position=bool(self._has_true),
-                                            diagnostics=self._diagnostic_keys)
+        if self.axes is None:
+            self._block_columns = block_columns(true_position=bool(self._has_true),
+                                                diagnostics=self._diagnostic_keys)
+        else:
+            self._block_columns = axes_block_columns(self.axes,
+                                                     true_position=bool(self._has_true),
+                                                     diagnostics=self._diagnostic_keys)
         self._connections['block'] = self._writer.add_connection(
             block_topic(self.namespace), BLOCK_TYPE, typestore=_typestore(),
             offered_qos_profiles=[OFFERED_QOS])
@@ -484,15 +485,18 @@ class RunBagWriter:
 
     def _add_rows(self, stamp_ns: IntArray, columns: Mapping[str, Mapping[str, FloatArray]]
                   ) -> None:
-        # the rows of the block layout (wire.block_columns), then every whole block goes out
+        # the rows of the block layout (wire.block_columns, or axes_block_columns: each axis'
+        # columns together), then every whole block goes out
         n = stamp_ns.size
         sec, nanosec = np.divmod(stamp_ns, NS_PER_S)
-        parts = [self.samples_written + np.arange(n, dtype=np.float64), sec, nanosec,
-                 columns['position']['position'], columns['reference']['position'],
-                 columns['reference']['velocity'], columns['command']['data']]
+        own = [columns['position']['position'], columns['reference']['position'],
+               columns['reference']['velocity'], columns['command']['data']]
         if 'true_position' in columns:
-            parts.append(columns['true_position']['position'])
-        rows = np.column_stack(parts).astype(np.float64)
+            own.append(columns['true_position']['position'])
+        if self.axes is not None:  # (n, axes) each: axis by axis
+            own = [column[:, j] for j in range(len(self.axes)) for column in own]
+        rows = np.column_stack([self.samples_written + np.arange(n, dtype=np.float64), sec,
+                                nanosec, *own]).astype(np.float64)
         if 'diagnostics' in columns:
             rows = np.hstack((rows, columns['diagnostics']['position']))
         if self._block_rows is not None:
@@ -599,7 +603,7 @@ def write_run(record: RunRecord, path: str | Path, *, storage: str = 'mcap',
 
 def write_axes(records: Sequence[RunRecord], path: str | Path, *, storage: str = 'mcap',
                overwrite: bool = False, namespace: str = DEFAULT_NAMESPACE,
-               meta: Mapping[str, Any] | None = None) -> None:
+               meta: Mapping[str, Any] | None = None, topics: str = 'samples') -> None:
     """
     Write a whole multi-axis run as a bag, one message per sample and topic for all axes.
 
@@ -618,6 +622,8 @@ def write_axes(records: Sequence[RunRecord], path: str | Path, *, storage: str =
         Topic namespace, default ``'/stage'``.
     meta : Mapping, optional
         The run's description, stored with ``axes`` (the axis order) added.
+    topics : {'samples', 'block', 'both'}
+        The per-sample topics, the block topic (every axis in a row), or both.
 
     Raises
     ------
@@ -632,5 +638,6 @@ def write_axes(records: Sequence[RunRecord], path: str | Path, *, storage: str =
             raise BagError(f"bag {path}: record {j} has no meta['axis'] naming its axis")
         axes.append(str(rec.meta['axis']))
     with RunBagWriter(path, storage=storage, overwrite=overwrite, namespace=namespace,
-                      meta={**(meta or {}), 'axes': axes}, axes=axes) as writer:
+                      meta={**(meta or {}), 'axes': axes}, axes=axes,
+                      topics=topics) as writer:
         writer.write_axes_chunk(records)

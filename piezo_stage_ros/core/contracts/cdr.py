@@ -68,7 +68,9 @@ from piezo_stage_ros.core.contracts.types import BoolArray, ByteMatrix, FloatArr
 from piezo_stage_ros.core.contracts.wire import (
     BLOCK_ROWS_LABEL,
     BLOCK_SEPARATOR,
+    is_axes_block,
     NS_PER_S,
+    parse_axes_block_columns,
     parse_block_columns,
 )
 
@@ -491,7 +493,8 @@ def decode_block(data: bytes) -> tuple[tuple[str, ...], FloatArray]:
     CdrError
         If the bytes are not a Float64MultiArray, or its layout is not that of a block (two
         dimensions, the first labelled ``samples``, strides of a dense row-major matrix, no
-        data offset, the columns of :func:`~piezo_stage_ros.core.contracts.wire.block_columns`).
+        data offset, the columns of :func:`~piezo_stage_ros.core.contracts.wire.block_columns`
+        or of :func:`~piezo_stage_ros.core.contracts.wire.axes_block_columns`).
 
     """
     dims, data_offset, values = decode_multi_array(data)
@@ -501,7 +504,8 @@ def decode_block(data: bytes) -> tuple[tuple[str, ...], FloatArray]:
     if stride1 != c or stride0 != n * c or values.size != n * c:
         raise CdrError(f'not a dense row-major block: dims {dims}, {values.size} values')
     try:
-        names = parse_block_columns(label).names
+        names = (parse_axes_block_columns(label) if is_axes_block(label)
+                 else parse_block_columns(label)).names
     except BagError as err:
         raise CdrError(str(err)) from None
     if len(names) != c:

@@ -74,7 +74,15 @@ joint; ``stage/command`` is a ``std_msgs/msg/Float64MultiArray`` (:data:`AXES_CO
 with ``data`` in the axis order and ``layout.dim`` = [{label :data:`AXES_LABEL`, size N,
 stride N}] (:func:`axes_command_dims`), the convention of ros2_control's joint-group
 controllers; its other type makes a one-axis subscriber refuse it instead of reading one axis.
-The diagnostics carry every axis' keys as ``<axis>.<key>``. The block topic holds one axis.
+The diagnostics carry every axis' keys as ``<axis>.<key>``.
+
+The block of a stage of several axes (:func:`axes_block_columns`) keeps one row a sample for
+all axes: ``sample``, ``stamp_sec``, ``stamp_nanosec`` once, then for each axis in the stage's
+order its own columns named ``<axis>.<column>`` (``position_m``, ``reference_m``,
+``velocity_mps``, ``command_v``, then ``applied_v`` and ``true_position_m`` where the writer
+knows them), then the diagnostics as ``diagnostics.<axis>.<key>``, keys sorted. The axes'
+columns are told from a one-axis block's by the separator in their name; a reader of one axis
+refuses such a block by name instead of reading one axis.
 """
 
 from __future__ import annotations
@@ -96,10 +104,12 @@ __all__ = [
     'POSITION', 'RECORDED_TOPICS', 'REFERENCE', 'REQUIRED_TOPICS', 'SIMULATION_TOPICS', 'STAGE',
     'STATUS', 'STATUS_TYPE', 'STORAGE_IDS', 'TOPIC_TYPES', 'TRAJECTORY', 'TRAJECTORY_TYPE',
     'TRUE_POSITION', 'BlockColumns',
-    'AXES_BAG_TOPICS', 'AXES_COMMAND_TYPE', 'AXES_LABEL', 'AXIS_DIAGNOSTIC_SEPARATOR',
+    'AXES_BAG_TOPICS', 'AXES_BLOCK_OWN', 'AXES_BLOCK_SHARED', 'AXES_COMMAND_TYPE', 'AXES_LABEL',
+    'AXIS_DIAGNOSTIC_SEPARATOR',
     'AXIS_JOINT_PREFIX', 'axes_command_dims', 'axis_joint_names', 'axis_of_joint',
-    'block_columns', 'block_topic', 'diagnostic_reader', 'normalize_namespace', 'ns_to_stamp',
-    'parse_block_columns', 'stamp_to_ns', 'topic_names',
+    'AxesBlockColumns', 'axes_block_columns', 'block_columns', 'block_topic',
+    'diagnostic_reader', 'is_axes_block', 'normalize_namespace', 'ns_to_stamp',
+    'parse_axes_block_columns', 'parse_block_columns', 'stamp_to_ns', 'topic_names',
 ]
 
 JOINT_STATE_TYPE: Final = 'sensor_msgs/msg/JointState'
@@ -318,6 +328,12 @@ def block_columns(*, applied: bool = False, true_position: bool = False,
         A diagnostic key that is empty or holds :data:`BLOCK_SEPARATOR` or white space.
 
     """
+    optional = tuple(name for name, on in zip(BLOCK_OPTIONAL, (applied, true_position)) if on)
+    return BLOCK_COLUMNS + optional + _diagnostic_columns(diagnostics)
+
+
+def _diagnostic_columns(diagnostics: Sequence[str]) -> tuple[str, ...]:
+    """Return the diagnostics' column names, keys sorted; refuse a key no column can carry."""
     keys = sorted(str(k) for k in diagnostics)
     if len(set(keys)) != len(keys):
         raise BagError(f'diagnostic keys {keys} name a column twice')
@@ -325,8 +341,46 @@ def block_columns(*, applied: bool = False, true_position: bool = False,
         if not key or BLOCK_SEPARATOR in key or any(c.isspace() for c in key):
             raise BagError(f'diagnostic key {key!r} cannot name a block column; allowed: a '
                            f'non-empty name without {BLOCK_SEPARATOR!r} or white space')
+    return tuple(BLOCK_DIAGNOSTIC_PREFIX + k for k in keys)
+
+
+#: The columns of a block of several axes that every sample shares, first and in this order.
+AXES_BLOCK_SHARED: Final = BLOCK_COLUMNS[:3]
+#: Each axis' own columns in a block of several axes, as ``<axis>.<column>``, in this order.
+AXES_BLOCK_OWN: Final = BLOCK_COLUMNS[3:]
+
+
+def axes_block_columns(axes: Sequence[str], *, applied: bool = False,
+                       true_position: bool = False,
+                       diagnostics: Sequence[str] = ()) -> tuple[str, ...]:
+    """
+    Return the column names of a block of several axes, in wire order (see the module).
+
+    Parameters
+    ----------
+    axes : sequence of str
+        The axes, in the stage's order.
+    applied, true_position : bool
+        Whether every axis carries ``applied_v`` / ``true_position_m``.
+    diagnostics : sequence of str
+        The diagnostic keys, ``<axis>.<key>`` (sorted here).
+
+    Raises
+    ------
+    BagError
+        An axis name :func:`axis_joint_names` refuses or holding :data:`BLOCK_SEPARATOR`; a
+        diagnostic key as :func:`block_columns` refuses it.
+
+    """
+    names = tuple(str(a) for a in axes)
+    axis_joint_names(names)
+    if any(BLOCK_SEPARATOR in a for a in names):
+        raise BagError(f'axis names {list(names)} cannot name block columns; allowed: names '
+                       f'without {BLOCK_SEPARATOR!r}')
     optional = tuple(name for name, on in zip(BLOCK_OPTIONAL, (applied, true_position)) if on)
-    return BLOCK_COLUMNS + optional + tuple(BLOCK_DIAGNOSTIC_PREFIX + k for k in keys)
+    own = tuple(f'{a}{AXIS_DIAGNOSTIC_SEPARATOR}{column}' for a in names
+                for column in AXES_BLOCK_OWN + optional)
+    return AXES_BLOCK_SHARED + own + _diagnostic_columns(diagnostics)
 
 
 class BlockColumns(NamedTuple):
@@ -364,6 +418,9 @@ def parse_block_columns(label: str) -> BlockColumns:
         a column twice, or a column out of the order of :func:`block_columns`.
 
     """
+    if is_axes_block(label):
+        raise BagError(f'block columns {label!r}: a block of several axes; allowed here: the '
+                       'block of one axis (a run of several axes is read as such: read_axes)')
     names = tuple(label.split(BLOCK_SEPARATOR)) if label else ()
     fixed = len(BLOCK_COLUMNS)
     if names[:fixed] != BLOCK_COLUMNS:
@@ -383,6 +440,74 @@ def parse_block_columns(label: str) -> BlockColumns:
     index = {name: i for i, name in enumerate(names)}
     return BlockColumns(names, index.get('applied_v', -1), index.get('true_position_m', -1),
                         keys, fixed + len(optional))
+
+
+def is_axes_block(label: str) -> bool:
+    """Return whether a block's ``dim[1].label`` names the columns of several axes."""
+    names = label.split(BLOCK_SEPARATOR)
+    shared = len(AXES_BLOCK_SHARED)
+    return len(names) > shared and AXIS_DIAGNOSTIC_SEPARATOR in names[shared]
+
+
+class AxesBlockColumns(NamedTuple):
+    """
+    Where the columns of a block of several axes are (:func:`parse_axes_block_columns`).
+
+    Attributes
+    ----------
+    names : tuple of str
+        All column names, in order.
+    axes : tuple of str
+        The axes, in the stage's order.
+    applied, true_position : bool
+        Whether the axes carry ``applied_v`` / ``true_position_m``.
+    diagnostics : tuple of str
+        The diagnostic keys (``<axis>.<key>``, without the prefix), in column order.
+
+    """
+
+    names: tuple[str, ...]
+    axes: tuple[str, ...]
+    applied: bool
+    true_position: bool
+    diagnostics: tuple[str, ...]
+
+    def column(self, axis: str, name: str) -> int:
+        """Return the index of axis ``axis``' column ``name`` (``position_m`` ...)."""
+        return self.names.index(f'{axis}{AXIS_DIAGNOSTIC_SEPARATOR}{name}')
+
+
+def parse_axes_block_columns(label: str) -> AxesBlockColumns:
+    """
+    Return the column set of a block of several axes from its ``dim[1].label``.
+
+    Raises
+    ------
+    BagError
+        When the label is not what :func:`axes_block_columns` writes for some axes: the shared
+        columns first, every axis with the same columns in order, the diagnostics last.
+
+    """
+    names = tuple(label.split(BLOCK_SEPARATOR)) if label else ()
+    shared = len(AXES_BLOCK_SHARED)
+    if names[:shared] != AXES_BLOCK_SHARED:
+        raise BagError(f'block columns {label!r} do not start with '
+                       f'{BLOCK_SEPARATOR.join(AXES_BLOCK_SHARED)!r}')
+    own = [n for n in names[shared:] if not n.startswith(BLOCK_DIAGNOSTIC_PREFIX)]
+    axes = tuple(dict.fromkeys(n.split(AXIS_DIAGNOSTIC_SEPARATOR, 1)[0] for n in own))
+    keys = tuple(n[len(BLOCK_DIAGNOSTIC_PREFIX):] for n in names[shared:]
+                 if n.startswith(BLOCK_DIAGNOSTIC_PREFIX))
+    first = f'{axes[0]}{AXIS_DIAGNOSTIC_SEPARATOR}' if axes else ''
+    try:
+        expected = axes_block_columns(axes, applied=first + 'applied_v' in own,
+                                      true_position=first + 'true_position_m' in own,
+                                      diagnostics=keys)
+    except BagError as err:
+        raise BagError(f'block columns {label!r}: {err}') from None
+    if names != expected:
+        raise BagError(f'block columns {label!r}: expected {BLOCK_SEPARATOR.join(expected)!r}')
+    return AxesBlockColumns(names, axes, first + 'applied_v' in own,
+                            first + 'true_position_m' in own, keys)
 
 
 def diagnostic_reader(controller: Controller
