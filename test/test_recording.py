@@ -26,7 +26,9 @@ import math
 
 from fake_clock import FakeClock
 import numpy as np
-from piezo_stage_ros.analysis.bagread import read_run
+from piezo_stage_ros import cli
+from piezo_stage_ros.analysis.bagread import read_axes, read_run
+from piezo_stage_ros.core.config.axes import axes_loop_config
 from piezo_stage_ros.core.config.nodes import RecordingParams
 from piezo_stage_ros.core.contracts import cdr, wire
 from piezo_stage_ros.core.contracts.errors import ParameterError
@@ -38,6 +40,7 @@ from piezo_stage_ros.hardware.pacing import Pacer
 from piezo_stage_ros.hardware.safety import GuardedPlant
 from piezo_stage_ros.nodes.logic import ControllerLogic, run_verdict, TrajectoryLogic
 from piezo_stage_ros.nodes.recording import (
+    AxesBlockRecorder,
     backlog_samples,
     BlockRecorder,
     Handover,
@@ -51,6 +54,7 @@ from piezo_stage_ros.nodes.servo import (
     ServoLoop,
     ServoSample,
 )
+from piezo_stage_ros.nodes.servo_axes import axes_servo_from_config
 import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import get_typestore, Stores
@@ -254,3 +258,72 @@ def test_blocks_are_whole_until_the_end(size):
     rest = [cdr.decode_block(raw)[1] for raw in recorder.finish()]
     assert sum(r.shape[0] for r in rest) == 250 - sum(rows)
     assert math.isnan(rest[-1][-1, len(wire.BLOCK_COLUMNS)])  # held_v unknown: NaN
+
+
+# --- several axes --------------------------------------------------------------------------
+
+
+def axes_run(duration_s: float = 0.03):
+    """The XY file's servo on an on-time clock: its batch and the offline loop's records."""
+    loop = axes_loop_config(cli.read_config(['xy_stage.yaml']))
+    loop_servo = axes_servo_from_config(loop, duration_s)
+    clock = FakeClock(per_read=300)
+    loop_servo.pacer = Pacer(PERIOD, clock=clock, sleep=clock.sleep)
+    loop_servo.run(start_ns=T0)
+    assert loop_servo.error is None
+    return loop, loop_servo.take_batch()
+
+
+def rows_of(batch, rows):
+    return batch._replace(**{f: getattr(batch, f)[rows] for f in batch._fields if f != 'axes'})
+
+
+@pytest.mark.parametrize('size', [100, 7])
+def test_blocks_of_several_axes_carry_every_sample_and_the_input_held_over_it(tmp_path, size):
+    loop, batch = axes_run()
+    n = batch.size
+    recorder = AxesBlockRecorder(batch.axes, block_samples=size)
+    messages = []
+    for lo in range(0, n, 37):  # batches that do not line up with the blocks
+        messages += recorder.add(rows_of(batch, slice(lo, lo + 37)))
+    held = batch.command_v[-1] + 0.25
+    messages += recorder.finish(held)
+    assert recorder.rows == n and recorder.messages == len(messages)
+    assert all(cdr.decode_block(raw)[1].shape[0] == size for raw in messages[:-1])
+    write_blocks(tmp_path / 'b', messages)
+    read = read_axes(tmp_path / 'b')
+    assert [r.meta['axis'] for r in read] == list(loop.stage.names)
+    assert read[0].meta['alignment']['command_source'] == 'applied'
+    for j, r in enumerate(read):
+        np.testing.assert_array_equal(r.position_m, batch.position_m[:, j])
+        np.testing.assert_array_equal(r.reference_m, batch.reference_m[:, j])
+        np.testing.assert_array_equal(r.reference_velocity_mps, batch.velocity_mps[:, j])
+        np.testing.assert_array_equal(r.true_position_m, batch.true_position_m[:, j])
+        # row k: what the plant held over [t_k, t_k+1): the next sample's applied input, and
+        # after the last one what finish() was told
+        np.testing.assert_array_equal(r.command_v[:-1], batch.applied_v[1:, j])
+        assert r.command_v[-1] == held[j]
+    origin = read[0].meta['time_origin_ns']
+    assert origin == batch.stamp_ns[0]
+    relative = read_axes(tmp_path / 'b', relative_time=True)[0].time_s
+    assert (origin + np.rint(relative * 1e9).astype(np.int64)).tolist() == \
+        batch.stamp_ns.tolist()
+
+
+def test_a_gap_in_the_samples_of_several_axes_leaves_the_input_unknown_and_shows(tmp_path):
+    _, batch = axes_run(0.02)
+    kept = np.r_[0:80, 120:batch.size]        # the ring lost 40 samples
+    part = rows_of(batch, kept)
+    part = part._replace(true_position_m=np.full_like(part.true_position_m, np.nan))
+    recorder = AxesBlockRecorder(batch.axes)
+    messages = recorder.add(part) + recorder.finish()
+    # hardware (no true position): no such columns
+    names = cdr.decode_block(messages[0])[0]
+    assert not [c for c in names if c.endswith('true_position_m')]
+    write_blocks(tmp_path / 'b', messages)
+    read = read_axes(tmp_path / 'b')
+    assert read[0].meta['alignment']['missing_samples'] == 40
+    for j, r in enumerate(read):
+        assert math.isnan(r.command_v[79]) and math.isnan(r.command_v[-1])
+        np.testing.assert_array_equal(r.command_v[80:-1], part.applied_v[81:, j])
+        assert r.true_position_m is None

@@ -30,17 +30,28 @@ No rclpy here: the plant node publishes the bytes.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 import math
-from typing import NamedTuple
+from typing import NamedTuple, TYPE_CHECKING
 
 import numpy as np
 from piezo_stage_ros.core.config.nodes import RecordingParams
 from piezo_stage_ros.core.contracts.cdr import encode_block
 from piezo_stage_ros.core.contracts.types import FloatArray, IntArray
-from piezo_stage_ros.core.contracts.wire import block_columns, BLOCK_SAMPLES, NS_PER_S
+from piezo_stage_ros.core.contracts.wire import (
+    axes_block_columns,
+    AXES_BLOCK_OWN,
+    AXES_BLOCK_SHARED,
+    block_columns,
+    BLOCK_SAMPLES,
+    NS_PER_S,
+)
 
-__all__ = ['BlockRecorder', 'Handover', 'SampleBatch', 'backlog_samples', 'live_share']
+if TYPE_CHECKING:
+    from piezo_stage_ros.nodes.servo_axes import AxesSampleBatch
+
+__all__ = ['AxesBlockRecorder', 'BlockRecorder', 'Handover', 'SampleBatch', 'backlog_samples',
+           'live_share']
 
 # The columns of a batch (those of the servo's ring, nodes/servo.py SampleRing).
 _K, _STAMP, _LATE, _LAYOUT, _COUNT = range(5)
@@ -265,6 +276,109 @@ class BlockRecorder:
             columns = columns[:_TRUE_COLUMN] + columns[_TRUE_COLUMN + 1:]
             rows = np.delete(rows, _TRUE_COLUMN, axis=1)
         return encode_block(columns, rows)
+
+
+class AxesBlockRecorder:
+    """
+    Served samples of several axes in, block messages of several axes out.
+
+    As :class:`BlockRecorder` for one axis: each row carries what the plant held over
+    [t_k, t_k+1) on every axis (``<axis>.applied_v``: the next sample's applied input, NaN
+    across a gap in the numbers), so the last sample of a batch waits for the next batch or
+    :meth:`finish`; the columns are those of
+    :func:`~piezo_stage_ros.core.contracts.wire.axes_block_columns`, without the true position
+    where the backend does not know it (hardware).
+
+    Parameters
+    ----------
+    axes : sequence of str
+        The axes, in the stage's order (the batches' column order).
+    block_samples : int
+        Rows a block message carries (>= 1).
+
+    """
+
+    def __init__(self, axes: Sequence[str], block_samples: int = BLOCK_SAMPLES) -> None:
+        self.axes = tuple(axes)
+        self.block_samples = max(1, int(block_samples))
+        self.rows = 0
+        self.messages = 0
+        self._columns = {true: axes_block_columns(self.axes, applied=True, true_position=true)
+                         for true in (False, True)}
+        self._waiting: list[AxesSampleBatch] = []
+        self._pending: list[FloatArray] = []
+
+    def add(self, batch: AxesSampleBatch) -> list[bytes]:
+        """Take a batch (an ``AxesSampleBatch``); return the blocks now complete."""
+        if batch.size:
+            self._waiting.append(batch)
+        waiting = sum(b.size for b in self._waiting)
+        return self._process(None) if waiting > self.block_samples else []
+
+    def finish(self, held_v: Sequence[float] | None = None) -> list[bytes]:
+        """
+        Return the remaining rows as blocks (the last may be shorter).
+
+        Parameters
+        ----------
+        held_v : sequence of float, optional
+            What the plant held on each axis after the last sample [V]; None: unknown (NaN).
+
+        """
+        held = np.full(len(self.axes), np.nan) if held_v is None else \
+            np.asarray(held_v, dtype=np.float64)
+        out = self._process(held) if self._waiting else []
+        if self._pending:
+            out.append(self._message(np.vstack(self._pending)))
+            self._pending = []
+        return out
+
+    def _process(self, held_v: FloatArray | None) -> list[bytes]:
+        number = np.concatenate([b.number for b in self._waiting])
+        stamp = np.concatenate([b.stamp_ns for b in self._waiting])
+
+        def stack(field: str) -> FloatArray:
+            return np.vstack([getattr(b, field) for b in self._waiting])
+        applied = stack('applied_v')
+        following = np.full(applied.shape, np.nan)
+        after = number[1:] == number[:-1] + 1
+        following[:-1][after] = applied[1:][after]
+        values = [stack(f) for f in ('position_m', 'reference_m', 'velocity_mps', 'command_v')]
+        true = stack('true_position_m')
+        n = number.size
+        if held_v is None:  # the last row waits for the next batch: its input is not known
+            last = self._waiting[-1]
+            keep = slice(last.size - 1, None)
+            self._waiting = [last._replace(**{f: getattr(last, f)[keep]
+                                              for f in last._fields if f != 'axes'})]
+            n -= 1
+        else:
+            following[-1] = held_v
+            self._waiting = []
+        sec, nanosec = np.divmod(stamp[:n], NS_PER_S)
+        own = [column[:n, j] for j in range(len(self.axes))
+               for column in (*values, following, true)]
+        rows = np.column_stack([number[:n], sec, nanosec, *own]).astype(np.float64)
+        self._pending.append(rows)
+        out: list[bytes] = []
+        pending = np.vstack(self._pending)
+        size = self.block_samples
+        whole = pending.shape[0] // size * size
+        for lo in range(0, whole, size):
+            out.append(self._message(pending[lo:lo + size]))
+        self._pending = [pending[whole:]] if pending.shape[0] > whole else []
+        return out
+
+    def _message(self, rows: FloatArray) -> bytes:
+        self.rows += rows.shape[0]
+        self.messages += 1
+        per = len(AXES_BLOCK_OWN) + 2  # the axis' own columns, applied_v, true_position_m
+        shared = len(AXES_BLOCK_SHARED)
+        true = [shared + j * per + per - 1 for j in range(len(self.axes))]
+        if np.isnan(rows[:, true]).all():
+            # a backend that does not know the true position (hardware): no such columns
+            return encode_block(self._columns[False], np.delete(rows, true, axis=1))
+        return encode_block(self._columns[True], rows)
 
 
 class Handover:
