@@ -221,13 +221,13 @@ def _launch(context: LaunchContext) -> list[Any]:
         qos_file = os.path.join(os.path.dirname(files[0]), 'record_qos.yaml')
         if os.path.isfile(qos_file):
             cmd += ['--qos-profile-overrides-path', qos_file]
-        # direct real time puts every sample on stage/block: the recorder takes that (about 100
-        # messages a second) and leaves the per-sample topics to live subscribers (several
-        # axes publish no blocks: their per-sample topics are recorded)
-        blocks = (not axes and not lockstep and arg['composed'].lower() == 'true'
+        # direct real time puts every sample on stage/block (every axis in a row with several
+        # axes): the recorder takes that (about 100 messages a second) and leaves the
+        # per-sample topics to live subscribers
+        blocks = (not lockstep and arg['composed'].lower() == 'true'
                   and arg['direct'].lower() == 'true' and checked.plant_node.recording.block)
         topics = BLOCK_RECORDED_TOPICS if blocks else RECORDED_TOPICS
-        if axes:
+        if axes and not blocks:
             # the model's true positions too, as the offline runner's multi-axis bag has them
             topics = (*topics, TRUE_POSITION)
         cmd += ['--topics'] + [prefix + t for t in topics]

@@ -34,7 +34,7 @@ rclpy = pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not importab
 
 from piezo_stage_ros.cli import read_config  # noqa: E402
 from piezo_stage_ros.core.config.axes import axes_loop_config  # noqa: E402
-from piezo_stage_ros.core.contracts import wire  # noqa: E402
+from piezo_stage_ros.core.contracts import cdr, wire  # noqa: E402
 from piezo_stage_ros.core.control.axes import AxesController  # noqa: E402
 from piezo_stage_ros.core.loop.axes import run_axes, run_metrics  # noqa: E402
 from piezo_stage_ros.core.model.axes import AxesStage  # noqa: E402
@@ -76,20 +76,21 @@ context = test_nodes_ros.context
 class Recorder(Node):
     """Takes the stage topics as serialized messages with their arrival time, as a recorder."""
 
-    def __init__(self, context: Context) -> None:
+    def __init__(self, context: Context, topics: dict | None = None) -> None:
         super().__init__('recorder', context=context)
-        self.raw: dict[str, list[tuple[int, bytes]]] = {t: [] for t in TOPICS}
-        for topic, kind in TOPICS.items():
+        self.topics = TOPICS if topics is None else topics
+        self.raw: dict[str, list[tuple[int, bytes]]] = {t: [] for t in self.topics}
+        for topic, kind in self.topics.items():
             self.create_subscription(kind, topic, lambda data, t=topic: self.raw[t].append(
                 (time.time_ns(), data)), RECORD, raw=True)
 
-    def write_bag(self, path: Path) -> None:
+    def write_bag(self, path: Path, topics=TOPICS) -> None:
         from rosbags.rosbag2 import StoragePlugin, Writer
         from rosbags.typesys import get_typestore, Stores
         store = get_typestore(Stores.ROS2_JAZZY)
         with Writer(path, version=Writer.VERSION_LATEST,
                     storage_plugin=StoragePlugin.MCAP) as writer:
-            for topic, kind in TOPICS.items():
+            for topic, kind in topics.items():
                 msgtype = f'{kind.__module__.split(".")[0]}/msg/{kind.__name__}'
                 conn = writer.add_connection('/' + topic, msgtype, typestore=store)
                 for stamp, data in self.raw[topic]:
@@ -184,23 +185,37 @@ def real_time_run(context, tmp_path, duration_s, clock=None):
     plant, nodes = direct_nodes_of(context, duration_s)
     if clock is not None:
         plant.servo.pacer = Pacer(plant.servo.pacer.period_ns, clock=clock, sleep=clock.sleep)
-    recorder = Recorder(context)
+    recorder = Recorder(context, {**TOPICS, wire.BLOCK: Float64MultiArray})
+
+    def blocked() -> int:
+        return sum(len(cdr.decode_block(raw)[1]) for _, raw in recorder.raw[wire.BLOCK])
     spin(context, nodes + [recorder], plant.finished,
-         until=lambda: len(recorder.raw[wire.COMMAND]) >= plant.servo.pushed)
+         until=lambda: len(recorder.raw[wire.COMMAND]) >= plant.servo.pushed
+         and blocked() >= plant.servo.pushed)
     assert plant.finished.done() and plant.finished.exception() is None
     stats = plant.finished.result()
     served, skipped = plant.servo.pushed, stats['skipped']
     assert stats['queue_overruns'] == 0 and stats['malformed'] == 0
     # every sample of the grid is served or skipped (counted), and every served one recorded
     assert served + skipped == n and served > 0
-    assert {k: len(v) for k, v in recorder.raw.items()} == dict.fromkeys(TOPICS, served)
+    assert {k: len(v) for k, v in recorder.raw.items() if k in TOPICS} == \
+        dict.fromkeys(TOPICS, served)
     recorder.write_bag(tmp_path / 'run')
     got = read_axes(tmp_path / 'run', relative_time=True)
+    # the blocks hold the same samples, every axis in a row (the command there: what the
+    # plant held over each sample)
+    recorder.write_bag(tmp_path / 'blocks', {wire.BLOCK: Float64MultiArray})
+    blocks = read_axes(tmp_path / 'blocks', relative_time=True)
+    assert blocks[0].meta['alignment']['missing_samples'] == 0
+    for rec, block in zip(got, blocks):
+        np.testing.assert_array_equal(block.time_s, rec.time_s)
+        for field in ('position_m', 'reference_m', 'reference_velocity_mps', 'true_position_m'):
+            np.testing.assert_array_equal(getattr(block, field), getattr(rec, field))
     assert [r.meta['axis'] for r in got] == ['x', 'y'] and got[0].time_s.size == served
     k = np.round(got[0].time_s * 1e4).astype(int)  # on the 10 kHz grid from sample 0
     assert k[0] == 0 and np.all(np.diff(k) >= 1) and k[-1] < n
     assert int(np.sum(np.diff(k) - 1)) + (n - 1 - k[-1]) == skipped
-    return stats, got, k
+    return stats, got, k, blocks
 
 
 FIELDS = ('position_m', 'reference_m', 'reference_velocity_mps', 'command_v', 'true_position_m')
@@ -210,13 +225,15 @@ def test_a_real_time_run_of_the_xy_stage_on_an_on_time_clock_is_the_offline_runn
         context, tmp_path):
     from fake_clock import FakeClock
     duration_s = 0.3
-    stats, got, k = real_time_run(context, tmp_path, duration_s,
-                                  FakeClock(start=time.monotonic_ns(), per_read=300))
+    stats, got, k, blocks = real_time_run(context, tmp_path, duration_s,
+                                          FakeClock(start=time.monotonic_ns(), per_read=300))
     assert stats['skipped'] == 0 and k.tolist() == list(range(3000))
     _, records = offline(duration_s)
-    for rec, off in zip(got, records):
+    for rec, off, block in zip(got, records, blocks):
         for field in FIELDS:
             assert np.array_equal(getattr(rec, field), getattr(off, field)), field
+        # on time, the input held over each sample is the command computed at it
+        np.testing.assert_array_equal(block.command_v[:-1], off.command_v[:-1])
     window = 0.1
     assert run_metrics(got, window_s=window, fast_axis='x') == \
         run_metrics(records, window_s=window, fast_axis='x')
@@ -225,7 +242,7 @@ def test_a_real_time_run_of_the_xy_stage_on_an_on_time_clock_is_the_offline_runn
 def test_a_real_time_run_of_the_xy_stage_is_the_offline_runner_until_a_skipped_sample(
         context, tmp_path):
     duration_s = 0.5
-    stats, got, k = real_time_run(context, tmp_path, duration_s)
+    stats, got, k, _ = real_time_run(context, tmp_path, duration_s)
     # until the first skipped sample, the servo's samples are the offline runner's bit for bit
     # (after it, the stage played commands planned ahead where the runner had fresh ones)
     gaps = np.flatnonzero(np.diff(k) > 1)

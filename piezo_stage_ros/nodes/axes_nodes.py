@@ -36,7 +36,9 @@ Real time (``mode: realtime``) runs in one process, ``stage_servo --direct``
 (:class:`~piezo_stage_ros.nodes.servo_axes.AxesServoLoop`, in a thread of the process) which
 computes every node's part of each sample on its own clock; the executor drains its samples in
 batches and publishes them on the same topics, the reference and command from the trajectory
-and controller nodes' publishers, so that a recorder records a real-time run as a lockstep one.
+and controller nodes' publishers, so that a recorder records a real-time run as a lockstep one;
+with ``recording.block`` every sample also goes on ``stage/block``, every axis in a row
+(:class:`~piezo_stage_ros.nodes.recording.AxesBlockRecorder`), which a recorder keeps whole.
 Refused at start-up with the reason: another backend than the model, real time without
 ``--direct``, ``--direct`` in lockstep; the trajectory node offers no goal action and no
 start/stop services with several axes; parameters cannot change at run time.
@@ -80,7 +82,7 @@ from piezo_stage_ros.nodes.axes_logic import (
 )
 from piezo_stage_ros.nodes.logic import Gate
 from piezo_stage_ros.nodes.parameters import _plain, descriptor, ParameterBinding
-from piezo_stage_ros.nodes.recording import backlog_samples
+from piezo_stage_ros.nodes.recording import AxesBlockRecorder, backlog_samples
 from piezo_stage_ros.nodes.servo_axes import axes_servo_from_config, AxesSampleBatch, AxesServoLoop
 from piezo_stage_ros.nodes.tables import (
     controller_table,
@@ -250,6 +252,8 @@ class AxesPlantNode(_AxesNode):
         self.realtime = opts.mode != 'lockstep'
         self.servo: AxesServoLoop | None = None
         self._peers: Sequence[Callable[[int, int, AxesSampleBatch, int], None]] = ()
+        self._block_pub: Any = None
+        self._blocks: AxesBlockRecorder | None = None
         self.logic = AxesPlantLogic(AxesStage(self.loop.stage), sample_rate_hz=self.rate_hz,
                                     duration_s=opts.duration_s, resend_s=opts.lockstep.resend_s)
         self.finished = Future()
@@ -299,6 +303,11 @@ class AxesPlantNode(_AxesNode):
             loop, self.opts.duration_s,
             capacity=backlog_samples(self.opts.recording, self.rate_hz))
         self._peers = tuple(peers)
+        recording = self.opts.recording
+        if recording.block:
+            # every sample on stage/block, every axis in a row: what a recorder keeps whole
+            self._block_pub = self.create_publisher(Float64MultiArray, wire.BLOCK, qos.BLOCK)
+            self._blocks = AxesBlockRecorder(self.names, recording.block_samples)
         # the servo process (servo.process) runs the one-axis loop; several axes share this
         # process's interpreter with the executor, in a thread
         self.get_logger().info(f'servo of {len(self.names)} axes in a thread of this process'
@@ -348,6 +357,11 @@ class AxesPlantNode(_AxesNode):
             return
         finished = servo.finished
         self._hand_on(servo.take_batch())
+        if finished and self._blocks is not None:
+            # the last rows, with what the plant held after them
+            for raw in self._blocks.finish(servo.guard.held_v):
+                self._block_pub.publish(raw)
+            self._blocks = None
         if finished:
             for key, text in servo.setup_report.items():
                 self.get_logger().info(f'servo {key}: {text}')
@@ -357,8 +371,12 @@ class AxesPlantNode(_AxesNode):
                 self._finish()
 
     def _hand_on(self, batch: AxesSampleBatch) -> None:
-        # every sample served, on the lockstep's topics in a lockstep sample's order: y_k and
-        # x(t_k) here, x_d and u_k from the peers' publishers
+        # every sample into the blocks first; then every sample served, on the lockstep's
+        # topics in a lockstep sample's order: y_k and x(t_k) here, x_d and u_k from the
+        # peers' publishers
+        if self._blocks is not None:
+            for raw in self._blocks.add(batch):
+                self._block_pub.publish(raw)
         encode, peers = self._encoder.encode, self._peers
         for i, stamp in enumerate(batch.stamp_ns.tolist()):
             sec, nanosec = wire.ns_to_stamp(stamp)
