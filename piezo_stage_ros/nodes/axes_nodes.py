@@ -37,9 +37,13 @@ Real time (``mode: realtime``) runs in one process, ``stage_servo --direct``
 computes every node's part of each sample on its own clock; the executor drains its samples in
 batches and publishes them on the same topics, the reference and command from the trajectory
 and controller nodes' publishers, so that a recorder records a real-time run as a lockstep one.
-Refused at start-up with the reason: another backend than the model, real time without
-``--direct``, ``--direct`` in lockstep; the trajectory node offers no goal action and no
-start/stop services with several axes; parameters cannot change at run time.
+Goals (``stage/follow_joint_trajectory``, ``stage/joint_trajectory``, joints ``stage_x`` ...)
+are followed in lockstep, composed or in three processes (:class:`AxesTrajectoryNode`); the
+controllers keep the scan's feed-forward, which finds the goal's reference changed and leaves
+those samples to the feedback. Refused at start-up with the reason: another backend than the
+model, real time without ``--direct``, ``--direct`` in lockstep; in real time every goal is
+refused with the reason; the trajectory node offers no start/stop services with several axes;
+parameters cannot change at run time.
 """
 
 from __future__ import annotations
@@ -71,6 +75,7 @@ from piezo_stage_ros.core.model.axes import AxesStage
 from piezo_stage_ros.hardware.pacing import servo_setup
 from piezo_stage_ros.nodes import qos
 from piezo_stage_ros.nodes.axes_logic import (
+    axes_follower,
     AxesCommand,
     AxesControllerLogic,
     AxesPlantLogic,
@@ -78,6 +83,7 @@ from piezo_stage_ros.nodes.axes_logic import (
     AxesTrajectoryLogic,
     refuse_axes_mode,
 )
+from piezo_stage_ros.nodes.goal_server import GoalServer
 from piezo_stage_ros.nodes.logic import Gate
 from piezo_stage_ros.nodes.parameters import _plain, descriptor, ParameterBinding
 from piezo_stage_ros.nodes.recording import backlog_samples
@@ -424,8 +430,18 @@ class AxesPlantNode(_AxesNode):
                                     else PiezoStageError(repr(exc)))
 
 
-class AxesTrajectoryNode(_AxesNode):
-    """Every axis' reference (the scan of the files) for each position's stamp."""
+class AxesTrajectoryNode(_AxesNode, GoalServer):
+    """
+    Every axis' reference (the scan of the files) for each position's stamp; goals in lockstep.
+
+    ``stage/follow_joint_trajectory`` and ``stage/joint_trajectory`` take goals whose joints
+    are the stage's axes (``stage_x`` ...; some of them: the others hold), in lockstep: a goal
+    takes every axis over from the scan at the next sample (:class:`~piezo_stage_ros.nodes.
+    axes_logic.AxesTrajectoryLogic`). In real time (the servo of several axes plays the scan)
+    every goal is refused with the reason.
+    """
+
+    logic: AxesTrajectoryLogic
 
     def __init__(self, *, params_files: Sequence[str] = (), direct: bool = False,
                  **kwargs: Any) -> None:
@@ -437,7 +453,19 @@ class AxesTrajectoryNode(_AxesNode):
         self._pub = self.create_publisher(JointState, wire.REFERENCE, qos.LOOP_OUT)
         self._subs = [self.create_subscription(JointState, wire.POSITION, self._on_position,
                                                qos.LOOP, raw=True)]
-        self.get_logger().info(f'scan {self.loop.scan.kind} over the axes {list(self.names)}')
+        self._init_goal_server(self.joints)
+        if opts.mode == 'lockstep':
+            self.logic.attach_goals(axes_follower(self.loop))
+        else:
+            self.goals_refused = (
+                f'mode {opts.mode!r}: goals on a stage of several axes are followed in lockstep '
+                '(mode: lockstep); the real-time servo of several axes plays the scan of the '
+                'parameter files')
+        # the multi-axis plant is not a managed node: goals do not wait for its state
+        self._make_goal_interfaces(follow_plant=False)
+        self.get_logger().info(f'scan {self.loop.scan.kind} over the axes {list(self.names)}; '
+                               + ('goals on ' + ', '.join(self.joints) if self.goals_refused
+                                  is None else 'no goals in real time'))
 
     def publish_sample(self, sec: int, nanosec: int, batch: AxesSampleBatch, i: int) -> None:
         """Publish the references the servo computed for row ``i`` (:func:`connect_axes`)."""
@@ -446,9 +474,13 @@ class AxesTrajectoryNode(_AxesNode):
 
     def _on_position(self, data: bytes) -> None:
         msg = self._decode(data, wire.POSITION)
-        if msg is not None:
-            ref, vel = self.logic.on_position(_stamp_ns(msg))
-            self._pub.publish(self._encoder.encode(msg.sec, msg.nanosec, ref, vel))
+        if msg is None:
+            return
+        positions = self._values(msg, 'position') if self.logic.follower is not None else None
+        ref, vel = self.logic.on_position(_stamp_ns(msg), positions)
+        self._pub.publish(self._encoder.encode(msg.sec, msg.nanosec, ref, vel))
+        if self.logic.events:
+            self._drain()
 
 
 class AxesControllerNode(_AxesNode):
