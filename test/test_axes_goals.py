@@ -352,3 +352,33 @@ def test_before_any_goal_the_logic_with_goals_is_the_scan_bit_for_bit() -> None:
     assert np.array_equal(got['command'], run.command_v)
     assert np.array_equal(got['reference'], run.reference_m)
     assert np.ptp(got['reference'][:, 0]) > 1e-6
+
+
+def test_a_goal_takes_the_raster_over_in_motion_and_the_feed_forward_leaves_it_to_the_feedback(
+        ) -> None:
+    # the raster of xy_stage.yaml (inverse learning, coupling compensation): a goal at 10 ms
+    # takes both axes over from their state in motion; the feed-forward, bound to the raster,
+    # finds the reference changed and leaves the samples to the feedback, in the nodes as in
+    # the twin
+    loop = loop_of(['xy_stage.yaml'])
+    move = goal((X, Y), P(0.02, (12e-6, 8e-6), (0.0, 0.0), (0.0, 0.0)),
+                goal_tolerance=(tol(X, 5e-9), tol(Y, 5e-9)), goal_time_tolerance_s=0.02)
+    got, logic = nodes_in_lockstep(loop, 0.06, [(0.01, move)])
+    run = twin(loop, 0.06, logic)
+    for key, mine in (('position', run.position_m), ('reference', run.reference_m),
+                      ('command', run.command_v)):
+        assert np.array_equal(got[key], mine), key
+    # no jump where the goal takes over: at its sample the reference is the raster's own, and
+    # its velocity too (the goal starts from the raster's state there)
+    k = round(logic.started[0][0] / T)
+    assert k == 100
+    scan, _ = nodes_in_lockstep(loop, 0.02, [])
+    assert np.array_equal(got['reference'][:k + 1], scan['reference'][:k + 1])
+    assert abs(scan['reference'][k + 1, 0] - scan['reference'][k, 0]) > 1e-7  # x in motion
+    results = [e[1] for e in logic.events if e[0] == 'result']
+    assert [(r.status, r.code) for r in results] == [(GoalStatus.SUCCEEDED,
+                                                      ResultCode.SUCCESSFUL)]
+    commands = got['command']
+    for j, chain in enumerate(a.chain for a in loop.stage.axes):
+        assert np.all((commands[:, j] >= chain.amplifier_min_v)
+                      & (commands[:, j] <= chain.amplifier_max_v))
