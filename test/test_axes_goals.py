@@ -382,3 +382,26 @@ def test_a_goal_takes_the_raster_over_in_motion_and_the_feed_forward_leaves_it_t
     for j, chain in enumerate(a.chain for a in loop.stage.axes):
         assert np.all((commands[:, j] >= chain.amplifier_min_v)
                       & (commands[:, j] <= chain.amplifier_max_v))
+
+
+def test_three_axes_take_goals_of_one_axis_and_of_all_bit_for_bit_as_the_twin() -> None:
+    # xyz_stage.yaml scanning its raster, z holding: a goal of z alone takes every axis over
+    # (x and y, not named, come back to rest where their reference was: cubic from their state
+    # in motion to that position), then one of all three, in any order
+    loop = loop_of(['xyz_stage.yaml'])
+    assert loop.stage.names == ('x', 'y', 'z')
+    requests = [(0.004, goal((Z,), P(0.01, (12e-6,), (0.0,)))),
+                (0.02, goal((Z, X, Y), P(0.01, (8e-6, 11e-6, 7e-6)),
+                            goal_tolerance=(tol(Z, 5e-9),), goal_time_tolerance_s=0.02))]
+    got, logic = nodes_in_lockstep(loop, 0.05, requests)
+    run = twin(loop, 0.05, logic)
+    for key, mine in (('position', run.position_m), ('reference', run.reference_m),
+                      ('command', run.command_v)):
+        assert np.array_equal(got[key], mine), key
+    ref = got['reference']
+    k = round(logic.started[0][0] / T)
+    # x and y at rest where their reference was (the raster's position at the goal's sample)
+    assert np.all(ref[k + 100:200, :2] == ref[k, :2]) and ref[150, 2] == 12e-6
+    assert ref[-1].tolist() == [11e-6, 7e-6, 8e-6]
+    results = [e[1] for e in logic.events if e[0] == 'result']
+    assert [r.code for r in results] == [ResultCode.SUCCESSFUL] * 2
