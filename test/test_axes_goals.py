@@ -28,6 +28,7 @@ from piezo_stage_ros.cli import read_config
 from piezo_stage_ros.core.config.axes import axes_loop_config, AxesLoopConfig
 from piezo_stage_ros.core.control.axes import AxesController
 from piezo_stage_ros.core.loop.follow import (
+    binds_goals,
     FollowParams,
     GoalFollower,
     GoalStatus,
@@ -43,10 +44,12 @@ from piezo_stage_ros.core.loop.goals import (
 )
 from piezo_stage_ros.core.model.axes import AxesStage
 from piezo_stage_ros.nodes.axes_logic import (
+    announce_axes_goal,
     axes_follower,
     AxesControllerLogic,
     AxesPlantLogic,
     AxesTrajectoryLogic,
+    parse_axes_goal,
 )
 import pytest
 
@@ -272,6 +275,10 @@ def nodes_in_lockstep(loop: AxesLoopConfig, duration_s: float,
     controller = AxesControllerLogic(
         AxesController.build(loop.controllers, loop.stage, compensate=loop.compensate),
         loop.trajectories())
+    # the goals' reference announced as on stage/trajectory: JSON text, before the reference
+    # of the sample it changes at
+    trajectory.on_reference_change = lambda spline, stamp: controller.request_goal(
+        *reversed(parse_axes_goal(announce_axes_goal(stamp, spline))))
     positions, references, commands = [], [], []
     pending = list(requests)
     token = 0
@@ -294,6 +301,7 @@ def nodes_in_lockstep(loop: AxesLoopConfig, duration_s: float,
         assert command is not None
         commands.append(command.commands_v)
         sample = plant.on_command(command.commands_v, 0.0)
+    assert controller.late_goals == 0
     return ({k: np.array(v) for k, v in (('position', positions), ('reference', references),
                                          ('command', commands))}, trajectory)
 
@@ -306,8 +314,11 @@ def twin(loop: AxesLoopConfig, duration_s: float, trajectory: AxesTrajectoryLogi
         chunk_s=loop.base.trajectory_node.chunk_s)
 
 
-def test_goals_through_the_lockstep_logic_give_the_offline_twins_samples() -> None:
-    loop = loop_of(HOLD)
+@pytest.mark.parametrize('ff', ['none', 'inverse'])
+def test_goals_through_the_lockstep_logic_give_the_offline_twins_samples(ff: str) -> None:
+    # feedback alone, and the model inverse bound to the goals' reference at each change
+    loop = loop_of(HOLD, [f'controller_node:feedforward.mode={ff}'])
+    assert binds_goals(AxesController.build(loop.controllers, loop.stage)) == (ff == 'inverse')
     five = dict(goal_tolerance=(tol(X, 5e-9), tol(Y, 5e-9)), goal_time_tolerance_s=0.02)
     requests = [
         (0.005, goal((X, Y), P(0.02, (14e-6, 9e-6)), **five)),
@@ -361,6 +372,7 @@ def test_a_goal_takes_the_raster_over_in_motion_and_the_feed_forward_leaves_it_t
     # finds the reference changed and leaves the samples to the feedback, in the nodes as in
     # the twin
     loop = loop_of(['xy_stage.yaml'])
+    assert not binds_goals(AxesController.build(loop.controllers, loop.stage))  # it learns
     move = goal((X, Y), P(0.02, (12e-6, 8e-6), (0.0, 0.0), (0.0, 0.0)),
                 goal_tolerance=(tol(X, 5e-9), tol(Y, 5e-9)), goal_time_tolerance_s=0.02)
     got, logic = nodes_in_lockstep(loop, 0.06, [(0.01, move)])

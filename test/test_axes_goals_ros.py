@@ -156,6 +156,8 @@ def test_goals_on_the_xy_stage_in_lockstep_give_the_offline_twins_samples(contex
     finally:
         run.close()
     assert len(logic.started) == 5 and len(logic.cancelled) == 1
+    # the controller bound each goal's reference before the sample it changed at
+    assert nodes[1].logic.late_goals == 0
     # by stamp (a sample the plant sent again is the same sample)
     got = np.array([p for _, p in sorted(dict(run.positions).items())])
     n = len(got) - 100

@@ -37,26 +37,31 @@ in the plant node's process; :func:`refuse_axes_mode` names what neither runs.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Sequence
+import json
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from piezo_stage_ros.core.config.axes import AxesLoopConfig
-from piezo_stage_ros.core.contracts.errors import ParameterError
+from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
 from piezo_stage_ros.core.contracts.interfaces import Trajectory
 from piezo_stage_ros.core.contracts.wire import axis_joint_names, NS_PER_S
 from piezo_stage_ros.core.control.axes import AxesController
 from piezo_stage_ros.core.loop.follow import (
     AxesGoalReference,
+    binds_goals,
     FollowParams,
+    goal_views,
     GoalFollower,
     State,
 )
 from piezo_stage_ros.core.loop.goals import AxisLimits
+from piezo_stage_ros.core.loop.splines import Spline
 from piezo_stage_ros.core.model.axes import AxesStage
 from piezo_stage_ros.nodes.logic import GoalDesk, sample_count
 
 __all__ = ['AxesCommand', 'AxesControllerLogic', 'AxesPlantLogic', 'AxesSample',
-           'AxesTrajectoryLogic', 'axes_follower', 'refuse_axes_mode']
+           'AxesTrajectoryLogic', 'announce_axes_goal', 'axes_follower', 'parse_axes_goal',
+           'refuse_axes_mode']
 
 
 def axes_follower(loop: AxesLoopConfig) -> GoalFollower:
@@ -270,6 +275,12 @@ class AxesTrajectoryLogic(GoalDesk):
                                            self.names)
         self.answered = 0
         self._init_goals()
+        self._announced = -1
+        #: Called with (the follower's spline, stamp of this sample) before the reference of
+        #: the first sample at which a goal changed it: the controllers bind it there
+        #: (:meth:`AxesControllerLogic.request_goal`, by the announcement on
+        #: ``stage/trajectory``, :func:`announce_axes_goal`).
+        self.on_reference_change: Callable[[Spline, int], None] | None = None
 
     def attach_goals(self, follower: GoalFollower, lead_s: float = 0.0) -> None:
         """
@@ -312,6 +323,12 @@ class AxesTrajectoryLogic(GoalDesk):
             self._index = max(self._index, index)
             if self._requests or self._starts:
                 self._serve_goals(index)
+        follower = self.follower
+        if self.reference.taken and follower is not None and \
+                follower.version != self._announced:
+            self._announced = follower.version
+            if self.on_reference_change is not None:
+                self.on_reference_change(follower.spline, stamp_ns)
         ref, vel = self.reference.at(index)
         self.answered += 1
         if positions_m is not None and self.reference.taken:
@@ -360,11 +377,31 @@ class AxesControllerLogic:
         self.controller = controller
         self.n = controller.n
         controller.bind(trajectories)
+        self._binds = binds_goals(controller)
+        self._goals: list[tuple[int, Spline]] = []
+        #: Goal references bound after the sample they were announced for had been stepped.
+        self.late_goals = 0
         self._positions: dict[int, tuple[float, ...]] = {}
         self._refs: dict[int, tuple[tuple[float, ...], tuple[float, ...]]] = {}
         self._last_stamp: int | None = None
         self.steps = 0
         self.duplicates = 0
+
+    def request_goal(self, spline: Spline, stamp_ns: int) -> None:
+        """
+        Bind the goals' reference ``spline`` before stepping the sample ``stamp_ns`` [ns].
+
+        As the offline twin binds it (:func:`~piezo_stage_ros.core.loop.follow.run_axes_goals`,
+        when :func:`~piezo_stage_ros.core.loop.follow.binds_goals`); a learning feed-forward
+        keeps the scan (feedback alone along goals). A stamp already stepped (an announcement
+        that came late) binds at the next sample, counted in ``late_goals``.
+        """
+        if not self._binds:
+            return
+        if self._last_stamp is not None and stamp_ns <= self._last_stamp:
+            self.late_goals += 1
+        self._goals.append((stamp_ns, spline))
+        self._goals.sort(key=lambda g: g[0])
 
     def on_position(self, stamp_ns: int, positions_m: Sequence[float]) -> AxesCommand | None:
         """Take y_k of every axis [m] stamped ``stamp_ns`` [ns]."""
@@ -398,6 +435,11 @@ class AxesControllerLogic:
         xd, vd = ref
         if self._last_stamp is None:
             self.controller.reset(list(y), list(xd))
+        if self._goals and self._goals[0][0] <= stamp:
+            # the newest goal reference due by this sample (after the reset, as offline)
+            due = [g for g in self._goals if g[0] <= stamp]
+            self._goals = self._goals[len(due):]
+            self.controller.bind(goal_views(due[-1][1], self.n))
         u = self.controller.step(list(y), list(xd), list(vd))
         self._last_stamp = stamp
         self.steps += 1
@@ -405,5 +447,37 @@ class AxesControllerLogic:
 
     def stats(self) -> dict[str, int]:
         """Return the counters."""
-        return {'steps': self.steps, 'duplicates': self.duplicates}
+        return {'steps': self.steps, 'duplicates': self.duplicates,
+                'late_goals': self.late_goals}
+
+
+def announce_axes_goal(stamp_ns: int, spline: Spline) -> str:
+    """
+    Return the announcement of the goals' reference of several axes, bound at ``stamp_ns``.
+
+    JSON text for ``stage/trajectory``: ``stamp_ns`` (the sample before whose step the
+    controllers bind it) and ``axes_goal``, the follower's spline
+    (:meth:`~piezo_stage_ros.core.loop.splines.Spline.record`), which
+    :func:`parse_axes_goal` builds again bit for bit.
+    """
+    return json.dumps({'stamp_ns': int(stamp_ns), 'axes_goal': spline.record()})
+
+
+def parse_axes_goal(text: str) -> tuple[int, Spline]:
+    """
+    Return the stamp [ns] and the spline of an :func:`announce_axes_goal`.
+
+    Raises
+    ------
+    ParameterError
+        If the text is not one.
+
+    """
+    try:
+        data = json.loads(text)
+        return int(data['stamp_ns']), Spline.from_record(data['axes_goal'])
+    except (ValueError, TypeError, KeyError, PiezoStageError) as exc:
+        raise ParameterError('goal announcement', text[:80],
+                             'JSON {"stamp_ns": int, "axes_goal": spline record}',
+                             f'is not one ({exc})') from None
 

@@ -38,9 +38,12 @@ computes every node's part of each sample on its own clock; the executor drains 
 batches and publishes them on the same topics, the reference and command from the trajectory
 and controller nodes' publishers, so that a recorder records a real-time run as a lockstep one.
 Goals (``stage/follow_joint_trajectory``, ``stage/joint_trajectory``, joints ``stage_x`` ...)
-are followed in lockstep, composed or in three processes (:class:`AxesTrajectoryNode`); the
-controllers keep the scan's feed-forward, which finds the goal's reference changed and leaves
-those samples to the feedback. Refused at start-up with the reason: another backend than the
+are followed in lockstep, composed or in three processes (:class:`AxesTrajectoryNode`). The
+trajectory node announces each change of the goals' reference on ``stage/trajectory`` (the
+follower's spline, JSON), before the reference of the sample it changes at, and the
+controller node binds every axis' feed-forward to it there, as the offline twin does; a
+learning feed-forward keeps the scan's reference, finds the goal's changed and leaves those
+samples to the feedback. Refused at start-up with the reason: another backend than the
 model, real time without ``--direct``, ``--direct`` in lockstep; in real time every goal is
 refused with the reason; the trajectory node offers no start/stop services with several axes;
 parameters cannot change at run time.
@@ -75,12 +78,14 @@ from piezo_stage_ros.core.model.axes import AxesStage
 from piezo_stage_ros.hardware.pacing import servo_setup
 from piezo_stage_ros.nodes import qos
 from piezo_stage_ros.nodes.axes_logic import (
+    announce_axes_goal,
     axes_follower,
     AxesCommand,
     AxesControllerLogic,
     AxesPlantLogic,
     AxesSample,
     AxesTrajectoryLogic,
+    parse_axes_goal,
     refuse_axes_mode,
 )
 from piezo_stage_ros.nodes.goal_server import GoalServer
@@ -104,7 +109,7 @@ from rclpy.node import Node
 from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Float64MultiArray, String
 
 __all__ = ['AxesControllerNode', 'AxesPlantNode', 'AxesTrajectoryNode', 'axes_factories',
            'connect_axes']
@@ -456,6 +461,10 @@ class AxesTrajectoryNode(_AxesNode, GoalServer):
         self._init_goal_server(self.joints)
         if opts.mode == 'lockstep':
             self.logic.attach_goals(axes_follower(self.loop))
+            # the goals' reference, as it changes, to the controller node's feed-forwards
+            announce = self.create_publisher(String, wire.TRAJECTORY, qos.ANNOUNCE)
+            self.logic.on_reference_change = lambda spline, stamp: announce.publish(
+                String(data=announce_axes_goal(stamp, spline)))
         else:
             self.goals_refused = (
                 f'mode {opts.mode!r}: goals on a stage of several axes are followed in lockstep '
@@ -518,7 +527,8 @@ class AxesControllerNode(_AxesNode):
             self.create_subscription(JointState, wire.POSITION, self._on_position, qos.LOOP,
                                      raw=True),
             self.create_subscription(JointState, wire.REFERENCE, self._on_reference, qos.LOOP,
-                                     raw=True)]
+                                     raw=True),
+            self.create_subscription(String, wire.TRAJECTORY, self._on_goal, qos.ANNOUNCE)]
 
     def publish_sample(self, sec: int, nanosec: int, batch: AxesSampleBatch, i: int) -> None:
         """Publish the commands the servo computed for row ``i`` (:func:`connect_axes`)."""
@@ -533,6 +543,15 @@ class AxesControllerNode(_AxesNode):
         values = self._values(msg, 'position') if msg is not None else None
         if msg is not None and values is not None:
             self._publish(self.logic.on_position(_stamp_ns(msg), values))
+
+    def _on_goal(self, msg: String) -> None:
+        # the goals' reference of the trajectory node, bound before the sample it changes at
+        try:
+            stamp, spline = parse_axes_goal(msg.data)
+        except ParameterError as err:
+            self._dropped(f'{wire.TRAJECTORY}: {err}')
+            return
+        self.logic.request_goal(spline, stamp)
 
     def _on_reference(self, data: bytes) -> None:
         msg = self._decode(data, wire.REFERENCE)

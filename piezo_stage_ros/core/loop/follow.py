@@ -79,7 +79,8 @@ from piezo_stage_ros.core.loop.trajectories import TrajectoryBase
 from piezo_stage_ros.core.model.axes import AxesStage
 
 __all__ = ['AxesGoalReference', 'Feedback', 'FollowParams', 'GoalFollower', 'GoalLedger',
-           'GoalResult', 'GoalStatus', 'GoalsStatus', 'GoalTrajectory', 'goals_status',
+           'GoalResult', 'GoalStatus', 'GoalsStatus', 'GoalTrajectory', 'binds_goals',
+           'goal_views', 'goals_status',
            'PreparedGoal', 'run_axes_goals', 'run_goals', 'SplineTrajectory', 'take_over_state']
 
 #: How many times a stop's duration grows by 1.25 to keep to the acceleration (1.25^40: 7500x).
@@ -918,6 +919,31 @@ class AxesGoalReference:
         return self._ref[i], self._vel[i]
 
 
+def goal_views(spline: Spline, axes: int) -> list[Trajectory]:
+    """Return every axis of a goals' spline as a trajectory, for the axes' feed-forwards."""
+    return [SplineTrajectory(spline, j) for j in range(axes)]
+
+
+def binds_goals(controller: AxesController) -> bool:
+    """
+    Return whether the axes' feed-forwards are bound to the goals' reference as it changes.
+
+    True when some axis has a feed-forward (``bind``) and none of them learns or has a period
+    of its own (``feedforward.period_s``): a goal's reference has no period, which a learning
+    feed-forward needs and a fixed period would misread. Otherwise the feed-forwards stay
+    bound to the scan, find a goal's reference changed and leave its samples to the feedback.
+    """
+    bound = False
+    for c in controller.controllers:
+        if not callable(getattr(c, 'bind', None)):
+            continue
+        params = getattr(c, 'params', None)
+        if getattr(params, 'learning', False) or getattr(params, 'period_s', 0.0):
+            return False
+        bound = True
+    return bound
+
+
 def run_axes_goals(stage: AxesStage, controller: AxesController,
                    trajectories: Sequence[Trajectory], follower: GoalFollower,
                    events: Sequence[tuple[float, Any]], *, duration_s: float,
@@ -927,9 +953,12 @@ def run_axes_goals(stage: AxesStage, controller: AxesController,
 
     The offline twin of the lockstep nodes with goals: the trajectories play (as in
     :func:`~piezo_stage_ros.core.loop.axes.run_axes`) until a goal takes every axis over
-    from their state at its sample (:func:`take_over_state`); the controllers stay bound to
-    the trajectories (a feed-forward that finds the reference changed leaves the sample to
-    the feedback).
+    from their state at its sample (:func:`take_over_state`). The controllers are bound to
+    the goals' reference (every axis' :class:`SplineTrajectory` of the follower's spline as
+    it stands) before the first sample at which it changed (a goal, a preemption, a cancel, a
+    violated path tolerance) when :func:`binds_goals`; otherwise they stay bound to the
+    trajectories, and a feed-forward that finds the reference changed leaves the sample to
+    the feedback.
 
     Parameters
     ----------
@@ -969,6 +998,8 @@ def run_axes_goals(stage: AxesStage, controller: AxesController,
     reference = AxesGoalReference(trajectories, follower, dt,
                                   max(int(round(chunk_s / dt)), 1), stage.names)
     controller.bind(trajectories)
+    rebind = binds_goals(controller)
+    bound = -1
     y = stage.reset(None)
     ref, vel = reference.at(0)
     controller.reset(list(y), list(ref))
@@ -989,6 +1020,9 @@ def run_axes_goals(stage: AxesStage, controller: AxesController,
             elif reference.taken:
                 follower.cancel(t)
             j += 1
+        if rebind and reference.taken and follower.version != bound:
+            controller.bind(goal_views(follower.spline, n))
+            bound = follower.version
         ref, vel = reference.at(k)
         u = controller.step(list(y), list(ref), list(vel))
         pos[k], true[k], refs[k], cmd[k] = y, stage.read_positions_m(), ref, u
