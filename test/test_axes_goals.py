@@ -26,6 +26,7 @@ from typing import Any, Sequence
 import numpy as np
 from piezo_stage_ros.cli import read_config
 from piezo_stage_ros.core.config.axes import axes_loop_config, AxesLoopConfig
+from piezo_stage_ros.core.contracts.errors import ParameterError
 from piezo_stage_ros.core.control.axes import AxesController
 from piezo_stage_ros.core.loop.follow import (
     binds_goals,
@@ -417,3 +418,31 @@ def test_three_axes_take_goals_of_one_axis_and_of_all_bit_for_bit_as_the_twin() 
     assert ref[-1].tolist() == [11e-6, 7e-6, 8e-6]
     results = [e[1] for e in logic.events if e[0] == 'result']
     assert [r.code for r in results] == [ResultCode.SUCCESSFUL] * 2
+
+
+def test_each_axis_travel_comes_from_its_own_trajectory_parameters() -> None:
+    # trajectory_node axes.y.travel_max_m narrows y's travel alone: the node's follower checks
+    # each axis against its own
+    loop = loop_of(HOLD, ['trajectory_node:axes.y.travel_max_m=1.2e-05'])
+    f = axes_follower(loop)
+    assert f.joints == (X, Y) and f.params.partial_joints
+    assert f.limits[1].position_max_m == 12e-6 and f.limits[0].position_max_m > 20e-6
+    state = (np.array([10e-6, 5e-6]), np.zeros(2), np.zeros(2))
+    assert f.check(goal((X,), P(0.02, (20e-6,))), 0.0, start_state=state).accepted
+    refused = f.check(goal((Y,), P(0.02, (13e-6,))), 0.0, start_state=state)
+    assert refused.code == ResultCode.INVALID_GOAL
+    assert "'stage_y' = 1.3e-05 m; allowed: [0, 1.2e-05] m" in refused.reason
+
+
+def test_a_goal_announcement_builds_the_spline_again_bit_for_bit_and_refuses_garbage() -> None:
+    f = xy_follower()
+    f.accept(goal((X, Y), P(0.0123, (12.345e-6, 6.789e-6), (0.0, 0.0), (0.0, 0.0)),
+                  P(0.03, (11e-6, 8e-6))), 0.001)
+    stamp, again = parse_axes_goal(announce_axes_goal(123_456_789, f.spline))
+    assert stamp == 123_456_789
+    t = np.linspace(0.0, 0.04, 401)
+    for mine, theirs in zip(f.spline.sample(t), again.sample(t)):
+        assert np.array_equal(mine, theirs)
+    for text in ('', '{"stamp_ns": 1}', '{"stamp_ns": 1, "axes_goal": {"start_s": 0}}'):
+        with pytest.raises(ParameterError, match='axes_goal'):
+            parse_axes_goal(text)
