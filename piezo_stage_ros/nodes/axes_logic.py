@@ -21,13 +21,15 @@ tuple over the axes (one message a sample and topic: a sample stays atomic):
 1. :class:`AxesPlantLogic` publishes y_k (every axis) stamped t_k, and the true positions;
 2. :class:`AxesTrajectoryLogic` answers x_d(t_k), x_d'(t_k) of every axis with the same stamp,
    evaluated in the chunks of the offline runner
-   (:func:`~piezo_stage_ros.core.loop.axes.axes_references`);
+   (:func:`~piezo_stage_ros.core.loop.axes.axes_references`): the scan's, or the goals' once a
+   goal took the axes over;
 3. :class:`AxesControllerLogic`, holding y_k and x_d for the same stamp, steps every axis'
    controller in one call and publishes u_k (every axis);
 4. the plant steps every axis on receiving u_k.
 
-The samples are those of :func:`~piezo_stage_ros.core.loop.axes.run_axes` bit for bit: the
-same stage, the same controllers bound and reset the same way, the same floats in. In real
+The samples are those of :func:`~piezo_stage_ros.core.loop.axes.run_axes` bit for bit (with
+goals: :func:`~piezo_stage_ros.core.loop.follow.run_axes_goals`): the same stage, the same
+controllers bound and reset the same way, the same floats in. In real
 time the servo of several axes (:mod:`piezo_stage_ros.nodes.servo_axes`) runs the loop instead,
 in the plant node's process; :func:`refuse_axes_mode` names what neither runs.
 """
@@ -35,18 +37,52 @@ in the plant node's process; :func:`refuse_axes_mode` names what neither runs.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Sequence
+import json
+from typing import Any, Callable, Sequence
 
-from piezo_stage_ros.core.contracts.errors import ParameterError
+import numpy as np
+from piezo_stage_ros.core.config.axes import AxesLoopConfig
+from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
 from piezo_stage_ros.core.contracts.interfaces import Trajectory
-from piezo_stage_ros.core.contracts.wire import NS_PER_S
+from piezo_stage_ros.core.contracts.wire import axis_joint_names, NS_PER_S
 from piezo_stage_ros.core.control.axes import AxesController
-from piezo_stage_ros.core.loop.axes import axes_references
+from piezo_stage_ros.core.loop.follow import (
+    AxesGoalReference,
+    binds_goals,
+    FollowParams,
+    goal_views,
+    GoalFollower,
+    State,
+)
+from piezo_stage_ros.core.loop.goals import AxisLimits
+from piezo_stage_ros.core.loop.splines import Spline
 from piezo_stage_ros.core.model.axes import AxesStage
-from piezo_stage_ros.nodes.logic import sample_count
+from piezo_stage_ros.nodes.logic import GoalDesk, sample_count
 
 __all__ = ['AxesCommand', 'AxesControllerLogic', 'AxesPlantLogic', 'AxesSample',
-           'AxesTrajectoryLogic', 'refuse_axes_mode']
+           'AxesTrajectoryLogic', 'announce_axes_goal', 'axes_follower', 'parse_axes_goal',
+           'refuse_axes_mode']
+
+
+def axes_follower(loop: AxesLoopConfig) -> GoalFollower:
+    """
+    Return the goals' follower of a stage of several axes, at rest at its scan's start.
+
+    Its joints are the stage's (``stage_x`` ...); each axis is checked against its own limits
+    (:meth:`~piezo_stage_ros.core.loop.goals.AxisLimits.from_stage`: its stage model, and the
+    travel of its trajectory, ``travel_min_m`` ... ``travel_max_m`` with the
+    ``axes.<name>.*`` overrides). Goals may name some of the axes
+    (``FollowParams.partial_joints``): a stage whose axes move on their own (focus on z while
+    x and y hold) is commanded an axis at a time, as joint_trajectory_controller with
+    ``allow_partial_joints_goal``; the axes not named hold where their reference is.
+    """
+    limits = [AxisLimits.from_stage(sp, travel_min_m=line.travel_min_m,
+                                    travel_max_m=line.travel_max_m)
+              for sp, line in zip(loop.stage.axes, loop.lines)]
+    start = [float(tr.evaluate(np.zeros(1))[0][0]) for tr in loop.trajectories()]
+    return GoalFollower(axis_joint_names(loop.stage.names), limits, start,
+                        FollowParams(sample_time_s=loop.stage.sample_time_s,
+                                     partial_joints=True))
 
 
 def refuse_axes_mode(node: str, mode: str, backend: str = 'model', direct: bool = False
@@ -200,7 +236,7 @@ class AxesPlantLogic:
                 'unexpected_commands': self.unexpected}
 
 
-class AxesTrajectoryLogic:
+class AxesTrajectoryLogic(GoalDesk):
     """
     The trajectory node's behaviour with several axes: every axis' x_d and x_d' per stamp.
 
@@ -215,6 +251,17 @@ class AxesTrajectoryLogic:
     names : sequence of str
         The axes, for messages.
 
+    Notes
+    -----
+    Goals (:meth:`attach_goals`, :meth:`goal`, :meth:`cancel`, :meth:`hold`, as the one-axis
+    :class:`~piezo_stage_ros.nodes.logic.TrajectoryLogic` takes them, in lockstep): a goal that
+    may run takes every axis over from the scan at the next sample, without a jump, and the
+    reference stays the follower's from then on (a hold where the last goal left it). The
+    samples are those of :func:`~piezo_stage_ros.core.loop.follow.run_axes_goals` with the
+    goals and cancels at the loop times they took effect (:attr:`started`,
+    :attr:`cancelled`): both compute the reference with
+    :class:`~piezo_stage_ros.core.loop.follow.AxesGoalReference`.
+
     """
 
     def __init__(self, trajectories: Sequence[Trajectory], *, sample_rate_hz: float,
@@ -224,26 +271,69 @@ class AxesTrajectoryLogic:
         self.rate_hz = float(sample_rate_hz)
         self.period_s = 1.0 / self.rate_hz
         self.chunk = max(int(round(chunk_s / self.period_s)), 1)
-        self._start_ns: int | None = None
-        self._chunk_index = -1
-        self._ref: list[list[float]] = []
-        self._vel: list[list[float]] = []
+        self.reference = AxesGoalReference(self.trajectories, None, self.period_s, self.chunk,
+                                           self.names)
         self.answered = 0
+        self._init_goals()
+        self._announced = -1
+        #: Called with (the follower's spline, stamp of this sample) before the reference of
+        #: the first sample at which a goal changed it: the controllers bind it there
+        #: (:meth:`AxesControllerLogic.request_goal`, by the announcement on
+        #: ``stage/trajectory``, :func:`announce_axes_goal`).
+        self.on_reference_change: Callable[[Spline, int], None] | None = None
 
-    def on_position(self, stamp_ns: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
-        """Return every axis' x_d [m] and x_d' [m/s] for the sample stamped ``stamp_ns``."""
-        if self._start_ns is None:
-            self._start_ns = stamp_ns
-        index = max(round((stamp_ns - self._start_ns) * self.rate_hz / NS_PER_S), 0)
-        chunk = index // self.chunk
-        if chunk != self._chunk_index:
-            ref, vel = axes_references(self.trajectories, chunk * self.chunk, self.chunk,
-                                       self.period_s, self.names)
-            self._ref, self._vel = ref.tolist(), vel.tolist()
-            self._chunk_index = chunk
-        i = index - chunk * self.chunk
+    def attach_goals(self, follower: GoalFollower, lead_s: float = 0.0) -> None:
+        """
+        Take goals for ``follower``, its joints the axes; lockstep only (``lead_s`` 0).
+
+        Raises
+        ------
+        ParameterError
+            For a lead: goals checked ahead of their sample (real time) are not served here.
+
+        """
+        if lead_s:
+            raise ParameterError('lead_s', lead_s, '0: goals of several axes run in lockstep')
+        super().attach_goals(follower, 0.0)
+        self.reference = AxesGoalReference(self.trajectories, follower, self.period_s,
+                                           self.chunk, self.names)
+
+    @property
+    def goal_active(self) -> bool:
+        """Return whether the reference is the follower's (a goal took it over)."""
+        return self.reference.taken
+
+    def _take_over_state(self, index: int) -> State:
+        return self.reference.state(index)
+
+    def _take_over(self) -> None:
+        self.reference.taken = True
+
+    def on_position(self, stamp_ns: int, positions_m: Sequence[float] | None = None
+                    ) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """
+        Return every axis' x_d [m] and x_d' [m/s] for the sample stamped ``stamp_ns``.
+
+        ``positions_m``: y_k of every axis [m], for the goals' tolerances and feedback.
+        """
+        if self._origin_ns is None:
+            self._origin_ns = stamp_ns
+        index = max(round((stamp_ns - self._origin_ns) * self.rate_hz / NS_PER_S), 0)
+        if self.follower is not None:
+            self._index = max(self._index, index)
+            if self._requests or self._starts:
+                self._serve_goals(index)
+        follower = self.follower
+        if self.reference.taken and follower is not None and \
+                follower.version != self._announced:
+            self._announced = follower.version
+            if self.on_reference_change is not None:
+                self.on_reference_change(follower.spline, stamp_ns)
+        ref, vel = self.reference.at(index)
         self.answered += 1
-        return tuple(self._ref[i]), tuple(self._vel[i])
+        if positions_m is not None and self.reference.taken:
+            self._step_goal(index, positions_m, ref)
+        return tuple(ref), tuple(vel)
 
 
 @dataclass(frozen=True)
@@ -287,11 +377,31 @@ class AxesControllerLogic:
         self.controller = controller
         self.n = controller.n
         controller.bind(trajectories)
+        self._binds = binds_goals(controller)
+        self._goals: list[tuple[int, Spline]] = []
+        #: Goal references bound after the sample they were announced for had been stepped.
+        self.late_goals = 0
         self._positions: dict[int, tuple[float, ...]] = {}
         self._refs: dict[int, tuple[tuple[float, ...], tuple[float, ...]]] = {}
         self._last_stamp: int | None = None
         self.steps = 0
         self.duplicates = 0
+
+    def request_goal(self, spline: Spline, stamp_ns: int) -> None:
+        """
+        Bind the goals' reference ``spline`` before stepping the sample ``stamp_ns`` [ns].
+
+        As the offline twin binds it (:func:`~piezo_stage_ros.core.loop.follow.run_axes_goals`,
+        when :func:`~piezo_stage_ros.core.loop.follow.binds_goals`); a learning feed-forward
+        keeps the scan (feedback alone along goals). A stamp already stepped (an announcement
+        that came late) binds at the next sample, counted in ``late_goals``.
+        """
+        if not self._binds:
+            return
+        if self._last_stamp is not None and stamp_ns <= self._last_stamp:
+            self.late_goals += 1
+        self._goals.append((stamp_ns, spline))
+        self._goals.sort(key=lambda g: g[0])
 
     def on_position(self, stamp_ns: int, positions_m: Sequence[float]) -> AxesCommand | None:
         """Take y_k of every axis [m] stamped ``stamp_ns`` [ns]."""
@@ -325,6 +435,11 @@ class AxesControllerLogic:
         xd, vd = ref
         if self._last_stamp is None:
             self.controller.reset(list(y), list(xd))
+        if self._goals and self._goals[0][0] <= stamp:
+            # the newest goal reference due by this sample (after the reset, as offline)
+            due = [g for g in self._goals if g[0] <= stamp]
+            self._goals = self._goals[len(due):]
+            self.controller.bind(goal_views(due[-1][1], self.n))
         u = self.controller.step(list(y), list(xd), list(vd))
         self._last_stamp = stamp
         self.steps += 1
@@ -332,5 +447,37 @@ class AxesControllerLogic:
 
     def stats(self) -> dict[str, int]:
         """Return the counters."""
-        return {'steps': self.steps, 'duplicates': self.duplicates}
+        return {'steps': self.steps, 'duplicates': self.duplicates,
+                'late_goals': self.late_goals}
+
+
+def announce_axes_goal(stamp_ns: int, spline: Spline) -> str:
+    """
+    Return the announcement of the goals' reference of several axes, bound at ``stamp_ns``.
+
+    JSON text for ``stage/trajectory``: ``stamp_ns`` (the sample before whose step the
+    controllers bind it) and ``axes_goal``, the follower's spline
+    (:meth:`~piezo_stage_ros.core.loop.splines.Spline.record`), which
+    :func:`parse_axes_goal` builds again bit for bit.
+    """
+    return json.dumps({'stamp_ns': int(stamp_ns), 'axes_goal': spline.record()})
+
+
+def parse_axes_goal(text: str) -> tuple[int, Spline]:
+    """
+    Return the stamp [ns] and the spline of an :func:`announce_axes_goal`.
+
+    Raises
+    ------
+    ParameterError
+        If the text is not one.
+
+    """
+    try:
+        data = json.loads(text)
+        return int(data['stamp_ns']), Spline.from_record(data['axes_goal'])
+    except (ValueError, TypeError, KeyError, PiezoStageError) as exc:
+        raise ParameterError('goal announcement', text[:80],
+                             'JSON {"stamp_ns": int, "axes_goal": spline record}',
+                             f'is not one ({exc})') from None
 

@@ -39,9 +39,16 @@ batches and publishes them on the same topics, the reference and command from th
 and controller nodes' publishers, so that a recorder records a real-time run as a lockstep one;
 with ``recording.block`` every sample also goes on ``stage/block``, every axis in a row
 (:class:`~piezo_stage_ros.nodes.recording.AxesBlockRecorder`), which a recorder keeps whole.
-Refused at start-up with the reason: another backend than the model, real time without
-``--direct``, ``--direct`` in lockstep; the trajectory node offers no goal action and no
-start/stop services with several axes; parameters cannot change at run time.
+Goals (``stage/follow_joint_trajectory``, ``stage/joint_trajectory``, joints ``stage_x`` ...)
+are followed in lockstep, composed or in three processes (:class:`AxesTrajectoryNode`). The
+trajectory node announces each change of the goals' reference on ``stage/trajectory`` (the
+follower's spline, JSON), before the reference of the sample it changes at, and the
+controller node binds every axis' feed-forward to it there, as the offline twin does; a
+learning feed-forward keeps the scan's reference, finds the goal's changed and leaves those
+samples to the feedback. Refused at start-up with the reason: another backend than the
+model, real time without ``--direct``, ``--direct`` in lockstep; in real time every goal is
+refused with the reason; the trajectory node offers no start/stop services with several axes;
+parameters cannot change at run time.
 """
 
 from __future__ import annotations
@@ -73,13 +80,17 @@ from piezo_stage_ros.core.model.axes import AxesStage
 from piezo_stage_ros.hardware.pacing import servo_setup
 from piezo_stage_ros.nodes import qos
 from piezo_stage_ros.nodes.axes_logic import (
+    announce_axes_goal,
+    axes_follower,
     AxesCommand,
     AxesControllerLogic,
     AxesPlantLogic,
     AxesSample,
     AxesTrajectoryLogic,
+    parse_axes_goal,
     refuse_axes_mode,
 )
+from piezo_stage_ros.nodes.goal_server import GoalServer
 from piezo_stage_ros.nodes.logic import Gate
 from piezo_stage_ros.nodes.parameters import _plain, descriptor, ParameterBinding
 from piezo_stage_ros.nodes.recording import AxesBlockRecorder, backlog_samples
@@ -100,7 +111,7 @@ from rclpy.node import Node
 from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Float64MultiArray, String
 
 __all__ = ['AxesControllerNode', 'AxesPlantNode', 'AxesTrajectoryNode', 'axes_factories',
            'connect_axes']
@@ -442,8 +453,18 @@ class AxesPlantNode(_AxesNode):
                                     else PiezoStageError(repr(exc)))
 
 
-class AxesTrajectoryNode(_AxesNode):
-    """Every axis' reference (the scan of the files) for each position's stamp."""
+class AxesTrajectoryNode(_AxesNode, GoalServer):
+    """
+    Every axis' reference (the scan of the files) for each position's stamp; goals in lockstep.
+
+    ``stage/follow_joint_trajectory`` and ``stage/joint_trajectory`` take goals whose joints
+    are the stage's axes (``stage_x`` ...; some of them: the others hold), in lockstep: a goal
+    takes every axis over from the scan at the next sample (:class:`~piezo_stage_ros.nodes.
+    axes_logic.AxesTrajectoryLogic`). In real time (the servo of several axes plays the scan)
+    every goal is refused with the reason.
+    """
+
+    logic: AxesTrajectoryLogic
 
     def __init__(self, *, params_files: Sequence[str] = (), direct: bool = False,
                  **kwargs: Any) -> None:
@@ -455,7 +476,23 @@ class AxesTrajectoryNode(_AxesNode):
         self._pub = self.create_publisher(JointState, wire.REFERENCE, qos.LOOP_OUT)
         self._subs = [self.create_subscription(JointState, wire.POSITION, self._on_position,
                                                qos.LOOP, raw=True)]
-        self.get_logger().info(f'scan {self.loop.scan.kind} over the axes {list(self.names)}')
+        self._init_goal_server(self.joints)
+        if opts.mode == 'lockstep':
+            self.logic.attach_goals(axes_follower(self.loop))
+            # the goals' reference, as it changes, to the controller node's feed-forwards
+            announce = self.create_publisher(String, wire.TRAJECTORY, qos.ANNOUNCE)
+            self.logic.on_reference_change = lambda spline, stamp: announce.publish(
+                String(data=announce_axes_goal(stamp, spline)))
+        else:
+            self.goals_refused = (
+                f'mode {opts.mode!r}: goals on a stage of several axes are followed in lockstep '
+                '(mode: lockstep); the real-time servo of several axes plays the scan of the '
+                'parameter files')
+        # the multi-axis plant is not a managed node: goals do not wait for its state
+        self._make_goal_interfaces(follow_plant=False)
+        self.get_logger().info(f'scan {self.loop.scan.kind} over the axes {list(self.names)}; '
+                               + ('goals on ' + ', '.join(self.joints) if self.goals_refused
+                                  is None else 'no goals in real time'))
 
     def publish_sample(self, sec: int, nanosec: int, batch: AxesSampleBatch, i: int) -> None:
         """Publish the references the servo computed for row ``i`` (:func:`connect_axes`)."""
@@ -464,9 +501,13 @@ class AxesTrajectoryNode(_AxesNode):
 
     def _on_position(self, data: bytes) -> None:
         msg = self._decode(data, wire.POSITION)
-        if msg is not None:
-            ref, vel = self.logic.on_position(_stamp_ns(msg))
-            self._pub.publish(self._encoder.encode(msg.sec, msg.nanosec, ref, vel))
+        if msg is None:
+            return
+        positions = self._values(msg, 'position') if self.logic.follower is not None else None
+        ref, vel = self.logic.on_position(_stamp_ns(msg), positions)
+        self._pub.publish(self._encoder.encode(msg.sec, msg.nanosec, ref, vel))
+        if self.logic.events:
+            self._drain()
 
 
 class AxesControllerNode(_AxesNode):
@@ -504,7 +545,8 @@ class AxesControllerNode(_AxesNode):
             self.create_subscription(JointState, wire.POSITION, self._on_position, qos.LOOP,
                                      raw=True),
             self.create_subscription(JointState, wire.REFERENCE, self._on_reference, qos.LOOP,
-                                     raw=True)]
+                                     raw=True),
+            self.create_subscription(String, wire.TRAJECTORY, self._on_goal, qos.ANNOUNCE)]
 
     def publish_sample(self, sec: int, nanosec: int, batch: AxesSampleBatch, i: int) -> None:
         """Publish the commands the servo computed for row ``i`` (:func:`connect_axes`)."""
@@ -519,6 +561,15 @@ class AxesControllerNode(_AxesNode):
         values = self._values(msg, 'position') if msg is not None else None
         if msg is not None and values is not None:
             self._publish(self.logic.on_position(_stamp_ns(msg), values))
+
+    def _on_goal(self, msg: String) -> None:
+        # the goals' reference of the trajectory node, bound before the sample it changes at
+        try:
+            stamp, spline = parse_axes_goal(msg.data)
+        except ParameterError as err:
+            self._dropped(f'{wire.TRAJECTORY}: {err}')
+            return
+        self.logic.request_goal(spline, stamp)
 
     def _on_reference(self, data: bytes) -> None:
         msg = self._decode(data, wire.REFERENCE)

@@ -54,14 +54,15 @@ from piezo_stage_ros.core.loop.follow import (
     PreparedGoal,
     SplineTrajectory,
     State,
+    take_over_state,
 )
 from piezo_stage_ros.core.loop.goals import GoalVerdict, JointTrajectoryGoal, ResultCode
 from piezo_stage_ros.core.loop.splines import Spline
 from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
 from piezo_stage_ros.hardware.safety import GuardedPlant, Trip, Watchdog
 
-__all__ = ['ControllerLogic', 'Gate', 'LATE_COMMAND_LIMIT', 'LATE_HALF_LIMIT', 'PlantLogic',
-           'Sample', 'TrajectoryLogic', 'TripLog', 'realtime_warning', 'run_verdict',
+__all__ = ['ControllerLogic', 'Gate', 'GoalDesk', 'LATE_COMMAND_LIMIT', 'LATE_HALF_LIMIT',
+           'PlantLogic', 'Sample', 'TrajectoryLogic', 'TripLog', 'realtime_warning', 'run_verdict',
            'announce_goal', 'announce_trajectory', 'parse_announcement', 'parse_trajectory',
            'rebuild_or_learn_afresh',
            'sample_count', 'save_learned_table']
@@ -461,7 +462,227 @@ class PlantLogic:
         return out
 
 
-class TrajectoryLogic:
+class GoalDesk:
+    """
+    The goals' requests of a trajectory logic, of one axis or several, and their events.
+
+    Goals are taken for a :class:`~piezo_stage_ros.core.loop.follow.GoalFollower`
+    (:meth:`attach_goals`); :meth:`goal`, :meth:`cancel` and :meth:`hold` may be called from
+    any thread, and the sample's call serves them (:meth:`_serve_goals`). A goal that may run
+    takes the reference over from whatever plays, without a jump, from the state the subclass
+    gives (:meth:`_take_over_state`). Verdicts, results and feedback go to :attr:`events`.
+    The subclass sets ``rate_hz`` and ``period_s`` and keeps ``_origin_ns`` (the stamp of the
+    first sample: the goals' loop time is 0 there) and ``_index`` (the last sample served).
+    """
+
+    rate_hz: float
+    period_s: float
+
+    def _init_goals(self) -> None:
+        self.follower: GoalFollower | None = None
+        self._lead = 0
+        self._late_s = 0.0
+        self._origin_ns: int | None = None
+        self._index = -1
+        self._epoch = 0
+        self._requests: deque[tuple[Any, ...]] = deque()
+        self._starts: deque[tuple[Any, ...]] = deque()
+        self._tokens: dict[int, int] = {}
+        self._retries: dict[int, int] = {}
+        #: (loop time [s], goal) of the goals started, the last thousand: a run to replay
+        #: offline (:func:`~piezo_stage_ros.core.loop.follow.run_goals`), with the loop times
+        #: of the cancels (:attr:`cancelled`).
+        self.started: deque[tuple[float, JointTrajectoryGoal]] = deque(maxlen=1000)
+        #: Loop times [s] at which a cancel or a hold brought the reference to rest.
+        self.cancelled: deque[float] = deque(maxlen=1000)
+        #: What the goals did, oldest first, for the side that answers the client (taken
+        #: with ``popleft`` from another thread): ``('verdict', token, GoalVerdict, goal_id)``,
+        #: ``('result', GoalResult)``, ``('feedback', Feedback)``, ``('retry', token, goal,
+        #: tracked, stamp_ns)`` (the reference changed while it was checked: check it again
+        #: with :meth:`goal`), ``('cancelled', token)`` (cancelled before it started).
+        self.events: deque[tuple[Any, ...]] = deque()
+
+    @property
+    def goal_active(self) -> bool:
+        """Return whether the reference is the follower's (a goal took it over)."""
+        raise NotImplementedError
+
+    def _take_over_state(self, index: int) -> State:
+        """Return the state at grid sample ``index`` of what plays (no goal active)."""
+        raise NotImplementedError
+
+    def _take_over(self) -> None:
+        """Make the follower's reference the one played, from the goal's sample on."""
+        raise NotImplementedError
+
+    def _cancel_at(self, index: int) -> None:
+        assert self.follower is not None
+        self.follower.cancel(index * self.period_s)
+        self.cancelled.append(index * self.period_s)
+
+    def attach_goals(self, follower: GoalFollower, lead_s: float = 0.0) -> None:
+        """
+        Take goals for ``follower`` (its joints the stage's axes); ``lead_s`` [s]: check ahead.
+
+        0 (lockstep): a goal is checked and started at the next sample, in the sample's own
+        call. More (real time): :meth:`goal` checks it in the caller's thread for the sample
+        ``lead_s`` after the last one, and that sample only starts it.
+        """
+        self.follower = follower
+        self._lead = max(0, int(round(lead_s * self.rate_hz)))
+        self._late_s = GOAL_LATE_START_S if self._lead else 0.0
+
+    def goal(self, token: int, goal: JointTrajectoryGoal, *, tracked: bool = True,
+             stamp_ns: int | None = None) -> None:
+        """
+        Submit a goal (any thread); its verdict comes as ``('verdict', token, ...)``.
+
+        Parameters
+        ----------
+        token : int
+            The caller's number for it (> 0).
+        goal : JointTrajectoryGoal
+            The goal.
+        tracked : bool
+            An action goal (results, feedback) or a topic message.
+        stamp_ns : int, optional
+            Its header stamp [ns] on the samples' clock, when not zero (times count from it).
+
+        """
+        if self.follower is None:
+            self.events.append(('verdict', token, GoalVerdict(
+                ResultCode.INVALID_GOAL, 'this trajectory node takes no goals'), 0))
+        elif self._lead == 0:
+            self._requests.append(('goal', token, goal, tracked, stamp_ns))
+        else:
+            # each retry checks twice as far ahead: a check slower than the lead (a long
+            # trajectory) gets a sample it can reach
+            lead = self._lead << self._retries.get(token, 0)
+            self._prepare(token, goal, tracked, stamp_ns, self._index + 1 + lead)
+
+    def cancel(self, token: int) -> None:
+        """Cancel the goal submitted as ``token`` (any thread): the reference decelerates."""
+        self._requests.append(('cancel', token))
+
+    def hold(self) -> None:
+        """Bring whatever goal moves the reference to rest (an empty JointTrajectory)."""
+        self._requests.append(('hold',))
+
+    def stamp_of(self, time_s: float) -> int:
+        """Return the stamp [ns] of the sample at loop time ``time_s`` (the goals' time)."""
+        k = round(time_s * self.rate_hz)
+        return (self._origin_ns or 0) + round(k * NS_PER_S / self.rate_hz)
+
+    def _prepare(self, token: int, goal: JointTrajectoryGoal, tracked: bool,
+                 stamp_ns: int | None, index: int) -> tuple[Any, ...] | None:
+        follower = self.follower
+        assert follower is not None
+        epoch = self._epoch
+        t = index * self.period_s
+        # taking over from another trajectory: the goal starts from its state there; the
+        # follower is seeded with it only at the start, in the loop's thread (this may run in
+        # another, beside a goal the loop starts meanwhile)
+        state = None if self.goal_active else self._take_over_state(index)
+        origin = None if stamp_ns is None or self._origin_ns is None else \
+            (stamp_ns - self._origin_ns) / NS_PER_S
+        verdict, prepared = follower.prepare(goal, t, tracked=tracked, origin_s=origin,
+                                             start_state=state)
+        if prepared is None:
+            self._retries.pop(token, None)
+            self.events.append(('verdict', token, verdict, 0))
+            return None
+        item = ('start', token, prepared, state, epoch, verdict, goal, stamp_ns)
+        if self._lead:
+            self._starts.append(item)
+        return item
+
+    def _start(self, item: tuple[Any, ...], index: int) -> None:
+        _, token, prepared, state, epoch, verdict, goal, stamp_ns = item
+        follower = self.follower
+        assert follower is not None and isinstance(prepared, PreparedGoal)
+        seeded = state is not None
+        goal_id = 0
+        # the goal's own sample: this one, or in real time one the servo skipped shortly before
+        late = index * self.period_s - prepared.time_s
+        t = prepared.time_s
+        if epoch == self._epoch and seeded != self.goal_active and \
+                -0.5 * self.period_s <= late <= self._late_s + 0.5 * self.period_s:
+            if seeded:
+                follower.seed(t, *state)
+                prepared = dataclasses.replace(prepared, version=follower.version)
+            goal_id = follower.start(prepared, t)
+        if goal_id == 0:
+            # the reference changed since the check (or the sample passed): check it again,
+            # a bounded number of times
+            retries = self._retries.get(token, 0) + 1
+            if retries > GOAL_RETRIES:
+                self._retries.pop(token, None)
+                self.events.append(('verdict', token, GoalVerdict(
+                    ResultCode.INVALID_GOAL, f'the goal could not be started: {retries} checks '
+                    'in a row found the reference changed or their sample passed before they '
+                    'ended (goals or trajectory changes arriving faster than a goal is '
+                    'checked)'), 0))
+                return
+            self._retries[token] = retries
+            self.events.append(('retry', token, goal, prepared.tracked, stamp_ns))
+            return
+        self._retries.pop(token, None)
+        if seeded:
+            self._take_over()
+        if prepared.tracked:
+            # a topic message has no result and cannot be cancelled by its token
+            self._tokens[token] = goal_id
+        self.started.append((t, goal))
+        self.events.append(('verdict', token, verdict, goal_id))
+
+    def _serve_goals(self, index: int) -> None:
+        """Apply the goal requests due at grid sample ``index``."""
+        follower = self.follower
+        assert follower is not None
+        requests = self._requests
+        while requests:
+            item = requests.popleft()
+            kind = item[0]
+            if kind == 'goal':
+                started = self._prepare(item[1], item[2], item[3], item[4], index)
+                if started is not None:
+                    self._start(started, index)
+            elif kind == 'cancel':
+                goal_id = self._tokens.pop(item[1], None)
+                if goal_id is None:
+                    if any(r[1] == item[1] for r in self._starts):
+                        self._starts = deque(r for r in self._starts if r[1] != item[1])
+                        self.events.append(('cancelled', item[1]))
+                elif self.goal_active and follower.active_goal == goal_id:
+                    self._cancel_at(index)
+            elif self.goal_active:
+                self._cancel_at(index)
+        starts = self._starts
+        # goals checked ahead, each for its own sample (in the order they were checked)
+        while starts and round(starts[0][2].time_s / self.period_s) <= index:
+            self._start(starts.popleft(), index)
+
+    def _take_results(self) -> None:
+        assert self.follower is not None
+        results = self.follower.results
+        while results:
+            result = results.pop(0)
+            for token in [k for k, v in self._tokens.items() if v == result.goal_id]:
+                del self._tokens[token]
+            self.events.append(('result', result))
+
+    def _step_goal(self, index: int, positions_m: Sequence[float],
+                   desired_m: Sequence[float]) -> None:
+        follower = self.follower
+        assert follower is not None
+        _, feedback = follower.step(index * self.period_s, positions_m, desired_m)
+        if follower.results:
+            self._take_results()
+        if feedback is not None:
+            self.events.append(('feedback', feedback))
+
+
+class TrajectoryLogic(GoalDesk):
     """
     The trajectory node's behaviour: x_d(t_k) and x_d'(t_k) for each sample stamp.
 
@@ -514,28 +735,10 @@ class TrajectoryLogic:
         self._switch_ns: int | None = None
         self._window: tuple[int, Any, int, Any, Any] = (0, None, -1, np.zeros(0),
                                                          np.zeros(0))
-        self.follower: GoalFollower | None = None
+        self._init_goals()
         self._view: GoalTrajectory | None = None
-        self._lead = 0
-        self._late_s = 0.0
-        self._origin_ns: int | None = None
-        self._index = -1
-        self._epoch = 0
         self._version = -1
-        self._requests: deque[tuple[Any, ...]] = deque()
-        self._starts: deque[tuple[Any, ...]] = deque()
-        self._tokens: dict[int, int] = {}
-        self._retries: dict[int, int] = {}
         self._sent: dict[int, float] = {}
-        #: (loop time [s], goal) of the goals started, the last thousand: a run to replay
-        #: offline (:func:`~piezo_stage_ros.core.loop.follow.run_goals`).
-        self.started: deque[tuple[float, JointTrajectoryGoal]] = deque(maxlen=1000)
-        #: What the goals did, oldest first, for the side that answers the client (taken
-        #: with ``popleft`` from another thread): ``('verdict', token, GoalVerdict, goal_id)``,
-        #: ``('result', GoalResult)``, ``('feedback', Feedback)``, ``('retry', token, goal,
-        #: tracked, stamp_ns)`` (the reference changed while it was checked: check it again
-        #: with :meth:`goal`), ``('cancelled', token)`` (cancelled before it started).
-        self.events: deque[tuple[Any, ...]] = deque()
         #: Called with (trajectory, stamp of its t = 0) when a goal changes the reference, at
         #: the sample it does: a controller that reads the reference ahead binds it again
         #: (:meth:`ControllerLogic.request_trajectory`).
@@ -567,63 +770,24 @@ class TrajectoryLogic:
     # -- goals ------------------------------------------------------------------------------
 
     def attach_goals(self, follower: GoalFollower, lead_s: float = 0.0) -> None:
-        """
-        Take goals for ``follower`` (one axis); ``lead_s`` [s]: check them that far ahead.
-
-        0 (lockstep): a goal is checked and started at the next sample, in the sample's own
-        call. More (real time): :meth:`goal` checks it in the caller's thread for the sample
-        ``lead_s`` after the last one, and that sample only starts it.
-        """
-        self.follower = follower
+        """Take goals for ``follower`` (one axis); ``lead_s`` [s]: as :class:`GoalDesk`'s."""
+        super().attach_goals(follower, lead_s)
         self._view = GoalTrajectory(follower)
-        self._lead = max(0, int(round(lead_s * self.rate_hz)))
-        self._late_s = GOAL_LATE_START_S if self._lead else 0.0
 
     @property
     def goal_active(self) -> bool:
         """Return whether the reference is the follower's (a goal took it over)."""
         return self.active and self._view is not None and self.trajectory is self._view
 
-    def goal(self, token: int, goal: JointTrajectoryGoal, *, tracked: bool = True,
-             stamp_ns: int | None = None) -> None:
-        """
-        Submit a goal (any thread); its verdict comes as ``('verdict', token, ...)``.
+    def _take_over_state(self, index: int) -> State:
+        x, v, a = self._state_at(index)
+        return np.array([x]), np.array([v]), np.array([a])
 
-        Parameters
-        ----------
-        token : int
-            The caller's number for it (> 0).
-        goal : JointTrajectoryGoal
-            The goal.
-        tracked : bool
-            An action goal (results, feedback) or a topic message.
-        stamp_ns : int, optional
-            Its header stamp [ns] on the samples' clock, when not zero (times count from it).
-
-        """
-        if self.follower is None:
-            self.events.append(('verdict', token, GoalVerdict(
-                ResultCode.INVALID_GOAL, 'this trajectory node takes no goals'), 0))
-        elif self._lead == 0:
-            self._requests.append(('goal', token, goal, tracked, stamp_ns))
-        else:
-            # each retry checks twice as far ahead: a check slower than the lead (a long
-            # trajectory) gets a sample it can reach
-            lead = self._lead << self._retries.get(token, 0)
-            self._prepare(token, goal, tracked, stamp_ns, self._index + 1 + lead)
-
-    def cancel(self, token: int) -> None:
-        """Cancel the goal submitted as ``token`` (any thread): the reference decelerates."""
-        self._requests.append(('cancel', token))
-
-    def hold(self) -> None:
-        """Bring whatever goal moves the reference to rest (an empty JointTrajectory)."""
-        self._requests.append(('hold',))
-
-    def stamp_of(self, time_s: float) -> int:
-        """Return the stamp [ns] of the sample at loop time ``time_s`` (the goals' time)."""
-        k = round(time_s * self.rate_hz)
-        return (self._origin_ns or 0) + round(k * NS_PER_S / self.rate_hz)
+    def _take_over(self) -> None:
+        assert self._view is not None
+        self.trajectory = self._view
+        self._start_ns = self._origin_ns
+        self.active = True
 
     def _state_at(self, index: int) -> tuple[float, float, float]:
         """Return x_d, x_d', x_d'' of what plays now, at grid sample ``index``."""
@@ -631,105 +795,8 @@ class TrajectoryLogic:
             return self.hold_m, 0.0, 0.0
         start = index - self._index - 1 if self._start_ns is None or self._origin_ns is None \
             else index - round((self._start_ns - self._origin_ns) * self.rate_hz / NS_PER_S)
-        t = np.array([start - 1, start, start + 1], dtype=np.float64) * self.period_s
-        x, v = self.trajectory.evaluate(np.maximum(t, 0.0))
-        acc = (float(v[2]) - float(v[0])) / (2.0 * self.period_s) if start > 0 else 0.0
-        return float(x[1]), float(v[1]), acc
-
-    def _prepare(self, token: int, goal: JointTrajectoryGoal, tracked: bool,
-                 stamp_ns: int | None, index: int) -> tuple[Any, ...] | None:
-        follower = self.follower
-        assert follower is not None
-        epoch = self._epoch
-        t = index * self.period_s
-        # taking over from another trajectory: the goal starts from its state there; the
-        # follower is seeded with it only at the start, in the loop's thread (this may run in
-        # another, beside a goal the loop starts meanwhile)
-        state: State | None = None
-        if not self.goal_active:
-            x, v, a = self._state_at(index)
-            state = (np.array([x]), np.array([v]), np.array([a]))
-        origin = None if stamp_ns is None or self._origin_ns is None else \
-            (stamp_ns - self._origin_ns) / NS_PER_S
-        verdict, prepared = follower.prepare(goal, t, tracked=tracked, origin_s=origin,
-                                             start_state=state)
-        if prepared is None:
-            self._retries.pop(token, None)
-            self.events.append(('verdict', token, verdict, 0))
-            return None
-        item = ('start', token, prepared, state, epoch, verdict, goal, stamp_ns)
-        if self._lead:
-            self._starts.append(item)
-        return item
-
-    def _start(self, item: tuple[Any, ...], index: int) -> None:
-        _, token, prepared, state, epoch, verdict, goal, stamp_ns = item
-        follower = self.follower
-        assert follower is not None and isinstance(prepared, PreparedGoal)
-        seeded = state is not None
-        goal_id = 0
-        # the goal's own sample: this one, or in real time one the servo skipped shortly before
-        late = index * self.period_s - prepared.time_s
-        t = prepared.time_s
-        if epoch == self._epoch and seeded != self.goal_active and \
-                -0.5 * self.period_s <= late <= self._late_s + 0.5 * self.period_s:
-            if seeded:
-                follower.seed(t, *state)
-                prepared = dataclasses.replace(prepared, version=follower.version)
-            goal_id = follower.start(prepared, t)
-        if goal_id == 0:
-            # the reference changed since the check (or the sample passed): check it again,
-            # a bounded number of times
-            retries = self._retries.get(token, 0) + 1
-            if retries > GOAL_RETRIES:
-                self._retries.pop(token, None)
-                self.events.append(('verdict', token, GoalVerdict(
-                    ResultCode.INVALID_GOAL, f'the goal could not be started: {retries} checks '
-                    'in a row found the reference changed or their sample passed before they '
-                    'ended (goals or trajectory changes arriving faster than a goal is '
-                    'checked)'), 0))
-                return
-            self._retries[token] = retries
-            self.events.append(('retry', token, goal, prepared.tracked, stamp_ns))
-            return
-        self._retries.pop(token, None)
-        if seeded:
-            assert self._view is not None
-            self.trajectory = self._view
-            self._start_ns = self._origin_ns
-            self.active = True
-        if prepared.tracked:
-            # a topic message has no result and cannot be cancelled by its token
-            self._tokens[token] = goal_id
-        self.started.append((t, goal))
-        self.events.append(('verdict', token, verdict, goal_id))
-
-    def _serve_goals(self, index: int) -> None:
-        """Apply the goal requests due at grid sample ``index``."""
-        follower = self.follower
-        assert follower is not None
-        requests = self._requests
-        while requests:
-            item = requests.popleft()
-            kind = item[0]
-            if kind == 'goal':
-                started = self._prepare(item[1], item[2], item[3], item[4], index)
-                if started is not None:
-                    self._start(started, index)
-            elif kind == 'cancel':
-                goal_id = self._tokens.pop(item[1], None)
-                if goal_id is None:
-                    if any(r[1] == item[1] for r in self._starts):
-                        self._starts = deque(r for r in self._starts if r[1] != item[1])
-                        self.events.append(('cancelled', item[1]))
-                elif self.goal_active and follower.active_goal == goal_id:
-                    follower.cancel(index * self.period_s)
-            elif self.goal_active:
-                follower.cancel(index * self.period_s)
-        starts = self._starts
-        # goals checked ahead, each for its own sample (in the order they were checked)
-        while starts and round(starts[0][2].time_s / self.period_s) <= index:
-            self._start(starts.popleft(), index)
+        x, v, a = take_over_state((self.trajectory,), start, self.period_s)
+        return float(x[0]), float(v[0]), float(a[0])
 
     def _end_goal(self, index: int) -> None:
         """End the goal (CANCELED): a new trajectory or a stop takes the reference from it."""
@@ -737,15 +804,6 @@ class TrajectoryLogic:
         if self.follower.active_goal is not None:
             self.follower.hold(index * self.period_s)
         self._take_results()
-
-    def _take_results(self) -> None:
-        assert self.follower is not None
-        results = self.follower.results
-        while results:
-            result = results.pop(0)
-            for token in [k for k, v in self._tokens.items() if v == result.goal_id]:
-                del self._tokens[token]
-            self.events.append(('result', result))
 
     def observe(self, stamp_ns: int, position_m: float) -> None:
         """
@@ -759,16 +817,7 @@ class TrajectoryLogic:
         index = round((stamp_ns - self._origin_ns) * self.rate_hz / NS_PER_S)
         desired = self._sent.pop(index, None)
         if desired is not None:
-            self._step_goal(index, position_m, desired)
-
-    def _step_goal(self, index: int, position_m: float, desired_m: float) -> None:
-        follower = self.follower
-        assert follower is not None
-        _, feedback = follower.step(index * self.period_s, (position_m,), (desired_m,))
-        if follower.results:
-            self._take_results()
-        if feedback is not None:
-            self.events.append(('feedback', feedback))
+            self._step_goal(index, (position_m,), (desired,))
 
     def take_switch(self) -> int | None:
         """
@@ -938,7 +987,7 @@ class TrajectoryLogic:
             while len(self._sent) > 4096:
                 self._sent.pop(next(iter(self._sent)))
         elif math.isfinite(position_m):
-            self._step_goal(index, position_m, ref)
+            self._step_goal(index, (position_m,), (ref,))
         return ref, vel
 
 

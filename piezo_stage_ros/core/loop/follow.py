@@ -41,10 +41,17 @@ that sets them runs with its position tolerances. After a goal the last position
 (:class:`~piezo_stage_ros.core.loop.trajectories.TrajectoryBase`), for the loop and a
 feed-forward that reads the reference ahead; :func:`run_goals` is the offline loop with goals
 and cancels at given times, in the order of :mod:`piezo_stage_ros.core.loop.closed_loop`.
+
+A stage of several axes follows its goals in lockstep: one follower for every axis (its joints
+``stage_x`` ...), each axis interpolated from its own present reference and checked against its
+own limits. :class:`AxesGoalReference` gives every axis' reference sample by sample (the scan's
+until a goal takes the axes over, :func:`take_over_state`), for the trajectory node and
+:func:`run_axes_goals`, the offline loop of :mod:`piezo_stage_ros.core.loop.axes` with goals.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 import enum
 import math
@@ -53,8 +60,10 @@ from typing import Any, Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 from piezo_stage_ros.core.contracts.errors import ParameterError
-from piezo_stage_ros.core.contracts.interfaces import Controller
+from piezo_stage_ros.core.contracts.interfaces import Controller, Trajectory
 from piezo_stage_ros.core.contracts.types import FloatArray
+from piezo_stage_ros.core.control.axes import AxesController
+from piezo_stage_ros.core.loop.axes import axes_references
 from piezo_stage_ros.core.loop.closed_loop import Plant
 from piezo_stage_ros.core.loop.goals import (
     AxisLimits,
@@ -67,10 +76,12 @@ from piezo_stage_ros.core.loop.goals import (
 )
 from piezo_stage_ros.core.loop.splines import Spline
 from piezo_stage_ros.core.loop.trajectories import TrajectoryBase
+from piezo_stage_ros.core.model.axes import AxesStage
 
-__all__ = ['Feedback', 'FollowParams', 'GoalFollower', 'GoalLedger', 'GoalResult', 'GoalStatus',
-           'GoalsStatus', 'GoalTrajectory', 'goals_status', 'PreparedGoal', 'run_goals',
-           'SplineTrajectory']
+__all__ = ['AxesGoalReference', 'Feedback', 'FollowParams', 'GoalFollower', 'GoalLedger',
+           'GoalResult', 'GoalStatus', 'GoalsStatus', 'GoalTrajectory', 'binds_goals',
+           'goal_views', 'goals_status',
+           'PreparedGoal', 'run_axes_goals', 'run_goals', 'SplineTrajectory', 'take_over_state']
 
 #: How many times a stop's duration grows by 1.25 to keep to the acceleration (1.25^40: 7500x).
 _STOP_TRIES = 40
@@ -133,6 +144,10 @@ class FollowParams:
         Largest deceleration of a cancel or a path violation [m/s^2]; 1 stops the fastest
         point-to-point moves of the stage (mm/s) within a few milliseconds and micrometres,
         gently enough that the controller follows the stop about as closely as the move.
+    partial_joints : bool
+        Take goals that name some of the joints (the others hold the present reference's
+        position), as joint_trajectory_controller with ``allow_partial_joints_goal``; False
+        refuses them (``INVALID_JOINTS``).
 
     """
 
@@ -143,6 +158,7 @@ class FollowParams:
     goal_time_s: float = 0.0
     settle_s: float = 1e-3
     stop_acceleration_mps2: float = 1.0
+    partial_joints: bool = False
 
     def __post_init__(self) -> None:
         for name in ('sample_time_s', 'feedback_period_s', 'stop_acceleration_mps2'):
@@ -327,7 +343,8 @@ class GoalFollower:
         return validate_goal(goal, self.joints, self.limits, start_s=time_s,
                              start_state=self._state(time_s) if start_state is None
                              else start_state,
-                             sample_time_s=self.params.sample_time_s, origin_s=origin_s)
+                             sample_time_s=self.params.sample_time_s, origin_s=origin_s,
+                             partial_joints=self.params.partial_joints)
 
     def prepare(self, goal: JointTrajectoryGoal, time_s: float, *, tracked: bool = True,
                 origin_s: float | None = None, start_state: State | None = None
@@ -406,7 +423,8 @@ class GoalFollower:
         return self._goal_id
 
     def accept(self, goal: JointTrajectoryGoal, time_s: float, *, tracked: bool = True,
-               origin_s: float | None = None) -> tuple[GoalVerdict, int]:
+               origin_s: float | None = None, start_state: State | None = None
+               ) -> tuple[GoalVerdict, int]:
         """
         Check a goal and, if it may run, follow it from ``time_s`` on.
 
@@ -421,6 +439,10 @@ class GoalFollower:
         origin_s : float, optional
             Loop time ``time_from_start`` counts from (a header stamp that is not zero);
             default ``time_s``.
+        start_state : tuple of ndarray, optional
+            Position, velocity and acceleration of every axis at ``time_s`` of another
+            trajectory the goal takes the reference over from (:func:`take_over_state`): the
+            follower is seeded with it (:meth:`seed`) if the goal runs.
 
         Returns
         -------
@@ -430,9 +452,13 @@ class GoalFollower:
             The id of the new goal (its results and feedback carry it); 0 when refused.
 
         """
-        verdict, prepared = self.prepare(goal, time_s, tracked=tracked, origin_s=origin_s)
+        verdict, prepared = self.prepare(goal, time_s, tracked=tracked, origin_s=origin_s,
+                                         start_state=start_state)
         if prepared is None:
             return verdict, 0
+        if start_state is not None:
+            self.seed(time_s, *start_state)
+            prepared = dataclasses.replace(prepared, version=self.version)
         return verdict, self.start(prepared, time_s)
 
     def seed(self, time_s: float, position_m: ArrayLike, velocity_mps: ArrayLike,
@@ -711,7 +737,12 @@ def _axis_of(sampled: tuple[FloatArray, FloatArray, FloatArray], axis: int
 
 @dataclass
 class GoalRun:
-    """The samples of :func:`run_goals` and what happened to the goals."""
+    """
+    The samples of a run with goals and what happened to the goals.
+
+    :func:`run_goals`: arrays of shape (samples,); :func:`run_axes_goals`: (samples, axes),
+    with the true positions.
+    """
 
     time_s: FloatArray
     position_m: FloatArray
@@ -720,6 +751,7 @@ class GoalRun:
     results: list[GoalResult]
     feedback: list[Feedback]
     verdicts: list[tuple[float, GoalVerdict, int]]
+    true_position_m: FloatArray | None = None
 
 
 def run_goals(stage: Plant, controller: Controller, follower: GoalFollower,
@@ -792,3 +824,212 @@ def run_goals(stage: Plant, controller: Controller, follower: GoalFollower,
             feedback.append(fb)
         y = float(stage.step(u))
     return GoalRun(t_out, pos, ref, cmd, list(follower.results), feedback, verdicts)
+
+
+def take_over_state(trajectories: Sequence[Trajectory], index: int, sample_time_s: float
+                    ) -> State:
+    """
+    Return what the trajectories play at sample ``index``: the state a goal takes over.
+
+    Parameters
+    ----------
+    trajectories : sequence of Trajectory
+        One per axis, t = 0 at sample 0.
+    index : int
+        The sample, k T its time.
+    sample_time_s : float
+        T [s].
+
+    Returns
+    -------
+    position_m, velocity_mps, acceleration_mps2 : ndarray
+        One value per axis: x_d and x_d' as played at the sample, and x_d'' by the central
+        difference of x_d' over the samples around it (0 at the first sample).
+
+    """
+    t = np.maximum(np.array([index - 1, index, index + 1], dtype=np.float64) * sample_time_s,
+                   0.0)
+    n = len(trajectories)
+    x, v, a = np.zeros(n), np.zeros(n), np.zeros(n)
+    for j, trajectory in enumerate(trajectories):
+        xs, vs = trajectory.evaluate(t)
+        x[j], v[j] = float(xs[1]), float(vs[1])
+        a[j] = (float(vs[2]) - float(vs[0])) / (2.0 * sample_time_s) if index > 0 else 0.0
+    return x, v, a
+
+
+class AxesGoalReference:
+    """
+    Every axis' reference sample by sample: the trajectories' until a goal takes it over.
+
+    The one piece that computes the reference of a stage of several axes with goals, for the
+    lockstep trajectory node (:class:`~piezo_stage_ros.nodes.axes_logic.AxesTrajectoryLogic`)
+    and the offline runner (:func:`run_axes_goals`): the same floats in both. Evaluated in
+    chunks aligned at sample 0, as :func:`~piezo_stage_ros.core.loop.axes.run_axes` evaluates;
+    the follower's reference (every axis its :class:`GoalTrajectory`) again whenever it
+    changed.
+
+    Parameters
+    ----------
+    trajectories : sequence of Trajectory
+        One per axis: what plays before the first goal.
+    follower : GoalFollower or None
+        The goals of the stage's axes (None: the trajectories alone).
+    sample_time_s : float
+        T [s].
+    chunk : int
+        Samples evaluated at a time.
+    names : sequence of str
+        The axes, for messages.
+
+    """
+
+    def __init__(self, trajectories: Sequence[Trajectory], follower: GoalFollower | None,
+                 sample_time_s: float, chunk: int, names: Sequence[str] = ()) -> None:
+        self.trajectories = tuple(trajectories)
+        self.follower = follower
+        self.sample_time_s = float(sample_time_s)
+        self.chunk = max(int(chunk), 1)
+        self.names = tuple(names)
+        self.views = () if follower is None else tuple(
+            GoalTrajectory(follower, j) for j in range(len(self.trajectories)))
+        #: Whether a goal took the reference over (it stays the follower's from then on).
+        self.taken = False
+        self._source: tuple[bool, int] = (False, -1)
+        self._chunk_index = -1
+        self._ref: list[list[float]] = []
+        self._vel: list[list[float]] = []
+
+    def state(self, index: int) -> State:
+        """Return the state a goal starts from at sample ``index``, if it takes over there."""
+        return take_over_state(self.trajectories, index, self.sample_time_s)
+
+    def at(self, index: int) -> tuple[list[float], list[float]]:
+        """Return every axis' x_d [m] and x_d' [m/s] at sample ``index``."""
+        source = (self.taken, self.follower.version if self.taken and self.follower is not None
+                  else -1)
+        chunk = index // self.chunk
+        if chunk != self._chunk_index or source != self._source:
+            ref, vel = axes_references(self.views if self.taken else self.trajectories,
+                                       chunk * self.chunk, self.chunk, self.sample_time_s,
+                                       self.names)
+            self._ref, self._vel = ref.tolist(), vel.tolist()
+            self._chunk_index, self._source = chunk, source
+        i = index - chunk * self.chunk
+        return self._ref[i], self._vel[i]
+
+
+def goal_views(spline: Spline, axes: int) -> list[Trajectory]:
+    """Return every axis of a goals' spline as a trajectory, for the axes' feed-forwards."""
+    return [SplineTrajectory(spline, j) for j in range(axes)]
+
+
+def binds_goals(controller: AxesController) -> bool:
+    """
+    Return whether the axes' feed-forwards are bound to the goals' reference as it changes.
+
+    True when some axis has a feed-forward (``bind``) and none of them learns or has a period
+    of its own (``feedforward.period_s``): a goal's reference has no period, which a learning
+    feed-forward needs and a fixed period would misread. Otherwise the feed-forwards stay
+    bound to the scan, find a goal's reference changed and leave its samples to the feedback.
+    """
+    bound = False
+    for c in controller.controllers:
+        if not callable(getattr(c, 'bind', None)):
+            continue
+        params = getattr(c, 'params', None)
+        if getattr(params, 'learning', False) or getattr(params, 'period_s', 0.0):
+            return False
+        bound = True
+    return bound
+
+
+def run_axes_goals(stage: AxesStage, controller: AxesController,
+                   trajectories: Sequence[Trajectory], follower: GoalFollower,
+                   events: Sequence[tuple[float, Any]], *, duration_s: float,
+                   chunk_s: float = 1.0) -> GoalRun:
+    """
+    Run the closed loop of a stage of several axes with goals and cancels at given loop times.
+
+    The offline twin of the lockstep nodes with goals: the trajectories play (as in
+    :func:`~piezo_stage_ros.core.loop.axes.run_axes`) until a goal takes every axis over
+    from their state at its sample (:func:`take_over_state`). The controllers are bound to
+    the goals' reference (every axis' :class:`SplineTrajectory` of the follower's spline as
+    it stands) before the first sample at which it changed (a goal, a preemption, a cancel, a
+    violated path tolerance) when :func:`binds_goals`; otherwise they stay bound to the
+    trajectories, and a feed-forward that finds the reference changed leaves the sample to
+    the feedback.
+
+    Parameters
+    ----------
+    stage : AxesStage
+        The stage (reset here to its rest positions).
+    controller : AxesController
+        Every axis' controller (bound to ``trajectories`` and reset here from y_0, x_d(0)).
+    trajectories : sequence of Trajectory
+        One per axis, t = 0 at the first sample.
+    follower : GoalFollower
+        The goals' bookkeeping, its joints the stage's axes.
+    events : sequence of (time_s, goal or 'cancel')
+        As :func:`run_goals`.
+    duration_s : float
+        Simulated time [s].
+    chunk_s : float
+        The references are evaluated per chunk of this length [s].
+
+    Returns
+    -------
+    GoalRun
+        Arrays of shape (samples, axes), the true positions included.
+
+    Raises
+    ------
+    ParameterError
+        A trajectory or joint count that is not one per axis.
+
+    """
+    n = stage.n
+    if len(trajectories) != n or len(follower.joints) != n or controller.n != n:
+        raise ParameterError('trajectories', len(trajectories),
+                             f'{n}, one per axis {list(stage.names)} (controllers: '
+                             f'{controller.n}, joints: {len(follower.joints)})')
+    dt = float(stage.sample_time_s)
+    total = max(int(round(duration_s / dt)), 1)
+    reference = AxesGoalReference(trajectories, follower, dt,
+                                  max(int(round(chunk_s / dt)), 1), stage.names)
+    controller.bind(trajectories)
+    rebind = binds_goals(controller)
+    bound = -1
+    y = stage.reset(None)
+    ref, vel = reference.at(0)
+    controller.reset(list(y), list(ref))
+    pending = sorted(events, key=lambda e: e[0])
+    pos, true, refs, cmd = (np.empty((total, n)) for _ in range(4))
+    feedback: list[Feedback] = []
+    verdicts: list[tuple[float, GoalVerdict, int]] = []
+    j = 0
+    for k in range(total):
+        t = k * dt
+        while j < len(pending) and pending[j][0] <= t + 0.5 * dt:
+            what = pending[j][1]
+            if isinstance(what, JointTrajectoryGoal):
+                verdict, gid = follower.accept(
+                    what, t, start_state=None if reference.taken else reference.state(k))
+                reference.taken = reference.taken or gid != 0
+                verdicts.append((t, verdict, gid))
+            elif reference.taken:
+                follower.cancel(t)
+            j += 1
+        if rebind and reference.taken and follower.version != bound:
+            controller.bind(goal_views(follower.spline, n))
+            bound = follower.version
+        ref, vel = reference.at(k)
+        u = controller.step(list(y), list(ref), list(vel))
+        pos[k], true[k], refs[k], cmd[k] = y, stage.read_positions_m(), ref, u
+        if reference.taken:
+            _, fb = follower.step(t, y, ref)
+            if fb is not None:
+                feedback.append(fb)
+        y = stage.step(u)
+    return GoalRun(np.arange(total, dtype=np.float64) * dt, pos, refs, cmd,
+                   list(follower.results), feedback, verdicts, true)

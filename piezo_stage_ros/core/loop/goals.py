@@ -22,7 +22,8 @@ positions, optional velocities and accelerations; path and goal tolerances per j
 
 :func:`validate_goal` decides before acceptance, as joint_trajectory_controller does, and
 returns the result code of ``FollowJointTrajectory.Result`` with a reason that names the value
-and what is allowed: unknown, repeated or missing joints (``INVALID_JOINTS``); an empty
+and what is allowed: unknown, repeated or missing joints (``INVALID_JOINTS``; a partial goal,
+whose other joints hold, when allowed); an empty
 trajectory, times that do not increase or are negative, non-finite values, fields whose
 length is not the number of joints, a velocity left at the end, positions outside what the
 stage reaches, velocities, accelerations or commands beyond what the amplifier can drive, a
@@ -264,8 +265,12 @@ def _refuse(reason: str) -> GoalVerdict:
     return GoalVerdict(ResultCode.INVALID_GOAL, reason)
 
 
-def _check_joints(goal: JointTrajectoryGoal, joints: Sequence[str]) -> GoalVerdict | None:
+def _check_joints(goal: JointTrajectoryGoal, joints: Sequence[str], partial: bool = False
+                  ) -> GoalVerdict | None:
     allowed = f"the stage's joints {list(joints)}"
+    if partial and not goal.joint_names:
+        return GoalVerdict(ResultCode.INVALID_JOINTS,
+                           f'the goal names no joint; allowed: one or more of {allowed}')
     seen: set[str] = set()
     for name in goal.joint_names:
         if name not in joints:
@@ -276,7 +281,7 @@ def _check_joints(goal: JointTrajectoryGoal, joints: Sequence[str]) -> GoalVerdi
                                f'joint {name!r} is named twice; allowed: each of {allowed} once')
         seen.add(name)
     missing = [j for j in joints if j not in seen]
-    if missing:
+    if missing and not partial:
         return GoalVerdict(ResultCode.INVALID_JOINTS,
                            f'joints {missing} are missing; allowed: all of {allowed}')
     for kind, tolerances in (('path_tolerance', goal.path_tolerance),
@@ -292,12 +297,19 @@ def _check_joints(goal: JointTrajectoryGoal, joints: Sequence[str]) -> GoalVerdi
     return None
 
 
-def _columns(goal: JointTrajectoryGoal, joints: Sequence[str]
+def _columns(goal: JointTrajectoryGoal, joints: Sequence[str], hold_m: FloatArray
              ) -> tuple[_Columns | None, GoalVerdict | None]:
+    """
+    Return the goal's points as columns in the stage's joint order, or why they are bad.
+
+    A joint the goal does not name (a partial goal) holds ``hold_m`` (the present reference's
+    position) at every point, at rest where the points give velocities and accelerations, as
+    joint_trajectory_controller fills a partial goal.
+    """
     if not goal.points:
         return None, _refuse('the trajectory has no points; allowed: at least one point')
     n = len(goal.joint_names)
-    order = [goal.joint_names.index(j) for j in joints]
+    order = [goal.joint_names.index(j) if j in goal.joint_names else -1 for j in joints]
     with_vel = bool(goal.points[0].velocities_mps)
     with_acc = bool(goal.points[0].accelerations_mps2)
     for i, p in enumerate(goal.points):
@@ -324,11 +336,16 @@ def _columns(goal: JointTrajectoryGoal, joints: Sequence[str]
         return None, _refuse('points give accelerations without velocities; allowed: '
                              'positions, positions and velocities, or all three')
     times = np.array([p.time_from_start_s for p in goal.points])
-    pos = np.array([[p.positions_m[k] for k in order] for p in goal.points])
-    vel = np.array([[p.velocities_mps[k] for k in order] for p in goal.points]) \
+    held = [float(x) for x in np.asarray(hold_m, dtype=np.float64).reshape(len(joints))]
+
+    def column(values: tuple[float, ...], k: int, rest: float) -> float:
+        return values[k] if k >= 0 else rest
+    pos = np.array([[column(p.positions_m, k, held[j]) for j, k in enumerate(order)]
+                    for p in goal.points])
+    vel = np.array([[column(p.velocities_mps, k, 0.0) for k in order] for p in goal.points]) \
         if with_vel else None
-    acc = np.array([[p.accelerations_mps2[k] for k in order] for p in goal.points]) \
-        if with_acc else None
+    acc = np.array([[column(p.accelerations_mps2, k, 0.0) for k in order]
+                    for p in goal.points]) if with_acc else None
     if vel is not None and np.any(vel[-1] != 0.0):
         return None, _refuse(f'the last point has velocities {vel[-1].tolist()} m/s; allowed: '
                              '0 (the stage holds at the end)')
@@ -364,7 +381,7 @@ def build_spline(goal: JointTrajectoryGoal, joints: Sequence[str], start_s: floa
         later point is reached from the present reference.
 
     """
-    cols, verdict = _columns(goal, joints)
+    cols, verdict = _columns(goal, joints, start_state[0])
     assert cols is not None, verdict
     times = (start_s if origin_s is None else origin_s) + cols.times_s
     keep = times > start_s
@@ -404,7 +421,8 @@ def _check_block(spline: Spline, grid: FloatArray, start_s: float, joints: Seque
 def validate_goal(goal: JointTrajectoryGoal, joints: Sequence[str],
                   limits: Sequence[AxisLimits], *, start_s: float,
                   start_state: tuple[FloatArray, FloatArray, FloatArray],
-                  sample_time_s: float, origin_s: float | None = None) -> GoalVerdict:
+                  sample_time_s: float, origin_s: float | None = None,
+                  partial_joints: bool = False) -> GoalVerdict:
     """
     Decide whether a goal may run from the present reference, and why not.
 
@@ -426,6 +444,10 @@ def validate_goal(goal: JointTrajectoryGoal, joints: Sequence[str],
         The time ``time_from_start`` counts from (the header's stamp, in the loop's time) [s];
         default now. Points due before now are dropped; a trajectory whose last point is due
         before now is refused (``OLD_HEADER_TIMESTAMP``).
+    partial_joints : bool
+        Take a goal that names some of the joints: the others hold the present reference's
+        position (joint_trajectory_controller's ``allow_partial_joints_goal``); False refuses
+        it (``INVALID_JOINTS``), as that controller does by default.
 
     Returns
     -------
@@ -433,10 +455,10 @@ def validate_goal(goal: JointTrajectoryGoal, joints: Sequence[str],
         SUCCESSFUL, or INVALID_JOINTS / INVALID_GOAL / OLD_HEADER_TIMESTAMP with the reason.
 
     """
-    verdict = _check_joints(goal, joints)
+    verdict = _check_joints(goal, joints, partial_joints)
     if verdict is not None:
         return verdict
-    cols, verdict = _columns(goal, joints)
+    cols, verdict = _columns(goal, joints, start_state[0])
     if verdict is not None:
         return verdict
     assert cols is not None
