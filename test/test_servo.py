@@ -293,6 +293,24 @@ def test_a_servo_thread_whose_executor_takes_its_turns_never_waits_for_it():
         loop.share_interpreter(-1.0)
 
 
+def test_the_warm_up_copies_a_controller_logic_whose_hooks_are_a_nodes_methods():
+    # the composed nodes hand the logic their own methods (rebuild, on_bound, on_refused); a
+    # node holds locks, which cannot be copied: the copies leave the hooks out
+    class Node:
+        def __init__(self) -> None:
+            self.lock = threading.Lock()
+
+        def hook(self, *args: object) -> None:
+            raise AssertionError('a dry sample called the node')
+
+    node = Node()
+    loop = servo(FakeClock(per_read=300), 0.01)
+    logic = loop.controller
+    logic._rebuild = logic._on_bound = logic._on_refused = node.hook
+    assert loop.warm_up().startswith('applied: 64 dry samples')
+    assert logic._rebuild == logic._on_bound == logic._on_refused == node.hook
+
+
 def test_servo_loop_after_a_stall_skips_and_counts_never_bursts():
     clock = FakeClock(per_read=300)
     loop = servo(clock, 0.01)
