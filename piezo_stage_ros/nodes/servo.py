@@ -545,10 +545,11 @@ class ServoLoop:
         last turn began ``every_s`` [s] ago or more, the loop waits before its next sample
         until the executor has begun one (at most a period), in a blocking wait that frees
         the lock. CPython's own switching cannot be relied on here: a thread waiting for the
-        lock asks the holder to drop it only after a whole switch interval in which the lock
-        never changed hands, and the loop releases and takes it back at once now and then (a
-        numpy call over a chunk of the trajectory, a socket poll): each such release restarts
-        the waiter's interval, which then never ends, and the executor starves while the
+        lock asks the holder to drop it only when a whole switch interval passed without a
+        wake-up, and the loop releases the lock and takes it back at once now and then (numpy
+        over a chunk of the trajectory, a socket poll): each release wakes the waiter, which
+        finds the lock taken again and waits a whole interval anew. Releases as often as the
+        interval (chunks of 5 ms against CPython's 5 ms) keep it waiting for good, and the
         samples pile up. 0: never (the loop's own thread is the only one that needs the lock).
         """
         if not every_s >= 0.0:
