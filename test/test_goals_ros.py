@@ -292,16 +292,6 @@ def test_lockstep_joint_trajectory_topic_moves_and_an_empty_one_holds(context):
 # reacted, however far behind a loaded machine keeps the executor (seconds in real time)
 LONG_MOVE_S = 10.0
 
-# the servo thread runs the trajectory logic of the trajectory node: the deactivate aborts the
-# goal (ABORTED, the ledger's last result) and cancels it in the logic, whose CANCELED result
-# can come after it and take its place as the last result
-THREAD = pytest.mark.xfail(
-    reason='servo thread (servo.process false): the goal ended ABORTED at the deactivate is '
-           'also cancelled in the logic the servo thread runs; when a sample is served between '
-           'the two, its CANCELED result (code 0 SUCCESSFUL) comes after and the goals status '
-           'reports it as the last result',
-    strict=False)
-
 
 def long_move():
     return goal_msg([(LONG_MOVE_S, 25e-6, 0.0)], goal_m=5e-9)
@@ -309,7 +299,7 @@ def long_move():
 
 @pytest.mark.parametrize('mode, direct, process', [
     ('lockstep', True, False), ('lockstep', False, False), ('realtime', True, True),
-    pytest.param('realtime', True, False, marks=THREAD)],
+    ('realtime', True, False)],
     ids=['lockstep-direct', 'lockstep-topics', 'realtime-process', 'realtime-thread'])
 def test_goals_follow_the_plant_lifecycle(context, mode, direct, process):
     """Refused while the plant is not active; a deactivate ends the running goal, ABORTED."""

@@ -284,6 +284,11 @@ class PlantNode(LifecycleNode):
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Ramp to the safe voltage at the slew through the guard, then stop the loop."""
+        if isinstance(self.servo, ServoLoop) and self._t_start and not self.finished.done():
+            # a servo thread runs the peers' logic: the ramp takes over its samples before the
+            # peers hear of the deactivate, so that the goals they end there are not also
+            # played to their end by the loop (a cancel ends a slow goal in a sample or two)
+            self.guard.wind_down()
         return self._transition('deactivate', self._deactivate, state)
 
     def _deactivate(self) -> str | None:
