@@ -232,6 +232,85 @@ def test_the_warm_up_leaves_the_run_it_precedes_bit_for_bit_alone(mode):
         assert [getattr(s, column) for s in warm] == [getattr(s, column) for s in cold], column
 
 
+class _Executor:
+    """The executor thread as the loop's turn event sees it: it takes its turn while waited for."""
+
+    def __init__(self, loop: ServoLoop) -> None:
+        self.loop = loop
+        self.taken: list = []
+        self.timeouts: list[float] = []
+
+    def clear(self) -> None:
+        pass
+
+    def set(self) -> None:
+        pass
+
+    def wait(self, timeout: float) -> bool:
+        self.timeouts.append(timeout)
+        self.taken.extend(self.loop.drain())
+        return True
+
+
+def _columns(samples: list) -> dict:
+    return {c: np.array([getattr(s, c) for s in samples]) for c in
+            ('k', 'stamp_ns', 'position_m', 'reference_m', 'command_v', 'applied_v')}
+
+
+def test_a_servo_thread_hands_the_executor_the_lock_when_its_turn_is_overdue_only():
+    every = 10  # periods
+    loop = servo(FakeClock(per_read=300), 0.05)
+    loop.share_interpreter(every * PERIOD / 1e9)
+    executor = _Executor(loop)
+    loop._turn = executor  # type: ignore[assignment]
+    loop.run(start_ns=7 * PERIOD)
+    assert loop.error is None
+    got = executor.taken + loop.drain()
+    # a handover is a wait of at most a period, each one the executor's turn
+    assert executor.timeouts == [PERIOD / 1e9] * loop.handovers
+    # every `every` periods or a little more (the clock moves on each read): never more often
+    assert 500 // (every + 1) <= loop.handovers <= 500 // every
+    assert loop.stats()['handovers'] == loop.handovers
+    # the samples are those of the loop that never hands over, bit for bit
+    alone = servo(FakeClock(per_read=300), 0.05)
+    alone.run(start_ns=7 * PERIOD)
+    want = alone.drain()
+    assert 'handovers' not in alone.stats()
+    for (name, a), b in zip(_columns(got).items(), _columns(want).values()):
+        np.testing.assert_array_equal(a, b, err_msg=name)
+
+
+def test_a_servo_thread_whose_executor_takes_its_turns_never_waits_for_it():
+    loop = servo(FakeClock(per_read=300), 0.05)
+    loop.share_interpreter(10 * PERIOD / 1e9)
+    executor = _Executor(loop)
+    loop._turn = executor  # type: ignore[assignment]
+    taken: list = []
+    loop.boundary = lambda: bool(taken.extend(loop.drain()) or True)  # a turn each sample
+    loop.run(start_ns=7 * PERIOD)
+    assert loop.handovers == 0 and not executor.timeouts and len(taken + loop.drain()) == 500
+    with pytest.raises(ParameterError, match='every_s'):
+        loop.share_interpreter(-1.0)
+
+
+def test_the_warm_up_copies_a_controller_logic_whose_hooks_are_a_nodes_methods():
+    # the composed nodes hand the logic their own methods (rebuild, on_bound, on_refused); a
+    # node holds locks, which cannot be copied: the copies leave the hooks out
+    class Node:
+        def __init__(self) -> None:
+            self.lock = threading.Lock()
+
+        def hook(self, *args: object) -> None:
+            raise AssertionError('a dry sample called the node')
+
+    node = Node()
+    loop = servo(FakeClock(per_read=300), 0.01)
+    logic = loop.controller
+    logic._rebuild = logic._on_bound = logic._on_refused = node.hook
+    assert loop.warm_up().startswith('applied: 64 dry samples')
+    assert logic._rebuild == logic._on_bound == logic._on_refused == node.hook
+
+
 def test_servo_loop_after_a_stall_skips_and_counts_never_bursts():
     clock = FakeClock(per_read=300)
     loop = servo(clock, 0.01)

@@ -1188,6 +1188,16 @@ class ControllerLogic:
         self.safe_commands = 0
         self.changes = 0
 
+    def __getstate__(self) -> dict[str, Any]:
+        """
+        Return the state to copy, without the hooks to its node (the servo's warm-up).
+
+        The hooks are a node's methods: a copy would copy the node, which holds locks.
+        """
+        state = dict(self.__dict__)
+        state['_on_refused'] = state['_on_bound'] = state['_rebuild'] = None
+        return state
+
     def _bind_skip(self) -> None:
         self._skip: Callable[[int], None] | None = getattr(self.controller, 'skip', None)
         self._missed: Callable[[int], None] | None = getattr(self.controller, 'missed', None)

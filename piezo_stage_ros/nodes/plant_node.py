@@ -86,6 +86,9 @@ from std_msgs.msg import Float64, Float64MultiArray
 
 __all__ = ['PlantNode', 'main']
 
+#: Period [s] of the executor's timer that takes the samples of a real-time servo loop.
+SERVO_TICK_S = 0.002
+
 #: The state each transition of :class:`PlantNode` ends in when it succeeds.
 _AFTER = {'configure': 'inactive', 'activate': 'active', 'deactivate': 'inactive',
           'cleanup': 'unconfigured', 'shutdown': 'finalized'}
@@ -220,7 +223,7 @@ class PlantNode(LifecycleNode):
         elif self.logic.lockstep:
             tick, period = self._lockstep_tick, 0.005
         else:
-            tick, period = self._servo_tick, 0.002
+            tick, period = self._servo_tick, SERVO_TICK_S
         self._timer = self.create_timer(period, tick, clock=self._steady)
 
     def _transition(self, name: str, action: Callable[[], str | None],
@@ -281,6 +284,11 @@ class PlantNode(LifecycleNode):
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Ramp to the safe voltage at the slew through the guard, then stop the loop."""
+        if isinstance(self.servo, ServoLoop) and self._t_start and not self.finished.done():
+            # a servo thread runs the peers' logic: the ramp takes over its samples before the
+            # peers hear of the deactivate, so that the goals they end there are not also
+            # played to their end by the loop (a cancel ends a slow goal in a sample or two)
+            self.guard.wind_down()
         return self._transition('deactivate', self._deactivate, state)
 
     def _deactivate(self) -> str | None:
@@ -490,6 +498,9 @@ class PlantNode(LifecycleNode):
                 if isinstance(servo, ServoProcess):
                     servo.start(start_ns)  # sets its own scheduling up, in its process
                     return
+                # one interpreter for both: the loop hands the executor the lock once two ticks
+                # have gone by without one
+                servo.share_interpreter(2 * SERVO_TICK_S)
                 servo.start_thread(start_ns, lambda: servo_setup(opts, servo.pacer.period_ns),
                                    since_ns=time.monotonic_ns())
                 return

@@ -53,7 +53,7 @@ from typing import Any, Callable, NamedTuple, Sequence
 import numpy as np
 from piezo_stage_ros.core.config.loader import LoopConfig
 from piezo_stage_ros.core.config.nodes import PlantNodeParams
-from piezo_stage_ros.core.contracts.errors import PiezoStageError
+from piezo_stage_ros.core.contracts.errors import ParameterError, PiezoStageError
 from piezo_stage_ros.core.contracts.interfaces import Controller
 from piezo_stage_ros.core.contracts.wire import JOINT_NAME, NS_PER_S
 from piezo_stage_ros.core.control.ahead import CommandPredictor
@@ -386,6 +386,13 @@ class ServoLoop:
         self.on_setup: Callable[[dict[str, str]], None] | None = None
         self._halt = threading.Event()
         self._thread: threading.Thread | None = None
+        # a loop in a thread beside the executor: the executor's turns at the interpreter lock
+        # (share_interpreter); 0: never handed over
+        self._turn = threading.Event()
+        self._turn_ns = 0
+        self._turn_every_ns = 0
+        #: Samples at which the loop waited for the executor to take its turn.
+        self.handovers = 0
 
     def stamp_ns(self, index: int) -> int:
         """Return t_k [ns] of grid sample ``index``, as the plant node stamps it."""
@@ -529,10 +536,49 @@ class ServoLoop:
     def _set_origin(self, start_ns: int, since_ns: int | None, now_ns: int) -> None:
         self.start_ns = int(start_ns) + (now_ns - since_ns if since_ns is not None else 0)
 
+    def share_interpreter(self, every_s: float) -> None:
+        """
+        Hand the interpreter lock to the thread that takes the samples when its turn is overdue.
+
+        For a loop in a thread beside the ROS executor (:meth:`start_thread`), whose timer
+        takes the samples (:meth:`take_batch`, :meth:`drain`: each call is a turn). When the
+        last turn began ``every_s`` [s] ago or more, the loop waits before its next sample
+        until the executor has begun one (at most a period), in a blocking wait that frees
+        the lock. CPython's own switching cannot be relied on here: a thread waiting for the
+        lock asks the holder to drop it only when a whole switch interval passed without a
+        wake-up, and the loop releases the lock and takes it back at once now and then (numpy
+        over a chunk of the trajectory, a socket poll): each release wakes the waiter, which
+        finds the lock taken again and waits a whole interval anew. Releases as often as the
+        interval (chunks of 5 ms against CPython's 5 ms) keep it waiting for good, and the
+        samples pile up. 0: never (the loop's own thread is the only one that needs the lock).
+        """
+        if not every_s >= 0.0:
+            raise ParameterError('every_s', every_s, '[0, inf)')
+        self._turn_every_ns = round(every_s * NS_PER_S)
+        self._turn_ns = self.pacer.clock()
+
+    def _took_turn(self) -> None:
+        # the executor's side: it holds the interpreter lock now
+        self._turn_ns = self.pacer.clock()
+        self._turn.set()
+
+    def _hand_over(self) -> None:
+        # the loop's side, before it waits for its next sample
+        clock, every, turn = self.pacer.clock, self._turn_every_ns, self._turn
+        if clock() - self._turn_ns < every:
+            return
+        turn.clear()
+        if clock() - self._turn_ns < every:
+            return  # taken meanwhile
+        self.handovers += 1
+        turn.wait(self.pacer.period_ns / NS_PER_S)
+
     def step(self) -> bool:
         """Wait for the next sample, serve it, and return whether the run goes on."""
         if self.done:
             return False
+        if self._turn_every_ns:
+            self._hand_over()
         if self.bridge_clock is not None:
             return self._step_on_target_clock(self.bridge_clock)
         before = self.pacer.index
@@ -622,6 +668,7 @@ class ServoLoop:
 
         Called from another thread than the loop's: ``deque`` appends and pops are atomic.
         """
+        self._took_turn()
         out: list[ServoSample] = []
         queue = self.samples
         while queue and (not limit or len(out) < limit):
@@ -631,6 +678,7 @@ class ServoLoop:
 
     def take_batch(self) -> SampleBatch:
         """Return the samples queued since the last call as columns (the block recording)."""
+        self._took_turn()
         items = []
         queue = self.samples
         while queue:
@@ -653,6 +701,8 @@ class ServoLoop:
         out.update({'index': self.index, 'queue_overruns':
                     max(self.pushed - self.drained - len(self.samples), 0),
                     'controller_steps': self.controller.steps if self.controller else 0})
+        if self._turn_every_ns:
+            out['handovers'] = self.handovers
         if self.error is not None:
             out['error'] = repr(self.error)
         return out

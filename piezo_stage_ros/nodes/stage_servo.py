@@ -28,7 +28,7 @@ from __future__ import annotations
 
 from typing import Sequence
 
-from piezo_stage_ros.core.config.loader import LoopConfig
+from piezo_stage_ros.core.config.loader import load_loop_config, LoopConfig
 from piezo_stage_ros.core.contracts.errors import PiezoStageError
 from piezo_stage_ros.nodes.controller_node import ControllerNode
 from piezo_stage_ros.nodes.controller_node import factory as controller_factory
@@ -39,7 +39,7 @@ from piezo_stage_ros.nodes.runner import run
 from piezo_stage_ros.nodes.servo import ServoProcess, ServoSample
 from piezo_stage_ros.nodes.trajectory_node import TrajectoryNode
 
-__all__ = ['main']
+__all__ = ['bind_what_plays', 'connect_direct', 'main']
 
 
 def connect_direct(plant: PlantNode, controller: ControllerNode,
@@ -71,6 +71,9 @@ def connect_direct(plant: PlantNode, controller: ControllerNode,
     trajectory.set_stage(plant.binding.objects[0])
     trajectory.follow_plant(plant.state, plant.on_state)
     trajectory.logic.on_reference_change = controller.logic.request_trajectory
+    if plant.opts.mode == 'lockstep' or not plant.opts.servo.process:
+        # these logic objects run the loop (a servo process builds both from one trajectory)
+        bind_what_plays(controller, trajectory)
     if plant.opts.mode != 'lockstep':
         # real time: the plant's servo thread runs trajectory and controller for each sample;
         # the executor publishes what they computed, in batches, for outside subscribers
@@ -106,6 +109,24 @@ def connect_direct(plant: PlantNode, controller: ControllerNode,
         return controller.answer(sample.stamp_ns, sample.position_m, ref, vel)
 
     plant.attach_direct(step)
+
+
+def bind_what_plays(controller: ControllerNode, trajectory: TrajectoryNode) -> None:
+    """
+    Bind the controller's feed-forward to the trajectory the trajectory node plays.
+
+    A controller node reads the trajectory its feed-forward predicts from its parameter files
+    (a node in another process has nothing else); the trajectory node plays its own
+    parameters, overrides included. Where the two differ, the composed controller binds the
+    trajectory node's trajectory at the first sample, by call, as it binds every later one:
+    otherwise its feed-forward finds each reference mismatched and leaves it to the feedback.
+    Nothing happens where they agree (one file for both nodes, as the launch files give).
+    """
+    if controller._ff_context is None:
+        return  # no feed-forward: nothing reads the trajectory ahead
+    configured = load_loop_config(controller._files).trajectory
+    if configured != trajectory.binding.objects[0]:
+        controller.logic.request_trajectory(trajectory.logic.trajectory)
 
 
 def main(args: Sequence[str] | None = None) -> int:
