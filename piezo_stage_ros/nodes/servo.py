@@ -40,6 +40,7 @@ from __future__ import annotations
 from collections import deque
 import copy
 import functools
+import gc
 import math
 import multiprocessing
 from multiprocessing import shared_memory
@@ -84,8 +85,43 @@ from piezo_stage_ros.nodes.recording import SampleBatch
 # the float columns of a ring row before the diagnostics (SampleRing.FLOATS)
 _VALUES = 6
 
-__all__ = ['apply_change', 'batch_of', 'make_bridge', 'SampleRing', 'samples_of',
-           'servo_from_config', 'ServoLoop', 'ServoProcess', 'ServoSample']
+__all__ = ['apply_change', 'batch_of', 'freeze_gc', 'make_bridge', 'SampleRing', 'samples_of',
+           'servo_from_config', 'ServoLoop', 'ServoProcess', 'ServoSample', 'unfreeze_gc']
+
+# the servo loops of this process that hold the garbage collector frozen (freeze_gc)
+_gc_lock = threading.Lock()
+_gc_holders = [0]
+
+
+def freeze_gc() -> None:
+    """
+    Move everything the process holds now out of the garbage collector's reach (a servo's start).
+
+    The first holder collects first (:func:`gc.collect`, before its clock starts), then
+    :func:`gc.freeze`: the collections during the run scan only what the run makes, instead
+    of stopping a sample now and then for milliseconds (the oldest generation: every table,
+    module and configuration) to scan them all again. A loop that starts while another runs
+    freezes what was built since, without a collection that would stall the running one.
+    Each call is paired with :func:`unfreeze_gc`; the last one gives them back.
+    """
+    with _gc_lock:
+        if _gc_holders[0] == 0:
+            gc.collect()
+        gc.freeze()
+        _gc_holders[0] += 1
+
+
+def unfreeze_gc() -> None:
+    """
+    End a :func:`freeze_gc`; the last holder gives the frozen objects back to the collector.
+
+    Frozen objects are never collected: a cycle of them dropped after the run (the run's own
+    objects, a servo started again in the process) would otherwise stay for the process' life.
+    """
+    with _gc_lock:
+        _gc_holders[0] = max(_gc_holders[0] - 1, 0)
+        if _gc_holders[0] == 0:
+            gc.unfreeze()
 
 
 class ServoSample(NamedTuple):
@@ -386,6 +422,10 @@ class ServoLoop:
         self.on_setup: Callable[[dict[str, str]], None] | None = None
         self._halt = threading.Event()
         self._thread: threading.Thread | None = None
+        #: :meth:`run` freezes the garbage collector's view of what was built before its
+        #: clock starts (:func:`freeze_gc`) and gives it back at its end.
+        self.freeze_gc = True
+        self._frozen = False
 
     def stamp_ns(self, index: int) -> int:
         """Return t_k [ns] of grid sample ``index``, as the plant node stamps it."""
@@ -574,7 +614,8 @@ class ServoLoop:
         """
         Start and serve samples until the run is complete, :meth:`stop`, or an error.
 
-        ``start_ns``, ``since_ns``: as :meth:`start`; ``setup`` runs first, in this thread.
+        ``start_ns``, ``since_ns``: as :meth:`start`; ``setup`` runs first, in this thread,
+        then :meth:`warm_up` and, with :attr:`freeze_gc`, :func:`freeze_gc` (undone at the end).
 
         An error drives the safe voltage (:meth:`GuardedPlant.fault`) and is kept in
         :attr:`error` for the caller to report; the backend is stopped at the end either way.
@@ -585,6 +626,10 @@ class ServoLoop:
             self.setup_report['warm_up'] = self.warm_up()
             if self.on_setup is not None:
                 self.on_setup(self.setup_report)
+            if self.freeze_gc:
+                # after the warm-up: its copies are collected, not frozen
+                freeze_gc()
+                self._frozen = True
             self.start(start_ns, since_ns)
             halt, boundary = self._halt, self.boundary
             while not halt.is_set() and self.step():
@@ -596,6 +641,9 @@ class ServoLoop:
         finally:
             self.done = True
             self.plant.stop()
+            if self._frozen:
+                self._frozen = False
+                unfreeze_gc()
 
     def start_thread(self, start_ns: int = 0, setup: Callable[[], Any] | None = None,
                      since_ns: int | None = None) -> threading.Thread:
