@@ -517,8 +517,15 @@ class PreviewInverse:
         ``x`` holds the reference from ``back`` samples before the first output to ``lead``
         samples after the last one.
         """
+        return self.causal(self.preview(x), state)
+
+    def preview(self, x: FloatArray) -> FloatArray:
+        """Return the first half of :meth:`block`: the FIR on the reference ahead."""
+        return np.asarray(np.correlate(x, self.taps, mode='valid'), dtype=np.float64)
+
+    def causal(self, fir: FloatArray, state: Any) -> tuple[FloatArray, Any]:
+        """Return the second half of :meth:`block`: the zeros inside the unit circle; the state."""
         from scipy.signal import lfilter
-        fir = np.correlate(x, self.taps, mode='valid')
         if self.back:
             out, state = lfilter(np.ones(1), self.iir, fir, zi=state)
             return np.asarray(out, dtype=np.float64), state
@@ -1442,8 +1449,9 @@ class _Block:
     the block is needed, they give the tables it gives at once.
     """
 
-    #: Evaluate the reference, shape its jumps, filter (the model inverse), make the lists.
-    STAGES = 4
+    #: Evaluate the reference, shape its jumps, the model inverse's FIR, its causal filter
+    #: (the filter goes on), make the lists.
+    STAGES = 5
 
     def __init__(self, k: int) -> None:
         self.k = k
@@ -1456,9 +1464,11 @@ class _Block:
         self.raw_v: FloatArray = np.zeros(0)
         self.xs: FloatArray = np.zeros(0)
         self.vs: FloatArray = np.zeros(0)
-        #: The filter state before the block and after it.
+        self.fir: FloatArray = np.zeros(0)
+        #: The filter state before the block and after it (once ``filtered``).
         self.state_before: Any = None
         self.state: Any = None
+        self.filtered = False
         self.tables: tuple[FloatArray, FloatArray, FloatArray, FloatArray] = (
             np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
         self.lists: tuple[list[float], list[float], list[float], list[float]] = ([], [], [],
@@ -2290,7 +2300,7 @@ class FeedForwardController:
 
     def _drop_block(self, work: _Block) -> None:
         """Forget a block computed ahead: the filter goes on from where it was before it."""
-        if work.stage > 2:
+        if work.filtered:
             self._filter_state = work.state_before
 
     def _finish_block(self, work: _Block) -> None:
@@ -2305,7 +2315,7 @@ class FeedForwardController:
         return work
 
     def _block_stage(self, work: _Block) -> None:
-        """Run the next stage of ``work`` (:class:`_Block`); the filter goes on at the third."""
+        """Run the next stage of ``work`` (:class:`_Block`); the filter goes on at the fourth."""
         inv = self.plant_inverse
         size = self.params.block_samples
         half = int(math.ceil(self.transition_s / self._t)) + 2
@@ -2318,15 +2328,18 @@ class FeedForwardController:
         elif stage == 1:
             work.xs, work.vs = self._shape(work.raw_x, work.raw_v)
         elif stage == 2:
+            if self._inverse_on:
+                work.fir = inv.preview(work.xs[half:len(work.xs) - half])
+        elif stage == 3:
             work.state_before = work.state = self._filter_state
             w = np.zeros(size)
             if self._inverse_on:
-                seq = work.xs[half:len(work.xs) - half]
                 if work.state is None:
-                    work.state = inv.start(float(seq[0]))
-                w, work.state = inv.block(seq, work.state)
+                    work.state = inv.start(float(work.xs[half]))
+                w, work.state = inv.causal(work.fir, work.state)
                 w = w / self.slope
             self._filter_state = work.state
+            work.filtered = True
             core = slice(inv.back + half, inv.back + half + size)
             work.tables = (work.raw_x[core], work.xs[core], work.vs[core], w)
         else:
