@@ -186,10 +186,11 @@ def test_the_servo_freezes_the_collector_over_its_run_and_gives_it_back() -> Non
     servo = make_servo(loop, 0.005)
     frozen = []
     servo.boundary = lambda: frozen.append(gc.get_freeze_count()) is None
-    before = gc.get_freeze_count()
+    before = gc.get_freeze_count()  # Python 3.12 starts with some of its own frozen
     servo.run()
-    assert servo.error is None and frozen and min(frozen) > 0
-    assert gc.get_freeze_count() == before == 0
+    assert servo.error is None and frozen and min(frozen) > before
+    # given back: gc.unfreeze gives back all (there is no other way), the interpreter's too
+    assert gc.get_freeze_count() == 0
     servo = make_servo(loop, 0.005)
     servo.freeze_gc = False
     frozen.clear()
@@ -199,10 +200,11 @@ def test_the_servo_freezes_the_collector_over_its_run_and_gives_it_back() -> Non
 
 
 def test_loops_that_overlap_keep_the_collector_frozen_until_the_last_ends() -> None:
+    before = gc.get_freeze_count()
     servo_module.freeze_gc()
     try:
         first = gc.get_freeze_count()
-        assert first > 0
+        assert first > before
         holder = [object()]  # built after the first froze: the second freezes it too
         servo_module.freeze_gc()
         assert gc.get_freeze_count() > first and holder

@@ -117,6 +117,8 @@ def unfreeze_gc() -> None:
 
     Frozen objects are never collected: a cycle of them dropped after the run (the run's own
     objects, a servo started again in the process) would otherwise stay for the process' life.
+    :func:`gc.unfreeze` gives back every frozen object, those frozen before the first holder
+    too (Python 3.12 starts with some): the collector then scans them as old objects.
     """
     with _gc_lock:
         _gc_holders[0] = max(_gc_holders[0] - 1, 0)
