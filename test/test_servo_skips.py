@@ -213,3 +213,74 @@ def test_loops_that_overlap_keep_the_collector_frozen_until_the_last_ends() -> N
     finally:
         servo_module.unfreeze_gc()
     assert gc.get_freeze_count() == 0
+
+
+class _Clock:
+    """A scripted monotonic clock [ns] that is always on time: each sleep moves it there."""
+
+    def __init__(self) -> None:
+        self.now = 10**9
+
+    def __call__(self) -> int:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.now += max(int(seconds * 1e9), 1)
+
+
+def _servo_goals(ahead_blocks: bool) -> tuple[np.ndarray, list[Any], int]:
+    """Hold, a move, then scan lines, on the servo of a process on an on-time clock."""
+    loop = load_loop_config(['config/default.yaml', 'config/hold.yaml'])
+    loop = dataclasses.replace(loop, controller=dataclasses.replace(
+        loop.controller, feedforward=dataclasses.replace(loop.controller.feedforward,
+                                                         mode='inverse')))
+    servo = servo_module.servo_from_config(loop, 0.2, capacity=0)
+    clock = _Clock()
+    servo.pacer = servo_module.Pacer(100_000, clock=clock, sleep=clock.sleep, spin_ns=0)
+    logic = servo.trajectory
+    assert logic is not None and logic.follower is not None
+    if not ahead_blocks:
+        del logic.follower.prepare  # the follower's own: no block computed ahead
+    rows: list[tuple[float, ...]] = []
+    servo.on_sample = lambda s: rows.append((s.k, s.position_m, s.reference_m, s.command_v))
+    events: list[Any] = []
+    move = JointTrajectoryGoal(('stage',), (TrajectoryPoint(0.02, (5e-6,), (0.0,)),))
+    plan = {100: (1, move), 600: (2, _scan(1))}
+    computed = [0]
+    ff = servo.controller.controller if servo.controller is not None else None
+    assert isinstance(ff, FeedForwardController)
+
+    def counted(self: FeedForwardController, k: int) -> _Block:
+        # the blocks computed whole in the loop's own controller (not in a copy ahead)
+        computed[0] += self is ff
+        return _compute_block(self, k)
+
+    def boundary() -> bool:
+        while logic.events:
+            events.append(logic.events.popleft()[:2])
+        if servo.index in plan:
+            # checked here, between samples, for the sample the lead puts it at
+            token, goal = plan[servo.index]
+            logic.goal(token, goal)
+        return True
+
+    servo.boundary = boundary
+    FeedForwardController._compute_block = counted  # type: ignore[method-assign]
+    try:
+        servo.run()
+    finally:
+        FeedForwardController._compute_block = _compute_block  # type: ignore[method-assign]
+    return np.array(rows), events, computed[0]
+
+
+_compute_block = FeedForwardController._compute_block
+
+
+def test_a_goals_first_block_computed_at_its_check_is_the_one_its_start_computes() -> None:
+    ahead, events, computed = _servo_goals(True)
+    at_start, events1, computed1 = _servo_goals(False)
+    assert np.array_equal(ahead, at_start)
+    assert [e[0] for e in events] == [e[0] for e in events1]
+    # both goals accepted, and each one's first block came from its check
+    assert [e for e in events if e[0] == 'verdict'] and computed == computed1 - 2
+    assert np.isfinite(ahead).all() and ahead.shape[0] == 2000

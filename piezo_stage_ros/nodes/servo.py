@@ -64,7 +64,7 @@ from piezo_stage_ros.core.control.controllers import (
     SENSOR_GAIN_V_PER_M,
 )
 from piezo_stage_ros.core.loop.closed_loop import true_position_reader
-from piezo_stage_ros.core.loop.follow import FollowParams, GoalFollower
+from piezo_stage_ros.core.loop.follow import FollowParams, GoalFollower, SplineTrajectory
 from piezo_stage_ros.core.loop.goals import AxisLimits
 from piezo_stage_ros.core.loop.trajectories import make_trajectory
 from piezo_stage_ros.core.model.hysteresis import make_hysteresis
@@ -812,6 +812,12 @@ def servo_from_config(loop: LoopConfig, duration_s: float, bridge: Bridge | None
                                          [trajectory.hold_m], FollowParams(sample_time_s=period)),
                             lead_s=0.02)
     trajectory.on_reference_change = controller.request_trajectory
+    # the feed-forward's first block of a goal's reference, computed where the goal is checked
+    # (outside the sample), taken at the sample the goal starts at
+    follower = trajectory.follower
+    assert follower is not None
+    follower.prepare = functools.partial(  # type: ignore[method-assign]
+        _prepare_goal, follower, controller, stage.sample_rate_hz)
     opts = loop.plant_node
     plant = GuardedPlant(bridge if bridge is not None else make_bridge(stage, opts),
                          stage.chain, opts.command_timeout_s,
@@ -822,6 +828,17 @@ def servo_from_config(loop: LoopConfig, duration_s: float, bridge: Bridge | None
                                  spin_ns=round(opts.servo.spin_us * 1000)),
                      capacity=capacity, on_sample=on_sample,
                      commands_ahead=opts.servo.commands_ahead)
+
+
+def _prepare_goal(follower: GoalFollower, controller: ControllerLogic, rate_hz: float,
+                  goal: Any, time_s: float, **options: Any) -> tuple[Any, Any]:
+    # GoalFollower.prepare, then the controller's first block of the goal's reference ahead
+    # (a feed-forward's prepare_block: used only where it is what the start would compute)
+    verdict, prepared = GoalFollower.prepare(follower, goal, time_s, **options)
+    prepare_block = getattr(controller.controller, 'prepare_block', None)
+    if prepared is not None and prepare_block is not None:
+        prepare_block(SplineTrajectory(prepared.spline), round(time_s * rate_hz))
+    return verdict, prepared
 
 
 def apply_change(servo: ServoLoop, kind: str, value: Any) -> None:

@@ -1624,6 +1624,8 @@ class FeedForwardController:
         # the next block, computed a stage a step after the present one is installed (a
         # sample pays for a stage, never for a whole block), read ahead by predict
         self._block_ahead: _Block | None = None
+        # the first block of a reference to come, computed ahead (prepare_block)
+        self._first_block: _Block | None = None
         self._k = 0
         self._matched = False
         self._u = 0.0
@@ -2265,8 +2267,15 @@ class FeedForwardController:
         """Install the feed-forward of samples k .. k + block - 1 (aperiodic references)."""
         work = self._block_ahead
         self._block_ahead = None
+        first = self._first_block
         if work is not None and work.k == k and self._current(work):
             self._finish_block(work)
+        elif work is None and self._filter_state is None and first is not None and \
+                first.k == k and first.values is not None and self._current(first):
+            # the first block after a bind, computed ahead on the values shown now
+            self._first_block = None
+            self._filter_state = first.state
+            work = first
         else:
             if work is not None:
                 self._drop_block(work)  # the block read ahead was not used
@@ -2275,6 +2284,27 @@ class FeedForwardController:
         self._block_start = k
         # the next one, a stage a step from the next step on
         self._block_ahead = _Block(k + len(self._lx))
+
+    def prepare_block(self, trajectory: Trajectory, k: int) -> None:
+        """
+        Compute ahead the first block of a reference a bind will show, from sample ``k`` on.
+
+        For a view of a reference that changes (a goal follower's): when a goal is checked,
+        before the sample it starts at, its reference is known (``trajectory``, whose
+        ``spline`` is what the view will show). Called in the checking thread: the block is
+        computed on a copy (this controller is not touched but for keeping it) and the first
+        block after the next bind takes it if that bind starts at ``k`` and its view shows
+        that spline; otherwise it is computed then, as without.
+        """
+        values = getattr(trajectory, 'spline', None)
+        if values is None or not self._inverse_on or self._learning_on:
+            return  # nothing to identify it by; learning does not take such a reference
+        dry = copy.copy(self)  # computing assigns what it sets: self is left as it is
+        dry._trajectory = trajectory
+        dry._filter_state = None
+        work = dry._compute_block(k)
+        work.values = values
+        self._first_block = work
 
     def _peek_block(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """Return the next block's tables ahead of time (:meth:`predict` at a block's end)."""
