@@ -28,6 +28,7 @@ import dataclasses
 import gc
 from typing import Any
 
+from fake_clock import FakeClock
 import numpy as np
 from piezo_stage_ros.bench.servo import loop_config, make_servo
 from piezo_stage_ros.core.config.loader import load_loop_config
@@ -215,19 +216,6 @@ def test_loops_that_overlap_keep_the_collector_frozen_until_the_last_ends() -> N
     assert gc.get_freeze_count() == 0
 
 
-class _Clock:
-    """A scripted monotonic clock [ns] that is always on time: each sleep moves it there."""
-
-    def __init__(self) -> None:
-        self.now = 10**9
-
-    def __call__(self) -> int:
-        return self.now
-
-    def sleep(self, seconds: float) -> None:
-        self.now += max(int(seconds * 1e9), 1)
-
-
 def _servo_goals(ahead_blocks: bool) -> tuple[np.ndarray, list[Any], int]:
     """Hold, a move, then scan lines, on the servo of a process on an on-time clock."""
     loop = load_loop_config(['config/default.yaml', 'config/hold.yaml'])
@@ -235,7 +223,7 @@ def _servo_goals(ahead_blocks: bool) -> tuple[np.ndarray, list[Any], int]:
         loop.controller, feedforward=dataclasses.replace(loop.controller.feedforward,
                                                          mode='inverse')))
     servo = servo_module.servo_from_config(loop, 0.2, capacity=0)
-    clock = _Clock()
+    clock = FakeClock()
     servo.pacer = servo_module.Pacer(100_000, clock=clock, sleep=clock.sleep, spin_ns=0)
     logic = servo.trajectory
     assert logic is not None and logic.follower is not None
