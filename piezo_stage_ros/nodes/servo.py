@@ -40,6 +40,7 @@ from __future__ import annotations
 from collections import deque
 import copy
 import functools
+import gc
 import math
 import multiprocessing
 from multiprocessing import shared_memory
@@ -63,7 +64,7 @@ from piezo_stage_ros.core.control.controllers import (
     SENSOR_GAIN_V_PER_M,
 )
 from piezo_stage_ros.core.loop.closed_loop import true_position_reader
-from piezo_stage_ros.core.loop.follow import FollowParams, GoalFollower
+from piezo_stage_ros.core.loop.follow import FollowParams, GoalFollower, SplineTrajectory
 from piezo_stage_ros.core.loop.goals import AxisLimits
 from piezo_stage_ros.core.loop.trajectories import make_trajectory
 from piezo_stage_ros.core.model.hysteresis import make_hysteresis
@@ -84,8 +85,45 @@ from piezo_stage_ros.nodes.recording import SampleBatch
 # the float columns of a ring row before the diagnostics (SampleRing.FLOATS)
 _VALUES = 6
 
-__all__ = ['apply_change', 'batch_of', 'make_bridge', 'SampleRing', 'samples_of',
-           'servo_from_config', 'ServoLoop', 'ServoProcess', 'ServoSample']
+__all__ = ['apply_change', 'batch_of', 'freeze_gc', 'make_bridge', 'SampleRing', 'samples_of',
+           'servo_from_config', 'ServoLoop', 'ServoProcess', 'ServoSample', 'unfreeze_gc']
+
+# the servo loops of this process that hold the garbage collector frozen (freeze_gc)
+_gc_lock = threading.Lock()
+_gc_holders = [0]
+
+
+def freeze_gc() -> None:
+    """
+    Move everything the process holds now out of the garbage collector's reach (a servo's start).
+
+    The first holder collects first (:func:`gc.collect`, before its clock starts), then
+    :func:`gc.freeze`: the collections during the run scan only what the run makes, instead
+    of stopping a sample now and then for milliseconds (the oldest generation: every table,
+    module and configuration) to scan them all again. A loop that starts while another runs
+    freezes what was built since, without a collection that would stall the running one.
+    Each call is paired with :func:`unfreeze_gc`; the last one gives them back.
+    """
+    with _gc_lock:
+        if _gc_holders[0] == 0:
+            gc.collect()
+        gc.freeze()
+        _gc_holders[0] += 1
+
+
+def unfreeze_gc() -> None:
+    """
+    End a :func:`freeze_gc`; the last holder gives the frozen objects back to the collector.
+
+    Frozen objects are never collected: a cycle of them dropped after the run (the run's own
+    objects, a servo started again in the process) would otherwise stay for the process' life.
+    :func:`gc.unfreeze` gives back every frozen object, those frozen before the first holder
+    too (Python 3.12 starts with some): the collector then scans them as old objects.
+    """
+    with _gc_lock:
+        _gc_holders[0] = max(_gc_holders[0] - 1, 0)
+        if _gc_holders[0] == 0:
+            gc.unfreeze()
 
 
 class ServoSample(NamedTuple):
@@ -393,6 +431,10 @@ class ServoLoop:
         self._turn_every_ns = 0
         #: Samples at which the loop waited for the executor to take its turn.
         self.handovers = 0
+        #: :meth:`run` freezes the garbage collector's view of what was built before its
+        #: clock starts (:func:`freeze_gc`) and gives it back at its end.
+        self.freeze_gc = True
+        self._frozen = False
 
     def stamp_ns(self, index: int) -> int:
         """Return t_k [ns] of grid sample ``index``, as the plant node stamps it."""
@@ -620,7 +662,8 @@ class ServoLoop:
         """
         Start and serve samples until the run is complete, :meth:`stop`, or an error.
 
-        ``start_ns``, ``since_ns``: as :meth:`start`; ``setup`` runs first, in this thread.
+        ``start_ns``, ``since_ns``: as :meth:`start`; ``setup`` runs first, in this thread,
+        then :meth:`warm_up` and, with :attr:`freeze_gc`, :func:`freeze_gc` (undone at the end).
 
         An error drives the safe voltage (:meth:`GuardedPlant.fault`) and is kept in
         :attr:`error` for the caller to report; the backend is stopped at the end either way.
@@ -631,6 +674,10 @@ class ServoLoop:
             self.setup_report['warm_up'] = self.warm_up()
             if self.on_setup is not None:
                 self.on_setup(self.setup_report)
+            if self.freeze_gc:
+                # after the warm-up: its copies are collected, not frozen
+                freeze_gc()
+                self._frozen = True
             self.start(start_ns, since_ns)
             halt, boundary = self._halt, self.boundary
             while not halt.is_set() and self.step():
@@ -642,6 +689,9 @@ class ServoLoop:
         finally:
             self.done = True
             self.plant.stop()
+            if self._frozen:
+                self._frozen = False
+                unfreeze_gc()
 
     def start_thread(self, start_ns: int = 0, setup: Callable[[], Any] | None = None,
                      since_ns: int | None = None) -> threading.Thread:
@@ -812,6 +862,12 @@ def servo_from_config(loop: LoopConfig, duration_s: float, bridge: Bridge | None
                                          [trajectory.hold_m], FollowParams(sample_time_s=period)),
                             lead_s=0.02)
     trajectory.on_reference_change = controller.request_trajectory
+    # the feed-forward's first block of a goal's reference, computed where the goal is checked
+    # (outside the sample), taken at the sample the goal starts at
+    follower = trajectory.follower
+    assert follower is not None
+    follower.prepare = functools.partial(  # type: ignore[method-assign]
+        _prepare_goal, follower, controller, stage.sample_rate_hz)
     opts = loop.plant_node
     plant = GuardedPlant(bridge if bridge is not None else make_bridge(stage, opts),
                          stage.chain, opts.command_timeout_s,
@@ -822,6 +878,17 @@ def servo_from_config(loop: LoopConfig, duration_s: float, bridge: Bridge | None
                                  spin_ns=round(opts.servo.spin_us * 1000)),
                      capacity=capacity, on_sample=on_sample,
                      commands_ahead=opts.servo.commands_ahead)
+
+
+def _prepare_goal(follower: GoalFollower, controller: ControllerLogic, rate_hz: float,
+                  goal: Any, time_s: float, **options: Any) -> tuple[Any, Any]:
+    # GoalFollower.prepare, then the controller's first block of the goal's reference ahead
+    # (a feed-forward's prepare_block: used only where it is what the start would compute)
+    verdict, prepared = GoalFollower.prepare(follower, goal, time_s, **options)
+    prepare_block = getattr(controller.controller, 'prepare_block', None)
+    if prepared is not None and prepare_block is not None:
+        prepare_block(SplineTrajectory(prepared.spline), round(time_s * rate_hz))
+    return verdict, prepared
 
 
 def apply_change(servo: ServoLoop, kind: str, value: Any) -> None:

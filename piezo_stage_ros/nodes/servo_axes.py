@@ -35,7 +35,6 @@ The one-axis servo is untouched: a one-axis stage keeps :class:`ServoLoop`.
 from __future__ import annotations
 
 import copy
-import gc
 import math
 from typing import Any, Callable, NamedTuple, Sequence
 
@@ -195,9 +194,6 @@ class AxesServoLoop(ServoLoop):
             plant.bridge.stage.read_positions_m if isinstance(plant.bridge, AxesModelBridge) \
             else None
         self._nans = (math.nan,) * plant.n
-        #: Freeze the garbage collector's view of the objects built before the start.
-        self.freeze_gc = True
-        self._frozen = False
 
     def _serve(self, index: int, position_m: Any, now_ns: int, lateness_ns: int) -> None:
         positions: list[float] = position_m
@@ -230,37 +226,6 @@ class AxesServoLoop(ServoLoop):
             self.on_sample(sample_of_row(row, self.guard.n))  # type: ignore[arg-type]
         if self.total and index + 1 >= self.total:
             self.done = True
-
-    def start(self, start_ns: int = 0, since_ns: int | None = None) -> None:
-        """
-        Start the backend and serve sample 0 now (as :meth:`ServoLoop.start`).
-
-        With :attr:`freeze_gc`, everything built until now (the controllers' tables, the
-        configuration, the modules) is moved out of the garbage collector's reach first
-        (:func:`gc.freeze`): its collections then scan only what the run makes, instead of
-        stopping a sample now and then for milliseconds to scan the tables again.
-        :meth:`run` gives them back at its end.
-        """
-        if self.freeze_gc:
-            gc.collect()
-            gc.freeze()
-            self._frozen = True
-        super().start(start_ns, since_ns)
-
-    def run(self, start_ns: int = 0, setup: Callable[[], Any] | None = None,
-            since_ns: int | None = None) -> None:
-        """
-        Serve the run as :meth:`ServoLoop.run`, then unfreeze what :meth:`start` froze.
-
-        Frozen objects are never collected: a cycle of them dropped after the run (the run's
-        own objects, a servo started again in the process) would stay for the process' life.
-        """
-        try:
-            super().run(start_ns, setup, since_ns)
-        finally:
-            if self._frozen:
-                self._frozen = False
-                gc.unfreeze()
 
     def warm_up(self, samples: int = ServoLoop.WARM_UP_SAMPLES) -> str:
         """

@@ -517,8 +517,15 @@ class PreviewInverse:
         ``x`` holds the reference from ``back`` samples before the first output to ``lead``
         samples after the last one.
         """
+        return self.causal(self.preview(x), state)
+
+    def preview(self, x: FloatArray) -> FloatArray:
+        """Return the first half of :meth:`block`: the FIR on the reference ahead."""
+        return np.asarray(np.correlate(x, self.taps, mode='valid'), dtype=np.float64)
+
+    def causal(self, fir: FloatArray, state: Any) -> tuple[FloatArray, Any]:
+        """Return the second half of :meth:`block`: the zeros inside the unit circle; the state."""
         from scipy.signal import lfilter
-        fir = np.correlate(x, self.taps, mode='valid')
         if self.back:
             out, state = lfilter(np.ones(1), self.iir, fir, zi=state)
             return np.asarray(out, dtype=np.float64), state
@@ -1419,6 +1426,60 @@ def learning_columns(kernel2: FloatArray) -> FloatArray:
     return np.asarray(np.lib.stride_tricks.sliding_window_view(kernel2, n), dtype=np.float64)
 
 
+def _values_of(trajectory: Trajectory) -> Any:
+    """
+    Return what ``trajectory``'s values stand on now, to tell whether they changed since.
+
+    None for a trajectory whose values never change; for a view of a reference that changes
+    (a goal follower's: it offers ``snapshot()``), the spline it shows now (each change is a
+    new one); a new object each call (never the same) for a view that names none.
+    """
+    snapshot = getattr(trajectory, 'snapshot', None)
+    if snapshot is None:
+        return None
+    return getattr(snapshot(), 'spline', object())
+
+
+class _Block:
+    """
+    An aperiodic reference's block of tables, computed in :data:`STAGES` stages.
+
+    The stages (:meth:`FeedForwardController._block_stage`) are the steps of the whole
+    computation, in its order, on the same arrays: run one a sample over the samples before
+    the block is needed, they give the tables it gives at once.
+    """
+
+    #: Evaluate the reference, shape its jumps, the model inverse's FIR, its causal filter
+    #: (the filter goes on), make the lists.
+    STAGES = 5
+
+    def __init__(self, k: int) -> None:
+        self.k = k
+        self.stage = 0
+        #: What the reference's values stood on when it was evaluated (:func:`_values_of`).
+        self.values: Any = None
+        #: Taken as they are: the first use found the reference as it was evaluated.
+        self.confirmed = False
+        self.raw_x: FloatArray = np.zeros(0)
+        self.raw_v: FloatArray = np.zeros(0)
+        self.xs: FloatArray = np.zeros(0)
+        self.vs: FloatArray = np.zeros(0)
+        self.fir: FloatArray = np.zeros(0)
+        #: The filter state before the block and after it (once ``filtered``).
+        self.state_before: Any = None
+        self.state: Any = None
+        self.filtered = False
+        self.tables: tuple[FloatArray, FloatArray, FloatArray, FloatArray] = (
+            np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
+        self.lists: tuple[list[float], list[float], list[float], list[float]] = ([], [], [],
+                                                                                 [])
+
+    @property
+    def done(self) -> bool:
+        """Return whether every stage has run."""
+        return self.stage >= self.STAGES
+
+
 class FeedForwardController:
     """
     Feed-forward (model inverse, learning) around a feedback controller; see the module doc.
@@ -1560,9 +1621,11 @@ class FeedForwardController:
         self._lw: list[float] = []
         self._block_start = 0
         self._filter_state: Any = None
-        # the next block, computed ahead for predict: (start, tables, filter state before it)
-        self._block_ahead: tuple[int, tuple[FloatArray, FloatArray, FloatArray, FloatArray],
-                                 Any] | None = None
+        # the next block, computed a stage a step after the present one is installed (a
+        # sample pays for a stage, never for a whole block), read ahead by predict
+        self._block_ahead: _Block | None = None
+        # the first block of a reference to come, computed ahead (prepare_block)
+        self._first_block: _Block | None = None
         self._k = 0
         self._matched = False
         self._u = 0.0
@@ -1881,9 +1944,12 @@ class FeedForwardController:
             return self._plain(position_m, reference_m, reference_velocity_mps, dt_s)
         n = self._period_n
         i = k % n if n else k - self._block_start
-        if not n and i >= len(self._lx):
-            self._next_block(k)
-            i = k - self._block_start
+        if not n:
+            if i >= len(self._lx):
+                self._next_block(k)
+                i = k - self._block_start
+            elif self._block_ahead is not None and not self._block_ahead.done:
+                self._block_stage(self._block_ahead)
         xd = self._lx_raw[i]
         if abs(reference_m - xd) > 1e-12 + 1e-9 * abs(xd):
             # not the reference bound (a periodic trajectory's first period that is not yet
@@ -2031,9 +2097,9 @@ class FeedForwardController:
         feedback part held, the inverse hysteresis taken with its secant from the present
         state to the largest change ahead (one solve, not one a sample). A periodic reference
         wraps around its period; an aperiodic one (and one whose period is not a whole number
-        of samples) is read on into the next block, computed ahead once when needed. Held
-        throughout when the last step was feedback alone (no reference bound,
-        or not the one bound).
+        of samples) is read on into the next block (computed a stage a step before, as it
+        stands when first read). Held throughout when the last step was feedback alone (no
+        reference bound, or not the one bound).
         """
         v = self._u
         k = self._k - 1
@@ -2199,50 +2265,127 @@ class FeedForwardController:
 
     def _next_block(self, k: int) -> None:
         """Install the feed-forward of samples k .. k + block - 1 (aperiodic references)."""
-        ahead = self._block_ahead
+        work = self._block_ahead
         self._block_ahead = None
-        if ahead is not None and ahead[0] == k:
-            tables = ahead[1]
+        first = self._first_block
+        if work is not None and work.k == k and self._current(work):
+            self._finish_block(work)
+        elif work is None and self._filter_state is None and first is not None and \
+                first.k == k and first.values is not None and self._current(first):
+            # the first block after a bind, computed ahead on the values shown now
+            self._first_block = None
+            self._filter_state = first.state
+            work = first
         else:
-            if ahead is not None:
-                self._filter_state = ahead[2]  # the block read ahead was not used
-            tables = self._compute_block(k)
-        self._set_tables(*tables)
+            if work is not None:
+                self._drop_block(work)  # the block read ahead was not used
+            work = self._compute_block(k)
+        self._x_lists(work.lists)
         self._block_start = k
+        # the next one, a stage a step from the next step on
+        self._block_ahead = _Block(k + len(self._lx))
+
+    def prepare_block(self, trajectory: Trajectory, k: int) -> None:
+        """
+        Compute ahead the first block of a reference a bind will show, from sample ``k`` on.
+
+        For a view of a reference that changes (a goal follower's): when a goal is checked,
+        before the sample it starts at, its reference is known (``trajectory``, whose
+        ``spline`` is what the view will show). Called in the checking thread: the block is
+        computed on a copy (this controller is not touched but for keeping it) and the first
+        block after the next bind takes it if that bind starts at ``k`` and its view shows
+        that spline; otherwise it is computed then, as without.
+        """
+        values = getattr(trajectory, 'spline', None)
+        if values is None or not self._inverse_on or self._learning_on:
+            return  # nothing to identify it by; learning does not take such a reference
+        dry = copy.copy(self)  # computing assigns what it sets: self is left as it is
+        dry._trajectory = trajectory
+        dry._filter_state = None
+        work = dry._compute_block(k)
+        work.values = values
+        self._first_block = work
 
     def _peek_block(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """Return the next block's tables ahead of time (:meth:`predict` at a block's end)."""
         k = self._block_start + len(self._lx)
-        if self._block_ahead is None or self._block_ahead[0] != k:
-            state = self._filter_state
-            self._block_ahead = (k, self._compute_block(k), state)
-        return self._block_ahead[1]
+        work = self._block_ahead
+        if work is None or work.k != k or not self._current(work):
+            if work is not None:
+                self._drop_block(work)
+            work = self._compute_block(k)
+            self._block_ahead = work
+        else:
+            self._finish_block(work)
+        # the tables as of this first use: later uses take them as they are
+        work.confirmed = True
+        return work.tables
 
-    def _compute_block(self, k: int) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    def _current(self, work: _Block) -> bool:
+        """Return whether ``work`` is what computing it now gives (its reference unchanged)."""
+        if work.confirmed or work.stage == 0 or work.values is None:
+            return True
+        assert self._trajectory is not None
+        return work.values is _values_of(self._trajectory)
+
+    def _drop_block(self, work: _Block) -> None:
+        """Forget a block computed ahead: the filter goes on from where it was before it."""
+        if work.filtered:
+            self._filter_state = work.state_before
+
+    def _finish_block(self, work: _Block) -> None:
+        """Run the stages of ``work`` still to run."""
+        while not work.done:
+            self._block_stage(work)
+
+    def _compute_block(self, k: int) -> _Block:
         """Return x_d, shaped x_d, x_d', w of samples k .. k + block - 1 (the filter goes on)."""
+        work = _Block(k)
+        self._finish_block(work)
+        return work
+
+    def _block_stage(self, work: _Block) -> None:
+        """Run the next stage of ``work`` (:class:`_Block`); the filter goes on at the fourth."""
         inv = self.plant_inverse
         size = self.params.block_samples
         half = int(math.ceil(self.transition_s / self._t)) + 2
-        first = k - inv.back - half
-        raw_x, raw_v = self._evaluate(first, size + inv.back + inv.lead + 2 * half)
-        xs, vs = self._shape(raw_x, raw_v)
-        core = slice(inv.back + half, inv.back + half + size)
-        w = np.zeros(size)
-        if self._inverse_on:
-            seq = xs[half:len(xs) - half]
-            if self._filter_state is None:
-                self._filter_state = inv.start(float(seq[0]))
-            w, self._filter_state = inv.block(seq, self._filter_state)
-            w = w / self.slope
-        return raw_x[core], xs[core], vs[core], w
+        stage = work.stage
+        if stage == 0:
+            assert self._trajectory is not None
+            work.values = _values_of(self._trajectory)
+            work.raw_x, work.raw_v = self._evaluate(work.k - inv.back - half,
+                                                    size + inv.back + inv.lead + 2 * half)
+        elif stage == 1:
+            work.xs, work.vs = self._shape(work.raw_x, work.raw_v)
+        elif stage == 2:
+            if self._inverse_on:
+                work.fir = inv.preview(work.xs[half:len(work.xs) - half])
+        elif stage == 3:
+            work.state_before = work.state = self._filter_state
+            w = np.zeros(size)
+            if self._inverse_on:
+                if work.state is None:
+                    work.state = inv.start(float(work.xs[half]))
+                w, work.state = inv.causal(work.fir, work.state)
+                w = w / self.slope
+            self._filter_state = work.state
+            work.filtered = True
+            core = slice(inv.back + half, inv.back + half + size)
+            work.tables = (work.raw_x[core], work.xs[core], work.vs[core], w)
+        else:
+            x_raw, x, v, w = work.tables
+            work.lists = (x_raw.tolist(), x.tolist(), v.tolist(), w.tolist())
+        work.stage = stage + 1
 
     def _set_tables(self, x_raw: FloatArray, x: FloatArray, v: FloatArray,
                     w: FloatArray) -> None:
         """Keep the tables as plain-float lists: numpy scalars cost more per use in the step."""
-        self._lx_raw = x_raw.tolist()
-        self._lx = x.tolist()
-        self._lv = v.tolist()
-        self._lw = w.tolist()
+        self._x_lists((x_raw.tolist(), x.tolist(), v.tolist(), w.tolist()))
+
+    def _x_lists(self, lists: tuple[list[float], list[float], list[float], list[float]]
+                 ) -> None:
+        """Install the tables x_d, shaped x_d, x_d', w as lists (:meth:`_set_tables`)."""
+        self._lx_raw, self._lx, self._lv, self._lw = lists
 
     # -- learning ----------------------------------------------------------------------------
 
@@ -2635,8 +2778,11 @@ class FeedForwardController:
         block is computed when ``k`` passes the present one: ask in sample order, as the step
         does). The lists are the wrapper's own: read, do not change.
         """
-        if not self._period_n and k - self._block_start >= len(self._lx):
-            self._next_block(k)
+        if not self._period_n:
+            if k - self._block_start >= len(self._lx):
+                self._next_block(k)
+            elif self._block_ahead is not None and not self._block_ahead.done:
+                self._block_stage(self._block_ahead)
         return (self._period_n, self._block_start, self._lx_raw, self._lx, self._lv,
                 self._lw)
 
