@@ -645,8 +645,12 @@ def _axes(args: argparse.Namespace, config: Config) -> int:
             progress.line(f'axis {name}: {text}')
 
         try:
+            # the axis runs as the multi-axis controller will run it: that controller
+            # compensates the coupling where its feed-forward has the model inverse
             result = commission_axis(true, k, configured, controller, derive, params,
-                                     stability=loop.base.stability, progress=say)
+                                     stability=loop.base.stability, progress=say,
+                                     design=loop.stage, compensate=(
+                                         loop.compensate and controller.feedforward.inverse))
         except CommissionRefusedError as exc:
             raise CommissionRefusedError(f'axis {name}: {exc}') from exc
         results[name] = result
