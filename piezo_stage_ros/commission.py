@@ -40,7 +40,9 @@ configured model. The steps are in
 A multi-axis parameter file (``plant_node axes.names``, e.g. ``config/xy_stage.yaml``) is
 commissioned axis by axis on its configured stage, each axis in closed loop while the others
 hold their rest voltages
-(:func:`~piezo_stage_ros.core.identification.per_axis.commission_axis`); each axis is printed as
+(:func:`~piezo_stage_ros.core.identification.per_axis.commission_axis`), and with the coupling
+compensation the controller will apply to the held axes where it is configured
+(``axes.coupling_compensation`` and a model-inverse feed-forward); each axis is printed as
 a one-axis run is, and the parameter file holds, per axis, the identified values and the
 commissioned controller values that differ from the configuration (``axes.<name>.*`` in
 ``plant_node`` and ``controller_node``, the layout ``identify_axes`` writes), read on top of
@@ -645,8 +647,12 @@ def _axes(args: argparse.Namespace, config: Config) -> int:
             progress.line(f'axis {name}: {text}')
 
         try:
+            # the axis runs as the multi-axis controller will run it: that controller
+            # compensates the coupling where its feed-forward has the model inverse
             result = commission_axis(true, k, configured, controller, derive, params,
-                                     stability=loop.base.stability, progress=say)
+                                     stability=loop.base.stability, progress=say,
+                                     design=loop.stage, compensate=(
+                                         loop.compensate and controller.feedforward.inverse))
         except CommissionRefusedError as exc:
             raise CommissionRefusedError(f'axis {name}: {exc}') from exc
         results[name] = result

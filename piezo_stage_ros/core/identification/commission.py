@@ -796,7 +796,7 @@ def _track(stage: StageParams, controller: ControllerParams, design_stage: Stage
 
 def verify(true_stage: StageParams | None, identified: StageParams,
            controller: ControllerParams, params: CommissionParams,
-           plant: PlantFn | None = None) -> Verification:
+           plant: PlantFn | None = None, model_plant: PlantFn | None = None) -> Verification:
     """
     Run the verification sine on the stage and on the identified model.
 
@@ -812,6 +812,10 @@ def verify(true_stage: StageParams | None, identified: StageParams,
         Frequency and length.
     plant : callable, optional
         Builds the plant of ``true_stage`` (as :func:`excitation_run`).
+    model_plant : callable, optional
+        Builds the plant of the prediction from the identified model without sensor noise
+        (default the one-axis stage): the conditions ``plant`` puts the stage in (e.g. the other
+        axes of a multi-axis stage holding), on the model.
 
     Returns
     -------
@@ -823,7 +827,8 @@ def verify(true_stage: StageParams | None, identified: StageParams,
                  plant if true_stage is not None else None)
     m = summarize(rec, period_s=1.0 / f)
     model = identified.replace(chain=identified.chain.replace(sensor_noise_std_m=0.0))
-    pred = summarize(_track(model, controller, identified, f, d), period_s=1.0 / f)
+    pred = summarize(_track(model, controller, identified, f, d, model_plant),
+                     period_s=1.0 / f)
     return Verification(frequency_hz=f, e_rms_m=m.e_rms_m, e_max_m=m.e_max_m,
                         predicted_e_rms_m=pred.e_rms_m, record=rec,
                         on_stage=true_stage is not None)
@@ -920,7 +925,8 @@ def commission(true_stage: StageParams, configured: StageParams,
                params: CommissionParams | None = None, *,
                stability: StabilityParams | None = None,
                progress: ProgressFn | None = None,
-               plant: PlantFn | None = None) -> CommissionResult:
+               plant: PlantFn | None = None,
+               model_plant: PlantFn | None = None) -> CommissionResult:
     """
     Commission a stage: hold and excite, identify, design, certify, verify.
 
@@ -944,6 +950,9 @@ def commission(true_stage: StageParams, configured: StageParams,
         Told each step.
     plant : callable, optional
         Builds the plant of ``true_stage`` for the runs (as :func:`excitation_run`).
+    model_plant : callable, optional
+        Builds the verification's prediction plant from the identified model (as
+        :func:`verify`).
 
     Returns
     -------
@@ -961,7 +970,7 @@ def commission(true_stage: StageParams, configured: StageParams,
     whole, excited, hold_check = excitation_run(true_stage, configured, configured_controller,
                                                 params, opts, plant=plant)
     return _finish(whole, excited, hold_check, true_stage, configured, configured_controller,
-                   derive, params, opts, say, plant)
+                   derive, params, opts, say, plant, model_plant)
 
 
 def excitation_part(record: RunRecord) -> RunRecord:
@@ -1042,7 +1051,8 @@ def _finish(whole: RunRecord, excited: RunRecord, hold_check: StabilityReport | 
             true_stage: StageParams | None, configured: StageParams,
             configured_controller: ControllerParams, derive: DeriveFn,
             params: CommissionParams, opts: StabilityParams,
-            say: ProgressFn, plant: PlantFn | None = None) -> CommissionResult:
+            say: ProgressFn, plant: PlantFn | None = None,
+            model_plant: PlantFn | None = None) -> CommissionResult:
     """Identify, design, certify and verify from the excitation part of a run."""
     exc_peak = float(np.max(np.abs(excited.reference_m - params.hold_m)))
     pos_peak = float(np.max(np.abs(excited.position_m - params.hold_m)))
@@ -1064,7 +1074,7 @@ def _finish(whole: RunRecord, excited: RunRecord, hold_check: StabilityReport | 
     des = design(identified, result.bounds, configured_controller, derive(identified), opts,
                  say, ratio=loop_gain_ratio(identified, configured))
     say(f'verify: {params.verify_frequency_hz:g} Hz sine for {params.verify_duration_s:g} s')
-    ver = verify(true_stage, identified, des.controller, params, plant)
+    ver = verify(true_stage, identified, des.controller, params, plant, model_plant)
     notes = list(checked.warnings) + list(result.notes)
     if longer:
         notes.append(f'certified at the loop delay the run shows ({shown:.3g} samples), '

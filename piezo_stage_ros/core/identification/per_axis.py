@@ -22,6 +22,17 @@ every other axis holds its rest voltage, and identified by the one-axis procedur
 the held axes send into the excited one is constant (their positions do not move), so it shifts
 the measured position by a constant and nothing else; the excited axis' own coupling goes to the
 other axes, which this axis' sensor does not read (unless the sensors cross-talk).
+
+Commissioned in closed loop (:func:`commission_axis`), the axis runs as the multi-axis controller
+will run it: where that controller compensates the coupling, the constant its compensation adds
+to this axis' command for the held axes (:func:`held_compensation_v`) is added to every command,
+and the verification's prediction runs the identified axis inside the design stage, the same axes
+holding and the same compensation applied. The constant matters to the RAC: it holds the
+command's constant part in its integral, so s keeps a constant part outside the adaptation's dead
+zone, and the update of theta_hat, whose regressor y_d carries the sine's offset, settles only
+where an in-phase periodic error balances it: a displacement the loop must hold becomes periodic
+error. Compensated, the held axes cost the loop what the design model mispredicts of them; the
+prediction on the design stage carries what the model predicts of them.
 """
 
 from __future__ import annotations
@@ -29,6 +40,8 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+import numpy as np
+from piezo_stage_ros.core.control.axes import coupled_displacement
 from piezo_stage_ros.core.control.controllers import ControllerParams
 from piezo_stage_ros.core.control.stability import StabilityParams
 from piezo_stage_ros.core.identification.commission import (
@@ -42,10 +55,12 @@ from piezo_stage_ros.core.identification.coupling import rest_voltages
 from piezo_stage_ros.core.identification.experiments import ExperimentPlan, run_experiments
 from piezo_stage_ros.core.identification.fit import IdentificationParams
 from piezo_stage_ros.core.identification.support import CheckedIdentification, identify_checked
-from piezo_stage_ros.core.model.axes import AxesStage, AxesStageParams
-from piezo_stage_ros.core.model.stage import StageParams
+from piezo_stage_ros.core.model.axes import AxesStage, AxesStageParams, coupling_paths
+from piezo_stage_ros.core.model.hysteresis import make_hysteresis
+from piezo_stage_ros.core.model.stage import linear_plant, StageParams
 
-__all__ = ['AxisView', 'axis_overrides', 'commission_axis', 'identify_axis']
+__all__ = ['AxisView', 'axis_overrides', 'commission_axis', 'held_compensation_v',
+           'identify_axis']
 
 #: Stage parameters the identification does not estimate: never written as an override.
 NOT_IDENTIFIED = ('sample_rate_hz', 'seed', 'initial_position_m')
@@ -64,10 +79,14 @@ class AxisView:
     axis : StageParams
         That axis' parameters for this run (the run's seed and rate); every axis is run at its
         rate.
+    compensation_v : float
+        Added to every command of this axis [V]: the multi-axis controller's compensation of the
+        held axes' coupling (:func:`held_compensation_v`); 0 without one.
 
     """
 
-    def __init__(self, stage: AxesStageParams, index: int, axis: StageParams) -> None:
+    def __init__(self, stage: AxesStageParams, index: int, axis: StageParams, *,
+                 compensation_v: float = 0.0) -> None:
         rate = axis.sample_rate_hz
         axes = [p.replace(sample_rate_hz=rate) for p in stage.axes]
         axes[index] = axis
@@ -76,6 +95,7 @@ class AxisView:
         self._sim = AxesStage(params)
         self._holds = rest_voltages(params)
         self._cmds = list(self._holds)
+        self.compensation_v = float(compensation_v)
 
     @property
     def sample_time_s(self) -> float:
@@ -90,13 +110,55 @@ class AxisView:
         return self._sim.reset(given)[self.index]
 
     def step(self, command_v: float) -> float:
-        """Hold the command on this axis, the others at rest; return its measurement [m]."""
-        self._cmds[self.index] = command_v
+        """
+        Hold the command (and the compensation) on this axis, the others at rest.
+
+        Returns this axis' measurement [m]. Without a compensation the command is applied
+        as given, bit for bit.
+        """
+        comp = self.compensation_v
+        self._cmds[self.index] = command_v + comp if comp else command_v
         return self._sim.step(self._cmds)[self.index]
 
     def read_position_m(self) -> float:
         """Return this axis' true position now [m] (the coupling it receives included)."""
         return self._sim.read_positions_m()[self.index]
+
+
+def held_compensation_v(design: AxesStageParams, index: int) -> float:
+    """
+    Return what the coupling compensation adds to axis ``index``'s command, the others held.
+
+    The multi-axis controller's compensation (:mod:`piezo_stage_ros.core.control.axes`) predicts
+    the displacement the other axes' references put on this axis through the design model's
+    coupling and subtracts it through this axis' model inverse (its plant's DC gain times the
+    hysteresis slope, as the feed-forward's inverse). Held at their initial positions, the other
+    axes' references are constant, and so is the compensation.
+
+    Parameters
+    ----------
+    design : AxesStageParams
+        The design model (axes and coupling) the controller compensates with.
+    index : int
+        The axis that receives the coupling.
+
+    Returns
+    -------
+    float
+        The constant [V]; 0 when no other axis couples into this one.
+
+    """
+    held = {i: np.full(2, p.initial_position_m) for i, p in enumerate(design.axes)
+            if i != index}
+    if not held:
+        return 0.0
+    moved = float(coupled_displacement(coupling_paths(design), index, held)[0])
+    if moved == 0.0:
+        return 0.0
+    axis = design.axes[index]
+    gain_m_per_v = (linear_plant(axis.plant).dc_gain_m_per_v
+                    * float(make_hysteresis(axis.hysteresis).slope))
+    return -moved / gain_m_per_v
 
 
 def identify_axis(stage: AxesStageParams, index: int, configured: StageParams, *,
@@ -158,14 +220,17 @@ def commission_axis(stage: AxesStageParams, index: int, configured: StageParams,
                     controller: ControllerParams, derive: DeriveFn,
                     params: CommissionParams | None = None, *,
                     stability: StabilityParams | None = None,
-                    progress: ProgressFn | None = None) -> CommissionResult:
+                    progress: ProgressFn | None = None,
+                    design: AxesStageParams | None = None,
+                    compensate: bool = False) -> CommissionResult:
     """
     Commission axis ``index`` of a (simulated) stage, the other axes holding.
 
     The one-axis commissioning (:func:`~piezo_stage_ros.core.identification.commission.
     commission`: hold and excite in closed loop, identify, design, certify, verify) with its
     runs and its verification made on that axis of the multi-axis stage through
-    :class:`AxisView`.
+    :class:`AxisView`, and the verification's prediction made on the identified axis inside
+    the design stage, the other axes holding there too.
 
     Parameters
     ----------
@@ -175,6 +240,14 @@ def commission_axis(stage: AxesStageParams, index: int, configured: StageParams,
         The axis commissioned.
     configured, controller, derive, params, stability, progress
         As :func:`~piezo_stage_ros.core.identification.commission.commission`, for this axis.
+    design : AxesStageParams, optional
+        The configured stage (its coupling is what the controller compensates and what the
+        prediction holds the other axes through); default ``stage``.
+    compensate : bool
+        Whether the multi-axis controller compensates the coupling into this axis (its
+        ``axes.coupling_compensation`` with a model-inverse feed-forward): every run then
+        carries :func:`held_compensation_v` of the design stage on this axis' command, as
+        the controller adds it.
 
     Returns
     -------
@@ -182,6 +255,9 @@ def commission_axis(stage: AxesStageParams, index: int, configured: StageParams,
 
     """
     stage.index(stage.names[index])
+    model = stage if design is None else design
+    comp = held_compensation_v(model, index) if compensate else 0.0
     return commission(stage.axes[index], configured, controller, derive, params,
                       stability=stability, progress=progress,
-                      plant=lambda p: AxisView(stage, index, p))
+                      plant=lambda p: AxisView(stage, index, p, compensation_v=comp),
+                      model_plant=lambda p: AxisView(model, index, p, compensation_v=comp))
