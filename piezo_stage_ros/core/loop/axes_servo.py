@@ -157,7 +157,7 @@ class AxesCommands:
             (j, CommandPredictor(SENSOR_GAIN_V_PER_M, t), c) for j, c in
             enumerate(controller.controllers) if not callable(getattr(c, 'predict', None))]
         self._step = controller.step
-        self._step_ahead = controller.step_ahead
+        self._step_ahead = controller.step_ahead_rows
         self.steps = 0
 
     def reset(self, positions_m: Sequence[float], references_m: Sequence[float]) -> None:
@@ -168,11 +168,13 @@ class AxesCommands:
 
     def step(self, index: int, positions_m: Sequence[float], references_m: Sequence[float],
              velocities_mps: Sequence[float], count: int
-             ) -> tuple[list[float], FloatArray | None]:
+             ) -> tuple[list[float], list[Any] | None]:
         """
-        Return sample ``index``'s commands [V] and the (axes, ``count``) commands ahead [V].
+        Return sample ``index``'s commands [V] and each axis' ``count`` commands ahead [V].
 
-        ``count`` 0: the commands alone (None for the commands ahead).
+        One sequence per axis: an array, or the batched axes' values computed when read
+        (:class:`~piezo_stage_ros.core.control.ahead.AheadRow`). ``count`` 0: the commands
+        alone (None for the commands ahead).
         """
         self.steps += 1
         if not count:
@@ -184,7 +186,9 @@ class AxesCommands:
                                           velocities_mps[j], functools.partial(window, j, index))
             values_into = getattr(pred, 'values_into', None)
             if values_into is not None:
-                values_into(ahead[j])
+                row = np.empty(count, dtype=np.float64)
+                values_into(row)
+                ahead[j] = row
             else:
-                ahead[j] = pred
+                ahead[j] = np.asarray(pred, dtype=np.float64)
         return out, ahead
