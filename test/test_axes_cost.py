@@ -213,3 +213,24 @@ def test_the_stage_steps_as_it_did_bit_for_bit(quantize: bool) -> None:
     assert now.faults == before.faults == (0, 1, 0)
     assert now.reset() == before.reset()  # and again after a reset, the noise going on
     np.testing.assert_array_equal(now.run_open_loop(u[:50]), before.run_open_loop(u[:50]))
+
+
+def test_rows_queued_packed_are_the_rows_as_tuples() -> None:
+    # what the servo queues (bytes) gives the batch and the samples the tuples give
+    from piezo_stage_ros.nodes.servo_axes import _row_struct, axes_batch_of, sample_of_row
+    rng = np.random.default_rng(2)
+    rows = []
+    for i in range(40):
+        values = rng.normal(size=18) * 10.0 ** rng.integers(-9, 3, 18)
+        values[3 * (i % 6)] = math.nan if i % 5 == 0 else values[3 * (i % 6)]
+        rows.append((i, 7 + 2 * i, 10**18 + 7 + 100_000 * i, -3 + i * 11, *values.tolist()))
+    pack = _row_struct(3).pack
+    packed = [pack(*row) for row in rows]
+    want, got = axes_batch_of(rows, 'xyz'), axes_batch_of(packed, 'xyz')
+    for a, b in zip(want[:-1], got[:-1]):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        np.testing.assert_array_equal(a, b)
+    assert got.stamp_ns[-1] == 10**18 + 7 + 100_000 * 39
+    for row, data in zip(rows, packed):
+        a, b = sample_of_row(row, 3), sample_of_row(data, 3)
+        assert repr(a) == repr(b)  # NaN compares unequal: their text

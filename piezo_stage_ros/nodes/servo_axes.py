@@ -35,8 +35,10 @@ The one-axis servo is untouched: a one-axis stage keeps :class:`ServoLoop`.
 from __future__ import annotations
 
 import copy
+import functools
 import gc
 import math
+import struct
 from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
@@ -128,25 +130,40 @@ class AxesSampleBatch(NamedTuple):
         return int(self.number.size)
 
 
-def axes_batch_of(rows: Sequence[tuple[Any, ...]], axes: Sequence[str]) -> AxesSampleBatch:
+@functools.lru_cache(maxsize=None)
+def _row_struct(axes: int) -> struct.Struct:
+    """Return the packing of a queued row of ``axes`` axes (4 int64, then 6 N doubles)."""
+    return struct.Struct(f'<4q{6 * axes}d')
+
+
+def axes_batch_of(rows: Sequence[Any], axes: Sequence[str]) -> AxesSampleBatch:
     """
     Return queued rows as an :class:`AxesSampleBatch`.
 
     A row is flat: number, k, stamp [ns], lateness [ns], then the N values of each of y_k, x_d,
-    x_d', u_k, the applied inputs and the true positions (what :class:`AxesServoLoop` queues:
-    one object a sample, which the garbage collector stops tracking).
+    x_d', u_k, the applied inputs and the true positions; as a tuple, or packed into bytes as
+    :class:`AxesServoLoop` queues it (4 little-endian int64, then the doubles: one object a
+    sample that the garbage collector never has to look at).
     """
     n, width = len(rows), len(axes)
-    ints = np.array([r[:4] for r in rows], dtype=np.int64).reshape(n, 4)
-    floats = np.array([r[4:] for r in rows], dtype=np.float64).reshape(n, 6, width)
+    if n and isinstance(rows[0], bytes):
+        packed = np.frombuffer(b''.join(rows), dtype=np.dtype(
+            [('i', '<i8', (4,)), ('f', '<f8', (6, width))]))
+        ints = packed['i'].astype(np.int64)
+        floats = packed['f'].astype(np.float64)
+    else:
+        ints = np.array([r[:4] for r in rows], dtype=np.int64).reshape(n, 4)
+        floats = np.array([r[4:] for r in rows], dtype=np.float64).reshape(n, 6, width)
     columns = [floats[:, q].copy() for q in range(6)]
     return AxesSampleBatch(ints[:, 0].copy(), ints[:, 1].copy(), ints[:, 2].copy(),
                            ints[:, 3].copy(), columns[0], columns[1], columns[2], columns[3],
                            columns[4], columns[5], tuple(axes))
 
 
-def sample_of_row(row: Sequence[Any], axes: int) -> AxesServoSample:
+def sample_of_row(row: Sequence[Any] | bytes, axes: int) -> AxesServoSample:
     """Return one queued row (see :func:`axes_batch_of`) as an :class:`AxesServoSample`."""
+    if isinstance(row, bytes):
+        row = _row_struct(axes).unpack(row)
     values = [tuple(row[4 + q * axes:4 + (q + 1) * axes]) for q in range(6)]
     return AxesServoSample(row[1], row[2], values[0], values[1], values[2], values[3],
                            values[4], row[3], values[5])
@@ -195,6 +212,7 @@ class AxesServoLoop(ServoLoop):
             plant.bridge.stage.read_positions_m if isinstance(plant.bridge, AxesModelBridge) \
             else None
         self._nans = (math.nan,) * plant.n
+        self._pack = _row_struct(plant.n).pack
         #: Freeze the garbage collector's view of the objects built before the start.
         self.freeze_gc = True
         self._frozen = False
@@ -207,7 +225,7 @@ class AxesServoLoop(ServoLoop):
         true = self._true_axes() if self._true_axes is not None else self._nans
         if plant.winding:
             nans = self._nans
-            # one flat tuple a sample (numbers only: the garbage collector stops tracking it)
+            # one flat row a sample (numbers only), queued packed
             row = (self.pushed, index, stamp, lateness_ns, *positions, *nans, *nans, *nans,
                    *plant.applied_v, *true)
             if plant.phase == 'safe':
@@ -224,7 +242,9 @@ class AxesServoLoop(ServoLoop):
             row = (self.pushed, index, stamp, lateness_ns, *positions, *refs, *vels, *commands,
                    *applied, *true)
         if self.samples.maxlen:
-            self.samples.append(row)  # type: ignore[arg-type]
+            # packed: a tuple kept in the queue is an object the collector scans until it
+            # learns that the tuple holds numbers only, one a sample
+            self.samples.append(self._pack(*row))  # type: ignore[arg-type]
             self.pushed += 1
         if self.on_sample is not None:
             self.on_sample(sample_of_row(row, self.guard.n))  # type: ignore[arg-type]
