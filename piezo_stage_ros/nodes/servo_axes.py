@@ -47,7 +47,7 @@ from piezo_stage_ros.core.config.nodes import PlantNodeParams
 from piezo_stage_ros.core.contracts.types import FloatArray, IntArray
 from piezo_stage_ros.core.contracts.wire import NS_PER_S
 from piezo_stage_ros.core.control.axes import AxesController
-from piezo_stage_ros.core.loop.axes_servo import AxesCommands, AxesReference
+from piezo_stage_ros.core.loop.axes_servo import AxesCommands, AxesReference, REFERENCE_CHUNK
 from piezo_stage_ros.core.model.axes import AxesStageParams
 from piezo_stage_ros.hardware.axes import AxesGuard, AxesModelBridge
 from piezo_stage_ros.hardware.pacing import Pacer
@@ -195,7 +195,7 @@ class AxesServoLoop(ServoLoop):
                  duration_s: float = 0.0, pacer: Pacer | None = None,
                  capacity: int = 65536,
                  on_sample: Callable[[AxesServoSample], None] | None = None,
-                 commands_ahead: int = 0, chunk: int = 1000) -> None:
+                 commands_ahead: int = 0, chunk: int = REFERENCE_CHUNK) -> None:
         super().__init__(plant, None, None, sample_rate_hz=sample_rate_hz,  # type: ignore
                          duration_s=duration_s, pacer=pacer, capacity=capacity,
                          on_sample=on_sample, commands_ahead=commands_ahead)  # type: ignore
