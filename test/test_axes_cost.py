@@ -152,6 +152,10 @@ def test_a_row_not_finite_when_read_is_the_command_held() -> None:
     assert not np.isfinite(ctrl.predict_array(16)[1]).all()
     np.testing.assert_array_equal(rows[1].to_array(), np.full(16, u[1]))
     np.testing.assert_array_equal(rows[0].to_array(), ctrl.controllers[0].predict(16))
+    # a last command or a coefficient that is not finite: the row says so before it is read
+    ctrl.controllers[0]._u = math.nan  # type: ignore[union-attr]
+    assert not ctrl._ahead.rows(16, u)[0].finite()
+    assert not np.isfinite(ctrl.predict_array(16)[0]).all()
 
 
 class _Before(AxesStage):

@@ -21,7 +21,9 @@ of every axis from the guarded backend of N axes (:class:`~piezo_stage_ros.hardw
 AxesGuard`), x_d(t_k) of every axis (:class:`~piezo_stage_ros.core.loop.axes_servo.
 AxesReference`), every axis' command and its commands ahead in one call (:class:`~piezo_stage_ros.
 core.loop.axes_servo.AxesCommands`), handed to the guard to hold from now on. Each sample goes,
-numbered, into a bounded queue as one :class:`AxesServoSample`; :meth:`AxesServoLoop.take_batch`
+numbered, into a bounded queue (packed into bytes: no object a sample for the garbage
+collector to scan), read as :class:`AxesServoSample` by :meth:`AxesServoLoop.drain`;
+:meth:`AxesServoLoop.take_batch`
 returns the queued samples as an :class:`AxesSampleBatch`: one row per sample, each quantity an
 (n, axes) array in the axis order, what one JointState (one joint per axis) or one
 Float64MultiArray command a sample carries, and the arrays the multi-axis bag writer takes

@@ -588,17 +588,22 @@ class AxesAhead:
                            else np.full(count, last_v[r]))
                 continue
             c = ctrls[r]
-            ok = self._tables_finite(r, p[0])
+            tables = p[0]
+            held, ok = self._checked[r]
+            if held is not tables:
+                ok = self._tables_finite(r, tables)
+            a, b, u = p[2], p[3], p[4]
+            # x - x is 0 for a finite x, NaN otherwise
+            ok = ok and (a - a) + (b - b) + (u - u) == 0.0
             if c.hysteresis_inverse is None:
                 secants.append(c.ahead_secant)  # 1 whatever the state
             else:
-                at = _SecantAt(c, p[4])
+                at = _SecantAt(c, u)
                 secants.append(at)
                 ok = ok and at.finite()
             rows.append(r)
             plans.append(p)
-            finite.append(ok and math.isfinite(p[2]) and math.isfinite(p[3])
-                          and math.isfinite(p[4]))
+            finite.append(ok)
             out.append(r)
         if rows:
             pending = _Pending(self, count, rows, plans, secants)

@@ -20,8 +20,10 @@ axis' x_d(t_k) and x_d'(t_k) from :class:`AxesReference` (the axes' trajectories
 ahead in chunks, t_k = k T as the offline loop :func:`~piezo_stage_ros.core.loop.axes.run_axes`
 computes it, so that the values are the same bit for bit) and every axis' command with its
 commands ahead from :class:`AxesCommands`: one
-:meth:`~piezo_stage_ros.core.control.axes.AxesController.step_ahead` call, the axes whose
-controller has no prediction of its own (no feed-forward) predicted by a
+:meth:`~piezo_stage_ros.core.control.axes.AxesController.step_ahead_rows` call (the
+commands ahead of the axes with a whole period's tables computed only when read: the backend
+reads them for the samples the host misses), the axes whose controller has no prediction of
+its own (no feed-forward) predicted by a
 :class:`~piezo_stage_ros.core.control.ahead.CommandPredictor` each along its reference ahead,
 as the one-axis servo predicts them.
 """
