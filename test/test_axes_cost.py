@@ -45,7 +45,8 @@ LOOP = load_loop_config([])
 
 
 def _lazy(params: list[Any], trajectories: list[Any], duration_s: float,
-          coupling: CouplingParams | None = None, late: int = 3) -> dict[str, int]:
+          coupling: CouplingParams | None = None, late: int = 3,
+          hysteresis: tuple[str, ...] = ()) -> dict[str, int]:
     """
     Run the axes taking the rows computed when read; read each ``late`` samples later.
 
@@ -53,7 +54,9 @@ def _lazy(params: list[Any], trajectories: list[Any], duration_s: float,
     """
     names = ('x', 'y', 'z')[:len(params)]
     sp = LOOP.stage
-    stage = AxesStageParams(names=names, axes=tuple(sp for _ in names),
+    axes = tuple(sp.with_flat({'hysteresis.model': hysteresis[j]}) if j < len(hysteresis)
+                 else sp for j in range(len(names)))
+    stage = AxesStageParams(names=names, axes=axes,
                             **({'coupling': coupling} if coupling is not None else {}))
     ctrl = AxesController.build(params, stage)
     count = 128
@@ -126,6 +129,14 @@ def test_rows_of_axes_predicted_alone_and_of_one_axis() -> None:
     assert seen['lazy'] > 0
     seen = _lazy([_controller('inverse_learning')], [_sine(100.0)], 0.05, late=1)
     assert seen['lazy'] > seen['samples'] // 2
+
+
+def test_rows_read_later_with_the_solved_inverse_hysteresis_models() -> None:
+    # the secant's state copied for the general inverse (a solve from the model's state)
+    seen = _lazy([_controller('inverse_learning'), _controller('inverse')],
+                 [_sine(100.0), _sine(100.0, 7e-6)], 0.05, late=5,
+                 hysteresis=('bouc_wen', 'prandtl_ishlinskii'))
+    assert seen['lazy'] > seen['samples']
 
 
 def test_a_row_not_finite_when_read_is_the_command_held() -> None:
