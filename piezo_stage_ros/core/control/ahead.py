@@ -406,12 +406,12 @@ class AheadRow(Sequence[float]):
     __slots__ = ('_pending', '_row', '_start', '_stop', '_finite', '_last', '_clamps',
                  '_array')
 
-    def __init__(self, pending: _Pending, row: int, count: int, finite: bool, last_v: float,
+    def __init__(self, pending: _Pending, row: int, stop: int, finite: bool, last_v: float,
                  *, start: int = 0, clamps: tuple[tuple[float, float], ...] = (),
                  array: FloatArray | None = None) -> None:
         self._pending = pending
         self._row = row
-        self._start, self._stop = start, count
+        self._start, self._stop = start, stop
         self._finite = finite
         self._last = last_v
         self._clamps = clamps
@@ -444,10 +444,9 @@ class AheadRow(Sequence[float]):
             first, last, step = index.indices(n)
             if step != 1:
                 raise ValueError('commands ahead: slices have step 1')
-            out = AheadRow(self._pending, self._row, self._stop, self._finite, self._last,
-                           start=self._start + first, clamps=self._clamps, array=self._array)
-            out._stop = self._start + max(last, first)
-            return out
+            return AheadRow(self._pending, self._row, self._start + max(last, first),
+                            self._finite, self._last, start=self._start + first,
+                            clamps=self._clamps, array=self._array)
         if index < 0:
             index += n
         if not 0 <= index < n:
@@ -467,9 +466,8 @@ class AheadRow(Sequence[float]):
 
     def clamped(self, low_v: float, high_v: float) -> AheadRow:
         """Return the same commands clipped to ``[low_v, high_v]`` too [V] (a view)."""
-        out = AheadRow(self._pending, self._row, self._stop, self._finite, self._last,
-                       start=self._start, clamps=self._clamps + ((low_v, high_v),))
-        return out
+        return AheadRow(self._pending, self._row, self._stop, self._finite, self._last,
+                        start=self._start, clamps=self._clamps + ((low_v, high_v),))
 
     def finite(self) -> bool:
         """Return whether every value is finite (decided from what they are computed from)."""
