@@ -393,7 +393,10 @@ class AxesGuard:
             finite: Any = np.isfinite(ahead_v).all(axis=1).tolist()
             rows = [_CheckedRow(row, ok) for row, ok in zip(ahead_v, finite)]
         elif ahead_v is not None:
-            rows = ahead_v
+            # one sequence per axis: arrays checked as the rows of one, the others (computed
+            # when read) say themselves whether they are finite
+            rows = [_CheckedRow(row, bool(np.isfinite(row).all()))
+                    if isinstance(row, np.ndarray) else row for row in ahead_v]
         for j, (take, u) in enumerate(zip(self._commands, commands_v)):
             if u - u != 0.0:  # NaN or infinite
                 self.refused[j] += 1

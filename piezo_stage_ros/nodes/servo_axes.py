@@ -21,7 +21,9 @@ of every axis from the guarded backend of N axes (:class:`~piezo_stage_ros.hardw
 AxesGuard`), x_d(t_k) of every axis (:class:`~piezo_stage_ros.core.loop.axes_servo.
 AxesReference`), every axis' command and its commands ahead in one call (:class:`~piezo_stage_ros.
 core.loop.axes_servo.AxesCommands`), handed to the guard to hold from now on. Each sample goes,
-numbered, into a bounded queue as one :class:`AxesServoSample`; :meth:`AxesServoLoop.take_batch`
+numbered, into a bounded queue (packed into bytes: no object a sample for the garbage
+collector to scan), read as :class:`AxesServoSample` by :meth:`AxesServoLoop.drain`;
+:meth:`AxesServoLoop.take_batch`
 returns the queued samples as an :class:`AxesSampleBatch`: one row per sample, each quantity an
 (n, axes) array in the axis order, what one JointState (one joint per axis) or one
 Float64MultiArray command a sample carries, and the arrays the multi-axis bag writer takes
@@ -35,7 +37,9 @@ The one-axis servo is untouched: a one-axis stage keeps :class:`ServoLoop`.
 from __future__ import annotations
 
 import copy
+import functools
 import math
+import struct
 from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
@@ -44,7 +48,7 @@ from piezo_stage_ros.core.config.nodes import PlantNodeParams
 from piezo_stage_ros.core.contracts.types import FloatArray, IntArray
 from piezo_stage_ros.core.contracts.wire import NS_PER_S
 from piezo_stage_ros.core.control.axes import AxesController
-from piezo_stage_ros.core.loop.axes_servo import AxesCommands, AxesReference
+from piezo_stage_ros.core.loop.axes_servo import AxesCommands, AxesReference, REFERENCE_CHUNK
 from piezo_stage_ros.core.model.axes import AxesStageParams
 from piezo_stage_ros.hardware.axes import AxesGuard, AxesModelBridge
 from piezo_stage_ros.hardware.pacing import Pacer
@@ -127,25 +131,40 @@ class AxesSampleBatch(NamedTuple):
         return int(self.number.size)
 
 
-def axes_batch_of(rows: Sequence[tuple[Any, ...]], axes: Sequence[str]) -> AxesSampleBatch:
+@functools.lru_cache(maxsize=None)
+def _row_struct(axes: int) -> struct.Struct:
+    """Return the packing of a queued row of ``axes`` axes (4 int64, then 6 N doubles)."""
+    return struct.Struct(f'<4q{6 * axes}d')
+
+
+def axes_batch_of(rows: Sequence[Any], axes: Sequence[str]) -> AxesSampleBatch:
     """
     Return queued rows as an :class:`AxesSampleBatch`.
 
     A row is flat: number, k, stamp [ns], lateness [ns], then the N values of each of y_k, x_d,
-    x_d', u_k, the applied inputs and the true positions (what :class:`AxesServoLoop` queues:
-    one object a sample, which the garbage collector stops tracking).
+    x_d', u_k, the applied inputs and the true positions; as a tuple, or packed into bytes as
+    :class:`AxesServoLoop` queues it (4 little-endian int64, then the doubles: one object a
+    sample that the garbage collector never has to look at).
     """
     n, width = len(rows), len(axes)
-    ints = np.array([r[:4] for r in rows], dtype=np.int64).reshape(n, 4)
-    floats = np.array([r[4:] for r in rows], dtype=np.float64).reshape(n, 6, width)
+    if n and isinstance(rows[0], bytes):
+        packed = np.frombuffer(b''.join(rows), dtype=np.dtype(
+            [('i', '<i8', (4,)), ('f', '<f8', (6, width))]))
+        ints = packed['i'].astype(np.int64)
+        floats = packed['f'].astype(np.float64)
+    else:
+        ints = np.array([r[:4] for r in rows], dtype=np.int64).reshape(n, 4)
+        floats = np.array([r[4:] for r in rows], dtype=np.float64).reshape(n, 6, width)
     columns = [floats[:, q].copy() for q in range(6)]
     return AxesSampleBatch(ints[:, 0].copy(), ints[:, 1].copy(), ints[:, 2].copy(),
                            ints[:, 3].copy(), columns[0], columns[1], columns[2], columns[3],
                            columns[4], columns[5], tuple(axes))
 
 
-def sample_of_row(row: Sequence[Any], axes: int) -> AxesServoSample:
+def sample_of_row(row: Sequence[Any] | bytes, axes: int) -> AxesServoSample:
     """Return one queued row (see :func:`axes_batch_of`) as an :class:`AxesServoSample`."""
+    if isinstance(row, bytes):
+        row = _row_struct(axes).unpack(row)
     values = [tuple(row[4 + q * axes:4 + (q + 1) * axes]) for q in range(6)]
     return AxesServoSample(row[1], row[2], values[0], values[1], values[2], values[3],
                            values[4], row[3], values[5])
@@ -177,7 +196,7 @@ class AxesServoLoop(ServoLoop):
                  duration_s: float = 0.0, pacer: Pacer | None = None,
                  capacity: int = 65536,
                  on_sample: Callable[[AxesServoSample], None] | None = None,
-                 commands_ahead: int = 0, chunk: int = 1000) -> None:
+                 commands_ahead: int = 0, chunk: int = REFERENCE_CHUNK) -> None:
         super().__init__(plant, None, None, sample_rate_hz=sample_rate_hz,  # type: ignore
                          duration_s=duration_s, pacer=pacer, capacity=capacity,
                          on_sample=on_sample, commands_ahead=commands_ahead)  # type: ignore
@@ -194,6 +213,7 @@ class AxesServoLoop(ServoLoop):
             plant.bridge.stage.read_positions_m if isinstance(plant.bridge, AxesModelBridge) \
             else None
         self._nans = (math.nan,) * plant.n
+        self._pack = _row_struct(plant.n).pack
 
     def _serve(self, index: int, position_m: Any, now_ns: int, lateness_ns: int) -> None:
         positions: list[float] = position_m
@@ -203,7 +223,7 @@ class AxesServoLoop(ServoLoop):
         true = self._true_axes() if self._true_axes is not None else self._nans
         if plant.winding:
             nans = self._nans
-            # one flat tuple a sample (numbers only: the garbage collector stops tracking it)
+            # one flat row a sample (numbers only), queued packed
             row = (self.pushed, index, stamp, lateness_ns, *positions, *nans, *nans, *nans,
                    *plant.applied_v, *true)
             if plant.phase == 'safe':
@@ -220,7 +240,9 @@ class AxesServoLoop(ServoLoop):
             row = (self.pushed, index, stamp, lateness_ns, *positions, *refs, *vels, *commands,
                    *applied, *true)
         if self.samples.maxlen:
-            self.samples.append(row)  # type: ignore[arg-type]
+            # packed: a tuple kept in the queue is an object the collector scans until it
+            # learns that the tuple holds numbers only, one a sample
+            self.samples.append(self._pack(*row))  # type: ignore[arg-type]
             self.pushed += 1
         if self.on_sample is not None:
             self.on_sample(sample_of_row(row, self.guard.n))  # type: ignore[arg-type]

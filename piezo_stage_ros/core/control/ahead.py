@@ -35,13 +35,14 @@ step is run: a few array operations on m values per sample.
 
 from __future__ import annotations
 
+import copy
 import math
 from typing import Any, Callable, Iterator, overload, Sequence
 
 import numpy as np
 from piezo_stage_ros.core.contracts.types import FloatArray, IntArray
 
-__all__ = ['Ahead', 'AxesAhead', 'CommandPredictor']
+__all__ = ['Ahead', 'AheadRow', 'AxesAhead', 'CommandPredictor']
 
 #: Variance of a regressor [V^2, sensor volts] below which the reference counts as at rest: a
 #: microvolt rms, far below any motion and far above the rounding of the sums (1e-16 of ~1 V).
@@ -328,6 +329,151 @@ class CommandPredictor:
                      command_v - a * reference_m - b * velocity_mps, (a, b), low, high)
 
 
+class _SecantAt:
+    """
+    A feed-forward's ``ahead_secant`` as it is at one sample, to be taken later.
+
+    The secant reads the inverse hysteresis' state, the slope and the last command; they are
+    copied here (the inverse's attributes are replaced, never changed in place, when it is
+    stepped), and the controller's own method is applied to the copy: the same operations
+    on the same numbers as the controller's call at that sample.
+    """
+
+    __slots__ = ('hysteresis_inverse', 'slope', '_u', '_secant')
+
+    def __init__(self, controller: Any, last_v: float) -> None:
+        hyst = controller.hysteresis_inverse
+        state = getattr(hyst, '__dict__', None)
+        if state is None:
+            held = copy.copy(hyst)
+        else:
+            held = object.__new__(type(hyst))
+            held.__dict__.update(state)
+        self.hysteresis_inverse = held
+        self.slope = controller.slope
+        self._u = last_v
+        self._secant = type(controller).ahead_secant
+
+    def __call__(self, du: float) -> float:
+        return float(self._secant(self, du))
+
+    def finite(self) -> bool:
+        """Return whether the state the secant starts from is finite."""
+        return math.isfinite(self.hysteresis_inverse.output_v)
+
+
+class _Pending:
+    """One sample's commands ahead of the batched axes, computed when one of them is read."""
+
+    __slots__ = ('_owner', '_count', '_rows', '_plans', '_secants', '_values')
+
+    def __init__(self, owner: AxesAhead, count: int, rows: list[int],
+                 plans: list[tuple[Any, ...]], secants: list[Callable[[float], float]]
+                 ) -> None:
+        self._owner = owner
+        self._count = count
+        self._rows = rows
+        self._plans = plans
+        self._secants = secants
+        self._values: FloatArray | None = None
+
+    def values(self) -> FloatArray:
+        """Return the (rows, count) commands ahead [V], computed on the first call."""
+        values = self._values
+        if values is None:
+            values = self._values = self._owner._evaluate(self._count, self._rows,
+                                                          self._plans, self._secants)
+        return values
+
+
+class AheadRow(Sequence[float]):
+    """
+    One axis' commands ahead out of :meth:`AxesAhead.rows`, computed when read.
+
+    The sequence the guard of an axis takes (as :class:`Ahead`): ``finite()``,
+    ``clamped()``, length, items and slices (views), :meth:`to_array`, :meth:`values_into`.
+    Reading any value computes the batch of every axis of that sample at once, from the
+    tables, coefficients and inverse hysteresis' state of that sample, whatever the
+    controllers did since: the values are those :meth:`AxesAhead.predict` gave then.
+
+    ``finite()`` is decided from what the values are computed from (the tables, the
+    coefficients, the inverse hysteresis' state), as :class:`Ahead` decides from its
+    coefficients. A row that is not finite all the same when it is computed (a secant that
+    is not a number) reads as the command held: the voltages a guard refusing it would apply
+    (a guard that took it counts its samples as predicted).
+    """
+
+    __slots__ = ('_pending', '_row', '_start', '_stop', '_finite', '_last', '_clamps',
+                 '_array')
+
+    def __init__(self, pending: _Pending, row: int, stop: int, finite: bool, last_v: float,
+                 *, start: int = 0, clamps: tuple[tuple[float, float], ...] = (),
+                 array: FloatArray | None = None) -> None:
+        self._pending = pending
+        self._row = row
+        self._start, self._stop = start, stop
+        self._finite = finite
+        self._last = last_v
+        self._clamps = clamps
+        self._array = array
+
+    def _values(self) -> FloatArray:
+        """Return the whole row (from index 0), clamped as asked, computed once per view."""
+        array = self._array
+        if array is None:
+            array = self._pending.values()[self._row]
+            if not np.isfinite(array).all():
+                array = np.full(array.size, self._last)
+            for low, high in self._clamps:
+                array = np.minimum(np.maximum(array, low), high)
+            self._array = array
+        return array
+
+    def __len__(self) -> int:
+        return max(self._stop - self._start, 0)
+
+    @overload
+    def __getitem__(self, index: int) -> float: ...
+
+    @overload
+    def __getitem__(self, index: slice) -> AheadRow: ...
+
+    def __getitem__(self, index: int | slice) -> float | AheadRow:
+        n = len(self)
+        if isinstance(index, slice):
+            first, last, step = index.indices(n)
+            if step != 1:
+                raise ValueError('commands ahead: slices have step 1')
+            return AheadRow(self._pending, self._row, self._start + max(last, first),
+                            self._finite, self._last, start=self._start + first,
+                            clamps=self._clamps, array=self._array)
+        if index < 0:
+            index += n
+        if not 0 <= index < n:
+            raise IndexError('commands ahead: index out of range')
+        return float(self._values()[self._start + index])
+
+    def __iter__(self) -> Iterator[float]:
+        return iter(self.to_array().tolist())
+
+    def to_array(self) -> FloatArray:
+        """Return every value at once, as an array [V]."""
+        return self._values()[self._start:self._stop].copy()
+
+    def values_into(self, out: FloatArray) -> None:
+        """Write every value into ``out`` (an array of ``len(self)``) [V]."""
+        out[:] = self._values()[self._start:self._stop]
+
+    def clamped(self, low_v: float, high_v: float) -> AheadRow:
+        """Return the same commands clipped to ``[low_v, high_v]`` too [V] (a view)."""
+        return AheadRow(self._pending, self._row, self._stop, self._finite, self._last,
+                        start=self._start, clamps=self._clamps + ((low_v, high_v),))
+
+    def finite(self) -> bool:
+        """Return whether every value is finite (decided from what they are computed from)."""
+        return self._finite
+
+
 class AxesAhead:
     """
     The commands ahead of the axes' controllers together, as one (axes, count) array [V].
@@ -336,7 +482,7 @@ class AxesAhead:
     such axes in one set of array operations over their tables stacked into rows (each axis'
     own values, the same operations on each value as its own ``predict``: the rows equal it
     bit for bit); any other axis through its own ``predict(count)``, and a controller without
-    one holds its last command.
+    one holds its last command. :meth:`rows` gives the same values computed when read.
 
     Parameters
     ----------
@@ -358,6 +504,8 @@ class AxesAhead:
         self._held: list[tuple[Any, ...] | None] = [None] * self.n
         self._steps = np.arange(1)
         self._row_index: dict[int, IntArray] = {}
+        # per axis: the tables last checked for finite values, and the verdict
+        self._checked: list[tuple[Any, bool]] = [((), True)] * self.n
 
     def predict(self, count: int, last_v: Sequence[float]) -> FloatArray:
         """
@@ -402,6 +550,73 @@ class AxesAhead:
             out[rows] = self._batch(count, rows, plans)
         return out
 
+    def rows(self, count: int, last_v: Sequence[float]) -> list[Any]:
+        """
+        Return each axis' ``count`` commands after its last step [V], computed when read.
+
+        The values of :meth:`predict`, row for row: an axis with a whole period's tables as
+        an :class:`AheadRow` (the axes' batch computed when one of them is first read, from
+        what this sample left: a backend reads them only for the samples the host misses),
+        any other axis' row as an array.
+
+        Parameters
+        ----------
+        count : int
+            Commands ahead per axis.
+        last_v : sequence of float
+            Each axis' last command [V].
+
+        Returns
+        -------
+        list
+            One sequence of ``count`` values per axis.
+
+        """
+        out: list[Any] = []
+        rows: list[int] = []
+        plans: list[tuple[Any, ...]] = []
+        secants: list[Callable[[float], float]] = []
+        finite: list[bool] = []
+        ctrls = self._ctrls
+        for r, plan in enumerate(self._plans):
+            p = plan(count) if plan is not None else None
+            if p is None:
+                pred = self._own[r]
+                out.append(np.asarray(pred(count), dtype=np.float64) if pred is not None
+                           else np.full(count, last_v[r]))
+                continue
+            c = ctrls[r]
+            tables = p[0]
+            held, ok = self._checked[r]
+            if held is not tables:
+                ok = self._tables_finite(r, tables)
+            a, b, u = p[2], p[3], p[4]
+            # x - x is 0 for a finite x, NaN otherwise
+            ok = ok and (a - a) + (b - b) + (u - u) == 0.0
+            if c.hysteresis_inverse is None:
+                secants.append(c.ahead_secant)  # 1 whatever the state
+            else:
+                at = _SecantAt(c, u)
+                secants.append(at)
+                ok = ok and at.finite()
+            rows.append(r)
+            plans.append(p)
+            finite.append(ok)
+            out.append(r)
+        if rows:
+            pending = _Pending(self, count, rows, plans, secants)
+            for q, (r, ok, p) in enumerate(zip(rows, finite, plans)):
+                out[r] = AheadRow(pending, q, count, ok, p[4])
+        return out
+
+    def _tables_finite(self, r: int, tables: tuple[FloatArray, ...]) -> bool:
+        """Return whether axis ``r``'s tables are finite (checked once per tables)."""
+        held, ok = self._checked[r]
+        if held is not tables:
+            ok = bool(all(np.isfinite(t).all() for t in tables))
+            self._checked[r] = (tables, ok)
+        return ok
+
     def _tables(self, rows: list[int], plans: list[tuple[Any, ...]]) -> FloatArray:
         """Return the stacked tables, rows copied in where an axis' tables were replaced."""
         stack = self._stack
@@ -429,6 +644,22 @@ class AxesAhead:
         at = np.take(stack.reshape(3, self.n * width),
                      np.array([r * width + p[1] for r, p in zip(rows, plans)])[:, None]
                      + self._steps, axis=1)
+        ctrls = self._ctrls
+        return self._combine(at, rows, plans, [ctrls[r].ahead_secant for r in rows])
+
+    def _evaluate(self, count: int, rows: list[int], plans: list[tuple[Any, ...]],
+                  secants: list[Callable[[float], float]]) -> FloatArray:
+        """Return :meth:`_batch` of a past sample, from its own tables (not the stack)."""
+        at = np.empty((3, len(rows), count + 1), dtype=np.float64)
+        for q, p in enumerate(plans):
+            i = p[1]
+            for t in range(3):
+                at[t, q] = p[0][t][i:i + count + 1]
+        return self._combine(at, rows, plans, secants)
+
+    def _combine(self, at: FloatArray, rows: list[int], plans: list[tuple[Any, ...]],
+                 secants: list[Callable[[float], float]]) -> FloatArray:
+        """Return the commands ahead from the tables read at each index and after it."""
         change = at[:, :, 1:] - at[:, :, :1]
         coef = np.array([p[2:] for p in plans])
         # (x - x_k) a + b (x' - x'_k) + (w - w_k), in the order predict sums them
@@ -439,8 +670,7 @@ class AxesAhead:
         if m not in self._row_index:
             self._row_index[m] = np.arange(m)
         peak = ahead[self._row_index[m], np.argmax(np.abs(ahead), axis=1)].tolist()
-        ctrls = self._ctrls
-        ahead *= np.array([[ctrls[r].ahead_secant(du)] for r, du in zip(rows, peak)])
+        ahead *= np.array([[secant(du)] for secant, du in zip(secants, peak)])
         ahead += coef[:, 2:3]
         every = m == self.n
         np.minimum(ahead, self._high if every else self._high[rows], out=ahead)

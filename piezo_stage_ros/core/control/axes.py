@@ -320,6 +320,22 @@ class AxesController:
         self._last = out
         return out, self._ahead.predict(count, out)
 
+    def step_ahead_rows(self, positions_m: Sequence[float], references_m: Sequence[float],
+                        velocities_mps: Sequence[float], count: int
+                        ) -> tuple[list[float], list[Any]]:
+        """
+        Return one sample's commands [V] and each axis' ``count`` commands ahead [V].
+
+        :meth:`step_ahead` with the commands ahead computed when read
+        (:meth:`~piezo_stage_ros.core.control.ahead.AxesAhead.rows`): the same values, one
+        sequence per axis, for a servo whose backend reads them only for the samples it
+        misses.
+        """
+        out = [s(y, r, v) for s, y, r, v in zip(self._steps, positions_m, references_m,
+                                                 velocities_mps)]
+        self._last = out
+        return out, self._ahead.rows(count, out)
+
     def diagnostic_names(self) -> list[tuple[str, ...]]:
         """Return each axis' controller's diagnostic names."""
         return [tuple(getattr(c, 'diagnostic_names', ())) for c in self.controllers]

@@ -20,8 +20,10 @@ axis' x_d(t_k) and x_d'(t_k) from :class:`AxesReference` (the axes' trajectories
 ahead in chunks, t_k = k T as the offline loop :func:`~piezo_stage_ros.core.loop.axes.run_axes`
 computes it, so that the values are the same bit for bit) and every axis' command with its
 commands ahead from :class:`AxesCommands`: one
-:meth:`~piezo_stage_ros.core.control.axes.AxesController.step_ahead` call, the axes whose
-controller has no prediction of its own (no feed-forward) predicted by a
+:meth:`~piezo_stage_ros.core.control.axes.AxesController.step_ahead_rows` call (the
+commands ahead of the axes with a whole period's tables computed only when read: the backend
+reads them for the samples the host misses), the axes whose controller has no prediction of
+its own (no feed-forward) predicted by a
 :class:`~piezo_stage_ros.core.control.ahead.CommandPredictor` each along its reference ahead,
 as the one-axis servo predicts them.
 """
@@ -40,7 +42,12 @@ from piezo_stage_ros.core.control.axes import AxesController
 from piezo_stage_ros.core.control.controllers import SENSOR_GAIN_V_PER_M
 from piezo_stage_ros.core.loop.axes import axis_references
 
-__all__ = ['AxesCommands', 'AxesReference']
+__all__ = ['AxesCommands', 'AxesReference', 'REFERENCE_CHUNK']
+
+#: Samples of each axis' reference evaluated at once. An evaluation costs a fixed part (tens
+#: of microseconds per axis) and a little per sample: the samples that carry one stay few
+#: (one axis each, the last samples of a chunk) and most samples carry none.
+REFERENCE_CHUNK = 4000
 
 
 class AxesReference:
@@ -61,7 +68,7 @@ class AxesReference:
     """
 
     def __init__(self, trajectories: Sequence[Trajectory], sample_time_s: float, *,
-                 chunk: int = 1000, names: Sequence[str] = ()) -> None:
+                 chunk: int = REFERENCE_CHUNK, names: Sequence[str] = ()) -> None:
         if chunk < 1:
             raise ParameterError('chunk', chunk, '[1, inf) samples')
         if not trajectories:
@@ -157,7 +164,7 @@ class AxesCommands:
             (j, CommandPredictor(SENSOR_GAIN_V_PER_M, t), c) for j, c in
             enumerate(controller.controllers) if not callable(getattr(c, 'predict', None))]
         self._step = controller.step
-        self._step_ahead = controller.step_ahead
+        self._step_ahead = controller.step_ahead_rows
         self.steps = 0
 
     def reset(self, positions_m: Sequence[float], references_m: Sequence[float]) -> None:
@@ -168,11 +175,13 @@ class AxesCommands:
 
     def step(self, index: int, positions_m: Sequence[float], references_m: Sequence[float],
              velocities_mps: Sequence[float], count: int
-             ) -> tuple[list[float], FloatArray | None]:
+             ) -> tuple[list[float], list[Any] | None]:
         """
-        Return sample ``index``'s commands [V] and the (axes, ``count``) commands ahead [V].
+        Return sample ``index``'s commands [V] and each axis' ``count`` commands ahead [V].
 
-        ``count`` 0: the commands alone (None for the commands ahead).
+        One sequence per axis: an array, or the batched axes' values computed when read
+        (:class:`~piezo_stage_ros.core.control.ahead.AheadRow`). ``count`` 0: the commands
+        alone (None for the commands ahead).
         """
         self.steps += 1
         if not count:
@@ -184,7 +193,9 @@ class AxesCommands:
                                           velocities_mps[j], functools.partial(window, j, index))
             values_into = getattr(pred, 'values_into', None)
             if values_into is not None:
-                values_into(ahead[j])
+                row = np.empty(count, dtype=np.float64)
+                values_into(row)
+                ahead[j] = row
             else:
-                ahead[j] = pred
+                ahead[j] = np.asarray(pred, dtype=np.float64)
         return out, ahead

@@ -59,6 +59,9 @@ AXIS_NAMES = ('x', 'y', 'z')
 #: Damping of a coupling mode when none is given [-].
 DEFAULT_DAMPING = 0.05
 
+#: Sensor noise values drawn from an axis' generator at a time.
+NOISE_BLOCK = 256
+
 
 def check_axis_names(names: Sequence[Any], where: str = 'axes.names') -> tuple[str, ...]:
     """
@@ -450,12 +453,21 @@ class _Axis:
             chain.sensor_offset_m) if chain.quantize else None
         self.noise = chain.sensor_noise_std_m
         self.rng = np.random.default_rng(params.seed)
+        # the noise drawn a block at a time: a generator gives the same numbers in a block as
+        # one by one, and a call per sample costs more than the sample's other sensor work
+        self._normals: list[float] = []
+        self._drawn = 0
 
     def sense(self, position_m: float) -> float:
         """Return what the sensor and the ADC give for a true position (as Stage.measure)."""
         pos = position_m
         if self.noise > 0.0:
-            pos += self.noise * float(self.rng.standard_normal())
+            i = self._drawn
+            if i == len(self._normals):
+                self._normals = self.rng.standard_normal(NOISE_BLOCK).tolist()
+                i = 0
+            self._drawn = i + 1
+            pos += self.noise * self._normals[i]
         adc = self.adc
         return adc.scalar(pos) if adc is not None else pos
 
@@ -489,6 +501,14 @@ class AxesStage:
         self._talk = [[(i, float(talk[i, j])) for i in range(self.n) if talk[i, j] != 0.0]
                       for j in range(self.n)]
         self._coupled = bool(self._paths)
+        # the paths with modes (states to step): (index, path, its driving axis' state)
+        self._moving = [(k, path, self._axes[path.source].kernel.get)
+                        for k, path in enumerate(self._paths) if path.targets]
+        # what each path adds to the true positions, in the order the sum takes it: its
+        # modes' (moved axis, gain, state index), then its static (moved axis, kappa)
+        self._adds = [(k, path.source,
+                       [(j, path.gains[p], 2 * p) for p, j in enumerate(path.targets)],
+                       list(path.static)) for k, path in enumerate(self._paths)]
         self._z: list[FloatArray] = []
         self._x_prev: list[FloatArray] = []
         self._true: list[float] = [0.0] * self.n
@@ -548,11 +568,14 @@ class AxesStage:
 
     def _measure(self, own: list[float]) -> list[float]:
         true = list(own)
-        for path, z in zip(self._paths, self._z):
-            for p, j in enumerate(path.targets):
-                true[j] += path.gains[p] * float(z[2 * p])
-            for j, kappa in path.static:
-                true[j] += kappa * own[path.source]
+        states = self._z
+        for k, source, modes, static in self._adds:
+            if modes:
+                z = states[k].tolist()
+                for j, gain, q in modes:
+                    true[j] += gain * z[q]
+            for j, kappa in static:
+                true[j] += kappa * own[source]
         self._true = true
         out = []
         for j, axis in enumerate(self._axes):
@@ -583,12 +606,12 @@ class AxesStage:
             if dac is not None and math.isfinite(u):
                 u = dac.scalar(u)
             own.append(axis.stage.step(u))
-        for k, path in enumerate(self._paths):
-            state = self._axes[path.source].kernel.get()
-            x_prev = self._x_prev[k]
-            z = self._z[k]
-            self._z[k] = path.ad @ z + path.f @ x_prev + path.h * state.w
-            self._x_prev[k] = np.asarray(state.x, dtype=np.float64)
+        # a path without modes has no state: its static gains read the positions alone
+        z, x_prev = self._z, self._x_prev
+        for k, path, get in self._moving:
+            state = get()
+            z[k] = path.ad @ z[k] + path.f @ x_prev[k] + path.h * state.w
+            x_prev[k] = np.asarray(state.x, dtype=np.float64)
         return self._measure(own)
 
     def run_open_loop(self, commands_v: Any) -> FloatArray:
