@@ -113,6 +113,9 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 
+#: The plant node's timer [s]: lockstep resends and the start; in real time the drain.
+TICK_S = 0.005
+
 __all__ = ['AxesControllerNode', 'AxesPlantNode', 'AxesTrajectoryNode', 'axes_factories',
            'connect_axes']
 
@@ -279,7 +282,7 @@ class AxesPlantNode(_AxesNode):
                                      qos.LOOP, raw=True)
         self._matched_at: float | None = None
         self._t_start = 0.0
-        self._timer = self.create_timer(0.005, self._tick,
+        self._timer = self.create_timer(TICK_S, self._tick,
                                         clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(
             f'{opts.mode} at {self.rate_hz:g} Hz, {self.logic.n} axes {list(self.names)}, plant '
@@ -362,6 +365,8 @@ class AxesPlantNode(_AxesNode):
             if self._ready(now, len(self._peers)):
                 self._t_start = now
                 opts, period_ns = self.opts.servo, servo.pacer.period_ns
+                # the executor's turn at the interpreter lock: two ticks of its timer
+                servo.share_interpreter(2 * TICK_S)
                 servo.start_thread(self.get_clock().now().nanoseconds,
                                    lambda: servo_setup(opts, period_ns),
                                    since_ns=time.monotonic_ns())

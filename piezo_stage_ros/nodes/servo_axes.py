@@ -281,6 +281,7 @@ class AxesServoLoop(ServoLoop):
 
     def take_batch(self) -> AxesSampleBatch:  # type: ignore[override]
         """Return the samples queued since the last call as an :class:`AxesSampleBatch`."""
+        self._took_turn()
         rows = []
         queue = self.samples
         while queue:
