@@ -446,3 +446,13 @@ def test_a_goal_announcement_builds_the_spline_again_bit_for_bit_and_refuses_gar
     for text in ('', '{"stamp_ns": 1}', '{"stamp_ns": 1, "axes_goal": {"start_s": 0}}'):
         with pytest.raises(ParameterError, match='axes_goal'):
             parse_axes_goal(text)
+
+
+def test_the_goals_benchmark_runs_the_moves_of_several_axes(capsys):
+    # the command the results page quotes: every move ends SUCCESSFUL with and without the
+    # feed-forward (what the twin tests above hold sample for sample)
+    from piezo_stage_ros.bench import goals
+    assert goals.main(['--config', 'config/xy_stage.yaml', '--config',
+                       'config/xy_hold.yaml']) == 0
+    out = capsys.readouterr().out
+    assert out.count('SUCCESSFUL') == 10 and "axes ['x', 'y']" in out

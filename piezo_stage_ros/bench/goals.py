@@ -33,6 +33,13 @@ configured stage and controller (default: the paper's stage, the RAC) with goals
   has it from its block) and evaluating it itself, a block of 50 references, and preparing
   the 1 000 scan points (check and spline; the best of three timings, the machine may be
   shared).
+
+A stage of several axes (``--config config/xy_stage.yaml --config config/xy_hold.yaml``) gets
+its own case instead: five moves of every axis at once to random positions in 3-28 um, 20 ms
+each, goal tolerance 5 nm on every joint, through the lockstep nodes' offline twin
+(:func:`~piezo_stage_ros.core.loop.follow.run_axes_goals`), with the feed-forward as
+configured and with the feedback alone: when each settled, and the largest error of the true
+position on each axis from the first goal on.
 """
 
 from __future__ import annotations
@@ -43,9 +50,10 @@ from typing import Any, Sequence
 
 import numpy as np
 from piezo_stage_ros import cli
+from piezo_stage_ros.core.config.axes import has_axes
 from piezo_stage_ros.core.config.loader import LoopConfig
 from piezo_stage_ros.core.config.nodes import WatchdogParams
-from piezo_stage_ros.core.contracts.wire import JOINT_NAME
+from piezo_stage_ros.core.contracts.wire import axis_joint_names, JOINT_NAME
 from piezo_stage_ros.core.control.controllers import build_controller, ControllerParams
 from piezo_stage_ros.core.loop.follow import FollowParams, GoalFollower, GoalRun, run_goals
 from piezo_stage_ros.core.loop.goals import (
@@ -224,6 +232,42 @@ def _cost(loop: LoopConfig) -> None:
           f'{min(prepare) * 1e3:.1f} ms')
 
 
+def _axes_moves(config: Any, seed: int) -> None:
+    from piezo_stage_ros.core.config.axes import axes_loop_config
+    from piezo_stage_ros.core.control.axes import AxesController
+    from piezo_stage_ros.core.loop.follow import run_axes_goals
+    from piezo_stage_ros.core.model.axes import AxesStage
+    from piezo_stage_ros.nodes.axes_logic import axes_follower
+    base = axes_loop_config(config)
+    joints = axis_joint_names(base.stage.names)
+    rng = np.random.default_rng(seed)
+    gap_s, move_s = 0.1, 0.02
+    events = []
+    for i in range(5):
+        targets = rng.uniform(3e-6, 28e-6, len(joints))
+        events.append((0.01 + gap_s * i, JointTrajectoryGoal(
+            joints, (TrajectoryPoint(move_s, tuple(float(x) for x in targets)),),
+            goal_tolerance=tuple(JointTolerance(j, 5e-9) for j in joints),
+            goal_time_tolerance_s=0.02)))
+    modes = [m.feedforward.mode for m in base.controllers]
+    print(f'five moves of the axes {list(base.stage.names)} at once, {move_s * 1e3:g} ms each, '
+          f'goal tolerance 5 nm on every joint (seed {seed}):')
+    for label, loop in ((f'feed-forward {"/".join(modes)}', base),
+                        ('feedback alone', axes_loop_config(config.with_overrides(
+                            'controller_node', {'feedforward.mode': 'none'})))):
+        ctrl = AxesController.build(loop.controllers, loop.stage, compensate=loop.compensate)
+        run = run_axes_goals(AxesStage(loop.stage), ctrl, loop.trajectories(),
+                             axes_follower(loop), events, duration_s=0.01 + gap_s * 5)
+        settled = ', '.join(f'{r.code.name} {(r.time_s - t - move_s) * 1e3:.1f} ms'
+                            for (t, _), r in zip(events, run.results))
+        assert run.true_position_m is not None
+        first = int(round(events[0][0] / loop.stage.sample_time_s))  # the start's own offset
+        worst = np.max(np.abs(run.reference_m - run.true_position_m)[first:], axis=0)
+        print(f'  {label}: {settled} after the last point; largest |error| of the true '
+              'position from the first goal on: ' + ', '.join(f'{a} {w * 1e9:.1f} nm'
+                                       for a, w in zip(loop.stage.names, worst)))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the goal cases and print their figures; return the exit status."""
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split('\n\n')[0].strip())
@@ -231,7 +275,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--seed', type=int, default=28, help='Seed of the five targets.')
 
     def body(args: argparse.Namespace) -> int:
-        loop = cli.offline_loop(PROG, cli.read_config(args.config, args.param))
+        config = cli.read_config(args.config, args.param)
+        if has_axes(config):
+            _axes_moves(config, args.seed)
+            return 0
+        loop = cli.offline_loop(PROG, config)
         _moves(loop, args.seed)
         _beyond(loop)
         _scan(loop)
