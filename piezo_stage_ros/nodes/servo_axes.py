@@ -304,6 +304,8 @@ class AxesServoLoop(ServoLoop):
         out.update({'index': self.index, 'queue_overruns':
                     max(self.pushed - self.drained - len(self.samples), 0),
                     'controller_steps': self.commands.steps, 'axes': list(self.axes)})
+        if self._turn_every_ns:
+            out['handovers'] = self.handovers
         if self.error is not None:
             out['error'] = repr(self.error)
         return out
