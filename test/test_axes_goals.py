@@ -456,3 +456,22 @@ def test_the_goals_benchmark_runs_the_moves_of_several_axes(capsys):
                        'config/xy_hold.yaml']) == 0
     out = capsys.readouterr().out
     assert out.count('SUCCESSFUL') == 10 and "axes ['x', 'y']" in out
+
+
+@pytest.mark.parametrize('what', ['trajectories', 'follower.joints', 'controller'])
+def test_the_twin_refuses_a_count_that_is_not_one_per_axis_naming_it(what: str) -> None:
+    # each of the three counts named with its own value, not the trajectories' for all
+    loop = loop_of(HOLD)
+    trajectories = loop.trajectories()
+    follower = axes_follower(loop)
+    controller = AxesController.build(loop.controllers, loop.stage, compensate=False)
+    if what == 'trajectories':
+        trajectories = trajectories[:1]
+    elif what == 'follower.joints':
+        follower = GoalFollower((X, Y, Z), [AxisLimits.from_stage(loop.stage.axes[0])] * 3,
+                                [10e-6, 5e-6, 0.0], FollowParams(sample_time_s=T))
+    else:
+        controller = AxesController(controller.controllers[:1], compensate=False)
+    with pytest.raises(ParameterError, match=rf"'{what}' = [1-3] .*allowed: 2, one per axis"):
+        run_axes_goals(AxesStage(loop.stage), controller, trajectories, follower, [],
+                       duration_s=T)
