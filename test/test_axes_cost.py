@@ -167,6 +167,14 @@ def test_a_row_not_finite_when_read_is_the_command_held() -> None:
     ctrl.controllers[0]._u = math.nan  # type: ignore[union-attr]
     assert not ctrl._ahead.rows(16, u)[0].finite()
     assert not np.isfinite(ctrl.predict_array(16)[0]).all()
+    # a table that is not finite (a learned value), the rest finite: the row says so too
+    first = ctrl.controllers[0]
+    first._u = u[0]  # type: ignore[union-attr]
+    assert ctrl._ahead.rows(16, u)[0].finite()
+    learned = list(first._ll)  # type: ignore[union-attr]
+    learned[len(learned) // 2] = math.nan
+    first._ll = learned  # type: ignore[union-attr]
+    assert not ctrl._ahead.rows(16, u)[0].finite()
 
 
 class _Before(AxesStage):

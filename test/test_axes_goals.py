@@ -35,6 +35,7 @@ from piezo_stage_ros.core.loop.follow import (
     GoalStatus,
     PREEMPTED,
     run_axes_goals,
+    take_over_state,
 )
 from piezo_stage_ros.core.loop.goals import (
     AxisLimits,
@@ -456,3 +457,50 @@ def test_the_goals_benchmark_runs_the_moves_of_several_axes(capsys):
                        'config/xy_hold.yaml']) == 0
     out = capsys.readouterr().out
     assert out.count('SUCCESSFUL') == 10 and "axes ['x', 'y']" in out
+
+
+@pytest.mark.parametrize('what', ['trajectories', 'follower.joints', 'controller'])
+def test_the_twin_refuses_a_count_that_is_not_one_per_axis_naming_it(what: str) -> None:
+    # each of the three counts named with its own value, not the trajectories' for all
+    loop = loop_of(HOLD)
+    trajectories = loop.trajectories()
+    follower = axes_follower(loop)
+    controller = AxesController.build(loop.controllers, loop.stage, compensate=False)
+    if what == 'trajectories':
+        trajectories = trajectories[:1]
+    elif what == 'follower.joints':
+        follower = GoalFollower((X, Y, Z), [AxisLimits.from_stage(loop.stage.axes[0])] * 3,
+                                [10e-6, 5e-6, 0.0], FollowParams(sample_time_s=T))
+    else:
+        controller = AxesController(controller.controllers[:1], compensate=False)
+    with pytest.raises(ParameterError, match=rf"'{what}' = [1-3] .*allowed: 2, one per axis"):
+        run_axes_goals(AxesStage(loop.stage), controller, trajectories, follower, [],
+                       duration_s=T)
+
+
+class _Sine:
+    """x = A sin(w t + phase) [m] and its velocity, exactly."""
+
+    def __init__(self, amplitude_m: float, omega_rad_s: float, phase: float) -> None:
+        self.a, self.w, self.phase = amplitude_m, omega_rad_s, phase
+
+    def evaluate(self, time_s: Any) -> tuple[np.ndarray, np.ndarray]:
+        arg = self.w * np.asarray(time_s, dtype=np.float64) + self.phase
+        return self.a * np.sin(arg), self.a * self.w * np.cos(arg)
+
+
+def test_the_state_a_goal_takes_over_is_the_trajectories_with_their_acceleration() -> None:
+    # x_d'' by the central difference of x_d' over the samples around the index: for a sine,
+    # -A w^2 sin(w t) sin(w T) / (w T), within (w T)^2 / 6 of A w^2; rounding: the sines'
+    # argument (up to ~10^3 rad, a few 1e-13 rad absolute) over 2 w T
+    sines = [_Sine(10e-6, 2 * math.pi * 10.0, 0.3), _Sine(5e-6, 2 * math.pi * 170.0, -1.1)]
+    for index in (1, 240, 7001):
+        x, v, a = take_over_state(sines, index, T)
+        for j, s in enumerate(sines):
+            xs, vs = s.evaluate(np.array([index * T]))
+            assert x[j] == xs[0] and v[j] == vs[0]
+            exact = -s.a * s.w ** 2 * math.sin(s.w * index * T + s.phase)
+            wt = s.w * T
+            assert abs(a[j] - exact) <= s.a * s.w ** 2 * (wt ** 2 / 6 + 1e-12 / wt)
+    # at the first sample nothing came before: at rest in acceleration
+    assert take_over_state(sines, 0, T)[2].tolist() == [0.0, 0.0]

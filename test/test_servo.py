@@ -17,6 +17,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import threading
 import time
@@ -289,8 +290,9 @@ def test_a_servo_thread_whose_executor_takes_its_turns_never_waits_for_it():
     loop.boundary = lambda: bool(taken.extend(loop.drain()) or True)  # a turn each sample
     loop.run(start_ns=7 * PERIOD)
     assert loop.handovers == 0 and not executor.timeouts and len(taken + loop.drain()) == 500
-    with pytest.raises(ParameterError, match='every_s'):
-        loop.share_interpreter(-1.0)
+    for bad in (-1.0, math.inf, math.nan):
+        with pytest.raises(ParameterError, match='every_s'):
+            loop.share_interpreter(bad)
 
 
 def test_the_warm_up_copies_a_controller_logic_whose_hooks_are_a_nodes_methods():

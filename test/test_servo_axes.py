@@ -398,3 +398,37 @@ def test_a_guard_of_another_axis_count_names_what_is_wrong(chains, names, wrong)
     bridge = AxesModelBridge(loop.stage)
     with pytest.raises(ParameterError, match=f'{wrong} .*2, one per axis'):
         AxesGuard(bridge, [a.chain for a in loop.stage.axes][:chains], loop.stage.names[:names])
+
+
+class _Executor:
+    """The executor as the loop's turn event sees it: it takes its turn while waited for."""
+
+    def __init__(self, take) -> None:
+        self.take = take
+        self.taken: list = []
+
+    def clear(self) -> None:
+        pass
+
+    def set(self) -> None:
+        pass
+
+    def wait(self, timeout: float) -> bool:
+        self.taken.append(self.take())
+        return True
+
+
+@pytest.mark.parametrize('take', ['drain', 'take_batch'])
+def test_each_take_of_the_samples_of_several_axes_is_the_executors_turn(take):
+    # drain and take_batch are the executor's turns, as the one-axis loop's: a loop whose
+    # executor takes its samples in its turns hands the lock over once every `every` periods
+    every = 10
+    loop = loop_of('xy_stage.yaml', [])
+    servo = axes_servo_from_config(loop, 0.05)
+    paced(servo)
+    servo.share_interpreter(every * PERIOD / 1e9)
+    executor = _Executor(getattr(servo, take))
+    servo._turn = executor  # type: ignore[assignment]
+    servo.run(start_ns=7 * PERIOD)
+    assert servo.error is None and len(executor.taken) == servo.handovers
+    assert 500 // (every + 1) <= servo.handovers <= 500 // every

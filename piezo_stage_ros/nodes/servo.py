@@ -594,7 +594,7 @@ class ServoLoop:
         interval (chunks of 5 ms against CPython's 5 ms) keep it waiting for good, and the
         samples pile up. 0: never (the loop's own thread is the only one that needs the lock).
         """
-        if not every_s >= 0.0:
+        if not 0.0 <= every_s < math.inf:
             raise ParameterError('every_s', every_s, '[0, inf)')
         self._turn_every_ns = round(every_s * NS_PER_S)
         self._turn_ns = self.pacer.clock()

@@ -272,6 +272,7 @@ class AxesServoLoop(ServoLoop):
 
     def drain(self, limit: int = 0) -> list[AxesServoSample]:  # type: ignore[override]
         """Return the samples queued since the last call, oldest first (at most ``limit``)."""
+        self._took_turn()
         out: list[AxesServoSample] = []
         queue, n = self.samples, self.guard.n
         while queue and (not limit or len(out) < limit):

@@ -985,14 +985,14 @@ def run_axes_goals(stage: AxesStage, controller: AxesController,
     Raises
     ------
     ParameterError
-        A trajectory or joint count that is not one per axis.
+        A trajectory, joint or controller count that is not one per axis (named with its count).
 
     """
     n = stage.n
-    if len(trajectories) != n or len(follower.joints) != n or controller.n != n:
-        raise ParameterError('trajectories', len(trajectories),
-                             f'{n}, one per axis {list(stage.names)} (controllers: '
-                             f'{controller.n}, joints: {len(follower.joints)})')
+    for name, count in (('trajectories', len(trajectories)),
+                        ('follower.joints', len(follower.joints)), ('controller', controller.n)):
+        if count != n:
+            raise ParameterError(name, count, f'{n}, one per axis {list(stage.names)}')
     dt = float(stage.sample_time_s)
     total = max(int(round(duration_s / dt)), 1)
     reference = AxesGoalReference(trajectories, follower, dt,
