@@ -422,3 +422,20 @@ def test_an_existing_bag_is_refused_before_the_run(tmp_path, capsys):
     captured = capsys.readouterr()
     assert 'exists already' in captured.err and 'simulated' not in captured.out
     assert (tmp_path / 'b' / 'keep.txt').read_text() == 'mine'
+
+
+def test_a_bag_with_neither_command_nor_blocks_is_refused_naming_both(tmp_path):
+    # a recording of the positions alone, read with its namespace given
+    written = records(('x', 'y'), n=5, diagnostics=False)
+    write_axes(written, tmp_path / 'b')
+    from rosbags.rosbag2 import Reader
+    store = get_typestore(Stores.ROS2_JAZZY)
+    with Reader(tmp_path / 'b') as reader, \
+            Writer(tmp_path / 'p', version=Writer.VERSION_LATEST,
+                   storage_plugin=StoragePlugin.MCAP) as writer:
+        conns = [c for c in reader.connections if c.topic == '/stage/position']
+        out = writer.add_connection('/stage/position', conns[0].msgtype, typestore=store)
+        for _, stamp, raw in reader.messages(connections=conns):
+            writer.write(out, stamp, raw)
+    with pytest.raises(BagError, match='neither /stage/command nor /stage/block'):
+        read_axes(tmp_path / 'p', namespace='/stage')

@@ -1175,9 +1175,14 @@ def read_axes(path: str | Path, *, namespace: str | None = None,
     info = bag_info(path)
     ns = _find_namespace(info, namespace)
     if not is_axes_bag(info, ns):
-        what = ('the blocks of one axis' if topic_names(ns)['command'] not in info.topics
-                else f'a one-axis run ({topic_names(ns)["command"]} is not '
-                f'{AXES_COMMAND_TYPE})')
+        command_topic = topic_names(ns)['command']
+        if command_topic in info.topics:
+            what = f'a one-axis run ({command_topic} is not {AXES_COMMAND_TYPE})'
+        elif block_topic(ns) in info.topics:
+            what = 'the blocks of one axis'
+        else:
+            raise BagError(f'bag {info.path}: has neither {command_topic} nor '
+                           f'{block_topic(ns)}; a run of several axes needs one of them')
         raise BagError(f'bag {info.path}: holds {what}; read it with read_run')
     names = bag_axes(info, ns) if axes is None else tuple(axes)
     if block_topic(ns) in info.topics:
