@@ -1095,6 +1095,19 @@ class NotchFilter:
         self._z2 = b2 * u - a2 * y
         return y
 
+    def bridge(self, last: float, u: float, gap: int) -> None:
+        """
+        Filter ``gap`` samples a stalled loop missed, before the sample whose input is ``u``.
+
+        The input goes from the last one, ``last``, to ``u`` in equal steps, as if the filter
+        had seen the commands ahead the stage played over them, instead of one jump that would
+        ring. Every filter of a command that missed the samples must be bridged alike, so that
+        what they cancel between them (the feed-forward's share of the RAC's model part)
+        still cancels.
+        """
+        for j in range(1, gap + 1):
+            self.step(last + (u - last) * j / (gap + 1))
+
 
 class NotchedController(_Output):
     """
@@ -1165,9 +1178,7 @@ class NotchedController(_Output):
             self._fresh = False
         elif self._gap:
             # samples missed before this one: the notch's input goes there in equal steps
-            gap, last = self._gap, self._last_in
-            for j in range(1, gap + 1):
-                self.notch.step(last + (v - last) * j / (gap + 1))
+            self.notch.bridge(self._last_in, v, self._gap)
         self._gap = 0
         self._last_in = v
         f = self.notch.step(v)

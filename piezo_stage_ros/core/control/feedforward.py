@@ -1550,6 +1550,12 @@ class FeedForwardController:
         if notch is not None:
             self._share_notch = type(notch)(notch.num, notch.den)
         self._share_fresh = True
+        # samples a stalled loop missed before the next step, and the share's last input
+        # (missed: the share's notch is bridged over them as the inner notch is)
+        self._share_gap = 0
+        self._share_last = 0.0
+        self._drift_gap = 0
+        self._drift_last = 0.0
         # inverse modes: what the held estimates add over the initial ones, k (d_theta x_d +
         # d_phi x_d'), is taken off through its own copy of the notch (see _hold)
         self._drift_gains = (0.0, 0.0)
@@ -1969,6 +1975,11 @@ class FeedForwardController:
                 if self._share_fresh:
                     notch.reset(share)
                     self._share_fresh = False
+                elif self._share_gap:
+                    # bridged as the inner notch bridges the same missed samples (missed)
+                    notch.bridge(self._share_last, share, self._share_gap)
+                self._share_gap = 0
+                self._share_last = share
                 share = notch.step(share)
             u = u - share + self._lw[i]
             if self._drift_gains != (0.0, 0.0):
@@ -2081,10 +2092,20 @@ class FeedForwardController:
                 self._pending = self._k % n
 
     def missed(self, samples: int) -> None:
-        """Let ``samples`` missed samples pass in the inner controller (its ``missed``)."""
+        """
+        Let ``samples`` missed samples pass in the inner controller (its ``missed``).
+
+        The inner notch bridges them at the next step (the command's input in equal steps);
+        the notches of what the model inverse takes off the command (the share of the RAC's
+        model part, the held estimates' drift) are bridged alike, or the difference of the
+        filters, fed a jump on one side and a ramp on the other, rings into the command (a
+        kick of several nanometres after one missed sample of a moving reference).
+        """
         missed = getattr(self.inner, 'missed', None)
         if missed is not None:
             missed(samples)
+        if samples > 0:
+            self._share_gap = self._drift_gap = int(samples)
 
     def predict(self, count: int) -> FloatArray:
         """
@@ -2428,6 +2449,10 @@ class FeedForwardController:
         if self._drift_fresh:  # at rest on the present value, as the share's notch starts
             self._drift_fresh = False
             notch.reset(drift)
+        elif self._drift_gap:
+            notch.bridge(self._drift_last, drift, self._drift_gap)
+        self._drift_gap = 0
+        self._drift_last = drift
         return float(notch.step(drift))
 
     def _accumulate(self, end: int) -> None:
