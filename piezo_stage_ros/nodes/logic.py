@@ -56,7 +56,13 @@ from piezo_stage_ros.core.loop.follow import (
     State,
     take_over_state,
 )
-from piezo_stage_ros.core.loop.goals import GoalVerdict, JointTrajectoryGoal, ResultCode
+from piezo_stage_ros.core.loop.goals import (
+    finish,
+    GoalVerdict,
+    JointTrajectoryGoal,
+    ResultCode,
+    Steps,
+)
 from piezo_stage_ros.core.loop.splines import Spline
 from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
 from piezo_stage_ros.hardware.safety import GuardedPlant, Trip, Watchdog
@@ -76,6 +82,11 @@ GOAL_RETRIES = 6
 #: if the ones between were skipped within it (a new check would find the same state again
 #: when the stage holds, and on a loaded machine keeps missing its sample too).
 GOAL_LATE_START_S = 0.002
+
+#: A goal checked in slices (:meth:`GoalDesk.work`): points read, and samples checked against
+#: the limits, per slice; each slice is short against a sample period.
+GOAL_POINTS_PER_SLICE = 32
+GOAL_SAMPLES_PER_SLICE = 256
 
 #: End of a run: more than this fraction of the samples taken late by more than T/2 makes the
 #: end-of-run line a warning (docs/reference/ros-interface.md, "Status counters").
@@ -489,6 +500,11 @@ class GoalDesk:
         self._starts: deque[tuple[Any, ...]] = deque()
         self._tokens: dict[int, int] = {}
         self._retries: dict[int, int] = {}
+        #: Check goals a slice at a time in :meth:`work` (the real-time loop's own thread, in
+        #: the time its samples leave free) instead of in the thread that calls :meth:`goal`.
+        self.check_in_slices = False
+        self._checks: deque[tuple[Any, ...]] = deque()
+        self._check: tuple[int, Steps[tuple[Any, ...] | None]] | None = None
         #: (loop time [s], goal) of the goals started, the last thousand: a run to replay
         #: offline (:func:`~piezo_stage_ros.core.loop.follow.run_goals`), with the loop times
         #: of the cancels (:attr:`cancelled`).
@@ -554,6 +570,8 @@ class GoalDesk:
                 ResultCode.INVALID_GOAL, 'this trajectory node takes no goals'), 0))
         elif self._lead == 0:
             self._requests.append(('goal', token, goal, tracked, stamp_ns))
+        elif self.check_in_slices:
+            self._checks.append((token, goal, tracked, stamp_ns))
         else:
             # each retry checks twice as far ahead: a check slower than the lead (a long
             # trajectory) gets a sample it can reach
@@ -573,8 +591,48 @@ class GoalDesk:
         k = round(time_s * self.rate_hz)
         return (self._origin_ns or 0) + round(k * NS_PER_S / self.rate_hz)
 
+    @property
+    def checking(self) -> bool:
+        """Return whether a goal's check waits for :meth:`work`."""
+        return self._check is not None or bool(self._checks)
+
+    def work(self) -> bool:
+        """
+        Do one slice of the check of the goals submitted (:attr:`check_in_slices`).
+
+        Called by the loop's thread between samples, over and over while it waits for the
+        next; the check of a goal is for the sample the lead puts it at, counted from the
+        sample served when its first slice runs. Returns whether work is left.
+        """
+        if self._check is None:
+            if not self._checks:
+                return False
+            token, goal, tracked, stamp_ns = self._checks.popleft()
+            lead = self._lead << self._retries.get(token, 0)
+            self._check = (token, self._preparing(
+                token, goal, tracked, stamp_ns, self._index + 1 + lead,
+                GOAL_POINTS_PER_SLICE, GOAL_SAMPLES_PER_SLICE))
+        token = self._check[0]
+        try:
+            next(self._check[1])
+        except StopIteration:
+            self._check = None
+            return bool(self._checks)
+        except Exception as exc:  # noqa: BLE001 -- the goal is refused, the loop goes on
+            self._check = None
+            self._retries.pop(token, None)
+            self.events.append(('verdict', token, GoalVerdict(
+                ResultCode.INVALID_GOAL, f'the check failed: {type(exc).__name__}: {exc}'), 0))
+            return bool(self._checks)
+        return True
+
     def _prepare(self, token: int, goal: JointTrajectoryGoal, tracked: bool,
                  stamp_ns: int | None, index: int) -> tuple[Any, ...] | None:
+        return finish(self._preparing(token, goal, tracked, stamp_ns, index, 0, 0))
+
+    def _preparing(self, token: int, goal: JointTrajectoryGoal, tracked: bool,
+                   stamp_ns: int | None, index: int, points: int, samples: int
+                   ) -> Steps[tuple[Any, ...] | None]:
         follower = self.follower
         assert follower is not None
         epoch = self._epoch
@@ -585,16 +643,26 @@ class GoalDesk:
         state = None if self.goal_active else self._take_over_state(index)
         origin = None if stamp_ns is None or self._origin_ns is None else \
             (stamp_ns - self._origin_ns) / NS_PER_S
-        verdict, prepared = follower.prepare(goal, t, tracked=tracked, origin_s=origin,
-                                             start_state=state)
+        options: dict[str, Any] = {'tracked': tracked, 'origin_s': origin, 'start_state': state}
+        if points or samples:
+            verdict, prepared = yield from follower.preparing(
+                goal, t, points_per_step=points, samples_per_step=samples, **options)
+        else:
+            verdict, prepared = follower.prepare(goal, t, **options)
         if prepared is None:
             self._retries.pop(token, None)
             self.events.append(('verdict', token, verdict, 0))
             return None
         item = ('start', token, prepared, state, epoch, verdict, goal, stamp_ns)
         if self._lead:
+            yield from self._ahead_of_start(prepared, index)
             self._starts.append(item)
         return item
+
+    def _ahead_of_start(self, prepared: PreparedGoal, index: int) -> Steps[None]:
+        """Compute what the start of a goal checked ahead can take ready (the subclass)."""
+        return
+        yield
 
     def _start(self, item: tuple[Any, ...], index: int) -> None:
         _, token, prepared, state, epoch, verdict, goal, stamp_ns = item
@@ -653,6 +721,8 @@ class GoalDesk:
                     if any(r[1] == item[1] for r in self._starts):
                         self._starts = deque(r for r in self._starts if r[1] != item[1])
                         self.events.append(('cancelled', item[1]))
+                    elif self._drop_check(item[1]):
+                        self.events.append(('cancelled', item[1]))
                 elif self.goal_active and follower.active_goal == goal_id:
                     self._cancel_at(index)
             elif self.goal_active:
@@ -661,6 +731,16 @@ class GoalDesk:
         # goals checked ahead, each for its own sample (in the order they were checked)
         while starts and round(starts[0][2].time_s / self.period_s) <= index:
             self._start(starts.popleft(), index)
+
+    def _drop_check(self, token: int) -> bool:
+        """Drop the check of goal ``token`` if it is waiting or under way; return whether."""
+        if self._check is not None and self._check[0] == token:
+            self._check = None
+            return True
+        if any(c[0] == token for c in self._checks):
+            self._checks = deque(c for c in self._checks if c[0] != token)
+            return True
+        return False
 
     def _take_results(self) -> None:
         assert self.follower is not None
@@ -738,6 +818,9 @@ class TrajectoryLogic(GoalDesk):
         self._init_goals()
         self._view: GoalTrajectory | None = None
         self._version = -1
+        # the first chunk of a goal's reference, computed with its check: (spline, chunk,
+        # x_d, x_d')
+        self._chunk_ahead: tuple[Spline, int, list[float], list[float]] | None = None
         self._sent: dict[int, float] = {}
         #: Called with (trajectory, stamp of its t = 0) when a goal changes the reference, at
         #: the sample it does: a controller that reads the reference ahead binds it again
@@ -789,6 +872,17 @@ class TrajectoryLogic(GoalDesk):
         self._start_ns = self._origin_ns
         self.active = True
 
+    def _ahead_of_start(self, prepared: PreparedGoal, index: int) -> Steps[None]:
+        # the chunk the goal's start sample reads, as _evaluate computes it once the goal's
+        # spline is the follower's
+        yield
+        chunk = index // self.chunk
+        k0 = chunk * self.chunk
+        time_s = np.arange(k0, k0 + self.chunk, dtype=np.float64) * self.period_s
+        ref, vel = SplineTrajectory(prepared.spline).evaluate(time_s)
+        self._chunk_ahead = (prepared.spline, chunk, np.asarray(ref, dtype=np.float64).tolist(),
+                             np.asarray(vel, dtype=np.float64).tolist())
+
     def _state_at(self, index: int) -> tuple[float, float, float]:
         """Return x_d, x_d', x_d'' of what plays now, at grid sample ``index``."""
         if not self.active:
@@ -839,6 +933,13 @@ class TrajectoryLogic(GoalDesk):
             # a goal changed the reference: what was evaluated ahead is stale
             self._version = self.follower.version
             self._chunk_index = -1
+        ahead = self._chunk_ahead
+        if chunk != self._chunk_index and ahead is not None and ahead[1] == chunk and \
+                self.trajectory is self._view and self.follower is not None and \
+                self.follower.spline is ahead[0]:
+            self._ref, self._vel = ahead[2], ahead[3]
+            self._chunk_index = chunk
+            self._chunk_ahead = None
         if chunk != self._chunk_index:
             k0 = chunk * self.chunk
             time_s = np.arange(k0, k0 + self.chunk, dtype=np.float64) * self.period_s

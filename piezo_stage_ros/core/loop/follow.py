@@ -67,12 +67,14 @@ from piezo_stage_ros.core.loop.axes import axes_references
 from piezo_stage_ros.core.loop.closed_loop import Plant
 from piezo_stage_ros.core.loop.goals import (
     AxisLimits,
-    build_spline,
+    finish,
     GoalVerdict,
     JointTolerance,
     JointTrajectoryGoal,
     ResultCode,
+    Steps,
     validate_goal,
+    validation_steps,
 )
 from piezo_stage_ros.core.loop.splines import Spline
 from piezo_stage_ros.core.loop.trajectories import TrajectoryBase
@@ -374,15 +376,33 @@ class GoalFollower:
             The goal ready to start at ``time_s``; None when refused.
 
         """
+        return finish(self.preparing(goal, time_s, tracked=tracked, origin_s=origin_s,
+                                     start_state=start_state))
+
+    def preparing(self, goal: JointTrajectoryGoal, time_s: float, *, tracked: bool = True,
+                  origin_s: float | None = None, start_state: State | None = None,
+                  points_per_step: int = 0, samples_per_step: int = 0
+                  ) -> Steps[tuple[GoalVerdict, PreparedGoal | None]]:
+        """
+        Do :meth:`prepare` a slice at a time: the same verdict and the same spline.
+
+        Each ``next`` reads ``points_per_step`` of the goal's points or checks
+        ``samples_per_step`` of its samples (0: all at once), for a real-time loop that does
+        the check in the idle time of its own samples; the return value is :meth:`prepare`'s.
+        The reference is read at the first slice.
+        """
         # the version before the reference is read: a change made meanwhile (by the loop's
         # thread) makes start() refuse the goal instead of starting it from a stale state
         version = self.version
         state = self._state(time_s) if start_state is None else start_state
-        verdict = self.check(goal, time_s, origin_s, state)
+        verdict, spline = yield from validation_steps(
+            goal, self.joints, self.limits, start_s=time_s, start_state=state,
+            sample_time_s=self.params.sample_time_s, origin_s=origin_s,
+            partial_joints=self.params.partial_joints, points_per_step=points_per_step,
+            samples_per_step=samples_per_step)
         if not verdict.accepted:
             return verdict, None
-        spline = build_spline(goal, self.joints, time_s, state, self.params.sample_time_s,
-                              origin_s)
+        assert spline is not None
         return verdict, PreparedGoal(goal, spline, time_s, version, tracked)
 
     def start(self, prepared: PreparedGoal, time_s: float) -> int:
