@@ -86,7 +86,7 @@ GOAL_LATE_START_S = 0.002
 #: A goal checked in slices (:meth:`GoalDesk.work`): points read, and samples checked against
 #: the limits, per slice; each slice is short against a sample period.
 GOAL_POINTS_PER_SLICE = 32
-GOAL_SAMPLES_PER_SLICE = 256
+GOAL_SAMPLES_PER_SLICE = 128
 
 #: End of a run: more than this fraction of the samples taken late by more than T/2 makes the
 #: end-of-run line a warning (docs/reference/ros-interface.md, "Status counters").

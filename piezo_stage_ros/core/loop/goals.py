@@ -365,22 +365,24 @@ def _column_steps(goal: JointTrajectoryGoal, joints: Sequence[str], hold_m: Floa
 
     def column(values: tuple[float, ...], k: int, rest: float) -> float:
         return values[k] if k >= 0 else rest
-    rows: tuple[list[list[float]], list[list[float]], list[list[float]]] = ([], [], [])
+    # arrays of a slice of points at a time, joined: the values of one array of them all
+    parts: tuple[list[FloatArray], list[FloatArray], list[FloatArray]] = ([], [], [])
     size = every or len(goal.points)
     for first in range(0, len(goal.points), size):
         if first:
             yield
         points = goal.points[first:first + size]
-        rows[0].extend([column(p.positions_m, k, held[j]) for j, k in enumerate(order)]
-                       for p in points)
+        parts[0].append(np.array([[column(p.positions_m, k, held[j])
+                                   for j, k in enumerate(order)] for p in points]))
         if with_vel:
-            rows[1].extend([column(p.velocities_mps, k, 0.0) for k in order] for p in points)
+            parts[1].append(np.array([[column(p.velocities_mps, k, 0.0) for k in order]
+                                      for p in points]))
         if with_acc:
-            rows[2].extend([column(p.accelerations_mps2, k, 0.0) for k in order]
-                           for p in points)
-    pos = np.array(rows[0])
-    vel = np.array(rows[1]) if with_vel else None
-    acc = np.array(rows[2]) if with_acc else None
+            parts[2].append(np.array([[column(p.accelerations_mps2, k, 0.0) for k in order]
+                                      for p in points]))
+    pos = np.concatenate(parts[0])
+    vel = np.concatenate(parts[1]) if with_vel else None
+    acc = np.concatenate(parts[2]) if with_acc else None
     if vel is not None and np.any(vel[-1] != 0.0):
         return None, _refuse(f'the last point has velocities {vel[-1].tolist()} m/s; allowed: '
                              '0 (the stage holds at the end)')
