@@ -142,7 +142,8 @@ def _servo_goals(clock: FakeClock, in_slices: bool) -> tuple[np.ndarray, list[An
     slices = logic.work
 
     def counted() -> bool:
-        worked.add(servo.index)
+        if logic.checking:
+            worked.add(servo.index)
         return slices()
     logic.work = counted  # type: ignore[method-assign]
 
@@ -151,7 +152,10 @@ def _servo_goals(clock: FakeClock, in_slices: bool) -> tuple[np.ndarray, list[An
             events.append(logic.events.popleft()[:3])
         if servo.index in plan:
             token, goal = plan[servo.index]
-            servo_module.apply_change(servo, 'goal', (token, goal, True, None))
+            if in_slices:
+                servo_module.apply_change(servo, 'goal', (token, goal, True, None))
+            else:
+                logic.goal(token, goal)  # checked here, at once
         return True
 
     servo.boundary = boundary
@@ -163,7 +167,8 @@ def _servo_goals(clock: FakeClock, in_slices: bool) -> tuple[np.ndarray, list[An
 def test_the_servo_checks_a_goal_between_samples_and_starts_it_where_a_thread_would() -> None:
     # a clock that moves with every read: the loop has the time of a few slices a sample, so
     # a check spreads over many samples; it still ends within the lead, and the samples are
-    # those of the goals checked at once (a check in another thread that ends in time)
+    # those of the goals checked at once (a check in another thread that ends in time) and
+    # of the reference computed in the sample that reads it (here computed ahead, in pieces)
     sliced, events, worked = _servo_goals(FakeClock(per_read=30_000), True)
     whole, events_whole, none = _servo_goals(FakeClock(), False)
     # the checks ran between many samples each, within the lead (200 samples)

@@ -88,6 +88,9 @@ GOAL_LATE_START_S = 0.002
 GOAL_POINTS_PER_SLICE = 32
 GOAL_SAMPLES_PER_SLICE = 128
 
+#: Samples of a goal's reference the real-time loop computes ahead per slice of its idle time.
+GOAL_CHUNK_PIECE = 10
+
 #: End of a run: more than this fraction of the samples taken late by more than T/2 makes the
 #: end-of-run line a warning (docs/reference/ros-interface.md, "Status counters").
 LATE_HALF_LIMIT = 0.001
@@ -596,17 +599,31 @@ class GoalDesk:
         """Return whether a goal's check waits for :meth:`work`."""
         return self._check is not None or bool(self._checks)
 
+    @property
+    def has_work(self) -> bool:
+        """Return whether :meth:`work` has something to do (a check, a reference ahead)."""
+        return self.check_in_slices and (self.checking or self._ahead_due())
+
+    def _ahead_due(self) -> bool:
+        """Return whether the subclass can compute something ahead (:meth:`_work_ahead`)."""
+        return False
+
+    def _work_ahead(self) -> bool:
+        """Do a slice of what the subclass computes ahead; return whether more is left."""
+        return False
+
     def work(self) -> bool:
         """
         Do one slice of the check of the goals submitted (:attr:`check_in_slices`).
 
         Called by the loop's thread between samples, over and over while it waits for the
         next; the check of a goal is for the sample the lead puts it at, counted from the
-        sample served when its first slice runs. Returns whether work is left.
+        sample served when its first slice runs. Without a check, a slice of what the
+        subclass computes ahead. Returns whether work is left.
         """
         if self._check is None:
             if not self._checks:
-                return False
+                return self._work_ahead()
             token, goal, tracked, stamp_ns = self._checks.popleft()
             lead = self._lead << self._retries.get(token, 0)
             self._check = (token, self._preparing(
@@ -818,9 +835,11 @@ class TrajectoryLogic(GoalDesk):
         self._init_goals()
         self._view: GoalTrajectory | None = None
         self._version = -1
-        # the first chunk of a goal's reference, computed with its check: (spline, chunk,
-        # x_d, x_d')
-        self._chunk_ahead: tuple[Spline, int, list[float], list[float]] | None = None
+        # chunks of a goal's reference computed ahead, each (spline, chunk, x_d, x_d'): the
+        # first of a goal checked ahead (with its check), the next of the one that plays
+        # (a piece at a time, in the loop's idle time: :meth:`work`)
+        self._first_chunk: tuple[Spline, int, list[float], list[float]] | None = None
+        self._next_chunk: tuple[Spline, int, list[float], list[float]] | None = None
         self._sent: dict[int, float] = {}
         #: Called with (trajectory, stamp of its t = 0) when a goal changes the reference, at
         #: the sample it does: a controller that reads the reference ahead binds it again
@@ -877,11 +896,41 @@ class TrajectoryLogic(GoalDesk):
         # spline is the follower's
         yield
         chunk = index // self.chunk
-        k0 = chunk * self.chunk
-        time_s = np.arange(k0, k0 + self.chunk, dtype=np.float64) * self.period_s
-        ref, vel = SplineTrajectory(prepared.spline).evaluate(time_s)
-        self._chunk_ahead = (prepared.spline, chunk, np.asarray(ref, dtype=np.float64).tolist(),
-                             np.asarray(vel, dtype=np.float64).tolist())
+        ref, vel = self._piece(prepared.spline, chunk * self.chunk, self.chunk)
+        self._first_chunk = (prepared.spline, chunk, ref, vel)
+
+    def _piece(self, spline: Spline, first: int, count: int) -> tuple[list[float], list[float]]:
+        """Return x_d, x_d' of samples ``first`` .. ``first + count - 1`` of a goal's spline."""
+        time_s = np.arange(first, first + count, dtype=np.float64) * self.period_s
+        ref, vel = SplineTrajectory(spline).evaluate(time_s)
+        return (np.asarray(ref, dtype=np.float64).tolist(),
+                np.asarray(vel, dtype=np.float64).tolist())
+
+    def _ahead_due(self) -> bool:
+        follower = self.follower
+        if follower is None or not self.goal_active or self._chunk_index < 0 or \
+                self._version != follower.version:
+            return False
+        ahead = self._next_chunk
+        return ahead is None or ahead[0] is not follower.spline or \
+            ahead[1] != self._chunk_index + 1 or len(ahead[2]) < self.chunk
+
+    def _work_ahead(self) -> bool:
+        # the next chunk of the goal's reference, a piece at a time: the floats the sample
+        # that needs it would compute (the spline evaluates every time on its own)
+        if not self._ahead_due():
+            return False
+        assert self.follower is not None
+        spline, chunk = self.follower.spline, self._chunk_index + 1
+        ahead = self._next_chunk
+        if ahead is None or ahead[0] is not spline or ahead[1] != chunk:
+            ahead = self._next_chunk = (spline, chunk, [], [])
+        done = len(ahead[2])
+        count = min(GOAL_CHUNK_PIECE, self.chunk - done)
+        ref, vel = self._piece(spline, chunk * self.chunk + done, count)
+        ahead[2].extend(ref)
+        ahead[3].extend(vel)
+        return len(ahead[2]) < self.chunk
 
     def _state_at(self, index: int) -> tuple[float, float, float]:
         """Return x_d, x_d', x_d'' of what plays now, at grid sample ``index``."""
@@ -933,13 +982,15 @@ class TrajectoryLogic(GoalDesk):
             # a goal changed the reference: what was evaluated ahead is stale
             self._version = self.follower.version
             self._chunk_index = -1
-        ahead = self._chunk_ahead
-        if chunk != self._chunk_index and ahead is not None and ahead[1] == chunk and \
-                self.trajectory is self._view and self.follower is not None and \
-                self.follower.spline is ahead[0]:
-            self._ref, self._vel = ahead[2], ahead[3]
-            self._chunk_index = chunk
-            self._chunk_ahead = None
+        if chunk != self._chunk_index and self.trajectory is self._view and \
+                self.follower is not None:
+            # a chunk of the goal's spline computed ahead, whole
+            for ahead in (self._next_chunk, self._first_chunk):
+                if ahead is not None and ahead[1] == chunk and len(ahead[2]) == self.chunk \
+                        and ahead[0] is self.follower.spline:
+                    self._ref, self._vel = ahead[2], ahead[3]
+                    self._chunk_index = chunk
+                    break
         if chunk != self._chunk_index:
             k0 = chunk * self.chunk
             time_s = np.arange(k0, k0 + self.chunk, dtype=np.float64) * self.period_s

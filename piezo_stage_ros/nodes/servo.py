@@ -622,7 +622,7 @@ class ServoLoop:
         if self._turn_every_ns:
             self._hand_over()
         trajectory = self.trajectory
-        if trajectory is not None and trajectory.checking:
+        if trajectory is not None and trajectory.has_work:
             self._idle_work(trajectory)
         if self.bridge_clock is not None:
             return self._step_on_target_clock(self.bridge_clock)
