@@ -769,10 +769,12 @@ class GoalDesk:
             self.events.append(('result', result))
 
     def _step_goal(self, index: int, positions_m: Sequence[float],
-                   desired_m: Sequence[float]) -> None:
+                   desired_m: Sequence[float],
+                   desired_velocity_mps: Sequence[float] | None = None) -> None:
         follower = self.follower
         assert follower is not None
-        _, feedback = follower.step(index * self.period_s, positions_m, desired_m)
+        _, feedback = follower.step(index * self.period_s, positions_m, desired_m,
+                                    desired_velocity_mps)
         if follower.results:
             self._take_results()
         if feedback is not None:
@@ -840,7 +842,8 @@ class TrajectoryLogic(GoalDesk):
         # (a piece at a time, in the loop's idle time: :meth:`work`)
         self._first_chunk: tuple[Spline, int, list[float], list[float]] | None = None
         self._next_chunk: tuple[Spline, int, list[float], list[float]] | None = None
-        self._sent: dict[int, float] = {}
+        # x_d that went out ahead per sample, with x_d' and the spline they came from
+        self._sent: dict[int, tuple[float, float, Spline | None]] = {}
         #: Called with (trajectory, stamp of its t = 0) when a goal changes the reference, at
         #: the sample it does: a controller that reads the reference ahead binds it again
         #: (:meth:`ControllerLogic.request_trajectory`).
@@ -958,9 +961,14 @@ class TrajectoryLogic(GoalDesk):
         if self._origin_ns is None or not self.goal_active:
             return
         index = round((stamp_ns - self._origin_ns) * self.rate_hz / NS_PER_S)
-        desired = self._sent.pop(index, None)
-        if desired is not None:
-            self._step_goal(index, (position_m,), (desired,))
+        sent = self._sent.pop(index, None)
+        if sent is not None:
+            desired, velocity, spline = sent
+            assert self.follower is not None
+            # the feedback takes x_d' with x_d if they came from the reference as it is
+            self._step_goal(index, (position_m,), (desired,),
+                            (velocity,) if spline is not None and spline is self.follower.spline
+                            else None)
 
     def take_switch(self) -> int | None:
         """
@@ -1134,12 +1142,15 @@ class TrajectoryLogic(GoalDesk):
             self.on_reference_change(self._view, self._origin_ns)
         ref, vel = self._evaluate(max(index, 0))
         self.hold_m = ref
+        # x_d, x_d' of this sample's time from the follower's spline (a sample before the
+        # origin plays the first one's)
+        spline = self.follower.spline if index >= 0 else None
         if position_m is None:
-            self._sent[index] = ref
+            self._sent[index] = (ref, vel, spline)
             while len(self._sent) > 4096:
                 self._sent.pop(next(iter(self._sent)))
         elif math.isfinite(position_m):
-            self._step_goal(index, (position_m,), (ref,))
+            self._step_goal(index, (position_m,), (ref,), (vel,) if spline is not None else None)
         return ref, vel
 
 

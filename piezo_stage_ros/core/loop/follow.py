@@ -515,7 +515,8 @@ class GoalFollower:
     # -- one sample ----------------------------------------------------------------------
 
     def step(self, time_s: float, measured_m: Sequence[float],
-             desired_m: Sequence[float] | None = None
+             desired_m: Sequence[float] | None = None,
+             desired_velocity_mps: Sequence[float] | None = None
              ) -> tuple[GoalResult | None, Feedback | None]:
         """
         Account for one sample: the reference at ``time_s`` against the measured positions.
@@ -529,6 +530,10 @@ class GoalFollower:
         desired_m : sequence of float, optional
             The reference of every axis at that sample, when the caller has it already (the
             loop evaluated it in a block): saves evaluating the spline again.
+        desired_velocity_mps : sequence of float, optional
+            With ``desired_m``, the reference's velocity at that sample, when both were
+            evaluated from the present reference (:attr:`spline`): a feedback takes them
+            instead of evaluating the spline again.
 
         Returns
         -------
@@ -587,7 +592,11 @@ class GoalFollower:
                     f'{self._goal_time_s:g} s')
         feedback: Feedback | None = None
         if self._tracked and time_s >= self._next_feedback_s - 1e-12:
-            x, v, _ = spline.sample(np.array([time_s]))
+            if desired_velocity_mps is None:
+                x, v, _ = spline.sample(np.array([time_s]))
+            else:
+                x = np.asarray([desired_m], dtype=np.float64)
+                v = np.asarray([desired_velocity_mps], dtype=np.float64)
             feedback = Feedback(self._goal_id, time_s, x[0], v[0],
                                 np.asarray(measured_m, dtype=np.float64), np.asarray(error))
             self._next_feedback_s += self.params.feedback_period_s
