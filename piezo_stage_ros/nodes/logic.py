@@ -670,9 +670,14 @@ class GoalDesk:
             self._retries.pop(token, None)
             self.events.append(('verdict', token, verdict, 0))
             return None
-        item = ('start', token, prepared, state, epoch, verdict, goal, stamp_ns)
+        item: tuple[Any, ...] = ('start', token, prepared, state, epoch, verdict, goal,
+                                 stamp_ns, None)
         if self._lead:
             yield from self._ahead_of_start(prepared, index)
+            if state is not None:
+                # the reference the start seeds the follower with, built here
+                yield
+                item = item[:-1] + (follower.seed_spline(t, *state),)
             self._starts.append(item)
         return item
 
@@ -682,7 +687,7 @@ class GoalDesk:
         yield
 
     def _start(self, item: tuple[Any, ...], index: int) -> None:
-        _, token, prepared, state, epoch, verdict, goal, stamp_ns = item
+        _, token, prepared, state, epoch, verdict, goal, stamp_ns, seed = item
         follower = self.follower
         assert follower is not None and isinstance(prepared, PreparedGoal)
         seeded = state is not None
@@ -693,7 +698,10 @@ class GoalDesk:
         if epoch == self._epoch and seeded != self.goal_active and \
                 -0.5 * self.period_s <= late <= self._late_s + 0.5 * self.period_s:
             if seeded:
-                follower.seed(t, *state)
+                if seed is None:
+                    follower.seed(t, *state)
+                else:
+                    follower.take_seed(seed)
                 prepared = dataclasses.replace(prepared, version=follower.version)
             goal_id = follower.start(prepared, t)
         if goal_id == 0:

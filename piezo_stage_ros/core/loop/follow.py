@@ -491,12 +491,21 @@ class GoalFollower:
         while no goal is followed; after ``time_s`` the reference comes to rest within a
         sample (a goal is meant to take over there).
         """
+        self.take_seed(self.seed_spline(time_s, position_m, velocity_mps, acceleration_mps2))
+
+    def seed_spline(self, time_s: float, position_m: ArrayLike, velocity_mps: ArrayLike,
+                    acceleration_mps2: ArrayLike) -> Spline:
+        """Return the reference :meth:`seed` takes over, changing nothing (built ahead)."""
         n = len(self.joints)
         x, v, a = (np.asarray(s, dtype=np.float64).reshape(n)
                    for s in (position_m, velocity_mps, acceleration_mps2))
         zero = np.zeros((1, n))
-        self._replace(Spline(time_s, (x, v, a), [time_s + self.params.sample_time_s],
-                             x[None, :], zero, zero))
+        return Spline(time_s, (x, v, a), [time_s + self.params.sample_time_s], x[None, :],
+                      zero, zero)
+
+    def take_seed(self, spline: Spline) -> None:
+        """Take over the reference :meth:`seed_spline` built: :meth:`seed` in two halves."""
+        self._replace(spline)
         self._phase = _Phase.HOLD
 
     def cancel(self, time_s: float) -> None:
