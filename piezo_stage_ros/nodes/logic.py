@@ -759,13 +759,16 @@ class GoalDesk:
 
     def _drop_check(self, token: int) -> bool:
         """Drop the check of goal ``token`` if it is waiting or under way; return whether."""
+        dropped = False
         if self._check is not None and self._check[0] == token:
             self._check = None
-            return True
-        if any(c[0] == token for c in self._checks):
+            dropped = True
+        elif any(c[0] == token for c in self._checks):
             self._checks = deque(c for c in self._checks if c[0] != token)
-            return True
-        return False
+            dropped = True
+        if dropped:
+            self._retries.pop(token, None)
+        return dropped
 
     def _take_results(self) -> None:
         assert self.follower is not None
