@@ -112,6 +112,10 @@ def test_goals_through_the_logic_give_the_offline_runners_samples(lead_s: float)
         (i + 1, v, i + 1) for i, (_, v, _) in enumerate(run.verdicts)]
     assert [(f.goal_id, f.time_s) for f in got['feedback']] == \
         [(f.goal_id, f.time_s) for f in run.feedback]
+    # the feedback takes the reference the sample played: the follower's spline's values
+    for a, b in zip(got['feedback'], run.feedback):
+        for name in ('desired_m', 'desired_velocity_mps', 'actual_m', 'error_m'):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), name
 
 
 def test_scan_lines_with_the_inverse_feed_forward_bound_again_at_each_change() -> None:

@@ -228,7 +228,9 @@ def _servo_goals(ahead_blocks: bool) -> tuple[np.ndarray, list[Any], int]:
     logic = servo.trajectory
     assert logic is not None and logic.follower is not None
     if not ahead_blocks:
-        del logic.follower.prepare  # the follower's own: no block computed ahead
+        # the follower's own: no block computed ahead
+        del logic.follower.prepare
+        del logic.follower.preparing
     rows: list[tuple[float, ...]] = []
     servo.on_sample = lambda s: rows.append((s.k, s.position_m, s.reference_m, s.command_v))
     events: list[Any] = []

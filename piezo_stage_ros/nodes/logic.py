@@ -56,7 +56,13 @@ from piezo_stage_ros.core.loop.follow import (
     State,
     take_over_state,
 )
-from piezo_stage_ros.core.loop.goals import GoalVerdict, JointTrajectoryGoal, ResultCode
+from piezo_stage_ros.core.loop.goals import (
+    finish,
+    GoalVerdict,
+    JointTrajectoryGoal,
+    ResultCode,
+    Steps,
+)
 from piezo_stage_ros.core.loop.splines import Spline
 from piezo_stage_ros.core.loop.trajectories import TrajectoryParams
 from piezo_stage_ros.hardware.safety import GuardedPlant, Trip, Watchdog
@@ -76,6 +82,14 @@ GOAL_RETRIES = 6
 #: if the ones between were skipped within it (a new check would find the same state again
 #: when the stage holds, and on a loaded machine keeps missing its sample too).
 GOAL_LATE_START_S = 0.002
+
+#: A goal checked in slices (:meth:`GoalDesk.work`): points read, and samples checked against
+#: the limits, per slice; each slice is short against a sample period.
+GOAL_POINTS_PER_SLICE = 32
+GOAL_SAMPLES_PER_SLICE = 128
+
+#: Samples of a goal's reference the real-time loop computes ahead per slice of its idle time.
+GOAL_CHUNK_PIECE = 10
 
 #: End of a run: more than this fraction of the samples taken late by more than T/2 makes the
 #: end-of-run line a warning (docs/reference/ros-interface.md, "Status counters").
@@ -489,6 +503,11 @@ class GoalDesk:
         self._starts: deque[tuple[Any, ...]] = deque()
         self._tokens: dict[int, int] = {}
         self._retries: dict[int, int] = {}
+        #: Check goals a slice at a time in :meth:`work` (the real-time loop's own thread, in
+        #: the time its samples leave free) instead of in the thread that calls :meth:`goal`.
+        self.check_in_slices = False
+        self._checks: deque[tuple[Any, ...]] = deque()
+        self._check: tuple[int, Steps[tuple[Any, ...] | None]] | None = None
         #: (loop time [s], goal) of the goals started, the last thousand: a run to replay
         #: offline (:func:`~piezo_stage_ros.core.loop.follow.run_goals`), with the loop times
         #: of the cancels (:attr:`cancelled`).
@@ -554,6 +573,8 @@ class GoalDesk:
                 ResultCode.INVALID_GOAL, 'this trajectory node takes no goals'), 0))
         elif self._lead == 0:
             self._requests.append(('goal', token, goal, tracked, stamp_ns))
+        elif self.check_in_slices:
+            self._checks.append((token, goal, tracked, stamp_ns))
         else:
             # each retry checks twice as far ahead: a check slower than the lead (a long
             # trajectory) gets a sample it can reach
@@ -573,8 +594,62 @@ class GoalDesk:
         k = round(time_s * self.rate_hz)
         return (self._origin_ns or 0) + round(k * NS_PER_S / self.rate_hz)
 
+    @property
+    def checking(self) -> bool:
+        """Return whether a goal's check waits for :meth:`work`."""
+        return self._check is not None or bool(self._checks)
+
+    @property
+    def has_work(self) -> bool:
+        """Return whether :meth:`work` has something to do (a check, a reference ahead)."""
+        return self.check_in_slices and (self.checking or self._ahead_due())
+
+    def _ahead_due(self) -> bool:
+        """Return whether the subclass can compute something ahead (:meth:`_work_ahead`)."""
+        return False
+
+    def _work_ahead(self) -> bool:
+        """Do a slice of what the subclass computes ahead; return whether more is left."""
+        return False
+
+    def work(self) -> bool:
+        """
+        Do one slice of the check of the goals submitted (:attr:`check_in_slices`).
+
+        Called by the loop's thread between samples, over and over while it waits for the
+        next; the check of a goal is for the sample the lead puts it at, counted from the
+        sample served when its first slice runs. Without a check, a slice of what the
+        subclass computes ahead. Returns whether work is left.
+        """
+        if self._check is None:
+            if not self._checks:
+                return self._work_ahead()
+            token, goal, tracked, stamp_ns = self._checks.popleft()
+            lead = self._lead << self._retries.get(token, 0)
+            self._check = (token, self._preparing(
+                token, goal, tracked, stamp_ns, self._index + 1 + lead,
+                GOAL_POINTS_PER_SLICE, GOAL_SAMPLES_PER_SLICE))
+        token = self._check[0]
+        try:
+            next(self._check[1])
+        except StopIteration:
+            self._check = None
+            return bool(self._checks)
+        except Exception as exc:  # noqa: BLE001 -- the goal is refused, the loop goes on
+            self._check = None
+            self._retries.pop(token, None)
+            self.events.append(('verdict', token, GoalVerdict(
+                ResultCode.INVALID_GOAL, f'the check failed: {type(exc).__name__}: {exc}'), 0))
+            return bool(self._checks)
+        return True
+
     def _prepare(self, token: int, goal: JointTrajectoryGoal, tracked: bool,
                  stamp_ns: int | None, index: int) -> tuple[Any, ...] | None:
+        return finish(self._preparing(token, goal, tracked, stamp_ns, index, 0, 0))
+
+    def _preparing(self, token: int, goal: JointTrajectoryGoal, tracked: bool,
+                   stamp_ns: int | None, index: int, points: int, samples: int
+                   ) -> Steps[tuple[Any, ...] | None]:
         follower = self.follower
         assert follower is not None
         epoch = self._epoch
@@ -585,19 +660,34 @@ class GoalDesk:
         state = None if self.goal_active else self._take_over_state(index)
         origin = None if stamp_ns is None or self._origin_ns is None else \
             (stamp_ns - self._origin_ns) / NS_PER_S
-        verdict, prepared = follower.prepare(goal, t, tracked=tracked, origin_s=origin,
-                                             start_state=state)
+        options: dict[str, Any] = {'tracked': tracked, 'origin_s': origin, 'start_state': state}
+        if points or samples:
+            verdict, prepared = yield from follower.preparing(
+                goal, t, points_per_step=points, samples_per_step=samples, **options)
+        else:
+            verdict, prepared = follower.prepare(goal, t, **options)
         if prepared is None:
             self._retries.pop(token, None)
             self.events.append(('verdict', token, verdict, 0))
             return None
-        item = ('start', token, prepared, state, epoch, verdict, goal, stamp_ns)
+        item: tuple[Any, ...] = ('start', token, prepared, state, epoch, verdict, goal,
+                                 stamp_ns, None)
         if self._lead:
+            yield from self._ahead_of_start(prepared, index)
+            if state is not None:
+                # the reference the start seeds the follower with, built here
+                yield
+                item = item[:-1] + (follower.seed_spline(t, *state),)
             self._starts.append(item)
         return item
 
+    def _ahead_of_start(self, prepared: PreparedGoal, index: int) -> Steps[None]:
+        """Compute what the start of a goal checked ahead can take ready (the subclass)."""
+        return
+        yield
+
     def _start(self, item: tuple[Any, ...], index: int) -> None:
-        _, token, prepared, state, epoch, verdict, goal, stamp_ns = item
+        _, token, prepared, state, epoch, verdict, goal, stamp_ns, seed = item
         follower = self.follower
         assert follower is not None and isinstance(prepared, PreparedGoal)
         seeded = state is not None
@@ -608,7 +698,10 @@ class GoalDesk:
         if epoch == self._epoch and seeded != self.goal_active and \
                 -0.5 * self.period_s <= late <= self._late_s + 0.5 * self.period_s:
             if seeded:
-                follower.seed(t, *state)
+                if seed is None:
+                    follower.seed(t, *state)
+                else:
+                    follower.take_seed(seed)
                 prepared = dataclasses.replace(prepared, version=follower.version)
             goal_id = follower.start(prepared, t)
         if goal_id == 0:
@@ -653,6 +746,8 @@ class GoalDesk:
                     if any(r[1] == item[1] for r in self._starts):
                         self._starts = deque(r for r in self._starts if r[1] != item[1])
                         self.events.append(('cancelled', item[1]))
+                    elif self._drop_check(item[1]):
+                        self.events.append(('cancelled', item[1]))
                 elif self.goal_active and follower.active_goal == goal_id:
                     self._cancel_at(index)
             elif self.goal_active:
@@ -661,6 +756,19 @@ class GoalDesk:
         # goals checked ahead, each for its own sample (in the order they were checked)
         while starts and round(starts[0][2].time_s / self.period_s) <= index:
             self._start(starts.popleft(), index)
+
+    def _drop_check(self, token: int) -> bool:
+        """Drop the check of goal ``token`` if it is waiting or under way; return whether."""
+        dropped = False
+        if self._check is not None and self._check[0] == token:
+            self._check = None
+            dropped = True
+        elif any(c[0] == token for c in self._checks):
+            self._checks = deque(c for c in self._checks if c[0] != token)
+            dropped = True
+        if dropped:
+            self._retries.pop(token, None)
+        return dropped
 
     def _take_results(self) -> None:
         assert self.follower is not None
@@ -672,10 +780,12 @@ class GoalDesk:
             self.events.append(('result', result))
 
     def _step_goal(self, index: int, positions_m: Sequence[float],
-                   desired_m: Sequence[float]) -> None:
+                   desired_m: Sequence[float],
+                   desired_velocity_mps: Sequence[float] | None = None) -> None:
         follower = self.follower
         assert follower is not None
-        _, feedback = follower.step(index * self.period_s, positions_m, desired_m)
+        _, feedback = follower.step(index * self.period_s, positions_m, desired_m,
+                                    desired_velocity_mps)
         if follower.results:
             self._take_results()
         if feedback is not None:
@@ -738,7 +848,13 @@ class TrajectoryLogic(GoalDesk):
         self._init_goals()
         self._view: GoalTrajectory | None = None
         self._version = -1
-        self._sent: dict[int, float] = {}
+        # chunks of a goal's reference computed ahead, each (spline, chunk, x_d, x_d'): the
+        # first of a goal checked ahead (with its check), the next of the one that plays
+        # (a piece at a time, in the loop's idle time: :meth:`work`)
+        self._first_chunk: tuple[Spline, int, list[float], list[float]] | None = None
+        self._next_chunk: tuple[Spline, int, list[float], list[float]] | None = None
+        # x_d that went out ahead per sample, with x_d' and the spline they came from
+        self._sent: dict[int, tuple[float, float, Spline | None]] = {}
         #: Called with (trajectory, stamp of its t = 0) when a goal changes the reference, at
         #: the sample it does: a controller that reads the reference ahead binds it again
         #: (:meth:`ControllerLogic.request_trajectory`).
@@ -789,6 +905,47 @@ class TrajectoryLogic(GoalDesk):
         self._start_ns = self._origin_ns
         self.active = True
 
+    def _ahead_of_start(self, prepared: PreparedGoal, index: int) -> Steps[None]:
+        # the chunk the goal's start sample reads, as _evaluate computes it once the goal's
+        # spline is the follower's
+        yield
+        chunk = index // self.chunk
+        ref, vel = self._piece(prepared.spline, chunk * self.chunk, self.chunk)
+        self._first_chunk = (prepared.spline, chunk, ref, vel)
+
+    def _piece(self, spline: Spline, first: int, count: int) -> tuple[list[float], list[float]]:
+        """Return x_d, x_d' of samples ``first`` .. ``first + count - 1`` of a goal's spline."""
+        time_s = np.arange(first, first + count, dtype=np.float64) * self.period_s
+        ref, vel = SplineTrajectory(spline).evaluate(time_s)
+        return (np.asarray(ref, dtype=np.float64).tolist(),
+                np.asarray(vel, dtype=np.float64).tolist())
+
+    def _ahead_due(self) -> bool:
+        follower = self.follower
+        if follower is None or not self.goal_active or self._chunk_index < 0 or \
+                self._version != follower.version:
+            return False
+        ahead = self._next_chunk
+        return ahead is None or ahead[0] is not follower.spline or \
+            ahead[1] != self._chunk_index + 1 or len(ahead[2]) < self.chunk
+
+    def _work_ahead(self) -> bool:
+        # the next chunk of the goal's reference, a piece at a time: the floats the sample
+        # that needs it would compute (the spline evaluates every time on its own)
+        if not self._ahead_due():
+            return False
+        assert self.follower is not None
+        spline, chunk = self.follower.spline, self._chunk_index + 1
+        ahead = self._next_chunk
+        if ahead is None or ahead[0] is not spline or ahead[1] != chunk:
+            ahead = self._next_chunk = (spline, chunk, [], [])
+        done = len(ahead[2])
+        count = min(GOAL_CHUNK_PIECE, self.chunk - done)
+        ref, vel = self._piece(spline, chunk * self.chunk + done, count)
+        ahead[2].extend(ref)
+        ahead[3].extend(vel)
+        return len(ahead[2]) < self.chunk
+
     def _state_at(self, index: int) -> tuple[float, float, float]:
         """Return x_d, x_d', x_d'' of what plays now, at grid sample ``index``."""
         if not self.active:
@@ -815,9 +972,14 @@ class TrajectoryLogic(GoalDesk):
         if self._origin_ns is None or not self.goal_active:
             return
         index = round((stamp_ns - self._origin_ns) * self.rate_hz / NS_PER_S)
-        desired = self._sent.pop(index, None)
-        if desired is not None:
-            self._step_goal(index, (position_m,), (desired,))
+        sent = self._sent.pop(index, None)
+        if sent is not None:
+            desired, velocity, spline = sent
+            assert self.follower is not None
+            # the feedback takes x_d' with x_d if they came from the reference as it is
+            self._step_goal(index, (position_m,), (desired,),
+                            (velocity,) if spline is not None and spline is self.follower.spline
+                            else None)
 
     def take_switch(self) -> int | None:
         """
@@ -839,6 +1001,15 @@ class TrajectoryLogic(GoalDesk):
             # a goal changed the reference: what was evaluated ahead is stale
             self._version = self.follower.version
             self._chunk_index = -1
+        if chunk != self._chunk_index and self.trajectory is self._view and \
+                self.follower is not None:
+            # a chunk of the goal's spline computed ahead, whole
+            for ahead in (self._next_chunk, self._first_chunk):
+                if ahead is not None and ahead[1] == chunk and len(ahead[2]) == self.chunk \
+                        and ahead[0] is self.follower.spline:
+                    self._ref, self._vel = ahead[2], ahead[3]
+                    self._chunk_index = chunk
+                    break
         if chunk != self._chunk_index:
             k0 = chunk * self.chunk
             time_s = np.arange(k0, k0 + self.chunk, dtype=np.float64) * self.period_s
@@ -982,12 +1153,15 @@ class TrajectoryLogic(GoalDesk):
             self.on_reference_change(self._view, self._origin_ns)
         ref, vel = self._evaluate(max(index, 0))
         self.hold_m = ref
+        # x_d, x_d' of this sample's time from the follower's spline (a sample before the
+        # origin plays the first one's)
+        spline = self.follower.spline if index >= 0 else None
         if position_m is None:
-            self._sent[index] = ref
+            self._sent[index] = (ref, vel, spline)
             while len(self._sent) > 4096:
                 self._sent.pop(next(iter(self._sent)))
         elif math.isfinite(position_m):
-            self._step_goal(index, (position_m,), (ref,))
+            self._step_goal(index, (position_m,), (ref,), (vel,) if spline is not None else None)
         return ref, vel
 
 

@@ -65,7 +65,7 @@ from piezo_stage_ros.core.control.controllers import (
 )
 from piezo_stage_ros.core.loop.closed_loop import true_position_reader
 from piezo_stage_ros.core.loop.follow import FollowParams, GoalFollower, SplineTrajectory
-from piezo_stage_ros.core.loop.goals import AxisLimits
+from piezo_stage_ros.core.loop.goals import AxisLimits, finish, Steps
 from piezo_stage_ros.core.loop.trajectories import make_trajectory
 from piezo_stage_ros.core.model.hysteresis import make_hysteresis
 from piezo_stage_ros.core.model.stage import linear_plant, PlantParams, StageParams
@@ -621,6 +621,9 @@ class ServoLoop:
             return False
         if self._turn_every_ns:
             self._hand_over()
+        trajectory = self.trajectory
+        if trajectory is not None and trajectory.has_work:
+            self._idle_work(trajectory)
         if self.bridge_clock is not None:
             return self._step_on_target_clock(self.bridge_clock)
         before = self.pacer.index
@@ -637,6 +640,22 @@ class ServoLoop:
         now = self.pacer.due_ns(index) + lateness
         self._serve(index, self.plant.sample(now / NS_PER_S), now, lateness)
         return not self.done
+
+    #: Idle work (a slice of a goal's check) starts only while the next sample is due at
+    #: least this fraction of a period ahead.
+    IDLE_MARGIN = 0.25
+
+    def _idle_work(self, trajectory: TrajectoryLogic) -> None:
+        """Do slices of the goals' checks while the next sample is far enough ahead."""
+        if self.bridge_clock is not None:
+            # the target's next sample has no due time here: one slice a sample
+            trajectory.work()
+            return
+        pacer = self.pacer
+        due = pacer.due_ns(pacer.index + 1)
+        margin = round(self.IDLE_MARGIN * pacer.period_ns)
+        while due - pacer.clock() > margin and trajectory.work():
+            pass
 
     def _step_on_target_clock(self, bridge: Any) -> bool:
         # the target owns the clock: the sample's number and arrival come from the bridge; the
@@ -868,6 +887,11 @@ def servo_from_config(loop: LoopConfig, duration_s: float, bridge: Bridge | None
     assert follower is not None
     follower.prepare = functools.partial(  # type: ignore[method-assign]
         _prepare_goal, follower, controller, stage.sample_rate_hz)
+    follower.preparing = functools.partial(  # type: ignore[method-assign]
+        _preparing_goal, follower, controller, stage.sample_rate_hz)
+    # a goal is checked a slice at a time in the loop's own thread, in the time its samples
+    # leave free (ServoLoop.step), not in a thread beside it that takes the interpreter from it
+    trajectory.check_in_slices = True
     opts = loop.plant_node
     plant = GuardedPlant(bridge if bridge is not None else make_bridge(stage, opts),
                          stage.chain, opts.command_timeout_s,
@@ -882,11 +906,17 @@ def servo_from_config(loop: LoopConfig, duration_s: float, bridge: Bridge | None
 
 def _prepare_goal(follower: GoalFollower, controller: ControllerLogic, rate_hz: float,
                   goal: Any, time_s: float, **options: Any) -> tuple[Any, Any]:
-    # GoalFollower.prepare, then the controller's first block of the goal's reference ahead
+    return finish(_preparing_goal(follower, controller, rate_hz, goal, time_s, **options))
+
+
+def _preparing_goal(follower: GoalFollower, controller: ControllerLogic, rate_hz: float,
+                    goal: Any, time_s: float, **options: Any) -> Steps[tuple[Any, Any]]:
+    # GoalFollower.preparing, then the controller's first block of the goal's reference ahead
     # (a feed-forward's prepare_block: used only where it is what the start would compute)
-    verdict, prepared = GoalFollower.prepare(follower, goal, time_s, **options)
+    verdict, prepared = yield from GoalFollower.preparing(follower, goal, time_s, **options)
     prepare_block = getattr(controller.controller, 'prepare_block', None)
     if prepared is not None and prepare_block is not None:
+        yield
         prepare_block(SplineTrajectory(prepared.spline), round(time_s * rate_hz))
     return verdict, prepared
 
@@ -946,16 +976,20 @@ def _apply_goal(servo: ServoLoop, kind: str, value: Any) -> None:
     """
     Apply a goal (``(token, goal, tracked, stamp_ns)``), a cancel (token) or a hold.
 
-    A goal is checked in a thread of its own (the check runs over every sample of the
-    trajectory), for the sample ``TrajectoryLogic`` starts it at; a cancel or a hold is taken
-    at the next sample.
+    A goal is checked for the sample ``TrajectoryLogic`` starts it at: a slice at a time by
+    the loop's own thread between samples (:attr:`TrajectoryLogic.check_in_slices`, as
+    :func:`servo_from_config` builds it), else in a thread of its own (the check runs over
+    every sample of the trajectory); a cancel or a hold is taken at the next sample.
     """
     logic = servo.trajectory
     assert logic is not None
     if kind == 'goal':
         token, goal, tracked, stamp = value
-        threading.Thread(target=logic.goal, args=(token, goal),
-                         kwargs={'tracked': tracked, 'stamp_ns': stamp}, daemon=True).start()
+        if logic.check_in_slices:
+            logic.goal(token, goal, tracked=tracked, stamp_ns=stamp)
+        else:
+            threading.Thread(target=logic.goal, args=(token, goal),
+                             kwargs={'tracked': tracked, 'stamp_ns': stamp}, daemon=True).start()
     elif kind == 'cancel':
         logic.cancel(int(value))
     else:

@@ -67,12 +67,14 @@ from piezo_stage_ros.core.loop.axes import axes_references
 from piezo_stage_ros.core.loop.closed_loop import Plant
 from piezo_stage_ros.core.loop.goals import (
     AxisLimits,
-    build_spline,
+    finish,
     GoalVerdict,
     JointTolerance,
     JointTrajectoryGoal,
     ResultCode,
+    Steps,
     validate_goal,
+    validation_steps,
 )
 from piezo_stage_ros.core.loop.splines import Spline
 from piezo_stage_ros.core.loop.trajectories import TrajectoryBase
@@ -374,15 +376,33 @@ class GoalFollower:
             The goal ready to start at ``time_s``; None when refused.
 
         """
+        return finish(self.preparing(goal, time_s, tracked=tracked, origin_s=origin_s,
+                                     start_state=start_state))
+
+    def preparing(self, goal: JointTrajectoryGoal, time_s: float, *, tracked: bool = True,
+                  origin_s: float | None = None, start_state: State | None = None,
+                  points_per_step: int = 0, samples_per_step: int = 0
+                  ) -> Steps[tuple[GoalVerdict, PreparedGoal | None]]:
+        """
+        Do :meth:`prepare` a slice at a time: the same verdict and the same spline.
+
+        Each ``next`` reads ``points_per_step`` of the goal's points or checks
+        ``samples_per_step`` of its samples (0: all at once), for a real-time loop that does
+        the check in the idle time of its own samples; the return value is :meth:`prepare`'s.
+        The reference is read at the first slice.
+        """
         # the version before the reference is read: a change made meanwhile (by the loop's
         # thread) makes start() refuse the goal instead of starting it from a stale state
         version = self.version
         state = self._state(time_s) if start_state is None else start_state
-        verdict = self.check(goal, time_s, origin_s, state)
+        verdict, spline = yield from validation_steps(
+            goal, self.joints, self.limits, start_s=time_s, start_state=state,
+            sample_time_s=self.params.sample_time_s, origin_s=origin_s,
+            partial_joints=self.params.partial_joints, points_per_step=points_per_step,
+            samples_per_step=samples_per_step)
         if not verdict.accepted:
             return verdict, None
-        spline = build_spline(goal, self.joints, time_s, state, self.params.sample_time_s,
-                              origin_s)
+        assert spline is not None
         return verdict, PreparedGoal(goal, spline, time_s, version, tracked)
 
     def start(self, prepared: PreparedGoal, time_s: float) -> int:
@@ -471,12 +491,21 @@ class GoalFollower:
         while no goal is followed; after ``time_s`` the reference comes to rest within a
         sample (a goal is meant to take over there).
         """
+        self.take_seed(self.seed_spline(time_s, position_m, velocity_mps, acceleration_mps2))
+
+    def seed_spline(self, time_s: float, position_m: ArrayLike, velocity_mps: ArrayLike,
+                    acceleration_mps2: ArrayLike) -> Spline:
+        """Return the reference :meth:`seed` takes over, changing nothing (built ahead)."""
         n = len(self.joints)
         x, v, a = (np.asarray(s, dtype=np.float64).reshape(n)
                    for s in (position_m, velocity_mps, acceleration_mps2))
         zero = np.zeros((1, n))
-        self._replace(Spline(time_s, (x, v, a), [time_s + self.params.sample_time_s],
-                             x[None, :], zero, zero))
+        return Spline(time_s, (x, v, a), [time_s + self.params.sample_time_s], x[None, :],
+                      zero, zero)
+
+    def take_seed(self, spline: Spline) -> None:
+        """Take over the reference :meth:`seed_spline` built: :meth:`seed` in two halves."""
+        self._replace(spline)
         self._phase = _Phase.HOLD
 
     def cancel(self, time_s: float) -> None:
@@ -495,7 +524,8 @@ class GoalFollower:
     # -- one sample ----------------------------------------------------------------------
 
     def step(self, time_s: float, measured_m: Sequence[float],
-             desired_m: Sequence[float] | None = None
+             desired_m: Sequence[float] | None = None,
+             desired_velocity_mps: Sequence[float] | None = None
              ) -> tuple[GoalResult | None, Feedback | None]:
         """
         Account for one sample: the reference at ``time_s`` against the measured positions.
@@ -509,6 +539,10 @@ class GoalFollower:
         desired_m : sequence of float, optional
             The reference of every axis at that sample, when the caller has it already (the
             loop evaluated it in a block): saves evaluating the spline again.
+        desired_velocity_mps : sequence of float, optional
+            With ``desired_m``, the reference's velocity at that sample, when both were
+            evaluated from the present reference (:attr:`spline`): a feedback takes them
+            instead of evaluating the spline again.
 
         Returns
         -------
@@ -567,7 +601,11 @@ class GoalFollower:
                     f'{self._goal_time_s:g} s')
         feedback: Feedback | None = None
         if self._tracked and time_s >= self._next_feedback_s - 1e-12:
-            x, v, _ = spline.sample(np.array([time_s]))
+            if desired_velocity_mps is None:
+                x, v, _ = spline.sample(np.array([time_s]))
+            else:
+                x = np.asarray([desired_m], dtype=np.float64)
+                v = np.asarray([desired_velocity_mps], dtype=np.float64)
             feedback = Feedback(self._goal_id, time_s, x[0], v[0],
                                 np.asarray(measured_m, dtype=np.float64), np.asarray(error))
             self._next_feedback_s += self.params.feedback_period_s

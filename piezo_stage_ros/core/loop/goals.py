@@ -45,7 +45,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import enum
 import math
-from typing import Sequence
+from typing import Generator, Sequence, TypeVar
 
 import numpy as np
 from piezo_stage_ros.core.contracts.errors import ParameterError
@@ -55,11 +55,26 @@ from piezo_stage_ros.core.model.hysteresis import make_hysteresis
 from piezo_stage_ros.core.model.stage import linear_plant, StageParams
 
 __all__ = ['AxisLimits', 'GoalVerdict', 'JointTolerance', 'JointTrajectoryGoal', 'ResultCode',
-           'TrajectoryPoint', 'build_spline', 'validate_goal']
+           'Steps', 'TrajectoryPoint', 'build_spline', 'finish', 'validate_goal',
+           'validation_steps']
 
 
 #: Samples checked at a time against the limits.
 _CHECK_BLOCK = 65536
+
+_T = TypeVar('_T')
+
+#: Work done a slice at a time: each ``next`` does one slice, the return value ends it.
+Steps = Generator[None, None, _T]
+
+
+def finish(steps: Steps[_T]) -> _T:
+    """Run the rest of stepped work at once and return its result."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as stop:
+            return stop.value  # type: ignore[no-any-return]
 
 
 class ResultCode(enum.IntEnum):
@@ -299,8 +314,16 @@ def _check_joints(goal: JointTrajectoryGoal, joints: Sequence[str], partial: boo
 
 def _columns(goal: JointTrajectoryGoal, joints: Sequence[str], hold_m: FloatArray
              ) -> tuple[_Columns | None, GoalVerdict | None]:
+    """Return the goal's points as columns in the stage's joint order, or why they are bad."""
+    return finish(_column_steps(goal, joints, hold_m, 0))
+
+
+def _column_steps(goal: JointTrajectoryGoal, joints: Sequence[str], hold_m: FloatArray,
+                  every: int) -> Steps[tuple[_Columns | None, GoalVerdict | None]]:
     """
     Return the goal's points as columns in the stage's joint order, or why they are bad.
+
+    A slice of ``every`` points at a time (0: all at once).
 
     A joint the goal does not name (a partial goal) holds ``hold_m`` (the present reference's
     position) at every point, at rest where the points give velocities and accelerations, as
@@ -313,6 +336,8 @@ def _columns(goal: JointTrajectoryGoal, joints: Sequence[str], hold_m: FloatArra
     with_vel = bool(goal.points[0].velocities_mps)
     with_acc = bool(goal.points[0].accelerations_mps2)
     for i, p in enumerate(goal.points):
+        if every and i and i % every == 0:
+            yield
         for name, values, need in (('positions', p.positions_m, n),
                                    ('velocities', p.velocities_mps, n if with_vel else 0),
                                    ('accelerations', p.accelerations_mps2,
@@ -340,12 +365,24 @@ def _columns(goal: JointTrajectoryGoal, joints: Sequence[str], hold_m: FloatArra
 
     def column(values: tuple[float, ...], k: int, rest: float) -> float:
         return values[k] if k >= 0 else rest
-    pos = np.array([[column(p.positions_m, k, held[j]) for j, k in enumerate(order)]
-                    for p in goal.points])
-    vel = np.array([[column(p.velocities_mps, k, 0.0) for k in order] for p in goal.points]) \
-        if with_vel else None
-    acc = np.array([[column(p.accelerations_mps2, k, 0.0) for k in order]
-                    for p in goal.points]) if with_acc else None
+    # arrays of a slice of points at a time, joined: the values of one array of them all
+    parts: tuple[list[FloatArray], list[FloatArray], list[FloatArray]] = ([], [], [])
+    size = every or len(goal.points)
+    for first in range(0, len(goal.points), size):
+        if first:
+            yield
+        points = goal.points[first:first + size]
+        parts[0].append(np.array([[column(p.positions_m, k, held[j])
+                                   for j, k in enumerate(order)] for p in points]))
+        if with_vel:
+            parts[1].append(np.array([[column(p.velocities_mps, k, 0.0) for k in order]
+                                      for p in points]))
+        if with_acc:
+            parts[2].append(np.array([[column(p.accelerations_mps2, k, 0.0) for k in order]
+                                      for p in points]))
+    pos = np.concatenate(parts[0])
+    vel = np.concatenate(parts[1]) if with_vel else None
+    acc = np.concatenate(parts[2]) if with_acc else None
     if vel is not None and np.any(vel[-1] != 0.0):
         return None, _refuse(f'the last point has velocities {vel[-1].tolist()} m/s; allowed: '
                              '0 (the stage holds at the end)')
@@ -383,6 +420,12 @@ def build_spline(goal: JointTrajectoryGoal, joints: Sequence[str], start_s: floa
     """
     cols, verdict = _columns(goal, joints, start_state[0])
     assert cols is not None, verdict
+    return _spline_of(cols, start_s, start_state, sample_time_s, origin_s)
+
+
+def _spline_of(cols: _Columns, start_s: float,
+               start_state: tuple[FloatArray, FloatArray, FloatArray], sample_time_s: float,
+               origin_s: float | None) -> Spline:
     times = (start_s if origin_s is None else origin_s) + cols.times_s
     keep = times > start_s
     if not np.any(keep):
@@ -395,27 +438,66 @@ def build_spline(goal: JointTrajectoryGoal, joints: Sequence[str], start_s: floa
                   pick(cols.velocities_mps), pick(cols.accelerations_mps2))
 
 
-def _check_block(spline: Spline, grid: FloatArray, start_s: float, joints: Sequence[str],
-                 limits: Sequence[AxisLimits]) -> GoalVerdict | None:
-    """Return the refusal of the first limit the spline breaks on ``grid``, or None."""
-    pos, vel, acc = spline.sample(grid)
-    for k, lim in enumerate(limits):
-        for values, name, bound, unit in (
-                (vel[:, k], 'velocity', lim.velocity_max_mps, 'm/s'),
-                (acc[:, k], 'acceleration', lim.acceleration_max_mps2, 'm/s^2')):
-            i = int(np.argmax(np.abs(values)))
-            if abs(values[i]) > bound:
-                return _refuse(f'{joints[k]!r} reaches {name} {values[i]:.4g} {unit} at '
-                               f'{grid[i] - start_s:.6g} s; allowed: |{name}| <= {bound:.4g} '
-                               f'{unit} (what the amplifier range drives on this stage)')
-        u = lim.command_v(pos[:, k], vel[:, k], acc[:, k])
-        i = int(np.argmax(np.maximum(u - lim.command_max_v, lim.command_min_v - u)))
-        if not lim.command_min_v <= u[i] <= lim.command_max_v:
-            return _refuse(f'{joints[k]!r} would need {u[i]:.4g} V at {grid[i] - start_s:.6g} s '
-                           f'(position {pos[i, k]:.6g} m, velocity {vel[i, k]:.4g} m/s, '
-                           f'acceleration {acc[i, k]:.4g} m/s^2); allowed: the amplifier input '
-                           f'[{lim.command_min_v:g}, {lim.command_max_v:g}] V')
-    return None
+class _LimitScan:
+    """
+    The largest excursion past each limit over a grid that may be sampled a piece at a time.
+
+    Pieces in the grid's order give the excursions, and so the refusal, of the whole grid
+    (the first of equal largest, as ``np.argmax`` over the whole).
+    """
+
+    def __init__(self, start_s: float, joints: Sequence[str], limits: Sequence[AxisLimits]
+                 ) -> None:
+        self.start_s = start_s
+        self.joints = joints
+        self.limits = limits
+        # per axis: velocity, acceleration, command; each (score, at [s], values at it)
+        self.worst: list[list[tuple[float, float, tuple[float, ...]] | None]] = [
+            [None, None, None] for _ in limits]
+
+    def _keep(self, k: int, c: int, score: float, at_s: float, values: tuple[float, ...]
+              ) -> None:
+        # np.argmax takes the first largest, and a NaN before anything
+        best = self.worst[k][c]
+        if best is None or score > best[0] or (math.isnan(score) and not math.isnan(best[0])):
+            self.worst[k][c] = (score, at_s, values)
+
+    def add(self, spline: Spline, grid: FloatArray) -> None:
+        """Take the spline's excursions over the next piece of the grid."""
+        pos, vel, acc = spline.sample(grid)
+        for k, lim in enumerate(self.limits):
+            for c, values in ((0, vel[:, k]), (1, acc[:, k])):
+                i = int(np.argmax(np.abs(values)))
+                self._keep(k, c, abs(values[i]), float(grid[i]), (float(values[i]),))
+            u = lim.command_v(pos[:, k], vel[:, k], acc[:, k])
+            margin = np.maximum(u - lim.command_max_v, lim.command_min_v - u)
+            i = int(np.argmax(margin))
+            self._keep(k, 2, margin[i], float(grid[i]),
+                       (float(u[i]), float(pos[i, k]), float(vel[i, k]), float(acc[i, k])))
+
+    def verdict(self) -> GoalVerdict | None:
+        """Return the refusal of the first limit broken on the grid so far, or None."""
+        joints, start_s = self.joints, self.start_s
+        for k, lim in enumerate(self.limits):
+            for c, name, bound, unit in ((0, 'velocity', lim.velocity_max_mps, 'm/s'),
+                                         (1, 'acceleration', lim.acceleration_max_mps2,
+                                          'm/s^2')):
+                worst = self.worst[k][c]
+                if worst is not None and abs(worst[2][0]) > bound:
+                    return _refuse(f'{joints[k]!r} reaches {name} {worst[2][0]:.4g} {unit} at '
+                                   f'{worst[1] - start_s:.6g} s; allowed: |{name}| <= '
+                                   f'{bound:.4g} {unit} (what the amplifier range drives on '
+                                   'this stage)')
+            worst = self.worst[k][2]
+            if worst is None:
+                continue
+            u, x, v, a = worst[2]
+            if not lim.command_min_v <= u <= lim.command_max_v:
+                return _refuse(f'{joints[k]!r} would need {u:.4g} V at {worst[1] - start_s:.6g} s '
+                               f'(position {x:.6g} m, velocity {v:.4g} m/s, '
+                               f'acceleration {a:.4g} m/s^2); allowed: the amplifier input '
+                               f'[{lim.command_min_v:g}, {lim.command_max_v:g}] V')
+        return None
 
 
 def validate_goal(goal: JointTrajectoryGoal, joints: Sequence[str],
@@ -455,21 +537,48 @@ def validate_goal(goal: JointTrajectoryGoal, joints: Sequence[str],
         SUCCESSFUL, or INVALID_JOINTS / INVALID_GOAL / OLD_HEADER_TIMESTAMP with the reason.
 
     """
+    verdict, _ = finish(validation_steps(
+        goal, joints, limits, start_s=start_s, start_state=start_state,
+        sample_time_s=sample_time_s, origin_s=origin_s, partial_joints=partial_joints))
+    return verdict
+
+
+def validation_steps(goal: JointTrajectoryGoal, joints: Sequence[str],
+                     limits: Sequence[AxisLimits], *, start_s: float,
+                     start_state: tuple[FloatArray, FloatArray, FloatArray],
+                     sample_time_s: float, origin_s: float | None = None,
+                     partial_joints: bool = False, points_per_step: int = 0,
+                     samples_per_step: int = 0) -> Steps[tuple[GoalVerdict, Spline | None]]:
+    """
+    Check a goal as :func:`validate_goal` does, a slice at a time; also return its spline.
+
+    The same operations in the same order, with a pause (``yield``) after each slice of
+    ``points_per_step`` points read and of ``samples_per_step`` samples checked (0: no pause
+    there), for a real-time loop that does the check in the time its samples leave free.
+
+    Returns
+    -------
+    verdict : GoalVerdict
+        As :func:`validate_goal`'s.
+    spline : Spline or None
+        The goal's spline (:func:`build_spline`) when it was built: always when accepted.
+
+    """
     verdict = _check_joints(goal, joints, partial_joints)
     if verdict is not None:
-        return verdict
-    cols, verdict = _columns(goal, joints, start_state[0])
+        return verdict, None
+    cols, verdict = yield from _column_steps(goal, joints, start_state[0], points_per_step)
     if verdict is not None:
-        return verdict
+        return verdict, None
     assert cols is not None
     for tol, what in ((goal.goal_time_tolerance_s, 'goal_time_tolerance'),):
         if not (math.isfinite(tol) and tol >= 0.0):
-            return _refuse(f'{what} = {tol!r} s; allowed: a finite time >= 0')
+            return _refuse(f'{what} = {tol!r} s; allowed: a finite time >= 0'), None
     due = (start_s if origin_s is None else origin_s) + cols.times_s
     if due[-1] < start_s:
         return GoalVerdict(ResultCode.OLD_HEADER_TIMESTAMP,
                            f'the last point is due at {due[-1]:.6g} s; allowed: not before now '
-                           f'({start_s:.6g} s)')
+                           f'({start_s:.6g} s)'), None
     for now in np.flatnonzero(due == start_s).tolist():
         i = int(now)
         # a point due now must be where the reference is, or the reference would jump
@@ -481,22 +590,31 @@ def validate_goal(goal: JointTrajectoryGoal, joints: Sequence[str],
                            f'{cols.positions_m[i, k]:.6g} m, {jump[k]:.3g} m from the present '
                            f'reference {start_state[0][k]:.6g} m; allowed: a point due now '
                            f'within {step[k]:.3g} m of it (the sensor resolution), or a later '
-                           'time')
+                           'time'), None
     for k, lim in enumerate(limits):
         column = cols.positions_m[:, k]
         for i in (int(np.argmin(column)), int(np.argmax(column))):
             if not lim.position_min_m <= column[i] <= lim.position_max_m:
                 return _refuse(f'point {i}: position of {joints[k]!r} = {column[i]:.6g} m; '
                                f'allowed: [{lim.position_min_m:.6g}, {lim.position_max_m:.6g}] m '
-                               "(the travel and the amplifier's static reach)")
-    spline = build_spline(goal, joints, start_s, start_state, sample_time_s, origin_s)
+                               "(the travel and the amplifier's static reach)"), None
+    yield
+    spline = _spline_of(cols, start_s, start_state, sample_time_s, origin_s)
     n = int(math.ceil((spline.end_s - start_s) / sample_time_s)) + 1
-    # in blocks, so that a long goal costs time but not memory
+    # in blocks, so that a long goal costs time but not memory; a block in pieces, so that
+    # each pause comes soon
+    piece = samples_per_step or _CHECK_BLOCK
     for first in range(0, n, _CHECK_BLOCK):
-        grid = start_s + np.arange(first, min(first + _CHECK_BLOCK, n),
-                                   dtype=np.float64) * sample_time_s
-        grid[-1] = min(grid[-1], spline.end_s)
-        verdict = _check_block(spline, grid, start_s, joints, limits)
+        last = min(first + _CHECK_BLOCK, n)
+        scan = _LimitScan(start_s, joints, limits)
+        for begin in range(first, last, piece):
+            yield
+            grid = start_s + np.arange(begin, min(begin + piece, last),
+                                       dtype=np.float64) * sample_time_s
+            if begin + piece >= last:
+                grid[-1] = min(grid[-1], spline.end_s)
+            scan.add(spline, grid)
+        verdict = scan.verdict()
         if verdict is not None:
-            return verdict
-    return GoalVerdict(ResultCode.SUCCESSFUL)
+            return verdict, spline
+    return GoalVerdict(ResultCode.SUCCESSFUL), spline
