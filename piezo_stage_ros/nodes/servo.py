@@ -688,9 +688,13 @@ class ServoLoop:
         :attr:`error` for the caller to report; the backend is stopped at the end either way.
         """
         try:
+            report = dict(self.setup_report)
             if setup is not None:
-                self.setup_report = dict(setup() or {})
-            self.setup_report['warm_up'] = self.warm_up()
+                report = dict(setup() or {})
+            report['warm_up'] = self.warm_up()
+            # whole at once: the executor reads it from its own thread once it is not empty
+            # (an entry added while it iterates the dictionary ended its iteration with an error)
+            self.setup_report = report
             if self.on_setup is not None:
                 self.on_setup(self.setup_report)
             if self.freeze_gc:
