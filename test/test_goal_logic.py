@@ -386,3 +386,22 @@ def test_a_goal_announcement_builds_the_reference_again_bit_for_bit():
     from piezo_stage_ros.core.contracts.errors import PiezoStageError
     with pytest.raises(PiezoStageError, match='spline record'):
         Spline.from_record({})
+
+
+def test_a_goal_whose_check_ended_after_its_sample_was_served_is_checked_again() -> None:
+    # checked in slices in the servo's idle time: when the check ends after the sample it was
+    # made for has been served (the stage went on holding there), starting it late would make
+    # the reference jump by the way the goal had gone meanwhile; it is checked again further
+    # ahead instead, and starts from where the stage is, without a jump
+    logic = hold_logic(lead_s=0.02)
+    logic.check_in_slices = True
+    logic.on_position(stamp(0), 3.8e-6)
+    logic.goal(1, move(10e-6, 0.02))
+    assert logic.work()                         # its first slice: checked for sample 201
+    refs = [logic.on_position(stamp(k), 3.8e-6)[0] for k in range(1, 211)]
+    while logic.has_work:                       # the check ends at sample 210: 0.9 ms late
+        logic.work()
+    refs += [logic.on_position(stamp(k), 3.8e-6)[0] for k in range(211, 700)]
+    assert 'retry' in [e[0] for e in logic.events]
+    assert not logic.started or logic.started[0][0] > 210 * T
+    assert np.max(np.abs(np.diff(refs))) < 1e-8  # the move's own steps: 6.2 um in 20 ms

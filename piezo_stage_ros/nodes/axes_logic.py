@@ -320,9 +320,9 @@ class AxesTrajectoryLogic(GoalDesk):
             self._origin_ns = stamp_ns
         index = max(round((stamp_ns - self._origin_ns) * self.rate_hz / NS_PER_S), 0)
         if self.follower is not None:
-            self._index = max(self._index, index)
+            served, self._index = self._index, max(self._index, index)
             if self._requests or self._starts:
-                self._serve_goals(index)
+                self._serve_goals(index, served)
         follower = self.follower
         if self.reference.taken and follower is not None and \
                 follower.version != self._announced:

@@ -686,16 +686,20 @@ class GoalDesk:
         return
         yield
 
-    def _start(self, item: tuple[Any, ...], index: int) -> None:
+    def _start(self, item: tuple[Any, ...], index: int, served: int = -1) -> None:
         _, token, prepared, state, epoch, verdict, goal, stamp_ns, seed = item
         follower = self.follower
         assert follower is not None and isinstance(prepared, PreparedGoal)
         seeded = state is not None
         goal_id = 0
         # the goal's own sample: this one, or in real time one the servo skipped shortly before
+        # (after ``served``, the sample served last); a check that ended after its sample was
+        # served is made again further ahead: started late, the goal's reference would jump
+        # by the way it should have gone meanwhile
         late = index * self.period_s - prepared.time_s
         t = prepared.time_s
-        if epoch == self._epoch and seeded != self.goal_active and \
+        skipped = served < round(t / self.period_s)
+        if epoch == self._epoch and seeded != self.goal_active and skipped and \
                 -0.5 * self.period_s <= late <= self._late_s + 0.5 * self.period_s:
             if seeded:
                 if seed is None:
@@ -728,8 +732,13 @@ class GoalDesk:
         self.started.append((t, goal))
         self.events.append(('verdict', token, verdict, goal_id))
 
-    def _serve_goals(self, index: int) -> None:
-        """Apply the goal requests due at grid sample ``index``."""
+    def _serve_goals(self, index: int, served: int = -1) -> None:
+        """
+        Apply the goal requests due at grid sample ``index``.
+
+        ``served``: the grid sample served before it (a goal checked ahead starts late only
+        over samples the servo skipped, never over one it served without it).
+        """
         follower = self.follower
         assert follower is not None
         requests = self._requests
@@ -739,7 +748,7 @@ class GoalDesk:
             if kind == 'goal':
                 started = self._prepare(item[1], item[2], item[3], item[4], index)
                 if started is not None:
-                    self._start(started, index)
+                    self._start(started, index, served)
             elif kind == 'cancel':
                 goal_id = self._tokens.pop(item[1], None)
                 if goal_id is None:
@@ -755,7 +764,7 @@ class GoalDesk:
         starts = self._starts
         # goals checked ahead, each for its own sample (in the order they were checked)
         while starts and round(starts[0][2].time_s / self.period_s) <= index:
-            self._start(starts.popleft(), index)
+            self._start(starts.popleft(), index, served)
 
     def _drop_check(self, token: int) -> bool:
         """Drop the check of goal ``token`` if it is waiting or under way; return whether."""
@@ -1107,6 +1116,7 @@ class TrajectoryLogic(GoalDesk):
             self._origin_ns = stamp_ns
         if self.follower is not None:
             index = round((stamp_ns - self._origin_ns) * self.rate_hz / NS_PER_S)
+            served = self._index
             if index > self._index:
                 self._index = index
             if self._pending is not None or (self.trajectory is self._view
@@ -1116,7 +1126,7 @@ class TrajectoryLogic(GoalDesk):
                     self._end_goal(index)
             else:
                 if self._requests or self._starts:
-                    self._serve_goals(index)
+                    self._serve_goals(index, served)
                 if self.goal_active:
                     return self._goal_reference(stamp_ns, index, position_m)
         if self._pending is not None:
