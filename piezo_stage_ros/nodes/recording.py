@@ -115,6 +115,20 @@ def live_share(waiting: int, limit: int) -> int:
     return max(0, int(waiting) - max(1, int(limit)))
 
 
+def _held_over(number: IntArray, applied_v: FloatArray) -> FloatArray:
+    """
+    Return what the plant held over each served sample, [t_k, t_k+1) [V].
+
+    ``applied_v`` (one value or one row of the axes' values a sample) is the input held over
+    the sample that ended at t_k; the input over the next one is the next sample's, where the
+    next sample number follows (NaN across a gap, and after the last sample).
+    """
+    following = np.full(applied_v.shape, np.nan)
+    after = number[1:] == number[:-1] + 1
+    following[:-1][after] = applied_v[1:][after]
+    return following
+
+
 class BlockRecorder:
     """
     Served samples in, block messages (CDR bytes of ``stage/block``) out.
@@ -181,9 +195,7 @@ class BlockRecorder:
         # the rows waiting, each with the input held after it (the next sample's applied_v,
         # NaN across a gap); without held_v the last row waits for the next batch
         batch = _join(self._waiting)
-        following = np.full(batch.size, np.nan)
-        after = batch.number[1:] == batch.number[:-1] + 1
-        following[:-1][after] = batch.floats[1:, _APPLIED][after]
+        following = _held_over(batch.number, batch.floats[:, _APPLIED])
         if held_v is None:
             last = batch.size - 1
             self._waiting, self._waiting_rows = [_take(batch, slice(last, None))], 1
@@ -339,10 +351,7 @@ class AxesBlockRecorder:
 
         def stack(field: str) -> FloatArray:
             return np.vstack([getattr(b, field) for b in self._waiting])
-        applied = stack('applied_v')
-        following = np.full(applied.shape, np.nan)
-        after = number[1:] == number[:-1] + 1
-        following[:-1][after] = applied[1:][after]
+        following = _held_over(number, stack('applied_v'))
         values = [stack(f) for f in ('position_m', 'reference_m', 'velocity_mps', 'command_v')]
         true = stack('true_position_m')
         n = number.size
