@@ -405,3 +405,16 @@ def test_a_goal_whose_check_ended_after_its_sample_was_served_is_checked_again()
     assert 'retry' in [e[0] for e in logic.events]
     assert not logic.started or logic.started[0][0] > 210 * T
     assert np.max(np.abs(np.diff(refs))) < 1e-8  # the move's own steps: 6.2 um in 20 ms
+
+
+def test_a_goal_served_at_a_sample_sent_again_starts_there() -> None:
+    # lockstep: the plant resends a sample whose command did not come; a goal that arrived
+    # meanwhile starts at that sample, as at any other (no jump: it is its own sample)
+    logic = hold_logic()
+    logic.on_position(stamp(0), 3.8e-6)
+    logic.on_position(stamp(1), 3.8e-6)
+    logic.goal(1, move(10e-6, 0.02))
+    logic.on_position(stamp(1), 3.8e-6)         # sample 1 sent again
+    assert 'retry' not in [e[0] for e in logic.events]
+    assert logic.events[0][0] == 'verdict' and logic.events[0][3] > 0
+    assert [t for t, _ in logic.started] == [1 * T]

@@ -698,8 +698,10 @@ class GoalDesk:
         # by the way it should have gone meanwhile
         late = index * self.period_s - prepared.time_s
         t = prepared.time_s
-        skipped = served < round(t / self.period_s)
-        if epoch == self._epoch and seeded != self.goal_active and skipped and \
+        own = round(t / self.period_s)
+        # on its own sample (served again: a lockstep resend), or late over skipped ones only
+        on_grid = index <= own or served < own
+        if epoch == self._epoch and seeded != self.goal_active and on_grid and \
                 -0.5 * self.period_s <= late <= self._late_s + 0.5 * self.period_s:
             if seeded:
                 if seed is None:
